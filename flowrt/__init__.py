@@ -1,0 +1,71 @@
+"""flowrt: a real-time dataflow runtime for robot perception and control."""
+
+from .builder import GraphBuilder as GraphBuilder
+from .clock import Clock as Clock
+from .clock import SystemClock as SystemClock
+from .clock import VirtualClock as VirtualClock
+from .diagnostics import Diagnostic as Diagnostic
+from .diagnostics import GraphError as GraphError
+from .events import DeadlineMissed as DeadlineMissed
+from .events import Event as Event
+from .events import HealthAlert as HealthAlert
+from .events import LoopBlocked as LoopBlocked
+from .events import ModeChanged as ModeChanged
+from .events import NodeFailed as NodeFailed
+from .events import NodeGaveUp as NodeGaveUp
+from .events import NodeRestarted as NodeRestarted
+from .events import TimingChanged as TimingChanged
+from .frames import Frame as Frame
+from .graph import Graph as Graph
+from .node import Input as Input
+from .node import Node as Node
+from .node import NodeContext as NodeContext
+from .node import Output as Output
+from .runtime import Monitor as Monitor
+from .runtime import Runtime as Runtime
+from .runtime import Subscription as Subscription
+from .spec import FrameTrigger as FrameTrigger
+from .spec import GraphSpec as GraphSpec
+from .spec import InputTrigger as InputTrigger
+from .spec import LoopTrigger as LoopTrigger
+from .spec import TimerTrigger as TimerTrigger
+from .stats import EdgeStats as EdgeStats
+from .stats import NodeStats as NodeStats
+from .stats import RuntimeStats as RuntimeStats
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Clock",
+    "DeadlineMissed",
+    "Diagnostic",
+    "EdgeStats",
+    "Event",
+    "Frame",
+    "FrameTrigger",
+    "Graph",
+    "GraphBuilder",
+    "GraphError",
+    "GraphSpec",
+    "HealthAlert",
+    "Input",
+    "InputTrigger",
+    "LoopBlocked",
+    "LoopTrigger",
+    "ModeChanged",
+    "Monitor",
+    "Node",
+    "NodeContext",
+    "NodeFailed",
+    "NodeGaveUp",
+    "NodeRestarted",
+    "NodeStats",
+    "Output",
+    "Runtime",
+    "RuntimeStats",
+    "Subscription",
+    "SystemClock",
+    "TimerTrigger",
+    "TimingChanged",
+    "VirtualClock",
+]

@@ -1,0 +1,52 @@
+"""Located problems in a graph: every error names file:line:column and the key, all at once.
+
+A user fixing a graph file wants the whole list in one go, pointing at the exact place, not
+one Python traceback per attempt.
+"""
+
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable
+from dataclasses import dataclass
+from enum import Enum
+
+
+class Severity(str, Enum):
+    error = "error"
+    warning = "warning"
+
+
+@dataclass(frozen=True)
+class Diagnostic:
+    """One problem: where (file, 1-based line and column, dotted key path) and what."""
+
+    severity: Severity
+    message: str
+    key: str = ""
+    file: str = "<graph>"
+    line: int = 0
+    column: int = 0
+
+    def __str__(self) -> str:
+        where = f"{self.file}:{self.line}:{self.column}" if self.line else self.file
+        key = f" {self.key}:" if self.key else ""
+        return f"{where}: {self.severity.value}:{key} {self.message}"
+
+
+class GraphError(Exception):
+    """A graph that cannot run; carries every error found, not just the first."""
+
+    def __init__(self, diagnostics: Iterable[Diagnostic]) -> None:
+        self.diagnostics = list(diagnostics)
+        super().__init__("\n".join(str(d) for d in self.diagnostics))
+
+    @property
+    def errors(self) -> list[Diagnostic]:
+        return [d for d in self.diagnostics if d.severity is Severity.error]
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """A ' (did you mean X?)' suffix when a close match exists, else ''."""
+    matches = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    return f" (did you mean {matches[0]!r}?)" if matches else ""

@@ -1,0 +1,213 @@
+"""Edge buffers: one per connected input, so a slow reader never slows a fast one.
+
+- ``LatestBuffer``: the cyclic asynchronous buffer. The writer never waits and the reader
+  always gets the newest value; a value replaced before anyone read it counts as dropped.
+- ``QueueBuffer``: bounded FIFO that drops the oldest when full (counted).
+- ``LosslessBuffer``: bounded FIFO whose producer waits when it is full (for recorders).
+
+Frames are link counted: a buffer holds one link on every frame it stores and gives it up
+when the frame is replaced, dropped or handed over to an activation.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from collections.abc import Callable
+from typing import Any
+
+from .frames import Frame
+from .stats import EdgeStats, Running
+
+
+class _Empty:
+    def __repr__(self) -> str:
+        return "EMPTY"
+
+
+EMPTY: Any = _Empty()
+
+
+def _hold(value: Any) -> None:
+    if isinstance(value, Frame):
+        value.acquire()
+
+
+def _drop(value: Any) -> None:
+    if isinstance(value, Frame):
+        value.release()
+
+
+class Buffer:
+    """Common counters and the reader's wake-up hook."""
+
+    policy = "queue"
+
+    def __init__(self, name: str, size: int = 1, clock: Callable[[], float] | None = None) -> None:
+        import time
+
+        self.name = name
+        self.size = size
+        self.published = 0
+        self.delivered = 0
+        self.dropped = 0
+        self.sampled = False
+        self.age = Running()
+        self.now = clock or time.monotonic
+        self.on_put: Callable[[], None] | None = None
+        self._last_seq = -1
+
+    def put(self, value: Any, t: float) -> bool:
+        """Store a value published at time ``t``; False when a lossless buffer is full."""
+        raise NotImplementedError
+
+    def take(self) -> Any:
+        """The value for an activation (the caller owns one link on a frame), or EMPTY."""
+        raise NotImplementedError
+
+    def pending(self) -> int:
+        """Values not yet delivered."""
+        raise NotImplementedError
+
+    def clear(self) -> None:
+        raise NotImplementedError
+
+    def _delivered(self, seq: int, t: float) -> None:
+        assert seq >= self._last_seq, "a reader saw an older message after a newer one"
+        self._last_seq = seq
+        self.delivered += 1
+        self.age.add(self.now() - t)
+
+    def stats(self) -> EdgeStats:
+        return EdgeStats(
+            name=self.name,
+            policy=self.policy,
+            size=self.size,
+            published=self.published,
+            delivered=self.delivered,
+            dropped=self.dropped,
+            sampled=self.sampled,
+            age=self.age.summary(),
+        )
+
+
+class LatestBuffer(Buffer):
+    """Newest value only. A reader may read the same value again if nothing newer came."""
+
+    policy = "latest"
+
+    def __init__(self, name: str, size: int = 1, clock: Callable[[], float] | None = None) -> None:
+        super().__init__(name, 1, clock)
+        self._value: Any = EMPTY
+        self._t = 0.0
+        self._seq = -1
+        self._read = True
+
+    def put(self, value: Any, t: float) -> bool:
+        self.published += 1
+        old = self._value
+        if old is not EMPTY:
+            if not self._read:
+                self.dropped += 1
+            _drop(old)
+        _hold(value)
+        self._value, self._t, self._seq, self._read = value, t, self.published, False
+        if self.on_put is not None:
+            self.on_put()
+        return True
+
+    def take(self) -> Any:
+        if self._value is EMPTY:
+            return EMPTY
+        if not self._read:
+            self._read = True
+            self._delivered(self._seq, self._t)
+        _hold(self._value)
+        return self._value
+
+    def take_new(self) -> Any:
+        """Like take, but EMPTY when the newest value was already delivered."""
+        return EMPTY if self._read else self.take()
+
+    def pending(self) -> int:
+        return 0 if self._read or self._value is EMPTY else 1
+
+    def clear(self) -> None:
+        if self._value is not EMPTY:
+            _drop(self._value)
+        self._value = EMPTY
+        self._read = True
+
+
+class QueueBuffer(Buffer):
+    """Bounded FIFO; when full the oldest value is dropped and counted (the writer never waits)."""
+
+    policy = "queue"
+
+    def __init__(self, name: str, size: int = 8, clock: Callable[[], float] | None = None) -> None:
+        super().__init__(name, size, clock)
+        self._q: deque[tuple[int, float, Any]] = deque()
+
+    def put(self, value: Any, t: float) -> bool:
+        self.published += 1
+        if len(self._q) >= self.size:
+            _, _, old = self._q.popleft()
+            self.dropped += 1
+            _drop(old)
+        _hold(value)
+        self._q.append((self.published, t, value))
+        if self.on_put is not None:
+            self.on_put()
+        return True
+
+    def take(self) -> Any:
+        if not self._q:
+            return EMPTY
+        seq, t, value = self._q.popleft()
+        self._delivered(seq, t)
+        return value
+
+    def take_new(self) -> Any:
+        return self.take()
+
+    def pending(self) -> int:
+        return len(self._q)
+
+    def clear(self) -> None:
+        while self._q:
+            _drop(self._q.popleft()[2])
+
+
+class LosslessBuffer(QueueBuffer):
+    """Bounded FIFO that never drops: ``put`` refuses when full and the producer waits."""
+
+    policy = "lossless"
+
+    def __init__(self, name: str, size: int = 8, clock: Callable[[], float] | None = None) -> None:
+        super().__init__(name, size, clock)
+        self._space = asyncio.Event()
+
+    def put(self, value: Any, t: float) -> bool:
+        if len(self._q) >= self.size:
+            return False
+        return super().put(value, t)
+
+    async def wait_space(self) -> None:
+        while len(self._q) >= self.size:
+            self._space.clear()
+            await self._space.wait()
+
+    def take(self) -> Any:
+        value = super().take()
+        if value is not EMPTY:
+            self._space.set()
+        return value
+
+    def clear(self) -> None:
+        super().clear()
+        self._space.set()
+
+
+def make_buffer(policy: str, name: str, size: int, clock: Callable[[], float] | None = None) -> Buffer:
+    cls = {"latest": LatestBuffer, "queue": QueueBuffer, "lossless": LosslessBuffer}[policy]
+    return cls(name, size, clock)

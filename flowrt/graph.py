@@ -1,0 +1,311 @@
+"""A validated, resolved graph: node classes found, params parsed, triggers and edges settled.
+
+``spec`` says what the user wrote; ``Graph`` is what will run. All structural checks happen
+here, every problem collected with its location, so a bad graph never reaches the runtime.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from math import gcd
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ValidationError
+
+from .diagnostics import Diagnostic, GraphError, Severity, did_you_mean
+from .frames import Frame
+from .loading import Locations, load_file, load_text, pydantic_diagnostics
+from .node import Node
+from .registry import KindError, resolve_kind
+from .spec import (
+    EdgePolicy,
+    FrameTrigger,
+    GraphSpec,
+    InputSpec,
+    InputTrigger,
+    LoopTrigger,
+    NodeSpec,
+    TimerTrigger,
+    Trigger,
+)
+
+
+@dataclass(frozen=True)
+class Edge:
+    """A connection from ``src.port`` to ``dst.port`` with the reader's buffer policy."""
+
+    src: str
+    src_port: str
+    dst: str
+    dst_port: str
+    policy: EdgePolicy
+    size: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.src}.{self.src_port}->{self.dst}.{self.dst_port}"
+
+
+@dataclass
+class ResolvedNode:
+    name: str
+    spec: NodeSpec
+    cls: type[Node]
+    params: BaseModel
+    trigger: Trigger
+    order: int  # position in the file: tie-break after priority
+
+    @property
+    def frame_source(self) -> str | None:
+        """``node.port`` whose ticks activate this node, for frame triggers."""
+        if isinstance(self.trigger, FrameTrigger):
+            return self.trigger.frame
+        return None
+
+
+@dataclass
+class Graph:
+    spec: GraphSpec
+    nodes: dict[str, ResolvedNode]
+    edges: list[Edge]
+    warnings: list[Diagnostic] = field(default_factory=list)
+    file: str = "<python>"
+
+    @classmethod
+    def from_file(cls, path: str | Path, kinds: Mapping[str, type[Node]] | None = None) -> Graph:
+        spec, locs = load_file(path)
+        return resolve(spec, locs, kinds)
+
+    @classmethod
+    def from_text(cls, text: str, file: str = "<graph>", kinds: Mapping[str, type[Node]] | None = None) -> Graph:
+        spec, locs = load_text(text, file)
+        return resolve(spec, locs, kinds)
+
+    def frame_port(self, source: str) -> str:
+        """Normalise a frame trigger's source (``cam`` or ``cam.frame``) to ``cam.frame``."""
+        if "." in source:
+            return source
+        return f"{source}.{self.nodes[source].cls.frame_ports()[0]}"
+
+    def frame_interval_ms(self, source: str) -> float | None:
+        """Nominal time between ticks of a frame source, when its own trigger is a timer."""
+        node = self.nodes.get(source.split(".")[0])
+        if node is None:
+            return None
+        if isinstance(node.trigger, TimerTrigger):
+            return node.trigger.timer
+        if isinstance(node.trigger, FrameTrigger):
+            inner = self.frame_interval_ms(node.trigger.frame)
+            return None if inner is None else inner * node.trigger.period
+        fps = getattr(node.params, "fps", None)
+        return 1000.0 / fps if isinstance(fps, int | float) and fps > 0 else None
+
+
+def _is_compatible(out_type: Any, in_type: Any) -> bool:
+    if in_type in (object, Any) or out_type in (object, Any):
+        return True
+    if isinstance(out_type, type) and isinstance(in_type, type):
+        return issubclass(out_type, in_type)
+    return bool(out_type == in_type)
+
+
+def _type_name(t: Any) -> str:
+    return getattr(t, "__name__", str(t))
+
+
+def resolve(
+    spec: GraphSpec,
+    locs: Locations | None = None,
+    kinds: Mapping[str, type[Node]] | None = None,
+) -> Graph:
+    """Check everything that needs the node classes; raise GraphError with all problems."""
+    locs = locs or Locations("<python>")
+    diags: list[Diagnostic] = []
+    err = diags.append
+
+    def at(path: tuple[str | int, ...], msg: str, sev: Severity = Severity.error) -> None:
+        err(locs.diag(path, msg, sev))
+
+    classes: dict[str, type[Node]] = {}
+    params: dict[str, BaseModel] = {}
+    for name, ns in spec.nodes.items():
+        try:
+            classes[name] = resolve_kind(ns.kind, kinds)
+        except KindError as e:
+            at(("nodes", name, "kind"), str(e))
+            continue
+        try:
+            params[name] = classes[name].Params.model_validate(ns.params)
+        except ValidationError as e:
+            diags.extend(pydantic_diagnostics(e, locs, ("nodes", name, "params")))
+
+    names = list(spec.nodes)
+    edges: list[Edge] = []
+    for name, ns in spec.nodes.items():
+        cls = classes.get(name)
+        for port, ins in ns.inputs.items():
+            path = ("nodes", name, "inputs", port)
+            if cls is not None and port not in cls.inputs:
+                at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, cls.inputs))
+                continue
+            if ins.node not in spec.nodes:
+                at(path, f"input from unknown node {ins.node!r}" + did_you_mean(ins.node, names))
+                continue
+            src_cls = classes.get(ins.node)
+            if src_cls is None or cls is None:
+                continue
+            if ins.port not in src_cls.outputs:
+                at(
+                    path,
+                    f"node {ins.node!r} ({spec.nodes[ins.node].kind}) has no output {ins.port!r}"
+                    + did_you_mean(ins.port, src_cls.outputs),
+                )
+                continue
+            out_t, in_t = src_cls.outputs[ins.port].type, cls.inputs[port].type
+            if not _is_compatible(out_t, in_t):
+                at(
+                    path,
+                    f"incompatible port types: {ins.source} produces {_type_name(out_t)}, "
+                    f"{name}.{port} expects {_type_name(in_t)}",
+                )
+                continue
+            edges.append(_edge(name, port, ins, in_t))
+        if cls is not None:
+            for port, p in cls.inputs.items():
+                if p.required and port not in ns.inputs:
+                    at(("nodes", name), f"required input {port!r} of {ns.kind} is not connected")
+
+    triggers: dict[str, Trigger] = {}
+    for name, ns in spec.nodes.items():
+        cls = classes.get(name)
+        trig = ns.trigger
+        if trig is None and cls is not None and name in params:
+            trig = cls.default_trigger(params[name])
+        if trig is None:
+            if ns.inputs:
+                trig = InputTrigger()
+            elif cls is not None:
+                at(("nodes", name), "node has no trigger and no inputs: add trigger: {timer: ...} or loop")
+                continue
+            else:
+                continue
+        triggers[name] = trig
+        _check_trigger(name, ns, trig, spec, classes, at)
+
+    _check_cycles(spec, edges, at)
+
+    for mode_name, mode in spec.modes.items():
+        for node in mode.nodes:
+            if node not in spec.nodes:
+                at(("modes", mode_name, "nodes", node), f"unknown node {node!r}" + did_you_mean(node, names))
+    if spec.initial_mode is not None and spec.initial_mode not in spec.modes:
+        at(("initial_mode",), f"unknown mode {spec.initial_mode!r}" + did_you_mean(spec.initial_mode, spec.modes))
+
+    resolved = {
+        name: ResolvedNode(name, ns, classes[name], params[name], triggers[name], i)
+        for i, (name, ns) in enumerate(spec.nodes.items())
+        if name in classes and name in params and name in triggers
+    }
+    graph = Graph(spec, resolved, edges, file=locs.file)
+    if not [d for d in diags if d.severity is Severity.error]:
+        _check_deadlines(graph, at)
+    diags.sort(key=lambda d: (d.line, d.column))
+    if any(d.severity is Severity.error for d in diags):
+        raise GraphError(diags)
+    graph.warnings = diags
+    return graph
+
+
+def _edge(dst: str, dst_port: str, ins: InputSpec, in_type: Any) -> Edge:
+    policy = ins.policy
+    if policy is None:
+        is_frame = isinstance(in_type, type) and issubclass(in_type, Frame)
+        policy = EdgePolicy.latest if is_frame else EdgePolicy.queue
+    return Edge(ins.node, ins.port, dst, dst_port, policy, ins.size)
+
+
+def _check_trigger(name: str, ns: NodeSpec, trig: Trigger, spec: GraphSpec, classes: Mapping[str, type[Node]], at: Any) -> None:
+    path = ("nodes", name, "trigger")
+    if isinstance(trig, FrameTrigger):
+        src, _, port = trig.frame.partition(".")
+        if src not in spec.nodes:
+            at((*path, "frame"), f"unknown frame source {src!r}" + did_you_mean(src, spec.nodes))
+        elif src in classes:
+            frame_ports = classes[src].frame_ports()
+            if not frame_ports:
+                at((*path, "frame"), f"frame trigger on {src!r} ({spec.nodes[src].kind}), which produces no frames")
+            elif port and port not in frame_ports:
+                at((*path, "frame"), f"{src!r} has no frame output {port!r}" + did_you_mean(port, frame_ports))
+        if trig.period <= 0:
+            at((*path, "period"), f"period must be a positive number of frames, got {trig.period}")
+        if trig.phase < 0:
+            at((*path, "phase"), f"phase must be >= 0, got {trig.phase}")
+        elif trig.period > 0 and trig.phase >= trig.period:
+            at((*path, "phase"), f"phase {trig.phase} must be less than period {trig.period}")
+    elif isinstance(trig, TimerTrigger):
+        if trig.timer <= 0:
+            at((*path, "timer"), f"timer period must be positive, got {trig.timer:g} ms")
+        if trig.phase < 0:
+            at((*path, "phase"), f"phase must be >= 0, got {trig.phase:g} ms")
+        elif trig.timer > 0 and trig.phase >= trig.timer:
+            at((*path, "phase"), f"phase {trig.phase:g} ms must be less than the period {trig.timer:g} ms")
+    elif isinstance(trig, InputTrigger):
+        wanted = [trig.input] if isinstance(trig.input, str) else trig.input
+        for port in wanted:
+            if port != "any" and port not in ns.inputs:
+                at((*path, "input"), f"trigger on input {port!r}, which is not connected" + did_you_mean(port, ns.inputs))
+    elif isinstance(trig, LoopTrigger):
+        pass
+
+
+def _check_cycles(spec: GraphSpec, edges: list[Edge], at: Any) -> None:
+    succ: dict[str, list[str]] = {n: [] for n in spec.nodes}
+    for e in edges:
+        succ[e.src].append(e.dst)
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(n: str) -> list[str] | None:
+        state[n] = 1
+        stack.append(n)
+        for m in succ[n]:
+            if state.get(m) == 1:
+                return [*stack[stack.index(m):], m]
+            if m not in state and (cycle := visit(m)):
+                return cycle
+        stack.pop()
+        state[n] = 2
+        return None
+
+    for n in spec.nodes:
+        if n not in state and (cycle := visit(n)):
+            at(("nodes", cycle[-2], "inputs"), "cycle in the graph: " + " -> ".join(cycle))
+            return
+
+
+def _check_deadlines(graph: Graph, at: Any) -> None:
+    for name, node in graph.nodes.items():
+        deadline = node.spec.deadline
+        if deadline is None:
+            continue
+        period: float | None = None
+        if isinstance(node.trigger, TimerTrigger):
+            period = node.trigger.timer
+        elif isinstance(node.trigger, FrameTrigger):
+            interval = graph.frame_interval_ms(node.trigger.frame)
+            period = None if interval is None else interval * node.trigger.period
+        if period is not None and deadline > period:
+            at(
+                ("nodes", name, "deadline"),
+                f"deadline {deadline:g} ms is longer than the period {period:g} ms",
+                Severity.warning,
+            )
+
+
+def hyperperiod(periods: list[int]) -> int:
+    h = 1
+    for p in periods:
+        h = h * p // gcd(h, p)
+    return h

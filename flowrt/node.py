@@ -1,0 +1,183 @@
+"""The node base class: a user writes ``process``; the runtime does threads, buffers and timing.
+
+Lifecycle and timing contract
+-----------------------------
+1. The runtime validates ``params`` against the class's ``Params`` model when the graph is
+   loaded, long before anything runs.
+2. ``setup()`` runs once before the first activation (in the worker process for
+   ``placement: process``/``pool``). Open devices and allocate buffers here, not in
+   ``__init__``: a restarted node gets a fresh instance and a fresh ``setup``.
+3. ``process(**inputs)`` runs once per activation with one keyword argument per input port.
+   It may be a plain function or a coroutine function. It returns the value of the single
+   output port, a mapping ``{port: value}`` when there are several, or ``None`` for nothing.
+   Its activation is measured from release (the tick) to return; past ``deadline`` it counts
+   as a miss. It is never re-entered: while it runs, further frame/timer activations are
+   skipped and counted (overrun), and input activations wait in the input buffers.
+   An inline ``process`` runs on the event loop and must be short; the runtime reports
+   calls that block the loop.
+4. ``teardown()`` runs once when the runtime stops or before a restart, even after errors.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
+
+from pydantic import BaseModel, ConfigDict
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from .frames import Frame
+    from .spec import Trigger
+
+T = TypeVar("T")
+
+
+class Input(Generic[T]):
+    """An input port. ``required`` inputs must be connected and hold a value to activate."""
+
+    def __init__(self, type_: type[T] | Any = object, *, required: bool = True, doc: str = "") -> None:
+        self.type: Any = type_
+        self.required = required
+        self.doc = doc
+        self.name = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __repr__(self) -> str:
+        return f"Input({getattr(self.type, '__name__', self.type)}, name={self.name!r})"
+
+
+class Output(Generic[T]):
+    """An output port; every connected input gets its own buffer (fan-out)."""
+
+    def __init__(self, type_: type[T] | Any = object, *, doc: str = "") -> None:
+        self.type: Any = type_
+        self.doc = doc
+        self.name = ""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    def __repr__(self) -> str:
+        return f"Output({getattr(self.type, '__name__', self.type)}, name={self.name!r})"
+
+
+class NoParams(BaseModel):
+    """The params model of a node that takes none: any key given is an error."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class NodeContext:
+    """What a running node may ask of the runtime, whatever its placement.
+
+    The runtime passes a richer context on the event loop (publishing, frame pools); in a
+    worker process only the local parts are available.
+    """
+
+    def __init__(self, name: str, logger: logging.Logger | None = None) -> None:
+        self.name = name
+        self.log = logger or logging.getLogger(f"flowrt.node.{name}")
+
+    def now(self) -> float:
+        """Runtime clock, seconds (monotonic; virtual under a test clock)."""
+        import time
+
+        return time.monotonic()
+
+    def new_frame(
+        self, shape: tuple[int, ...], dtype: np.dtype[Any] | type = ..., pixel_format: str = "BGR"
+    ) -> Frame:
+        """A writable frame to fill and return; in shared memory when the runtime provides it."""
+        import numpy as np
+
+        from .frames import Frame
+
+        dt = np.uint8 if dtype is ... else dtype
+        return Frame(np.empty(shape, dtype=dt), source=self.name, pixel_format=pixel_format)
+
+    def publish(self, port: str, value: Any) -> None:
+        """Publish outside the return path (streaming nodes); only on the event loop."""
+        raise RuntimeError("publish() is only available to inline nodes on the event loop")
+
+
+class Node:
+    """Base class of every node; subclasses declare ports as class attributes.
+
+    Example::
+
+        class Threshold(Node):
+            class Params(BaseModel):
+                level: int = 128
+
+            frame = Input(Frame)
+            count = Output(int)
+
+            def process(self, frame: Frame) -> int:
+                return int((frame.data > self.params.level).sum())
+    """
+
+    Params: ClassVar[type[BaseModel]] = NoParams
+    inputs: ClassVar[Mapping[str, Input[Any]]] = {}
+    outputs: ClassVar[Mapping[str, Output[Any]]] = {}
+
+    params: Any
+    ctx: NodeContext
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        ins: dict[str, Input[Any]] = {}
+        outs: dict[str, Output[Any]] = {}
+        for base in reversed(cls.__mro__):
+            for key, value in vars(base).items():
+                if isinstance(value, Input):
+                    ins[key] = value
+                elif isinstance(value, Output):
+                    outs[key] = value
+        cls.inputs = ins
+        cls.outputs = outs
+
+    @classmethod
+    def default_trigger(cls, params: Any) -> Trigger | None:
+        """The trigger used when the graph gives none (e.g. a capture node's own fps)."""
+        return None
+
+    @classmethod
+    def frame_ports(cls) -> list[str]:
+        """Output ports carrying frames: each publication on one is a tick of the frame clock."""
+        from .frames import Frame
+
+        return [n for n, p in cls.outputs.items() if isinstance(p.type, type) and issubclass(p.type, Frame)]
+
+    def setup(self) -> Any:
+        """Acquire resources; may be async."""
+
+    def process(self, **inputs: Any) -> Any:
+        raise NotImplementedError(f"{type(self).__name__}.process")
+
+    def teardown(self) -> Any:
+        """Release resources; may be async; runs even after errors."""
+
+
+def make_node(cls: type[Node], params: BaseModel | Mapping[str, Any] | None, ctx: NodeContext) -> Node:
+    """Instantiate a node with validated params and its context, ready for ``setup``."""
+    node = cls()
+    node.params = params if isinstance(params, BaseModel) else cls.Params.model_validate(params or {})
+    node.ctx = ctx
+    return node
+
+
+class NodeFactory:
+    """A picklable recipe for a node instance, so a worker process can build its own copy."""
+
+    def __init__(self, cls: type[Node], params: BaseModel, name: str) -> None:
+        self.cls = cls
+        self.params = params
+        self.name = name
+
+    def __call__(self) -> Node:
+        return make_node(self.cls, self.params, NodeContext(self.name))

@@ -1,0 +1,45 @@
+"""Real-time scheduling of the loop process: SCHED_FIFO and locked memory, where permitted.
+
+Under CPU load a normal-priority loop process is preempted by anything; with SCHED_FIFO the
+kernel runs it as soon as its timerfd fires. Refusal is expected on unprivileged machines and
+is reported, never fatal.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import sys
+
+_MCL_CURRENT, _MCL_FUTURE = 1, 2
+
+
+def enable_realtime(priority: int = 50) -> tuple[bool, str]:
+    """Try SCHED_FIFO at ``priority`` for this process; returns (granted, description)."""
+    if not hasattr(os, "sched_setscheduler"):
+        return False, f"SCHED_FIFO not available on {sys.platform}"
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except PermissionError:
+        return False, "SCHED_FIFO not permitted (needs root or CAP_SYS_NICE / rtprio limit); normal priority"
+    except OSError as e:
+        return False, f"SCHED_FIFO refused ({e.strerror}); normal priority"
+    locked = ""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) == 0:
+            locked = ", memory locked"
+    except (OSError, AttributeError):
+        pass
+    return True, f"SCHED_FIFO {priority}{locked}"
+
+
+def current_policy() -> str:
+    if not hasattr(os, "sched_getscheduler"):
+        return "unknown"
+    policy = os.sched_getscheduler(0)
+    names = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_FIFO: "SCHED_FIFO", os.SCHED_RR: "SCHED_RR"}
+    name = names.get(policy, str(policy))
+    if policy in (os.SCHED_FIFO, os.SCHED_RR):
+        return f"{name} {os.sched_getparam(0).sched_priority}"
+    return f"{name} nice {os.getpriority(os.PRIO_PROCESS, 0)}"

@@ -1,0 +1,386 @@
+"""The embedding API: a graph running on the current event loop.
+
+    async with flowrt.Runtime.from_file("graph.yaml") as rt:
+        await rt.run(10.0)
+        print(rt.stats())
+
+The runtime owns the scheduler, the frame store, worker processes and the monitors (the
+status table, the web view, JSON statistics all watch it through :class:`Monitor`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections import deque
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any, Protocol
+
+from .clock import Clock, SystemClock
+from .edges import EMPTY, Buffer, make_buffer
+from .events import Event, ModeChanged, RealtimeStatus
+from .frames import Frame
+from .graph import Graph, resolve
+from .node import Node, NodeFactory
+from .scheduler import Executor, NodeRunner, Scheduler
+from .spec import EdgePolicy, GraphSpec, Placement
+from .stats import LoopStats, Running, RuntimeStats
+
+log = logging.getLogger("flowrt")
+
+
+class Monitor(Protocol):
+    """Something that watches a runtime: told when it starts, of each event, when it stops."""
+
+    def started(self, rt: Runtime) -> None: ...
+
+    def event(self, event: Event) -> None: ...
+
+    def stopped(self, rt: Runtime) -> None: ...
+
+
+class Subscription:
+    """Values published on a port, delivered to the host program through its own buffer."""
+
+    def __init__(self, buf: Buffer) -> None:
+        self._buf = buf
+        self._ready = asyncio.Event()
+        buf.on_put = self._ready.set
+
+    def get_nowait(self) -> Any:
+        """The next value, or raise LookupError when none is waiting."""
+        value = self._buf.take_new()  # type: ignore[attr-defined]
+        if value is EMPTY:
+            raise LookupError("no value waiting")
+        if isinstance(value, Frame):
+            value.release()  # the host keeps a plain reference; the slot may be reused later
+        return value
+
+    async def get(self) -> Any:
+        while True:
+            try:
+                return self.get_nowait()
+            except LookupError:
+                self._ready.clear()
+                await self._ready.wait()
+
+    def __aiter__(self) -> AsyncIterator[Any]:
+        return self._iter()
+
+    async def _iter(self) -> AsyncIterator[Any]:
+        while True:
+            yield await self.get()
+
+    @property
+    def dropped(self) -> int:
+        return self._buf.dropped
+
+
+class Runtime:
+    """A graph, its scheduler and its resources, on the running event loop."""
+
+    def __init__(
+        self,
+        graph: Graph | GraphSpec,
+        *,
+        clock: Clock | None = None,
+        monitors: Iterable[Monitor] = (),
+        realtime: bool = False,
+        kinds: Mapping[str, type[Node]] | None = None,
+    ) -> None:
+        self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
+        self.clock: Clock = clock or SystemClock()
+        self.monitors: list[Monitor] = list(monitors)
+        self.realtime_requested = realtime
+        self.realtime = ""
+        self.mode: str | None = None
+        self.events: deque[Event] = deque(maxlen=1000)
+        self.event_count = 0
+        self._listeners: list[Callable[[Event], None]] = []
+        self._sched: Scheduler | None = None
+        self._stop = asyncio.Event()
+        self._lag = Running()
+        self._lag_handle: asyncio.TimerHandle | None = None
+        self._frames: Any = None
+        self._pool: Any = None
+        self.started = False
+
+    @classmethod
+    def from_file(cls, path: str | Path, **kwargs: Any) -> Runtime:
+        """Load and validate a graph file (raises GraphError listing every problem)."""
+        return cls(Graph.from_file(path, kinds=kwargs.get("kinds")), **kwargs)
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    async def __aenter__(self) -> Runtime:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    async def start(self) -> None:
+        if self.started:
+            return
+        if self.realtime_requested:
+            from .realtime import enable_realtime
+
+            granted, self.realtime = enable_realtime()
+            if not granted:
+                log.warning("--realtime: %s", self.realtime)
+        self._frames = _frame_store()
+        self.clock.origin = self.clock.now() + (0.005 if isinstance(self.clock, SystemClock) else 0.0)
+        self._sched = Scheduler(
+            self.graph,
+            self.clock,
+            self._emit,
+            worker_executor=self._worker_executor,
+            new_frame=self._new_frame if self._frames is not None else None,
+            real_time=isinstance(self.clock, SystemClock),
+        )
+        self.started = True
+        for m in self.monitors:
+            m.started(self)
+        if self.realtime:
+            self._emit(RealtimeStatus(0.0, None, self.realtime))
+        await self._sched.start()
+        if self.graph.spec.initial_mode:
+            self.set_mode(self.graph.spec.initial_mode, origin="graph")
+        if isinstance(self.clock, SystemClock):
+            self._probe_lag(self.clock.now())
+
+    async def stop(self) -> None:
+        """Tear every node down, stop workers, free shared memory; safe to call twice."""
+        if not self.started:
+            return
+        self.started = False
+        self._stop.set()
+        if self._lag_handle is not None:
+            self._lag_handle.cancel()
+        try:
+            if self._sched is not None:
+                await self._sched.stop()
+        finally:
+            if self._pool is not None:
+                with contextlib.suppress(Exception):
+                    await self._pool.stop()
+            if self._frames is not None:
+                self._frames.close()
+            for m in self.monitors:
+                try:
+                    m.stopped(self)
+                except Exception:
+                    log.exception("monitor failed at stop")
+
+    async def run(self, duration: float | None = None) -> None:
+        """Run until ``duration`` seconds have passed or ``request_stop`` is called."""
+        if not self.started:
+            await self.start()
+        if duration is None:
+            await self._stop.wait()
+            return
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._stop.wait(), timeout=duration)
+
+    def request_stop(self) -> None:
+        """Ask ``run`` to return (signal-handler safe on the loop thread)."""
+        self._stop.set()
+
+    # --- resources ----------------------------------------------------------------------
+
+    def _worker_executor(self, runner: NodeRunner, factory: NodeFactory) -> Executor:
+        from . import workers
+
+        spec = runner.rnode.spec
+        watchdog = None if spec.watchdog is None else spec.watchdog / 1000
+        if spec.placement is Placement.pool:
+            if self._pool is None:
+                self._pool = workers.PoolExecutor()
+            ex: Any = self._pool.executor_for(runner.name, factory, priority=runner.timing.priority)
+        else:
+            ex = workers.ProcessExecutor(runner.name, factory, priority=runner.timing.priority, watchdog=watchdog)
+        return _WorkerAdapter(ex)
+
+    def _new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame:
+        import numpy as np
+
+        pool = self._frames.pool(owner)
+        frame = pool.reserve(shape, dtype, source=owner, seq=0, timestamp=self.clock.now(), pixel_format=pixel_format)
+        if frame is None:  # every slot held and the pool at its bound: counted by the pool
+            frame = Frame(np.empty(shape, dtype=dtype), source=owner, pixel_format=pixel_format)
+        return frame
+
+    # --- events -------------------------------------------------------------------------
+
+    def _emit(self, event: Event) -> None:
+        self.events.append(event)
+        self.event_count += 1
+        for m in self.monitors:
+            try:
+                m.event(event)
+            except Exception:
+                log.exception("monitor failed on %s", event.kind)
+        for cb in self._listeners:
+            try:
+                cb(event)
+            except Exception:
+                log.exception("event listener failed on %s", event.kind)
+
+    def emit(self, event: Event) -> None:
+        """Publish an event from the host program (e.g. a health alert)."""
+        self._emit(event)
+
+    def on_event(self, callback: Callable[[Event], None]) -> Callable[[], None]:
+        """Call ``callback`` for every event; returns a function that unsubscribes."""
+        self._listeners.append(callback)
+        return lambda: self._listeners.remove(callback)
+
+    def _probe_lag(self, expected: float) -> None:
+        now = self.clock.now()
+        self._lag.add(max(0.0, now - expected))
+        loop = asyncio.get_running_loop()
+        self._lag_handle = loop.call_later(0.010, self._probe_lag, now + 0.010)
+
+    # --- inspection and control -----------------------------------------------------------
+
+    @property
+    def scheduler(self) -> Scheduler:
+        if self._sched is None:
+            raise RuntimeError("the runtime is not started")
+        return self._sched
+
+    def now(self) -> float:
+        """Seconds since the runtime started."""
+        return self.clock.now() - self.clock.origin
+
+    def stats(self) -> RuntimeStats:
+        sched = self.scheduler
+        return RuntimeStats(
+            graph=self.graph.spec.name,
+            uptime=self.now(),
+            mode=self.mode,
+            realtime=self.realtime,
+            nodes=[r.stats() for r in sched.runners.values()],
+            edges=[b.stats() for b in sched.buffers],
+            loop=LoopStats(lag=self._lag.summary(), blocked_calls=sched.blocked_calls),
+            events=self.event_count,
+        )
+
+    def set_timing(
+        self,
+        node: str,
+        *,
+        period: int | None = None,
+        phase: int | None = None,
+        timer: float | None = None,
+        deadline: float | None = None,
+        priority: int | None = None,
+        enabled: bool | None = None,
+        origin: str = "api",
+    ) -> str:
+        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms."""
+        return self.scheduler.set_timing(
+            node,
+            period=period,
+            phase=phase,
+            timer=None if timer is None else timer / 1000,
+            deadline=None if deadline is None else deadline / 1000,
+            priority=priority,
+            enabled=enabled,
+            origin=origin,
+        )
+
+    def set_mode(self, mode: str, origin: str = "api") -> None:
+        """Apply a named mode of the graph file: all of its overrides in one step."""
+        spec = self.graph.spec.modes.get(mode)
+        if spec is None:
+            from .diagnostics import did_you_mean
+
+            raise KeyError(f"unknown mode {mode!r}" + did_you_mean(mode, self.graph.spec.modes))
+        for node, o in spec.nodes.items():
+            self.set_timing(
+                node,
+                period=o.period,
+                phase=o.phase,
+                timer=o.timer,
+                deadline=o.deadline,
+                priority=o.priority,
+                enabled=o.enabled,
+                origin=f"mode {mode}",
+            )
+        previous, self.mode = self.mode, mode
+        self._emit(ModeChanged(self.now(), None, mode, previous, origin))
+
+    def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
+        from .diagnostics import did_you_mean
+
+        node, _, port = target.partition(".")
+        runner = self.scheduler.runners.get(node)
+        if runner is None:
+            raise KeyError(f"unknown node {node!r}" + did_you_mean(node, self.scheduler.runners))
+        ports = [*runner.outputs, *runner.inputs, *runner.rnode.cls.inputs]
+        if port not in ports:
+            raise KeyError(f"{node} has no port {port!r}" + did_you_mean(port, ports))
+        return runner, port
+
+    def publish(self, target: str, value: Any) -> None:
+        """Inject a value: into ``node.output`` (fans out, ticks frames) or ``node.input``."""
+        runner, port = self._runner_port(target)
+        t = self.clock.now()
+        if port in runner.outputs:
+            runner.publish(port, value, t)
+        elif port in runner.inputs:
+            runner.inputs[port].put(value, t)
+        else:
+            raise KeyError(f"{target} is an input that nothing feeds; connect it in the graph")
+
+    def subscribe(self, target: str, policy: str = "queue", size: int = 64) -> Subscription:
+        """Receive what ``node.output`` publishes, through a buffer of its own (counted)."""
+        runner, port = self._runner_port(target)
+        if port not in runner.outputs:
+            raise KeyError(f"{target} is not an output")
+        EdgePolicy(policy)
+        buf = make_buffer(policy, f"{target}->host", size, self.clock.now)
+        runner.outputs[port].append(buf)
+        self.scheduler.buffers.append(buf)
+        return Subscription(buf)
+
+
+class _WorkerAdapter(Executor):
+    """Presents a worker-process executor through the scheduler's Executor interface."""
+
+    def __init__(self, inner: Any) -> None:
+        self._inner = inner
+        self.sync = False
+
+    @property
+    def granted(self) -> str:  # type: ignore[override]
+        return str(getattr(self._inner, "granted", ""))
+
+    async def start(self) -> None:
+        await self._inner.start()
+
+    async def call(self, inputs: dict[str, Any]) -> Any:
+        return await self._inner.call(inputs)
+
+    async def stop(self) -> None:
+        await self._inner.stop()
+
+    def set_priority(self, priority: int) -> None:
+        setter = getattr(self._inner, "set_priority", None)
+        if setter is not None:
+            setter(priority)
+
+
+def _frame_store() -> Any:
+    """The shared-memory frame store, once :mod:`flowrt.frames` provides it."""
+    from . import frames
+
+    store_cls = getattr(frames, "FrameStore", None)
+    if store_cls is None:
+        return None
+    with contextlib.suppress(Exception):
+        store_cls.reclaim_orphans()
+    return store_cls()

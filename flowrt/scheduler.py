@@ -1,0 +1,730 @@
+"""The frame-tick scheduler: releases nodes on frame ticks, timers and inputs; watches deadlines.
+
+One ``NodeRunner`` per node owns its timing, buffers, statistics and supervision. The
+``Scheduler`` owns the frame clocks (one tick counter per frame source), the timers and the
+order of dispatch (priority, then file order). Everything runs on one event loop, so a change
+made by ``set_timing`` between two callbacks is atomic with respect to ticks.
+
+Activation semantics (the CAMBADA process manager):
+- frame trigger: on tick ``k`` of the source, release when ``k % period == phase``;
+- timer trigger: release at ``origin + phase + n*period`` (timerfd, no drift);
+- input trigger: release when a triggering input receives data; never re-entrant: data that
+  arrives meanwhile waits in the buffer and causes one more activation afterwards;
+- a release while the previous activation still runs is skipped and counted (overrun).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import logging
+import traceback
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from .clock import Clock, Handle, PeriodicTimer
+from .edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer, make_buffer
+from .events import (
+    DeadlineMissed,
+    Event,
+    LoopBlocked,
+    NodeFailed,
+    NodeGaveUp,
+    NodeRestarted,
+    TimingChanged,
+)
+from .frames import Frame
+from .graph import Graph, ResolvedNode
+from .node import Node, NodeContext, NodeFactory, make_node
+from .spec import FrameTrigger, InputTrigger, LoopTrigger, MissPolicy, Placement, TimerTrigger
+from .stats import NodeStats, Running
+
+log = logging.getLogger("flowrt.scheduler")
+
+BLOCKING_THRESHOLD = 0.010  # an inline call longer than this is reported as blocking the loop
+
+
+class Executor:
+    """Where ``process`` runs. Inline on the loop here; worker processes in :mod:`flowrt.workers`."""
+
+    sync = False
+    granted = ""
+
+    async def start(self) -> None: ...
+
+    def call_sync(self, inputs: dict[str, Any]) -> Any:
+        raise NotImplementedError
+
+    async def call(self, inputs: dict[str, Any]) -> Any:
+        raise NotImplementedError
+
+    async def stop(self) -> None: ...
+
+
+class InlineExecutor(Executor):
+    def __init__(self, factory: Callable[[], Node]) -> None:
+        self._factory = factory
+        self.node: Node | None = None
+        self.sync = False
+
+    async def start(self) -> None:
+        node = self._factory()
+        self.node = node
+        self.sync = not inspect.iscoroutinefunction(node.process)
+        result = node.setup()
+        if inspect.isawaitable(result):
+            await result
+
+    def call_sync(self, inputs: dict[str, Any]) -> Any:
+        assert self.node is not None
+        return self.node.process(**inputs)
+
+    async def call(self, inputs: dict[str, Any]) -> Any:
+        assert self.node is not None
+        result = self.node.process(**inputs)
+        if inspect.isawaitable(result):
+            result = await result
+        return result
+
+    async def stop(self) -> None:
+        node, self.node = self.node, None
+        if node is not None:
+            result = node.teardown()
+            if inspect.isawaitable(result):
+                await result
+
+
+@dataclass
+class Timing:
+    """A node's run-time adjustable timing (what the QoS manager changes)."""
+
+    period: int  # frames, for frame triggers
+    phase: int
+    timer: float | None  # seconds, for timer triggers
+    timer_phase: float
+    deadline: float | None  # seconds
+    priority: int
+    enabled: bool
+
+    def describe_period(self) -> str:
+        if self.timer is not None:
+            return f"{self.timer * 1000:g}ms+{self.timer_phase * 1000:g}"
+        return f"{self.period}/{self.phase}"
+
+
+class RunnerContext(NodeContext):
+    """The context of a node on the event loop: runtime clock, frame pool, publishing."""
+
+    def __init__(self, runner: NodeRunner) -> None:
+        super().__init__(runner.name)
+        self._runner = runner
+
+    def now(self) -> float:
+        return self._runner.sched.clock.now()
+
+    def new_frame(self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR") -> Frame:
+        frame = self._runner.sched.new_frame(self.name, shape, dtype, pixel_format)
+        self._runner.created.append(frame)
+        return frame
+
+    def publish(self, port: str, value: Any) -> None:
+        self._runner.publish(port, value, self._runner.sched.clock.now())
+
+    def emit(self, event: Event) -> None:
+        """Publish a typed event (e.g. a HealthAlert) to the runtime's monitors."""
+        self._runner.sched.emit(event)
+
+
+class NodeRunner:
+    """One node: its activations, buffers, statistics and supervision."""
+
+    def __init__(self, sched: Scheduler, rnode: ResolvedNode) -> None:
+        self.sched = sched
+        self.rnode = rnode
+        self.name = rnode.name
+        spec = rnode.spec
+        trig = rnode.trigger
+        self.timing = Timing(
+            period=trig.period if isinstance(trig, FrameTrigger) else 1,
+            phase=trig.phase if isinstance(trig, FrameTrigger) else 0,
+            timer=trig.timer / 1000 if isinstance(trig, TimerTrigger) else None,
+            timer_phase=trig.phase / 1000 if isinstance(trig, TimerTrigger) else 0.0,
+            deadline=spec.deadline / 1000 if spec.deadline else None,
+            priority=spec.priority,
+            enabled=spec.enabled,
+        )
+        self.inputs: dict[str, Buffer] = {}
+        self.outputs: dict[str, list[Buffer]] = {p: [] for p in rnode.cls.outputs}
+        self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
+        self.required = [p for p, port in rnode.cls.inputs.items() if port.required]
+        self.trigger_inputs: list[str] = []
+        self.executor: Executor = Executor()
+        self.timer: PeriodicTimer | None = None
+        self.created: list[Frame] = []
+        # state
+        self.state = "idle"
+        self.busy = False
+        self.more_input = False
+        self.stopping = False
+        self.current = 0  # activation id, so a late deadline timer recognises its activation
+        self.missed_current = False
+        self.task: asyncio.Task[None] | None = None
+        self.blocked: list[tuple[LosslessBuffer, Any, float]] = []
+        self.consecutive_failures = 0
+        # counters
+        self.activations = 0
+        self.completions = 0
+        self.skipped = 0
+        self.misses = 0
+        self.discarded = 0
+        self.errors = 0
+        self.restarts = 0
+        self.last_start: float | None = None
+        self.last_finish: float | None = None
+        self.interval = Running()
+        self.execution = Running()
+        self.response = Running()
+
+    # --- wiring -------------------------------------------------------------------------
+
+    def make_executor(self) -> Executor:
+        placement = self.rnode.spec.placement
+        factory = NodeFactory(self.rnode.cls, self.rnode.params, self.name)
+        if placement is Placement.inline:
+            ctx = RunnerContext(self)
+            return InlineExecutor(lambda: make_node(self.rnode.cls, self.rnode.params, ctx))
+        return self.sched.worker_executor(self, factory)
+
+    def connect_input(self, port: str, buf: Buffer) -> None:
+        self.inputs[port] = buf
+        trig = self.rnode.trigger
+        if isinstance(trig, InputTrigger):
+            wanted = [trig.input] if isinstance(trig.input, str) else trig.input
+            if "any" in wanted or port in wanted:
+                self.trigger_inputs.append(port)
+                buf.on_put = self.input_arrived
+                return
+        # Periodic readers sample: values they never read are expected, not lost.
+        buf.sampled = isinstance(buf, LatestBuffer)
+
+    # --- releases -----------------------------------------------------------------------
+
+    def release(self, t_release: float) -> None:
+        """A trigger fired: run now unless disabled, down, or still running (overrun)."""
+        if not self.timing.enabled or self.stopping:
+            return
+        self.activations += 1
+        if self.state in ("backoff", "failed", "starting"):
+            self.skipped += 1
+            return
+        if self.busy:
+            self.skipped += 1
+            return
+        self.busy = True
+        self.current += 1
+        self.missed_current = False
+        loop = self.sched.loop
+        if self.executor.sync:
+            loop.call_soon(self.run_sync, t_release)
+        else:
+            self.task = loop.create_task(self.run_async(t_release))
+
+    def input_arrived(self) -> None:
+        if self.busy or self.state != "idle" or self.stopping or not self.timing.enabled:
+            self.more_input = True
+            return
+        self.release(self.sched.clock.now())
+
+    def _take_inputs(self) -> dict[str, Any] | None:
+        values: dict[str, Any] = {}
+        for port in self.rnode.cls.inputs:
+            buf = self.inputs.get(port)
+            if buf is None:
+                values[port] = None
+                continue
+            value = buf.take_new() if port in self.trigger_inputs else buf.take()  # type: ignore[attr-defined]
+            if value is EMPTY:
+                if port in self.required:
+                    _release_all(values.values())
+                    return None
+                value = None
+            values[port] = value
+        return values
+
+    def _begin(self) -> tuple[float, dict[str, Any] | None]:
+        now = self.sched.clock.now()
+        inputs = self._take_inputs()
+        if inputs is None:
+            self.skipped += 1
+            return now, None
+        if self.last_start is not None:
+            self.interval.add(now - self.last_start)
+        self.last_start = now
+        self.state = "running"
+        return now, inputs
+
+    def run_sync(self, t_release: float) -> None:
+        start, inputs = self._begin()
+        if inputs is None:
+            self._idle()
+            return
+        try:
+            result = self.executor.call_sync(inputs)
+        except Exception as e:
+            _release_all(inputs.values())
+            self._release_created()
+            self._failed(e)
+            return
+        _release_all(inputs.values())
+        end = self.sched.clock.now()
+        if end - start > BLOCKING_THRESHOLD and self.sched.real_time:
+            self.sched.blocked_calls += 1
+            self.sched.emit(LoopBlocked(self.sched.rel(end), self.name, (end - start) * 1000))
+        self._complete(result, t_release, start, end)
+
+    async def run_async(self, t_release: float) -> None:
+        start, inputs = self._begin()
+        if inputs is None:
+            self._idle()
+            return
+        act = self.current
+        clock = self.sched.clock
+        deadline: Handle | None = None
+        if self.timing.deadline is not None:
+            deadline = clock.call_at(t_release + self.timing.deadline, lambda: self._deadline_hit(act))
+        watchdog: Handle | None = None
+        wd = self.rnode.spec.watchdog
+        if wd is not None and self.rnode.spec.placement is Placement.inline and self.task is not None:
+            task = self.task
+            watchdog = clock.call_at(start + wd / 1000, lambda: task.cancel(f"watchdog {wd:g} ms"))
+        try:
+            result = await self.executor.call(inputs)
+        except asyncio.CancelledError as e:
+            _release_all(inputs.values())
+            self._release_created()
+            if self.stopping:
+                self._idle()
+                raise
+            self._failed(TimeoutError(f"watchdog: no return within {wd:g} ms ({e})"))
+            return
+        except Exception as e:
+            _release_all(inputs.values())
+            self._release_created()
+            self._failed(e)
+            return
+        finally:
+            if deadline is not None:
+                deadline.cancel()
+            if watchdog is not None:
+                watchdog.cancel()
+        _release_all(inputs.values())
+        self._complete(result, t_release, start, clock.now())
+        if self.blocked:
+            await self._drain_blocked()
+            self._idle()
+
+    def _deadline_hit(self, act: int) -> None:
+        if act != self.current or not self.busy or self.missed_current:
+            return
+        self.missed_current = True
+        self.misses += 1
+        discard = self.rnode.spec.miss_policy is MissPolicy.discard
+        assert self.timing.deadline is not None
+        self.sched.emit(
+            DeadlineMissed(self.sched.rel(self.sched.clock.now()), self.name, self.timing.deadline * 1000, True, discard)
+        )
+
+    # --- completion ---------------------------------------------------------------------
+
+    def _complete(self, result: Any, t_release: float, start: float, end: float) -> None:
+        self.completions += 1
+        self.consecutive_failures = 0
+        self.last_finish = end
+        self.execution.add(end - start)
+        self.response.add(end - t_release)
+        deadline = self.timing.deadline
+        late = deadline is not None and end - t_release > deadline
+        discard = False
+        if late:
+            discard = self.rnode.spec.miss_policy is MissPolicy.discard
+            if not self.missed_current:
+                self.missed_current = True
+                self.misses += 1
+                assert deadline is not None
+                self.sched.emit(DeadlineMissed(self.sched.rel(end), self.name, deadline * 1000, False, discard))
+        if discard:
+            self.discarded += 1
+            _release_all([result] if not isinstance(result, Mapping) else result.values())
+        elif result is not None:
+            self._publish_result(result, end)
+        self._release_created()
+        if not self.blocked:
+            self._idle()
+
+    def _publish_result(self, result: Any, t: float) -> None:
+        outs = self.outputs
+        if len(outs) == 1:
+            (port,) = outs
+            self.publish(port, result, t)
+            return
+        if not isinstance(result, Mapping):
+            raise TypeError(f"{self.name}: a node with outputs {list(outs)} must return a mapping of them")
+        for port, value in result.items():
+            if port not in outs:
+                raise TypeError(f"{self.name}: no output port {port!r}")
+            if value is not None:
+                self.publish(port, value, t)
+
+    def publish(self, port: str, value: Any, t: float) -> None:
+        """Fan a value out to every reader of ``port``; a frame port also ticks its frame clock."""
+        for buf in self.outputs[port]:
+            if not buf.put(value, t):
+                assert isinstance(buf, LosslessBuffer)
+                _hold(value)
+                self.blocked.append((buf, value, t))
+        key = self.tick_ports.get(port)
+        if key is not None:
+            self.sched.tick(key, t)
+
+    async def _drain_blocked(self) -> None:
+        """Lossless readers are full: the producer waits (stays busy) until they take."""
+        for buf, value, t in self.blocked:
+            await buf.wait_space()
+            buf.put(value, t)
+            _release_all([value])
+        self.blocked = []
+
+    def _release_created(self) -> None:
+        if self.created:
+            _release_all(self.created)
+            self.created = []
+
+    def _idle(self) -> None:
+        if self.blocked and self.executor.sync:
+            self.sched.loop.create_task(self._drain_then_idle())
+            return
+        self.busy = False
+        if self.state == "running":
+            self.state = "idle"
+        if self.stopping:
+            return
+        if isinstance(self.rnode.trigger, LoopTrigger):
+            self.sched.loop.call_soon(self.release, self.sched.clock.now())
+        elif self.trigger_inputs and (self.more_input or any(self.inputs[p].pending() for p in self.trigger_inputs)):
+            self.more_input = False
+            if any(self.inputs[p].pending() for p in self.trigger_inputs):
+                self.sched.loop.call_soon(self.input_arrived)
+
+    async def _drain_then_idle(self) -> None:
+        await self._drain_blocked()
+        self._idle()
+
+    # --- supervision --------------------------------------------------------------------
+
+    def _failed(self, exc: BaseException) -> None:
+        self.errors += 1
+        self.consecutive_failures += 1
+        tb = getattr(exc, "traceback", None) or "".join(traceback.format_exception(exc))
+        log.error("node %s failed: %s\n%s", self.name, exc, tb)
+        now = self.sched.clock.now()
+        self.sched.emit(NodeFailed(self.sched.rel(now), self.name, f"{type(exc).__name__}: {exc}", tb))
+        self.busy = False
+        policy = self.rnode.spec.restart
+        if policy.policy == "never" or (
+            policy.max_restarts is not None and self.restarts >= policy.max_restarts
+        ):
+            self.state = "failed"
+            self.sched.emit(NodeGaveUp(self.sched.rel(now), self.name, f"restart policy {policy.policy}"))
+            self.sched.loop.create_task(self._stop_executor())
+            return
+        backoff = min(policy.backoff * 2 ** (self.consecutive_failures - 1), policy.max_backoff) / 1000
+        self.state = "backoff"
+        self.sched.loop.create_task(self._restart(backoff))
+
+    async def _stop_executor(self) -> None:
+        try:
+            await self.executor.stop()
+        except Exception as e:
+            log.warning("node %s: teardown failed: %s", self.name, e)
+
+    async def _restart(self, backoff: float) -> None:
+        await self._stop_executor()
+        await self.sched.sleep(backoff)
+        if self.stopping:
+            return
+        self.restarts += 1
+        self.sched.emit(
+            NodeRestarted(self.sched.rel(self.sched.clock.now()), self.name, self.restarts, backoff * 1000)
+        )
+        self.executor = self.make_executor()
+        try:
+            await self.executor.start()
+        except Exception as e:
+            self._failed(e)
+            return
+        self.state = "idle"
+        self._idle()
+
+    # --- statistics ---------------------------------------------------------------------
+
+    def stats(self) -> NodeStats:
+        rel = self.sched.rel
+        spec = self.rnode.spec
+        trig = self.rnode.trigger
+        if isinstance(trig, FrameTrigger):
+            trigger = f"frame {trig.frame}"
+        elif isinstance(trig, TimerTrigger):
+            trigger = "timer"
+        elif isinstance(trig, InputTrigger):
+            trigger = "input"
+        else:
+            trigger = "loop"
+        period = self.timing.describe_period() if isinstance(trig, FrameTrigger | TimerTrigger) else "-"
+        return NodeStats(
+            name=self.name,
+            kind=spec.kind,
+            placement=spec.placement.value,
+            trigger=trigger,
+            priority=self.timing.priority,
+            period=period,
+            deadline_ms=None if self.timing.deadline is None else self.timing.deadline * 1000,
+            enabled=self.timing.enabled,
+            state=self.state if self.timing.enabled else "disabled",
+            activations=self.activations,
+            completions=self.completions,
+            skipped=self.skipped,
+            deadline_misses=self.misses,
+            discarded=self.discarded,
+            errors=self.errors,
+            restarts=self.restarts,
+            last_start=None if self.last_start is None else rel(self.last_start),
+            last_finish=None if self.last_finish is None else rel(self.last_finish),
+            interval=self.interval.summary(),
+            execution=self.execution.summary(),
+            response=self.response.summary(),
+            granted=self.executor.granted,
+        )
+
+
+def _hold(value: Any) -> None:
+    if isinstance(value, Frame):
+        value.acquire()
+
+
+def _release_all(values: Any) -> None:
+    for v in values:
+        if isinstance(v, Frame):
+            v.release()
+
+
+class Scheduler:
+    """Frame clocks, timers and dispatch order for a graph's runners."""
+
+    def __init__(
+        self,
+        graph: Graph,
+        clock: Clock,
+        emit: Callable[[Event], None],
+        worker_executor: Callable[[NodeRunner, NodeFactory], Executor] | None = None,
+        new_frame: Callable[[str, tuple[int, ...], Any, str], Frame] | None = None,
+        real_time: bool = True,
+    ) -> None:
+        self.graph = graph
+        self.clock = clock
+        self.emit = emit
+        self.real_time = real_time
+        self._worker_executor = worker_executor
+        self._new_frame = new_frame
+        self.loop = asyncio.get_event_loop()
+        self.blocked_calls = 0
+        self.runners: dict[str, NodeRunner] = {}
+        for name in sorted(graph.nodes, key=lambda n: graph.nodes[n].order):
+            self.runners[name] = NodeRunner(self, graph.nodes[name])
+        self.buffers: list[Buffer] = []
+        for edge in graph.edges:
+            buf = make_buffer(edge.policy.value, edge.name, edge.size, clock.now)
+            self.runners[edge.src].outputs[edge.src_port].append(buf)
+            self.runners[edge.dst].connect_input(edge.dst_port, buf)
+            self.buffers.append(buf)
+        # frame clocks: source key -> (tick count, readers in dispatch order)
+        self.ticks: dict[str, int] = {}
+        self.readers: dict[str, list[NodeRunner]] = {}
+        for r in self.runners.values():
+            src = r.rnode.frame_source
+            if src is not None:
+                key = graph.frame_port(src)
+                self.readers.setdefault(key, []).append(r)
+                self.ticks.setdefault(key, 0)
+        self.resort()
+
+    def rel(self, t: float) -> float:
+        """Seconds since the runtime's time origin."""
+        return t - self.clock.origin
+
+    def resort(self) -> None:
+        """Dispatch order within a tick: higher priority first, then file order."""
+        for readers in self.readers.values():
+            readers.sort(key=lambda r: (-r.timing.priority, r.rnode.order))
+        self.order = sorted(self.runners.values(), key=lambda r: (-r.timing.priority, r.rnode.order))
+
+    def worker_executor(self, runner: NodeRunner, factory: NodeFactory) -> Executor:
+        if self._worker_executor is None:
+            raise RuntimeError(f"{runner.name}: placement {runner.rnode.spec.placement.value} needs worker support")
+        return self._worker_executor(runner, factory)
+
+    def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame:
+        import numpy as np
+
+        dt = np.uint8 if dtype is ... else dtype
+        if self._new_frame is not None:
+            return self._new_frame(owner, shape, dt, pixel_format)
+        return Frame(np.empty(shape, dtype=dt), source=owner, pixel_format=pixel_format)
+
+    def tick(self, key: str, t: float) -> None:
+        """A frame was published on ``key``: release the readers whose period/phase match."""
+        k = self.ticks.get(key)
+        if k is None:
+            return
+        self.ticks[key] = k + 1
+        for r in self.readers[key]:
+            tm = r.timing
+            if k % tm.period == tm.phase:
+                r.release(t)
+
+    async def sleep(self, seconds: float) -> None:
+        fut = self.loop.create_future()
+        self.clock.call_at(self.clock.now() + seconds, lambda: fut.done() or fut.set_result(None))
+        await fut
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Set every node up (workers in parallel), then arm triggers."""
+        for r in self.runners.values():
+            r.executor = r.make_executor()
+            r.state = "starting"
+
+        async def start_one(r: NodeRunner) -> None:
+            try:
+                await r.executor.start()
+                r.state = "idle"
+            except Exception as e:
+                r.state = "idle"
+                r._failed(e)
+
+        inline = [r for r in self.runners.values() if r.rnode.spec.placement is Placement.inline]
+        others = [r for r in self.runners.values() if r.rnode.spec.placement is not Placement.inline]
+        await asyncio.gather(*(start_one(r) for r in others))
+        for r in inline:
+            await start_one(r)
+        for r in self.order:
+            if r.timing.timer is not None:
+                r.timer = self.clock.periodic(r.timing.timer, r.timing.timer_phase, self._timer_cb(r))
+            elif isinstance(r.rnode.trigger, LoopTrigger):
+                self.loop.call_soon(r.release, self.clock.now())
+
+    @staticmethod
+    def _timer_cb(r: NodeRunner) -> Callable[[float, int], None]:
+        def fire(release: float, missed: int) -> None:
+            if missed and r.timing.enabled:
+                r.activations += missed
+                r.skipped += missed
+            r.release(release)
+
+        return fire
+
+    async def stop(self, grace: float = 1.0) -> None:
+        """Stop releasing, let running activations finish (bounded), tear every node down."""
+        for r in self.runners.values():
+            r.stopping = True
+            if r.timer is not None:
+                r.timer.cancel()
+                r.timer = None
+        pending = [r.task for r in self.runners.values() if r.task is not None and not r.task.done()]
+        if pending:
+            _, still = await asyncio.wait(pending, timeout=grace)
+            for t in still:
+                t.cancel()
+            if still:
+                await asyncio.wait(still, timeout=grace)
+        for r in reversed(self.order):
+            try:
+                await asyncio.wait_for(r.executor.stop(), timeout=max(grace, 2.0))
+            except Exception as e:
+                log.warning("node %s: teardown failed: %s", r.name, e)
+        for buf in self.buffers:
+            buf.clear()
+
+    # --- run-time changes ---------------------------------------------------------------
+
+    def set_timing(
+        self,
+        node: str,
+        *,
+        period: int | None = None,
+        phase: int | None = None,
+        timer: float | None = None,
+        deadline: float | None = None,
+        priority: int | None = None,
+        enabled: bool | None = None,
+        origin: str = "api",
+    ) -> str:
+        """Apply a timing change now (between ticks: the loop runs one callback at a time)."""
+        r = self.runners.get(node)
+        if r is None:
+            from .diagnostics import did_you_mean
+
+            raise KeyError(f"unknown node {node!r}" + did_you_mean(node, self.runners))
+        tm = r.timing
+        new_period = tm.period if period is None else period
+        new_phase = tm.phase if phase is None else phase
+        is_frame = isinstance(r.rnode.trigger, FrameTrigger)
+        if (period is not None or phase is not None) and not is_frame:
+            raise ValueError(f"{node}: period/phase in frames apply to frame-triggered nodes; use timer=")
+        if timer is not None and tm.timer is None:
+            raise ValueError(f"{node}: timer= applies to timer-triggered nodes")
+        if new_period <= 0 or not 0 <= new_phase < new_period:
+            raise ValueError(f"{node}: need period > 0 and 0 <= phase < period (got {new_period}/{new_phase})")
+        if timer is not None and timer <= 0:
+            raise ValueError(f"{node}: timer period must be positive")
+        if deadline is not None and deadline <= 0:
+            raise ValueError(f"{node}: deadline must be positive")
+        if priority is not None and not 1 <= priority <= 99:
+            raise ValueError(f"{node}: priority must be in 1..99")
+        changes = []
+
+        def note(label: str, old: Any, new: Any) -> None:
+            if new is not None and new != old:
+                changes.append(f"{label} {old} -> {new}")
+
+        note("period", tm.period, period)
+        note("phase", tm.phase, phase)
+        note("timer_ms", None if tm.timer is None else tm.timer * 1000, None if timer is None else timer * 1000)
+        note("deadline_ms", None if tm.deadline is None else tm.deadline * 1000, None if deadline is None else deadline * 1000)
+        note("priority", tm.priority, priority)
+        note("enabled", tm.enabled, enabled)
+        tm.period, tm.phase = new_period, new_phase
+        if deadline is not None:
+            tm.deadline = deadline
+        if priority is not None:
+            tm.priority = priority
+            self.resort()
+            setter = getattr(r.executor, "set_priority", None)
+            if setter is not None:
+                setter(priority)
+        if enabled is not None:
+            was = tm.enabled
+            tm.enabled = enabled
+            if enabled and not was and isinstance(r.rnode.trigger, LoopTrigger) and not r.busy:
+                self.loop.call_soon(r.release, self.clock.now())
+        if timer is not None and r.timer is not None:
+            tm.timer = timer
+            r.timer.reset(timer, min(tm.timer_phase, timer * 0.999))
+        elif timer is not None:
+            tm.timer = timer
+        text = ", ".join(changes) or "no change"
+        if changes:
+            self.emit(TimingChanged(self.rel(self.clock.now()), node, text, origin))
+        return text
+

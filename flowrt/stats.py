@@ -1,0 +1,149 @@
+"""Statistics: the process-manager table of the CAMBADA paper, per node and per edge.
+
+Counters are updated on the hot path, so they are plain attributes and a fixed-size ring of
+recent samples; percentiles and snapshots are computed only when someone asks. Snapshots are
+frozen pydantic models, so ``--stats-json`` has a schema (``flowrt schema stats``).
+"""
+
+from __future__ import annotations
+
+import math
+
+from pydantic import BaseModel, ConfigDict, Field
+
+RING = 2048  # recent samples kept for percentiles: ~100 s at 20 Hz
+
+
+class Running:
+    """Min/max/mean/std over every sample (Welford), plus a ring of recent samples."""
+
+    __slots__ = ("count", "i", "m2", "max", "mean", "min", "ring")
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.mean = 0.0
+        self.m2 = 0.0
+        self.min = math.inf
+        self.max = -math.inf
+        self.ring: list[float] = []
+        self.i = 0
+
+    def add(self, x: float) -> None:
+        self.count += 1
+        d = x - self.mean
+        self.mean += d / self.count
+        self.m2 += d * (x - self.mean)
+        if x < self.min:
+            self.min = x
+        if x > self.max:
+            self.max = x
+        if len(self.ring) < RING:
+            self.ring.append(x)
+        else:
+            self.ring[self.i] = x
+            self.i = (self.i + 1) % RING
+
+    def summary(self, scale: float = 1000.0) -> Summary:
+        """Snapshot in milliseconds (samples are seconds)."""
+        if not self.count:
+            return Summary()
+        ordered = sorted(self.ring)
+
+        def pct(q: float) -> float:
+            return ordered[min(len(ordered) - 1, int(q * len(ordered)))] * scale
+
+        std = math.sqrt(self.m2 / (self.count - 1)) if self.count > 1 else 0.0
+        return Summary(
+            count=self.count,
+            min=self.min * scale,
+            max=self.max * scale,
+            mean=self.mean * scale,
+            std=std * scale,
+            p50=pct(0.5),
+            p99=pct(0.99),
+        )
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+
+class Summary(_Frozen):
+    """Distribution of a duration, milliseconds. p50/p99 are over the most recent samples."""
+
+    count: int = 0
+    min: float = 0.0
+    max: float = 0.0
+    mean: float = 0.0
+    std: float = 0.0
+    p50: float = 0.0
+    p99: float = 0.0
+
+
+class NodeStats(_Frozen):
+    """One row of the process-manager table."""
+
+    name: str
+    kind: str
+    placement: str
+    trigger: str
+    priority: int
+    period: str
+    deadline_ms: float | None
+    enabled: bool
+    state: str = Field(description="idle, running, backoff, failed or disabled")
+    activations: int = Field(description="releases: ticks, timer expiries, inputs that asked for a run")
+    completions: int
+    skipped: int = Field(description="activations not run: previous one still running (overrun) or missing input")
+    deadline_misses: int
+    discarded: int = Field(description="results dropped by a firm (discard) deadline")
+    errors: int
+    restarts: int
+    last_start: float | None = Field(description="runtime clock, seconds since start")
+    last_finish: float | None
+    interval: Summary = Field(description="inter-activation time (start to start), ms")
+    execution: Summary = Field(description="start to finish, ms")
+    response: Summary = Field(description="release (tick) to finish, ms")
+    granted: str = Field(default="", description="OS scheduling granted to the worker process")
+
+
+class EdgeStats(_Frozen):
+    name: str
+    policy: str
+    size: int
+    published: int
+    delivered: int
+    dropped: int
+    sampled: bool = Field(description="the reader samples the newest value; unread values are expected")
+    age: Summary = Field(description="age of data when consumed, ms")
+
+
+class LoopStats(_Frozen):
+    lag: Summary = Field(description="lateness of a 10 ms probe timer on the event loop, ms")
+    blocked_calls: int = Field(description="inline calls that blocked the loop longer than the threshold")
+
+
+class RuntimeStats(_Frozen):
+    """Everything ``rt.stats()`` and ``--stats-json`` report."""
+
+    graph: str
+    uptime: float = Field(description="seconds since the runtime started")
+    mode: str | None = None
+    realtime: str = ""
+    nodes: list[NodeStats]
+    edges: list[EdgeStats]
+    loop: LoopStats
+    events: int = Field(description="events published so far (misses, errors, restarts, changes)")
+
+    def node(self, name: str) -> NodeStats:
+        for n in self.nodes:
+            if n.name == name:
+                return n
+        raise KeyError(name)
+
+    def edge(self, name: str) -> EdgeStats:
+        """By full name ``src.port->dst.port`` or by its reader ``dst.port``."""
+        for e in self.edges:
+            if e.name == name or e.name.endswith("->" + name):
+                return e
+        raise KeyError(name)

@@ -1,0 +1,157 @@
+"""Monitors for the terminal: the live rich table and periodic log lines.
+
+Both only read ``rt.stats()`` and listen to events; the runtime does not know they exist.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import deque
+
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
+
+from .events import DeadlineMissed, Event, LoopBlocked, NodeFailed
+from .runtime import Runtime
+from .stats import RuntimeStats
+
+log = logging.getLogger("flowrt.status")
+
+
+def _ms(x: float) -> str:
+    return f"{x:.2f}" if x < 100 else f"{x:.0f}"
+
+
+def render(stats: RuntimeStats, recent: list[Event] | None = None) -> Group:
+    """The process-manager table: one row per node, one per edge, the loop and recent events."""
+    title = f"flowrt · {stats.graph} · {stats.uptime:.1f} s"
+    if stats.mode:
+        title += f" · mode {stats.mode}"
+    if stats.realtime:
+        title += f" · {stats.realtime}"
+    t = Table(title=title, title_justify="left", expand=False, pad_edge=False)
+    for col, justify in [
+        ("node", "left"), ("place", "left"), ("trigger", "left"), ("prio", "right"), ("period", "right"),
+        ("act", "right"), ("done", "right"), ("skip", "right"), ("miss", "right"), ("err", "right"),
+        ("rst", "right"), ("interval ms\nmean±std", "right"), ("exec ms\np50/p99/max", "right"),
+        ("resp ms\np99", "right"), ("state", "left"),
+    ]:
+        t.add_column(col, justify=justify, no_wrap=True)  # type: ignore[arg-type]
+    for n in stats.nodes:
+        miss = Text(str(n.deadline_misses), style="bold red" if n.deadline_misses else "")
+        skip = Text(str(n.skipped), style="yellow" if n.skipped else "")
+        err = Text(str(n.errors), style="bold red" if n.errors else "")
+        state_style = {"failed": "bold red", "backoff": "yellow", "disabled": "dim"}.get(n.state, "green")
+        trig = n.trigger.replace("frame ", "⟳ ")
+        t.add_row(
+            n.name, n.placement, trig, str(n.priority), n.period, str(n.activations), str(n.completions),
+            skip, miss, err, str(n.restarts),
+            f"{_ms(n.interval.mean)}±{_ms(n.interval.std)}" if n.interval.count else "-",
+            f"{_ms(n.execution.p50)}/{_ms(n.execution.p99)}/{_ms(n.execution.max)}" if n.execution.count else "-",
+            _ms(n.response.p99) if n.response.count else "-",
+            Text(n.state, style=state_style),
+        )
+    e = Table(expand=False, pad_edge=False, show_edge=True)
+    for col in ("edge", "policy", "published", "delivered", "dropped", "age ms mean/max"):
+        e.add_column(col, justify="left" if col in ("edge", "policy") else "right", no_wrap=True)
+    for edge in stats.edges:
+        style = "dim" if edge.sampled else "bold red"
+        drop = Text(str(edge.dropped), style=style if edge.dropped else "")
+        age = f"{_ms(edge.age.mean)}/{_ms(edge.age.max)}" if edge.age.count else "-"
+        e.add_row(edge.name, edge.policy, str(edge.published), str(edge.delivered), drop, age)
+    lag = stats.loop.lag
+    footer = Text(
+        f"loop lag ms p50 {lag.p50:.2f}  p99 {lag.p99:.2f}  max {lag.max:.2f}   "
+        f"blocking calls {stats.loop.blocked_calls}   events {stats.events}"
+    )
+    parts: list[Table | Text] = [t, e, footer]
+    for ev in recent or []:
+        style = "red" if isinstance(ev, DeadlineMissed | NodeFailed) else "cyan"
+        parts.append(Text(f"  {ev.t:8.3f}s {ev.kind} {ev.node or ''} {_describe(ev)}", style=style))
+    return Group(*parts)
+
+
+def _describe(ev: Event) -> str:
+    if isinstance(ev, NodeFailed):
+        return ev.error
+    if isinstance(ev, DeadlineMissed):
+        return f"deadline {ev.deadline_ms:g} ms" + (" (still running)" if ev.still_running else "")
+    if isinstance(ev, LoopBlocked):
+        return f"blocked the loop {ev.duration_ms:.1f} ms"
+    for attr in ("change", "mode", "alert", "granted", "detail"):
+        if hasattr(ev, attr):
+            return str(getattr(ev, attr))
+    return ""
+
+
+class LiveTable:
+    """Refreshes the table ``hz`` times a second while the runtime runs."""
+
+    def __init__(self, console: Console | None = None, hz: float = 4.0) -> None:
+        self.console = console or Console()
+        self.hz = hz
+        self.recent: deque[Event] = deque(maxlen=6)
+        self._live: Live | None = None
+        self._task: asyncio.Task[None] | None = None
+
+    def started(self, rt: Runtime) -> None:
+        self._live = Live(console=self.console, auto_refresh=False, transient=False)
+        self._live.start()
+        self._task = asyncio.get_running_loop().create_task(self._refresh(rt))
+
+    async def _refresh(self, rt: Runtime) -> None:
+        while True:
+            await asyncio.sleep(1 / self.hz)
+            if self._live is not None and rt.started:
+                self._live.update(render(rt.stats(), list(self.recent)), refresh=True)
+
+    def event(self, event: Event) -> None:
+        self.recent.append(event)
+
+    def stopped(self, rt: Runtime) -> None:
+        if self._task is not None:
+            self._task.cancel()
+        if self._live is not None:
+            self._live.stop()
+
+
+class LogLines:
+    """``--no-ui``: one summary line per node every ``every`` seconds, events as they happen."""
+
+    def __init__(self, every: float = 2.0) -> None:
+        self.every = every
+        self._task: asyncio.Task[None] | None = None
+
+    def started(self, rt: Runtime) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._loop(rt))
+
+    async def _loop(self, rt: Runtime) -> None:
+        while True:
+            await asyncio.sleep(self.every)
+            if rt.started:
+                for line in summary_lines(rt.stats()):
+                    log.info("%s", line)
+
+    def event(self, event: Event) -> None:
+        if not isinstance(event, NodeFailed):  # failures are logged with their traceback
+            log.info("event %s %s %s", event.kind, event.node or "", _describe(event))
+
+    def stopped(self, rt: Runtime) -> None:
+        if self._task is not None:
+            self._task.cancel()
+
+
+def summary_lines(stats: RuntimeStats) -> list[str]:
+    out = []
+    for n in stats.nodes:
+        out.append(
+            f"{n.name}: act={n.activations} done={n.completions} skip={n.skipped} "
+            f"miss={n.deadline_misses} err={n.errors} rst={n.restarts} "
+            f"interval={n.interval.mean:.2f}±{n.interval.std:.3f}ms exec_p99={n.execution.p99:.2f}ms"
+        )
+    dropped = sum(e.dropped for e in stats.edges if not e.sampled)
+    out.append(f"loop lag p99={stats.loop.lag.p99:.2f}ms dropped={dropped} events={stats.events}")
+    return out

@@ -1,0 +1,771 @@
+"""Worker processes: running a node outside the event loop (``placement: process`` / ``pool``).
+
+A node placed in a worker is described by a picklable zero-argument *factory*; called in the
+worker it returns an object with ``setup()``, ``process(**inputs)`` (a value or a coroutine,
+which the worker runs to completion on its own event loop) and ``teardown()``. The node class is
+the same whatever its placement.
+
+Why processes: the GIL serialises Python threads, and the CAMBADA model needs the *kernel* to
+preempt a low-priority tracker when a high-priority one becomes runnable. Each worker therefore
+gets an OS priority from its flowrt priority (:mod:`flowrt.oscheduling`), and :attr:`granted`
+reports what the kernel actually allowed.
+
+Transport: one AF_UNIX stream socketpair per worker, length-prefixed pickles. The main side is
+an asyncio protocol (works unchanged on asyncio and uvloop and never blocks the loop); the
+worker side is a plain blocking socket. Frames from a :class:`~flowrt.frames.FramePool` pickle
+to a descriptor of their shared-memory slot, so a 1080p frame costs the same as an integer.
+Results are pickled back; a Frame or array returned by a node travels with its pixels (results
+are expected to be small: detections, poses).
+
+Death detection: the process sentinel becomes readable when the worker exits for any reason
+(exception escaping, segfault, abort, SIGKILL); EOF on the socket is seen as well. The in-flight
+call fails with :class:`WorkerError` whose ``kind`` says what happened. A call running longer
+than its watchdog is failed at that instant (kind ``hung``) and the worker is SIGKILLed.
+
+Workers are forked from a ``forkserver`` that has preloaded numpy and OpenCV, so their pages
+are shared (copy-on-write) and a worker starts in milliseconds. A worker dies with the runtime:
+PR_SET_PDEATHSIG ties it to the forkserver, which exits when the main process does, and EOF on
+its socket ends it too. Workers ignore SIGINT: Ctrl-C is the main process's business, which
+then stops them in order.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import faulthandler
+import heapq
+import inspect
+import itertools
+import multiprocessing
+import multiprocessing.context
+import os
+import pickle
+import signal
+import socket
+import struct
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from flowrt.oscheduling import apply_os_priority
+
+__all__ = [
+    "PRELOAD_MODULES",
+    "PoolExecutor",
+    "PoolNodeExecutor",
+    "ProcessExecutor",
+    "WorkerError",
+    "WorkerKind",
+    "start_forkserver",
+]
+
+WorkerKind = Literal["exception", "crashed", "killed", "hung"]
+
+#: Modules imported once by the forkserver, so every worker shares their pages.
+PRELOAD_MODULES = ["numpy", "cv2", "flowrt.frames", "flowrt.oscheduling", "flowrt.workers"]
+
+_HDR = struct.Struct("<I")
+_PICKLE = pickle.HIGHEST_PROTOCOL
+
+# Requests (main -> worker); every request gets exactly one reply.
+_OP_ADD = 0  # (op, node_id, node_name, factory, priority, realtime) -> granted: str
+_OP_CALL = 1  # (op, node_id, inputs) -> result
+_OP_REMOVE = 2  # (op, node_id) -> None (teardown)
+_OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
+
+# Replies (worker -> main).
+_R_OK = 0  # (status, payload, run_seconds)
+_R_ERR = 1  # (status, formatted traceback, run_seconds)
+
+_SIGNALS_KILLED = {signal.SIGKILL, signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
+
+
+class WorkerError(RuntimeError):
+    """A node in a worker failed; ``kind`` tells the supervisor how.
+
+    - ``exception``: ``process``/``setup`` raised; ``detail`` is the worker's traceback, and the
+      worker (and the node object) are still alive.
+    - ``crashed``: the worker died on its own (segfault, abort, exit) — or under another node of
+      the same pool worker; ``detail`` names the signal or exit code.
+    - ``killed``: the worker was killed from outside (SIGKILL, SIGTERM, the OOM killer).
+    - ``hung``: a call exceeded its watchdog; the worker was SIGKILLed at that instant.
+
+    After any kind, ``await executor.start()`` gives the node a fresh instance.
+    """
+
+    def __init__(
+        self, node: str, kind: WorkerKind, detail: str, exitcode: int | None = None
+    ) -> None:
+        super().__init__(f"{node}: worker {kind}: {detail}")
+        self.node = node
+        self.kind: WorkerKind = kind
+        self.detail = detail
+        self.exitcode = exitcode
+
+
+# --------------------------------------------------------------------------------------------
+# Process start
+
+
+_ctx_lock = threading.Lock()
+_ctx: multiprocessing.context.ForkServerContext | None = None
+
+
+def _context() -> multiprocessing.context.ForkServerContext:
+    """The forkserver context, with numpy/cv2 preloaded (set before the server first starts)."""
+    global _ctx
+    with _ctx_lock:
+        if _ctx is None:
+            ctx = multiprocessing.get_context("forkserver")
+            assert isinstance(ctx, multiprocessing.context.ForkServerContext)
+            ctx.set_forkserver_preload(PRELOAD_MODULES)
+            _ctx = ctx
+        return _ctx
+
+
+# Process names of workers that must not re-import the main script (see _install_prepare_hook).
+_NO_MAIN = "flowrt:"
+_WITH_MAIN = "flowrt+main:"
+
+
+def _install_prepare_hook() -> None:
+    """Keep forkserver children from re-running the main script, unless the node lives there.
+
+    multiprocessing re-imports ``__main__`` in every child so that objects defined in the main
+    script unpickle. For a worker that is a waste at best (pytest, the CLI and their imports
+    cost startup time and unshared memory in each of nine trackers) and a crash at worst (a
+    script without a ``__main__`` guard). The hook runs in the forkserver (which preloads this
+    module) and drops the main-module step for processes named ``flowrt:...``; a factory that
+    is defined in ``__main__`` gets a ``flowrt+main:`` name and the usual behaviour.
+    """
+    from multiprocessing import spawn
+
+    original = spawn.prepare
+    if getattr(original, "_flowrt", False):
+        return
+
+    def prepare(data: Mapping[str, Any]) -> None:
+        if str(data.get("name", "")).startswith(_NO_MAIN):
+            data = {
+                k: v
+                for k, v in data.items()
+                if k not in ("init_main_from_path", "init_main_from_name")
+            }
+        original(data)
+
+    prepare._flowrt = True  # type: ignore[attr-defined]
+    spawn.prepare = prepare
+
+
+_install_prepare_hook()
+
+
+def _needs_main(obj: Any) -> bool:
+    """True if unpickling ``obj`` needs the main script's module."""
+    try:
+        return b"__main__" in pickle.dumps(obj, _PICKLE)
+    except Exception:
+        return False
+
+
+def start_forkserver() -> None:
+    """Start the preloaded forkserver now (blocking, ~0.5 s the first time).
+
+    The runtime calls this at start, before any deadline runs, so that the first worker start
+    is not the one that pays for importing OpenCV.
+    """
+    from multiprocessing import forkserver
+
+    _context()
+    forkserver.ensure_running()
+
+
+# --------------------------------------------------------------------------------------------
+# Worker side
+
+
+class _BlockingConn:
+    """Length-prefixed messages over the worker's end of the socketpair."""
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.buf = bytearray()
+
+    def recv(self) -> bytes | None:
+        buf = self.buf
+        while True:
+            if len(buf) >= 4:
+                (n,) = _HDR.unpack_from(buf)
+                if len(buf) >= 4 + n:
+                    msg = bytes(buf[4 : 4 + n])
+                    del buf[: 4 + n]
+                    return msg
+                want = 4 + n - len(buf)
+            else:
+                want = 4
+            chunk = self.sock.recv(max(want, 1 << 16))
+            if not chunk:
+                return None
+            buf += chunk
+
+    def send(self, payload: bytes) -> None:
+        self.sock.sendall(_HDR.pack(len(payload)) + payload)
+
+
+def _set_pdeathsig() -> None:
+    """Ask the kernel to SIGKILL this worker when its parent (the forkserver) dies."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _reply(conn: _BlockingConn, status: int, payload: Any, seconds: float) -> None:
+    try:
+        data = pickle.dumps((status, payload, seconds), _PICKLE)
+    except Exception:
+        data = pickle.dumps(
+            (_R_ERR, "result could not be pickled:\n" + traceback.format_exc(), seconds), _PICKLE
+        )
+    conn.send(data)
+
+
+def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
+    """Entry point of a worker process: serve requests until EXIT or EOF."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _set_pdeathsig()
+    try:
+        os.kill(main_pid, 0)
+    except ProcessLookupError:
+        return  # the runtime died while we were being forked: nothing to serve
+    faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
+    conn = _BlockingConn(sock)
+    nodes: dict[int, tuple[str, Any, int, bool]] = {}
+    current: tuple[int, bool] | None = None
+    loop: asyncio.AbstractEventLoop | None = None
+
+    def run(value: Any) -> Any:
+        nonlocal loop
+        if inspect.isawaitable(value):
+            if loop is None:
+                loop = asyncio.new_event_loop()
+            return loop.run_until_complete(_await(value))
+        return value
+
+    def teardown(nid: int) -> None:
+        entry = nodes.pop(nid, None)
+        if entry is not None and hasattr(entry[1], "teardown"):
+            run(entry[1].teardown())
+
+    while True:
+        raw = conn.recv()
+        if raw is None:
+            break
+        t0 = time.perf_counter()
+        try:
+            msg = pickle.loads(raw)
+            op = msg[0]
+            if op == _OP_CALL:
+                _, nid, inputs = msg
+                _, node, prio, realtime = nodes[nid]
+                if current != (prio, realtime):
+                    apply_os_priority(prio, realtime=realtime)
+                    current = (prio, realtime)
+                result = run(node.process(**inputs))
+            elif op == _OP_ADD:
+                _, nid, node_name, factory, prio, realtime = msg
+                teardown(nid)  # a restart in a live worker: the old instance goes first
+                result = apply_os_priority(prio, realtime=realtime)
+                current = (prio, realtime)
+                node = factory()
+                if hasattr(node, "setup"):
+                    run(node.setup())
+                nodes[nid] = (node_name, node, prio, realtime)
+            elif op == _OP_REMOVE:
+                teardown(msg[1])
+                result = None
+            elif op == _OP_EXIT:
+                for nid in list(nodes):
+                    with contextlib.suppress(Exception):
+                        teardown(nid)
+                _reply(conn, _R_OK, None, time.perf_counter() - t0)
+                break
+            else:
+                raise ValueError(f"unknown request {op!r}")
+        except Exception:
+            _reply(conn, _R_ERR, traceback.format_exc(), time.perf_counter() - t0)
+        else:
+            _reply(conn, _R_OK, result, time.perf_counter() - t0)
+    if loop is not None:
+        loop.close()
+    sock.close()
+
+
+async def _await(value: Any) -> Any:
+    return await value
+
+
+# --------------------------------------------------------------------------------------------
+# Main side
+
+
+@dataclass(order=True)
+class _Call:
+    """One request to a worker, ordered for dispatch by priority then arrival."""
+
+    sort_key: tuple[int, int]
+    payload: bytes = field(compare=False)
+    future: asyncio.Future[Any] = field(compare=False)
+    node: str = field(compare=False)
+    watchdog: float | None = field(compare=False)
+
+
+class _Protocol(asyncio.Protocol):
+    """Splits the worker's byte stream into replies."""
+
+    def __init__(self, worker: _Worker) -> None:
+        self.worker = worker
+        self.buf = bytearray()
+
+    def data_received(self, data: bytes) -> None:
+        buf = self.buf
+        buf += data
+        while len(buf) >= 4:
+            (n,) = _HDR.unpack_from(buf)
+            if len(buf) < 4 + n:
+                break
+            msg = bytes(buf[4 : 4 + n])
+            del buf[: 4 + n]
+            self.worker._on_reply(msg)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.worker._on_eof()
+
+
+class _Worker:
+    """One worker process seen from the event loop: a request queue with one call in flight.
+
+    One call at a time, so that the watchdog measures the call itself and not its wait, and so
+    that waiting calls can be dispatched by priority (a pool worker shared by several nodes).
+    """
+
+    def __init__(self, name: str, *, import_main: bool = False) -> None:
+        self.name = name
+        self.import_main = import_main
+        self.proc: multiprocessing.process.BaseProcess | None = None
+        self.pid: int | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._transport: asyncio.Transport | None = None
+        self._inflight: _Call | None = None
+        self._waiting: list[_Call] = []
+        self._seq = itertools.count()
+        self._timer: asyncio.TimerHandle | None = None
+        self._hung_node: str | None = None
+        self._exited = asyncio.Event()
+        self._eof_timer: asyncio.TimerHandle | None = None
+        self.death: WorkerError | None = None
+        self.alive = False
+        self.last_run_time = 0.0
+
+    async def spawn(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        ctx = _context()
+        parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        proc = ctx.Process(
+            target=_worker_main,
+            args=(child, self.name, os.getpid()),
+            name=(_WITH_MAIN if self.import_main else _NO_MAIN) + self.name,
+            daemon=True,
+        )
+        try:
+            # Blocking (talks to the forkserver, which may still be starting): off the loop.
+            await asyncio.to_thread(proc.start)
+        except BaseException:
+            parent.close()
+            raise
+        finally:
+            child.close()
+        self.proc = proc
+        self.pid = proc.pid
+        self.alive = True
+        parent.setblocking(False)
+        transport, _ = await loop.create_unix_connection(lambda: _Protocol(self), sock=parent)
+        self._transport = transport
+        loop.add_reader(proc.sentinel, self._on_exit)
+
+    # -- requests ----------------------------------------------------------------------------
+
+    def request(
+        self, msg: tuple[Any, ...], node: str, priority: int, watchdog: float | None
+    ) -> asyncio.Future[Any]:
+        """Queue a request; the future resolves to the reply payload or a WorkerError."""
+        if not self.alive or self._loop is None:
+            raise self.death_for(node)
+        fut = self._loop.create_future()
+        call = _Call((-priority, next(self._seq)), pickle.dumps(msg, _PICKLE), fut, node, watchdog)
+        if self._inflight is None:
+            self._send(call)
+        else:
+            heapq.heappush(self._waiting, call)
+        return fut
+
+    def _send(self, call: _Call) -> None:
+        assert self._transport is not None
+        assert self._loop is not None
+        self._inflight = call
+        self._transport.write(_HDR.pack(len(call.payload)) + call.payload)
+        if call.watchdog is not None:
+            self._timer = self._loop.call_later(call.watchdog, self._on_hung)
+
+    def _dispatch_next(self) -> None:
+        while self._waiting:
+            call = heapq.heappop(self._waiting)
+            if not call.future.done():  # skip calls whose caller gave up
+                self._send(call)
+                return
+
+    def _on_reply(self, raw: bytes) -> None:
+        call = self._inflight
+        if call is None:
+            return
+        self._inflight = None
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        fut = call.future
+        try:
+            status, payload, seconds = pickle.loads(raw)
+        except Exception:
+            status, payload, seconds = _R_ERR, traceback.format_exc(), 0.0
+        self.last_run_time = seconds
+        if not fut.done():
+            if status == _R_OK:
+                fut.set_result(payload)
+            else:
+                fut.set_exception(WorkerError(call.node, "exception", payload))
+        self._dispatch_next()
+
+    # -- failure -----------------------------------------------------------------------------
+
+    def _on_hung(self) -> None:
+        self._timer = None
+        call = self._inflight
+        if call is None or not self.alive:
+            return
+        self._hung_node = call.node
+        err = WorkerError(
+            call.node,
+            "hung",
+            f"no result within the {call.watchdog:g} s watchdog; worker {self.pid} killed",
+        )
+        if not call.future.done():
+            call.future.set_exception(err)
+        self.kill()
+
+    def _on_eof(self) -> None:
+        # Normally followed at once by the sentinel. A worker that closed its socket but lives
+        # on would never answer again: give it a moment, then kill it.
+        if self.alive and self._loop is not None and self._eof_timer is None:
+            self._eof_timer = self._loop.call_later(1.0, self.kill)
+
+    def _on_exit(self) -> None:
+        assert self._loop is not None
+        assert self.proc is not None
+        self._loop.remove_reader(self.proc.sentinel)
+        if self._eof_timer is not None:
+            self._eof_timer.cancel()
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self.proc.join(0)
+        exitcode = self.proc.exitcode
+        self.alive = False
+        self.death = self._classify(exitcode)
+        if self._transport is not None:
+            self._transport.abort()
+        calls = [self._inflight] if self._inflight is not None else []
+        calls += self._waiting
+        self._inflight = None
+        self._waiting = []
+        for call in calls:
+            if not call.future.done():
+                call.future.set_exception(self.death_for(call.node))
+        with contextlib.suppress(ValueError):
+            self.proc.close()
+        self._exited.set()
+
+    def _classify(self, exitcode: int | None) -> WorkerError:
+        if self._hung_node is not None:
+            return WorkerError(
+                self._hung_node, "hung", f"worker {self.pid} killed after the watchdog", exitcode
+            )
+        if exitcode is None:
+            return WorkerError(self.name, "crashed", f"worker {self.pid} vanished", exitcode)
+        if exitcode < 0:
+            try:
+                signame = signal.Signals(-exitcode).name
+            except ValueError:
+                signame = f"signal {-exitcode}"
+            kind: WorkerKind = "killed" if -exitcode in _SIGNALS_KILLED else "crashed"
+            return WorkerError(self.name, kind, f"worker {self.pid} died of {signame}", exitcode)
+        return WorkerError(
+            self.name, "crashed", f"worker {self.pid} exited with code {exitcode}", exitcode
+        )
+
+    def death_for(self, node: str) -> WorkerError:
+        """The error a node of this worker sees once the worker is dead."""
+        d = self.death
+        if d is None:
+            return WorkerError(node, "crashed", f"worker {self.name} is not running")
+        if d.kind == "hung" and d.node != node:
+            return WorkerError(
+                node, "crashed", f"worker shared with {d.node}, which hung: {d.detail}", d.exitcode
+            )
+        return WorkerError(node, d.kind, d.detail, d.exitcode)
+
+    def kill(self) -> None:
+        if self.alive and self.pid is not None:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signal.SIGKILL)
+
+    async def stop(self, grace: float = 2.0) -> None:
+        """Tear every node down and let the worker exit; kill it if it does not in time."""
+        if self.alive:
+            with contextlib.suppress(WorkerError):
+                await asyncio.wait_for(self.request((_OP_EXIT,), self.name, 1 << 30, grace), grace)
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._exited.wait(), grace)
+        if self.alive:
+            self.kill()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._exited.wait(), grace)
+
+
+def _check_priority(priority: int) -> int:
+    if not 1 <= int(priority) <= 99:
+        raise ValueError(f"priority must be in 1..99, got {priority}")
+    return int(priority)
+
+
+class ProcessExecutor:
+    """Runs one node in its own worker process (``placement: process``).
+
+    Args:
+        name: the node's name (used in errors and the process title).
+        factory: picklable zero-argument callable returning the node object, called in the
+            worker. Must be importable there (module level), like anything sent to a process.
+        priority: flowrt priority 1..99; becomes SCHED_FIFO or a nice level in the worker.
+        watchdog: seconds a call may run before the worker is declared hung and killed; None
+            disables it (a deadline still reports the miss — the watchdog is what recovers).
+        realtime: try SCHED_FIFO at all (False: nice levels only).
+        setup_timeout: seconds ``setup()`` may take in ``start``.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        factory: Callable[[], Any],
+        *,
+        priority: int,
+        watchdog: float | None = None,
+        realtime: bool = True,
+        setup_timeout: float | None = 60.0,
+    ) -> None:
+        self.name = name
+        self.factory = factory
+        self.priority = _check_priority(priority)
+        self.watchdog = watchdog
+        self.realtime = realtime
+        self.setup_timeout = setup_timeout
+        self._worker: _Worker | None = None
+        self._granted = "not started"
+
+    @property
+    def granted(self) -> str:
+        """The OS scheduling the worker was actually granted, e.g. ``SCHED_FIFO 45``."""
+        return self._granted
+
+    @property
+    def pid(self) -> int | None:
+        w = self._worker
+        return w.pid if w is not None and w.alive else None
+
+    @property
+    def running(self) -> bool:
+        return self._worker is not None and self._worker.alive
+
+    @property
+    def last_run_time(self) -> float:
+        """Seconds the last call spent inside the worker (excludes transport and queueing)."""
+        return self._worker.last_run_time if self._worker is not None else 0.0
+
+    async def start(self) -> None:
+        """Spawn the worker if needed and (re)create the node in it; WorkerError if setup fails.
+
+        Called again after a failure of any kind it gives the node a fresh instance: a dead
+        worker is replaced, a live one tears the old instance down first.
+        """
+        if self._worker is None or not self._worker.alive:
+            self._worker = _Worker(self.name, import_main=_needs_main(self.factory))
+            await self._worker.spawn()
+        msg = (_OP_ADD, 0, self.name, self.factory, self.priority, self.realtime)
+        self._granted = await self._worker.request(
+            msg, self.name, self.priority, self.setup_timeout
+        )
+
+    async def call(self, inputs: dict[str, Any]) -> Any:
+        """Run ``process(**inputs)`` in the worker and return its result.
+
+        Pooled frames travel as descriptors (the caller must hold their link until this
+        returns). Cancelling the awaiting task abandons the result, not the running call: the
+        worker finishes it (or the watchdog kills it).
+        """
+        w = self._worker
+        if w is None:
+            raise RuntimeError(f"{self.name}: executor not started")
+        return await w.request((_OP_CALL, 0, inputs), self.name, self.priority, self.watchdog)
+
+    async def stop(self, grace: float = 2.0) -> None:
+        """Teardown in the worker, then join; kill after ``grace`` seconds. Never hangs."""
+        w, self._worker = self._worker, None
+        if w is not None:
+            await w.stop(grace)
+
+
+class PoolExecutor:
+    """A bounded pool of worker processes shared by several nodes (``placement: pool``).
+
+    Node affinity: each node is pinned to one worker, chosen round-robin when it is added, and
+    its object lives there for good — node state survives between calls exactly as in a
+    process of its own, and a node is never instantiated twice. Calls waiting for a busy
+    worker are dispatched highest priority first, and the worker switches its OS priority to
+    that of the node it is running.
+
+    A worker that dies takes its nodes with it: each sees a WorkerError on its next (or
+    pending) call and is restarted by the supervisor through its own ``start()``.
+    """
+
+    def __init__(
+        self, name: str = "pool", size: int | None = None, *, realtime: bool = True
+    ) -> None:
+        self.name = name
+        self.size = max(1, size if size is not None else (os.cpu_count() or 1))
+        self.realtime = realtime
+        self._workers: list[_Worker | None] = [None] * self.size
+        self._locks = [asyncio.Lock() for _ in range(self.size)]
+        self._next_node = itertools.count()
+
+    def executor_for(
+        self,
+        name: str,
+        factory: Callable[[], Any],
+        priority: int,
+        *,
+        watchdog: float | None = None,
+        setup_timeout: float | None = 60.0,
+    ) -> PoolNodeExecutor:
+        nid = next(self._next_node)
+        return PoolNodeExecutor(
+            self,
+            nid % self.size,
+            nid,
+            name,
+            factory,
+            _check_priority(priority),
+            watchdog,
+            setup_timeout,
+        )
+
+    async def _worker(self, index: int, *, import_main: bool = False) -> _Worker:
+        async with self._locks[index]:
+            w = self._workers[index]
+            if w is None or not w.alive:
+                w = _Worker(f"{self.name}[{index}]", import_main=import_main)
+                await w.spawn()
+                self._workers[index] = w
+            return w
+
+    def pids(self) -> list[int]:
+        return [w.pid for w in self._workers if w is not None and w.alive and w.pid is not None]
+
+    async def stop(self, grace: float = 2.0) -> None:
+        """Stop every worker (tearing down the nodes they hold)."""
+        await asyncio.gather(*(w.stop(grace) for w in self._workers if w is not None))
+
+
+class PoolNodeExecutor:
+    """One node's handle on a :class:`PoolExecutor`; same interface as ProcessExecutor."""
+
+    def __init__(
+        self,
+        pool: PoolExecutor,
+        index: int,
+        nid: int,
+        name: str,
+        factory: Callable[[], Any],
+        priority: int,
+        watchdog: float | None,
+        setup_timeout: float | None,
+    ) -> None:
+        self.pool = pool
+        self.index = index
+        self.nid = nid
+        self.name = name
+        self.factory = factory
+        self.priority = priority
+        self.watchdog = watchdog
+        self.setup_timeout = setup_timeout
+        self._worker: _Worker | None = None
+        self._granted = "not started"
+
+    @property
+    def granted(self) -> str:
+        return self._granted
+
+    @property
+    def pid(self) -> int | None:
+        w = self._worker
+        return w.pid if w is not None and w.alive else None
+
+    @property
+    def running(self) -> bool:
+        return self._worker is not None and self._worker.alive
+
+    @property
+    def last_run_time(self) -> float:
+        return self._worker.last_run_time if self._worker is not None else 0.0
+
+    async def start(self) -> None:
+        w = await self.pool._worker(self.index, import_main=_needs_main(self.factory))
+        self._worker = w
+        msg = (_OP_ADD, self.nid, self.name, self.factory, self.priority, self.pool.realtime)
+        self._granted = await w.request(msg, self.name, self.priority, self.setup_timeout)
+
+    async def call(self, inputs: dict[str, Any]) -> Any:
+        w = self._worker
+        if w is None:
+            raise RuntimeError(f"{self.name}: executor not started")
+        return await w.request(
+            (_OP_CALL, self.nid, inputs), self.name, self.priority, self.watchdog
+        )
+
+    async def stop(self, grace: float = 2.0) -> None:
+        """Tear this node down in its worker (the worker stays for the pool's other nodes)."""
+        w = self._worker
+        self._worker = None
+        if w is not None and w.alive:
+            with contextlib.suppress(WorkerError, TimeoutError):
+                await asyncio.wait_for(
+                    w.request((_OP_REMOVE, self.nid), self.name, self.priority, grace), grace
+                )

@@ -1,0 +1,1 @@
+"""Built-in flowrt nodes. They use only flowrt's public API, like any third-party node."""
