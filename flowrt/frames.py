@@ -83,6 +83,7 @@ class Frame:
 
     __slots__ = (
         "__weakref__",
+        "_gen",
         "_refs",
         "_slot",
         "data",
@@ -108,6 +109,7 @@ class Frame:
         self.pixel_format = pixel_format
         self._refs = 1
         self._slot: _Slot | None = None
+        self._gen = 0
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -145,7 +147,6 @@ class Frame:
             raise RuntimeError(f"{self!r} released more often than acquired")
         self._refs -= 1
         if self._refs == 0:
-            self._slot = None
             slot.pool._recycle(slot)
 
     def __reduce__(self) -> tuple[Any, ...]:
@@ -156,12 +157,14 @@ class Frame:
                 _heap_frame,
                 (self.data, self.source, self.seq, self.timestamp, self.pixel_format),
             )
+        if self._refs <= 0:
+            raise RuntimeError(f"{self!r} was released: its slot may already hold another frame")
         return (
             _attach_frame,
             (
                 slot.name,
                 slot.size,
-                slot.generation,
+                self._gen,
                 self.shape,
                 self.dtype.str,
                 self.source,
@@ -381,6 +384,7 @@ class FramePool:
             pixel_format=pixel_format,
         )
         frame._slot = slot
+        frame._gen = slot.generation
         return frame
 
     def publish_array(

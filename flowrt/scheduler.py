@@ -320,9 +320,6 @@ class NodeRunner:
                 watchdog.cancel()
         _release_all(inputs.values())
         self._complete(result, t_release, start, clock.now())
-        if self.blocked:
-            await self._drain_blocked()
-            self._idle()
 
     def _deadline_hit(self, act: int) -> None:
         if act != self.current or not self.busy or self.missed_current:
@@ -359,8 +356,7 @@ class NodeRunner:
         elif result is not None:
             self._publish_result(result, end)
         self._release_created()
-        if not self.blocked:
-            self._idle()
+        self._idle()
 
     def _publish_result(self, result: Any, t: float) -> None:
         outs = self.outputs
@@ -401,7 +397,7 @@ class NodeRunner:
             self.created = []
 
     def _idle(self) -> None:
-        if self.blocked and self.executor.sync:
+        if self.blocked:
             self.sched.loop.create_task(self._drain_then_idle())
             return
         self.busy = False

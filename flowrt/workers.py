@@ -77,6 +77,7 @@ _OP_ADD = 0  # (op, node_id, node_name, factory, priority, realtime) -> granted:
 _OP_CALL = 1  # (op, node_id, inputs) -> result
 _OP_REMOVE = 2  # (op, node_id) -> None (teardown)
 _OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
+_OP_PRIORITY = 4  # (op, node_id, priority) -> granted: str
 
 # Replies (worker -> main).
 _R_OK = 0  # (status, payload, run_seconds)
@@ -291,6 +292,12 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
                 if hasattr(node, "setup"):
                     run(node.setup())
                 nodes[nid] = (node_name, node, prio, realtime)
+            elif op == _OP_PRIORITY:
+                _, nid, prio = msg
+                node_name, node, _, realtime = nodes[nid]
+                nodes[nid] = (node_name, node, prio, realtime)
+                result = apply_os_priority(prio, realtime=realtime)
+                current = (prio, realtime)
             elif op == _OP_REMOVE:
                 teardown(msg[1])
                 result = None
@@ -542,7 +549,7 @@ class _Worker:
     async def stop(self, grace: float = 2.0) -> None:
         """Tear every node down and let the worker exit; kill it if it does not in time."""
         if self.alive:
-            with contextlib.suppress(WorkerError):
+            with contextlib.suppress(WorkerError, TimeoutError):
                 await asyncio.wait_for(self.request((_OP_EXIT,), self.name, 1 << 30, grace), grace)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._exited.wait(), grace)
@@ -558,32 +565,22 @@ def _check_priority(priority: int) -> int:
     return int(priority)
 
 
-class ProcessExecutor:
-    """Runs one node in its own worker process (``placement: process``).
-
-    Args:
-        name: the node's name (used in errors and the process title).
-        factory: picklable zero-argument callable returning the node object, called in the
-            worker. Must be importable there (module level), like anything sent to a process.
-        priority: flowrt priority 1..99; becomes SCHED_FIFO or a nice level in the worker.
-        watchdog: seconds a call may run before the worker is declared hung and killed; None
-            disables it (a deadline still reports the miss — the watchdog is what recovers).
-        realtime: try SCHED_FIFO at all (False: nice levels only).
-        setup_timeout: seconds ``setup()`` may take in ``start``.
-    """
+class _NodeExecutor:
+    """What a node's executor does whatever its worker: call, re-prioritise, report."""
 
     def __init__(
         self,
         name: str,
         factory: Callable[[], Any],
-        *,
+        nid: int,
         priority: int,
-        watchdog: float | None = None,
-        realtime: bool = True,
-        setup_timeout: float | None = 60.0,
+        watchdog: float | None,
+        realtime: bool,
+        setup_timeout: float | None,
     ) -> None:
         self.name = name
         self.factory = factory
+        self.nid = nid
         self.priority = _check_priority(priority)
         self.watchdog = watchdog
         self.realtime = realtime
@@ -610,19 +607,10 @@ class ProcessExecutor:
         """Seconds the last call spent inside the worker (excludes transport and queueing)."""
         return self._worker.last_run_time if self._worker is not None else 0.0
 
-    async def start(self) -> None:
-        """Spawn the worker if needed and (re)create the node in it; WorkerError if setup fails.
-
-        Called again after a failure of any kind it gives the node a fresh instance: a dead
-        worker is replaced, a live one tears the old instance down first.
-        """
-        if self._worker is None or not self._worker.alive:
-            self._worker = _Worker(self.name, import_main=_needs_main(self.factory))
-            await self._worker.spawn()
-        msg = (_OP_ADD, 0, self.name, self.factory, self.priority, self.realtime)
-        self._granted = await self._worker.request(
-            msg, self.name, self.priority, self.setup_timeout
-        )
+    async def _add_to(self, worker: _Worker) -> None:
+        self._worker = worker
+        msg = (_OP_ADD, self.nid, self.name, self.factory, self.priority, self.realtime)
+        self._granted = await worker.request(msg, self.name, self.priority, self.setup_timeout)
 
     async def call(self, inputs: dict[str, Any]) -> Any:
         """Run ``process(**inputs)`` in the worker and return its result.
@@ -634,7 +622,65 @@ class ProcessExecutor:
         w = self._worker
         if w is None:
             raise RuntimeError(f"{self.name}: executor not started")
-        return await w.request((_OP_CALL, 0, inputs), self.name, self.priority, self.watchdog)
+        return await w.request(
+            (_OP_CALL, self.nid, inputs), self.name, self.priority, self.watchdog
+        )
+
+    def set_priority(self, priority: int) -> None:
+        """Change the node's priority at run time (QoS); the worker re-applies its OS priority.
+
+        Returns at once; :attr:`granted` is updated when the worker has answered.
+        """
+        self.priority = _check_priority(priority)
+        w = self._worker
+        if w is None or not w.alive:
+            return
+        fut = w.request((_OP_PRIORITY, self.nid, self.priority), self.name, self.priority, None)
+
+        def done(f: asyncio.Future[Any]) -> None:
+            if not f.cancelled() and f.exception() is None:
+                self._granted = f.result()
+
+        fut.add_done_callback(done)
+
+
+class ProcessExecutor(_NodeExecutor):
+    """Runs one node in its own worker process (``placement: process``).
+
+    Args:
+        name: the node's name (used in errors and the process title).
+        factory: picklable zero-argument callable returning the node object, called in the
+            worker. Must be importable there (module level), like anything sent to a process.
+        priority: flowrt priority 1..99; becomes SCHED_FIFO or a nice level in the worker.
+        watchdog: seconds a call may run before the worker is declared hung and killed; None
+            disables it (a deadline still reports the miss — the watchdog is what recovers).
+        realtime: try SCHED_FIFO at all (False: nice levels only).
+        setup_timeout: seconds ``setup()`` may take in ``start``.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        factory: Callable[[], Any],
+        *,
+        priority: int,
+        watchdog: float | None = None,
+        realtime: bool = True,
+        setup_timeout: float | None = 60.0,
+    ) -> None:
+        super().__init__(name, factory, 0, priority, watchdog, realtime, setup_timeout)
+
+    async def start(self) -> None:
+        """Spawn the worker if needed and (re)create the node in it; WorkerError if setup fails.
+
+        Called again after a failure of any kind it gives the node a fresh instance: a dead
+        worker is replaced, a live one tears the old instance down first.
+        """
+        w = self._worker
+        if w is None or not w.alive:
+            w = _Worker(self.name, import_main=_needs_main(self.factory))
+            await w.spawn()
+        await self._add_to(w)
 
     async def stop(self, grace: float = 2.0) -> None:
         """Teardown in the worker, then join; kill after ``grace`` seconds. Never hangs."""
@@ -650,7 +696,7 @@ class PoolExecutor:
     its object lives there for good — node state survives between calls exactly as in a
     process of its own, and a node is never instantiated twice. Calls waiting for a busy
     worker are dispatched highest priority first, and the worker switches its OS priority to
-    that of the node it is running.
+    that of the node it is running (one syscall, only when it changes).
 
     A worker that dies takes its nodes with it: each sees a WorkerError on its next (or
     pending) call and is restarted by the supervisor through its own ``start()``.
@@ -675,17 +721,9 @@ class PoolExecutor:
         watchdog: float | None = None,
         setup_timeout: float | None = 60.0,
     ) -> PoolNodeExecutor:
+        """The executor of node ``name``, pinned to the next worker in round-robin order."""
         nid = next(self._next_node)
-        return PoolNodeExecutor(
-            self,
-            nid % self.size,
-            nid,
-            name,
-            factory,
-            _check_priority(priority),
-            watchdog,
-            setup_timeout,
-        )
+        return PoolNodeExecutor(self, nid, name, factory, priority, watchdog, setup_timeout)
 
     async def _worker(self, index: int, *, import_main: bool = False) -> _Worker:
         async with self._locks[index]:
@@ -701,16 +739,17 @@ class PoolExecutor:
 
     async def stop(self, grace: float = 2.0) -> None:
         """Stop every worker (tearing down the nodes they hold)."""
-        await asyncio.gather(*(w.stop(grace) for w in self._workers if w is not None))
+        workers = [w for w in self._workers if w is not None]
+        self._workers = [None] * self.size
+        await asyncio.gather(*(w.stop(grace) for w in workers))
 
 
-class PoolNodeExecutor:
+class PoolNodeExecutor(_NodeExecutor):
     """One node's handle on a :class:`PoolExecutor`; same interface as ProcessExecutor."""
 
     def __init__(
         self,
         pool: PoolExecutor,
-        index: int,
         nid: int,
         name: str,
         factory: Callable[[], Any],
@@ -718,52 +757,19 @@ class PoolNodeExecutor:
         watchdog: float | None,
         setup_timeout: float | None,
     ) -> None:
+        super().__init__(name, factory, nid, priority, watchdog, pool.realtime, setup_timeout)
         self.pool = pool
-        self.index = index
-        self.nid = nid
-        self.name = name
-        self.factory = factory
-        self.priority = priority
-        self.watchdog = watchdog
-        self.setup_timeout = setup_timeout
-        self._worker: _Worker | None = None
-        self._granted = "not started"
-
-    @property
-    def granted(self) -> str:
-        return self._granted
-
-    @property
-    def pid(self) -> int | None:
-        w = self._worker
-        return w.pid if w is not None and w.alive else None
-
-    @property
-    def running(self) -> bool:
-        return self._worker is not None and self._worker.alive
-
-    @property
-    def last_run_time(self) -> float:
-        return self._worker.last_run_time if self._worker is not None else 0.0
+        self.index = nid % pool.size
 
     async def start(self) -> None:
-        w = await self.pool._worker(self.index, import_main=_needs_main(self.factory))
-        self._worker = w
-        msg = (_OP_ADD, self.nid, self.name, self.factory, self.priority, self.pool.realtime)
-        self._granted = await w.request(msg, self.name, self.priority, self.setup_timeout)
-
-    async def call(self, inputs: dict[str, Any]) -> Any:
-        w = self._worker
-        if w is None:
-            raise RuntimeError(f"{self.name}: executor not started")
-        return await w.request(
-            (_OP_CALL, self.nid, inputs), self.name, self.priority, self.watchdog
+        """Make sure this node's worker runs, then (re)create the node in it."""
+        await self._add_to(
+            await self.pool._worker(self.index, import_main=_needs_main(self.factory))
         )
 
     async def stop(self, grace: float = 2.0) -> None:
         """Tear this node down in its worker (the worker stays for the pool's other nodes)."""
-        w = self._worker
-        self._worker = None
+        w, self._worker = self._worker, None
         if w is not None and w.alive:
             with contextlib.suppress(WorkerError, TimeoutError):
                 await asyncio.wait_for(
