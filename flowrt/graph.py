@@ -147,7 +147,7 @@ def resolve(
         cls = classes.get(name)
         for port, ins in ns.inputs.items():
             path = ("nodes", name, "inputs", port)
-            if cls is not None and port not in cls.inputs:
+            if cls is not None and port not in cls.inputs and cls.any_inputs is None:
                 at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, cls.inputs))
                 continue
             if ins.node not in spec.nodes:
@@ -163,7 +163,9 @@ def resolve(
                     + did_you_mean(ins.port, src_cls.outputs),
                 )
                 continue
-            out_t, in_t = src_cls.outputs[ins.port].type, cls.inputs[port].type
+            in_port = cls.inputs.get(port) or cls.any_inputs
+            assert in_port is not None
+            out_t, in_t = src_cls.outputs[ins.port].type, in_port.type
             if not _is_compatible(out_t, in_t):
                 at(
                     path,

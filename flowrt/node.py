@@ -104,6 +104,14 @@ class NodeContext:
         """Publish outside the return path (streaming nodes); only on the event loop."""
         raise RuntimeError("publish() is only available to inline nodes on the event loop")
 
+    def emit(self, event: Any) -> None:
+        """Publish a typed event (e.g. a HealthAlert); only on the event loop."""
+        raise RuntimeError("emit() is only available to inline nodes on the event loop")
+
+    def stats(self) -> Any:
+        """The runtime's statistics (``RuntimeStats``); only on the event loop."""
+        raise RuntimeError("stats() is only available to inline nodes on the event loop")
+
 
 class Node:
     """Base class of every node; subclasses declare ports as class attributes.
@@ -124,6 +132,8 @@ class Node:
     Params: ClassVar[type[BaseModel]] = NoParams
     inputs: ClassVar[Mapping[str, Input[Any]]] = {}
     outputs: ClassVar[Mapping[str, Output[Any]]] = {}
+    any_inputs: ClassVar[Input[Any] | None] = None
+    """Set to an ``Input`` to accept inputs of any name with that type (e.g. a display)."""
 
     params: Any
     ctx: NodeContext

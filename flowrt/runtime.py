@@ -140,6 +140,7 @@ class Runtime:
             new_frame=self._new_frame if self._frames is not None else None,
             real_time=isinstance(self.clock, SystemClock),
         )
+        self._sched.stats_provider = self.stats
         self.started = True
         for m in self.monitors:
             m.started(self)

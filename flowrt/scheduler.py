@@ -135,6 +135,12 @@ class RunnerContext(NodeContext):
         """Publish a typed event (e.g. a HealthAlert) to the runtime's monitors."""
         self._runner.sched.emit(event)
 
+    def stats(self) -> Any:
+        provider = self._runner.sched.stats_provider
+        if provider is None:
+            raise RuntimeError("no statistics outside a Runtime")
+        return provider()
+
 
 class NodeRunner:
     """One node: its activations, buffers, statistics and supervision."""
@@ -155,6 +161,7 @@ class NodeRunner:
             enabled=spec.enabled,
         )
         self.inputs: dict[str, Buffer] = {}
+        self.ports = list(rnode.cls.inputs)  # declared inputs, then any-named ones connected
         self.outputs: dict[str, list[Buffer]] = {p: [] for p in rnode.cls.outputs}
         self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
         self.required = [p for p, port in rnode.cls.inputs.items() if port.required]
@@ -198,6 +205,8 @@ class NodeRunner:
 
     def connect_input(self, port: str, buf: Buffer) -> None:
         self.inputs[port] = buf
+        if port not in self.ports:
+            self.ports.append(port)
         trig = self.rnode.trigger
         if isinstance(trig, InputTrigger):
             wanted = [trig.input] if isinstance(trig.input, str) else trig.input
@@ -238,7 +247,7 @@ class NodeRunner:
 
     def _take_inputs(self) -> dict[str, Any] | None:
         values: dict[str, Any] = {}
-        for port in self.rnode.cls.inputs:
+        for port in self.ports:
             buf = self.inputs.get(port)
             if buf is None:
                 values[port] = None
@@ -534,6 +543,7 @@ class Scheduler:
         self._new_frame = new_frame
         self.loop = asyncio.get_event_loop()
         self.blocked_calls = 0
+        self.stats_provider: Callable[[], Any] | None = None
         self.runners: dict[str, NodeRunner] = {}
         for name in sorted(graph.nodes, key=lambda n: graph.nodes[n].order):
             self.runners[name] = NodeRunner(self, graph.nodes[name])

@@ -381,7 +381,8 @@ class _Worker:
         self._exited = asyncio.Event()
         self._eof_timer: asyncio.TimerHandle | None = None
         self.death: WorkerError | None = None
-        self.alive = False
+        self.alive = False  # the process exists (until its sentinel fires)
+        self._killing = False
         self.last_run_time = 0.0
 
     async def spawn(self) -> None:
@@ -417,7 +418,7 @@ class _Worker:
         self, msg: tuple[Any, ...], node: str, priority: int, watchdog: float | None
     ) -> asyncio.Future[Any]:
         """Queue a request; the future resolves to the reply payload or a WorkerError."""
-        if not self.alive or self._loop is None:
+        if not self.usable or self._loop is None:
             raise self.death_for(node)
         fut = self._loop.create_future()
         call = _Call((-priority, next(self._seq)), pickle.dumps(msg, _PICKLE), fut, node, watchdog)
@@ -471,6 +472,7 @@ class _Worker:
         if call is None or not self.alive:
             return
         self._hung_node = call.node
+        self.death = self._classify(None)
         err = WorkerError(
             call.node,
             "hung",
@@ -541,22 +543,34 @@ class _Worker:
             )
         return WorkerError(node, d.kind, d.detail, d.exitcode)
 
+    @property
+    def usable(self) -> bool:
+        """Alive and not condemned (a killed worker stays alive until its sentinel fires)."""
+        return self.alive and not self._killing
+
     def kill(self) -> None:
         if self.alive and self.pid is not None:
+            self._killing = True
             with contextlib.suppress(ProcessLookupError):
                 os.kill(self.pid, signal.SIGKILL)
 
-    async def stop(self, grace: float = 2.0) -> None:
-        """Tear every node down and let the worker exit; kill it if it does not in time."""
-        if self.alive:
-            with contextlib.suppress(WorkerError, TimeoutError):
-                await asyncio.wait_for(self.request((_OP_EXIT,), self.name, 1 << 30, grace), grace)
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._exited.wait(), grace)
+    async def wait_exit(self, grace: float = 2.0) -> None:
+        """Wait until the process is gone and reaped (killing it if it takes too long)."""
+        if not self.alive:
+            return
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._exited.wait(), grace)
         if self.alive:
             self.kill()
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._exited.wait(), grace)
+
+    async def stop(self, grace: float = 2.0) -> None:
+        """Tear every node down and let the worker exit; kill it if it does not in time."""
+        if self.usable:
+            with contextlib.suppress(WorkerError, TimeoutError):
+                await asyncio.wait_for(self.request((_OP_EXIT,), self.name, 1 << 30, grace), grace)
+        await self.wait_exit(grace)
 
 
 def _check_priority(priority: int) -> int:
@@ -677,7 +691,9 @@ class ProcessExecutor(_NodeExecutor):
         worker is replaced, a live one tears the old instance down first.
         """
         w = self._worker
-        if w is None or not w.alive:
+        if w is None or not w.usable:
+            if w is not None:
+                await w.wait_exit()  # a killed worker: let it go before its successor starts
             w = _Worker(self.name, import_main=_needs_main(self.factory))
             await w.spawn()
         await self._add_to(w)
@@ -728,7 +744,9 @@ class PoolExecutor:
     async def _worker(self, index: int, *, import_main: bool = False) -> _Worker:
         async with self._locks[index]:
             w = self._workers[index]
-            if w is None or not w.alive:
+            if w is None or not w.usable:
+                if w is not None:
+                    await w.wait_exit()
                 w = _Worker(f"{self.name}[{index}]", import_main=import_main)
                 await w.spawn()
                 self._workers[index] = w
