@@ -49,7 +49,7 @@ __all__ = [
 
 ColourSpace = Literal["hsv", "ymp"]
 
-#: Channel names per space; the last name of each tuple that is an angle may wrap around.
+#: Channel order per space; the angles (hsv's h, ymp's p) are the ranges that may wrap.
 CHANNELS: dict[str, tuple[str, str, str]] = {"hsv": ("h", "s", "v"), "ymp": ("y", "m", "p")}
 
 
@@ -294,27 +294,49 @@ _FIELD = Surround(colours=("green", "white", "black"), min_fraction=0.4)
 #: Object specs of the soccer graph, plus "candle" for the real sample video.
 OBJECTS: dict[str, ObjectSpec] = {
     "ball": ObjectSpec(
-        colour="orange", min_area=20, max_area=1500, min_aspect=0.2, max_aspect=5.0,
+        colour="orange",
+        min_area=20,
+        max_area=1500,
+        min_aspect=0.2,
+        max_aspect=5.0,
         surround=_FIELD,
     ),
     "blue_goal": ObjectSpec(colour="blue", min_area=150, max_aspect=1.2, min_fill=0.5),
     "yellow_goal": ObjectSpec(colour="yellow", min_area=150, max_aspect=1.2, min_fill=0.5),
     "blue_post": ObjectSpec(
-        colour="blue", min_area=20, max_area=140, min_aspect=0.15, max_aspect=4.0, min_fill=0.4,
+        colour="blue",
+        min_area=20,
+        max_area=140,
+        min_aspect=0.15,
+        max_aspect=4.0,
+        min_fill=0.4,
         roi=(0.0, 0.0, 1.0, 0.5),
     ),
     "yellow_post": ObjectSpec(
-        colour="yellow", min_area=20, max_area=140, min_aspect=0.15, max_aspect=4.0,
-        min_fill=0.4, roi=(0.0, 0.0, 1.0, 0.5),
+        colour="yellow",
+        min_area=20,
+        max_area=140,
+        min_aspect=0.15,
+        max_aspect=4.0,
+        min_fill=0.4,
+        roi=(0.0, 0.0, 1.0, 0.5),
     ),
     "obstacle": ObjectSpec(
-        colour="black", min_area=100, max_area=6000, min_aspect=0.2, max_aspect=5.0,
+        colour="black",
+        min_area=100,
+        max_area=6000,
+        min_aspect=0.2,
+        max_aspect=5.0,
         roi=(0.0, 0.25, 1.0, 1.0),
     ),
     "line": ObjectSpec(colour="white", kind="pixels", min_area=50),
     # The glowing table lamp in the real sample video (amber, a tall cylinder).
     "candle": ObjectSpec(
-        colour="amber", min_area=300, min_aspect=0.3, max_aspect=2.5, min_fill=0.45,
+        colour="amber",
+        min_area=300,
+        min_aspect=0.3,
+        max_aspect=2.5,
+        min_fill=0.45,
     ),
 }
 
@@ -327,7 +349,7 @@ def object_spec(colour: str, **fields: object) -> ObjectSpec:
 def table_for(spec: ObjectSpec, space: ColourSpace = "hsv", bins: int = 64) -> ColourTable:
     """A table that knows every class the spec needs: the shared soccer table when it suffices,
     else one built from the predefined classes (so extra classes never steal soccer colours)."""
-    needed = [spec.colour] + list(spec.surround.colours if spec.surround else ())
+    needed = [spec.colour, *(spec.surround.colours if spec.surround else ())]
     table = default_table(space, bins)
     if all(n in table.names for n in needed):
         return table
@@ -404,7 +426,9 @@ class ObjectTracker:
         x0, y0, x1, y1 = self.spec.roi
         return round(x0 * w), round(y0 * h), max(round(x1 * w), 1), max(round(y1 * h), 1)
 
-    def _components(self, image: np.ndarray, win: Window, roi: Window) -> tuple[list[_Candidate], Window, int]:
+    def _components(
+        self, image: np.ndarray, win: Window, roi: Window
+    ) -> tuple[list[_Candidate], Window, int]:
         """Regions of the object's colour in `win`, growing the window while a region touches a
         border that can still move (region growing, done by re-classifying a larger window)."""
         cost = 0
@@ -415,30 +439,50 @@ class ObjectTracker:
             cost += labels.size
             mask = (labels == self.label).view(np.uint8)
             n, _, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            cands = [
+                _Candidate(
+                    (float(cents[i][0]) + x0, float(cents[i][1]) + y0),
+                    (
+                        int(stats[i][0]) + x0,
+                        int(stats[i][1]) + y0,
+                        int(stats[i][2]),
+                        int(stats[i][3]),
+                    ),
+                    int(stats[i][4]),
+                )
+                for i in range(1, n)
+            ]
             grow = list(win)
+            touching = []
             for i in range(1, n):
                 cx, cy, cw, ch, area = (int(v) for v in stats[i])
                 if area < min_part:
                     continue
-                if cx == 0 and x0 > roi[0]:
+                edges = (
+                    cx == 0 and x0 > roi[0],
+                    cy == 0 and y0 > roi[1],
+                    cx + cw == x1 - x0 and x1 < roi[2],
+                    cy + ch == y1 - y0 and y1 < roi[3],
+                )
+                if any(edges):
+                    touching.append((i, edges))
+                elif self._shape_ok(cands[i - 1]):
+                    # A complete plausible region is here: like the paper's search, stop
+                    # rather than grow after other regions cut by the window border.
+                    return cands, win, cost
+            for i, edges in touching:
+                cx, cy, cw, ch, _ = (int(v) for v in stats[i])
+                if edges[0]:
                     grow[0] = max(roi[0], x0 - 2 * cw - 4)
-                if cy == 0 and y0 > roi[1]:
+                if edges[1]:
                     grow[1] = max(roi[1], y0 - 2 * ch - 4)
-                if cx + cw == x1 - x0 and x1 < roi[2]:
+                if edges[2]:
                     grow[2] = min(roi[2], x1 + 2 * cw + 4)
-                if cy + ch == y1 - y0 and y1 < roi[3]:
+                if edges[3]:
                     grow[3] = min(roi[3], y1 + 2 * ch + 4)
             if tuple(grow) == win:
                 break
             win = (grow[0], grow[1], grow[2], grow[3])
-        cands = [
-            _Candidate(
-                (float(cents[i][0]) + x0, float(cents[i][1]) + y0),
-                (int(stats[i][0]) + x0, int(stats[i][1]) + y0, int(stats[i][2]), int(stats[i][3])),
-                int(stats[i][4]),
-            )
-            for i in range(1, n)
-        ]
         return cands, win, cost
 
     def _shape_ok(self, c: _Candidate) -> bool:
@@ -455,7 +499,8 @@ class ObjectTracker:
 
     def _surround_fraction(self, image: np.ndarray, c: _Candidate) -> tuple[float, int]:
         """Fraction of the ring around the bbox in the surround colours, and pixels classified."""
-        assert self.spec.surround is not None and self._surround_labels is not None
+        assert self.spec.surround is not None
+        assert self._surround_labels is not None
         x, y, w, h = c.bbox
         r = max(2, round(self.spec.surround.width * max(w, h)))
         ih, iw = image.shape[:2]
@@ -478,7 +523,9 @@ class ObjectTracker:
             order = sorted(cands, key=lambda c: -c.area)
         else:
             px, py = point
-            order = sorted(cands, key=lambda c: (c.centroid[0] - px) ** 2 + (c.centroid[1] - py) ** 2)
+            order = sorted(
+                cands, key=lambda c: (c.centroid[0] - px) ** 2 + (c.centroid[1] - py) ** 2
+            )
         cost = 0
         for c in order:
             if not self._shape_ok(c):
@@ -494,8 +541,10 @@ class ObjectTracker:
             return c, conf, cost
         return None, 0.0, cost
 
-    def _found(self, c: _Candidate, conf: float, cost: int) -> Detection:
-        if self._last is not None and self._misses == 0:
+    def _found(self, c: _Candidate, conf: float, cost: int, near: bool) -> Detection:
+        # Velocity only from consecutive detections in the first window around the prediction:
+        # a re-acquisition further away (another object, a scene cut) says nothing about motion.
+        if near and self._last is not None and self._misses == 0:
             self._velocity = (
                 c.centroid[0] - self._last.centroid[0],
                 c.centroid[1] - self._last.centroid[1],
@@ -534,7 +583,11 @@ class ObjectTracker:
             point = ((roi[0] + roi[2]) / 2, (roi[1] + roi[3]) / 2)
             half = max(8.0, 0.125 * max(w, h))
         full_area = (roi[2] - roi[0]) * (roi[3] - roi[1])
-        for level in range(2):  # the window, then twice as large, then the whole roi
+        # Windows pay off only while the object was seen in the previous frame (or at the very
+        # start, where the centre is the best guess); once it is lost, the windows would just
+        # be classified twice, so a lost object costs exactly one full search per frame.
+        levels = 2 if self._misses == 0 else 0
+        for level in range(levels):  # the window, then twice as large, then the whole roi
             hw = half * (2**level)
             win = (
                 max(roi[0], math.floor(point[0] - hw)),
@@ -552,13 +605,13 @@ class ObjectTracker:
             best, conf, n = self._validate(image, cands, point if self._last else None)
             cost += n
             if best is not None:
-                return self._found(best, conf, cost)
+                return self._found(best, conf, cost, near=level == 0)
         cands, _, n = self._components(image, roi, roi)
         cost += n
         best, conf, n = self._validate(image, cands, None)
         cost += n
         if best is not None:
-            return self._found(best, conf, cost)
+            return self._found(best, conf, cost, near=False)
         return self._lost(cost)
 
     def _track_pixels(self, image: np.ndarray, roi: Window) -> Detection:
@@ -572,7 +625,9 @@ class ObjectTracker:
         x, y, bw, bh = cv2.boundingRect(mask)
         centroid = (m["m10"] / m["m00"] + roi[0], m["m01"] / m["m00"] + roi[1])
         conf = min(1.0, area / (4.0 * self.spec.min_area))
-        return Detection(True, centroid, (x + roi[0], y + roi[1], bw, bh), area, conf, labels.size, self.name)
+        return Detection(
+            True, centroid, (x + roi[0], y + roi[1], bw, bh), area, conf, labels.size, self.name
+        )
 
 
 def tracker_for(

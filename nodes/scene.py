@@ -170,8 +170,10 @@ class SoccerScene:
         self._pan_phase = float(rng.uniform(0, 2 * math.pi))
         self._gain_phases = rng.uniform(0, 2 * math.pi, size=2)
         self._build_background(rng)
-        self._build_noise(rng)
-        self._checkpoints: list[tuple[float, ...]] = [self._initial_state(rng)]
+        # Separate streams, so that the game (dynamics) is the same at every resolution.
+        self._build_noise(np.random.default_rng([self.seed, 0x01]))
+        initial = self._initial_state(np.random.default_rng([self.seed, 0x02]))
+        self._checkpoints: list[tuple[float, ...]] = [initial]
         self._chunks: OrderedDict[int, np.ndarray] = OrderedDict()
 
     # ------------------------------------------------------------------ static content
@@ -376,7 +378,9 @@ class SoccerScene:
         """Global lighting gain of frame `index` (flicker and slow drift, scaled by clutter)."""
         t = index / self.fps
         p0, p1 = self._gain_phases
-        wave = 0.7 * math.sin(2 * math.pi * t / 9.0 + p0) + 0.3 * math.sin(2 * math.pi * t / 1.3 + p1)
+        wave = 0.7 * math.sin(2 * math.pi * t / 9.0 + p0) + 0.3 * math.sin(
+            2 * math.pi * t / 1.3 + p1
+        )
         return 1.0 + 0.2 * self.clutter * wave
 
     def render(self, index: int) -> tuple[np.ndarray, SceneTruth]:
