@@ -131,6 +131,10 @@ class Runtime:
             if not granted:
                 log.warning("--realtime: %s", self.realtime)
         self._frames = _frame_store()
+        if any(n.spec.placement is not Placement.inline for n in self.graph.nodes.values()):
+            from .workers import start_forkserver
+
+            await asyncio.to_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
         self.clock.origin = self.clock.now() + (0.005 if isinstance(self.clock, SystemClock) else 0.0)
         self._sched = Scheduler(
             self.graph,
@@ -199,7 +203,9 @@ class Runtime:
         if spec.placement is Placement.pool:
             if self._pool is None:
                 self._pool = workers.PoolExecutor()
-            ex: Any = self._pool.executor_for(runner.name, factory, priority=runner.timing.priority)
+            ex: Any = self._pool.executor_for(
+                runner.name, factory, priority=runner.timing.priority, watchdog=watchdog
+            )
         else:
             ex = workers.ProcessExecutor(runner.name, factory, priority=runner.timing.priority, watchdog=watchdog)
         return _WorkerAdapter(ex)

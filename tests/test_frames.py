@@ -8,7 +8,6 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -50,7 +49,7 @@ def fill(pool: FramePool, seq: int, shape: tuple[int, ...] = (4, 6, 3)) -> Frame
 def test_heap_frame_keeps_constructor_and_pickles_pixels() -> None:
     data = np.arange(24, dtype=np.uint16).reshape(2, 4, 3)
     f = Frame(data, source="host", seq=3, timestamp=1.5, pixel_format="RGB")
-    assert (f.shape, f.dtype, f.nbytes, f.refs, f.shared) == ((2, 4, 3), np.uint16, 48, 1, False)
+    assert (f.shape, f.dtype.str, f.nbytes, f.refs, f.shared) == ((2, 4, 3), "<u2", 48, 1, False)
     g = pickle.loads(pickle.dumps(f))
     assert (g.source, g.seq, g.timestamp, g.pixel_format) == ("host", 3, 1.5, "RGB")
     np.testing.assert_array_equal(g.data, data)
@@ -112,8 +111,15 @@ def test_pool_grows_within_bound_then_drops_and_counts(store: FrameStore) -> Non
     for h in (held[0], held[2], f):
         h.release()
     assert pool.stats() == pool.stats().__class__(
-        owner="cam", slots=3, slots_in_use=0, max_slots=3, reserved=4, grown=1, dropped=2,
-        reallocated=0, bytes=pool.stats().bytes,
+        owner="cam",
+        slots=3,
+        slots_in_use=0,
+        max_slots=3,
+        reserved=4,
+        grown=1,
+        dropped=2,
+        reallocated=0,
+        bytes=pool.stats().bytes,
     )
 
 
@@ -138,7 +144,12 @@ def test_pooled_frame_pickles_to_a_descriptor_of_the_same_memory(store: FrameSto
     assert len(blob) < 1000  # a 6 MB frame: only the descriptor travels
     g = pickle.loads(blob)
     assert (g.source, g.seq, g.shape, g.pixel_format, g.shared) == (
-        "cam", 5, (1080, 1920, 3), "BGR", False)
+        "cam",
+        5,
+        (1080, 1920, 3),
+        "BGR",
+        False,
+    )
     assert not g.data.flags.writeable  # readers cannot scribble on the producer's frame
     f.data[100, 200] = (1, 2, 3)  # written after the descriptor was made...
     assert tuple(g.data[100, 200]) == (1, 2, 3)  # ...and seen: the same pages, not a copy
@@ -187,7 +198,7 @@ def test_reclaim_orphans_removes_dead_and_reused_pids_only(store: FrameStore) ->
     os.utime(reused, (1.0, 1.0))  # created long before pid 1 started: its creator is gone
     fill(store.pool("mine"), 1).release()
     try:
-        assert FrameStore.reclaim_orphans() >= 2
+        FrameStore.reclaim_orphans()  # (a concurrent runtime's start may reclaim them too)
         assert not os.path.exists(dead)
         assert not os.path.exists(reused)
         assert os.path.exists(live)
@@ -221,7 +232,10 @@ SCRIPT = textwrap.dedent(
 def test_no_segment_outlives_the_process(mode: str) -> None:
     proc = subprocess.Popen(
         [sys.executable, "-c", SCRIPT, mode],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=REPO, text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        cwd=REPO,
+        text=True,
     )
     assert proc.stdout is not None
     assert proc.stdout.readline().strip() == "4"
@@ -231,9 +245,8 @@ def test_no_segment_outlives_the_process(mode: str) -> None:
     prefix = f"flowrt_{proc.pid}_"
     left = [n for n in os.listdir(SHM_DIR) if n.startswith(prefix)]
     if mode == "sigkill":
-        assert len(left) == 4  # nobody could clean up: the next start reclaims them
-        deadline = time.monotonic() + 5
-        while FrameStore.reclaim_orphans() == 0 and time.monotonic() < deadline:
-            time.sleep(0.05)
+        # Nobody could clean up (unless a concurrent runtime's start reclaimed them already):
+        # the next start reclaims them.
+        FrameStore.reclaim_orphans()
         left = [n for n in os.listdir(SHM_DIR) if n.startswith(prefix)]
     assert left == []
