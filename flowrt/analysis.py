@@ -52,7 +52,8 @@ def activation_tables(graph: Graph, max_ticks: int = 64) -> list[ActivationTable
         fracs = [Fraction(str(v)) for _, _, t, _ in timers for v in (t.timer, t.phase) if v]
         base = fracs[0]
         for f in fracs[1:]:
-            base = Fraction(gcd(base.numerator * f.denominator, f.numerator * base.denominator), base.denominator * f.denominator)
+            num = gcd(base.numerator * f.denominator, f.numerator * base.denominator)
+            base = Fraction(num, base.denominator * f.denominator)
         periods = [int(Fraction(str(t.timer)) / base) for _, _, t, _ in timers]
         h = min(hyperperiod(periods), max_ticks)
         rows = []

@@ -6,7 +6,8 @@ here, every problem collected with its location, so a bad graph never reaches th
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections import deque
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from math import gcd
 from pathlib import Path
@@ -14,9 +15,9 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
-from .diagnostics import Diagnostic, GraphError, Severity, did_you_mean
+from .diagnostics import Diagnostic, GraphError, Severity, closest, did_you_mean
 from .frames import Frame
-from .loading import Locations, load_file, load_text, pydantic_diagnostics
+from .loading import Locations, check_text, pydantic_diagnostics, read_graph_file
 from .node import Node
 from .registry import KindError, resolve_kind
 from .spec import (
@@ -75,13 +76,23 @@ class Graph:
 
     @classmethod
     def from_file(cls, path: str | Path, kinds: Mapping[str, type[Node]] | None = None) -> Graph:
-        spec, locs = load_file(path)
-        return resolve(spec, locs, kinds)
+        return cls.from_text(read_graph_file(path), str(path), kinds)
 
     @classmethod
-    def from_text(cls, text: str, file: str = "<graph>", kinds: Mapping[str, type[Node]] | None = None) -> Graph:
-        spec, locs = load_text(text, file)
-        return resolve(spec, locs, kinds)
+    def from_text(
+        cls, text: str, file: str = "<graph>", kinds: Mapping[str, type[Node]] | None = None
+    ) -> Graph:
+        loaded = check_text(text, file)
+        if loaded.spec is None:
+            raise GraphError(loaded.errors)
+        # Structural checks run even when some nodes failed, so every problem is listed at once.
+        return resolve(
+            loaded.spec,
+            loaded.locs,
+            kinds,
+            earlier=loaded.errors,
+            invalid_nodes=loaded.invalid_nodes,
+        )
 
     def frame_port(self, source: str) -> str:
         """Normalise a frame trigger's source (``cam`` or ``cam.frame``) to ``cam.frame``."""
@@ -119,10 +130,18 @@ def resolve(
     spec: GraphSpec,
     locs: Locations | None = None,
     kinds: Mapping[str, type[Node]] | None = None,
+    *,
+    earlier: Iterable[Diagnostic] = (),
+    invalid_nodes: Collection[str] = (),
 ) -> Graph:
-    """Check everything that needs the node classes; raise GraphError with all problems."""
+    """Check everything that needs the node classes; raise GraphError with all problems.
+
+    ``earlier`` are problems already found while loading, reported together with these;
+    ``invalid_nodes`` were dropped from ``spec`` by then, so references to them are not
+    reported again as unknown nodes.
+    """
     locs = locs or Locations("<python>")
-    diags: list[Diagnostic] = []
+    diags: list[Diagnostic] = list(earlier)
     err = diags.append
 
     def at(path: tuple[str | int, ...], msg: str, sev: Severity = Severity.error) -> None:
@@ -136,22 +155,30 @@ def resolve(
         except KindError as e:
             at(("nodes", name, "kind"), str(e))
             continue
+        except Exception as e:  # the kind's own module raised while imported: say so, in place
+            at(("nodes", name, "kind"), f"node kind {ns.kind!r}: import failed: {e!r}")
+            continue
         try:
             params[name] = classes[name].Params.model_validate(ns.params)
         except ValidationError as e:
-            diags.extend(pydantic_diagnostics(e, locs, ("nodes", name, "params")))
+            where = ("nodes", name, "params")
+            diags.extend(pydantic_diagnostics(e, locs, where, classes[name].Params))
 
-    names = list(spec.nodes)
+    names = [*spec.nodes, *invalid_nodes]
     edges: list[Edge] = []
     for name, ns in spec.nodes.items():
         cls = classes.get(name)
+        misspelt: set[str | None] = set()  # inputs already named by a "did you mean"
         for port, ins in ns.inputs.items():
             path = ("nodes", name, "inputs", port)
             if cls is not None and port not in cls.inputs and cls.any_inputs is None:
                 at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, cls.inputs))
+                misspelt.add(closest(port, cls.inputs))
                 continue
             if ins.node not in spec.nodes:
-                at(path, f"input from unknown node {ins.node!r}" + did_you_mean(ins.node, names))
+                if ins.node not in invalid_nodes:
+                    hint = did_you_mean(ins.node, names)
+                    at(path, f"input from unknown node {ins.node!r}" + hint)
                 continue
             src_cls = classes.get(ins.node)
             if src_cls is None or cls is None:
@@ -176,7 +203,7 @@ def resolve(
             edges.append(_edge(name, port, ins, in_t))
         if cls is not None:
             for port, p in cls.inputs.items():
-                if p.required and port not in ns.inputs:
+                if p.required and port not in ns.inputs and port not in misspelt:
                     at(("nodes", name), f"required input {port!r} of {ns.kind} is not connected")
 
     triggers: dict[str, Trigger] = {}
@@ -189,21 +216,27 @@ def resolve(
             if ns.inputs:
                 trig = InputTrigger()
             elif cls is not None:
-                at(("nodes", name), "node has no trigger and no inputs: add trigger: {timer: ...} or loop")
+                at(
+                    ("nodes", name),
+                    "node has no trigger and no inputs: add trigger: {timer: ...} or loop",
+                )
                 continue
             else:
                 continue
         triggers[name] = trig
-        _check_trigger(name, ns, trig, spec, classes, at)
+        _check_trigger(name, ns, trig, spec, classes, at, names)
 
     _check_cycles(spec, edges, at)
+    _check_frame_chains(triggers, at)
 
     for mode_name, mode in spec.modes.items():
         for node in mode.nodes:
-            if node not in spec.nodes:
-                at(("modes", mode_name, "nodes", node), f"unknown node {node!r}" + did_you_mean(node, names))
+            if node not in names:
+                hint = did_you_mean(node, names)
+                at(("modes", mode_name, "nodes", node), f"unknown node {node!r}" + hint)
     if spec.initial_mode is not None and spec.initial_mode not in spec.modes:
-        at(("initial_mode",), f"unknown mode {spec.initial_mode!r}" + did_you_mean(spec.initial_mode, spec.modes))
+        hint = did_you_mean(spec.initial_mode, spec.modes)
+        at(("initial_mode",), f"unknown mode {spec.initial_mode!r}" + hint)
 
     resolved = {
         name: ResolvedNode(name, ns, classes[name], params[name], triggers[name], i)
@@ -228,18 +261,28 @@ def _edge(dst: str, dst_port: str, ins: InputSpec, in_type: Any) -> Edge:
     return Edge(ins.node, ins.port, dst, dst_port, policy, ins.size)
 
 
-def _check_trigger(name: str, ns: NodeSpec, trig: Trigger, spec: GraphSpec, classes: Mapping[str, type[Node]], at: Any) -> None:
+def _check_trigger(
+    name: str,
+    ns: NodeSpec,
+    trig: Trigger,
+    spec: GraphSpec,
+    classes: Mapping[str, type[Node]],
+    at: Any,
+    names: Collection[str],
+) -> None:
     path = ("nodes", name, "trigger")
     if isinstance(trig, FrameTrigger):
         src, _, port = trig.frame.partition(".")
-        if src not in spec.nodes:
-            at((*path, "frame"), f"unknown frame source {src!r}" + did_you_mean(src, spec.nodes))
+        if src not in names:
+            at((*path, "frame"), f"unknown frame source {src!r}" + did_you_mean(src, names))
         elif src in classes:
             frame_ports = classes[src].frame_ports()
+            kind = spec.nodes[src].kind
             if not frame_ports:
-                at((*path, "frame"), f"frame trigger on {src!r} ({spec.nodes[src].kind}), which produces no frames")
+                at((*path, "frame"), f"frame trigger on {src!r} ({kind}), which produces no frames")
             elif port and port not in frame_ports:
-                at((*path, "frame"), f"{src!r} has no frame output {port!r}" + did_you_mean(port, frame_ports))
+                hint = did_you_mean(port, frame_ports)
+                at((*path, "frame"), f"{src!r} has no frame output {port!r}" + hint)
         if trig.period <= 0:
             at((*path, "period"), f"period must be a positive number of frames, got {trig.period}")
         if trig.phase < 0:
@@ -252,39 +295,73 @@ def _check_trigger(name: str, ns: NodeSpec, trig: Trigger, spec: GraphSpec, clas
         if trig.phase < 0:
             at((*path, "phase"), f"phase must be >= 0, got {trig.phase:g} ms")
         elif trig.timer > 0 and trig.phase >= trig.timer:
-            at((*path, "phase"), f"phase {trig.phase:g} ms must be less than the period {trig.timer:g} ms")
+            at(
+                (*path, "phase"),
+                f"phase {trig.phase:g} ms must be less than the period {trig.timer:g} ms",
+            )
     elif isinstance(trig, InputTrigger):
         wanted = [trig.input] if isinstance(trig.input, str) else trig.input
         for port in wanted:
             if port != "any" and port not in ns.inputs:
-                at((*path, "input"), f"trigger on input {port!r}, which is not connected" + did_you_mean(port, ns.inputs))
+                hint = did_you_mean(port, ns.inputs)
+                at((*path, "input"), f"trigger on input {port!r}, which is not connected" + hint)
     elif isinstance(trig, LoopTrigger):
         pass
 
 
 def _check_cycles(spec: GraphSpec, edges: list[Edge], at: Any) -> None:
-    succ: dict[str, list[str]] = {n: [] for n in spec.nodes}
+    """Report each cycle of edges once, at the input that closes it (back to its first node)."""
+    succ: dict[str, list[Edge]] = {n: [] for n in spec.nodes}
     for e in edges:
-        succ[e.src].append(e.dst)
-    state: dict[str, int] = {}
-    stack: list[str] = []
+        succ[e.src].append(e)
+    in_reported: set[str] = set()
+    for start in spec.nodes:
+        if start in in_reported:
+            continue
+        # Breadth first from `start`: the shortest way back to it, if there is one.
+        came_by: dict[str, Edge] = {}
+        todo = deque([start])
+        closing: Edge | None = None
+        while todo and closing is None:
+            for e in succ[todo.popleft()]:
+                if e.dst == start:
+                    closing = e
+                    break
+                if e.dst not in came_by:
+                    came_by[e.dst] = e
+                    todo.append(e.dst)
+        if closing is None:
+            continue
+        path = [closing]
+        while path[0].src != start:
+            path.insert(0, came_by[path[0].src])
+        cycle = [start, *(e.dst for e in path)]
+        in_reported.update(cycle)
+        where = ("nodes", closing.dst, "inputs", closing.dst_port)
+        at(where, "cycle in the graph: " + " -> ".join(cycle))
 
-    def visit(n: str) -> list[str] | None:
-        state[n] = 1
-        stack.append(n)
-        for m in succ[n]:
-            if state.get(m) == 1:
-                return [*stack[stack.index(m):], m]
-            if m not in state and (cycle := visit(m)):
-                return cycle
-        stack.pop()
-        state[n] = 2
-        return None
 
-    for n in spec.nodes:
-        if n not in state and (cycle := visit(n)):
-            at(("nodes", cycle[-2], "inputs"), "cycle in the graph: " + " -> ".join(cycle))
-            return
+def _check_frame_chains(triggers: Mapping[str, Trigger], at: Any) -> None:
+    """Frame triggers that lead back to where they started: none of those nodes would ever run."""
+    reported: set[str] = set()
+    for start in triggers:
+        chain = [start]
+        while isinstance(trig := triggers.get(chain[-1]), FrameTrigger):
+            src = trig.frame.partition(".")[0]
+            if src in chain:
+                loop = chain[chain.index(src) :]
+                if not reported.intersection(loop):
+                    reported.update(loop)
+                    waits = ", ".join(
+                        f"{a} waits for the frames of {b}"
+                        for a, b in zip(loop, [*loop[1:], src], strict=True)
+                    )
+                    at(
+                        ("nodes", chain[-1], "trigger", "frame"),
+                        f"frame triggers in a cycle ({waits}): none of them would ever run",
+                    )
+                break
+            chain.append(src)
 
 
 def _check_deadlines(graph: Graph, at: Any) -> None:

@@ -2,13 +2,13 @@
 
 Everything the runtime needs is here and validated by pydantic, so that a graph that loads
 is a graph that can run. Structural checks that need the node classes (ports, cycles, frame
-sources) live in :mod:`flowrt.validation`.
+sources) live in :mod:`flowrt.graph`.
 """
 
 from __future__ import annotations
 
 import re
-from enum import Enum
+from enum import StrEnum
 from typing import Annotated, Any, Literal
 
 from pydantic import (
@@ -20,7 +20,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from pydantic.functional_validators import BeforeValidator
+from pydantic.functional_validators import AfterValidator, BeforeValidator
 
 _DURATION = re.compile(r"^\s*(?P<num>[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(?P<unit>us|ms|s)?\s*$")
 _UNIT_MS = {"us": 0.001, "ms": 1.0, "s": 1000.0, None: 1.0}
@@ -54,7 +54,9 @@ class FrameTrigger(_Strict):
     ``k % period == phase``.
     """
 
-    frame: str = Field(description="frame source: a node name, or node.port for a node with several")
+    frame: str = Field(
+        description="frame source: a node name, or node.port for a node with several"
+    )
     period: int = 1
     phase: int = 0
 
@@ -106,20 +108,20 @@ Trigger = Annotated[
 ]
 
 
-class Placement(str, Enum):
+class Placement(StrEnum):
     inline = "inline"
     process = "process"
     pool = "pool"
 
 
-class MissPolicy(str, Enum):
+class MissPolicy(StrEnum):
     """What happens to the result of an activation that missed its deadline."""
 
     continue_ = "continue"  # soft deadline: the late result is still delivered
     discard = "discard"  # firm deadline: the late result is dropped (and counted)
 
 
-class EdgePolicy(str, Enum):
+class EdgePolicy(StrEnum):
     latest = "latest"
     queue = "queue"
     lossless = "lossless"
@@ -194,7 +196,7 @@ class NodeSpec(_Strict):
     @classmethod
     def _positive(cls, v: float | None) -> float | None:
         if v is not None and v <= 0:
-            raise ValueError("must be positive")
+            raise ValueError(f"must be positive, got {v:g} ms")
         return v
 
 
@@ -218,19 +220,60 @@ class TimingOverride(_Strict):
 ModeSpec.model_rebuild()
 
 
+class OverloadSpec(_Strict):
+    """Overload control: shed the lowest-priority work under load, restore it when load falls.
+
+    Every ``interval`` the controller looks at the window since its last look. It is
+    *overloaded* when any configured measure is above its threshold and *calm* when every one
+    is below ``hysteresis`` times its threshold (in between it does nothing). Overloaded: one
+    shedding step per interval — the lowest-priority sheddable node gets its period doubled
+    (frame or timer trigger), up to ``max_slowdown`` times its own; only when no node can be
+    slowed further is the lowest-priority one disabled. Calm for ``restore_after``: one step
+    undone per interval, the last one first. Never shed: frame sources, nodes in ``protect``,
+    nodes at or above ``protect_priority`` (default: the highest priority among the nodes that
+    could be shed), input- and loop-triggered nodes.
+    """
+
+    interval: DurationMs = Field(default=500.0, gt=0, description="evaluation window, ms")
+    loop_lag_ms: float | None = Field(
+        default=5.0, gt=0, description="mean lateness of a 10 ms probe timer over the window, ms"
+    )
+    cpu_percent: float | None = Field(
+        default=None, gt=0, le=100, description="system-wide CPU use over the window, % (psutil)"
+    )
+    miss_rate: float | None = Field(
+        default=0.05, gt=0, le=1, description="deadline misses / activations, nodes with a deadline"
+    )
+    hysteresis: float = Field(default=0.5, gt=0, lt=1)
+    restore_after: DurationMs = Field(default=2000.0, ge=0, description="calm this long, ms")
+    max_slowdown: int = Field(default=4, ge=1, description="longest period, times the node's own")
+    disable: bool = Field(default=True, description="disable nodes once none can be slowed further")
+    protect: list[str] = Field(default_factory=list, description="nodes never shed")
+    protect_priority: int | None = Field(default=None, ge=1, le=99)
+
+
+class QosSpec(_Strict):
+    """Quality-of-service settings of the runtime (``qos:`` in a graph file)."""
+
+    overload: OverloadSpec | None = None
+
+
+def _node_name(name: str) -> str:
+    if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", name):
+        raise ValueError("use letters, digits, _ and -, starting with a letter or _")
+    return name
+
+
+# Checked as a key, so that an error points at the offending name, not at `nodes:`.
+NodeName = Annotated[str, AfterValidator(_node_name)]
+
+
 class GraphSpec(_Strict):
     """A whole graph. ``nodes`` keeps file order, which is also the tie-break for priority."""
 
     name: str = "graph"
     description: str = ""
-    nodes: dict[str, NodeSpec]
+    nodes: dict[NodeName, NodeSpec]
     modes: dict[str, ModeSpec] = Field(default_factory=dict)
     initial_mode: str | None = None
-
-    @field_validator("nodes")
-    @classmethod
-    def _names(cls, v: dict[str, NodeSpec]) -> dict[str, NodeSpec]:
-        for name in v:
-            if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", name):
-                raise ValueError(f"node name {name!r}: use letters, digits, _ and -")
-        return v
+    qos: QosSpec = Field(default_factory=QosSpec)

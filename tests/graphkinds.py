@@ -34,7 +34,9 @@ class FrameSource(Node):
     def process(self) -> Frame:
         w, h = self.params.size
         self.seq += 1
-        return Frame(np.full((h, w, 3), self.seq % 256, np.uint8), source=self.ctx.name, seq=self.seq)
+        return Frame(
+            np.full((h, w, 3), self.seq % 256, np.uint8), source=self.ctx.name, seq=self.seq
+        )
 
 
 class FrameReader(Node):
