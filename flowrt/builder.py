@@ -57,17 +57,18 @@ class GraphBuilder:
 
     def build(self) -> Graph:
         """Validate and resolve; raises GraphError listing every problem."""
-        from pydantic import ValidationError
-
         from .diagnostics import GraphError
-        from .loading import Locations, pydantic_diagnostics
+        from .loading import Locations, check_data
 
-        locs = Locations("<python>")
-        try:
-            spec = self.spec()
-        except ValidationError as e:
-            raise GraphError(pydantic_diagnostics(e, locs)) from None
-        return resolve(spec, locs, self._kinds)
+        data = {"name": self.name, "description": self.description, "nodes": self._nodes}
+        if self._modes:
+            data["modes"] = {k: v.model_dump(exclude_none=True) for k, v in self._modes.items()}
+        loaded = check_data(data, Locations("<python>"))
+        if loaded.spec is None:
+            raise GraphError(loaded.errors)
+        return resolve(
+            loaded.spec, loaded.locs, self._kinds, earlier=loaded.errors, invalid_nodes=loaded.invalid_nodes
+        )
 
     @property
     def kinds(self) -> dict[str, type[Node]]:

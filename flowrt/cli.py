@@ -26,7 +26,7 @@ EXIT_BAD_GRAPH = 2
 def _print_diagnostics(console: Console, e: GraphError) -> None:
     for d in e.diagnostics:
         style = "red" if d.severity is Severity.error else "yellow"
-        console.print(str(d), style=style, markup=False, highlight=False)
+        console.print(str(d), style=style, markup=False, highlight=False, soft_wrap=True)
     n = len(e.errors)
     console.print(f"{n} error{'s' if n != 1 else ''}", style="bold red")
 
@@ -38,7 +38,7 @@ def _load(path: str, console: Console) -> Graph | None:
         _print_diagnostics(console, e)
         return None
     for w in graph.warnings:
-        console.print(str(w), style="yellow", markup=False, highlight=False)
+        console.print(str(w), style="yellow", markup=False, highlight=False, soft_wrap=True)
     return graph
 
 
@@ -54,7 +54,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 def cmd_graph(args: argparse.Namespace) -> int:
     from .analysis import activation_tables
 
-    console = Console()
+    console = Console() if sys.stdout.isatty() else Console(width=200)
     graph = _load(args.file, Console(stderr=True))
     if graph is None:
         return EXIT_BAD_GRAPH
@@ -63,7 +63,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
         topo.add_column(col)
     for name, n in graph.nodes.items():
         ins = ", ".join(
-            f"{e.dst_port} <- {e.src}.{e.src_port} [{e.policy.value}]" for e in graph.edges if e.dst == name
+            f"{e.dst_port} <- {e.src}.{e.src_port} \\[{e.policy.value}]" for e in graph.edges if e.dst == name
         )
         dl = f"{n.spec.deadline:g} ms {n.spec.miss_policy.value}" if n.spec.deadline else "-"
         topo.add_row(name, n.spec.kind, _trigger_text(n.trigger), str(n.spec.priority), dl, n.spec.placement.value, ins)
@@ -123,7 +123,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         return EXIT_BAD_GRAPH
     _setup_logging(console, args.no_ui)
     monitors: list[Any] = [LogLines(args.log_every) if args.no_ui else LiveTable(console, hz=args.refresh)]
-    rt = Runtime(graph, monitors=monitors, realtime=args.realtime)
+    control = _control_config(args, err)
+    rt = Runtime(graph, monitors=monitors, realtime=args.realtime, control=control)
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
@@ -131,6 +132,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             loop.add_signal_handler(sig, rt.request_stop)
         try:
             async with rt:
+                if rt.control is not None:
+                    logging.getLogger("flowrt").info("control endpoint %s", rt.control.url)
                 await rt.run(args.duration)
         finally:
             for sig in (signal.SIGINT, signal.SIGTERM):
@@ -139,11 +142,31 @@ def cmd_run(args: argparse.Namespace) -> int:
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
         runner.run(main())
     stats = rt.stats()
-    console.print(render(stats, list(rt.events)[-5:]))
+    console.print(render(stats, list(rt.events)[-5:], rt.qos_status()))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
     return 0
+
+
+def _control_config(args: argparse.Namespace, err: Console) -> Any:
+    """``--control [HOST:]PORT``: a token is generated (and printed) off loopback if none given."""
+    if args.control is None:
+        return None
+    import os
+    import secrets
+
+    from .control import ControlConfig
+
+    try:
+        config = ControlConfig.parse(args.control, args.token or os.environ.get("FLOWRT_TOKEN"))
+    except ValueError as e:
+        err.print(f"flowrt run: {e}", markup=False)
+        raise SystemExit(2) from None
+    if config.needs_token and not config.token:
+        config = ControlConfig(config.host, config.port, secrets.token_urlsafe(24))
+        err.print(f"control token (give it to flowrt ctl --token): {config.token}", markup=False)
+    return config
 
 
 def _setup_logging(console: Console, plain: bool) -> None:
@@ -168,6 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--realtime", action="store_true", help="SCHED_FIFO for the loop process where permitted")
     run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
     run.add_argument("--log-every", type=float, default=2.0, metavar="S", help="--no-ui summary period")
+    run.add_argument("--control", nargs="?", const="127.0.0.1:8765", metavar="[HOST:]PORT",
+                     help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl")
+    run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
     run.set_defaults(func=cmd_run)
     val = sub.add_parser("validate", help="check a graph file; exit 2 listing every error")
     val.add_argument("file")
@@ -178,6 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     sc = sub.add_parser("schema", help="print the JSON schema of graph files or statistics")
     sc.add_argument("what", choices=["graph", "stats"])
     sc.set_defaults(func=cmd_schema)
+    from .control import add_ctl_parser
+
+    add_ctl_parser(sub)
     return p
 
 

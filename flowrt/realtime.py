@@ -14,8 +14,12 @@ import sys
 _MCL_CURRENT, _MCL_FUTURE = 1, 2
 
 
-def enable_realtime(priority: int = 50) -> tuple[bool, str]:
-    """Try SCHED_FIFO at ``priority`` for this process; returns (granted, description)."""
+def enable_realtime(priority: int = 90) -> tuple[bool, str]:
+    """Try SCHED_FIFO at ``priority`` for this process; returns (granted, description).
+
+    90 is above every worker (they are capped at 89): the frame clock and the dispatch of
+    activations must never wait for a tracker.
+    """
     if not hasattr(os, "sched_setscheduler"):
         return False, f"SCHED_FIFO not available on {sys.platform}"
     try:

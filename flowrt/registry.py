@@ -45,7 +45,7 @@ def resolve_kind(kind: str | type[Node], extra: Mapping[str, type[Node]] | None 
     module_name, _, attr = (target or kind).partition(":")
     try:
         module = importlib.import_module(module_name)
-    except ImportError as e:
+    except (ImportError, ValueError, TypeError) as e:
         raise KindError(f"node kind {kind!r}: cannot import {module_name!r} ({e})") from None
     obj = module
     for part in attr.split("."):

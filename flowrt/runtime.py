@@ -16,17 +16,22 @@ import logging
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
-from .events import Event, ModeChanged, RealtimeStatus
+from .events import Event, HealthAlert, ModeChanged, RealtimeStatus
 from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
 from .spec import EdgePolicy, GraphSpec, Placement
 from .stats import LoopStats, Running, RuntimeStats
+
+if TYPE_CHECKING:
+    from .control import ControlConfig, ControlServer
+    from .qos import OverloadController, QosStatus
+    from .rtdb import RTDB
 
 log = logging.getLogger("flowrt")
 
@@ -89,6 +94,7 @@ class Runtime:
         monitors: Iterable[Monitor] = (),
         realtime: bool = False,
         kinds: Mapping[str, type[Node]] | None = None,
+        control: ControlConfig | str | None = None,
     ) -> None:
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
         self.clock: Clock = clock or SystemClock()
@@ -105,6 +111,10 @@ class Runtime:
         self._lag_handle: asyncio.TimerHandle | None = None
         self._frames: Any = None
         self._pool: Any = None
+        self._rtdb: RTDB | None = None
+        self.qos: OverloadController | None = None
+        self.control_config = control
+        self.control: ControlServer | None = None
         self.started = False
 
     @classmethod
@@ -145,6 +155,14 @@ class Runtime:
             real_time=isinstance(self.clock, SystemClock),
         )
         self._sched.stats_provider = self.stats
+        self._sched.rtdb_provider = lambda: self.rtdb
+        self._sched.mode_setter = self.set_mode
+        overload = self.graph.spec.qos.overload
+        if overload is not None and self.qos is None:
+            from .qos import OverloadController
+
+            self.qos = OverloadController(overload)
+            self.monitors.append(self.qos)
         self.started = True
         for m in self.monitors:
             m.started(self)
@@ -155,6 +173,11 @@ class Runtime:
             self.set_mode(self.graph.spec.initial_mode, origin="graph")
         if isinstance(self.clock, SystemClock):
             self._probe_lag(self.clock.now())
+        if self.control_config is not None:
+            from .control import ControlServer
+
+            self.control = ControlServer(self, self.control_config)
+            await self.control.start()
 
     async def stop(self) -> None:
         """Tear every node down, stop workers, free shared memory; safe to call twice."""
@@ -164,6 +187,9 @@ class Runtime:
         self._stop.set()
         if self._lag_handle is not None:
             self._lag_handle.cancel()
+        if self.control is not None:
+            with contextlib.suppress(Exception):
+                await self.control.stop()
         try:
             if self._sched is not None:
                 await self._sched.stop()
@@ -178,6 +204,8 @@ class Runtime:
                     m.stopped(self)
                 except Exception:
                     log.exception("monitor failed at stop")
+            if self._rtdb is not None:
+                self._rtdb.close()
 
     async def run(self, duration: float | None = None) -> None:
         """Run until ``duration`` seconds have passed or ``request_stop`` is called."""
@@ -200,14 +228,20 @@ class Runtime:
 
         spec = runner.rnode.spec
         watchdog = None if spec.watchdog is None else spec.watchdog / 1000
+        # Workers get SCHED_FIFO only when the loop process has it too (and above them):
+        # otherwise busy trackers would starve the frame clock (priority inversion).
+        rt_workers = self.realtime.startswith("SCHED_FIFO")
+        factory.rtdb = self.rtdb.handle  # the worker's ctx.rtdb attaches to the same records
         if spec.placement is Placement.pool:
             if self._pool is None:
-                self._pool = workers.PoolExecutor()
+                self._pool = workers.PoolExecutor(realtime=rt_workers)
             ex: Any = self._pool.executor_for(
                 runner.name, factory, priority=runner.timing.priority, watchdog=watchdog
             )
         else:
-            ex = workers.ProcessExecutor(runner.name, factory, priority=runner.timing.priority, watchdog=watchdog)
+            ex = workers.ProcessExecutor(
+                runner.name, factory, priority=runner.timing.priority, watchdog=watchdog, realtime=rt_workers
+            )
         return _WorkerAdapter(ex)
 
     def _new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame:
@@ -224,6 +258,8 @@ class Runtime:
     def _emit(self, event: Event) -> None:
         self.events.append(event)
         self.event_count += 1
+        if isinstance(event, HealthAlert):
+            self._record("flowrt.alerts", event)
         for m in self.monitors:
             try:
                 m.event(event)
@@ -261,6 +297,35 @@ class Runtime:
     def now(self) -> float:
         """Seconds since the runtime started."""
         return self.clock.now() - self.clock.origin
+
+    @property
+    def rtdb(self) -> RTDB:
+        """The real-time database of this run, created on first use, removed at stop."""
+        if self._rtdb is None:
+            if not self.started:
+                raise RuntimeError("the runtime is not started")
+            from .rtdb import RTDB
+
+            self._rtdb = RTDB(clock=self.clock.now, origin=self.clock.origin)
+        return self._rtdb
+
+    def _record(self, name: str, value: Any) -> None:
+        """Keep runtime state (alerts, mode) in the RTDB; never fails the caller."""
+        if not self.started:
+            return
+        try:
+            self.rtdb.write(name, value)
+        except Exception as e:
+            log.warning("RTDB record %s: %s", name, e)
+
+    def qos_status(self) -> QosStatus:
+        """Current mode and what the overload controller has shed (for tables and the API)."""
+        from .qos import QosStatus
+
+        q = self.qos
+        if q is None:
+            return QosStatus(self.mode, False)
+        return QosStatus(self.mode, True, q.overloaded, q.reason, q.shed(), q.last)
 
     def stats(self) -> RuntimeStats:
         sched = self.scheduler
@@ -300,13 +365,23 @@ class Runtime:
         )
 
     def set_mode(self, mode: str, origin: str = "api") -> None:
-        """Apply a named mode of the graph file: all of its overrides in one step."""
+        """Apply a named mode of the graph file: all of its overrides in one step.
+
+        Overrides are relative to the graph's own timing: what the previous mode changed and
+        this one does not is returned to the graph's values first (so an empty mode returns
+        to the graph's timing). Nothing else is touched.
+        """
         spec = self.graph.spec.modes.get(mode)
         if spec is None:
             from .diagnostics import did_you_mean
 
             raise KeyError(f"unknown mode {mode!r}" + did_you_mean(mode, self.graph.spec.modes))
-        for node, o in spec.nodes.items():
+        from .qos import check_plan, mode_plan
+
+        previous_spec = self.graph.spec.modes.get(self.mode) if self.mode else None
+        plan = mode_plan(self.graph, previous_spec, spec)
+        check_plan(self.scheduler.runners, plan)  # all or nothing
+        for node, o in plan.items():
             self.set_timing(
                 node,
                 period=o.period,
@@ -319,6 +394,7 @@ class Runtime:
             )
         previous, self.mode = self.mode, mode
         self._emit(ModeChanged(self.now(), None, mode, previous, origin))
+        self._record("flowrt.mode", mode)
 
     def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
         from .diagnostics import did_you_mean
