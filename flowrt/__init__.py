@@ -4,6 +4,7 @@ from .builder import GraphBuilder as GraphBuilder
 from .clock import Clock as Clock
 from .clock import SystemClock as SystemClock
 from .clock import VirtualClock as VirtualClock
+from .control import ControlConfig as ControlConfig
 from .diagnostics import Diagnostic as Diagnostic
 from .diagnostics import GraphError as GraphError
 from .events import DeadlineMissed as DeadlineMissed
@@ -21,6 +22,9 @@ from .node import Input as Input
 from .node import Node as Node
 from .node import NodeContext as NodeContext
 from .node import Output as Output
+from .qos import QosStatus as QosStatus
+from .rtdb import RTDB as RTDB
+from .rtdb import Record as Record
 from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
 from .runtime import Subscription as Subscription
@@ -36,7 +40,9 @@ from .stats import RuntimeStats as RuntimeStats
 __version__ = "0.1.0"
 
 __all__ = [
+    "RTDB",
     "Clock",
+    "ControlConfig",
     "DeadlineMissed",
     "Diagnostic",
     "EdgeStats",
@@ -61,6 +67,8 @@ __all__ = [
     "NodeRestarted",
     "NodeStats",
     "Output",
+    "QosStatus",
+    "Record",
     "Runtime",
     "RuntimeStats",
     "Subscription",

@@ -140,7 +140,13 @@ def cmd_run(args: argparse.Namespace) -> int:
                 loop.remove_signal_handler(sig)
 
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
-        runner.run(main())
+        try:
+            runner.run(main())
+        except OSError as e:
+            if rt.control_config is None or rt.control is not None:
+                raise
+            err.print(f"flowrt run: control endpoint: {e}", markup=False)  # e.g. port taken
+            return 1
     stats = rt.stats()
     console.print(render(stats, list(rt.events)[-5:], rt.qos_status()))
     if args.stats_json:

@@ -30,6 +30,7 @@ if TYPE_CHECKING:
     import numpy as np
 
     from .frames import Frame
+    from .rtdb import RTDB, RtdbHandle
     from .spec import Trigger
 
 T = TypeVar("T")
@@ -79,9 +80,13 @@ class NodeContext:
     worker process only the local parts are available.
     """
 
-    def __init__(self, name: str, logger: logging.Logger | None = None) -> None:
+    def __init__(
+        self, name: str, logger: logging.Logger | None = None, rtdb: RtdbHandle | None = None
+    ) -> None:
         self.name = name
         self.log = logger or logging.getLogger(f"flowrt.node.{name}")
+        self._rtdb_handle = rtdb
+        self._rtdb: RTDB | None = None
 
     def now(self) -> float:
         """Runtime clock, seconds (monotonic; virtual under a test clock)."""
@@ -111,6 +116,21 @@ class NodeContext:
     def stats(self) -> Any:
         """The runtime's statistics (``RuntimeStats``); only on the event loop."""
         raise RuntimeError("stats() is only available to inline nodes on the event loop")
+
+    @property
+    def rtdb(self) -> RTDB:
+        """The runtime's real-time database (``flowrt.rtdb.RTDB``), in every placement."""
+        if self._rtdb is None:
+            if self._rtdb_handle is None:
+                raise RuntimeError(f"{self.name}: no RTDB (the node runs outside a Runtime)")
+            from .rtdb import RTDB
+
+            self._rtdb = RTDB.attach(self._rtdb_handle)
+        return self._rtdb
+
+    def set_mode(self, mode: str) -> None:
+        """Switch the runtime to a mode of the graph file; only on the event loop."""
+        raise RuntimeError("set_mode() is only available to inline nodes on the event loop")
 
 
 class Node:
@@ -188,6 +208,7 @@ class NodeFactory:
         self.cls = cls
         self.params = params
         self.name = name
+        self.rtdb: RtdbHandle | None = None  # set by the runtime: where ctx.rtdb attaches
 
     def __call__(self) -> Node:
-        return make_node(self.cls, self.params, NodeContext(self.name))
+        return make_node(self.cls, self.params, NodeContext(self.name, rtdb=self.rtdb))

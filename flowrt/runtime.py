@@ -113,6 +113,10 @@ class Runtime:
         self._pool: Any = None
         self._rtdb: RTDB | None = None
         self.qos: OverloadController | None = None
+        if control is not None:  # a bad address or a missing token fails here, before any start
+            from .control import ControlConfig
+
+            control = ControlConfig.checked(control)
         self.control_config = control
         self.control: ControlServer | None = None
         self.started = False
@@ -177,7 +181,12 @@ class Runtime:
             from .control import ControlServer
 
             self.control = ControlServer(self, self.control_config)
-            await self.control.start()
+            try:
+                await self.control.start()
+            except OSError:  # e.g. the port is taken: leave nothing running
+                self.control = None
+                await self.stop()
+                raise
 
     async def stop(self) -> None:
         """Tear every node down, stop workers, free shared memory; safe to call twice."""

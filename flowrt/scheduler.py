@@ -141,6 +141,19 @@ class RunnerContext(NodeContext):
             raise RuntimeError("no statistics outside a Runtime")
         return provider()
 
+    @property
+    def rtdb(self) -> Any:
+        provider = self._runner.sched.rtdb_provider
+        if provider is None:
+            raise RuntimeError("no RTDB outside a Runtime")
+        return provider()
+
+    def set_mode(self, mode: str) -> None:
+        setter = self._runner.sched.mode_setter
+        if setter is None:
+            raise RuntimeError("no modes outside a Runtime")
+        setter(mode, f"node {self.name}")
+
 
 class NodeRunner:
     """One node: its activations, buffers, statistics and supervision."""
@@ -544,6 +557,8 @@ class Scheduler:
         self.loop = asyncio.get_event_loop()
         self.blocked_calls = 0
         self.stats_provider: Callable[[], Any] | None = None
+        self.rtdb_provider: Callable[[], Any] | None = None
+        self.mode_setter: Callable[[str, str], None] | None = None
         self.runners: dict[str, NodeRunner] = {}
         for name in sorted(graph.nodes, key=lambda n: graph.nodes[n].order):
             self.runners[name] = NodeRunner(self, graph.nodes[name])

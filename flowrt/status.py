@@ -14,7 +14,8 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from .events import DeadlineMissed, Event, LoopBlocked, NodeFailed
+from .events import DeadlineMissed, Event, HealthAlert, LoopBlocked, NodeFailed
+from .qos import QosStatus
 from .runtime import Runtime
 from .stats import RuntimeStats
 
@@ -25,8 +26,17 @@ def _ms(x: float) -> str:
     return f"{x:.2f}" if x < 100 else f"{x:.0f}"
 
 
-def render(stats: RuntimeStats, recent: list[Event] | None = None) -> Group:
-    """The process-manager table: one row per node, one per edge, the loop and recent events."""
+def render(
+    stats: RuntimeStats,
+    recent: list[Event] | None = None,
+    qos: QosStatus | None = None,
+    alerts: list[HealthAlert] | None = None,
+) -> Group:
+    """The process-manager table: one row per node, one per edge, the loop and recent events.
+
+    ``qos`` adds the QoS line (mode, overload, shed nodes); ``alerts`` the latest health alerts,
+    which stay on screen even when other events scroll them out of ``recent``.
+    """
     title = f"flowrt · {stats.graph} · {stats.uptime:.1f} s"
     if stats.mode:
         title += f" · mode {stats.mode}"
@@ -68,10 +78,21 @@ def render(stats: RuntimeStats, recent: list[Event] | None = None) -> Group:
         f"blocking calls {stats.loop.blocked_calls}   events {stats.events}"
     )
     parts: list[Table | Text] = [t, e, footer]
+    if qos is not None and (qos.overload_control or qos.mode is not None):
+        parts.append(Text(qos.describe(), style="bold red" if qos.overloaded else "magenta"))
+    for a in alerts or []:
+        line = f"  alert {a.t:8.3f}s {a.alert} {a.node or ''} {a.detail}"
+        parts.append(Text(line, style=_alert_style(a)))
     for ev in recent or []:
         style = "red" if isinstance(ev, DeadlineMissed | NodeFailed) else "cyan"
+        if isinstance(ev, HealthAlert):
+            style = _alert_style(ev)
         parts.append(Text(f"  {ev.t:8.3f}s {ev.kind} {ev.node or ''} {_describe(ev)}", style=style))
     return Group(*parts)
+
+
+def _alert_style(a: HealthAlert) -> str:
+    return "bold red" if a.severity in ("error", "critical") else "yellow"
 
 
 def _describe(ev: Event) -> str:
@@ -94,6 +115,7 @@ class LiveTable:
         self.console = console or Console()
         self.hz = hz
         self.recent: deque[Event] = deque(maxlen=6)
+        self.alerts: deque[HealthAlert] = deque(maxlen=3)
         self._live: Live | None = None
         self._task: asyncio.Task[None] | None = None
 
@@ -106,10 +128,13 @@ class LiveTable:
         while True:
             await asyncio.sleep(1 / self.hz)
             if self._live is not None and rt.started:
-                self._live.update(render(rt.stats(), list(self.recent)), refresh=True)
+                table = render(rt.stats(), list(self.recent), rt.qos_status(), list(self.alerts))
+                self._live.update(table, refresh=True)
 
     def event(self, event: Event) -> None:
         self.recent.append(event)
+        if isinstance(event, HealthAlert):
+            self.alerts.append(event)
 
     def stopped(self, rt: Runtime) -> None:
         if self._task is not None:

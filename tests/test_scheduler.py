@@ -93,10 +93,31 @@ async def publish_frames(rt: Runtime, clock: VirtualClock, seqs: range) -> None:
 def cambada_like() -> GraphBuilder:
     g = GraphBuilder("pattern")
     g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False)
-    g.add("every", Recorder, trigger=FrameTrigger(frame="cam"), inputs={"frame": "cam.frame"}, priority=45)
-    g.add("p4ph1", Recorder, trigger=FrameTrigger(frame="cam", period=4, phase=1), inputs={"frame": "cam.frame"})
-    g.add("p4ph3", Recorder, trigger=FrameTrigger(frame="cam", period=4, phase=3), inputs={"frame": "cam.frame"})
-    g.add("p8", Recorder, trigger=FrameTrigger(frame="cam.frame", period=8), inputs={"frame": "cam.frame"})
+    g.add(
+        "every",
+        Recorder,
+        trigger=FrameTrigger(frame="cam"),
+        inputs={"frame": "cam.frame"},
+        priority=45,
+    )
+    g.add(
+        "p4ph1",
+        Recorder,
+        trigger=FrameTrigger(frame="cam", period=4, phase=1),
+        inputs={"frame": "cam.frame"},
+    )
+    g.add(
+        "p4ph3",
+        Recorder,
+        trigger=FrameTrigger(frame="cam", period=4, phase=3),
+        inputs={"frame": "cam.frame"},
+    )
+    g.add(
+        "p8",
+        Recorder,
+        trigger=FrameTrigger(frame="cam.frame", period=8),
+        inputs={"frame": "cam.frame"},
+    )
     return g
 
 
@@ -209,7 +230,9 @@ async def test_lossless_edge_makes_the_producer_wait() -> None:
             await clock.advance(0.001)
         edge = rt.stats().edge("rec.value")
     assert edge.dropped == 0
-    assert Gate.log["rec"] == sorted(Gate.log["rec"]) and len(set(Gate.log["rec"])) == len(Gate.log["rec"])
+    assert Gate.log["rec"] == sorted(Gate.log["rec"]) and len(set(Gate.log["rec"])) == len(
+        Gate.log["rec"]
+    )
     assert Gate.log["rec"][:4] == [1, 2, 3, 4]
 
 

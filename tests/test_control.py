@@ -1,0 +1,231 @@
+"""The control endpoint (loopback only in tests) and ``flowrt ctl`` against it."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sys
+from collections.abc import AsyncIterator
+from typing import Any
+
+import aiohttp
+import pytest
+
+import flowrt
+from flowrt import GraphBuilder, Runtime, VirtualClock
+from flowrt.control import ControlConfig, ControlServer, is_loopback
+
+TOKEN = "s3cret-token"
+
+
+def graph() -> flowrt.Graph:
+    g = GraphBuilder("ctl")
+    g.add("src", "counter", trigger={"timer": "50ms"})
+    g.add("slow", "burn", params={"ms": 0.1}, trigger={"timer": "100ms"}, priority=20)
+    g.mode("defend", slow={"enabled": False})
+    g.mode("attack", slow={"timer": "50ms", "priority": 40})
+    return g.build()
+
+
+@pytest.fixture
+async def rt() -> AsyncIterator[Runtime]:
+    async with Runtime(graph(), clock=VirtualClock(), control=ControlConfig("127.0.0.1", 0)) as r:
+        yield r
+
+
+@pytest.fixture
+async def rt_token() -> AsyncIterator[Runtime]:
+    config = ControlConfig("127.0.0.1", 0, token=TOKEN)  # a token given on loopback is required
+    async with Runtime(graph(), clock=VirtualClock(), control=config) as r:
+        yield r
+
+
+def url(rt: Runtime, path: str) -> str:
+    assert rt.control is not None
+    return rt.control.url + path
+
+
+async def call(
+    method: str, target: str, body: Any = None, headers: dict[str, str] | None = None
+) -> tuple[int, Any]:
+    async with (
+        aiohttp.ClientSession() as s,
+        s.request(method, target, json=body, headers=headers) as r,
+    ):
+        return r.status, await r.json(content_type=None)
+
+
+async def test_read_stats_change_timing_switch_modes(rt: Runtime) -> None:
+    status, stats = await call("GET", url(rt, "/stats"))
+    assert status == 200
+    assert stats["graph"] == "ctl"
+    assert {n["name"] for n in stats["nodes"]} == {"src", "slow"}
+    flowrt.RuntimeStats.model_validate(stats)  # the typed model, as --stats-json
+
+    status, reply = await call(
+        "POST", url(rt, "/timing"), {"node": "slow", "timer": 200, "priority": 30}
+    )
+    assert status == 200
+    assert reply == {
+        "node": "slow",
+        "change": "timer_ms 100.0 -> 200.0, priority 20 -> 30",
+    }
+    s = rt.stats().node("slow")
+    assert (s.period, s.priority) == ("200ms+0", 30)
+    changed = [e for e in rt.events if isinstance(e, flowrt.TimingChanged)]
+    assert changed[-1].origin == "control"
+
+    status, reply = await call("POST", url(rt, "/mode"), {"mode": "defend"})
+    assert status == 200
+    assert reply == {"mode": "defend"}
+    assert rt.mode == "defend"
+    assert not rt.stats().node("slow").enabled
+    status, reply = await call("GET", url(rt, "/modes"))
+    assert reply == {"modes": ["defend", "attack"], "current": "defend"}
+
+    status, events = await call("GET", url(rt, "/events?n=2"))
+    assert [e["kind"] for e in events] == ["TimingChanged", "ModeChanged"]
+    assert events[1]["mode"] == "defend"
+    assert events[1]["origin"] == "control"
+    status, qos = await call("GET", url(rt, "/qos"))
+    assert qos["mode"] == "defend"
+    assert qos["summary"] == "qos: mode defend"
+    status, records = await call("GET", url(rt, "/rtdb"))
+    assert [(r["name"], r["value"]) for r in records] == [("flowrt.mode", "defend")]
+    status, history = await call("GET", url(rt, "/rtdb/flowrt.mode?n=4"))
+    assert status == 200
+    assert history[0]["value"] == "defend"
+
+
+async def test_bad_requests_are_refused_with_reasons(rt: Runtime) -> None:
+    status, reply = await call("POST", url(rt, "/timing"), {"node": "slwo", "priority": 30})
+    assert status == 404
+    assert "did you mean 'slow'" in reply["error"]
+    status, reply = await call("POST", url(rt, "/timing"), {"node": "slow", "period": 2})
+    assert status == 400
+    assert "frame-triggered" in reply["error"]
+    status, reply = await call("POST", url(rt, "/timing"), {"node": "slow", "speed": 2})
+    assert status == 400
+    assert "bad request body" in reply["error"]
+    status, reply = await call("POST", url(rt, "/mode"), {"mode": "atack"})
+    assert status == 404
+    assert "unknown mode" in reply["error"]
+    async with aiohttp.ClientSession() as s:
+        async with s.post(url(rt, "/mode"), data="mode=defend") as r:  # a browser form
+            assert r.status == 415
+        async with s.get(url(rt, "/stats"), headers={"Host": "evil.example:80"}) as r:  # rebinding
+            assert r.status == 403
+    assert rt.mode is None
+
+
+async def test_requests_without_the_token_are_refused(rt_token: Runtime) -> None:
+    status, reply = await call("GET", url(rt_token, "/stats"))
+    assert status == 401
+    assert "token" in reply["error"]
+    status, _ = await call("POST", url(rt_token, "/mode"), {"mode": "defend"})
+    assert status == 401
+    assert rt_token.mode is None
+    status, _ = await call(
+        "GET", url(rt_token, "/stats"), headers={"Authorization": "Bearer wrong"}
+    )
+    assert status == 401
+    status, _ = await call(
+        "GET", url(rt_token, "/stats"), headers={"Authorization": f"Basic {TOKEN}"}
+    )
+    assert status == 401
+    status, reply = await call(
+        "POST",
+        url(rt_token, "/mode"),
+        {"mode": "defend"},
+        headers={"Authorization": f"Bearer {TOKEN}"},
+    )
+    assert status == 200
+    assert rt_token.mode == "defend"
+
+
+async def test_refuses_to_serve_beyond_loopback_without_a_token() -> None:
+    assert is_loopback("127.0.0.1")
+    assert is_loopback("::1")
+    assert is_loopback("localhost")
+    assert not is_loopback("0.0.0.0")
+    assert not is_loopback("192.168.1.5")
+    assert not is_loopback("::")
+    assert ControlConfig.parse("9000") == ControlConfig("127.0.0.1", 9000)
+    assert ControlConfig.parse("[::1]:9000").host == "::1"
+    assert ControlConfig.parse("0.0.0.0:9000").needs_token
+    with pytest.raises(ValueError, match="PORT"):
+        ControlConfig.parse("host:port")
+    async with Runtime(graph(), clock=VirtualClock()) as rt:
+        for host in ("0.0.0.0", "::", "192.168.1.5"):
+            with pytest.raises(ValueError, match="without a token"):
+                ControlServer(rt, ControlConfig(host, 0))  # refused before binding anything
+        ControlServer(rt, ControlConfig("0.0.0.0", 0, token=TOKEN))  # allowed (not started here)
+    with pytest.raises(ValueError, match="without a token"):
+        Runtime(graph(), control="0.0.0.0:8765")  # before anything runs
+
+
+async def ctl(*args: str, token: str | None = None) -> tuple[int, str, str]:
+    env_args = ["--token", token] if token else []
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "flowrt.cli",
+        "ctl",
+        *env_args,
+        *args,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode is not None
+    return proc.returncode, out.decode(), err.decode()
+
+
+async def test_flowrt_ctl_client(rt_token: Runtime) -> None:
+    assert rt_token.control is not None
+    base = ["--url", rt_token.control.url]
+    code, out, err = await ctl(*base, "mode", "attack", token=TOKEN)
+    assert (code, out.strip()) == (0, "mode attack"), err
+    assert rt_token.mode == "attack"
+    assert rt_token.stats().node("slow").priority == 40
+    code, out, err = await ctl(
+        *base, "timing", "slow", "--disable", "--priority", "25", token=TOKEN
+    )
+    assert code == 0, err
+    assert out.strip() == "slow: priority 40 -> 25, enabled True -> False"
+    code, out, _ = await ctl(*base, "modes", token=TOKEN)
+    assert out.splitlines() == ["  defend", "* attack"]
+    code, out, _ = await ctl(*base, "stats", "--json", token=TOKEN)
+    assert code == 0
+    assert json.loads(out)["nodes"][1]["enabled"] is False
+    code, out, _ = await ctl(*base, "stats", token=TOKEN)
+    assert code == 0
+    assert "slow" in out
+    assert "mode attack" in out
+    # refused without the token: exit 1, a message, no traceback
+    code, out, err = await ctl(*base, "mode", "defend")
+    assert code == 1
+    assert "401" in err
+    assert "token" in err
+    assert "Traceback" not in err
+    assert rt_token.mode == "attack"
+    code, out, err = await ctl(*base, "timing", "nope", "--priority", "3", token=TOKEN)
+    assert code == 1
+    assert "unknown node 'nope'" in err
+
+
+async def test_a_taken_port_fails_the_start_and_leaves_nothing_running(rt: Runtime) -> None:
+    assert rt.control is not None
+    other = Runtime(
+        graph(), clock=VirtualClock(), control=ControlConfig("127.0.0.1", rt.control.port)
+    )
+    with pytest.raises(OSError, match="address already in use"):
+        await other.start()
+    assert not other.started
+
+
+async def test_flowrt_ctl_without_a_runtime() -> None:
+    code, _, err = await ctl("--url", "http://127.0.0.1:9", "stats")
+    assert code == 1
+    assert "cannot reach the runtime" in err
+    assert "Traceback" not in err
