@@ -94,10 +94,12 @@ def _trigger_text(trig: Any) -> str:
 
 
 def cmd_schema(args: argparse.Namespace) -> int:
+    from pydantic import BaseModel
+
     from .spec import GraphSpec
     from .stats import RuntimeStats
 
-    model = {"graph": GraphSpec, "stats": RuntimeStats}[args.what]
+    model: type[BaseModel] = {"graph": GraphSpec, "stats": RuntimeStats}[args.what]
     print(json.dumps(model.model_json_schema(by_alias=True), indent=2))
     return 0
 

@@ -200,7 +200,7 @@ def resolve(
                     f"{name}.{port} expects {_type_name(in_t)}",
                 )
                 continue
-            edges.append(_edge(name, port, ins, in_t))
+            edges.append(_edge(name, port, ins, in_t, out_t))
         if cls is not None:
             for port, p in cls.inputs.items():
                 if p.required and port not in ns.inputs and port not in misspelt:
@@ -215,7 +215,7 @@ def resolve(
         if trig is None:
             if ns.inputs:
                 trig = InputTrigger()
-            elif cls is not None:
+            elif cls is not None and name in params:  # bad params already reported
                 at(
                     ("nodes", name),
                     "node has no trigger and no inputs: add trigger: {timer: ...} or loop",
@@ -225,6 +225,12 @@ def resolve(
                 continue
         triggers[name] = trig
         _check_trigger(name, ns, trig, spec, classes, at, names)
+        if cls is not None and cls.inline_only and ns.placement.value != "inline":
+            at(
+                ("nodes", name, "placement"),
+                f"{ns.kind} runs on the event loop (it serves or owns loop resources): "
+                "placement must be inline",
+            )
 
     _check_cycles(spec, edges, at)
     _check_frame_chains(triggers, at)
@@ -253,10 +259,12 @@ def resolve(
     return graph
 
 
-def _edge(dst: str, dst_port: str, ins: InputSpec, in_type: Any) -> Edge:
+def _edge(dst: str, dst_port: str, ins: InputSpec, in_type: Any, out_type: Any) -> Edge:
     policy = ins.policy
     if policy is None:
-        is_frame = isinstance(in_type, type) and issubclass(in_type, Frame)
+        # Frames default to latest whichever side says so: a display reading ``object``
+        # still wants the newest frame, not a backlog.
+        is_frame = any(isinstance(t, type) and issubclass(t, Frame) for t in (in_type, out_type))
         policy = EdgePolicy.latest if is_frame else EdgePolicy.queue
     return Edge(ins.node, ins.port, dst, dst_port, policy, ins.size)
 

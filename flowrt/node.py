@@ -95,7 +95,7 @@ class NodeContext:
         return time.monotonic()
 
     def new_frame(
-        self, shape: tuple[int, ...], dtype: np.dtype[Any] | type = ..., pixel_format: str = "BGR"
+        self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR"
     ) -> Frame:
         """A writable frame to fill and return; in shared memory when the runtime provides it."""
         import numpy as np
@@ -116,6 +116,14 @@ class NodeContext:
     def stats(self) -> Any:
         """The runtime's statistics (``RuntimeStats``); only on the event loop."""
         raise RuntimeError("stats() is only available to inline nodes on the event loop")
+
+    def elapsed(self) -> float:
+        """Seconds since the runtime started (the time base of events); approximate here."""
+        return self.now()
+
+    def request_stop(self) -> None:
+        """Ask the runtime to stop; only on the event loop."""
+        raise RuntimeError("request_stop() is only available to inline nodes on the event loop")
 
     @property
     def rtdb(self) -> RTDB:
@@ -154,6 +162,8 @@ class Node:
     outputs: ClassVar[Mapping[str, Output[Any]]] = {}
     any_inputs: ClassVar[Input[Any] | None] = None
     """Set to an ``Input`` to accept inputs of any name with that type (e.g. a display)."""
+    inline_only: ClassVar[bool] = False
+    """True for nodes that need the event loop (frame pools, servers): placement is checked."""
 
     params: Any
     ctx: NodeContext

@@ -26,7 +26,7 @@ from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
 from .spec import EdgePolicy, GraphSpec, Placement
-from .stats import LoopStats, Running, RuntimeStats
+from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
     from .control import ControlConfig, ControlServer
@@ -111,6 +111,7 @@ class Runtime:
         self._lag_handle: asyncio.TimerHandle | None = None
         self._frames: Any = None
         self._pool: Any = None
+        self._last_frame_stats: list[FramePoolStats] = []
         self._rtdb: RTDB | None = None
         self.qos: OverloadController | None = None
         if control is not None:  # a bad address or a missing token fails here, before any start
@@ -159,6 +160,7 @@ class Runtime:
             real_time=isinstance(self.clock, SystemClock),
         )
         self._sched.stats_provider = self.stats
+        self._sched.stop_requester = self.request_stop
         self._sched.rtdb_provider = lambda: self.rtdb
         self._sched.mode_setter = self.set_mode
         overload = self.graph.spec.qos.overload
@@ -207,6 +209,7 @@ class Runtime:
                 with contextlib.suppress(Exception):
                     await self._pool.stop()
             if self._frames is not None:
+                self._frame_stats()  # the final figures, before the pools go
                 self._frames.close()
             for m in self.monitors:
                 try:
@@ -257,7 +260,7 @@ class Runtime:
         import numpy as np
 
         pool = self._frames.pool(owner)
-        frame = pool.reserve(shape, dtype, source=owner, seq=0, timestamp=self.clock.now(), pixel_format=pixel_format)
+        frame: Frame | None = pool.reserve(shape, dtype, source=owner, seq=0, timestamp=self.clock.now(), pixel_format=pixel_format)
         if frame is None:  # every slot held and the pool at its bound: counted by the pool
             frame = Frame(np.empty(shape, dtype=dtype), source=owner, pixel_format=pixel_format)
         return frame
@@ -346,8 +349,25 @@ class Runtime:
             nodes=[r.stats() for r in sched.runners.values()],
             edges=[b.stats() for b in sched.buffers],
             loop=LoopStats(lag=self._lag.summary(), blocked_calls=sched.blocked_calls),
+            frames=self._frame_stats(),
             events=self.event_count,
         )
+
+    def _frame_stats(self) -> list[FramePoolStats]:
+        if self._frames is None or getattr(self._frames, "closed", False):
+            return self._last_frame_stats
+        self._last_frame_stats = [
+            FramePoolStats(
+                owner=p.owner,
+                slots=p.slots,
+                slots_in_use=p.slots_in_use,
+                max_slots=p.max_slots,
+                grown=p.grown,
+                dropped=p.dropped,
+            )
+            for p in self._frames.stats()
+        ]
+        return self._last_frame_stats
 
     def set_timing(
         self,

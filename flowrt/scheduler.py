@@ -154,6 +154,16 @@ class RunnerContext(NodeContext):
             raise RuntimeError("no modes outside a Runtime")
         setter(mode, f"node {self.name}")
 
+    def elapsed(self) -> float:
+        """Seconds since the runtime started: the time base of events and statistics."""
+        return self._runner.sched.rel(self._runner.sched.clock.now())
+
+    def request_stop(self) -> None:
+        """Ask the runtime to stop (e.g. a video source at its end with on_eof: stop)."""
+        stopper = self._runner.sched.stop_requester
+        if stopper is not None:
+            stopper()
+
 
 class NodeRunner:
     """One node: its activations, buffers, statistics and supervision."""
@@ -507,6 +517,7 @@ class NodeRunner:
             priority=self.timing.priority,
             period=period,
             deadline_ms=None if self.timing.deadline is None else self.timing.deadline * 1000,
+            watchdog_ms=spec.watchdog,
             enabled=self.timing.enabled,
             state=self.state if self.timing.enabled else "disabled",
             activations=self.activations,
@@ -557,6 +568,7 @@ class Scheduler:
         self.loop = asyncio.get_event_loop()
         self.blocked_calls = 0
         self.stats_provider: Callable[[], Any] | None = None
+        self.stop_requester: Callable[[], None] | None = None
         self.rtdb_provider: Callable[[], Any] | None = None
         self.mode_setter: Callable[[str, str], None] | None = None
         self.runners: dict[str, NodeRunner] = {}
@@ -615,7 +627,11 @@ class Scheduler:
 
     async def sleep(self, seconds: float) -> None:
         fut = self.loop.create_future()
-        self.clock.call_at(self.clock.now() + seconds, lambda: fut.done() or fut.set_result(None))
+        def wake() -> None:
+            if not fut.done():
+                fut.set_result(None)
+
+        self.clock.call_at(self.clock.now() + seconds, wake)
         await fut
 
     # --- lifecycle ----------------------------------------------------------------------

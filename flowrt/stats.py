@@ -90,6 +90,7 @@ class NodeStats(_Frozen):
     priority: int
     period: str
     deadline_ms: float | None
+    watchdog_ms: float | None = None
     enabled: bool
     state: str = Field(description="idle, running, backoff, failed or disabled")
     activations: int = Field(description="releases: ticks, timer expiries, inputs that asked for a run")
@@ -123,6 +124,17 @@ class LoopStats(_Frozen):
     blocked_calls: int = Field(description="inline calls that blocked the loop longer than the threshold")
 
 
+class FramePoolStats(_Frozen):
+    """A producer's frame pool: a frame is dropped (counted) only when every slot is held."""
+
+    owner: str
+    slots: int
+    slots_in_use: int
+    max_slots: int
+    grown: int
+    dropped: int
+
+
 class RuntimeStats(_Frozen):
     """Everything ``rt.stats()`` and ``--stats-json`` report."""
 
@@ -133,6 +145,9 @@ class RuntimeStats(_Frozen):
     nodes: list[NodeStats]
     edges: list[EdgeStats]
     loop: LoopStats
+    frames: list[FramePoolStats] = Field(
+        default_factory=list, description="shared-memory frame pools: slots, growth, drops"
+    )
     events: int = Field(description="events published so far (misses, errors, restarts, changes)")
 
     def node(self, name: str) -> NodeStats:

@@ -14,7 +14,8 @@ Sources (``source`` param)
     enforced by resizing). The device paces itself: the node free-runs and waits for frames.
 ``file:PATH`` or a bare path (or an ``rtsp://``/``http://`` URL)
     Anything OpenCV/FFmpeg decodes. ``on_eof``: ``stop`` (an ``end-of-stream`` info event,
-    then no more frames) or ``loop`` (start over, seamlessly).
+    then no more frames), ``loop`` (start over, seamlessly) or ``exit`` (as ``stop``, then the
+    runtime is asked to stop: a recording played through a graph).
 ``images:GLOB`` or a bare path with ``*``/``?``/``[``
     The matching image files in sorted order; ``on_eof`` as for files. An unreadable file is
     reported (``source-error`` event) and skipped.
@@ -214,7 +215,7 @@ class CaptureParams(BaseModel):
         None, description="what the source delivers (raw cameras)"
     )
     pacing: Literal["realtime", "fast"] = "realtime"
-    on_eof: Literal["stop", "loop"] = "stop"
+    on_eof: Literal["stop", "loop", "exit"] = "stop"
     seed: int = 0
     clutter: float = Field(
         0.3, ge=0.0, le=1.0, description="synthetic scene: noise, lighting, distractors"
@@ -657,6 +658,7 @@ class Capture(Node):
     """
 
     Params = CaptureParams
+    inline_only = True
 
     frame = Output(Frame, doc="the captured frame, in pixel_format, at size")
     truth = Output(object, doc="ground truth of the synthetic scene (SceneTruth), per frame")
@@ -745,7 +747,7 @@ class Capture(Node):
 
     def _alert(self, alert: str, detail: str, severity: str = "warning", note: str = "") -> None:
         """Emit a HealthAlert; log it too, unless it repeats the previous problem."""
-        t = self.ctx.now() - self._t0
+        t = self.ctx.elapsed()
         with contextlib.suppress(RuntimeError):  # emit() exists only on the event loop
             self.ctx.emit(
                 HealthAlert(t, self.ctx.name, alert=alert, detail=detail + note, severity=severity)
@@ -870,6 +872,8 @@ class Capture(Node):
                 self._alert(
                     "end-of-stream", f"{p.source}: end of stream after {self._seq} frames", "info"
                 )
+                if p.on_eof == "exit":  # a recording played through the graph: then stop
+                    self.ctx.request_stop()
                 return None
             break
         img, dims, self._position = value

@@ -272,6 +272,8 @@ class _Client:
 class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
+    inline_only = True
+
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
 
