@@ -196,7 +196,7 @@ class Node:
     def setup(self) -> Any:
         """Acquire resources; may be async."""
 
-    def process(self, **inputs: Any) -> Any:
+    def process(self, *args: Any, **inputs: Any) -> Any:
         raise NotImplementedError(f"{type(self).__name__}.process")
 
     def teardown(self) -> Any:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import logging
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Iterable, Mapping
@@ -64,12 +65,10 @@ class Subscription:
         return value
 
     async def get(self) -> Any:
-        while True:
-            try:
-                return self.get_nowait()
-            except LookupError:
-                self._ready.clear()
-                await self._ready.wait()
+        while not self._buf.pending():
+            self._ready.clear()
+            await self._ready.wait()
+        return self.get_nowait()
 
     def __aiter__(self) -> AsyncIterator[Any]:
         return self._iter()
@@ -305,6 +304,21 @@ class Runtime:
         if self._sched is None:
             raise RuntimeError("the runtime is not started")
         return self._sched
+
+    def quiet_delay(self, at_least: float) -> float:
+        """Seconds from now to the middle of a gap between ticks, ``at_least`` from now.
+
+        Monitors that hold the loop for a while (a terminal table, a JSON dump) wait for this,
+        so their work falls halfway between two ticks of the fastest timer, not on one.
+        """
+        timers = [r.timing.timer for r in self.scheduler.runners.values() if r.timing.timer]
+        if not timers:
+            return at_least
+        frame = min(timers)
+        now = self.clock.now()
+        base = self.clock.origin + frame / 2
+        k = math.ceil((now + at_least - base) / frame)
+        return max(0.0, base + k * frame - now)
 
     def now(self) -> float:
         """Seconds since the runtime started."""

@@ -439,10 +439,12 @@ class NodeRunner:
             return
         if isinstance(self.rnode.trigger, LoopTrigger):
             self.sched.loop.call_soon(self.release, self.sched.clock.now())
-        elif self.trigger_inputs and (self.more_input or any(self.inputs[p].pending() for p in self.trigger_inputs)):
+        elif self.trigger_inputs:
             self.more_input = False
-            if any(self.inputs[p].pending() for p in self.trigger_inputs):
-                self.sched.loop.call_soon(self.input_arrived)
+            for p in self.trigger_inputs:
+                if self.inputs[p].pending():
+                    self.input_arrived()  # release() schedules the run: no re-entry
+                    break
 
     async def _drain_then_idle(self) -> None:
         await self._drain_blocked()

@@ -8,6 +8,9 @@ frozen pydantic models, so ``--stats-json`` has a schema (``flowrt schema stats`
 from __future__ import annotations
 
 import math
+from array import array
+
+import numpy as np
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -15,7 +18,11 @@ RING = 2048  # recent samples kept for percentiles: ~100 s at 20 Hz
 
 
 class Running:
-    """Min/max/mean/std over every sample (Welford), plus a ring of recent samples."""
+    """Min/max/mean/std over every sample (Welford), plus a ring of recent samples.
+
+    ``add`` is on the hot path (a few per activation), so it only does arithmetic and one
+    array store; percentiles are computed by ``summary`` with a partial sort.
+    """
 
     __slots__ = ("count", "i", "m2", "max", "mean", "min", "ring")
 
@@ -25,7 +32,7 @@ class Running:
         self.m2 = 0.0
         self.min = math.inf
         self.max = -math.inf
-        self.ring: list[float] = []
+        self.ring = array("d")
         self.i = 0
 
     def add(self, x: float) -> None:
@@ -47,11 +54,10 @@ class Running:
         """Snapshot in milliseconds (samples are seconds)."""
         if not self.count:
             return Summary()
-        ordered = sorted(self.ring)
-
-        def pct(q: float) -> float:
-            return ordered[min(len(ordered) - 1, int(q * len(ordered)))] * scale
-
+        recent = np.frombuffer(self.ring, dtype=np.float64)
+        n = len(recent)
+        k50, k99 = min(n - 1, int(0.5 * n)), min(n - 1, int(0.99 * n))
+        part = np.partition(recent, (k50, k99))
         std = math.sqrt(self.m2 / (self.count - 1)) if self.count > 1 else 0.0
         return Summary(
             count=self.count,
@@ -59,8 +65,8 @@ class Running:
             max=self.max * scale,
             mean=self.mean * scale,
             std=std * scale,
-            p50=pct(0.5),
-            p99=pct(0.99),
+            p50=float(part[k50]) * scale,
+            p99=float(part[k99]) * scale,
         )
 
 

@@ -126,7 +126,8 @@ class LiveTable:
 
     async def _refresh(self, rt: Runtime) -> None:
         while True:
-            await asyncio.sleep(1 / self.hz)
+            # Rendering to a terminal holds the loop for milliseconds: do it between ticks.
+            await asyncio.sleep(rt.quiet_delay(1 / self.hz))
             if self._live is not None and rt.started:
                 table = render(rt.stats(), list(self.recent), rt.qos_status(), list(self.alerts))
                 self._live.update(table, refresh=True)
@@ -155,7 +156,7 @@ class LogLines:
 
     async def _loop(self, rt: Runtime) -> None:
         while True:
-            await asyncio.sleep(self.every)
+            await asyncio.sleep(rt.quiet_delay(self.every))
             if rt.started:
                 for line in summary_lines(rt.stats()):
                     log.info("%s", line)
