@@ -1,9 +1,9 @@
 """Building a graph in Python: the same model, the same checks as a YAML file.
 
-    g = GraphBuilder("demo")
-    g.add("cam", "capture", params={"fps": 20})
-    g.add("ball", Tracker, trigger=FrameTrigger(frame="cam"), inputs={"frame": "cam.frame"})
-    graph = g.build()
+g = GraphBuilder("demo")
+g.add("cam", "capture", params={"fps": 20})
+g.add("ball", Tracker, trigger=FrameTrigger(frame="cam"), inputs={"frame": "cam.frame"})
+graph = g.build()
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from typing import Any
 
 from .graph import Graph, resolve
 from .node import Node
-from .spec import GraphSpec, ModeSpec, NodeSpec, Trigger
+from .spec import GraphSpec, ModeSpec, Trigger
 
 
 class GraphBuilder:
@@ -40,7 +40,12 @@ class GraphBuilder:
             key = f"{kind.__module__}:{kind.__qualname__}"
             self._kinds[key] = kind
             kind = key
-        fields: dict[str, Any] = {"kind": kind, "params": params or {}, "inputs": inputs or {}, **timing}
+        fields: dict[str, Any] = {
+            "kind": kind,
+            "params": params or {},
+            "inputs": inputs or {},
+            **timing,
+        }
         if trigger is not None:
             fields["trigger"] = trigger
         self._nodes[name] = fields
@@ -52,7 +57,12 @@ class GraphBuilder:
 
     def spec(self) -> GraphSpec:
         return GraphSpec.model_validate(
-            {"name": self.name, "description": self.description, "nodes": self._nodes, "modes": self._modes}
+            {
+                "name": self.name,
+                "description": self.description,
+                "nodes": self._nodes,
+                "modes": self._modes,
+            }
         )
 
     def build(self) -> Graph:
@@ -67,7 +77,11 @@ class GraphBuilder:
         if loaded.spec is None:
             raise GraphError(loaded.errors)
         return resolve(
-            loaded.spec, loaded.locs, self._kinds, earlier=loaded.errors, invalid_nodes=loaded.invalid_nodes
+            loaded.spec,
+            loaded.locs,
+            self._kinds,
+            earlier=loaded.errors,
+            invalid_nodes=loaded.invalid_nodes,
         )
 
     @property

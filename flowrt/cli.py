@@ -63,13 +63,27 @@ def cmd_graph(args: argparse.Namespace) -> int:
         topo.add_column(col)
     for name, n in graph.nodes.items():
         ins = ", ".join(
-            f"{e.dst_port} <- {e.src}.{e.src_port} \\[{e.policy.value}]" for e in graph.edges if e.dst == name
+            f"{e.dst_port} <- {e.src}.{e.src_port} \\[{e.policy.value}]"
+            for e in graph.edges
+            if e.dst == name
         )
         dl = f"{n.spec.deadline:g} ms {n.spec.miss_policy.value}" if n.spec.deadline else "-"
-        topo.add_row(name, n.spec.kind, _trigger_text(n.trigger), str(n.spec.priority), dl, n.spec.placement.value, ins)
+        topo.add_row(
+            name,
+            n.spec.kind,
+            _trigger_text(n.trigger),
+            str(n.spec.priority),
+            dl,
+            n.spec.placement.value,
+            ins,
+        )
     console.print(topo)
     for tab in activation_tables(graph):
-        t = Table(title=f"activations over one hyperperiod of {tab.clock} ({tab.ticks} ticks of {tab.unit})", title_justify="left")
+        t = Table(
+            title=f"activations over one hyperperiod of {tab.clock} "
+            f"({tab.ticks} ticks of {tab.unit})",
+            title_justify="left",
+        )
         t.add_column("node")
         t.add_column("prio", justify="right")
         for k in range(tab.ticks):
@@ -99,7 +113,7 @@ def cmd_schema(args: argparse.Namespace) -> int:
     from .spec import GraphSpec
     from .stats import RuntimeStats
 
-    model: type[BaseModel] = {"graph": GraphSpec, "stats": RuntimeStats}[args.what]
+    model: type[BaseModel] = GraphSpec if args.what == "graph" else RuntimeStats
     print(json.dumps(model.model_json_schema(by_alias=True), indent=2))
     return 0
 
@@ -124,7 +138,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if graph is None:
         return EXIT_BAD_GRAPH
     _setup_logging(console, args.no_ui)
-    monitors: list[Any] = [LogLines(args.log_every) if args.no_ui else LiveTable(console, hz=args.refresh)]
+    monitors: list[Any] = [
+        LogLines(args.log_every) if args.no_ui else LiveTable(console, hz=args.refresh)
+    ]
     control = _control_config(args, err)
     rt = Runtime(graph, monitors=monitors, realtime=args.realtime, control=control)
 
@@ -181,7 +197,9 @@ def _setup_logging(console: Console, plain: bool) -> None:
     from rich.logging import RichHandler
 
     handler: logging.Handler = (
-        logging.StreamHandler(sys.stderr) if plain else RichHandler(console=console, show_path=False)
+        logging.StreamHandler(sys.stderr)
+        if plain
+        else RichHandler(console=console, show_path=False)
     )
     if plain:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -189,18 +207,35 @@ def _setup_logging(console: Console, plain: bool) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="flowrt", description="real-time dataflow runtime for robot perception")
+    p = argparse.ArgumentParser(
+        prog="flowrt", description="real-time dataflow runtime for robot perception"
+    )
     sub = p.add_subparsers(dest="command", required=True)
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
-    run.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
-    run.add_argument("--no-ui", action="store_true", help="periodic log lines instead of the live table")
-    run.add_argument("--stats-json", metavar="PATH", help="write final statistics (flowrt schema stats)")
-    run.add_argument("--realtime", action="store_true", help="SCHED_FIFO for the loop process where permitted")
+    run.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+    )
+    run.add_argument(
+        "--no-ui", action="store_true", help="periodic log lines instead of the live table"
+    )
+    run.add_argument(
+        "--stats-json", metavar="PATH", help="write final statistics (flowrt schema stats)"
+    )
+    run.add_argument(
+        "--realtime", action="store_true", help="SCHED_FIFO for the loop process where permitted"
+    )
     run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
-    run.add_argument("--log-every", type=float, default=2.0, metavar="S", help="--no-ui summary period")
-    run.add_argument("--control", nargs="?", const="127.0.0.1:8765", metavar="[HOST:]PORT",
-                     help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl")
+    run.add_argument(
+        "--log-every", type=float, default=2.0, metavar="S", help="--no-ui summary period"
+    )
+    run.add_argument(
+        "--control",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="[HOST:]PORT",
+        help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
+    )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
     run.set_defaults(func=cmd_run)
     val = sub.add_parser("validate", help="check a graph file; exit 2 listing every error")

@@ -97,7 +97,9 @@ def _ts(seconds: float) -> _Timespec:
 class _TimerfdTimer:
     """A periodic timer on a timerfd: the kernel keeps the period, the loop just reads it."""
 
-    def __init__(self, clock: SystemClock, period: float, phase: float, callback: TickCallback) -> None:
+    def __init__(
+        self, clock: SystemClock, period: float, phase: float, callback: TickCallback
+    ) -> None:
         assert _LIBC is not None
         self._clock = clock
         self._callback = callback
@@ -136,7 +138,9 @@ class _TimerfdTimer:
 class _LoopTimer:
     """Fallback periodic timer on ``loop.call_at`` with absolute release times (no drift)."""
 
-    def __init__(self, clock: SystemClock, period: float, phase: float, callback: TickCallback) -> None:
+    def __init__(
+        self, clock: SystemClock, period: float, phase: float, callback: TickCallback
+    ) -> None:
         self._clock = clock
         self._callback = callback
         self._loop = asyncio.get_running_loop()
@@ -214,7 +218,9 @@ class _VirtualEntry:
 
 
 class _VirtualPeriodic:
-    def __init__(self, clock: VirtualClock, period: float, phase: float, callback: TickCallback) -> None:
+    def __init__(
+        self, clock: VirtualClock, period: float, phase: float, callback: TickCallback
+    ) -> None:
         self._clock = clock
         self._callback = callback
         self._entry: _VirtualEntry | None = None

@@ -208,6 +208,8 @@ class LosslessBuffer(QueueBuffer):
         self._space.set()
 
 
-def make_buffer(policy: str, name: str, size: int, clock: Callable[[], float] | None = None) -> Buffer:
+def make_buffer(
+    policy: str, name: str, size: int, clock: Callable[[], float] | None = None
+) -> Buffer:
     cls = {"latest": LatestBuffer, "queue": QueueBuffer, "lossless": LosslessBuffer}[policy]
     return cls(name, size, clock)

@@ -27,8 +27,6 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 from pydantic import BaseModel, ConfigDict
 
 if TYPE_CHECKING:
-    import numpy as np
-
     from .frames import Frame
     from .rtdb import RTDB, RtdbHandle
     from .spec import Trigger
@@ -39,7 +37,9 @@ T = TypeVar("T")
 class Input(Generic[T]):
     """An input port. ``required`` inputs must be connected and hold a value to activate."""
 
-    def __init__(self, type_: type[T] | Any = object, *, required: bool = True, doc: str = "") -> None:
+    def __init__(
+        self, type_: type[T] | Any = object, *, required: bool = True, doc: str = ""
+    ) -> None:
         self.type: Any = type_
         self.required = required
         self.doc = doc
@@ -191,7 +191,11 @@ class Node:
         """Output ports carrying frames: each publication on one is a tick of the frame clock."""
         from .frames import Frame
 
-        return [n for n, p in cls.outputs.items() if isinstance(p.type, type) and issubclass(p.type, Frame)]
+        return [
+            n
+            for n, p in cls.outputs.items()
+            if isinstance(p.type, type) and issubclass(p.type, Frame)
+        ]
 
     def setup(self) -> Any:
         """Acquire resources; may be async."""
@@ -203,10 +207,14 @@ class Node:
         """Release resources; may be async; runs even after errors."""
 
 
-def make_node(cls: type[Node], params: BaseModel | Mapping[str, Any] | None, ctx: NodeContext) -> Node:
+def make_node(
+    cls: type[Node], params: BaseModel | Mapping[str, Any] | None, ctx: NodeContext
+) -> Node:
     """Instantiate a node with validated params and its context, ready for ``setup``."""
     node = cls()
-    node.params = params if isinstance(params, BaseModel) else cls.Params.model_validate(params or {})
+    node.params = (
+        params if isinstance(params, BaseModel) else cls.Params.model_validate(params or {})
+    )
     node.ctx = ctx
     return node
 

@@ -25,7 +25,10 @@ def enable_realtime(priority: int = 90) -> tuple[bool, str]:
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except PermissionError:
-        return False, "SCHED_FIFO not permitted (needs root or CAP_SYS_NICE / rtprio limit); normal priority"
+        return (
+            False,
+            "SCHED_FIFO not permitted (needs root or CAP_SYS_NICE / rtprio limit); normal priority",
+        )
     except OSError as e:
         return False, f"SCHED_FIFO refused ({e.strerror}); normal priority"
     locked = ""

@@ -30,7 +30,9 @@ def available_kinds() -> list[str]:
     return sorted(_entry_points())
 
 
-def resolve_kind(kind: str | type[Node], extra: Mapping[str, type[Node]] | None = None) -> type[Node]:
+def resolve_kind(
+    kind: str | type[Node], extra: Mapping[str, type[Node]] | None = None
+) -> type[Node]:
     """The node class for ``kind``; raises KindError with a 'did you mean' hint."""
     if isinstance(kind, type):
         if not issubclass(kind, Node):

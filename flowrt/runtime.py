@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
 import logging
+import math
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from pathlib import Path
@@ -149,7 +149,9 @@ class Runtime:
             from .workers import start_forkserver
 
             await asyncio.to_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
-        self.clock.origin = self.clock.now() + (0.005 if isinstance(self.clock, SystemClock) else 0.0)
+        self.clock.origin = self.clock.now() + (
+            0.005 if isinstance(self.clock, SystemClock) else 0.0
+        )
         self._sched = Scheduler(
             self.graph,
             self.clock,
@@ -251,15 +253,23 @@ class Runtime:
             )
         else:
             ex = workers.ProcessExecutor(
-                runner.name, factory, priority=runner.timing.priority, watchdog=watchdog, realtime=rt_workers
+                runner.name,
+                factory,
+                priority=runner.timing.priority,
+                watchdog=watchdog,
+                realtime=rt_workers,
             )
         return _WorkerAdapter(ex)
 
-    def _new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame:
+    def _new_frame(
+        self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str
+    ) -> Frame:
         import numpy as np
 
         pool = self._frames.pool(owner)
-        frame: Frame | None = pool.reserve(shape, dtype, source=owner, seq=0, timestamp=self.clock.now(), pixel_format=pixel_format)
+        frame: Frame | None = pool.reserve(
+            shape, dtype, source=owner, seq=0, timestamp=self.clock.now(), pixel_format=pixel_format
+        )
         if frame is None:  # every slot held and the pool at its bound: counted by the pool
             frame = Frame(np.empty(shape, dtype=dtype), source=owner, pixel_format=pixel_format)
         return frame

@@ -46,7 +46,7 @@ BLOCKING_THRESHOLD = 0.010  # an inline call longer than this is reported as blo
 
 
 class Executor:
-    """Where ``process`` runs. Inline on the loop here; worker processes in :mod:`flowrt.workers`."""
+    """Where ``process`` runs: inline on the loop here; worker processes in flowrt.workers."""
 
     sync = False
     granted = ""
@@ -123,7 +123,9 @@ class RunnerContext(NodeContext):
     def now(self) -> float:
         return self._runner.sched.clock.now()
 
-    def new_frame(self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR") -> Frame:
+    def new_frame(
+        self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR"
+    ) -> Frame:
         frame = self._runner.sched.new_frame(self.name, shape, dtype, pixel_format)
         self._runner.created.append(frame)
         return frame
@@ -324,12 +326,22 @@ class NodeRunner:
         clock = self.sched.clock
         deadline: Handle | None = None
         if self.timing.deadline is not None:
-            deadline = clock.call_at(t_release + self.timing.deadline, lambda: self._deadline_hit(act))
+            deadline = clock.call_at(
+                t_release + self.timing.deadline, lambda: self._deadline_hit(act)
+            )
         watchdog: Handle | None = None
         wd = self.rnode.spec.watchdog
-        if wd is not None and self.rnode.spec.placement is Placement.inline and self.task is not None:
+        if (
+            wd is not None
+            and self.rnode.spec.placement is Placement.inline
+            and self.task is not None
+        ):
             task = self.task
-            watchdog = clock.call_at(start + wd / 1000, lambda: task.cancel(f"watchdog {wd:g} ms"))
+
+            def cancel() -> None:
+                task.cancel(f"watchdog {wd:g} ms")
+
+            watchdog = clock.call_at(start + wd / 1000, cancel)
         try:
             result = await self.executor.call(inputs)
         except asyncio.CancelledError as e:
@@ -361,7 +373,13 @@ class NodeRunner:
         discard = self.rnode.spec.miss_policy is MissPolicy.discard
         assert self.timing.deadline is not None
         self.sched.emit(
-            DeadlineMissed(self.sched.rel(self.sched.clock.now()), self.name, self.timing.deadline * 1000, True, discard)
+            DeadlineMissed(
+                self.sched.rel(self.sched.clock.now()),
+                self.name,
+                self.timing.deadline * 1000,
+                True,
+                discard,
+            )
         )
 
     # --- completion ---------------------------------------------------------------------
@@ -381,7 +399,9 @@ class NodeRunner:
                 self.missed_current = True
                 self.misses += 1
                 assert deadline is not None
-                self.sched.emit(DeadlineMissed(self.sched.rel(end), self.name, deadline * 1000, False, discard))
+                self.sched.emit(
+                    DeadlineMissed(self.sched.rel(end), self.name, deadline * 1000, False, discard)
+                )
         if discard:
             self.discarded += 1
             _release_all([result] if not isinstance(result, Mapping) else result.values())
@@ -397,7 +417,9 @@ class NodeRunner:
             self.publish(port, result, t)
             return
         if not isinstance(result, Mapping):
-            raise TypeError(f"{self.name}: a node with outputs {list(outs)} must return a mapping of them")
+            raise TypeError(
+                f"{self.name}: a node with outputs {list(outs)} must return a mapping of them"
+            )
         for port, value in result.items():
             if port not in outs:
                 raise TypeError(f"{self.name}: no output port {port!r}")
@@ -458,17 +480,23 @@ class NodeRunner:
         tb = getattr(exc, "traceback", None) or "".join(traceback.format_exception(exc))
         log.error("node %s failed: %s\n%s", self.name, exc, tb)
         now = self.sched.clock.now()
-        self.sched.emit(NodeFailed(self.sched.rel(now), self.name, f"{type(exc).__name__}: {exc}", tb))
+        self.sched.emit(
+            NodeFailed(self.sched.rel(now), self.name, f"{type(exc).__name__}: {exc}", tb)
+        )
         self.busy = False
         policy = self.rnode.spec.restart
         if policy.policy == "never" or (
             policy.max_restarts is not None and self.restarts >= policy.max_restarts
         ):
             self.state = "failed"
-            self.sched.emit(NodeGaveUp(self.sched.rel(now), self.name, f"restart policy {policy.policy}"))
+            self.sched.emit(
+                NodeGaveUp(self.sched.rel(now), self.name, f"restart policy {policy.policy}")
+            )
             self.sched.loop.create_task(self._stop_executor())
             return
-        backoff = min(policy.backoff * 2 ** (self.consecutive_failures - 1), policy.max_backoff) / 1000
+        backoff = (
+            min(policy.backoff * 2 ** (self.consecutive_failures - 1), policy.max_backoff) / 1000
+        )
         self.state = "backoff"
         self.sched.loop.create_task(self._restart(backoff))
 
@@ -485,7 +513,9 @@ class NodeRunner:
             return
         self.restarts += 1
         self.sched.emit(
-            NodeRestarted(self.sched.rel(self.sched.clock.now()), self.name, self.restarts, backoff * 1000)
+            NodeRestarted(
+                self.sched.rel(self.sched.clock.now()), self.name, self.restarts, backoff * 1000
+            )
         )
         self.executor = self.make_executor()
         try:
@@ -510,7 +540,9 @@ class NodeRunner:
             trigger = "input"
         else:
             trigger = "loop"
-        period = self.timing.describe_period() if isinstance(trig, FrameTrigger | TimerTrigger) else "-"
+        period = (
+            self.timing.describe_period() if isinstance(trig, FrameTrigger | TimerTrigger) else "-"
+        )
         return NodeStats(
             name=self.name,
             kind=spec.kind,
@@ -601,11 +633,15 @@ class Scheduler:
         """Dispatch order within a tick: higher priority first, then file order."""
         for readers in self.readers.values():
             readers.sort(key=lambda r: (-r.timing.priority, r.rnode.order))
-        self.order = sorted(self.runners.values(), key=lambda r: (-r.timing.priority, r.rnode.order))
+        self.order = sorted(
+            self.runners.values(), key=lambda r: (-r.timing.priority, r.rnode.order)
+        )
 
     def worker_executor(self, runner: NodeRunner, factory: NodeFactory) -> Executor:
         if self._worker_executor is None:
-            raise RuntimeError(f"{runner.name}: placement {runner.rnode.spec.placement.value} needs worker support")
+            raise RuntimeError(
+                f"{runner.name}: placement {runner.rnode.spec.placement.value} needs worker support"
+            )
         return self._worker_executor(runner, factory)
 
     def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame:
@@ -629,6 +665,7 @@ class Scheduler:
 
     async def sleep(self, seconds: float) -> None:
         fut = self.loop.create_future()
+
         def wake() -> None:
             if not fut.done():
                 fut.set_result(None)
@@ -653,13 +690,17 @@ class Scheduler:
                 r._failed(e)
 
         inline = [r for r in self.runners.values() if r.rnode.spec.placement is Placement.inline]
-        others = [r for r in self.runners.values() if r.rnode.spec.placement is not Placement.inline]
+        others = [
+            r for r in self.runners.values() if r.rnode.spec.placement is not Placement.inline
+        ]
         await asyncio.gather(*(start_one(r) for r in others))
         for r in inline:
             await start_one(r)
         for r in self.order:
             if r.timing.timer is not None:
-                r.timer = self.clock.periodic(r.timing.timer, r.timing.timer_phase, self._timer_cb(r))
+                r.timer = self.clock.periodic(
+                    r.timing.timer, r.timing.timer_phase, self._timer_cb(r)
+                )
             elif isinstance(r.rnode.trigger, LoopTrigger):
                 self.loop.call_soon(r.release, self.clock.now())
 
@@ -680,7 +721,9 @@ class Scheduler:
             if r.timer is not None:
                 r.timer.cancel()
                 r.timer = None
-        pending = [r.task for r in self.runners.values() if r.task is not None and not r.task.done()]
+        pending = [
+            r.task for r in self.runners.values() if r.task is not None and not r.task.done()
+        ]
         if pending:
             _, still = await asyncio.wait(pending, timeout=grace)
             for t in still:
@@ -720,11 +763,15 @@ class Scheduler:
         new_phase = tm.phase if phase is None else phase
         is_frame = isinstance(r.rnode.trigger, FrameTrigger)
         if (period is not None or phase is not None) and not is_frame:
-            raise ValueError(f"{node}: period/phase in frames apply to frame-triggered nodes; use timer=")
+            raise ValueError(
+                f"{node}: period/phase in frames apply to frame-triggered nodes; use timer="
+            )
         if timer is not None and tm.timer is None:
             raise ValueError(f"{node}: timer= applies to timer-triggered nodes")
         if new_period <= 0 or not 0 <= new_phase < new_period:
-            raise ValueError(f"{node}: need period > 0 and 0 <= phase < period (got {new_period}/{new_phase})")
+            raise ValueError(
+                f"{node}: need period > 0 and 0 <= phase < period (got {new_period}/{new_phase})"
+            )
         if timer is not None and timer <= 0:
             raise ValueError(f"{node}: timer period must be positive")
         if deadline is not None and deadline <= 0:
@@ -739,8 +786,16 @@ class Scheduler:
 
         note("period", tm.period, period)
         note("phase", tm.phase, phase)
-        note("timer_ms", None if tm.timer is None else tm.timer * 1000, None if timer is None else timer * 1000)
-        note("deadline_ms", None if tm.deadline is None else tm.deadline * 1000, None if deadline is None else deadline * 1000)
+        note(
+            "timer_ms",
+            None if tm.timer is None else tm.timer * 1000,
+            None if timer is None else timer * 1000,
+        )
+        note(
+            "deadline_ms",
+            None if tm.deadline is None else tm.deadline * 1000,
+            None if deadline is None else deadline * 1000,
+        )
         note("priority", tm.priority, priority)
         note("enabled", tm.enabled, enabled)
         tm.period, tm.phase = new_period, new_phase
@@ -766,4 +821,3 @@ class Scheduler:
         if changes:
             self.emit(TimingChanged(self.rel(self.clock.now()), node, text, origin))
         return text
-

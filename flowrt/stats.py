@@ -11,7 +11,6 @@ import math
 from array import array
 
 import numpy as np
-
 from pydantic import BaseModel, ConfigDict, Field
 
 RING = 2048  # recent samples kept for percentiles: ~100 s at 20 Hz
@@ -99,9 +98,13 @@ class NodeStats(_Frozen):
     watchdog_ms: float | None = None
     enabled: bool
     state: str = Field(description="idle, running, backoff, failed or disabled")
-    activations: int = Field(description="releases: ticks, timer expiries, inputs that asked for a run")
+    activations: int = Field(
+        description="releases: ticks, timer expiries, inputs that asked for a run"
+    )
     completions: int
-    skipped: int = Field(description="activations not run: previous one still running (overrun) or missing input")
+    skipped: int = Field(
+        description="activations not run: previous one still running (overrun) or missing input"
+    )
     deadline_misses: int
     discarded: int = Field(description="results dropped by a firm (discard) deadline")
     errors: int
@@ -121,13 +124,17 @@ class EdgeStats(_Frozen):
     published: int
     delivered: int
     dropped: int
-    sampled: bool = Field(description="the reader samples the newest value; unread values are expected")
+    sampled: bool = Field(
+        description="the reader samples the newest value; unread values are expected"
+    )
     age: Summary = Field(description="age of data when consumed, ms")
 
 
 class LoopStats(_Frozen):
     lag: Summary = Field(description="lateness of a 10 ms probe timer on the event loop, ms")
-    blocked_calls: int = Field(description="inline calls that blocked the loop longer than the threshold")
+    blocked_calls: int = Field(
+        description="inline calls that blocked the loop longer than the threshold"
+    )
 
 
 class FramePoolStats(_Frozen):

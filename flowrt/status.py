@@ -44,23 +44,47 @@ def render(
         title += f" · {stats.realtime}"
     t = Table(title=title, title_justify="left", expand=False, pad_edge=False)
     for col, justify in [
-        ("node", "left"), ("place", "left"), ("trigger", "left"), ("prio", "right"), ("period", "right"),
-        ("act", "right"), ("done", "right"), ("skip", "right"), ("miss", "right"), ("err", "right"),
-        ("rst", "right"), ("interval ms\nmean±std", "right"), ("exec ms\np50/p99/max", "right"),
-        ("resp ms\np99", "right"), ("state", "left"),
+        ("node", "left"),
+        ("place", "left"),
+        ("trigger", "left"),
+        ("prio", "right"),
+        ("period", "right"),
+        ("act", "right"),
+        ("done", "right"),
+        ("skip", "right"),
+        ("miss", "right"),
+        ("err", "right"),
+        ("rst", "right"),
+        ("interval ms\nmean±std", "right"),
+        ("exec ms\np50/p99/max", "right"),
+        ("resp ms\np99", "right"),
+        ("state", "left"),
     ]:
         t.add_column(col, justify=justify, no_wrap=True)  # type: ignore[arg-type]
     for n in stats.nodes:
         miss = Text(str(n.deadline_misses), style="bold red" if n.deadline_misses else "")
         skip = Text(str(n.skipped), style="yellow" if n.skipped else "")
         err = Text(str(n.errors), style="bold red" if n.errors else "")
-        state_style = {"failed": "bold red", "backoff": "yellow", "disabled": "dim"}.get(n.state, "green")
+        state_style = {"failed": "bold red", "backoff": "yellow", "disabled": "dim"}.get(
+            n.state, "green"
+        )
         trig = n.trigger.replace("frame ", "⟳ ")
         t.add_row(
-            n.name, n.placement, trig, str(n.priority), n.period, str(n.activations), str(n.completions),
-            skip, miss, err, str(n.restarts),
+            n.name,
+            n.placement,
+            trig,
+            str(n.priority),
+            n.period,
+            str(n.activations),
+            str(n.completions),
+            skip,
+            miss,
+            err,
+            str(n.restarts),
             f"{_ms(n.interval.mean)}±{_ms(n.interval.std)}" if n.interval.count else "-",
-            f"{_ms(n.execution.p50)}/{_ms(n.execution.p99)}/{_ms(n.execution.max)}" if n.execution.count else "-",
+            f"{_ms(n.execution.p50)}/{_ms(n.execution.p99)}/{_ms(n.execution.max)}"
+            if n.execution.count
+            else "-",
             _ms(n.response.p99) if n.response.count else "-",
             Text(n.state, style=state_style),
         )
@@ -176,7 +200,8 @@ def summary_lines(stats: RuntimeStats) -> list[str]:
         out.append(
             f"{n.name}: act={n.activations} done={n.completions} skip={n.skipped} "
             f"miss={n.deadline_misses} err={n.errors} rst={n.restarts} "
-            f"interval={n.interval.mean:.2f}±{n.interval.std:.3f}ms exec_p99={n.execution.p99:.2f}ms"
+            f"interval={n.interval.mean:.2f}±{n.interval.std:.3f}ms "
+            f"exec_p99={n.execution.p99:.2f}ms"
         )
     dropped = sum(e.dropped for e in stats.edges if not e.sampled)
     out.append(f"loop lag p99={stats.loop.lag.p99:.2f}ms dropped={dropped} events={stats.events}")

@@ -31,7 +31,9 @@ class HarnessContext(NodeContext):
     def now(self) -> float:
         return self.time
 
-    def new_frame(self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR") -> Frame:
+    def new_frame(
+        self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR"
+    ) -> Frame:
         dt = np.uint8 if dtype is ... else dtype
         return Frame(np.zeros(shape, dtype=dt), source=self.name, pixel_format=pixel_format)
 
@@ -46,7 +48,10 @@ class NodeHarness:
     """Runs one node's ``setup``/``process``/``teardown`` directly (async ones too)."""
 
     def __init__(
-        self, cls: type[Node], params: BaseModel | Mapping[str, Any] | None = None, name: str = "node"
+        self,
+        cls: type[Node],
+        params: BaseModel | Mapping[str, Any] | None = None,
+        name: str = "node",
     ) -> None:
         self.ctx = HarnessContext(name)
         self.node = make_node(cls, params, self.ctx)

@@ -113,7 +113,9 @@ async def test_killed_worker_is_replaced_and_others_keep_running() -> None:
 
 
 async def test_hung_worker_misses_at_the_deadline_instant_and_watchdog_replaces_it() -> None:
-    async with Runtime(graph(Spin, deadline="30ms", watchdog="300ms", restart={"backoff": "20ms"})) as rt:
+    async with Runtime(
+        graph(Spin, deadline="30ms", watchdog="300ms", restart={"backoff": "20ms"})
+    ) as rt:
         await rt.run(1.5)
         s = rt.stats()
         misses = [e for e in rt.events if isinstance(e, flowrt.DeadlineMissed) and e.node == "trk"]
