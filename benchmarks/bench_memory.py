@@ -47,7 +47,8 @@ def main() -> None:
         proc.wait(timeout=30)
     mb = 1024 * 1024
     print(
-        f"graph: {args.graph}, {len(rows)} processes, Python {sys.version.split()[0]}, pid {os.getpid()}"
+        f"graph: {args.graph}, {len(rows)} processes, "
+        f"Python {sys.version.split()[0]}, pid {os.getpid()}"
     )
     print()
     print("| process | PSS MB | RSS MB |")
@@ -56,7 +57,8 @@ def main() -> None:
         label = "main (event loop)" if pid == proc.pid else name
         print(f"| {label} | {pss / mb:.1f} | {rss / mb:.1f} |")
     print(
-        f"| **total** | **{sum(r[2] for r in rows) / mb:.1f}** | {sum(r[3] for r in rows) / mb:.1f} |"
+        f"| **total** | **{sum(r[2] for r in rows) / mb:.1f}** "
+        f"| {sum(r[3] for r in rows) / mb:.1f} |"
     )
 
 

@@ -28,6 +28,7 @@ from .rtdb import Record as Record
 from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
 from .runtime import Subscription as Subscription
+from .runtime import run as run
 from .spec import FrameTrigger as FrameTrigger
 from .spec import GraphSpec as GraphSpec
 from .spec import InputTrigger as InputTrigger
@@ -76,4 +77,5 @@ __all__ = [
     "TimerTrigger",
     "TimingChanged",
     "VirtualClock",
+    "run",
 ]

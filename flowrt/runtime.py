@@ -15,9 +15,9 @@ import contextlib
 import logging
 import math
 from collections import deque
-from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from collections.abc import AsyncIterator, Callable, Coroutine, Iterable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
@@ -35,6 +35,15 @@ if TYPE_CHECKING:
     from .rtdb import RTDB
 
 log = logging.getLogger("flowrt")
+T = TypeVar("T")
+
+
+def run(main: Coroutine[Any, Any, T]) -> T:
+    """``asyncio.run`` on uvloop when it is installed: the embedding program's entry point."""
+    from .cli import new_event_loop
+
+    with asyncio.Runner(loop_factory=new_event_loop) as runner:
+        return runner.run(main)
 
 
 class Monitor(Protocol):

@@ -71,7 +71,7 @@ def render(
         trig = n.trigger.replace("frame ", "⟳ ")
         t.add_row(
             n.name,
-            n.placement,
+            _placement(n.placement, n.granted),
             trig,
             str(n.priority),
             n.period,
@@ -117,6 +117,14 @@ def render(
 
 def _alert_style(a: HealthAlert) -> str:
     return "bold red" if a.severity in ("error", "critical") else "yellow"
+
+
+def _placement(placement: str, granted: str) -> str:
+    """``process FIFO 45`` / ``pool nice 3``: where a node runs and what the OS granted."""
+    if not granted:
+        return placement
+    short = granted.replace("SCHED_", "").split(" (")[0]
+    return f"{placement} {short}"
 
 
 def _describe(ev: Event) -> str:
