@@ -236,10 +236,18 @@ def resolve(
     _check_frame_chains(triggers, at)
 
     for mode_name, mode in spec.modes.items():
-        for node in mode.nodes:
+        for node, o in mode.nodes.items():
+            path = ("modes", mode_name, "nodes", node)
             if node not in names:
                 hint = did_you_mean(node, names)
-                at(("modes", mode_name, "nodes", node), f"unknown node {node!r}" + hint)
+                at(path, f"unknown node {node!r}" + hint)
+                continue
+            _check_override(path, o, triggers.get(node), at)
+    if spec.qos.overload is not None:
+        for i, node in enumerate(spec.qos.overload.protect):
+            if node not in names:
+                hint = did_you_mean(node, names)
+                at(("qos", "overload", "protect", i), f"unknown node {node!r}" + hint)
     if spec.initial_mode is not None and spec.initial_mode not in spec.modes:
         hint = did_you_mean(spec.initial_mode, spec.modes)
         at(("initial_mode",), f"unknown mode {spec.initial_mode!r}" + hint)
@@ -267,6 +275,26 @@ def _edge(dst: str, dst_port: str, ins: InputSpec, in_type: Any, out_type: Any) 
         is_frame = any(isinstance(t, type) and issubclass(t, Frame) for t in (in_type, out_type))
         policy = EdgePolicy.latest if is_frame else EdgePolicy.queue
     return Edge(ins.node, ins.port, dst, dst_port, policy, ins.size)
+
+
+def _check_override(path: tuple[str | int, ...], o: Any, trig: Trigger | None, at: Any) -> None:
+    """A mode's override must fit the node's trigger: frames take period/phase, timers ms."""
+    if trig is None:
+        return
+    if isinstance(trig, FrameTrigger):
+        if o.timer is not None:
+            at((*path, "timer"), "timer applies to timer-triggered nodes; this one runs on frames")
+        period = trig.period if o.period is None else o.period
+        phase = trig.phase if o.phase is None else o.phase
+        if period <= 0:
+            at((*path, "period"), f"period must be a positive number of frames, got {period}")
+        elif not 0 <= phase < period:
+            at((*path, "phase"), f"phase {phase} must be in 0..{period - 1} (period {period})")
+    elif o.period is not None or o.phase is not None:
+        key = "period" if o.period is not None else "phase"
+        at((*path, key), "period/phase in frames apply to frame-triggered nodes; use timer")
+    elif isinstance(trig, TimerTrigger) and o.timer is not None and o.timer <= 0:
+        at((*path, "timer"), "timer period must be positive")
 
 
 def _check_trigger(

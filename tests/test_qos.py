@@ -145,9 +145,24 @@ def modes_graph() -> Graph:
     g.add("t", "counter", trigger={"timer": "50ms"})
     g.mode("attack", a={"period": 2, "phase": 1}, b={"priority": 30})
     g.mode("defend", b={"enabled": False}, t={"timer": "100ms"})
-    g.mode("broken", b={"priority": 50}, a={"period": 2, "phase": 3})  # phase 3 is not < 2
     g.mode("nominal")
     return g.build()
+
+
+def test_a_mode_that_cannot_apply_is_refused_at_load() -> None:
+    g = GraphBuilder("modes")
+    g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False)
+    g.add(
+        "a",
+        Reader,
+        trigger={"frame": "cam", "period": 4, "phase": 3},
+        inputs={"frame": "cam.frame"},
+    )
+    g.mode("broken", a={"period": 2})  # the graph's phase 3 does not fit period 2
+    with pytest.raises(
+        flowrt.GraphError, match=r"modes.broken.nodes.a.phase: phase 3 must be in 0..1"
+    ):
+        g.build()
 
 
 async def test_mode_switch_returns_what_the_previous_mode_changed() -> None:
@@ -163,10 +178,9 @@ async def test_mode_switch_returns_what_the_previous_mode_changed() -> None:
         assert not s.node("b").enabled
         assert s.node("t").period == "100ms+0"
         assert s.node("b").deadline_ms == 5.0
-        with pytest.raises(ValueError, match="phase"):
-            rt.set_mode("broken")
-        s = rt.stats()  # all or nothing: not even b's priority changed
-        assert s.node("b").priority == 20
+        with pytest.raises(ValueError, match="phase"):  # an invalid change is refused whole
+            rt.set_timing("a", period=2, phase=3)
+        assert rt.stats().node("a").period == "4/3"
         assert rt.mode == "defend"
         with pytest.raises(KeyError, match="did you mean"):
             rt.set_mode("atack")
