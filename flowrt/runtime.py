@@ -120,6 +120,7 @@ class Runtime:
         self._frames: Any = None
         self._pool: Any = None
         self._last_frame_stats: list[FramePoolStats] = []
+        self._gap_cache: tuple[tuple[tuple[float, float], ...], tuple[float, float]] | None = None
         self._rtdb: RTDB | None = None
         self.qos: OverloadController | None = None
         if control is not None:  # a bad address or a missing token fails here, before any start
@@ -325,19 +326,48 @@ class Runtime:
         return self._sched
 
     def quiet_delay(self, at_least: float) -> float:
-        """Seconds from now to the middle of a gap between ticks, ``at_least`` from now.
+        """Seconds from now to the middle of the widest gap between timer releases.
 
-        Monitors that hold the loop for a while (a terminal table, a JSON dump) wait for this,
-        so their work falls halfway between two ticks of the fastest timer, not on one.
+        Monitors that hold the loop for a while (a terminal table, a summary line) wait for
+        this, so their work falls where no timer (and so no frame tick) is due, at least
+        ``at_least`` from now.
         """
-        timers = [r.timing.timer for r in self.scheduler.runners.values() if r.timing.timer]
-        if not timers:
+        gap = self._quiet_gap()
+        if gap is None:
             return at_least
-        frame = min(timers)
+        offset, cycle = gap
         now = self.clock.now()
-        base = self.clock.origin + frame / 2
-        k = math.ceil((now + at_least - base) / frame)
-        return max(0.0, base + k * frame - now)
+        base = self.clock.origin + offset
+        k = math.ceil((now + at_least - base) / cycle)
+        return max(0.0, base + k * cycle - now)
+
+    def _quiet_gap(self) -> tuple[float, float] | None:
+        """(offset of the widest gap's middle, cycle) over the timers' hyperperiod, seconds."""
+        timers = [
+            (r.timing.timer, r.timing.timer_phase)
+            for r in self.scheduler.runners.values()
+            if r.timing.timer and r.timing.enabled
+        ]
+        if not timers:
+            return None
+        key = tuple(sorted(timers))
+        if self._gap_cache is not None and self._gap_cache[0] == key:
+            return self._gap_cache[1]
+        us = [(round(p * 1e6), round(ph * 1e6)) for p, ph in timers]
+        cycle = 1
+        for p, _ in us:
+            cycle = cycle * p // math.gcd(cycle, p)
+        cycle = min(cycle, 10 * max(p for p, _ in us), 2_000_000)  # bounded: a window, not forever
+        instants = sorted(
+            {ph + k * p for p, ph in us for k in range(cycle // p + 1) if ph + k * p < cycle}
+        )
+        gaps = [
+            (b - a, a) for a, b in zip(instants, [*instants[1:], instants[0] + cycle], strict=True)
+        ]
+        width, start = max(gaps)
+        result = (((start + width / 2) % cycle) / 1e6, cycle / 1e6)
+        self._gap_cache = (key, result)
+        return result
 
     def now(self) -> float:
         """Seconds since the runtime started."""

@@ -351,3 +351,15 @@ async def test_host_publish_and_subscribe_through_input_triggered_chain() -> Non
         with pytest.raises(KeyError, match="did you mean"):
             rt.publish("a.outptu", 1)
     assert got == [0, 1, 2, 3, 4]
+
+
+async def test_monitors_are_scheduled_in_the_widest_gap_between_timer_releases() -> None:
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("a", Count, trigger={"timer": "50ms"})
+    g.add("b", Count, trigger={"timer": "50ms", "phase": "10ms"})
+    async with Runtime(g.build(), clock=clock) as rt:
+        # releases at 0 and 10 ms of every 50: the widest gap is 10..50, its middle 30 ms
+        delay = rt.quiet_delay(0.25)
+        assert (clock.now() + delay - clock.origin) % 0.05 == pytest.approx(0.030)
+        assert delay >= 0.25
