@@ -28,7 +28,8 @@ class _Empty:
 EMPTY: Any = _Empty()
 
 
-def _hold(value: Any) -> None:
+def hold(value: Any) -> None:
+    """Take a link on a frame (other values need none)."""
     if isinstance(value, Frame):
         value.acquire()
 
@@ -110,7 +111,7 @@ class LatestBuffer(Buffer):
             if not self._read:
                 self.dropped += 1
             _drop(old)
-        _hold(value)
+        hold(value)
         self._value, self._t, self._seq, self._read = value, t, self.published, False
         if self.on_put is not None:
             self.on_put()
@@ -122,7 +123,7 @@ class LatestBuffer(Buffer):
         if not self._read:
             self._read = True
             self._delivered(self._seq, self._t)
-        _hold(self._value)
+        hold(self._value)
         return self._value
 
     def take_new(self) -> Any:
@@ -154,7 +155,7 @@ class QueueBuffer(Buffer):
             _, _, old = self._q.popleft()
             self.dropped += 1
             _drop(old)
-        _hold(value)
+        hold(value)
         self._q.append((self.published, t, value))
         if self.on_put is not None:
             self.on_put()

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from .clock import Clock, Handle, PeriodicTimer
-from .edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer, make_buffer
+from .edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer, hold, make_buffer
 from .events import (
     DeadlineMissed,
     Event,
@@ -431,7 +431,7 @@ class NodeRunner:
         for buf in self.outputs[port]:
             if not buf.put(value, t):
                 assert isinstance(buf, LosslessBuffer)
-                _hold(value)
+                hold(value)
                 self.blocked.append((buf, value, t))
         key = self.tick_ports.get(port)
         if key is not None:
@@ -568,11 +568,6 @@ class NodeRunner:
             response=self.response.summary(),
             granted=self.executor.granted,
         )
-
-
-def _hold(value: Any) -> None:
-    if isinstance(value, Frame):
-        value.acquire()
 
 
 def _release_all(values: Any) -> None:
