@@ -137,10 +137,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     graph = _load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
-    _setup_logging(console, args.no_ui)
-    monitors: list[Any] = [
-        LogLines(args.log_every) if args.no_ui else LiveTable(console, hz=args.refresh)
-    ]
+    monitor: LogLines | LiveTable
+    if args.no_ui:
+        monitor = LogLines(args.log_every)
+        _setup_logging(_plain_handler())
+    else:
+        monitor = LiveTable(console, hz=args.refresh)
+        _setup_logging(monitor.log_handler())
+    monitors: list[Any] = [monitor]
     control = _control_config(args, err)
     rt = Runtime(graph, monitors=monitors, realtime=args.realtime, control=control)
 
@@ -193,16 +197,13 @@ def _control_config(args: argparse.Namespace, err: Console) -> Any:
     return config
 
 
-def _setup_logging(console: Console, plain: bool) -> None:
-    from rich.logging import RichHandler
+def _plain_handler() -> logging.Handler:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    return handler
 
-    handler: logging.Handler = (
-        logging.StreamHandler(sys.stderr)
-        if plain
-        else RichHandler(console=console, show_path=False)
-    )
-    if plain:
-        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+
+def _setup_logging(handler: logging.Handler) -> None:
     logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
 
 
