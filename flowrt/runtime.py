@@ -109,6 +109,7 @@ class Runtime:
         self.monitors: list[Monitor] = list(monitors)
         self.realtime_requested = realtime
         self.realtime = ""
+        self.latency_hint = ""
         self.mode: str | None = None
         self.events: deque[Event] = deque(maxlen=1000)
         self.event_count = 0
@@ -154,6 +155,10 @@ class Runtime:
             granted, self.realtime = enable_realtime()
             if not granted:
                 log.warning("--realtime: %s", self.realtime)
+        if not self.realtime.startswith("SCHED_FIFO"):
+            from .oscheduling import request_short_slice
+
+            self.latency_hint = request_short_slice()
         self._frames = _frame_store()
         if any(n.spec.placement is not Placement.inline for n in self.graph.nodes.values()):
             from .workers import start_forkserver

@@ -363,3 +363,23 @@ async def test_monitors_are_scheduled_in_the_widest_gap_between_timer_releases()
         delay = rt.quiet_delay(0.25)
         assert (clock.now() + delay - clock.origin) % 0.05 == pytest.approx(0.030)
         assert delay >= 0.25
+
+
+async def test_loop_process_asks_the_fair_scheduler_for_a_short_slice() -> None:
+    """Without --realtime the loop still wakes promptly: a 100 us EEVDF slice (Linux >= 6.12)."""
+    import ctypes
+    import platform
+
+    from flowrt.oscheduling import _SchedAttr
+
+    g = GraphBuilder()
+    g.add("a", Count, trigger={"timer": "50ms"})
+    async with Runtime(g.build()) as rt:
+        if not rt.latency_hint:
+            pytest.skip("the kernel does not take a custom slice here")
+        assert rt.latency_hint == "slice 100 us"
+        if platform.machine() == "x86_64":
+            attr = _SchedAttr()
+            libc = ctypes.CDLL(None, use_errno=True)
+            assert libc.syscall(315, 0, ctypes.byref(attr), ctypes.sizeof(attr), 0) == 0
+            assert attr.sched_runtime == 100_000
