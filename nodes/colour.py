@@ -292,6 +292,16 @@ class ObjectSpec(BaseModel):
 _FIELD = Surround(colours=("green", "white", "black"), min_fraction=0.4)
 
 #: Object specs of the soccer graph, plus "candle" for the real sample video.
+_POST = ObjectSpec(  # corner posts: thin, upright, above the horizon; the colour varies
+    colour="blue",
+    min_area=20,
+    max_area=140,
+    min_aspect=0.15,
+    max_aspect=4.0,
+    min_fill=0.4,
+    roi=(0.0, 0.0, 1.0, 0.5),
+)
+
 OBJECTS: dict[str, ObjectSpec] = {
     "ball": ObjectSpec(
         colour="orange",
@@ -303,24 +313,8 @@ OBJECTS: dict[str, ObjectSpec] = {
     ),
     "blue_goal": ObjectSpec(colour="blue", min_area=150, max_aspect=1.2, min_fill=0.5),
     "yellow_goal": ObjectSpec(colour="yellow", min_area=150, max_aspect=1.2, min_fill=0.5),
-    "blue_post": ObjectSpec(
-        colour="blue",
-        min_area=20,
-        max_area=140,
-        min_aspect=0.15,
-        max_aspect=4.0,
-        min_fill=0.4,
-        roi=(0.0, 0.0, 1.0, 0.5),
-    ),
-    "yellow_post": ObjectSpec(
-        colour="yellow",
-        min_area=20,
-        max_area=140,
-        min_aspect=0.15,
-        max_aspect=4.0,
-        min_fill=0.4,
-        roi=(0.0, 0.0, 1.0, 0.5),
-    ),
+    "blue_post": _POST.model_copy(update={"colour": "blue"}),
+    "yellow_post": _POST.model_copy(update={"colour": "yellow"}),
     "obstacle": ObjectSpec(
         colour="black",
         min_area=100,
