@@ -73,6 +73,13 @@ class Subscription:
             value.release()  # the host keeps a plain reference; the slot may be reused later
         return value
 
+    def drain(self) -> list[Any]:
+        """Every value waiting now, oldest first (the newest only, for a latest buffer)."""
+        out = []
+        while self._buf.pending():
+            out.append(self.get_nowait())
+        return out
+
     async def get(self) -> Any:
         while not self._buf.pending():
             self._ready.clear()

@@ -131,11 +131,7 @@ async def run_capture(
             if until and until(Run(Recorder.store.get(key, []), events, None, truths)):
                 break
         stats = rt.stats()
-        while True:
-            try:
-                truths.append(sub.get_nowait())
-            except LookupError:
-                break
+        truths.extend(sub.drain())
     return Run(Recorder.store.pop(key, []), events, stats, truths)
 
 
@@ -413,11 +409,7 @@ async def _run_with_detections(
                 break
         await asyncio.sleep(0.05)
         stats = rt.stats()
-        while True:
-            try:
-                got.append(sub.get_nowait())
-            except LookupError:
-                break
+        got.extend(sub.drain())
     return Run(Recorder.store.pop(key, []), events, stats, [])
 
 

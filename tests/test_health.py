@@ -53,12 +53,7 @@ def alerts(rt: Runtime, kind: str | None = None) -> list[HealthAlert]:
 
 
 def reports(sub: flowrt.Subscription) -> list[HealthReport]:
-    out = []
-    while True:
-        try:
-            out.append(sub.get_nowait())
-        except LookupError:
-            return out
+    return sub.drain()
 
 
 async def test_throttled_source_raises_one_fps_drop_alert() -> None:

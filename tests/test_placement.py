@@ -77,12 +77,7 @@ async def test_process_node_sees_shared_frames_and_reports_granted_priority() ->
     async with Runtime(graph(Mean)) as rt:
         sub = rt.subscribe("trk.result")
         await rt.run(0.6)
-        results = []
-        while True:
-            try:
-                results.append(sub.get_nowait())
-            except LookupError:
-                break
+        results = sub.drain()
         s = rt.stats()
     assert len(results) >= 10
     for seq, mean, pid in results:

@@ -50,7 +50,7 @@ async def test_paper_mode_change_on_cambada() -> None:
         changes = [e for e in rt.events if isinstance(e, flowrt.TimingChanged)]
         modes = [e for e in rt.events if isinstance(e, flowrt.ModeChanged)]
         rec = rt.rtdb.read("flowrt.mode")
-        ran = {n: [d.seq for d in _drain(sub)] for n, sub in subs.items()}
+        ran = {n: [d.seq for d in sub.drain()] for n, sub in subs.items()}
 
     def ticks(name: str, after: bool) -> list[int]:
         k0 = first[trackers[name].frame]  # type: ignore[union-attr]
@@ -90,15 +90,6 @@ async def test_paper_mode_change_on_cambada() -> None:
     assert modes[-1].previous is None
     assert rec is not None
     assert rec.value == "paper_mode_change"
-
-
-def _drain(sub: flowrt.Subscription) -> list[Any]:
-    out = []
-    while True:
-        try:
-            out.append(sub.get_nowait())
-        except LookupError:
-            return out
 
 
 class Camera(Node):
@@ -496,4 +487,4 @@ async def test_decision_table_node_switches_modes_from_recorded_tracker_output()
         modes = [e for e in rt.events if isinstance(e, flowrt.ModeChanged)]
         assert [m.mode for m in modes] == ["attack", "defend", "search"]
         assert {m.origin for m in modes} == {"node decide"}
-        assert _drain(chosen) == ["attack", "defend", "search"]
+        assert chosen.drain() == ["attack", "defend", "search"]

@@ -40,15 +40,6 @@ TABLE2 = {
 }
 
 
-def drain(sub: flowrt.Subscription) -> list[Any]:
-    out = []
-    while True:
-        try:
-            out.append(sub.get_nowait())
-        except LookupError:
-            return out
-
-
 async def run_trackers(
     objects: list[str],
     *,
@@ -83,8 +74,8 @@ async def run_trackers(
             if min(rt.stats().node(n).completions for n in objects) >= frames:
                 break
         stats = rt.stats()
-        dets = {n: drain(s) for n, s in subs.items()}
-        truths = {t.index: t for t in drain(truth_sub)}
+        dets = {n: s.drain() for n, s in subs.items()}
+        truths = {t.index: t for t in truth_sub.drain()}
     return dets, truths, events, stats
 
 
@@ -335,7 +326,7 @@ async def _run_cambada(
         subs = {n: rt.subscribe(f"{n}.detection", size=1000) for n in TABLE2}
         await rt.run(seconds)
         stats = rt.stats()
-        dets = {n: drain(s) for n, s in subs.items()}
+        dets = {n: s.drain() for n, s in subs.items()}
     return stats, events, dets
 
 
