@@ -24,6 +24,7 @@ import logging
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 if TYPE_CHECKING:
@@ -95,15 +96,12 @@ class NodeContext:
         return time.monotonic()
 
     def new_frame(
-        self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR"
+        self, shape: tuple[int, ...], dtype: Any = np.uint8, pixel_format: str = "BGR"
     ) -> Frame:
         """A writable frame to fill and return; in shared memory when the runtime provides it."""
-        import numpy as np
-
         from .frames import Frame
 
-        dt = np.uint8 if dtype is ... else dtype
-        return Frame(np.empty(shape, dtype=dt), source=self.name, pixel_format=pixel_format)
+        return Frame(np.empty(shape, dtype=dtype), source=self.name, pixel_format=pixel_format)
 
     def publish(self, port: str, value: Any) -> None:
         """Publish outside the return path (streaming nodes); only on the event loop."""

@@ -23,6 +23,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from .clock import Clock, Handle, PeriodicTimer
 from .edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer, hold, make_buffer
 from .events import (
@@ -124,7 +126,7 @@ class RunnerContext(NodeContext):
         return self._runner.sched.clock.now()
 
     def new_frame(
-        self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR"
+        self, shape: tuple[int, ...], dtype: Any = np.uint8, pixel_format: str = "BGR"
     ) -> Frame:
         frame = self._runner.sched.new_frame(self.name, shape, dtype, pixel_format)
         self._runner.created.append(frame)
@@ -640,12 +642,9 @@ class Scheduler:
         return self._worker_executor(runner, factory)
 
     def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame:
-        import numpy as np
-
-        dt = np.uint8 if dtype is ... else dtype
         if self._new_frame is not None:
-            return self._new_frame(owner, shape, dt, pixel_format)
-        return Frame(np.empty(shape, dtype=dt), source=owner, pixel_format=pixel_format)
+            return self._new_frame(owner, shape, dtype, pixel_format)
+        return Frame(np.empty(shape, dtype=dtype), source=owner, pixel_format=pixel_format)
 
     def tick(self, key: str, t: float) -> None:
         """A frame was published on ``key``: release the readers whose period/phase match."""

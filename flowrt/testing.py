@@ -32,10 +32,9 @@ class HarnessContext(NodeContext):
         return self.time
 
     def new_frame(
-        self, shape: tuple[int, ...], dtype: Any = ..., pixel_format: str = "BGR"
+        self, shape: tuple[int, ...], dtype: Any = np.uint8, pixel_format: str = "BGR"
     ) -> Frame:
-        dt = np.uint8 if dtype is ... else dtype
-        return Frame(np.zeros(shape, dtype=dt), source=self.name, pixel_format=pixel_format)
+        return Frame(np.zeros(shape, dtype=dtype), source=self.name, pixel_format=pixel_format)
 
     def publish(self, port: str, value: Any) -> None:
         self.published.append((port, value))
