@@ -146,7 +146,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         _setup_logging(monitor.log_handler())
     monitors: list[Any] = [monitor]
     control = _control_config(args, err)
-    rt = Runtime(graph, monitors=monitors, realtime=args.realtime, control=control)
+    rt = Runtime(
+        graph, monitors=monitors, realtime=args.realtime, control=control, spin=args.spin / 1000
+    )
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
@@ -226,6 +228,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument(
         "--realtime", action="store_true", help="SCHED_FIFO for the loop process where permitted"
     )
+    run.add_argument(
+        "--spin",
+        type=_spin_ms,
+        default=0.0,
+        metavar="DURATION",
+        help="the loop busy-waits this long before each timer release (e.g. 300us; default 0)",
+    )
     run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
     run.add_argument(
         "--log-every", type=float, default=2.0, metavar="S", help="--no-ui summary period"
@@ -252,6 +261,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_ctl_parser(sub)
     return p
+
+
+def _spin_ms(text: str) -> float:
+    from .spec import parse_duration_ms
+
+    try:
+        ms = parse_duration_ms(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    if not 0 <= ms <= 10:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 10 ms, got {ms:g} ms")
+    return ms
 
 
 def main(argv: list[str] | None = None) -> int:

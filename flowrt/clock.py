@@ -115,7 +115,8 @@ class _TimerfdTimer:
         self.period = period
         first, _ = next_release(self._clock.origin, period, phase, time.monotonic())
         self._next = first
-        spec = _Itimerspec(_ts(period), _ts(first))
+        # Armed ``spin`` early: the loop then busy-waits the last stretch (see SystemClock).
+        spec = _Itimerspec(_ts(period), _ts(first - self._clock.spin))
         if _LIBC.timerfd_settime(self._fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:
             raise OSError(ctypes.get_errno(), "timerfd_settime failed")
 
@@ -126,6 +127,8 @@ class _TimerfdTimer:
             return
         release = self._next + (n - 1) * self.period
         self._next = release + self.period
+        if self._clock.spin:
+            spin_until(release)
         self._callback(release, n - 1)
 
     def cancel(self) -> None:
@@ -180,12 +183,28 @@ class _LoopHandle:
         self._handle.cancel()
 
 
-class SystemClock:
-    """Monotonic time (CLOCK_MONOTONIC), timerfd periodic timers, loop one-shot timers."""
+def spin_until(when: float) -> None:
+    """Busy-wait until ``when`` (monotonic seconds); returns at once if it has passed."""
+    now = time.monotonic
+    while now() < when:
+        pass
 
-    def __init__(self, use_timerfd: bool = True) -> None:
+
+class SystemClock:
+    """Monotonic time (CLOCK_MONOTONIC), timerfd periodic timers, loop one-shot timers.
+
+    ``spin`` (seconds) trades CPU for wake-up precision: periodic timers fire that long before
+    each release and the loop busy-waits the rest. A sleeping CPU takes tens to hundreds of
+    microseconds to wake, and more under a hypervisor, varying from tick to tick; a spinning
+    one is already awake. The cost is ``spin`` of CPU per release.
+    """
+
+    def __init__(self, use_timerfd: bool = True, spin: float = 0.0) -> None:
         self.origin = time.monotonic()
         self.use_timerfd = use_timerfd and _LIBC is not None
+        if not 0.0 <= spin < 0.1:
+            raise ValueError(f"spin must be in [0, 100 ms), got {spin * 1e3:g} ms")
+        self.spin = spin
 
     def now(self) -> float:
         return time.monotonic()

@@ -231,6 +231,14 @@ def resolve(
                 f"{ns.kind} runs on the event loop (it serves or owns loop resources): "
                 "placement must be inline",
             )
+        if ns.placement.value == "inline":
+            for key in ("cpus", "spin"):
+                if getattr(ns, key) is not None:
+                    at(
+                        ("nodes", name, key),
+                        f"{key} applies to a node in a worker process (placement: process or "
+                        "pool); an inline node runs in the loop process",
+                    )
 
     _check_cycles(spec, edges, at)
     _check_frame_chains(triggers, at)

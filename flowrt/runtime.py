@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import os
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Coroutine, Iterable, Mapping
 from pathlib import Path
@@ -31,6 +32,7 @@ from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
     from .control import ControlConfig, ControlServer
+    from .oscheduling import FairShare
     from .qos import OverloadController, QosStatus
     from .rtdb import RTDB
 
@@ -110,9 +112,11 @@ class Runtime:
         realtime: bool = False,
         kinds: Mapping[str, type[Node]] | None = None,
         control: ControlConfig | str | None = None,
+        spin: float = 0.0,
     ) -> None:
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
-        self.clock: Clock = clock or SystemClock()
+        self.clock: Clock = clock or SystemClock(spin=spin)
+        self.spin = spin
         self.monitors: list[Monitor] = list(monitors)
         self.realtime_requested = realtime
         self.realtime = ""
@@ -130,6 +134,7 @@ class Runtime:
         self._last_frame_stats: list[FramePoolStats] = []
         self._gap_cache: tuple[tuple[tuple[float, float], ...], tuple[float, float]] | None = None
         self._rtdb: RTDB | None = None
+        self._fair: FairShare | None = None
         self.qos: OverloadController | None = None
         if control is not None:  # a bad address or a missing token fails here, before any start
             from .control import ControlConfig
@@ -163,9 +168,7 @@ class Runtime:
             if not granted:
                 log.warning("--realtime: %s", self.realtime)
         if not self.realtime.startswith("SCHED_FIFO"):
-            from .oscheduling import request_short_slice
-
-            self.latency_hint = request_short_slice()
+            self._fair_share()
         self._frames = _frame_store()
         if any(n.spec.placement is not Placement.inline for n in self.graph.nodes.values()):
             from .workers import start_forkserver
@@ -258,6 +261,25 @@ class Runtime:
 
     # --- resources ----------------------------------------------------------------------
 
+    def _fair_share(self) -> None:
+        """Without SCHED_FIFO: the loop at the lowest nice permitted, workers ranked above it.
+
+        The loop also asks for a short EEVDF slice, so that its timer wake-ups preempt a busy
+        process instead of waiting for that process's slice to end.
+        """
+        from .oscheduling import FairShare, lowest_nice, request_short_slice
+
+        floor = lowest_nice()
+        with contextlib.suppress(OSError):
+            if floor < os.getpriority(os.PRIO_PROCESS, 0):
+                os.setpriority(os.PRIO_PROCESS, 0, floor)
+        nice = os.getpriority(os.PRIO_PROCESS, 0)
+        priorities = [n.spec.priority for n in self.graph.nodes.values()]
+        for mode in self.graph.spec.modes.values():
+            priorities += [o.priority for o in mode.nodes.values() if o.priority is not None]
+        self._fair = FairShare(priorities, nice)
+        self.latency_hint = ", ".join(x for x in (f"nice {nice}", request_short_slice()) if x)
+
     def _worker_executor(self, runner: NodeRunner, factory: NodeFactory) -> Executor:
         from . import workers
 
@@ -266,12 +288,20 @@ class Runtime:
         # Workers get SCHED_FIFO only when the loop process has it too (and above them):
         # otherwise busy trackers would starve the frame clock (priority inversion).
         rt_workers = self.realtime.startswith("SCHED_FIFO")
+        nice_of = None if self._fair is None else self._fair.nice
+        cpus = None if spec.cpus is None else tuple(spec.cpus)
+        spin = 0.0 if spec.spin is None else spec.spin / 1000
         factory.rtdb = self.rtdb.handle  # the worker's ctx.rtdb attaches to the same records
         if spec.placement is Placement.pool:
             if self._pool is None:
-                self._pool = workers.PoolExecutor(realtime=rt_workers)
+                self._pool = workers.PoolExecutor(realtime=rt_workers, nice_of=nice_of)
             ex: Any = self._pool.executor_for(
-                runner.name, factory, priority=runner.timing.priority, watchdog=watchdog
+                runner.name,
+                factory,
+                priority=runner.timing.priority,
+                watchdog=watchdog,
+                cpus=cpus,
+                spin=spin,
             )
         else:
             ex = workers.ProcessExecutor(
@@ -280,6 +310,9 @@ class Runtime:
                 priority=runner.timing.priority,
                 watchdog=watchdog,
                 realtime=rt_workers,
+                nice_of=nice_of,
+                cpus=cpus,
+                spin=spin,
             )
         return _WorkerAdapter(ex)
 

@@ -182,6 +182,13 @@ class NodeSpec(_Strict):
     watchdog: DurationMs | None = None
     restart: RestartPolicy = RestartPolicy()
     inputs: dict[str, InputSpec] = Field(default_factory=dict)
+    cpus: list[int] | None = Field(
+        default=None, min_length=1, description="CPUs its worker process may run on"
+    )
+    spin: DurationMs | None = Field(
+        default=None,
+        description="its worker busy-polls this long before (and after) each expected activation",
+    )
 
     @field_validator("trigger", mode="before")
     @classmethod
@@ -197,6 +204,23 @@ class NodeSpec(_Strict):
     def _positive(cls, v: float | None) -> float | None:
         if v is not None and v <= 0:
             raise ValueError(f"must be positive, got {v:g} ms")
+        return v
+
+    @field_validator("spin")
+    @classmethod
+    def _spin_range(cls, v: float | None) -> float | None:
+        if v is not None and not 0 < v <= 10:
+            raise ValueError(f"must be in (0, 10 ms], got {v:g} ms")
+        return v
+
+    @field_validator("cpus")
+    @classmethod
+    def _cpu_ids(cls, v: list[int] | None) -> list[int] | None:
+        if v is not None:
+            if any(c < 0 for c in v):
+                raise ValueError("CPU numbers start at 0")
+            if len(set(v)) != len(v):
+                raise ValueError("a CPU is listed twice")
         return v
 
 

@@ -41,6 +41,7 @@ import multiprocessing
 import multiprocessing.context
 import os
 import pickle
+import select
 import signal
 import socket
 import struct
@@ -52,7 +53,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
-from flowrt.oscheduling import apply_os_priority
+from flowrt.oscheduling import WorkerScheduling, apply_scheduling, nice_for
 
 __all__ = [
     "PRELOAD_MODULES",
@@ -73,11 +74,11 @@ _HDR = struct.Struct("<I")
 _PICKLE = pickle.HIGHEST_PROTOCOL
 
 # Requests (main -> worker); every request gets exactly one reply.
-_OP_ADD = 0  # (op, node_id, node_name, factory, priority, realtime) -> granted: str
+_OP_ADD = 0  # (op, node_id, node_name, factory, WorkerScheduling) -> granted: str
 _OP_CALL = 1  # (op, node_id, inputs) -> result
 _OP_REMOVE = 2  # (op, node_id) -> None (teardown)
 _OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
-_OP_PRIORITY = 4  # (op, node_id, priority) -> granted: str
+_OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
 
 # Replies (worker -> main).
 _R_OK = 0  # (status, payload, run_seconds)
@@ -197,8 +198,11 @@ class _BlockingConn:
         self.sock = sock
         self.buf = bytearray()
 
-    def recv(self) -> bytes | None:
+    def recv(self, spin: tuple[float, float] | None = None) -> bytes | None:
+        """The next message; with ``spin`` = (start, end), busy-poll for it in that window."""
         buf = self.buf
+        if spin is not None and not self._complete():
+            self._spin(*spin)
         while True:
             if len(buf) >= 4:
                 (n,) = _HDR.unpack_from(buf)
@@ -216,6 +220,73 @@ class _BlockingConn:
 
     def send(self, payload: bytes) -> None:
         self.sock.sendall(_HDR.pack(len(payload)) + payload)
+
+    def _complete(self) -> bool:
+        buf = self.buf
+        return len(buf) >= 4 and len(buf) >= 4 + _HDR.unpack_from(buf)[0]
+
+    def _spin(self, start: float, end: float) -> None:
+        """Sleep until ``start`` (or data), then poll without sleeping until ``end`` (or data).
+
+        A process blocked in recv is woken by the sender through the scheduler, and a CPU that
+        went idle meanwhile has to come out of its sleep state first (tens to hundreds of
+        microseconds, more in a VM, different every time). Polling keeps the CPU awake and the
+        worker running at the instant the call arrives.
+        """
+        sock, now = self.sock, time.monotonic
+        wait = start - now()
+        if wait > 0 and select.select([sock], [], [], wait)[0]:
+            return
+        while now() < end:
+            try:
+                chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
+            except BlockingIOError:
+                continue
+            if chunk:
+                self.buf += chunk
+            return  # data, or EOF (left for recv to see)
+
+
+class _Anticipation:
+    """When each spinning node's next call is due, from the spacing of its recent calls.
+
+    Periodic triggers make calls regular; the median of the last few gaps ignores a skipped
+    release. Nothing is predicted until three gaps agree within 20 %.
+    """
+
+    def __init__(self) -> None:
+        self.calls: dict[int, list[float]] = {}
+        self.spin: dict[int, float] = {}
+
+    def configure(self, nid: int, spin: float) -> None:
+        self.calls.pop(nid, None)
+        if spin > 0:
+            self.spin[nid] = spin
+        else:
+            self.spin.pop(nid, None)
+
+    def called(self, nid: int, at: float) -> None:
+        if nid in self.spin:
+            times = self.calls.setdefault(nid, [])
+            times.append(at)
+            del times[:-6]
+
+    def window(self, now: float) -> tuple[float, float] | None:
+        best: tuple[float, float] | None = None
+        for nid, spin in self.spin.items():
+            times = self.calls.get(nid, ())
+            if len(times) < 4:
+                continue
+            gaps = sorted(b - a for a, b in itertools.pairwise(times))
+            gap = gaps[len(gaps) // 2]
+            if gaps[0] < 0.8 * gap:
+                continue
+            due = times[-1] + gap
+            while due + spin < now:  # a release skipped: look at the next one
+                due += gap
+            if best is None or due - spin < best[0]:
+                best = (due - spin, due + spin)
+        return best
 
 
 def _set_pdeathsig() -> None:
@@ -251,8 +322,9 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
         return  # the runtime died while we were being forked: nothing to serve
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
     conn = _BlockingConn(sock)
-    nodes: dict[int, tuple[str, Any, int, bool]] = {}
-    current: tuple[int, bool] | None = None
+    nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
+    current: WorkerScheduling | None = None
+    expected = _Anticipation()
     loop: asyncio.AbstractEventLoop | None = None
 
     def run(value: Any) -> Any:
@@ -265,11 +337,12 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
 
     def teardown(nid: int) -> None:
         entry = nodes.pop(nid, None)
+        expected.configure(nid, 0.0)
         if entry is not None and hasattr(entry[1], "teardown"):
             run(entry[1].teardown())
 
     while True:
-        raw = conn.recv()
+        raw = conn.recv(expected.window(time.monotonic()) if expected.spin else None)
         if raw is None:
             break
         t0 = time.perf_counter()
@@ -278,26 +351,28 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
             op = msg[0]
             if op == _OP_CALL:
                 _, nid, inputs = msg
-                _, node, prio, realtime = nodes[nid]
-                if current != (prio, realtime):
-                    apply_os_priority(prio, realtime=realtime)
-                    current = (prio, realtime)
+                expected.called(nid, time.monotonic())
+                _, node, sched = nodes[nid]
+                if current != sched:
+                    apply_scheduling(sched)
+                    current = sched
                 result = run(node.process(**inputs))
             elif op == _OP_ADD:
-                _, nid, node_name, factory, prio, realtime = msg
+                _, nid, node_name, factory, sched = msg
                 teardown(nid)  # a restart in a live worker: the old instance goes first
-                result = apply_os_priority(prio, realtime=realtime)
-                current = (prio, realtime)
+                result = apply_scheduling(sched)
+                current = sched
+                expected.configure(nid, sched.spin)
                 node = factory()
                 if hasattr(node, "setup"):
                     run(node.setup())
-                nodes[nid] = (node_name, node, prio, realtime)
+                nodes[nid] = (node_name, node, sched)
             elif op == _OP_PRIORITY:
-                _, nid, prio = msg
-                node_name, node, _, realtime = nodes[nid]
-                nodes[nid] = (node_name, node, prio, realtime)
-                result = apply_os_priority(prio, realtime=realtime)
-                current = (prio, realtime)
+                _, nid, sched = msg
+                node_name, node, _ = nodes[nid]
+                nodes[nid] = (node_name, node, sched)
+                result = apply_scheduling(sched)
+                current = sched
             elif op == _OP_REMOVE:
                 teardown(msg[1])
                 result = None
@@ -591,6 +666,9 @@ class _NodeExecutor:
         watchdog: float | None,
         realtime: bool,
         setup_timeout: float | None,
+        nice_of: Callable[[int], int] | None = None,
+        cpus: tuple[int, ...] | None = None,
+        spin: float = 0.0,
     ) -> None:
         self.name = name
         self.factory = factory
@@ -599,6 +677,9 @@ class _NodeExecutor:
         self.watchdog = watchdog
         self.realtime = realtime
         self.setup_timeout = setup_timeout
+        self.nice_of = nice_of or nice_for
+        self.cpus = cpus
+        self.spin = spin
         self._worker: _Worker | None = None
         self._granted = "not started"
 
@@ -621,9 +702,16 @@ class _NodeExecutor:
         """Seconds the last call spent inside the worker (excludes transport and queueing)."""
         return self._worker.last_run_time if self._worker is not None else 0.0
 
+    @property
+    def scheduling(self) -> WorkerScheduling:
+        """What the worker applies before running this node."""
+        return WorkerScheduling(
+            self.priority, self.realtime, self.nice_of(self.priority), self.cpus, self.spin
+        )
+
     async def _add_to(self, worker: _Worker) -> None:
         self._worker = worker
-        msg = (_OP_ADD, self.nid, self.name, self.factory, self.priority, self.realtime)
+        msg = (_OP_ADD, self.nid, self.name, self.factory, self.scheduling)
         self._granted = await worker.request(msg, self.name, self.priority, self.setup_timeout)
 
     async def call(self, inputs: dict[str, Any]) -> Any:
@@ -649,7 +737,8 @@ class _NodeExecutor:
         w = self._worker
         if w is None or not w.alive:
             return
-        fut = w.request((_OP_PRIORITY, self.nid, self.priority), self.name, self.priority, None)
+        msg = (_OP_PRIORITY, self.nid, self.scheduling)
+        fut = w.request(msg, self.name, self.priority, None)
 
         def done(f: asyncio.Future[Any]) -> None:
             if not f.cancelled() and f.exception() is None:
@@ -670,6 +759,12 @@ class ProcessExecutor(_NodeExecutor):
             disables it (a deadline still reports the miss — the watchdog is what recovers).
         realtime: try SCHED_FIFO at all (False: nice levels only).
         setup_timeout: seconds ``setup()`` may take in ``start``.
+        nice_of: the nice level of a priority when SCHED_FIFO is not used (the runtime passes
+            :meth:`FairShare.nice <flowrt.oscheduling.FairShare.nice>`; default
+            :func:`~flowrt.oscheduling.nice_for`).
+        cpus: CPUs the worker may run on (None: those it inherits).
+        spin: seconds the worker busy-polls around the predicted instant of each call of a
+            periodic node, so that it is awake when the call arrives (0: it sleeps).
     """
 
     def __init__(
@@ -681,8 +776,13 @@ class ProcessExecutor(_NodeExecutor):
         watchdog: float | None = None,
         realtime: bool = True,
         setup_timeout: float | None = 60.0,
+        nice_of: Callable[[int], int] | None = None,
+        cpus: tuple[int, ...] | None = None,
+        spin: float = 0.0,
     ) -> None:
-        super().__init__(name, factory, 0, priority, watchdog, realtime, setup_timeout)
+        super().__init__(
+            name, factory, 0, priority, watchdog, realtime, setup_timeout, nice_of, cpus, spin
+        )
 
     async def start(self) -> None:
         """Spawn the worker if needed and (re)create the node in it; WorkerError if setup fails.
@@ -719,11 +819,17 @@ class PoolExecutor:
     """
 
     def __init__(
-        self, name: str = "pool", size: int | None = None, *, realtime: bool = True
+        self,
+        name: str = "pool",
+        size: int | None = None,
+        *,
+        realtime: bool = True,
+        nice_of: Callable[[int], int] | None = None,
     ) -> None:
         self.name = name
         self.size = max(1, size if size is not None else (os.cpu_count() or 1))
         self.realtime = realtime
+        self.nice_of = nice_of
         self._workers: list[_Worker | None] = [None] * self.size
         self._locks = [asyncio.Lock() for _ in range(self.size)]
         self._next_node = itertools.count()
@@ -736,10 +842,17 @@ class PoolExecutor:
         *,
         watchdog: float | None = None,
         setup_timeout: float | None = 60.0,
+        cpus: tuple[int, ...] | None = None,
+        spin: float = 0.0,
     ) -> PoolNodeExecutor:
-        """The executor of node ``name``, pinned to the next worker in round-robin order."""
+        """The executor of node ``name``, pinned to the next worker in round-robin order.
+
+        ``cpus`` and ``spin`` are the node's own: the worker switches to them for its calls.
+        """
         nid = next(self._next_node)
-        return PoolNodeExecutor(self, nid, name, factory, priority, watchdog, setup_timeout)
+        ex = PoolNodeExecutor(self, nid, name, factory, priority, watchdog, setup_timeout)
+        ex.cpus, ex.spin = cpus, spin
+        return ex
 
     async def _worker(self, index: int, *, import_main: bool = False) -> _Worker:
         async with self._locks[index]:
@@ -775,7 +888,9 @@ class PoolNodeExecutor(_NodeExecutor):
         watchdog: float | None,
         setup_timeout: float | None,
     ) -> None:
-        super().__init__(name, factory, nid, priority, watchdog, pool.realtime, setup_timeout)
+        super().__init__(
+            name, factory, nid, priority, watchdog, pool.realtime, setup_timeout, pool.nice_of
+        )
         self.pool = pool
         self.index = nid % pool.size
 

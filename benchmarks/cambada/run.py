@@ -61,7 +61,7 @@ def burners(n: int) -> Iterator[list[int]]:
 
 
 def run_flowrt(
-    graph_file: Path, duration: float, realtime: bool, out: Path
+    graph_file: Path, duration: float, realtime: bool, out: Path, spin: str = "0"
 ) -> tuple[dict[str, Any], str]:
     cmd = [
         sys.executable,
@@ -79,6 +79,8 @@ def run_flowrt(
     ]
     if realtime:
         cmd.append("--realtime")
+    if spin not in ("0", ""):
+        cmd += ["--spin", spin]
     with open(out / "flowrt.log", "w") as log:
         subprocess.run(
             cmd,
@@ -138,7 +140,9 @@ def run_config(
             result["loops"] = run_monolithic(g, args.duration, out, system == "monolithic-all")
             stats = None
         else:
-            stats, result["granted"] = run_flowrt(g, args.duration, system == "flowrt-rt", out)
+            stats, result["granted"] = run_flowrt(
+                g, args.duration, system == "flowrt-rt", out, args.spin
+            )
         result["wall"] = time.monotonic() - t0
     records = analysis.load_records(rec)
     every = system == "monolithic-all"
@@ -238,6 +242,12 @@ def main(argv: list[str] | None = None) -> int:
         help="mode-change run (20 s; switch half-way)",
     )
     ap.add_argument("--no-mode-change", action="store_true")
+    ap.add_argument(
+        "--spin",
+        default="300us",
+        metavar="DURATION",
+        help="flowrt run --spin: the loop busy-waits this long before each frame tick (300us)",
+    )
     ap.add_argument(
         "--capture",
         choices=("ahead", "warm", "builtin"),
