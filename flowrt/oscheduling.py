@@ -196,6 +196,7 @@ def request_short_slice(slice_us: int = 100) -> str:
     tick, a worker's call) it preempts a CPU-bound task of the same nice level instead of
     waiting for that task's slice to end. No privilege is needed and the CPU share is
     unchanged; it is a latency hint, not a priority. Returns what was granted ("" if not).
+    ``slice_us=0`` gives the kernel's default back.
     """
     if _SYS_SCHED_SETATTR is None or not sys.platform.startswith("linux"):
         return ""
@@ -211,4 +212,4 @@ def request_short_slice(slice_us: int = 100) -> str:
             return ""
     except (OSError, AttributeError):
         return ""
-    return f"slice {slice_us} us"
+    return f"slice {slice_us} us" if slice_us else "default slice"

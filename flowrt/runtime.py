@@ -135,6 +135,7 @@ class Runtime:
         self._gap_cache: tuple[tuple[tuple[float, float], ...], tuple[float, float]] | None = None
         self._rtdb: RTDB | None = None
         self._fair: FairShare | None = None
+        self._nice_before: int | None = None
         self.qos: OverloadController | None = None
         if control is not None:  # a bad address or a missing token fails here, before any start
             from .control import ControlConfig
@@ -244,6 +245,7 @@ class Runtime:
                     log.exception("monitor failed at stop")
             if self._rtdb is not None:
                 self._rtdb.close()
+            self._restore_fair_share()
 
     async def run(self, duration: float | None = None) -> None:
         """Run until ``duration`` seconds have passed or ``request_stop`` is called."""
@@ -259,6 +261,11 @@ class Runtime:
         """Ask ``run`` to return (signal-handler safe on the loop thread)."""
         self._stop.set()
 
+    @property
+    def loop_scheduling(self) -> str:
+        """What the loop process was granted: SCHED_FIFO, or its nice level and slice."""
+        return self.realtime if self.realtime.startswith("SCHED_FIFO") else self.latency_hint
+
     # --- resources ----------------------------------------------------------------------
 
     def _fair_share(self) -> None:
@@ -270,8 +277,9 @@ class Runtime:
         from .oscheduling import FairShare, lowest_nice, request_short_slice
 
         floor = lowest_nice()
+        self._nice_before = nice = os.getpriority(os.PRIO_PROCESS, 0)
         with contextlib.suppress(OSError):
-            if floor < os.getpriority(os.PRIO_PROCESS, 0):
+            if floor < nice:
                 os.setpriority(os.PRIO_PROCESS, 0, floor)
         nice = os.getpriority(os.PRIO_PROCESS, 0)
         priorities = [n.spec.priority for n in self.graph.nodes.values()]
@@ -279,6 +287,17 @@ class Runtime:
             priorities += [o.priority for o in mode.nodes.values() if o.priority is not None]
         self._fair = FairShare(priorities, nice)
         self.latency_hint = ", ".join(x for x in (f"nice {nice}", request_short_slice()) if x)
+
+    def _restore_fair_share(self) -> None:
+        """Give an embedding program its nice level and slice back."""
+        if self._nice_before is None:
+            return
+        from .oscheduling import request_short_slice
+
+        with contextlib.suppress(OSError):
+            os.setpriority(os.PRIO_PROCESS, 0, self._nice_before)
+        request_short_slice(0)
+        self._nice_before = None
 
     def _worker_executor(self, runner: NodeRunner, factory: NodeFactory) -> Executor:
         from . import workers
@@ -454,6 +473,7 @@ class Runtime:
             uptime=self.now(),
             mode=self.mode,
             realtime=self.realtime,
+            loop_scheduling=self.loop_scheduling,
             nodes=[r.stats() for r in sched.runners.values()],
             edges=[b.stats() for b in sched.buffers],
             loop=LoopStats(lag=self._lag.summary(), blocked_calls=sched.blocked_calls),

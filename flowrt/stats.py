@@ -155,6 +155,9 @@ class RuntimeStats(_Frozen):
     uptime: float = Field(description="seconds since the runtime started")
     mode: str | None = None
     realtime: str = ""
+    loop_scheduling: str = Field(
+        default="", description="OS scheduling of the loop process, e.g. SCHED_FIFO 90 or nice -20"
+    )
     nodes: list[NodeStats]
     edges: list[EdgeStats]
     loop: LoopStats

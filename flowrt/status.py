@@ -45,7 +45,9 @@ def render(
     title = f"flowrt · {stats.graph} · {stats.uptime:.1f} s"
     if stats.mode:
         title += f" · mode {stats.mode}"
-    if stats.realtime:
+    if stats.loop_scheduling:
+        title += f" · loop {stats.loop_scheduling}"
+    elif stats.realtime:
         title += f" · {stats.realtime}"
     t = Table(title=title, title_justify="left", expand=False, pad_edge=False)
     for col, justify in [

@@ -238,3 +238,29 @@ def test_run_stops_cleanly_on_sigint() -> None:
     assert "flowrt · minimal" in stdout
     assert int(_stat(stdout, "tick", "act")) > 0
     assert int(_stat(stdout, "out", "act")) > 0
+
+
+def test_run_spin_and_fair_share_scheduling(tmp_path: Path) -> None:
+    """--spin is accepted; the loop and the pinned, spinning worker report what they got."""
+    out = tmp_path / "stats.json"
+    proc = flowrt(
+        "run", str(GRAPHS / "valid-worker-options.yaml"), "--duration", "1", "--no-ui",
+        "--spin", "200us", "--stats-json", str(out),
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    stats = json.loads(out.read_text())
+    assert stats["loop_scheduling"].startswith("nice ")
+    loop_nice = int(stats["loop_scheduling"].split()[1].rstrip(","))
+    node = {n["name"]: n for n in stats["nodes"]}["out"]
+    assert node["activations"] > 20
+    assert node["errors"] == 0
+    # one priority level in the graph: the top rank, 3 nice levels above the loop (or 0)
+    assert node["granted"] == f"nice {max(loop_nice, min(loop_nice + 3, 0))}, cpus 0"
+
+
+@pytest.mark.parametrize("value", ["fast", "20ms", "-1ms"])
+def test_run_rejects_a_bad_spin(value: str) -> None:
+    proc = flowrt("run", str(GRAPHS / "valid-minimal.yaml"), "--spin", value)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stdout + proc.stderr
+    assert "--spin" in proc.stderr

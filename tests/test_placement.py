@@ -84,7 +84,8 @@ async def test_process_node_sees_shared_frames_and_reports_granted_priority() ->
         assert mean == seq % 256  # the worker read the producer's pixels
         assert pid != os.getpid()
     trk = s.node("trk")
-    assert trk.completions >= 10 and trk.errors == 0
+    assert trk.completions >= 10
+    assert trk.errors == 0
     assert trk.granted  # e.g. "SCHED_FIFO 40" or a nice level
     assert shm_of(os.getpid()) == []
 
@@ -100,9 +101,11 @@ async def test_killed_worker_is_replaced_and_others_keep_running() -> None:
         _, _, new_pid = await asyncio.wait_for(sub.get(), 2)
         failures = [e for e in rt.events if isinstance(e, flowrt.NodeFailed)]
     assert new_pid != first_pid
-    assert s.node("trk").errors == 1 and s.node("trk").restarts == 1
+    assert s.node("trk").errors == 1
+    assert s.node("trk").restarts == 1
     assert "killed" in failures[0].error or "SIGKILL" in failures[0].error
-    assert s.node("inline").errors == 0 and s.node("inline").skipped == 0
+    assert s.node("inline").errors == 0
+    assert s.node("inline").skipped == 0
     assert s.node("cam").skipped == 0
     assert shm_of(os.getpid()) == []
 
@@ -115,10 +118,13 @@ async def test_hung_worker_misses_at_the_deadline_instant_and_watchdog_replaces_
         s = rt.stats()
         misses = [e for e in rt.events if isinstance(e, flowrt.DeadlineMissed) and e.node == "trk"]
         failures = [e for e in rt.events if isinstance(e, flowrt.NodeFailed) and e.node == "trk"]
-    assert misses and misses[0].still_running  # reported while the worker was still stuck
-    assert failures and "hung" in failures[0].error
+    assert misses
+    assert misses[0].still_running
+    assert failures
+    assert "hung" in failures[0].error
     trk = s.node("trk")
-    assert trk.restarts >= 1 and trk.completions >= 10  # replaced, and running again
+    assert trk.restarts >= 1
+    assert trk.completions >= 10
     assert trk.skipped >= 5  # ticks while it hung: overrun, counted
     assert s.node("inline").errors == 0
     assert shm_of(os.getpid()) == []
@@ -130,7 +136,8 @@ async def test_worker_exception_is_counted_with_its_traceback() -> None:
     async with Runtime(graph(Boom, restart={"backoff": "20ms"})) as rt:
         await rt.run(0.5)
         failures = [e for e in rt.events if isinstance(e, flowrt.NodeFailed)]
-    assert failures and "ZeroDivisionError" in failures[0].traceback
+    assert failures
+    assert "ZeroDivisionError" in failures[0].traceback
     assert class_name in failures[0].traceback or "process" in failures[0].traceback
 
 

@@ -20,10 +20,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def cambada_inline() -> Graph:
-    """graphs/cambada.yaml with every node on the loop (virtual time) and no web display."""
+    """graphs/cambada.yaml, every node on the loop (virtual time, no worker options), no display."""
     spec = Graph.from_file(REPO / "graphs" / "cambada.yaml").spec
     nodes = {
-        name: ns.model_copy(update={"placement": Placement.inline})
+        name: ns.model_copy(update={"placement": Placement.inline, "cpus": None, "spin": None})
         for name, ns in spec.nodes.items()
         if ns.kind != "display"
     }

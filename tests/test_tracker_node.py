@@ -309,6 +309,9 @@ def _cambada_spec(placement: str, display: bool) -> flowrt.GraphSpec:
     data = yaml.safe_load(CAMBADA.read_text())
     for name in TABLE2:
         data["nodes"][name]["placement"] = placement
+        if placement == "inline":  # worker options have no meaning on the loop
+            data["nodes"][name].pop("cpus", None)
+            data["nodes"][name].pop("spin", None)
     if display:
         data["nodes"]["display"]["params"]["port"] = 0  # any free port
     else:

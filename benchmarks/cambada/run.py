@@ -92,7 +92,7 @@ def run_flowrt(
             check=True,
         )
     stats = json.loads((out / "stats.json").read_text())
-    return stats, stats.get("realtime", "")
+    return stats, stats.get("loop_scheduling") or stats.get("realtime", "")
 
 
 def run_monolithic(
