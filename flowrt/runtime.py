@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import math
 import os
@@ -175,6 +176,7 @@ class Runtime:
             from .workers import start_forkserver
 
             await asyncio.to_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
+        _freeze_heap()
         self.clock.origin = self.clock.now() + (
             0.005 if isinstance(self.clock, SystemClock) else 0.0
         )
@@ -202,6 +204,7 @@ class Runtime:
         if self.realtime:
             self._emit(RealtimeStatus(0.0, None, self.realtime))
         await self._sched.start()
+        gc.freeze()  # what the nodes' setup made, too
         if self.graph.spec.initial_mode:
             self.set_mode(self.graph.spec.initial_mode, origin="graph")
         if isinstance(self.clock, SystemClock):
@@ -246,6 +249,7 @@ class Runtime:
             if self._rtdb is not None:
                 self._rtdb.close()
             self._restore_fair_share()
+            gc.unfreeze()
 
     async def run(self, duration: float | None = None) -> None:
         """Run until ``duration`` seconds have passed or ``request_stop`` is called."""
@@ -612,6 +616,18 @@ class _WorkerAdapter(Executor):
         setter = getattr(self._inner, "set_priority", None)
         if setter is not None:
             setter(priority)
+
+
+def _freeze_heap() -> None:
+    """Collect once, then exempt everything that exists from Python's cyclic collector.
+
+    A full (generation 2) collection walks every object: ~25 ms in a process that has
+    imported numpy, OpenCV and pydantic, and it starts whenever allocations say so, e.g. at
+    a frame tick. Frozen objects are never walked again (only what is made later), so that
+    pause becomes microseconds. Undone at stop, for an embedding program.
+    """
+    gc.collect()
+    gc.freeze()
 
 
 def _frame_store() -> Any:
