@@ -108,6 +108,7 @@ def summary_table(results: list[dict[str, Any]]) -> str:
         "period-1 drops",
         "misses (all tasks)",
         "flowrt dispatch std, Avoid/Ball_Om",
+        "host steal ms",
     ]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * 3 + "---:|" * (len(head) - 3)]
     for res in results:
@@ -125,6 +126,7 @@ def summary_table(results: list[dict[str, Any]]) -> str:
             str(_p1_drops(res)),
             str(sum(r["misses"] for r in res["rows"])),
             disp,
+            _f(res.get("steal_ms"), 0),
         ]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -369,10 +371,10 @@ def observations(results: list[dict[str, Any]]) -> str:
                 )
         out.append(
             "- flowrt without --realtime (paper-calibrated): " + "; ".join(worst) + ". The "
-            f"workers' OS priorities are only nice levels ({granted}) and the event loop runs "
-            "at nice 0: the kernel shares the CPUs by weight instead of preempting by priority, "
-            "so a busy lower-priority tracker (or a burner) delays the critical ones and their "
-            "dispatch."
+            f"workers' OS priorities are nice levels by rank ({granted}), the event loop at "
+            f"{f.get('granted') or 'nice 0'}: the fair scheduler shares the CPUs by weight and "
+            "wakes a task that used more than its share only at its next tick (4 ms here, "
+            "see benchmarks/bench_fair_wakeup.py), instead of preempting by priority."
         )
     return "\n".join(out)
 
@@ -415,19 +417,25 @@ def markdown(
     every frame* (the paper's original processes), or only the *due* ones (each task's
     period/phase in frames, as in the graph: the same workload as flowrt);
   - **flowrt**: the graph via `flowrt run GRAPH --no-ui --log-every 3600 --duration S
-    --stats-json F [--realtime]`, nine trackers in worker processes. GRAPH is
-    graphs/cambada.yaml with its timing untouched, the display node dropped (a web server has no
-    place in a timing benchmark), the trackers' kind replaced by recording (or calibrated)
-    subclasses and, with `--capture ahead` (the default), the cameras' by `AheadCapture`: the
-    built-in capture node publishing the same frames, but with the scene's motion simulated at
-    setup (the built-in one simulates it on frames 0, 256, 512..., ~2 ms more on those) and each
-    frame rendered 10 ms after the previous tick instead of at its own (a render takes 0.5-1.5
-    ms, varying with content and cache state); so the tick follows the timer by a constant, as
-    with a camera whose frame is already in memory, and the figures show the scheduler, not the
-    synthetic scene. The monolithic loop does the same (renders the next frame right after a
-    frame's work). `--capture builtin` keeps the built-in node. The periodic `--no-ui` summary
-    lines are off: each computes the statistics on the event loop (~1 ms), at an instant that
-    falls on the omni camera's tick;
+    --stats-json F --spin 300us [--realtime]`, nine trackers in worker processes. GRAPH is
+    graphs/cambada.yaml with its timing and worker options untouched (the four period-1
+    trackers pinned two per CPU, each ball tracker with the other camera's obstacle tracker,
+    and spinning 300 us around each expected activation), the display node dropped (a web
+    server has no place in a timing benchmark), the trackers' kind replaced by recording (or
+    calibrated) subclasses and, with `--capture ahead` (the default), the cameras' by
+    `AheadCapture`: the built-in capture node publishing the same frames, but with the scene's
+    motion simulated at setup (the built-in one simulates it on frames 0, 256, 512..., ~2 ms
+    more on those) and each frame rendered into its frame slot 10 ms after the previous tick
+    instead of at its own (a render takes 0.5-1.5 ms, varying with content and cache state);
+    so the tick follows the timer by a constant, as with a camera that has written its frame
+    into memory, and the figures show the scheduler, not the synthetic scene. `--spin 300us`:
+    the loop wakes 300 us before each tick and busy-waits the rest, because a CPU woken from
+    idle in this VM takes 0.05-0.2 ms, different every time. Without `--realtime` flowrt gives
+    the loop the lowest nice level permitted and the workers nice levels by priority rank
+    (root here: -20 for the loop, -17 .. -2 for the trackers). The monolithic loop renders
+    its next frame right after a frame's work. `--capture builtin` keeps the built-in node.
+    The periodic `--no-ui` summary lines are off: each computes the statistics on the event
+    loop (~1 ms), at an instant that falls on the omni camera's tick;
 - two execution-time regimes: the real `tracker` nodes (colour tracking of the synthetic scene,
   mostly < 1 ms), and paper-calibrated trackers burning CPU time (not sleeping) drawn per (task,
   frame) from a seeded RNG, so both architectures burn the same time on the same frame: Avoid
@@ -435,6 +443,9 @@ def markdown(
   by us as 5-25 ms w.p. 0.09 and 35-38.75 ms w.p. 0.01 (max 38.75 as in the paper); goals 4-10
   ms, Line 8-16 ms, posts 2-6 ms (our choice: not in the paper's summary);
 - each idle and beside 2 processes spinning `while True: pass` at normal priority.
+
+*Host steal*: CPU time the hypervisor took from this VM during the run (``/proc/stat``),
+when not 0 a stall no scheduling inside the VM can prevent.
 
 Columns: inter-activation max/min/avg/std (ms) from the start times each tracker records in the
 process that runs it (a flowrt worker, or the loop), first second of the run left out; *drops*:

@@ -60,6 +60,16 @@ def burners(n: int) -> Iterator[list[int]]:
             p.wait()
 
 
+def host_steal() -> float:
+    """Seconds of CPU the hypervisor has taken from this machine since boot (all CPUs)."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
 def run_flowrt(
     graph_file: Path, duration: float, realtime: bool, out: Path, spin: str = "0"
 ) -> tuple[dict[str, Any], str]:
@@ -135,7 +145,7 @@ def run_config(
     n_burn = args.burners if load == "load" else 0
     result: dict[str, Any] = {"regime": regime, "load": load, "system": system, "burners": n_burn}
     with burners(n_burn):
-        t0 = time.monotonic()
+        t0, steal0 = time.monotonic(), host_steal()
         if system.startswith("monolithic"):
             result["loops"] = run_monolithic(g, args.duration, out, system == "monolithic-all")
             stats = None
@@ -144,6 +154,7 @@ def run_config(
                 g, args.duration, system == "flowrt-rt", out, args.spin
             )
         result["wall"] = time.monotonic() - t0
+        result["steal_ms"] = (host_steal() - steal0) * 1000
     records = analysis.load_records(rec)
     every = system == "monolithic-all"
     rows = analysis.rows(records, tasks, cams, args.trim, stats, every)
