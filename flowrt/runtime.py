@@ -286,9 +286,15 @@ class Runtime:
             if floor < nice:
                 os.setpriority(os.PRIO_PROCESS, 0, floor)
         nice = os.getpriority(os.PRIO_PROCESS, 0)
-        priorities = [n.spec.priority for n in self.graph.nodes.values()]
+        # Ranked among the workers only: inline nodes run in the loop, which is above them all.
+        workers = {
+            name for name, n in self.graph.nodes.items() if n.spec.placement is not Placement.inline
+        }
+        priorities = [self.graph.nodes[name].spec.priority for name in workers]
         for mode in self.graph.spec.modes.values():
-            priorities += [o.priority for o in mode.nodes.values() if o.priority is not None]
+            priorities += [
+                o.priority for name, o in mode.nodes.items() if name in workers and o.priority
+            ]
         self._fair = FairShare(priorities, nice)
         self.latency_hint = ", ".join(x for x in (f"nice {nice}", request_short_slice()) if x)
 

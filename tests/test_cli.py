@@ -254,7 +254,8 @@ def test_run_spin_and_fair_share_scheduling(tmp_path: Path) -> None:
     node = {n["name"]: n for n in stats["nodes"]}["out"]
     assert node["activations"] > 20
     assert node["errors"] == 0
-    # one priority level in the graph: the top rank, 3 nice levels above the loop (or 0)
+    # the only worker: the top rank, 3 nice levels above the loop (or 0), whatever the
+    # priority of the inline node (it runs in the loop)
     assert node["granted"] == f"nice {max(loop_nice, min(loop_nice + 3, 0))}, cpus 0"
 
 
