@@ -220,7 +220,13 @@ def _env() -> dict[str, str]:
 
 
 def run_flowrt(
-    config: str, duration: float, realtime: bool, tmp: Path, commands: list[str], ui: bool = False
+    config: str,
+    duration: float,
+    realtime: bool,
+    tmp: Path,
+    commands: list[str],
+    ui: bool = False,
+    spin: str = "",
 ) -> list[Row]:
     out = tmp / f"flowrt-{config.replace(' ', '_').replace('/', '_')}.json"
     cmd = [
@@ -238,6 +244,8 @@ def run_flowrt(
         cmd.append("--no-ui")
     if realtime:
         cmd.append("--realtime")
+    if spin:
+        cmd += ["--spin", spin]
     shown = "PYTHONPATH=benchmarks " + shlex.join(["flowrt", *cmd[3:]]).replace(
         str(HERE.parent) + "/", ""
     )
@@ -269,7 +277,7 @@ def run_flowrt(
                 iv["max"],
                 iv["p99"],
                 node["skipped"],
-                stats.get("realtime", ""),
+                stats.get("loop_scheduling") or stats.get("realtime", ""),
                 busy,
             )
         )
@@ -368,7 +376,7 @@ def print_tables(rows: list[Row], burners: int) -> None:
             f"| {naive.std / src.std:.1f}x | {ab.std / src.std:.1f}x |"
         )
     print("\n### Scheduling granted\n")
-    print("| configuration | flowrt --realtime | baseline |")
+    print("| configuration | flowrt loop | baseline |")
     print("|---|---|---|")
     for c in configs:
         by = {r.subject: r for r in rows if r.config == c}
@@ -397,8 +405,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument(
         "--configs",
-        default="idle,idle+rt,load,load+rt,ui+rt",
-        help="comma-separated subset of idle,idle+rt,load,load+rt,ui+rt (ui+rt: flowrt only, "
+        default="idle,idle+rt,load,load+rt,ui+rt,idle+spin,idle+rt+spin",
+        help="comma-separated subset of idle,idle+rt,load,load+rt,ui+rt,idle+spin,idle+rt+spin "
+        "(*spin: flowrt only, with --spin 300us; ui+rt: flowrt only, "
         "with the live status table on a pseudo-terminal instead of --no-ui)",
     )
     p.add_argument("--json", metavar="PATH", help="also write the rows as JSON")
@@ -429,6 +438,8 @@ def main(argv: list[str] | None = None) -> int:
         "load": (f"{args.burners} burners", True, False),
         "load+rt": (f"{args.burners} burners / --realtime", True, True),
         "ui+rt": ("idle / --realtime / live table", False, True),
+        "idle+spin": ("idle / --spin 300us", False, False),
+        "idle+rt+spin": ("idle / --realtime / --spin 300us", False, True),
     }
     rows: list[Row] = []
     commands: list[str] = []
@@ -448,10 +459,12 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 if burners:
                     time.sleep(1.0)
+                spin = "300us" if key.endswith("spin") else ""
                 rows += run_flowrt(
-                    config, args.duration, realtime, tmp, commands, ui=key == "ui+rt"
+                    config, args.duration, realtime, tmp, commands, ui=key == "ui+rt", spin=spin
                 )
-                if key != "ui+rt":  # the baselines have no status table: same as idle / --realtime
+                # the baselines have no status table and no spin: the same as their base config
+                if key != "ui+rt" and not spin:
                     for mode in ("naive", "absolute"):
                         rows.append(run_baseline(config, mode, args.duration, realtime, tmp))
             finally:
