@@ -1,6 +1,6 @@
 """Inter-activation jitter of a 20 Hz frame clock: idle and loaded, with and without --realtime.
 
-    python benchmarks/bench_jitter.py               # 4 configurations x 20 s x 3 runs + 1 (~5 min)
+    python benchmarks/bench_jitter.py               # 4 configurations x 20 s x 3 runs + 3 (~6 min)
     python benchmarks/bench_jitter.py --duration 5  # quicker, fewer samples
 
 What runs, for each configuration (idle / N CPU burners) x (normal priority / --realtime):
@@ -15,9 +15,10 @@ What runs, for each configuration (idle / N CPU burners) x (normal priority / --
   ``asyncio.sleep(50 ms)`` after the work (the naive loop, drifts), and ``asyncio.sleep`` to
   an absolute next release time (drift-free, but loop-timer granularity).
 
-A fifth configuration, ``ui+rt``, runs flowrt alone, idle with --realtime, but with the live
-status table (no --no-ui) on a pseudo-terminal (util-linux ``script``): what a user typing
-``flowrt run graph.yaml --realtime`` gets.
+Two flowrt-only configurations, ``idle+spin`` and ``idle+rt+spin``, add ``--spin 300us`` (the
+loop busy-waits the last 300 us before each release). A further one, ``ui+rt``, runs flowrt
+alone, idle with --realtime, but with the live status table (no --no-ui) on a pseudo-terminal
+(util-linux ``script``): what a user typing ``flowrt run graph.yaml --realtime`` gets.
 
 Load: ``--burners`` (default: one per CPU) ``multiprocessing`` processes spinning
 ``while True: pass`` at normal priority, started before and killed after each loaded
