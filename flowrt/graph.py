@@ -6,6 +6,7 @@ here, every problem collected with its location, so a bad graph never reaches th
 
 from __future__ import annotations
 
+import os
 from collections import deque
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
@@ -231,6 +232,22 @@ def resolve(
                 f"{ns.kind} runs on the event loop (it serves or owns loop resources): "
                 "placement must be inline",
             )
+        if ns.cpus is not None and ns.placement.value != "inline":
+            available = _available_cpus()
+            missing = sorted(set(ns.cpus) - available)
+            if missing:
+                left = sorted(set(ns.cpus) & available)
+                then = (
+                    f"its worker will run on CPU {', '.join(map(str, left))} only"
+                    if left
+                    else "its worker will not be pinned"
+                )
+                at(
+                    ("nodes", name, "cpus"),
+                    f"CPU {', '.join(map(str, missing))} not on this machine (it has "
+                    f"{', '.join(map(str, sorted(available)))}): {then}",
+                    Severity.warning,
+                )
         if ns.placement.value == "inline":
             for key in ("cpus", "spin"):
                 if getattr(ns, key) is not None:
@@ -351,6 +368,13 @@ def _check_trigger(
                 at((*path, "input"), f"trigger on input {port!r}, which is not connected" + hint)
     elif isinstance(trig, LoopTrigger):
         pass
+
+
+def _available_cpus() -> set[int]:
+    """The CPUs this process may use (all of them where affinity is not supported)."""
+    if hasattr(os, "sched_getaffinity"):
+        return set(os.sched_getaffinity(0))
+    return set(range(os.cpu_count() or 1))
 
 
 def _check_cycles(spec: GraphSpec, edges: list[Edge], at: Any) -> None:

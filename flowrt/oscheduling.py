@@ -128,7 +128,10 @@ def apply_scheduling(s: WorkerScheduling) -> str:
         os.sched_setaffinity(0, want)
     except OSError:
         return f"{granted}, cpus {_cpus(want)} not available"
-    return granted if s.cpus is None else f"{granted}, cpus {_cpus(want)}"
+    if s.cpus is None:
+        return granted
+    got = os.sched_getaffinity(0)  # the kernel keeps the CPUs that exist
+    return f"{granted}, cpus {_cpus(got)}" + ("" if got == want else f" (asked {_cpus(want)})")
 
 
 def _cpus(cpus: Iterable[int]) -> str:

@@ -70,6 +70,16 @@ async def test_worker_is_pinned_to_its_cpus_and_reports_it() -> None:
         await asyncio.gather(pinned.stop(), free.stop())
 
 
+async def test_partly_available_cpus_pin_to_those_that_exist() -> None:
+    ex = ProcessExecutor("part", Pid, priority=30, realtime=False, cpus=(0, 4095))
+    await ex.start()
+    try:
+        assert os.sched_getaffinity(await ex.call({})) == {0}
+        assert ex.granted.endswith("cpus 0 (asked 0,4095)"), ex.granted
+    finally:
+        await ex.stop()
+
+
 async def test_unavailable_cpu_is_reported_not_fatal() -> None:
     ex = ProcessExecutor("far", Pid, priority=30, realtime=False, cpus=(4096,))
     await ex.start()
