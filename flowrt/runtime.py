@@ -116,8 +116,9 @@ class Runtime:
         spin: float = 0.0,
     ) -> None:
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
+        if clock is not None and spin:
+            raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
         self.clock: Clock = clock or SystemClock(spin=spin)
-        self.spin = spin
         self.monitors: list[Monitor] = list(monitors)
         self.realtime_requested = realtime
         self.realtime = ""
@@ -293,7 +294,9 @@ class Runtime:
         priorities = [self.graph.nodes[name].spec.priority for name in workers]
         for mode in self.graph.spec.modes.values():
             priorities += [
-                o.priority for name, o in mode.nodes.items() if name in workers and o.priority
+                o.priority
+                for name, o in mode.nodes.items()
+                if name in workers and o.priority is not None
             ]
         self._fair = FairShare(priorities, nice)
         self.latency_hint = ", ".join(x for x in (f"nice {nice}", request_short_slice()) if x)
