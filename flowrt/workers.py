@@ -38,6 +38,7 @@ import gc
 import heapq
 import inspect
 import itertools
+import math
 import multiprocessing
 import multiprocessing.context
 import os
@@ -236,8 +237,11 @@ class _BlockingConn:
         """
         sock, now = self.sock, time.monotonic
         wait = start - now()
-        if wait > 0 and select.select([sock], [], [], wait)[0]:
-            return
+        if wait > 0:
+            poller = select.poll()
+            poller.register(sock, select.POLLIN)
+            if poller.poll(math.ceil(wait * 1000)):
+                return
         while now() < end:
             try:
                 chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
@@ -280,11 +284,11 @@ class _Anticipation:
                 continue
             gaps = sorted(b - a for a, b in itertools.pairwise(times))
             gap = gaps[len(gaps) // 2]
-            if gaps[0] < 0.8 * gap:
-                continue
+            if gap <= 4 * spin or gaps[0] < 0.8 * gap:
+                continue  # irregular, or so frequent that the worker would spin all the time
             due = times[-1] + gap
-            while due + spin < now:  # a release skipped: look at the next one
-                due += gap
+            if due + spin < now:  # releases skipped: look at the next one still ahead
+                due += math.ceil((now - spin - due) / gap) * gap
             if best is None or due - spin < best[0]:
                 best = (due - spin, due + spin)
         return best

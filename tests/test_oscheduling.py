@@ -129,8 +129,23 @@ def test_anticipation_predicts_the_next_periodic_call() -> None:
     # the expected call did not come: look at the one after
     start, _ = a.window(10.26) or (0.0, 0.0)
     assert start == pytest.approx(10.30 - 0.0003)
+    start, _ = a.window(11.001) or (0.0, 0.0)  # many skipped: the next one still ahead
+    assert start == pytest.approx(11.05 - 0.0003)
     a.configure(1, 0.0)
     assert a.window(10.26) is None
+
+
+def test_anticipation_ignores_calls_too_close_to_spin_between() -> None:
+    a = _Anticipation()
+    a.configure(1, 0.0003)
+    for k in range(6):
+        a.called(1, 1.0 + 0.001 * k)  # 1 ms apart: spinning 0.6 ms of each would be waste
+    assert a.window(1.01) is None
+    b = _Anticipation()
+    b.configure(1, 0.0003)
+    for _ in range(6):
+        b.called(1, 2.0)  # all at once: no period at all
+    assert b.window(2.0) is None
 
 
 def test_anticipation_ignores_irregular_calls() -> None:
