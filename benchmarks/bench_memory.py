@@ -38,7 +38,12 @@ def main() -> None:
         for p in [main_proc, *main_proc.children(recursive=True)]:
             try:
                 info = p.memory_full_info()
-                role = "forkserver" if p.ppid() == proc.pid else "worker"
+                if p.ppid() != proc.pid:
+                    role = "worker"
+                elif any("resource_tracker" in a for a in p.cmdline()):
+                    role = "resource tracker"
+                else:
+                    role = "forkserver"
                 rows.append((p.pid, role, info.pss, info.rss))
             except psutil.Error:
                 continue

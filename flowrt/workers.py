@@ -70,7 +70,14 @@ __all__ = [
 WorkerKind = Literal["exception", "crashed", "killed", "hung"]
 
 #: Modules imported once by the forkserver, so every worker shares their pages.
-PRELOAD_MODULES = ["numpy", "cv2", "flowrt.frames", "flowrt.oscheduling", "flowrt.workers"]
+PRELOAD_MODULES = [
+    "numpy",
+    "cv2",
+    "flowrt.frames",
+    "flowrt.oscheduling",
+    "flowrt.workers",
+    "flowrt._forkserver_freeze",  # last: freezes all of the above before any fork
+]
 
 _HDR = struct.Struct("<I")
 _PICKLE = pickle.HIGHEST_PROTOCOL
@@ -372,8 +379,8 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
                 if hasattr(node, "setup"):
                     run(node.setup())
                 nodes[nid] = (node_name, node, sched)
-                gc.collect()  # then never walk the imports and the node's setup again:
-                gc.freeze()  # a full collection here takes ~25 ms, at any call
+                gc.freeze()  # the node's setup, too: never walked at a call (no collect first:
+                # walking the inherited objects would copy their shared pages)
             elif op == _OP_PRIORITY:
                 _, nid, sched = msg
                 node_name, node, _ = nodes[nid]
