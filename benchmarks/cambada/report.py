@@ -464,6 +464,9 @@ def markdown(
 
 *Host steal*: CPU time the hypervisor took from this VM during the run (``/proc/stat``),
 when not 0 a stall no scheduling inside the VM can prevent.
+*Within 0.3 ms*: the smallest share, over the critical tasks, of intervals within 0.3 ms of
+the task's median interval: a robust companion to the std, which one 3 ms stall in 600
+intervals doubles.
 
 Columns: inter-activation max/min/avg/std (ms) from the start times each tracker records in the
 process that runs it (a flowrt worker, or the loop), first second of the run left out; *drops*:
