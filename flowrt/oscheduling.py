@@ -87,7 +87,6 @@ class FairShare:
 
     def __init__(self, priorities: Iterable[int], floor: int, step: int = 3) -> None:
         self.levels = sorted(set(priorities), reverse=True)
-        self.floor = floor
         self.step = step
         self.top = max(floor, min(floor + 3, 0))
 

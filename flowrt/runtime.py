@@ -321,30 +321,20 @@ class Runtime:
         # otherwise busy trackers would starve the frame clock (priority inversion).
         rt_workers = self.realtime.startswith("SCHED_FIFO")
         nice_of = None if self._fair is None else self._fair.nice
-        cpus = None if spec.cpus is None else tuple(spec.cpus)
-        spin = 0.0 if spec.spin is None else spec.spin / 1000
         factory.rtdb = self.rtdb.handle  # the worker's ctx.rtdb attaches to the same records
+        options: dict[str, Any] = {
+            "priority": runner.timing.priority,
+            "watchdog": watchdog,
+            "cpus": None if spec.cpus is None else tuple(spec.cpus),
+            "spin": 0.0 if spec.spin is None else spec.spin / 1000,
+        }
         if spec.placement is Placement.pool:
             if self._pool is None:
                 self._pool = workers.PoolExecutor(realtime=rt_workers, nice_of=nice_of)
-            ex: Any = self._pool.executor_for(
-                runner.name,
-                factory,
-                priority=runner.timing.priority,
-                watchdog=watchdog,
-                cpus=cpus,
-                spin=spin,
-            )
+            ex: Any = self._pool.executor_for(runner.name, factory, **options)
         else:
             ex = workers.ProcessExecutor(
-                runner.name,
-                factory,
-                priority=runner.timing.priority,
-                watchdog=watchdog,
-                realtime=rt_workers,
-                nice_of=nice_of,
-                cpus=cpus,
-                spin=spin,
+                runner.name, factory, realtime=rt_workers, nice_of=nice_of, **options
             )
         return _WorkerAdapter(ex)
 

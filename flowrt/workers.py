@@ -864,9 +864,9 @@ class PoolExecutor:
         ``cpus`` and ``spin`` are the node's own: the worker switches to them for its calls.
         """
         nid = next(self._next_node)
-        ex = PoolNodeExecutor(self, nid, name, factory, priority, watchdog, setup_timeout)
-        ex.cpus, ex.spin = cpus, spin
-        return ex
+        return PoolNodeExecutor(
+            self, nid, name, factory, priority, watchdog, setup_timeout, cpus, spin
+        )
 
     async def _worker(self, index: int, *, import_main: bool = False) -> _Worker:
         async with self._locks[index]:
@@ -901,9 +901,20 @@ class PoolNodeExecutor(_NodeExecutor):
         priority: int,
         watchdog: float | None,
         setup_timeout: float | None,
+        cpus: tuple[int, ...] | None = None,
+        spin: float = 0.0,
     ) -> None:
         super().__init__(
-            name, factory, nid, priority, watchdog, pool.realtime, setup_timeout, pool.nice_of
+            name,
+            factory,
+            nid,
+            priority,
+            watchdog,
+            pool.realtime,
+            setup_timeout,
+            pool.nice_of,
+            cpus,
+            spin,
         )
         self.pool = pool
         self.index = nid % pool.size

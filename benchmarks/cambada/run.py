@@ -60,6 +60,20 @@ def burners(n: int) -> Iterator[list[int]]:
             p.wait()
 
 
+def _run_logged(cmd: list[str], log_path: Path, timeout: float) -> None:
+    """Run a flowrt process of the benchmark from the repository root, its output to a log."""
+    with open(log_path, "w") as log:
+        subprocess.run(
+            cmd,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=_env(),
+            cwd=ROOT,
+            timeout=timeout,
+            check=True,
+        )
+
+
 def host_steal() -> float:
     """Seconds of CPU the hypervisor has taken from this machine since boot (all CPUs)."""
     try:
@@ -91,16 +105,7 @@ def run_flowrt(
         cmd.append("--realtime")
     if spin not in ("0", ""):
         cmd += ["--spin", spin]
-    with open(out / "flowrt.log", "w") as log:
-        subprocess.run(
-            cmd,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            env=_env(),
-            cwd=ROOT,
-            timeout=duration + 120,
-            check=True,
-        )
+    _run_logged(cmd, out / "flowrt.log", duration + 120)
     stats = json.loads((out / "stats.json").read_text())
     return stats, stats.get("loop_scheduling") or stats.get("realtime", "")
 
@@ -185,16 +190,7 @@ def run_mode_change(args: argparse.Namespace, base: Path) -> dict[str, Any]:
         str(out),
         "--realtime",
     ]
-    with open(out / "flowrt.log", "w") as log:
-        subprocess.run(
-            cmd,
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            env=_env(),
-            cwd=ROOT,
-            timeout=args.mode_duration + 120,
-            check=True,
-        )
+    _run_logged(cmd, out / "flowrt.log", args.mode_duration + 120)
     mode = json.loads((out / "mode.json").read_text())
     records = analysis.load_records(rec)
     series = {}
