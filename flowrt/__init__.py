@@ -7,6 +7,7 @@ from .clock import VirtualClock as VirtualClock
 from .control import ControlConfig as ControlConfig
 from .diagnostics import Diagnostic as Diagnostic
 from .diagnostics import GraphError as GraphError
+from .eventloop import run as run
 from .events import DeadlineMissed as DeadlineMissed
 from .events import Event as Event
 from .events import HealthAlert as HealthAlert
@@ -28,7 +29,6 @@ from .rtdb import Record as Record
 from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
 from .runtime import Subscription as Subscription
-from .runtime import run as run
 from .spec import FrameTrigger as FrameTrigger
 from .spec import GraphSpec as GraphSpec
 from .spec import InputTrigger as InputTrigger

@@ -17,12 +17,13 @@ import logging
 import math
 import os
 from collections import deque
-from collections.abc import AsyncIterator, Callable, Coroutine, Iterable, Mapping
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
+from .eventloop import run as run
 from .events import Event, HealthAlert, ModeChanged, RealtimeStatus
 from .frames import Frame
 from .graph import Graph, resolve
@@ -39,14 +40,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("flowrt")
 T = TypeVar("T")
-
-
-def run(main: Coroutine[Any, Any, T]) -> T:
-    """``asyncio.run`` on uvloop when it is installed: the embedding program's entry point."""
-    from .cli import new_event_loop
-
-    with asyncio.Runner(loop_factory=new_event_loop) as runner:
-        return runner.run(main)
 
 
 class Monitor(Protocol):

@@ -1,0 +1,53 @@
+"""What every command shares: loading a graph with its diagnostics, exit codes, logging.
+
+Exit codes (documented in the README): 0 success, 1 a runtime failure (a node ended failed,
+the timing does not hold), 2 a bad graph file or bad arguments, 130 interrupted at start-up.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+from rich.console import Console
+
+from ..diagnostics import GraphError, Severity
+from ..graph import Graph
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_BAD_GRAPH = 2
+
+
+def print_diagnostics(console: Console, e: GraphError) -> None:
+    for d in e.diagnostics:
+        style = "red" if d.severity is Severity.error else "yellow"
+        console.print(str(d), style=style, markup=False, highlight=False, soft_wrap=True)
+    n = len(e.errors)
+    console.print(f"{n} error{'s' if n != 1 else ''}", style="bold red")
+
+
+def load(path: str, console: Console) -> Graph | None:
+    try:
+        graph = Graph.from_file(path)
+    except GraphError as e:
+        print_diagnostics(console, e)
+        return None
+    for w in graph.warnings:
+        console.print(str(w), style="yellow", markup=False, highlight=False, soft_wrap=True)
+    return graph
+
+
+def stdout_console() -> Console:
+    """A terminal's own width, or a wide console when the output goes to a file or pipe."""
+    return Console() if sys.stdout.isatty() else Console(width=200)
+
+
+def plain_handler() -> logging.Handler:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    return handler
+
+
+def setup_logging(handler: logging.Handler) -> None:
+    logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)

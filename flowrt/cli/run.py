@@ -1,0 +1,135 @@
+"""``flowrt run``: a graph with a live status table, until Ctrl-C or ``--duration``."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from ..eventloop import new_event_loop
+from .common import EXIT_BAD_GRAPH, load, plain_handler, setup_logging, stdout_console
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from ..runtime import Runtime
+    from ..status import LiveTable, LogLines, render
+
+    console = stdout_console()
+    err = Console(stderr=True)
+    graph = load(args.file, err)
+    if graph is None:
+        return EXIT_BAD_GRAPH
+    monitor: LogLines | LiveTable
+    if args.no_ui:
+        monitor = LogLines(args.log_every)
+        setup_logging(plain_handler())
+    else:
+        monitor = LiveTable(console, hz=args.refresh)
+        setup_logging(monitor.log_handler())
+    monitors: list[Any] = [monitor]
+    control = _control_config(args, err)
+    rt = Runtime(
+        graph, monitors=monitors, realtime=args.realtime, control=control, spin=args.spin / 1000
+    )
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, rt.request_stop)
+        try:
+            async with rt:
+                if rt.control is not None:
+                    logging.getLogger("flowrt").info("control endpoint %s", rt.control.url)
+                await rt.run(args.duration)
+        finally:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
+
+    with asyncio.Runner(loop_factory=new_event_loop) as runner:
+        try:
+            runner.run(main())
+        except OSError as e:
+            if rt.control_config is None or rt.control is not None:
+                raise
+            err.print(f"flowrt run: control endpoint: {e}", markup=False)  # e.g. port taken
+            return 1
+    stats = rt.stats()
+    console.print(render(stats, list(rt.events)[-5:], rt.qos_status()))
+    if args.stats_json:
+        Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
+        console.print(f"statistics written to {args.stats_json}")
+    return 0
+
+
+def _control_config(args: argparse.Namespace, err: Console) -> Any:
+    """``--control [HOST:]PORT``: a token is generated (and printed) off loopback if none given."""
+    if args.control is None:
+        return None
+    import os
+    import secrets
+
+    from ..control import ControlConfig
+
+    try:
+        config = ControlConfig.parse(args.control, args.token or os.environ.get("FLOWRT_TOKEN"))
+    except ValueError as e:
+        err.print(f"flowrt run: {e}", markup=False)
+        raise SystemExit(2) from None
+    if config.needs_token and not config.token:
+        config = ControlConfig(config.host, config.port, secrets.token_urlsafe(24))
+        err.print(f"control token (give it to flowrt ctl --token): {config.token}", markup=False)
+    return config
+
+
+def _spin_ms(text: str) -> float:
+    from ..spec import parse_duration_ms
+
+    try:
+        ms = parse_duration_ms(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    if not 0 <= ms <= 10:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 10 ms, got {ms:g} ms")
+    return ms
+
+
+def add_parsers(sub: Any) -> None:
+    run = sub.add_parser("run", help="run a graph with a live status table")
+    run.add_argument("file")
+    run.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+    )
+    run.add_argument(
+        "--no-ui", action="store_true", help="periodic log lines instead of the live table"
+    )
+    run.add_argument(
+        "--stats-json", metavar="PATH", help="write final statistics (flowrt schema stats)"
+    )
+    run.add_argument(
+        "--realtime", action="store_true", help="SCHED_FIFO for the loop process where permitted"
+    )
+    run.add_argument(
+        "--spin",
+        type=_spin_ms,
+        default=0.0,
+        metavar="DURATION",
+        help="the loop busy-waits this long before each timer release (e.g. 300us; default 0)",
+    )
+    run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
+    run.add_argument(
+        "--log-every", type=float, default=2.0, metavar="S", help="--no-ui summary period"
+    )
+    run.add_argument(
+        "--control",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="[HOST:]PORT",
+        help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
+    )
+    run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.set_defaults(func=cmd_run)
