@@ -138,6 +138,19 @@ class NodeContext:
         """Switch the runtime to a mode of the graph file; only on the event loop."""
         raise RuntimeError("set_mode() is only available to inline nodes on the event loop")
 
+    def set_error(self, reason: str) -> None:
+        """Mark the node in an error state (a source that cannot open, a bus gone).
+
+        The node keeps running (it may recover and call :meth:`clear_error`); the table shows
+        it red with ``reason``, statistics carry it, and a :class:`HealthAlert` is emitted once
+        per new reason. Only on the event loop.
+        """
+        raise RuntimeError("set_error() is only available to inline nodes on the event loop")
+
+    def clear_error(self) -> None:
+        """Leave the error state set by :meth:`set_error` (the device is back)."""
+        raise RuntimeError("clear_error() is only available to inline nodes on the event loop")
+
 
 class Node:
     """Base class of every node; subclasses declare ports as class attributes.

@@ -30,6 +30,7 @@ from .edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer, hold, make_buffe
 from .events import (
     DeadlineMissed,
     Event,
+    HealthAlert,
     LoopBlocked,
     NodeFailed,
     NodeGaveUp,
@@ -168,6 +169,27 @@ class RunnerContext(NodeContext):
         if stopper is not None:
             stopper()
 
+    def set_error(self, reason: str) -> None:
+        runner = self._runner
+        if runner.error_reason == reason:
+            return
+        runner.error_reason = reason
+        runner.error_reports += 1
+        sched = runner.sched
+        sched.emit(
+            HealthAlert(sched.rel(sched.clock.now()), self.name, "node-error", reason, "error")
+        )
+
+    def clear_error(self) -> None:
+        runner = self._runner
+        if runner.error_reason is None:
+            return
+        runner.error_reason = None
+        sched = runner.sched
+        sched.emit(
+            HealthAlert(sched.rel(sched.clock.now()), self.name, "node-recovered", "", "info")
+        )
+
 
 class NodeRunner:
     """One node: its activations, buffers, statistics and supervision."""
@@ -206,6 +228,8 @@ class NodeRunner:
         self.task: asyncio.Task[None] | None = None
         self.blocked: list[tuple[LosslessBuffer, Any, float]] = []
         self.consecutive_failures = 0
+        self.error_reason: str | None = None  # set_error(): an error state the node reports
+        self.error_reports = 0
         # counters
         self.activations = 0
         self.completions = 0
@@ -555,7 +579,14 @@ class NodeRunner:
             deadline_ms=None if self.timing.deadline is None else self.timing.deadline * 1000,
             watchdog_ms=spec.watchdog,
             enabled=self.timing.enabled,
-            state=self.state if self.timing.enabled else "disabled",
+            state=(
+                "disabled"
+                if not self.timing.enabled
+                else "error"
+                if self.error_reason is not None and self.state != "failed"
+                else self.state
+            ),
+            reason=self.error_reason or "",
             activations=self.activations,
             completions=self.completions,
             skipped=self.skipped,

@@ -97,7 +97,8 @@ class NodeStats(_Frozen):
     deadline_ms: float | None
     watchdog_ms: float | None = None
     enabled: bool
-    state: str = Field(description="idle, running, backoff, failed or disabled")
+    state: str = Field(description="idle, running, backoff, error, failed or disabled")
+    reason: str = Field(default="", description="why the node is in error or failed")
     activations: int = Field(
         description="releases: ticks, timer expiries, inputs that asked for a run"
     )
