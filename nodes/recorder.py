@@ -64,6 +64,7 @@ class Recorder(Node):
         )
         max_frames: int = Field(default=8, ge=1, description="frames waiting, per stream")
         graph_file: str | None = Field(default=None, description="attached as graph.yaml")
+        log_report: bool = Field(default=True, description="log the table when a recording stops")
 
     any_inputs = Input(object, required=False, doc="any stream, under its topic name")
     inline_only = True
@@ -152,11 +153,17 @@ class Recorder(Node):
         except OSError as e:
             self.ctx.log.error("%s: %s not saved: %s", self.ctx.name, SESSION_FILE, e)
         self.reports.append(report)
-        text = report_text(report)
         if report.lost or report.error:
-            self.ctx.log.warning("%s: recording stopped with losses\n%s", self.ctx.name, text)
-        else:
-            self.ctx.log.info("%s: recording stopped\n%s", self.ctx.name, text)
+            text = report_text(report) if self.params.log_report else ""
+            self.ctx.log.warning(
+                "%s: recording %s stopped with %d lost\n%s",
+                self.ctx.name,
+                session,
+                report.lost,
+                text,
+            )
+        elif self.params.log_report:
+            self.ctx.log.info("%s: recording stopped\n%s", self.ctx.name, report_text(report))
         return report
 
     def _stats(self) -> Any:

@@ -1,15 +1,15 @@
 """The post-recording check (the acquisition paper's per-stream table): expected vs received
 vs written, lost, rate mean/min/max and bytes per stream, lost in red.
 
-``expected`` is the source's nominal rate times the recording's duration: a source that
-delivered less than it should shows up even when the recorder lost nothing. The nominal rate
-comes from the running graph's timing (a timer trigger's period; a frame trigger's source
-rate divided by its period), as the runtime's statistics report it.
+``expected`` is the source's nominal rate times the recording's active window (from the
+first to the last message the recorder received, any stream, plus one): a source that
+delivered less than it should shows up as ``missing`` even when the recorder lost nothing.
+The nominal rate comes from the running graph's timing (a timer trigger's period; a frame
+trigger's source rate divided by its period), as the runtime's statistics report it.
 """
 
 from __future__ import annotations
 
-import math
 import re
 from typing import Any
 
@@ -86,8 +86,8 @@ def nominal_rates(stats: Any) -> dict[str, float]:
     return out
 
 
-def _stream(c: StreamCounters, hz: float | None, duration: float) -> StreamReport:
-    expected = None if hz is None else max(0, math.floor(hz * duration + 0.5))
+def _stream(c: StreamCounters, hz: float | None, window: float | None) -> StreamReport:
+    expected = None if hz is None or window is None else round(hz * window) + 1
     iv = c.intervals
     mean = None
     if c.written > 1 and c.first_time is not None and c.last_time is not None:
@@ -119,6 +119,9 @@ def build_report(
     rates: dict[str, float],
 ) -> RecordingReport:
     """The report of a finished (or stopped) writer."""
+    firsts = [c.first_seen for c in writer.streams.values() if c.first_seen is not None]
+    lasts = [c.last_seen for c in writer.streams.values() if c.last_seen is not None]
+    window = max(lasts) - min(firsts) if firsts else None
     return RecordingReport(
         session=session,
         files=[str(writer.path)],
@@ -127,7 +130,7 @@ def build_report(
         error=writer.error,
         notes=list(writer.notes),
         streams=[
-            _stream(c, rates.get(c.source.split(".")[0]), duration) for c in writer.streams.values()
+            _stream(c, rates.get(c.source.split(".")[0]), window) for c in writer.streams.values()
         ],
     )
 

@@ -48,6 +48,8 @@ class StreamCounters:
     lost_error: int = 0
     first_time: float | None = None  # seconds, the runtime clock (log time of the first)
     last_time: float | None = None
+    first_seen: float | None = None  # runtime clock when the first / last one arrived
+    last_seen: float | None = None
     intervals: Running = field(default_factory=Running)
 
     @property
@@ -172,6 +174,9 @@ class RecordingWriter:
         """
         s = self.streams.get(topic) or self.declare(topic)
         s.received += 1
+        if s.first_seen is None:
+            s.first_seen = t
+        s.last_seen = t
         if self.error is not None or self.closed:
             s.lost_error += 1
             return False
