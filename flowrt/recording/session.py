@@ -29,12 +29,12 @@ _NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
 def check_writable(root: str | Path) -> str | None:
     """None if sessions can be created under ``root`` (made if missing), else why not."""
     path = Path(root)
+    if path.exists() and not path.is_dir():
+        return f"{path} is not a directory"
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         return f"cannot create {path}: {e.strerror or e}"
-    if not path.is_dir():
-        return f"{path} is not a directory"
     try:
         with tempfile.NamedTemporaryFile(dir=path, prefix=".flowrt-write-test-"):
             pass
