@@ -104,6 +104,7 @@ class Recording:
     closed_cleanly: bool = False
     damage: str | None = None
     damage_offset: int | None = None
+    last_offset: int = 0  # where the record being handled starts
 
 
 def _describe(e: BaseException) -> str:
@@ -134,6 +135,7 @@ def _records(path: Path, rec: Recording, emit_chunks: bool) -> Iterator[Any]:
                 return
             if isinstance(r, Footer):
                 rec.closed_cleanly = True
+            rec.last_offset = pos
             yield r
 
 
@@ -191,10 +193,15 @@ def scan(path: str | Path) -> FileInfo:
             continue
         open_pending()
         if isinstance(r, Chunk):
+            # channels and schemas live inside chunks: read them without the message data
+            try:
+                defs, sizes = _chunk_definitions(r)
+            except Exception as e:  # a damaged chunk: what follows is not trusted either
+                rec.damage = f"chunk {chunks + 1}: {_describe(e)}"
+                rec.damage_offset = rec.last_offset
+                break
             chunks += 1
             pending, indexed = r, False
-            # channels and schemas live inside chunks: read them without the message data
-            defs, sizes = _chunk_definitions(r)
             for inner in defs:
                 take(inner)
         elif isinstance(r, Metadata):
@@ -258,17 +265,14 @@ def _summary_ok(path: Path) -> bool:
 def _chunk_definitions(chunk: Any) -> tuple[list[Any], dict[int, int]]:
     """Schema and channel records of a chunk, and its messages' data sizes by offset.
 
-    Walks the record headers only (the message data is skipped, not decoded).
+    Checks the chunk's CRC, then walks the record headers only (message data is skipped).
     """
     from mcap.records import Channel, Schema
     from mcap.stream_reader import get_chunk_data_stream
 
     out: list[Any] = []
     sizes: dict[int, int] = {}
-    try:
-        stream, length = get_chunk_data_stream(chunk, validate_crc=False)
-    except Exception:
-        return out, sizes
+    stream, length = get_chunk_data_stream(chunk, validate_crc=True)  # raises when damaged
     while stream.count < length:
         offset = stream.count
         opcode = stream.read1()
