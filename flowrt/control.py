@@ -28,7 +28,7 @@ import json
 import urllib.error
 import urllib.request
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, ValidationError
 
@@ -110,6 +110,19 @@ class ModeRequest(BaseModel):
     mode: str
 
 
+RECORD_COMMAND = "flowrt.record."
+"""RTDB record ``flowrt.record.NODE`` (start|stop) that a ``recorder`` node obeys; the node
+answers in ``flowrt.recording.NODE`` (its session folder, "" when stopped)."""
+
+
+class RecordRequest(BaseModel):
+    """``POST /record``: start or stop the graph's recorder nodes (or one of them)."""
+
+    model_config = ConfigDict(extra="forbid")
+    action: Literal["start", "stop"]
+    node: str | None = None
+
+
 def jsonable(value: Any) -> Any:
     """A JSON-friendly copy of event fields and RTDB values (repr for what is not data)."""
     if value is None or isinstance(value, bool | int | float | str):
@@ -165,6 +178,7 @@ class ControlServer:
                 web.get("/qos", self._qos),
                 web.get("/rtdb", self._rtdb),
                 web.get("/rtdb/{name}", self._rtdb_record),
+                web.post("/record", self._record),
             ]
         )
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
@@ -275,6 +289,19 @@ class ControlServer:
         if not records:
             return _error(404, f"no record {name!r}")
         return _json([_record_json(r) for r in records])
+
+    async def _record(self, request: web.Request) -> web.Response:
+        body = await _body(request, RecordRequest)
+        nodes = self.rt.graph.spec.nodes
+        recorders = [n for n, spec in nodes.items() if spec.kind == "recorder"]
+        if body.node is not None and body.node not in recorders:
+            return _error(404, f"{body.node!r} is not a recorder node (recorders: {recorders})")
+        targets = [body.node] if body.node is not None else recorders
+        if not targets:
+            return _error(404, "the graph has no recorder node (add one, or use flowrt record)")
+        for name in targets:
+            self.rt.rtdb.write(RECORD_COMMAND + name, body.action)
+        return _json({"action": body.action, "nodes": targets})
 
 
 def _record_json(rec: Any) -> dict[str, Any]:

@@ -7,6 +7,7 @@ and its indexes, the metadata and attachments that say how the file was made.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import subprocess
@@ -429,3 +430,43 @@ def test_info_and_replay_bad_input(tmp_path: Path, args: list[str], message: str
     assert r.returncode == 2
     assert message in r.stderr
     assert "Traceback" not in r.stderr
+
+
+# --- flowrt ctl record start|stop -------------------------------------------------------------
+
+
+async def test_ctl_record_starts_and_stops_sessions(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from flowrt import cli
+
+    g = flowrt.GraphBuilder("ctl")
+    g.add("cam", "capture", params={"source": "synthetic:soccer", "fps": 20, "size": [80, 60]})
+    g.add(
+        "rec",
+        "recorder",
+        params={"path": str(tmp_path), "name": "drive", "start": False},
+        inputs={"cam.frame": {"from": "cam.frame", "policy": "lossless"}},
+    )
+    config = flowrt.ControlConfig("127.0.0.1", 0)
+    async with flowrt.Runtime(g.build(), control=config) as rt:
+        assert rt.control is not None
+        url = ["ctl", "--url", rt.control.url]
+        await rt.run(0.3)
+        assert not os.listdir(tmp_path)  # start: false records nothing yet
+        for _ in range(2):
+            assert await asyncio.to_thread(cli.main, [*url, "record", "start"]) == 0
+            await rt.run(0.5)
+            assert await asyncio.to_thread(cli.main, [*url, "record", "stop"]) == 0
+        assert await asyncio.to_thread(cli.main, [*url, "record", "start", "--node", "cam"]) == 1
+    out = capsys.readouterr()
+    assert "rec: recording into" in out.out
+    assert "rec: stopped" in out.out
+    assert "not a recorder node" in out.err
+    sessions = sorted(os.listdir(tmp_path))
+    assert sessions == ["drive_001", "drive_002"]
+    for name in sessions:
+        info = scan(tmp_path / name / f"{name}.mcap")
+        assert info.closed_cleanly
+        assert info.messages > 0
+        assert (tmp_path / name / "streams.json").exists()

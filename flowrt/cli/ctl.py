@@ -49,6 +49,9 @@ def add_parsers(sub: Any) -> None:
     db = what.add_parser("rtdb", help="RTDB records (all, or the history of one)")
     db.add_argument("name", nargs="?")
     db.add_argument("-n", type=int, default=8, help="history length for one record")
+    rc = what.add_parser("record", help="start or stop the graph's recorder node(s)")
+    rc.add_argument("action", choices=("start", "stop"))
+    rc.add_argument("--node", help="one recorder (default: every recorder of the graph)")
     ctl.set_defaults(func=ctl_main)
 
 
@@ -103,4 +106,32 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
             flag = " STALE" if r["stale"] else ""
             when = f"t={r['timestamp']:.3f}s age={r['age'] * 1000:.1f}ms{flag}"
             print(f"{r['name']} #{r['seq']} {when}: {json.dumps(r['value'])}")
+    elif cmd == "record":
+        return _record(client, args)
+    return 0
+
+
+def _record(client: ControlClient, args: argparse.Namespace) -> int:
+    """Ask, then wait (up to 5 s) for each recorder to say where it records, or that it stopped."""
+    import time
+
+    body: dict[str, Any] = {"action": args.action}
+    if args.node:
+        body["node"] = args.node
+    nodes = client.post("/record", body)["nodes"]
+    for node in nodes:
+        end = time.monotonic() + 5.0
+        session: Any = None
+        while time.monotonic() < end:
+            try:
+                session = client.get(f"/rtdb/flowrt.recording.{node}?n=1")[-1]["value"]
+            except ControlError:
+                session = None
+            if session is not None and bool(session) == (args.action == "start"):
+                break
+            time.sleep(0.1)
+        else:
+            print(f"flowrt ctl: {node} did not {args.action} within 5 s", file=sys.stderr)
+            return 1
+        print(f"{node}: recording into {session}" if session else f"{node}: stopped")
     return 0
