@@ -69,6 +69,14 @@ class Subscription:
             value.release()  # the host keeps a plain reference; the slot may be reused later
         return value
 
+    def take_held(self) -> Any:
+        """The next value with its frame link kept (the caller must ``release()`` it), or EMPTY.
+
+        For a monitor that hands frames to another thread: the pool slot is not recycled
+        before that thread is done with the pixels.
+        """
+        return self._buf.take_new()  # type: ignore[attr-defined]
+
     def drain(self) -> list[Any]:
         """Every value waiting now, oldest first (the newest only, for a latest buffer)."""
         out = []

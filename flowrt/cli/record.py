@@ -97,7 +97,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     from ..recording import check_writable, new_session
     from ..recording.session import SESSION_FILE
 
-    err = Console(stderr=True, highlight=False)
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
     problem = check_writable(args.output)
     if problem is not None:
         err.print(f"flowrt record: {problem}", markup=False)
@@ -287,7 +287,7 @@ def _not_mcap(path: Path) -> bool:
 def cmd_info(args: argparse.Namespace) -> int:
     from ..recording.reader import repair, scan
 
-    err = Console(stderr=True, highlight=False)
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
     console = stdout_console()
     files = _files(args.path, err, "info")
     if files is None:
@@ -344,7 +344,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from ..registry import resolve_kind
     from ..spec import NodeSpec
 
-    err = Console(stderr=True, highlight=False)
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
     console = stdout_console()
     if args.rate <= 0:
         err.print("flowrt replay: --rate must be positive", markup=False)

@@ -32,6 +32,17 @@ def cmd_run(args: argparse.Namespace) -> int:
         monitor = LiveTable(console, hz=args.refresh)
         setup_logging(monitor.log_handler())
     monitors: list[Any] = [monitor]
+    if args.foxglove is not None:  # the live Foxglove server: started now, so a taken port
+        from ..recording.live import FoxgloveLive  # is one line before anything runs
+
+        live = FoxgloveLive(port=args.foxglove)
+        try:
+            live.open()
+        except OSError as e:
+            err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
+            return EXIT_BAD_GRAPH
+        logging.getLogger("flowrt").info("foxglove: open %s in the Foxglove app", live.url)
+        monitors.append(live)
     control = _control_config(args, err)
     rt = Runtime(
         graph, monitors=monitors, realtime=args.realtime, control=control, spin=args.spin / 1000
@@ -132,4 +143,12 @@ def add_parsers(sub: Any) -> None:
         help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.add_argument(
+        "--foxglove",
+        nargs="?",
+        type=int,
+        const=8765,
+        metavar="PORT",
+        help="serve the graph live to Foxglove on ws://127.0.0.1:PORT (default 8765)",
+    )
     run.set_defaults(func=cmd_run)
