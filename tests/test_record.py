@@ -470,3 +470,47 @@ async def test_ctl_record_starts_and_stops_sessions(
         assert info.closed_cleanly
         assert info.messages > 0
         assert (tmp_path / name / "streams.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("shape", "dtype", "fmt", "encoding"),
+    [
+        ((6, 5, 3), np.uint8, "BGR", "bgr8"),
+        ((6, 5, 3), np.uint8, "RGB", "rgb8"),
+        ((6, 5), np.uint8, "GRAY", "mono8"),
+        ((6, 5), np.uint16, "GRAY", "mono16"),
+    ],
+)
+def test_raw_image_encoding_matches_foxglove_sdk(
+    shape: tuple[int, ...], dtype: Any, fmt: str, encoding: str
+) -> None:
+    """flowrt writes the RawImage head itself (one pixel copy): it decodes as the SDK's own."""
+    from foxglove.messages import RawImage, Timestamp
+    from mcap.records import Schema
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from flowrt.recording.encoding import encode_frame
+
+    data = np.arange(np.prod(shape), dtype=dtype).reshape(shape)
+    frame = flowrt.Frame(data, source="cam", pixel_format=fmt)
+    ours = encode_frame(frame, 1700000000.25)
+    theirs = RawImage(
+        timestamp=Timestamp(sec=1700000000, nsec=250000000),
+        frame_id="cam",
+        width=shape[1],
+        height=shape[0],
+        encoding=encoding,
+        step=data.strides[0],
+        data=data.tobytes(),
+    ).encode()
+    s = ours.schema
+    decode = DecoderFactory().decoder_for(
+        "protobuf", Schema(id=1, name=s.name, encoding=s.encoding, data=s.data)
+    )
+    assert decode is not None
+    assert decode(ours.data) == decode(theirs)
+    px, got_fmt = Decoder().image(
+        Schema(id=1, name=s.name, encoding=s.encoding, data=s.data), ours.data
+    )
+    np.testing.assert_array_equal(px, data)
+    assert got_fmt == fmt

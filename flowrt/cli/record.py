@@ -139,7 +139,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     rgraph.file = graph.file
     console = stdout_console()
     console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
-    _run(rgraph, args, console)
+    rt = _run(rgraph, args, console)
+    if args.stats_json:
+        Path(args.stats_json).write_text(rt.stats().model_dump_json(indent=2))
     report_path = session / SESSION_FILE
     if not report_path.exists():
         err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
@@ -500,6 +502,7 @@ def add_parsers(sub: Any) -> None:
     )
     rec.add_argument("--compression", choices=("none", "lz4", "zstd"), default="none")
     rec.add_argument("--no-ui", action="store_true", help="log lines instead of the live table")
+    rec.add_argument("--stats-json", metavar="PATH", help="write the run's final statistics")
     rec.set_defaults(func=cmd_record)
 
     info = sub.add_parser("info", help="what a recording holds (session folder or .mcap)")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import struct
 import sys
 from dataclasses import dataclass
 from typing import Any
@@ -78,7 +79,7 @@ def encode_frame(frame: Frame, epoch_time: float, image_format: str = "raw") -> 
     Reads the pixels where they are (a shared-memory slot): call it from the writer thread
     while a link on the frame is held.
     """
-    from foxglove.messages import CompressedImage, RawImage
+    from foxglove.messages import CompressedImage
 
     data = np.ascontiguousarray(frame.data)
     if image_format in ("jpeg", "png"):
@@ -106,16 +107,71 @@ def encode_frame(frame: Frame, epoch_time: float, image_format: str = "raw") -> 
             f"cannot record a {frame.pixel_format} {data.dtype} frame as a RawImage "
             f"(BGR, RGB, GRAY uint8 or GRAY uint16)"
         )
-    raw = RawImage(
-        timestamp=_timestamp(epoch_time),
-        frame_id=frame.source,
-        width=w,
-        height=h,
-        encoding=encoding,
-        step=int(data.strides[0]),
-        data=data.tobytes(),
+    sec = max(0, math.floor(epoch_time))
+    nsec = int((epoch_time - sec) * 1e9) if epoch_time > 0 else 0
+    head = raw_image_head(
+        sec, nsec, frame.source, w, h, encoding, int(data.strides[0]), data.nbytes
     )
-    return Encoded(image_schema(False), raw.encode())
+    return Encoded(image_schema(False), b"".join((head, memoryview(data).cast("B"))))
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte = n & 0x7F
+        n >>= 7
+        if n:
+            out.append(byte | 0x80)
+        else:
+            out.append(byte)
+            return bytes(out)
+
+
+def _field(number: int, wire: int) -> bytes:
+    return _varint(number << 3 | wire)
+
+
+def _text(number: int, value: str) -> bytes:
+    raw = value.encode()
+    return _field(number, 2) + _varint(len(raw)) + raw if raw else b""
+
+
+def _fixed32(number: int, value: int) -> bytes:
+    return _field(number, 5) + struct.pack("<I", value) if value else b""
+
+
+def raw_image_head(
+    sec: int,
+    nsec: int,
+    frame_id: str,
+    width: int,
+    height: int,
+    encoding: str,
+    step: int,
+    nbytes: int,
+) -> bytes:
+    """The protobuf bytes of a ``foxglove.RawImage`` up to its pixels (field 6's length).
+
+    Why not foxglove-sdk's ``RawImage(...).encode()``: it copies the pixels three times (to
+    bytes, into the message, into the encoding), measured at 3 x 10 ms per 1936x1216 frame on
+    the loaded 2-core machine; here the pixels are copied once, after this head. The field
+    numbers and types are those of the schema foxglove-sdk ships (a test decodes both and
+    compares them).
+    """
+    ts = (_field(1, 0) + _varint(sec) if sec else b"") + (
+        _field(2, 0) + _varint(nsec) if nsec else b""
+    )
+    return b"".join(
+        (
+            _field(1, 2) + _varint(len(ts)) + ts,  # timestamp
+            _text(7, frame_id),
+            _fixed32(2, width),
+            _fixed32(3, height),
+            _text(4, encoding),
+            _fixed32(5, step),
+            _field(6, 2) + _varint(nbytes),  # data: the pixels follow
+        )
+    )
 
 
 def to_jsonable(value: Any) -> Any:
