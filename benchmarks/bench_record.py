@@ -129,7 +129,8 @@ async def run_streams(
         "skipped": sum(x.skipped for x in stats.nodes if x.name.startswith("cam")),
     }
     if out is not None:
-        (session,) = sorted(out.glob("bench_*"))
+        (name,) = [n for n in os.listdir(out) if n.startswith("bench_")]
+        session = out / name
         report = json.loads((session / "streams.json").read_text())
         result["report"] = report
         result["session"] = session

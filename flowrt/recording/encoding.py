@@ -112,7 +112,8 @@ def encode_frame(frame: Frame, epoch_time: float, image_format: str = "raw") -> 
     head = raw_image_head(
         sec, nsec, frame.source, w, h, encoding, int(data.strides[0]), data.nbytes
     )
-    return Encoded(image_schema(False), b"".join((head, memoryview(data).cast("B"))))
+    pixels = memoryview(data.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
+    return Encoded(image_schema(False), b"".join((head, pixels)))
 
 
 def _varint(n: int) -> bytes:
