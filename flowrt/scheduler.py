@@ -275,11 +275,10 @@ class NodeRunner:
         if not self.timing.enabled or self.stopping:
             return
         self.activations += 1
-        if self.state in ("backoff", "failed", "starting"):
+        if self.state in ("backoff", "failed", "starting") or self.busy:
             self.skipped += 1
-            return
-        if self.busy:
-            self.skipped += 1
+            for buf in self.inputs.values():
+                buf.reader_skipped()  # the value it was due to read is lost if replaced
             return
         self.busy = True
         self.current += 1
@@ -592,6 +591,7 @@ class NodeRunner:
             skipped=self.skipped,
             deadline_misses=self.misses,
             discarded=self.discarded,
+            dropped=self.discarded + sum(b.dropped for b in self.inputs.values()),
             errors=self.errors,
             restarts=self.restarts,
             last_start=None if self.last_start is None else rel(self.last_start),

@@ -73,7 +73,7 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
         from ..status import render
 
         console = stdout_console()
-        console.print(render(RuntimeStats.model_validate(data)))
+        console.print(render(RuntimeStats.model_validate(data), width=console.width))
         console.print(client.get("/qos")["summary"], markup=False, highlight=False)
     elif cmd == "timing":
         body = {"node": args.node}

@@ -59,7 +59,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             err.print(f"flowrt run: control endpoint: {e}", markup=False)  # e.g. port taken
             return 1
     stats = rt.stats()
-    console.print(render(stats, list(rt.events)[-5:], rt.qos_status()))
+    console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
