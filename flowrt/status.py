@@ -31,7 +31,7 @@ from .runtime import Runtime
 from .stats import EdgeStats, NodeStats, RuntimeStats
 
 log = logging.getLogger("flowrt.status")
-S = TypeVar("S", NodeStats, EdgeStats)
+S = TypeVar("S")  # a row: NodeStats or EdgeStats
 
 
 def _ms(x: float) -> str:
@@ -129,9 +129,8 @@ def _table(cols: Sequence[_Col[S]], rows: Sequence[S], width: int | None) -> Tab
     natural: dict[str, int] = {}
     for col in cols:
         cells[col.header] = [col.cell(r) for r in rows]
-        natural[col.header] = max(
-            [cell_len(col.header), *(cell_len(str(x)) for x in cells[col.header])]
-        )
+        widths = [cell_len(str(x)) for x in cells[col.header]]
+        natural[col.header] = max([cell_len(col.header), *widths])
     ranks: list[int] = sorted({c.drop for c in cols if c.drop})
     shown = list(cols)
     for limit in [0, *ranks]:  # drop the columns ranked up to ``limit``
