@@ -465,11 +465,16 @@ def summary_lines(stats: RuntimeStats) -> list[str]:
     out = []
     for n in stats.nodes:
         out.append(
-            f"{n.name}: act={n.activations} done={n.completions} skip={n.skipped} "
-            f"miss={n.deadline_misses} err={n.errors} rst={n.restarts} "
+            f"{n.name}: {n.state}{f' ({n.reason})' if n.reason else ''} "
+            f"act={n.activations} done={n.completions} skip={n.skipped} "
+            f"miss={n.deadline_misses} drop={n.dropped} err={n.errors} rst={n.restarts} "
             f"interval={n.interval.mean:.2f}±{n.interval.std:.3f}ms "
             f"exec_p99={n.execution.p99:.2f}ms"
         )
-    dropped = sum(e.dropped for e in stats.edges if not e.sampled)
-    out.append(f"loop lag p99={stats.loop.lag.p99:.2f}ms dropped={dropped} events={stats.events}")
+    dropped = sum(e.dropped for e in stats.edges)
+    unread = sum(e.unread for e in stats.edges)
+    out.append(
+        f"loop lag p99={stats.loop.lag.p99:.2f}ms dropped={dropped} unread={unread} "
+        f"events={stats.events}"
+    )
     return out
