@@ -239,6 +239,7 @@ class NodeRunner:
         self.errors = 0
         self.restarts = 0
         self.last_start: float | None = None
+        self.interval_from: float | None = None  # None after a timing change: a new series
         self.last_finish: float | None = None
         self.interval = Running()
         self.execution = Running()
@@ -317,9 +318,9 @@ class NodeRunner:
         if inputs is None:
             self.skipped += 1
             return now, None
-        if self.last_start is not None:
-            self.interval.add(now - self.last_start)
-        self.last_start = now
+        if self.interval_from is not None:
+            self.interval.add(now - self.interval_from)
+        self.interval_from = self.last_start = now
         self.state = "running"
         return now, inputs
 
@@ -842,6 +843,10 @@ class Scheduler:
             r.timer.reset(timer, min(tm.timer_phase, timer * 0.999))
         elif timer is not None:
             tm.timer = timer
+        if any(c.split()[0] in ("period", "phase", "timer_ms", "enabled") for c in changes):
+            # the interval statistics describe the new timing, not a mean of old and new
+            r.interval = Running()
+            r.interval_from = None
         text = ", ".join(changes) or "no change"
         if changes:
             self.emit(TimingChanged(self.rel(self.clock.now()), node, text, origin))

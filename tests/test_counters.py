@@ -24,7 +24,7 @@ from typing import Any
 
 import pytest
 from rich.console import Console
-from test_scheduler import Camera, Gate, Recorder, cambada_like, frame, publish_frames
+from test_scheduler import Camera, Count, Gate, Recorder, cambada_like, frame, publish_frames
 from test_status_table import FAILING, cambada_stats
 
 import flowrt
@@ -105,6 +105,46 @@ async def test_cambada_runs_without_drops_only_unread_samples() -> None:
     if not any(n.skipped for n in stats.nodes):  # a healthy run: no loss anywhere
         assert sum(e.dropped for e in stats.edges) == 0
         assert sum(n.dropped for n in stats.nodes) == 0
+
+
+# --- interval statistics after a timing change --------------------------------------------
+
+
+async def test_interval_after_a_period_change_describes_the_new_period() -> None:
+    clock = VirtualClock()
+    async with Runtime(cambada_like().build(), clock=clock) as rt:
+        await publish_frames(rt, clock, range(16))  # 50 ms frames: p4ph1 every 200 ms
+        before = rt.stats().node("p4ph1").interval
+        rt.set_timing("p4ph1", period=2, phase=0)
+        await publish_frames(rt, clock, range(16, 32))
+        after = rt.stats().node("p4ph1").interval
+    assert before.mean == pytest.approx(200.0)
+    assert before.count == 3
+    # 8 activations at 100 ms since the change; the old-to-new transition is not an interval
+    assert after.count == 7
+    assert after.mean == pytest.approx(100.0)
+    assert after.std == pytest.approx(0.0, abs=1e-6)
+    assert after.max == pytest.approx(100.0)
+
+
+async def test_interval_after_a_timer_change_and_a_re_enable() -> None:
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("t", Count, trigger={"timer": "50ms"})
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(0.5)
+        rt.set_timing("t", timer=20)  # ms
+        await clock.advance(0.2)
+        changed = rt.stats().node("t").interval
+        rt.set_timing("t", enabled=False)
+        await clock.advance(1.0)
+        rt.set_timing("t", enabled=True)
+        await clock.advance(0.1)
+        enabled = rt.stats().node("t").interval
+    assert changed.mean == pytest.approx(20.0)
+    assert changed.max == pytest.approx(20.0)
+    assert enabled.max == pytest.approx(20.0)  # the second spent disabled is no interval
+    assert enabled.count >= 4
 
 
 # --- the three views -------------------------------------------------------------------------
