@@ -102,7 +102,12 @@ def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
     run.add_argument(
-        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds of running, counted once every node is set up "
+        "(start-up, e.g. starting worker processes, and teardown come on top)",
     )
     run.add_argument(
         "--no-ui", action="store_true", help="periodic log lines instead of the live table"
