@@ -319,8 +319,9 @@ def _describe(ev: Event) -> str:
 def _renderer(conn: Connection) -> None:
     """The table's own process: it renders what the runtime sends, newest first.
 
-    Rendering a table of a dozen nodes and twenty edges takes 20-50 ms of pure Python; on the
-    event loop that would delay ticks, in a thread it would still hold the GIL. Here it costs
+    Rendering a table of a dozen nodes and twenty edges takes ~10 ms of pure Python; on the
+    event loop that would delay ticks, in a thread it would still hold the GIL. The table is
+    fitted to the terminal's current size at every refresh (a resized pane just works). Here it costs
     the runtime one ``stats()`` and one pickle (~1.5 ms) per refresh, in a gap between ticks.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
