@@ -208,7 +208,11 @@ def render(
         f"loop lag ms p50 {lag.p50:.2f} p99 {lag.p99:.2f} max {lag.max:.2f} · "
         f"blocking calls {stats.loop.blocked_calls} · events {stats.events}"
     )
-    extra: list[Text] = []
+    extra: list[Text] = [
+        _line(f"  frames {p.owner}: {p.dropped} dropped, every one of its slots held", "bold red")
+        for p in stats.frames
+        if p.dropped
+    ]
     if qos is not None and (qos.overload_control or qos.mode is not None):
         extra.append(_line(qos.describe(), "bold red" if qos.overloaded else "magenta"))
     for a in alerts or []:
@@ -320,9 +324,9 @@ def _renderer(conn: Connection) -> None:
     """The table's own process: it renders what the runtime sends, newest first.
 
     Rendering a table of a dozen nodes and twenty edges takes ~10 ms of pure Python; on the
-    event loop that would delay ticks, in a thread it would still hold the GIL. The table is
-    fitted to the terminal's current size at every refresh (a resized pane just works). Here it costs
+    event loop that would delay ticks, in a thread it would still hold the GIL. Here it costs
     the runtime one ``stats()`` and one pickle (~1.5 ms) per refresh, in a gap between ticks.
+    The table is fitted to the terminal's size at every refresh (a resized pane just works).
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
     console = Console()

@@ -16,7 +16,7 @@ from rich.console import Console
 
 from flowrt.events import DeadlineMissed, Event
 from flowrt.graph import Graph
-from flowrt.stats import EdgeStats, LoopStats, NodeStats, RuntimeStats, Summary
+from flowrt.stats import EdgeStats, FramePoolStats, LoopStats, NodeStats, RuntimeStats, Summary
 from flowrt.status import EDGE_COLUMNS, NODE_COLUMNS, render
 
 pytestmark = pytest.mark.timeout(30)
@@ -230,6 +230,14 @@ def test_more_failing_nodes_than_rows_says_how_many_are_hidden() -> None:
         == len(stats.nodes)
         - sum(1 for n in stats.nodes if any(ln.split()[:1] == [n.name] for ln in lines))
     )
+
+
+def test_frames_a_pool_could_not_hold_are_a_red_line() -> None:
+    pool = FramePoolStats(owner="front_cam", slots=16, slots_in_use=16, max_slots=16, grown=12,
+                          dropped=37)  # fmt: skip
+    stats = cambada_stats().model_copy(update={"frames": [pool]})
+    text, _ = show(stats, 80, height=24)
+    assert "frames front_cam: 37 dropped" in text
 
 
 def test_edge_with_drops_stays_when_edges_are_summarised() -> None:
