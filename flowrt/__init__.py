@@ -34,6 +34,7 @@ from .spec import GraphSpec as GraphSpec
 from .spec import InputTrigger as InputTrigger
 from .spec import LoopTrigger as LoopTrigger
 from .spec import TimerTrigger as TimerTrigger
+from .spec import parse_duration_ms as parse_duration_ms
 from .stats import EdgeStats as EdgeStats
 from .stats import NodeStats as NodeStats
 from .stats import RuntimeStats as RuntimeStats
@@ -77,5 +78,6 @@ __all__ = [
     "TimerTrigger",
     "TimingChanged",
     "VirtualClock",
+    "parse_duration_ms",
     "run",
 ]

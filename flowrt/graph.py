@@ -201,7 +201,7 @@ def resolve(
                     f"{name}.{port} expects {_type_name(in_t)}",
                 )
                 continue
-            edges.append(_edge(name, port, ins, in_t, out_t))
+            edges.append(_edge(name, port, ins, in_t, out_t, in_port.policy))
         if cls is not None:
             for port, p in cls.inputs.items():
                 if p.required and port not in ns.inputs and port not in misspelt:
@@ -292,8 +292,12 @@ def resolve(
     return graph
 
 
-def _edge(dst: str, dst_port: str, ins: InputSpec, in_type: Any, out_type: Any) -> Edge:
+def _edge(
+    dst: str, dst_port: str, ins: InputSpec, in_type: Any, out_type: Any, default: str | None
+) -> Edge:
     policy = ins.policy
+    if policy is None and default is not None:
+        policy = EdgePolicy(default)
     if policy is None:
         # Frames default to latest whichever side says so: a display reading ``object``
         # still wants the newest frame, not a backlog.

@@ -39,10 +39,18 @@ class Input(Generic[T]):
     """An input port. ``required`` inputs must be connected and hold a value to activate."""
 
     def __init__(
-        self, type_: type[T] | Any = object, *, required: bool = True, doc: str = ""
+        self,
+        type_: type[T] | Any = object,
+        *,
+        required: bool = True,
+        policy: str | None = None,
+        doc: str = "",
     ) -> None:
         self.type: Any = type_
         self.required = required
+        # The edge policy when the graph file names none: e.g. a command multiplexer wants
+        # the newest command of each source (latest), not a backlog (the message default).
+        self.policy = policy
         self.doc = doc
         self.name = ""
 
@@ -137,6 +145,12 @@ class NodeContext:
     def set_mode(self, mode: str) -> None:
         """Switch the runtime to a mode of the graph file; only on the event loop."""
         raise RuntimeError("set_mode() is only available to inline nodes on the event loop")
+
+    @property
+    def period(self) -> float | None:
+        """The node's timer period in seconds (None unless timer-triggered): e.g. to derive a
+        timeout of "three periods" that follows run-time timing changes."""
+        return None
 
     def set_error(self, reason: str) -> None:
         """Mark the node in an error state (a source that cannot open, a bus gone).

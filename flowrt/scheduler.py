@@ -169,6 +169,10 @@ class RunnerContext(NodeContext):
         if stopper is not None:
             stopper()
 
+    @property
+    def period(self) -> float | None:
+        return self._runner.timing.timer
+
     def set_error(self, reason: str) -> None:
         runner = self._runner
         if runner.error_reason == reason:
