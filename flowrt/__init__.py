@@ -16,6 +16,7 @@ from .events import ModeChanged as ModeChanged
 from .events import NodeFailed as NodeFailed
 from .events import NodeGaveUp as NodeGaveUp
 from .events import NodeRestarted as NodeRestarted
+from .events import NodeSwapped as NodeSwapped
 from .events import TimingChanged as TimingChanged
 from .frames import Frame as Frame
 from .graph import Graph as Graph
@@ -29,6 +30,7 @@ from .rtdb import Record as Record
 from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
 from .runtime import Subscription as Subscription
+from .runtime import SwapError as SwapError
 from .spec import FrameTrigger as FrameTrigger
 from .spec import GraphSpec as GraphSpec
 from .spec import InputTrigger as InputTrigger
@@ -68,12 +70,14 @@ __all__ = [
     "NodeGaveUp",
     "NodeRestarted",
     "NodeStats",
+    "NodeSwapped",
     "Output",
     "QosStatus",
     "Record",
     "Runtime",
     "RuntimeStats",
     "Subscription",
+    "SwapError",
     "SystemClock",
     "TimerTrigger",
     "TimingChanged",

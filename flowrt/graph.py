@@ -31,6 +31,7 @@ from .spec import (
     NodeSpec,
     TimerTrigger,
     Trigger,
+    merge_params,
 )
 
 
@@ -268,6 +269,13 @@ def resolve(
                 at(path, f"unknown node {node!r}" + hint)
                 continue
             _check_override(path, o, triggers.get(node), at)
+            if o.params and node in classes:
+                merged = merge_params(spec.nodes[node].params, o.params)
+                try:
+                    classes[node].Params.model_validate(merged)
+                except ValidationError as e:
+                    at_params = (*path, "params")
+                    diags.extend(pydantic_diagnostics(e, locs, at_params, classes[node].Params))
     if spec.qos.overload is not None:
         for i, node in enumerate(spec.qos.overload.protect):
             if node not in names:

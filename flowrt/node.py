@@ -231,6 +231,12 @@ class Node:
     def teardown(self) -> Any:
         """Release resources; may be async; runs even after errors."""
 
+    # Optional hooks (looked up by name, so a node defines only what it needs):
+    # ``get_state() -> Any`` / ``set_state(state)``: when the node is swapped for a new instance
+    # (``Runtime.swap``, ``flowrt ctl swap``/``reload``), the new one receives the old one's
+    # state, e.g. a tracker's last position. ``params_changed(old)``: params replaced between
+    # activations (a mode's weights); recompute what ``setup`` derived from them.
+
 
 def make_node(
     cls: type[Node], params: BaseModel | Mapping[str, Any] | None, ctx: NodeContext
@@ -252,6 +258,16 @@ class NodeFactory:
         self.params = params
         self.name = name
         self.rtdb: RtdbHandle | None = None  # set by the runtime: where ctx.rtdb attaches
+        # ``flowrt ctl reload``: a worker forked from a process that imported the module
+        # before the edit must import it anew to run the edited code.
+        self.reload = False
 
     def __call__(self) -> Node:
-        return make_node(self.cls, self.params, NodeContext(self.name, rtdb=self.rtdb))
+        cls = self.cls
+        if self.reload:
+            import importlib
+            import sys
+
+            module = importlib.reload(sys.modules[cls.__module__])
+            cls = getattr(module, cls.__qualname__)
+        return make_node(cls, self.params, NodeContext(self.name, rtdb=self.rtdb))
