@@ -92,13 +92,16 @@ class Recorder(Node):
         self._task: asyncio.Task[None] | None = None  # a start/stop asked for by ctl
         self._publish_status("")
         if self.params.start:
-            await asyncio.to_thread(self._open)
+            await asyncio.to_thread(self._open, self._stats())
             self._publish_status(str(self.session))
 
     # --- sessions ---------------------------------------------------------------------------
 
-    def _open(self) -> None:
-        """Create the session folder and the file (on a thread: it touches the disk)."""
+    def _open(self, stats: Any) -> None:
+        """Create the session folder and the file (on a thread: it touches the disk).
+
+        ``stats`` is taken on the loop before: the runtime's tables are not read from here.
+        """
         p = self.params
         session = Path(p.session) if p.session and not self.sessions else None
         if session is not None:
@@ -117,7 +120,6 @@ class Recorder(Node):
             max_frames=p.max_frames,
             on_written=self._written,
         )
-        stats = self._stats()
         attachments = [("timing.json", "application/json", timing_json(stats))]
         if p.graph_file:
             try:
@@ -256,10 +258,12 @@ class Recorder(Node):
 
     async def _start_async(self) -> None:
         try:
-            await asyncio.to_thread(self._open)
-            self._publish_status(str(self.session))
+            await asyncio.to_thread(self._open, self._stats())
         except OSError as e:
             self.ctx.set_error(f"cannot start recording: {e}")
+            return
+        self.ctx.clear_error()  # a new session: what the previous one lost is in its report
+        self._publish_status(str(self.session))
 
     async def _stop_async(self) -> None:
         await self._close()

@@ -286,6 +286,19 @@ def _not_mcap(path: Path) -> bool:
         return f.read(8) != b"\x89MCAP0\r\n"
 
 
+def _print_session_report(console: Console, path: Path) -> None:
+    """A session's own post-recording table (expected / received / written / lost)."""
+    from ..recording import RecordingReport, report_table
+    from ..recording.session import SESSION_FILE
+
+    report = path / SESSION_FILE
+    if path.is_dir() and report.exists():
+        try:
+            console.print(report_table(RecordingReport.model_validate_json(report.read_text())))
+        except ValueError:
+            console.print(f"{report}: unreadable", style="red", markup=False)
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from ..recording.reader import repair, scan
 
@@ -317,6 +330,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     else:
         for info in out:
             print_info(console, info)
+        _print_session_report(console, Path(args.path))
     if status != EXIT_OK:
         err.print(
             f"flowrt info: {', '.join(i.path for i in out if not i.closed_cleanly)} "
