@@ -120,6 +120,9 @@ async def run_streams(
         await rt.run(seconds)
         t_stop = time.perf_counter()
         stats = rt.stats()
+    from flowrt.cli.record import wait_for_writers
+
+    await asyncio.to_thread(wait_for_writers)
     t_closed = time.perf_counter()
     cpu = cpu_seconds() - c0
     result: dict[str, Any] = {
@@ -336,5 +339,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    _ = asyncio
     main()

@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import datetime as dt
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -39,6 +40,8 @@ from flowrt.recording.session import SESSION_FILE, session_metadata, timing_json
 
 COMMAND_RECORD = "flowrt.record."
 """RTDB record ``flowrt.record.NODE`` = ``start`` | ``stop``: what ``flowrt ctl record`` writes."""
+FINISH_WAIT = 1.5
+"""Seconds a stop waits for the file to be finished before leaving it to the writer thread."""
 STATUS_RECORD = "flowrt.recording."
 """RTDB record ``flowrt.recording.NODE``: the current session folder, or "" when stopped."""
 
@@ -134,22 +137,49 @@ class Recorder(Node):
         self._said_lost, self._said_error = 0, False
         self.ctx.log.info("%s: recording into %s", self.ctx.name, writer.path)
 
-    async def _close(self) -> RecordingReport | None:
+    async def _close(self) -> None:
+        """Stop recording: the file is finished on the writer thread, whatever the loop does.
+
+        The teardown of a node is bounded (the runtime then frees the frame pools), and a slow
+        disk may need longer: so the queued frames are first copied off the pool, the report
+        is written by the writer thread once the file is complete, and the thread keeps the
+        process alive until then.
+        """
         writer, session = self.writer, self.session
         if writer is None or session is None:
-            return None
+            return
         self.writer, self._draining = None, writer
         duration = self.ctx.now() - self._started_at
         start = dt.datetime.fromtimestamp(self._started_wall, dt.UTC).isoformat()
         stats = self._stats()
         rates = nominal_rates(stats) if stats is not None else {}
-        pre = build_report(writer, session.name, start, duration, rates)
-        await asyncio.to_thread(
-            writer.close, [("streams.json", "application/json", pre.model_dump_json().encode())]
-        )
+
+        def report() -> RecordingReport:
+            return build_report(writer, session.name, start, duration, rates)
+
+        def attachments() -> list[tuple[str, str, bytes]]:
+            return [("streams.json", "application/json", report().model_dump_json().encode())]
+
+        writer.request_close(attachments, partial(self._finished, session, report))
+        for frame in writer.detach_frames():
+            frame.release()
+        for _ in range(200):  # the frame being encoded now, if any (a few ms)
+            if not writer.encoding_frame():
+                break
+            await asyncio.sleep(0.005)
+        self._release_done()
+        if not await asyncio.to_thread(writer.join, FINISH_WAIT):
+            self.ctx.log.info(
+                "%s: %s: the disk is behind, finishing the file in the background",
+                self.ctx.name,
+                writer.path,
+            )
         self._release_done()
         self._draining = None
-        report = build_report(writer, session.name, start, duration, rates)
+
+    def _finished(self, session: Path, report_of: Any) -> None:
+        """On the writer thread, the file complete: save and say the per-stream table."""
+        report: RecordingReport = report_of()
         try:
             (session / SESSION_FILE).write_text(report.model_dump_json(indent=1))
         except OSError as e:
@@ -166,7 +196,6 @@ class Recorder(Node):
             )
         elif self.params.log_report:
             self.ctx.log.info("%s: recording stopped\n%s", self.ctx.name, report_text(report))
-        return report
 
     def _stats(self) -> Any:
         try:

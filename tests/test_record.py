@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import flowrt
+from flowrt.cli.record import wait_for_writers
 from flowrt.recording import (
     RecordingReport,
     RecordingWriter,
@@ -82,6 +83,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     tmp = tmp_path_factory.mktemp("rec")
     asyncio.run(record(tmp, 1.5))
+    wait_for_writers()  # a slow (shared) disk may still be finishing the file
     (session,) = sorted(tmp.glob("drive_*"))
     return session
 
@@ -459,6 +461,7 @@ async def test_ctl_record_starts_and_stops_sessions(
             await rt.run(0.5)
             assert await asyncio.to_thread(cli.main, [*url, "record", "stop"]) == 0
         assert await asyncio.to_thread(cli.main, [*url, "record", "start", "--node", "cam"]) == 1
+    await asyncio.to_thread(wait_for_writers)
     out = capsys.readouterr()
     assert "rec: recording into" in out.out
     assert "rec: stopped" in out.out

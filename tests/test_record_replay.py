@@ -15,6 +15,7 @@ import pytest
 from mcap.reader import make_reader
 
 import flowrt
+from flowrt.cli.record import wait_for_writers
 from flowrt.recording.encoding import Decoder, to_jsonable
 from flowrt.recording.reader import scan
 from flowrt.registry import resolve_kind
@@ -63,6 +64,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
             await rt.run(2.0)
 
     asyncio.run(main())
+    wait_for_writers()  # a slow (shared) disk may still be finishing the file
     return tmp / "exact_001" / "exact_001.mcap"
 
 

@@ -140,6 +140,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     console = stdout_console()
     console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
     rt = _run(rgraph, args, console)
+    wait_for_writers()
     if args.stats_json:
         Path(args.stats_json).write_text(rt.stats().model_dump_json(indent=2))
     report_path = session / SESSION_FILE
@@ -157,6 +158,17 @@ def cmd_record(args: argparse.Namespace) -> int:
         err.print(f"flowrt record: {report.lost} message(s) lost", markup=False)
         return EXIT_FAILED
     return EXIT_OK
+
+
+def wait_for_writers() -> None:
+    """Until every MCAP file of this process is finished (a slow disk may still be writing)."""
+    import threading
+
+    from ..recording.writer import THREAD_PREFIX
+
+    for t in threading.enumerate():
+        if t.name.startswith(THREAD_PREFIX):
+            t.join()
 
 
 def _run(

@@ -26,6 +26,8 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from ..frames import Frame
 from ..stats import Running
 from .encoding import Encoded, StreamSchema, encode_frame, encode_json, schema_for
@@ -33,6 +35,8 @@ from .encoding import Encoded, StreamSchema, encode_frame, encode_json, schema_f
 __all__ = ["RecordingWriter", "StreamCounters"]
 
 PROFILE = "flowrt"
+THREAD_PREFIX = "mcap writer "
+"""Writer threads are not daemons: a process that ends waits for its files to be finished."""
 
 
 @dataclass
@@ -117,7 +121,9 @@ class RecordingWriter:
         self._schemas: dict[StreamSchema, int] = {}
         self._channels: dict[str, int] = {}
         self._channel_meta: dict[str, dict[str, str]] = {}
-        self._end_attachments: list[tuple[str, str, bytes]] = []
+        self._end_attachments: Callable[[], list[tuple[str, str, bytes]]] = list
+        self._on_finished: Callable[[], None] | None = None
+        self._inflight: Frame | None = None
         self._json_schemas: dict[tuple[str, type], StreamSchema] = {}
         self._unencodable: set[str] = set()
         self.notes: list[str] = []  # problems other than write errors (said once per stream)
@@ -152,7 +158,7 @@ class RecordingWriter:
             raise
         self._writer = w
         self._thread = threading.Thread(
-            target=self._run, name=f"mcap {self.path.name}", daemon=True
+            target=self._run, name=f"{THREAD_PREFIX}{self.path.name}", daemon=False
         )
         self._thread.start()
 
@@ -202,13 +208,59 @@ class RecordingWriter:
 
     def close(self, attachments: list[tuple[str, str, bytes]] = ()) -> None:  # type: ignore[assignment]
         """Write what is queued, the end attachments and the summary; blocks: use a thread."""
-        self._end_attachments = list(attachments)
+        self.request_close(lambda: list(attachments))
+        self.join()
+
+    def request_close(
+        self,
+        attachments: Callable[[], list[tuple[str, str, bytes]]] = list,
+        on_finished: Callable[[], None] | None = None,
+    ) -> None:
+        """Finish the file after what is queued, without waiting (see :meth:`join`).
+
+        ``attachments`` is called on the writer thread once the queue is written, so what it
+        attaches (the per-stream report) counts everything; ``on_finished`` is called there
+        after the summary is written (or the write failed).
+        """
+        self._end_attachments = attachments
+        self._on_finished = on_finished
         with self._cond:
             self._closing = True
             self._cond.notify()
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for a requested close; True when the file is finished."""
         if self._thread is not None:
-            self._thread.join()
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                return False
         self.closed = True
+        return True
+
+    def detach_frames(self) -> list[Frame]:
+        """Copy the queued frames' pixels to the heap; returns the originals to release.
+
+        At stop the shared-memory pools go away, but a slow disk may still be writing: after
+        this (and once :meth:`encoding_frame` is false) the writer holds no pool slot.
+        """
+        originals: list[Frame] = []
+        with self._cond:
+            for item in self._queue:
+                v = item.value
+                if isinstance(v, Frame) and v.shared:
+                    item.value = Frame(
+                        np.array(v.data),
+                        source=v.source,
+                        seq=v.seq,
+                        timestamp=v.timestamp,
+                        pixel_format=v.pixel_format,
+                    )
+                    originals.append(v)
+        return originals
+
+    def encoding_frame(self) -> bool:
+        """True while the thread reads a frame's pixels (they are copied into the message)."""
+        return self._inflight is not None
 
     # --- on the writer thread ---------------------------------------------------------------
 
@@ -223,54 +275,59 @@ class RecordingWriter:
                 item = self._queue.popleft() if self._queue else None
                 if item is None and self._closing:
                     break
+                if item is not None and isinstance(item.value, Frame):
+                    self._inflight = item.value
             if item is not None:
                 self._write(item)
             if self.error is None and time.monotonic() - last_flush >= self.flush_interval:
                 self._guard(self._writer.flush)  # a finished chunk survives kill -9
                 last_flush = time.monotonic()
         self._finish()
+        if self._on_finished is not None:
+            self._on_finished()
 
     def _write(self, item: _Item) -> None:
         s = self.streams[item.topic]
         is_frame = isinstance(item.value, Frame)
         try:
-            if self.error is not None:
-                s.lost_error += 1
-                return
-            try:
-                enc = self._encode(item)
-            except Exception as e:  # a value that cannot be encoded: counted, said once
-                s.lost_error += 1
-                if item.topic not in self._unencodable:
-                    self._unencodable.add(item.topic)
-                    self.notes.append(
-                        f"{item.topic}: cannot encode {type(item.value).__name__}: {e}"
-                    )
-                return
-            cid = self._channel(item.topic, enc.schema)
-            ns = round((item.t + self.epoch_offset) * 1e9)
-            if self._guard(
-                lambda: self._writer.add_message(cid, ns, enc.data, ns, item.seq & 0xFFFFFFFF)
-            ):
-                s.written += 1
-                s.bytes += len(enc.data)
-                if s.last_time is not None:
-                    s.intervals.add(item.t - s.last_time)
-                else:
-                    s.first_time = item.t
-                s.last_time = item.t
-            else:
-                s.lost_error += 1
+            enc = None if self.error is not None else self._encode(item)
+        except Exception as e:  # a value that cannot be encoded: counted, said once
+            enc = None
+            if item.topic not in self._unencodable:
+                self._unencodable.add(item.topic)
+                self.notes.append(f"{item.topic}: cannot encode {type(item.value).__name__}: {e}")
         finally:
-            with self._cond:
-                if is_frame:
-                    self._frames_waiting[item.topic] -= 1
-                else:
-                    self._messages_waiting -= 1
+            # The pixels are in ``enc`` now: the slot goes back before the disk write.
             if is_frame:
-                self.done.append(item.value)
-                if self.on_written is not None:
-                    self.on_written()
+                self._inflight = None
+                self._frame_done(item)
+            else:
+                with self._cond:
+                    self._messages_waiting -= 1
+        if enc is None:
+            s.lost_error += 1
+            return
+        cid = self._channel(item.topic, enc.schema)
+        ns = round((item.t + self.epoch_offset) * 1e9)
+        if not self._guard(
+            lambda: self._writer.add_message(cid, ns, enc.data, ns, item.seq & 0xFFFFFFFF)
+        ):
+            s.lost_error += 1
+            return
+        s.written += 1
+        s.bytes += len(enc.data)
+        if s.last_time is not None:
+            s.intervals.add(item.t - s.last_time)
+        else:
+            s.first_time = item.t
+        s.last_time = item.t
+
+    def _frame_done(self, item: _Item) -> None:
+        with self._cond:
+            self._frames_waiting[item.topic] -= 1
+        self.done.append(item.value)
+        if self.on_written is not None:
+            self.on_written()
 
     def _encode(self, item: _Item) -> Encoded:
         v = item.value
@@ -314,16 +371,18 @@ class RecordingWriter:
     def _finish(self) -> None:
         if self.error is None:
             now = time.time_ns()
-            for name, media, blob in self._end_attachments:
+            try:
+                attachments = self._end_attachments()
+            except Exception as e:  # the report failed: the file is still finished
+                self.notes.append(f"end attachments: {e}")
+                attachments = []
+            for name, media, blob in attachments:
                 if not self._guard(
                     partial(self._writer.add_attachment, now, now, name, media, blob)
                 ):
                     break
             self._guard(self._writer.finish)
-        with contextlib.suppress(OSError):
-            if self.error is None:
-                self._file.flush()
-                os.fsync(self._file.fileno())
+        self._guard(self._file.flush)
         # After a write error the buffered tail cannot be written either: close regardless
         # (the descriptor is closed even when the final flush fails); the file stays.
         with contextlib.suppress(OSError, ValueError):
