@@ -1,11 +1,14 @@
 """The MCAP writer: on its own thread, so the event loop never waits on the disk.
 
 The recorder node hands each message to :meth:`RecordingWriter.submit`, which only appends to
-a bounded queue (frames by reference: the node holds a link on the shared-memory slot until
-the thread has written it, so no pixel is copied on the loop). The thread encodes (see
-:mod:`.encoding`), writes through the official ``mcap`` writer, and finishes a chunk at
-least every ``flush_interval`` seconds: after a ``kill -9`` the file is readable up to the
-last finished chunk, so at most ``flush_interval`` (1 s by default) or one chunk is lost.
+a bounded queue (frames by reference: the node holds a link on the shared-memory slot, so no
+pixel is copied on the loop). Two threads follow: the *encoder* turns each message into its
+bytes (see :mod:`.encoding`; for a frame that is the one copy of its pixels, after which the
+slot goes back to its pool) and the *disk* thread writes them through the official ``mcap``
+writer. Encoded messages may wait up to ``max_bytes``, so a disk that stalls for a moment
+holds memory, not the camera's pool slots. The disk thread finishes a chunk at least every
+``flush_interval`` seconds: after a ``kill -9`` the file is readable up to the last finished
+chunk, so at most ``flush_interval`` (1 s by default) or one chunk is lost.
 
 Nothing is lost silently. A full queue (the disk or the encoder cannot keep up) refuses the
 message and counts it against its stream (``lost_behind``); a write error (disk full, file
@@ -49,12 +52,17 @@ class StreamCounters:
     written: int = 0
     bytes: int = 0
     lost_behind: int = 0
-    lost_error: int = 0
+    refused_error: int = 0  # refused at submit after a write error (the loop counts these)
+    unwritten: int = 0  # queued but not written: encode or write failed (the writer counts)
     first_time: float | None = None  # seconds, the runtime clock (log time of the first)
     last_time: float | None = None
     first_seen: float | None = None  # runtime clock when the first / last one arrived
     last_seen: float | None = None
     intervals: Running = field(default_factory=Running)
+
+    @property
+    def lost_error(self) -> int:
+        return self.refused_error + self.unwritten
 
     @property
     def lost(self) -> int:
@@ -80,6 +88,8 @@ class RecordingWriter:
         max_frames: frames a stream may have waiting; each holds a shared-memory slot, and a
             frame pool has 16 by default, so this stays well below.
         max_messages: other messages that may wait, all streams together.
+        max_bytes: encoded messages that may wait for the disk (256 MiB by default: more
+            than a second of two 1936x1216 cameras at 20 fps).
         on_written: called from the writer thread after a frame was written, so the owner can
             give its link back on the event loop.
     """
@@ -95,6 +105,7 @@ class RecordingWriter:
         flush_interval: float = 1.0,
         max_frames: int = 8,
         max_messages: int = 10000,
+        max_bytes: int = 256 << 20,
         on_written: Callable[[], None] | None = None,
     ) -> None:
         self.path = Path(path)
@@ -105,6 +116,7 @@ class RecordingWriter:
         self.flush_interval = flush_interval
         self.max_frames = max_frames
         self.max_messages = max_messages
+        self.max_bytes = max_bytes
         self.on_written = on_written
         self.streams: dict[str, StreamCounters] = {}
         self.error: str | None = None
@@ -116,6 +128,10 @@ class RecordingWriter:
         self._cond = threading.Condition()
         self._closing = False
         self._thread: threading.Thread | None = None
+        self._encoder: threading.Thread | None = None
+        self._encoded: deque[tuple[_Item, Encoded | None] | None] = deque()  # None: the end
+        self._encoded_bytes = 0
+        self._disk = threading.Condition()
         self._file: Any = None
         self._writer: Any = None
         self._schemas: dict[StreamSchema, int] = {}
@@ -157,9 +173,11 @@ class RecordingWriter:
             self._file.close()
             raise
         self._writer = w
-        self._thread = threading.Thread(
-            target=self._run, name=f"{THREAD_PREFIX}{self.path.name}", daemon=False
+        self._encoder = threading.Thread(
+            target=self._encode_loop, name=f"{THREAD_PREFIX}{self.path.name} encoder"
         )
+        self._thread = threading.Thread(target=self._run, name=f"{THREAD_PREFIX}{self.path.name}")
+        self._encoder.start()
         self._thread.start()
 
     def declare(self, topic: str, source: str = "", **meta: str) -> StreamCounters:
@@ -184,7 +202,7 @@ class RecordingWriter:
             s.first_seen = t
         s.last_seen = t
         if self.error is not None or self.closed:
-            s.lost_error += 1
+            s.refused_error += 1
             return False
         is_frame = isinstance(value, Frame)
         with self._cond:
@@ -230,10 +248,12 @@ class RecordingWriter:
 
     def join(self, timeout: float | None = None) -> bool:
         """Wait for a requested close; True when the file is finished."""
-        if self._thread is not None:
-            self._thread.join(timeout)
-            if self._thread.is_alive():
-                return False
+        end = None if timeout is None else time.monotonic() + timeout
+        for t in (self._encoder, self._thread):
+            if t is not None:
+                t.join(None if end is None else max(0.0, end - time.monotonic()))
+                if t.is_alive():
+                    return False
         self.closed = True
         return True
 
@@ -264,21 +284,65 @@ class RecordingWriter:
 
     # --- on the writer thread ---------------------------------------------------------------
 
-    def _run(self) -> None:
-        last_flush = time.monotonic()
+    def _encode_loop(self) -> None:
+        """Encoder thread: messages to bytes; a frame's slot goes back right after."""
         while True:
             with self._cond:
                 while not self._queue and not self._closing:
-                    self._cond.wait(timeout=max(0.0, self.flush_interval / 2))
+                    self._cond.wait()
+                if not self._queue:
+                    break  # closing and nothing left
+                item = self._queue.popleft()
+                if isinstance(item.value, Frame):
+                    self._inflight = item.value
+            enc = self._encode_item(item)
+            with self._disk:
+                while self._encoded_bytes > self.max_bytes and self.error is None:
+                    self._disk.wait(0.1)  # the disk is behind: the queue above fills, counted
+                self._encoded.append((item, enc))
+                self._encoded_bytes += len(enc.data) if enc is not None else 0
+                self._disk.notify()
+        with self._disk:
+            self._encoded.append(None)
+            self._disk.notify()
+
+    def _encode_item(self, item: _Item) -> Encoded | None:
+        is_frame = isinstance(item.value, Frame)
+        try:
+            return None if self.error is not None else self._encode(item)
+        except Exception as e:  # a value that cannot be encoded: counted, said once
+            if item.topic not in self._unencodable:
+                self._unencodable.add(item.topic)
+                self.notes.append(f"{item.topic}: cannot encode {type(item.value).__name__}: {e}")
+            return None
+        finally:
+            # The pixels are in the encoded bytes now: the slot goes back to its pool.
+            if is_frame:
+                self._inflight = None
+                self._frame_done(item)
+            else:
+                with self._cond:
+                    self._messages_waiting -= 1
+
+    def _run(self) -> None:
+        """Disk thread: encoded messages into the file, a chunk finished every flush_interval."""
+        last_flush = time.monotonic()
+        while True:
+            with self._disk:
+                while not self._encoded:
+                    self._disk.wait(timeout=max(0.0, self.flush_interval / 2))
                     if time.monotonic() - last_flush >= self.flush_interval:
                         break
-                item = self._queue.popleft() if self._queue else None
-                if item is None and self._closing:
-                    break
-                if item is not None and isinstance(item.value, Frame):
-                    self._inflight = item.value
-            if item is not None:
-                self._write(item)
+                got = bool(self._encoded)
+                entry = self._encoded.popleft() if got else None
+                if entry is not None:
+                    enc = entry[1]
+                    self._encoded_bytes -= len(enc.data) if enc is not None else 0
+                    self._disk.notify()
+            if got and entry is None:
+                break  # the encoder's end mark: everything queued is in
+            if entry is not None:
+                self._write(entry[0], entry[1])
             if self.error is None and time.monotonic() - last_flush >= self.flush_interval:
                 self._guard(self._writer.flush)  # a finished chunk survives kill -9
                 last_flush = time.monotonic()
@@ -286,33 +350,17 @@ class RecordingWriter:
         if self._on_finished is not None:
             self._on_finished()
 
-    def _write(self, item: _Item) -> None:
+    def _write(self, item: _Item, enc: Encoded | None) -> None:
         s = self.streams[item.topic]
-        is_frame = isinstance(item.value, Frame)
-        try:
-            enc = None if self.error is not None else self._encode(item)
-        except Exception as e:  # a value that cannot be encoded: counted, said once
-            enc = None
-            if item.topic not in self._unencodable:
-                self._unencodable.add(item.topic)
-                self.notes.append(f"{item.topic}: cannot encode {type(item.value).__name__}: {e}")
-        finally:
-            # The pixels are in ``enc`` now: the slot goes back before the disk write.
-            if is_frame:
-                self._inflight = None
-                self._frame_done(item)
-            else:
-                with self._cond:
-                    self._messages_waiting -= 1
-        if enc is None:
-            s.lost_error += 1
+        if enc is None or self.error is not None:
+            s.unwritten += 1
             return
         cid = self._channel(item.topic, enc.schema)
         ns = round((item.t + self.epoch_offset) * 1e9)
         if not self._guard(
             lambda: self._writer.add_message(cid, ns, enc.data, ns, item.seq & 0xFFFFFFFF)
         ):
-            s.lost_error += 1
+            s.unwritten += 1
             return
         s.written += 1
         s.bytes += len(enc.data)
