@@ -81,7 +81,9 @@ class Frames(Node):
         return frame
 
 
-def streams_graph(n: int, fps: float, size: tuple[int, int], out: Path | None) -> flowrt.Graph:
+def streams_graph(
+    n: int, fps: float, size: tuple[int, int], out: Path | None, crc: bool = True
+) -> flowrt.Graph:
     g = flowrt.GraphBuilder(f"{n}x{size[0]}x{size[1]}@{fps:g}")
     period = 1000.0 / fps
     for i in range(n):
@@ -96,7 +98,7 @@ def streams_graph(n: int, fps: float, size: tuple[int, int], out: Path | None) -
         g.add(
             "rec",
             "recorder",
-            params={"path": str(out), "name": "bench"},
+            params={"path": str(out), "name": "bench", "crc": crc},
             inputs={
                 f"cam{i}.frame": {"from": f"cam{i}.frame", "policy": "lossless", "size": 16}
                 for i in range(n)
@@ -111,9 +113,9 @@ def cpu_seconds() -> float:
 
 
 async def run_streams(
-    n: int, fps: float, size: tuple[int, int], seconds: float, out: Path | None
+    n: int, fps: float, size: tuple[int, int], seconds: float, out: Path | None, crc: bool = True
 ) -> dict[str, Any]:
-    graph = streams_graph(n, fps, size, out)
+    graph = streams_graph(n, fps, size, out, crc)
     c0 = cpu_seconds()
     t0 = time.perf_counter()
     async with flowrt.Runtime(graph) as rt:
@@ -179,21 +181,22 @@ def throughput(args: argparse.Namespace) -> None:
     print(machine() + "\n")
     dd_before = disk_speed(base)
     rows = []
-    for n in args.streams:
+    for n, crc in [(n, crc) for n in args.streams for crc in (True, False)]:
         folder = Path(tempfile.mkdtemp(dir=base))
         base_run = flowrt.run(run_streams(n, 20, (1936, 1216), args.seconds, None))
-        rec = flowrt.run(run_streams(n, 20, (1936, 1216), args.seconds, folder))
+        rec = flowrt.run(run_streams(n, 20, (1936, 1216), args.seconds, folder, crc))
         rep = rec["report"]
         written = sum(s["bytes"] for s in rep["streams"])
         mbps = written / rep["duration"] / 1e6
         for s in rep["streams"]:
             rows.append(
-                f"| {n} | {s['topic']} | {s['expected']} | {s['received']} | {s['written']} | "
+                f"| {n} | {'yes' if crc else 'no'} | {s['topic']} | {s['expected']} | "
+                f"{s['received']} | {s['written']} | "
                 f"**{s['lost']}** | {s['rate_mean']:.2f} | {s['rate_min']:.2f} | "
                 f"{s['rate_max']:.2f} | {s['bytes'] / 1e6:.0f} MB |"
             )
         rows.append(
-            f"| {n} | *all* | | | | | | | | writer **{mbps:.0f} MB/s**; "
+            f"| {n} | {'yes' if crc else 'no'} | *all* | | | | | | | | writer **{mbps:.0f} MB/s**; "
             f"close {rec['close_s']:.2f} s; CPU {rec['cpu_percent']:.0f}% vs "
             f"{base_run['cpu_percent']:.0f}% without recording; pool drops "
             f"{rec['pool_dropped']}; source skips {rec['skipped']} |"
@@ -283,11 +286,13 @@ def fidelity(args: argparse.Namespace) -> None:
         for fps in (5, 10, 20, 30):
             for n in (1, 2):
                 folder = Path(tempfile.mkdtemp(dir=base))
-                rec = flowrt.run(run_streams(n, fps, size, args.seconds, folder))
-                info = scan(rec["session"] / "bench_001.mcap")
+                rec = flowrt.run(run_streams(n, fps, size, args.seconds, folder, crc=False))
+                mcap = rec["session"] / "bench_001.mcap"
+                info = scan(mcap)
                 lost = sum(s["lost"] for s in rec["report"]["streams"])
                 got = [s.rate_mean or 0.0 for s in info.streams]
-                results.append((size, fps, n, min(got), max(got), lost))
+                med = _median_fps(mcap)
+                results.append((size, fps, n, min(got), max(got), lost, med))
                 shutil.rmtree(folder)
                 print(f"<!-- {size} {fps} {n}: {got} lost {lost} -->", flush=True)
     print(
@@ -307,7 +312,7 @@ def fidelity(args: argparse.Namespace) -> None:
         fig, ax = plt.subplots(figsize=(6, 4))
         for size in ((640, 480), (1280, 720), (1936, 1216)):
             for n, marker in ((1, "o"), (2, "s")):
-                pts = [(f, lo) for s, f, k, lo, _, _ in results if s == size and k == n]
+                pts = [(r[1], r[3]) for r in results if r[0] == size and r[2] == n]
                 ax.plot(*zip(*pts, strict=True), marker=marker, label=f"{size[0]}x{size[1]} x{n}")
         ax.plot([0, 32], [0, 32], color="grey", lw=0.5, ls="--")
         ax.set_xlabel("requested fps")
@@ -322,6 +327,22 @@ def fidelity(args: argparse.Namespace) -> None:
         print("\n(matplotlib not installed: no plot)\n")
 
 
+def _median_fps(path: Path) -> float:
+    """1 / the median interval between recorded frames (lowest over the streams)."""
+    from mcap.reader import make_reader
+
+    times: dict[str, list[int]] = {}
+    with open(path, "rb") as f:
+        for _, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            times.setdefault(channel.topic, []).append(message.log_time)
+    rates = []
+    for t in times.values():
+        iv = np.diff(np.array(sorted(t), dtype=np.float64)) / 1e9
+        if len(iv):
+            rates.append(1.0 / float(np.median(iv)))
+    return min(rates) if rates else 0.0
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("what", choices=("throughput", "cambada", "fidelity", "all"))
@@ -329,6 +350,7 @@ def main() -> None:
     p.add_argument("--streams", type=int, nargs="+", default=[2, 3])
     p.add_argument("--dir", default=str(REPO / "benchmarks" / "results" / "rec_tmp"))
     args = p.parse_args()
+    Path(args.dir).mkdir(parents=True, exist_ok=True)
     todo = ("throughput", "cambada", "fidelity") if args.what == "all" else (args.what,)
     default = {"throughput": 15.0, "cambada": 15.0, "fidelity": 5.0}
     given = args.seconds

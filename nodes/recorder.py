@@ -66,6 +66,9 @@ class Recorder(Node):
             default=1.0, gt=0, description="s: a chunk is finished at least this often"
         )
         max_frames: int = Field(default=8, ge=1, description="frames waiting, per stream")
+        crc: bool = Field(
+            default=True, description="chunk CRCs: damage found; off halves the CPU cost"
+        )
         graph_file: str | None = Field(default=None, description="attached as graph.yaml")
         log_report: bool = Field(default=True, description="log the table when a recording stops")
 
@@ -121,6 +124,7 @@ class Recorder(Node):
             compression=p.compression,
             flush_interval=p.flush_interval,
             max_frames=p.max_frames,
+            crc=p.crc,
             on_written=self._written,
         )
         attachments = [("timing.json", "application/json", timing_json(stats))]

@@ -128,6 +128,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         "graph_file": str(Path(args.file).resolve()),
         "images": images,
         "compression": args.compression,
+        "crc": not args.no_crc,
         "log_report": False,  # printed below, once
     }
     try:
@@ -527,6 +528,11 @@ def add_parsers(sub: Any) -> None:
         help="jpeg|png|raw for every image stream, or TOPIC=jpeg,... (default raw RawImage)",
     )
     rec.add_argument("--compression", choices=("none", "lz4", "zstd"), default="none")
+    rec.add_argument(
+        "--no-crc",
+        action="store_true",
+        help="no chunk CRCs: half the writer's CPU, but damage inside a chunk goes unseen",
+    )
     rec.add_argument("--no-ui", action="store_true", help="log lines instead of the live table")
     rec.add_argument("--stats-json", metavar="PATH", help="write the run's final statistics")
     rec.set_defaults(func=cmd_record)
