@@ -142,19 +142,12 @@ async def run_streams(
     return result
 
 
-def disk_speed(folder: Path, mib: int = 512) -> float:
-    """MB/s of ``dd`` with direct I/O into ``folder`` (the file is removed)."""
+def disk_speed(folder: Path, mib: int = 512, direct: bool = True) -> float:
+    """MB/s of ``dd`` into ``folder``, direct I/O or through the page cache (file removed)."""
     target = folder / "dd.tmp"
+    flags = ["oflag=direct", "conv=fsync"] if direct else []
     r = subprocess.run(
-        [
-            "dd",
-            "if=/dev/zero",
-            f"of={target}",
-            "bs=8M",
-            f"count={mib // 8}",
-            "oflag=direct",
-            "conv=fsync",
-        ],
+        ["dd", "if=/dev/zero", f"of={target}", "bs=8M", f"count={mib // 8}", *flags],
         capture_output=True,
         text=True,
     )

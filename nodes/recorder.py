@@ -40,7 +40,7 @@ from flowrt.recording.session import SESSION_FILE, session_metadata, timing_json
 
 COMMAND_RECORD = "flowrt.record."
 """RTDB record ``flowrt.record.NODE`` = ``start`` | ``stop``: what ``flowrt ctl record`` writes."""
-FINISH_WAIT = 1.5
+FINISH_WAIT = 1.0
 """Seconds a stop waits for the file to be finished before leaving it to the writer thread."""
 STATUS_RECORD = "flowrt.recording."
 """RTDB record ``flowrt.recording.NODE``: the current session folder, or "" when stopped."""
@@ -66,6 +66,9 @@ class Recorder(Node):
             default=1.0, gt=0, description="s: a chunk is finished at least this often"
         )
         max_frames: int = Field(default=8, ge=1, description="frames waiting, per stream")
+        direct_io: bool = Field(
+            default=True, description="O_DIRECT writes where possible: past a slow page cache"
+        )
         crc: bool = Field(
             default=True, description="chunk CRCs: damage found; off halves the CPU cost"
         )
@@ -125,6 +128,7 @@ class Recorder(Node):
             flush_interval=p.flush_interval,
             max_frames=p.max_frames,
             crc=p.crc,
+            direct_io=p.direct_io,
             on_written=self._written,
         )
         attachments = [("timing.json", "application/json", timing_json(stats))]
@@ -167,7 +171,7 @@ class Recorder(Node):
         writer.request_close(attachments, partial(self._finished, session, report))
         for frame in writer.detach_frames():
             frame.release()
-        for _ in range(200):  # the frame being encoded now, if any (a few ms)
+        for _ in range(100):  # the frame being encoded now, if any (a few ms)
             if not writer.encoding_frame():
                 break
             await asyncio.sleep(0.005)

@@ -33,6 +33,7 @@ import numpy as np
 
 from ..frames import Frame
 from ..stats import Running
+from .directio import open_direct
 from .encoding import Encoded, StreamSchema, encode_frame, encode_json, schema_for
 
 __all__ = ["RecordingWriter", "StreamCounters"]
@@ -90,6 +91,8 @@ class RecordingWriter:
         max_messages: other messages that may wait, all streams together.
         max_bytes: encoded messages that may wait for the disk (256 MiB by default: more
             than a second of two 1936x1216 cameras at 20 fps).
+        direct_io: write with ``O_DIRECT`` (see :mod:`.directio`), where the file system
+            allows it.
         crc: chunk CRCs, so that damage inside a chunk is found (``info``, ``replay``); they
             cost as much CPU as the rest of the writing (zlib's CRC-32, ~12 ms per 7 MB frame
             on the loaded dev VM), so a high-rate recording may turn them off.
@@ -110,6 +113,7 @@ class RecordingWriter:
         max_messages: int = 10000,
         max_bytes: int = 256 << 20,
         crc: bool = True,
+        direct_io: bool = False,
         on_written: Callable[[], None] | None = None,
     ) -> None:
         self.path = Path(path)
@@ -122,6 +126,7 @@ class RecordingWriter:
         self.max_messages = max_messages
         self.max_bytes = max_bytes
         self.crc = crc
+        self.direct_io = direct_io
         self.on_written = on_written
         self.streams: dict[str, StreamCounters] = {}
         self.error: str | None = None
@@ -164,7 +169,9 @@ class RecordingWriter:
             "lz4": CompressionType.LZ4,
             "zstd": CompressionType.ZSTD,
         }[self.compression]
-        self._file = open(self.path, "xb")  # noqa: SIM115 - closed by the writer thread
+        self._file = open_direct(self.path) if self.direct_io else None
+        if self._file is None:
+            self._file = open(self.path, "xb")  # noqa: SIM115 - closed by the writer thread
         try:
             w = Writer(
                 self._file, chunk_size=self.chunk_size, compression=comp, enable_crcs=self.crc
