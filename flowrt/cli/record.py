@@ -125,6 +125,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         return EXIT_BAD_GRAPH
     params = {
         "session": str(session),
+        "path": str(args.output),  # where a session started later (flowrt ctl) goes
+        "name": args.name,
         "graph_file": str(Path(args.file).resolve()),
         "images": images,
         "compression": args.compression,
