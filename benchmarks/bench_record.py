@@ -286,10 +286,14 @@ def fidelity(args: argparse.Namespace) -> None:
                 info = scan(mcap)
                 lost = sum(s["lost"] for s in rec["report"]["streams"])
                 got = [s.rate_mean or 0.0 for s in info.streams]
-                med = _median_fps(mcap)
-                results.append((size, fps, n, min(got), max(got), lost, med))
+                results.append((size, fps, n, min(got), max(got), lost))
                 shutil.rmtree(folder)
                 print(f"<!-- {size} {fps} {n}: {got} lost {lost} -->", flush=True)
+    report_fidelity(results)
+
+
+def report_fidelity(results: list[Any]) -> None:
+    """The table and the plot of (size, fps, streams, lowest fps, highest fps, lost) rows."""
     print(
         "| resolution | requested fps | streams | recorded fps (min of streams) | "
         "error fps | lost |"
@@ -320,22 +324,6 @@ def fidelity(args: argparse.Namespace) -> None:
         print(f"\nPlot: benchmarks/results/{png.name}\n")
     except ImportError:
         print("\n(matplotlib not installed: no plot)\n")
-
-
-def _median_fps(path: Path) -> float:
-    """1 / the median interval between recorded frames (lowest over the streams)."""
-    from mcap.reader import make_reader
-
-    times: dict[str, list[int]] = {}
-    with open(path, "rb") as f:
-        for _, channel, message in make_reader(f).iter_messages(log_time_order=False):
-            times.setdefault(channel.topic, []).append(message.log_time)
-    rates = []
-    for t in times.values():
-        iv = np.diff(np.array(sorted(t), dtype=np.float64)) / 1e9
-        if len(iv):
-            rates.append(1.0 / float(np.median(iv)))
-    return min(rates) if rates else 0.0
 
 
 def main() -> None:
