@@ -660,7 +660,7 @@ class Can(Node):
             if value is not None:
                 self._take(self.msgs[name], value)
         if self.bus is not None:
-            half = self.tick / 2
+            half = min(self.tick / 2, 0.0005)  # timer releases are never early
             for st in self.txs:
                 if not st.have_value:
                     continue
@@ -702,8 +702,7 @@ class Can(Node):
         self.rxs = [
             st
             for st in self.msgs.values()
-            if st.timeout is not None
-            and (not st.tx if watched is None else st.dbc.name in watched)
+            if st.timeout is not None and (not st.tx if watched is None else st.dbc.name in watched)
         ]
         self.supervise_from = self.ctx.now()
         if p.replay is not None:
