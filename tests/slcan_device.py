@@ -49,9 +49,13 @@ class _Pacer:
         self.free_at = 0.0
 
     def wait(self, nbytes: int) -> None:
+        """Return when ``nbytes`` more have left the line. A UART's FIFO sends back to back,
+        so a thread that woke a little late catches up; after an idle gap (> 5 ms) the line
+        starts afresh."""
         now = time.perf_counter()
-        start = max(now, self.free_at)
-        self.free_at = start + nbytes * self.byte_s
+        if now - self.free_at > 0.005:
+            self.free_at = now
+        self.free_at += nbytes * self.byte_s
         delay = self.free_at - now
         if delay > 0:
             time.sleep(delay)
