@@ -36,15 +36,17 @@ Transmit
     per message, whose wake-ups drift under load). Messages without a cycle time are sent
     once per new input value, on the next tick. A configured counter signal is incremented
     and a configured checksum computed on every send. A tick that runs past the node's
-    ``deadline`` is a deadline miss like any other; a send more than half a tick late or a
-    cycle skipped altogether is counted (``late``). On serial interfaces (``slcan`` and
-    the like, where a write waits for the wire) frames are written by a sender thread.
+    ``deadline`` is a deadline miss like any other; a cycle skipped altogether (the tick
+    came a whole cycle late) is counted (``late``). On serial interfaces (``slcan`` and the
+    like, where a write waits for the wire) frames are written by a sender thread.
 
 Supervision (as opendbc does for cars)
     - A periodic message not received within ``timeout_factor`` (10) times its cycle (or its
       ``timeout_ms``) is republished with ``valid: false`` and ``reason: timeout`` and a
       ``HealthAlert`` is raised; it is valid again with the next good frame. Messages this
-      node transmits are not supervised; ``receive`` limits supervision to a list.
+      node transmits are not supervised. ``receive`` names the messages the node receives
+      at all: only those are supervised, and acceptance filters keep the others out (in
+      the adapter where it has them, else in python-can's reader), as an ECU filters.
     - With a ``counter`` signal, a counter that is not the previous one plus one (skipped or
       repeated) is counted; with a ``checksum`` signal (one byte; ``xor``, ``sum`` or
       SAE J1850 ``crc8`` over the other bytes), a mismatch is counted. Each bad frame adds
@@ -220,7 +222,9 @@ class CanParams(BaseModel):
     )
     messages: dict[str, MessageParams] = Field(default_factory=dict)
     receive: list[str] | None = Field(
-        default=None, description="messages to supervise (default: all it does not send)"
+        default=None,
+        description="the messages to receive, supervise and let through the interface's "
+        "filters (default: all, supervising those it does not send)",
     )
     timeout_factor: float = Field(default=10.0, gt=0, description="timeout in cycles")
     max_bad: int = Field(default=5, ge=1, description="bad frames before a message is invalid")
@@ -459,6 +463,8 @@ class Can(Node):
             kwargs["channel"] = p.channel
         if p.bitrate is not None:
             kwargs["bitrate"] = p.bitrate
+        if p.receive is not None and "can_filters" not in kwargs:
+            kwargs["can_filters"] = self._filters(p.receive)
 
         def open_bus() -> Any:
             import can
@@ -505,6 +511,18 @@ class Can(Node):
             )
             self.threads.append(writer)
             writer.start()
+
+    def _filters(self, names: list[str]) -> list[dict[str, Any]]:
+        """Acceptance filters for the messages this node receives (in the adapter where it
+        has them, else in python-can before the frame reaches this node)."""
+        out = []
+        for name in names:
+            m = self.db.get_message_by_name(name)
+            ext = bool(m.is_extended_frame)
+            out.append({"can_id": m.frame_id, "can_mask": 0x1FFFFFFF if ext else 0x7FF,
+                        "extended": ext})
+        # none at all: a filter no frame matches (an empty list would accept everything)
+        return out or [{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}]
 
     def _failed_open(self, exc: BaseException) -> None:
         p: CanParams = self.params
@@ -662,7 +680,9 @@ class Can(Node):
         if self.bus is not None:
             half = min(self.tick / 2, 0.0005)  # timer releases are never early
             for st in self.txs:
-                if not st.have_value:
+                if not st.have_value:  # nothing to send yet: keep to the cycle's grid
+                    while st.cycle and st.due <= t + half:
+                        st.due += st.cycle / 1000
                     continue
                 if st.cycle:
                     if t + half < st.due:

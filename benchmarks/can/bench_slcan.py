@@ -58,8 +58,11 @@ async def measure(params: dict[str, Any], peer: can.BusABC, frames: int, probes:
         sent: dict[int, float] = {}
         for k in range(probes):
             sent[k] = time.monotonic()
-            peer.send(can.Message(arbitration_id=0x700, data=k.to_bytes(2, "big") + bytes(6),
-                                  is_extended_id=False))
+            peer.send(
+                can.Message(
+                    arbitration_id=0x700, data=k.to_bytes(2, "big") + bytes(6), is_extended_id=False
+                )
+            )
             await asyncio.sleep(0.02)
         await asyncio.sleep(0.3)
         lat = []
@@ -72,8 +75,9 @@ async def measure(params: dict[str, Any], peer: can.BusABC, frames: int, probes:
                 lat.append((f.timestamp - sent[int.from_bytes(f.data[:2], "big")]) * 1000)
         # throughput: a burst of 8-byte frames
         for k in range(frames):
-            peer.send(can.Message(arbitration_id=0x701, data=k.to_bytes(8, "big"),
-                                  is_extended_id=False))
+            peer.send(
+                can.Message(arbitration_id=0x701, data=k.to_bytes(8, "big"), is_extended_id=False)
+            )
         got: list[float] = []
         last_new = time.monotonic()
         while len(got) < frames and time.monotonic() - last_new < 2.0:
@@ -111,9 +115,15 @@ async def main() -> None:
         peer = can.Bus(interface="virtual", channel=chan)
         try:
             slcan = await measure(
-                {"interface": "slcan", "channel": str(dev.path), "bitrate": 250000,
-                 "options": {"tty_baudrate": BAUD, "sleep_after_open": 0}},
-                peer, args.frames, args.probes,
+                {
+                    "interface": "slcan",
+                    "channel": str(dev.path),
+                    "bitrate": 250000,
+                    "options": {"tty_baudrate": BAUD, "sleep_after_open": 0},
+                },
+                peer,
+                args.frames,
+                args.probes,
             )
         finally:
             peer.shutdown()
@@ -121,28 +131,43 @@ async def main() -> None:
     chan = f"bench-direct-{time.monotonic_ns()}"
     peer = can.Bus(interface="virtual", channel=chan)
     try:
-        direct = await measure({"interface": "virtual", "channel": chan}, peer,
-                               args.frames, args.probes)
+        direct = await measure(
+            {"interface": "virtual", "channel": chan}, peer, args.frames, args.probes
+        )
     finally:
         peer.shutdown()
     ceiling = max_frames_per_s(BAUD, 8)
     wire_ms = line_bytes(8) * 10 / BAUD * 1000
-    doc = {"baud": BAUD, "ceiling_frames_per_s": ceiling, "line_ms": wire_ms,
-           "slcan": slcan, "direct": direct}
+    doc = {
+        "baud": BAUD,
+        "ceiling_frames_per_s": ceiling,
+        "line_ms": wire_ms,
+        "slcan": slcan,
+        "direct": direct,
+    }
     print(json.dumps(doc, indent=2))
     s, d = slcan["latency_ms"], direct["latency_ms"]
-    print(f"\n| path | frames/s (burst of {args.frames}) | of ceiling | latency p50 ms | "
-          "p99 ms | max ms |")
+    print(
+        f"\n| path | frames/s (burst of {args.frames}) | of ceiling | latency p50 ms | "
+        "p99 ms | max ms |"
+    )
     print("|---|---:|---:|---:|---:|---:|")
-    print(f"| slcan 115200 baud via pty | {slcan['frames_per_s']:.1f} | "
-          f"{100 * slcan['frames_per_s'] / ceiling:.1f} % | {s['p50']:.3f} | {s['p99']:.3f} | "
-          f"{s['max']:.3f} |")
-    print(f"| virtual bus directly | {direct['frames_per_s']:.0f} | - | {d['p50']:.3f} | "
-          f"{d['p99']:.3f} | {d['max']:.3f} |")
-    print(f"\nceiling {ceiling:.1f} frames/s (22-character lines); one line on the wire "
-          f"{wire_ms:.3f} ms; added latency p50 {s['p50'] - d['p50']:.3f} ms")
+    print(
+        f"| slcan 115200 baud via pty | {slcan['frames_per_s']:.1f} | "
+        f"{100 * slcan['frames_per_s'] / ceiling:.1f} % | {s['p50']:.3f} | {s['p99']:.3f} | "
+        f"{s['max']:.3f} |"
+    )
+    print(
+        f"| virtual bus directly | {direct['frames_per_s']:.0f} | - | {d['p50']:.3f} | "
+        f"{d['p99']:.3f} | {d['max']:.3f} |"
+    )
+    print(
+        f"\nceiling {ceiling:.1f} frames/s (22-character lines); one line on the wire "
+        f"{wire_ms:.3f} ms; added latency p50 {s['p50'] - d['p50']:.3f} ms"
+    )
     if args.json:
-        Path(args.json).write_text(json.dumps(doc, indent=2))
+        with open(args.json, "w") as f:  # noqa: ASYNC230 (after the measurement)
+            json.dump(doc, f, indent=2)
 
 
 if __name__ == "__main__":
