@@ -12,10 +12,11 @@ For each scenario the script
 1. runs ``flowrt can analyse scenarioN.dbc --bitrate 125000`` (the paper: 15 055 and
    32 435 bit/s) and keeps the worst-case response times;
 2. runs the scenario as a flowrt graph on one python-can virtual bus (scenarioN.yaml): a
-   ``can-signals`` simulator per sensor feeding the ``can`` node of its ECU (encoders,
-   infrared, and the PC sending the motor set-points), the motors' ECU receiving the set-
-   points, and a controller (:class:`Controller`) receiving every sensor message from the
-   PC's ``can`` node. Each ``can`` node sends on flowrt's timer at its DBC cycle time.
+   ``can-signals`` simulator per message feeding the robot's ``can`` node (the encoders and
+   infrared sensors) or the PC's (the motor set-points); a controller
+   (:class:`Controller`) receives every sensor message from the PC's ``can`` node, and an
+   actuator recorder the set-points from the robot's. Each ``can`` node sends on
+   flowrt's timer at the DBC cycle times.
    A passive monitor bus (read only after the run) gives every frame, written to an .asc
    trace with python-can's ``Logger``;
 3. measures the load with ``flowrt can stats trace.asc --bitrate 125000`` (frames x their
@@ -90,10 +91,16 @@ def scenario_graph(n: int, channel: str) -> dict[str, Any]:
             "infrared": {f"Infrared{i}": (f"Infrared{i}Value", 0, 20.0) for i in (1, 2)},
             "pc": {f"Motor{i}": (f"Motor{i}Value", 0, 1000 / 33) for i in (1, 2, 3)},
         }
+    # Two bus participants, as on the robot: its sensor board (encoders and infrared) and
+    # the PC (sends the motor set-points). Each is one ``can`` node; every node in this one
+    # process wakes a reader thread per frame (the virtual bus is in-process), so fewer
+    # participants disturb the measure less.
+    sensor_msgs = [*groups["encoders"], *groups["infrared"]]
+    motor_msgs = list(groups["pc"])
     nodes: dict[str, Any] = {}
+    inputs: dict[str, dict[str, str]] = {"robot": {}, "pc": {}}
     for ecu, msgs in groups.items():
-        inputs = {}
-        ticks = set()
+        side = "pc" if ecu == "pc" else "robot"
         for msg, (sig, count, period) in msgs.items():
             sigs = [f"{sig}{i}" for i in range(1, count + 1)] if count else [sig]
             sim = f"sim_{msg.lower()}"
@@ -105,44 +112,29 @@ def scenario_graph(n: int, channel: str) -> dict[str, Any]:
                     "signals": {s: {"wave": "count", "modulo": 100} for s in sigs},
                 },
             }
-            inputs[msg] = f"{sim}.values"
-            ticks.add(period)
-        nodes[f"ecu_{ecu}"] = {
+            inputs[side][msg] = f"{sim}.values"
+    for side, tick, receive in (("robot", 10.0, motor_msgs), ("pc", 1000 / 33, sensor_msgs)):
+        nodes[side] = {
             "kind": "can",
             "priority": 40,
             "params": {
                 "interface": "virtual",
                 "channel": channel,
                 "dbc": dbc,
-                "tick_ms": min(ticks),
-                "receive": [],
+                "tick_ms": tick,
+                "receive": receive,
             },
-            "inputs": inputs,
+            "inputs": inputs[side],
         }
-    nodes["ecu_motors"] = {  # receives the set-points (supervised), sends nothing
-        "kind": "can",
-        "priority": 40,
-        "params": {
-            "interface": "virtual",
-            "channel": channel,
-            "dbc": dbc,
-            "tick_ms": 100,
-            "receive": list(groups["pc"]),
-        },
+    nodes["controller"] = {  # the PC's controller: every sensor message
+        "kind": "paper:Controller",
+        "priority": 45,
+        "inputs": {m: {"from": f"pc.{m}", "policy": "queue", "size": 64} for m in sensor_msgs},
     }
     nodes["actuators"] = {  # the motors' side of the set-points, for their response times
         "kind": "paper:Controller",
         "priority": 45,
-        "inputs": {
-            m: {"from": f"ecu_motors.{m}", "policy": "queue", "size": 64} for m in groups["pc"]
-        },
-    }
-    sensor_msgs = [*groups["encoders"], *groups["infrared"]]
-    nodes["ecu_pc"]["params"]["receive"] = sensor_msgs
-    nodes["controller"] = {
-        "kind": "paper:Controller",
-        "priority": 45,
-        "inputs": {m: {"from": f"ecu_pc.{m}", "policy": "queue", "size": 64} for m in sensor_msgs},
+        "inputs": {m: {"from": f"robot.{m}", "policy": "queue", "size": 64} for m in motor_msgs},
     }
     return {
         "name": f"can-paper-scenario{n}",
