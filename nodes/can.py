@@ -146,6 +146,7 @@ class MessageStatus:
     bad_checksum: int
     bad_length: int
     late: int
+    bad_inputs: int  # input values that did not fit the message (not sent)
     valid: bool
 
 
@@ -359,6 +360,7 @@ class _Msg:
     counter: int = 0
     sent: int = 0
     late: int = 0
+    bad_inputs: int = 0
     window: int = 0  # frames since the last status
 
     @property
@@ -519,8 +521,9 @@ class Can(Node):
         for name in names:
             m = self.db.get_message_by_name(name)
             ext = bool(m.is_extended_frame)
-            out.append({"can_id": m.frame_id, "can_mask": 0x1FFFFFFF if ext else 0x7FF,
-                        "extended": ext})
+            out.append(
+                {"can_id": m.frame_id, "can_mask": 0x1FFFFFFF if ext else 0x7FF, "extended": ext}
+            )
         # none at all: a filter no frame matches (an empty list would accept everything)
         return out or [{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}]
 
@@ -729,14 +732,30 @@ class Can(Node):
             self._open_replay()
 
     def _take(self, st: _Msg, value: Any) -> None:
+        """Keep an input value for sending; a value that does not fit the message is counted
+        (``bad_inputs``) and logged, not raised: one bad producer must not stop the bus."""
         signals = value.signals if isinstance(value, CanMessage) else value
+        problem = ""
         if not isinstance(signals, Mapping):
-            raise TypeError(f"{st.dbc.name}: expected a mapping of signal values, got {value!r}")
+            problem = f"expected a mapping of signal values, got {type(value).__name__}"
+        else:
+            names = {s.name for s in st.dbc.signals}
+            unknown = sorted(set(signals) - names)
+            if unknown:
+                problem = f"no signal {', '.join(map(repr, unknown))}"
+        if problem:
+            st.bad_inputs += 1
+            if st.bad_inputs == 1 or st.bad_inputs % 1000 == 0:
+                self.ctx.log.warning(
+                    "%s: input %s (%d so far): %s",
+                    self.ctx.name,
+                    st.dbc.name,
+                    st.bad_inputs,
+                    problem,
+                )
+            return
         if not st.have_value:
             st.value = {s.name: (s.initial if s.initial is not None else 0) for s in st.dbc.signals}
-        unknown = set(signals) - set(st.value)
-        if unknown:
-            raise KeyError(f"{st.dbc.name} has no signal {sorted(unknown)}")
         st.value.update(signals)
         st.have_value = True
         st.fresh = True
@@ -865,6 +884,7 @@ class Can(Node):
                     st.bad_checksum,
                     st.bad_length,
                     st.late,
+                    st.bad_inputs,
                     not st.timed_out and st.fail < self.params.max_bad,
                 )
             )

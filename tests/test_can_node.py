@@ -381,3 +381,21 @@ async def test_replay_a_trace_at_its_timing(channel: str, peer: can.BusABC, tmp_
         while (m := peer.recv(0)) is not None:
             got.append(m)
         assert [m.data[0] for m in got] == [0, 1, 2, 3, 4]
+
+
+async def test_input_that_does_not_fit_is_counted_not_raised(
+    channel: str, peer: can.BusABC
+) -> None:
+    clock = VirtualClock()
+    g = graph(channel, inputs={"MotorSetpoints": "ctl.values"})
+    g.add("ctl", "can-signals", params={"rate_ms": 20, "signals": {"Nope": {"value": 1}}})
+    async with Runtime(g.build(), clock=clock) as rt:
+        n = await opened(rt)
+        await clock.advance(0.2)
+        await asyncio.sleep(0.05)
+        assert n.msgs["MotorSetpoints"].bad_inputs >= 10
+        assert n.msgs["MotorSetpoints"].sent == 0
+        assert peer.recv(0) is None
+        assert rt.scheduler.runners["chassis"].errors == 0
+        row = {r.name: r for r in n.snapshot().messages}["MotorSetpoints"]
+        assert row.bad_inputs == n.msgs["MotorSetpoints"].bad_inputs
