@@ -63,7 +63,9 @@ Replay
     bus at their recorded timing (to the resolution of the tick), once or ``replay_loop``.
 
 Every ``status_ms`` the node publishes a :class:`CanBusStatus` on ``status``: per message
-received/sent, rate, age, timeouts, bad counters/checksums/lengths, late sends, validity.
+received/sent, rate, age, timeouts, bad counters/checksums/lengths, late sends, validity;
+it is also kept in the RTDB record ``<node>.can`` (``flowrt ctl rtdb chassis.can`` while
+the graph runs with ``--control``).
 The DBC is loaded when the graph is validated: a file that does not parse is one error line.
 """
 
@@ -234,6 +236,9 @@ class CanParams(BaseModel):
     reopen_ms: float = Field(default=100.0, gt=0, description="first reopen backoff")
     reopen_max_ms: float = Field(default=5000.0, gt=0)
     status_ms: float = Field(default=1000.0, gt=0, description="status output period")
+    status_record: bool = Field(
+        default=True, description="also keep the status in the RTDB record '<node>.can'"
+    )
     send_thread: bool | None = Field(
         default=None, description="write frames from a thread (default: serial interfaces)"
     )
@@ -438,6 +443,7 @@ class Can(Node):
         self.threads: list[threading.Thread] = []
         self.txq: queue.SimpleQueue[Any] | None = None
         self.last_status = 0.0
+        self.keep_status = p.status_record
         self.replay_iter: Iterator[Any] | None = None
         self.replay_t0 = 0.0
         self.replay_next: Any = None
@@ -705,7 +711,20 @@ class Can(Node):
         self._supervise(now)
         if t - self.last_status >= self.params.status_ms / 1000:
             self.last_status = t
-            self.ctx.publish("status", self.snapshot())
+            status = self.snapshot()
+            self.ctx.publish("status", status)
+            if self.keep_status:
+                self._record_status(status)
+
+    def _record_status(self, status: CanBusStatus) -> None:
+        """Keep the status in the RTDB (``<node>.can``): ``flowrt ctl rtdb chassis.can``
+        shows it while the graph runs."""
+        try:
+            db = self.ctx.rtdb
+        except RuntimeError:  # no RTDB (outside a Runtime): nothing to keep it in
+            self.keep_status = False
+            return
+        db.write(f"{self.ctx.name}.can", status, validity_ms=3 * self.params.status_ms)
 
     def _start(self, inputs: Mapping[str, Any]) -> None:
         self.started = True

@@ -399,3 +399,29 @@ async def test_input_that_does_not_fit_is_counted_not_raised(
         assert rt.scheduler.runners["chassis"].errors == 0
         row = {r.name: r for r in n.snapshot().messages}["MotorSetpoints"]
         assert row.bad_inputs == n.msgs["MotorSetpoints"].bad_inputs
+
+
+async def test_status_is_published_and_kept_in_the_rtdb(channel: str, peer: can.BusABC) -> None:
+    clock = VirtualClock()
+    async with Runtime(graph(channel, status_ms=100).build(), clock=clock) as rt:
+        status = rt.subscribe("chassis.status")
+        n = await opened(rt)
+        peer.send(frame("Infrared", Front=5))
+        await until(lambda: n.msgs["Infrared"].received == 1)
+        await clock.advance(0.25)
+        last = status.get_nowait()
+        while True:
+            try:
+                last = status.get_nowait()
+            except LookupError:
+                break
+        assert last.open
+        assert last.received == 1
+        rows = {r.name: r for r in last.messages}
+        assert rows["Infrared"].received == 1
+        assert 200 <= rows["Infrared"].age_ms <= 250  # the status of the last 100 ms tick
+        assert rows["Infrared"].timeouts == 1  # 20 ms cycle: 200 ms without it is a timeout
+        assert not rows["Infrared"].valid
+        kept = rt.rtdb.read("chassis.can")
+        assert kept is not None
+        assert kept.value.received == 1
