@@ -285,10 +285,8 @@ def _graph_json(verdict: Any, tables: Any, advice: Any, paste: str) -> dict[str,
 
 def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, paste: str) -> None:
     console = stdout_console()
-    t = Table(
-        title=f"{file}: worst-case response times ({cpus} CPUs; from release, ms)",
-        title_justify="left",
-    )
+    console.print(f"{file}: worst-case response times on {cpus} CPUs (from release, ms)")
+    t = Table()
     for col in (
         "node",
         "where",
@@ -327,11 +325,11 @@ def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, p
     for tab in tables:
         cpu_cols = sorted({c for k in tab.ticks for c in k.per_cpu_ms})
         frame = f"{tab.frame_ms:g} ms" if tab.frame_ms else "unknown interval"
-        lt = Table(
-            title=f"load per tick of {tab.source} (frame {frame}; summed budgets, ms)"
-            + (" — first ticks only" if tab.truncated else ""),
-            title_justify="left",
+        console.print(
+            f"load per tick of {tab.source} (frame {frame}; summed budgets, ms)"
+            + (" - first ticks only" if tab.truncated else "")
         )
+        lt = Table()
         for col in ("tick", "nodes", "loop", "workers", "pool", *cpu_cols, "total", "of frame"):
             lt.add_column(col, justify="left" if col == "nodes" else "right")
         heavy = tab.heaviest
@@ -409,6 +407,10 @@ def _plot(tables: Any, path: str) -> str | None:
         )
         if tab.frame_ms:
             ax.axhline(tab.frame_ms, color="grey", linestyle="--", label="frame interval")
+        ax.set_xlim(-0.6, len(xs) - 0.4)
+        if len(xs) <= 32:
+            ax.set_xticks(xs)
+        ax.set_ylim(0, 1.4 * max(tab.frame_ms or 0.0, max(bottom, default=0.0), 1e-3))
         ax.set_title(f"{tab.source}: summed budget per tick")
         ax.set_xlabel("tick (frame)")
         ax.set_ylabel("ms")
