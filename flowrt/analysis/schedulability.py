@@ -110,6 +110,7 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
     nodes = [t for t in timing.values() if t.enabled]
     nodes.sort(key=lambda t: (-t.priority, t.order))
     notes: dict[str, str] = {}
+    idle: set[str] = set()  # never activated: nothing to miss
     streams: dict[str, list[_Stream]] = {}
     for t in nodes:
         period = interval_ms(timing, t.name)
@@ -118,8 +119,13 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
         elif period is None:
             notes[t.name] = "no known period (free-running or fed by one)"
         elif t.trigger == "input":
+            if not any(p in timing and timing[p].enabled for p in t.producers):
+                idle.add(t.name)
+                continue
             streams[t.name] = []
             for p in t.producers:
+                if p not in timing or not timing[p].enabled:
+                    continue  # a disabled producer sends nothing
                 pi = interval_ms(timing, p)
                 assert pi is not None  # interval_ms(t) is known only if all producers' are
                 streams[t.name].append(_Stream(t.name, pi, p))
@@ -146,10 +152,10 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
                 j = 0.0
                 if s.producer in arrival_r:
                     j = arrival_r[s.producer]
-                    if by_name[s.producer].trigger != "input":
+                    if timing[s.producer].trigger != "input":
                         # completes at most once per own tick (overruns are skipped)
                         j = min(j, streams[s.producer][0].period)
-                fed_by_loop = s.producer is not None and by_name[s.producer].placement == "inline"
+                fed_by_loop = s.producer is not None and timing[s.producer].placement == "inline"
                 if by_name[n].placement != "inline" and not fed_by_loop:
                     j += loop_block  # the loop may be in an inline node when it should release
                 new_jit[(n, k)] = j
@@ -179,6 +185,8 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
                 schedulable=ok,
                 note=note,
             )
+        elif n in idle:
+            v = replace(v, schedulable=True, note="never activated: every producer is disabled")
         else:
             v = replace(v, note=notes.get(n, ""))
         verdicts.append(v)
