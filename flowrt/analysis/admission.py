@@ -27,7 +27,6 @@ from ..spec import TimingOverride
 from .schedulability import GraphVerdict, analyse
 from .timing import Budget, NodeTiming, apply_changes, graph_timing
 
-
 log = logging.getLogger("flowrt.admission")
 
 
