@@ -154,7 +154,11 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
             return EXIT_BAD_GRAPH
         budgets = got
     elif args.measure is not None:
-        budgets = _measure(graph, args.measure, args.wcet_stat, err)
+        try:
+            budgets = _measure(graph, args.measure, args.wcet_stat, err)
+        except Exception as e:  # a node that cannot start, a port taken: one line, exit 1
+            err.print(f"flowrt check: the measuring run failed: {e}", markup=False)
+            return EXIT_FAILED
     timing = graph_timing(graph, budgets)
     verdict = analyse(timing, cpus)
     tables = load_tables(timing)
