@@ -134,16 +134,23 @@ def _horizon(me: _T, hp: Sequence[_T], extra: int) -> int | None:
     From w <= extra + sum_j ((w + J_j)/T_j + 1) C_j over hp and the task itself:
     w <= (extra + sum_j C_j (1 + J_j/T_j)) / (1 - U) when U < 1. At U = 1 exactly the busy
     period may still end (synchronous harmonic sets do); bound it then by a generous multiple
-    of the longest period and report non-convergence past it.
+    of the longest period and report non-convergence past it. Floats with a wide margin (the
+    bound only has to be above the busy period); exact fractions only when U is within 1e-9
+    of 1, where the float cannot tell.
     """
     allts = [*hp, me]
-    u = _utilisation(allts)
-    if u > 1:
+    u_f = sum(x.c / x.t for x in allts)
+    if abs(u_f - 1) < 1e-9:
+        u = _utilisation(allts)
+        if u > 1:
+            return None
+        if u == 1:
+            return extra + 1000 * max(x.t for x in allts) + sum(x.j for x in allts)
+        u_f = float(u)
+    elif u_f > 1:
         return None
-    if u == 1:
-        return extra + 1000 * max(x.t for x in allts) + sum(x.j for x in allts)
-    num = extra + sum(Fraction(x.c) * (1 + Fraction(x.j, x.t)) for x in allts)
-    return math.ceil(num / (1 - u)) + 1
+    num = extra + sum(x.c * (1 + x.j / x.t) for x in allts)
+    return math.ceil(num / (1 - u_f) * 1.001) + 1000
 
 
 def _fixed_point(start: int, step: Callable[[int], int], limit: int) -> int | None:
@@ -223,8 +230,11 @@ def _non_preemptive(me: _T, hp: Sequence[_T]) -> tuple[int, int, int] | None:
     return worst, worst_rel, n
 
 
-def response_times(tasks: Sequence[Task], *, preemptive: bool = True) -> list[Response]:
-    """Worst-case response time of every task, in the order given.
+def response_times(
+    tasks: Sequence[Task], *, preemptive: bool = True, only: int | None = None
+) -> list[Response]:
+    """Worst-case response time of every task, in the order given (of ``tasks[only]`` alone
+    when ``only`` is given: the list then has that one response).
 
     Preemptive: each task's own ``blocking`` is used as B. Non-preemptive: B is the larger of
     the task's own ``blocking`` and the longest lower-priority execution time (less 1 ns).
@@ -234,6 +244,8 @@ def response_times(tasks: Sequence[Task], *, preemptive: bool = True) -> list[Re
         raise ValueError("every period must be at least 1 ns")
     out: list[Response] = []
     for i, task in enumerate(tasks):
+        if only is not None and i != only:
+            continue
         hp_i, lp_i = _interferers(tasks, i)
         me = ints[i]
         hp = [ints[k] for k in hp_i]

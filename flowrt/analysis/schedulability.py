@@ -210,12 +210,15 @@ def _pass(
             return None
         return Task(f"{n}#{k}", budget[n], streams[n][k].period, None, j, blocking, prio)
 
+    # every stream's task once per pass: as itself, and (inline) as the loop seen by a worker
+    own = {
+        (n, k): task(n, k, by_name[n].priority) for n, ss in streams.items() for k in range(len(ss))
+    }
+    as_loop = {(n, k): task(n, k, LOOP_PRIORITY) for n in inline for k in range(len(streams[n]))}
     results: dict[str, list[Response | None]] = {}
     blocking: dict[str, float] = {}
     # the event loop: non-preemptive fixed priority among inline nodes
-    loop_tasks = [
-        (n, task(n, k, by_name[n].priority)) for n in inline for k in range(len(streams[n]))
-    ]
+    loop_tasks = [(n, own[(n, k)]) for n in inline for k in range(len(streams[n]))]
     if any(t is None for _, t in loop_tasks):
         for n in inline:
             results[n] = [None]
@@ -243,16 +246,14 @@ def _pass(
             )
         blocking[n] = b
         for k in range(len(ss)):
-            mine = task(n, k, me.priority, b)
+            mine = task(n, k, me.priority, b) if b else own[(n, k)]
             others: list[Task | None] = []
             for other, oss in streams.items():
                 o = by_name[other]
                 if o.placement == "inline":
-                    others += [task(other, i, LOOP_PRIORITY) for i in range(len(oss))]
+                    others += [as_loop[(other, i)] for i in range(len(oss))]
                 elif _overlap(me, o) and o.priority >= me.priority:
-                    others += [
-                        task(other, i, o.priority) for i in range(len(oss)) if (other, i) != (n, k)
-                    ]
+                    others += [own[(other, i)] for i in range(len(oss)) if (other, i) != (n, k)]
             if mine is None or any(o is None for o in others):
                 results.setdefault(n, []).append(None)
                 continue
@@ -261,7 +262,7 @@ def _pass(
             if m >= 2:
                 results.setdefault(n, []).append(global_response_time(mine, hp, m))
             else:
-                results.setdefault(n, []).append(response_times([mine, *hp])[0])
+                results.setdefault(n, []).append(response_times([mine, *hp], only=0)[0])
     arrival: dict[str, float] = {}
     release: dict[str, float] = {}
     for n, rs in results.items():
