@@ -65,7 +65,9 @@ async def test_the_overload_controller_is_not_checked(rt: Runtime) -> None:
     assert rt.stats().node("other").priority == 40
 
 
-async def test_flowrt_ctl_refuses_then_forces(rt: Runtime) -> None:
+async def test_flowrt_ctl_refuses_then_forces(
+    rt: Runtime, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert rt.control is not None
     base = ["ctl", "--url", rt.control.url]
 
@@ -74,6 +76,7 @@ async def test_flowrt_ctl_refuses_then_forces(rt: Runtime) -> None:
 
     code = await asyncio.to_thread(ctl, "timing", "other", "--timer", "2", "--priority", "40")
     assert code == 1
+    assert "refused by admission control" in capsys.readouterr().err
     assert rt.stats().node("other").priority == 20
     code = await asyncio.to_thread(
         ctl, "timing", "other", "--timer", "2", "--priority", "40", "--force"

@@ -203,3 +203,14 @@ def test_plot_writes_a_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert code == 0
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert f"plotted to {png}" in out
+
+
+def test_plot_without_matplotlib_is_one_clear_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import fails as if not installed
+    path = _write(tmp_path, "g.yaml", GRAPH.replace("DEADLINE", "8ms"))
+    code, _, err = _run(capsys, path, "--cpus", "2", "--plot", str(tmp_path / "x.png"))
+    assert code == 2
+    assert "--plot needs matplotlib" in err
+    assert "Traceback" not in err

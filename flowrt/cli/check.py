@@ -165,7 +165,7 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
     advice = advise(timing)
     paste = snippet(advice, timing)
     if args.json:
-        print(json.dumps(_graph_json(verdict, tables, advice, paste), indent=2))
+        print(json.dumps({**_graph_json(verdict, tables, advice, paste), "cpus": cpus}, indent=2))
     else:
         _print_graph(args.file, cpus, verdict, tables, advice, paste)
     if args.plot:
