@@ -6,6 +6,8 @@ import sys
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 TESTS = Path(__file__).parent
 if str(TESTS) not in sys.path:  # the typed test kinds, `graphkinds:FrameSource` etc.
@@ -177,6 +179,28 @@ def test_timer_phases_are_advised_apart() -> None:
     assert (adv.clock, adv.peak_before, adv.peak_after) == ("timers", 10, 5)
     assert sorted(adv.after.values()) == [0, 25]
     assert "{timer: 50ms, phase: 25ms}" in snippet([adv], t)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.sampled_from([1, 2, 3, 4, 6]), st.integers(1, 9), st.integers(0, 5)),
+        min_size=1,
+        max_size=5,
+    )
+)
+def test_phase_search_finds_the_least_heaviest_tick(items: list[tuple[int, int, int]]) -> None:
+    from itertools import product
+    from math import lcm
+
+    from flowrt.analysis.phases import _Item, _loads, search
+
+    its = [_Item(f"n{i}", p, ph % p, float(w)) for i, (p, w, ph) in enumerate(items)]
+    h = lcm(*(it.period for it in its))
+    got = max(_loads(its, search(its, h), h))
+    best = min(max(_loads(its, list(c), h)) for c in product(*(range(it.period) for it in its)))
+    assert got == best
+    assert got <= max(_loads(its, [it.phase for it in its], h))  # never worse than now
 
 
 def test_wcet_must_be_finite_and_positive() -> None:

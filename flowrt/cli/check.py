@@ -441,6 +441,16 @@ def _duration_s(text: str) -> float:
     return ms / 1000
 
 
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError("must be at least 1")
+    return n
+
+
 def add_parsers(sub: Any) -> None:
     ck = sub.add_parser(
         "check",
@@ -462,7 +472,10 @@ def add_parsers(sub: Any) -> None:
         help="which execution-time statistic is the budget (default p99)",
     )
     ck.add_argument(
-        "--cpus", type=int, metavar="N", help="CPUs of the target machine (default: this one's)"
+        "--cpus",
+        type=_positive_int,
+        metavar="N",
+        help="CPUs of the target machine (default: this one's)",
     )
     ck.add_argument("--json", action="store_true", help="machine-readable result")
     ck.add_argument("--plot", metavar="PNG", help="plot the load per tick (needs matplotlib)")
