@@ -114,6 +114,8 @@ def _check_tasks(args: argparse.Namespace, text: str, err: Console) -> int:
 
 
 def _verdict_line(ok: bool, util: float, misses: list[str], unknown: list[str]) -> str:
+    """The last line: the verdict, who may miss, who has no budget; utilisation is summed
+    over every resource (so above 100 % is possible on several CPUs)."""
     if ok:
         return f"[green]schedulable[/]: every deadline holds (utilisation {util:.1%})"
     parts = []
