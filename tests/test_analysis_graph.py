@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -18,7 +19,7 @@ from flowrt.analysis.load import load_tables  # noqa: E402
 from flowrt.analysis.phases import advise, snippet  # noqa: E402
 from flowrt.analysis.rta import Task, global_response_time  # noqa: E402
 from flowrt.analysis.schedulability import analyse  # noqa: E402
-from flowrt.analysis.timing import apply_changes, graph_timing  # noqa: E402
+from flowrt.analysis.timing import Budget, NodeTiming, apply_changes, graph_timing  # noqa: E402
 from flowrt.spec import TimingOverride  # noqa: E402
 
 pytestmark = pytest.mark.timeout(30)
@@ -211,3 +212,61 @@ def test_wcet_must_be_finite_and_positive() -> None:
             Graph.from_text(
                 f"nodes:\n  c: {{kind: counter, trigger: {{timer: 5ms}}, wcet: {bad}}}\n"
             )
+
+
+@st.composite
+def _timings(draw: st.DrawFn) -> dict[str, NodeTiming]:
+    """Random graphs' timing tables: timers, frame readers, input chains, any placement."""
+    n = draw(st.integers(1, 7))
+    out: dict[str, NodeTiming] = {}
+    for i in range(n):
+        name = f"n{i}"
+        earlier = list(out)
+        kind = draw(st.sampled_from(["timer", "frame", "input"] if earlier else ["timer"]))
+        budget = draw(st.one_of(st.none(), st.floats(0.01, 30)))
+        t = NodeTiming(
+            name=name,
+            trigger=kind,
+            priority=draw(st.integers(1, 99)),
+            placement=draw(st.sampled_from(["inline", "process", "pool"])),
+            order=i,
+            enabled=draw(st.booleans()) or i == 0,
+            deadline_ms=draw(st.one_of(st.none(), st.floats(0.5, 100))),
+            budget=None if budget is None else Budget(budget, "test"),
+        )
+        if t.placement == "process":
+            t = replace(t, cpus=draw(st.one_of(st.none(), st.sampled_from([(0,), (1,), (0, 1)]))))
+        if kind == "timer":
+            t = replace(t, timer_ms=draw(st.sampled_from([5.0, 10.0, 20.0, 50.0])))
+        elif kind == "frame":
+            period = draw(st.integers(1, 4))
+            t = replace(
+                t,
+                source=draw(st.sampled_from(earlier)),
+                period=period,
+                phase=draw(st.integers(0, period - 1)),
+            )
+        else:
+            picks = draw(st.lists(st.sampled_from(earlier), min_size=1, max_size=3, unique=True))
+            t = replace(t, producers=tuple(picks))
+        out[name] = t
+    return out
+
+
+@settings(max_examples=120, deadline=None)
+@given(_timings(), st.integers(1, 4))
+def test_any_graph_is_analysed_without_error(timing: dict[str, NodeTiming], cpus: int) -> None:
+    """Admission control runs this on every run-time change: it must never raise, and every
+    bound it gives is at least the node's own budget and no more than infinity."""
+    v = analyse(timing, cpus)
+    assert [x.name for x in v.nodes] == sorted(
+        (t.name for t in timing.values() if t.enabled),
+        key=lambda n: (-timing[n].priority, timing[n].order),
+    )
+    for x in v.nodes:
+        if x.response_ms is not None and x.budget is not None:
+            assert x.response_ms >= x.budget.ms - 1e-6
+        if x.schedulable is None:
+            assert x.note
+    load_tables(timing)
+    advise(timing)
