@@ -185,7 +185,7 @@ def snippet(advice: Sequence[PhaseAdvice], timing: Mapping[str, NodeTiming]) -> 
             continue
         unit = "ms" if a.measure == "ms" else " nodes"
         lines.append(
-            f"# {a.clock}: heaviest tick {a.peak_before:g}{unit} -> {a.peak_after:g}{unit}"
+            f"# {a.clock}: heaviest tick {a.peak_before:.4g}{unit} -> {a.peak_after:.4g}{unit}"
         )
         for name, ph in a.changed.items():
             t = timing[name]

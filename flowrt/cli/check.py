@@ -359,15 +359,15 @@ def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, p
         what = f"{a.clock} ({'frames' if a.unit == 'frame' else 'ms'})"
         if a.changed:
             console.print(
-                f"phase advice for {what}: heaviest tick {a.peak_before:g}{unit} -> "
-                f"{a.peak_after:g}{unit}; "
+                f"phase advice for {what}: heaviest tick {a.peak_before:.4g}{unit} -> "
+                f"{a.peak_after:.4g}{unit}; "
                 + ", ".join(f"{n} {a.before[n]:g} -> {p:g}" for n, p in a.changed.items()),
                 markup=False,
             )
         else:
             console.print(
                 f"phase advice for {what}: the current phases are already best "
-                f"(heaviest tick {a.peak_before:g}{unit})",
+                f"(heaviest tick {a.peak_before:.4g}{unit})",
                 markup=False,
             )
     if paste:
