@@ -214,3 +214,24 @@ def test_plot_without_matplotlib_is_one_clear_line(
     assert code == 2
     assert "--plot needs matplotlib" in err
     assert "Traceback" not in err
+
+
+def test_a_mode_is_analysed_with_its_overrides(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    graph = GRAPH.replace("DEADLINE", "8ms") + (
+        "modes:\n  busy: {nodes: {hi: {period: 1}, lo: {enabled: false}}}\n  calm: {}\n"
+        "initial_mode: busy\n"
+    )
+    path = _write(tmp_path, "g.yaml", graph)
+    code, out, _ = _run(capsys, path, "--cpus", "2", "--json")  # initial_mode by default
+    data = json.loads(out)
+    assert data["mode"] == "busy"
+    assert [t["name"] for t in data["tasks"]] == ["cam", "hi"]  # lo disabled
+    assert data["tasks"][1]["period_ms"] == 10
+    code, out, _ = _run(capsys, path, "--cpus", "2", "--json", "--mode", "calm")
+    assert [t["name"] for t in json.loads(out)["tasks"]] == ["cam", "hi", "lo"]
+    code, _, err = _run(capsys, path, "--mode", "bsuy")
+    assert code == 2
+    assert "unknown mode 'bsuy'" in err
+    assert "busy" in err

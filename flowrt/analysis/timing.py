@@ -155,3 +155,25 @@ def interval_ms(timing: Mapping[str, NodeTiming], name: str, _depth: int = 0) ->
 
 def finite(x: float | None) -> bool:
     return x is not None and math.isfinite(x)
+
+
+def with_mode(timing: Mapping[str, NodeTiming], graph: Graph, mode: str) -> dict[str, NodeTiming]:
+    """``timing`` (the graph's own) with the timing overrides of ``mode`` applied, as
+    ``Runtime.set_mode`` applies them from the graph's timing: a new period without a phase
+    keeps the phase if it still fits, else 0. Raises KeyError for an unknown mode."""
+    spec = graph.spec.modes[mode]
+    plan: dict[str, TimingOverride] = {}
+    for name, o in spec.nodes.items():
+        phase = o.phase
+        t = timing[name]
+        if o.period is not None and phase is None and t.trigger == "frame":
+            phase = t.phase if t.phase < o.period else 0
+        plan[name] = TimingOverride.model_construct(
+            period=o.period,
+            phase=phase,
+            timer=o.timer,
+            deadline=o.deadline,
+            priority=o.priority,
+            enabled=o.enabled,
+        )
+    return apply_changes(timing, plan)

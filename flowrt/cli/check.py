@@ -135,7 +135,7 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
     from ..analysis.load import load_tables
     from ..analysis.phases import advise, snippet
     from ..analysis.schedulability import analyse
-    from ..analysis.timing import Budget, graph_timing
+    from ..analysis.timing import Budget, graph_timing, with_mode
 
     graph = load(args.file, err)
     if graph is None:
@@ -162,12 +162,26 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
             err.print(f"flowrt check: the measuring run failed: {e}", markup=False)
             return EXIT_FAILED
     timing = graph_timing(graph, budgets)
+    mode = args.mode if args.mode is not None else graph.spec.initial_mode
+    if mode:
+        if mode not in graph.spec.modes:
+            from ..diagnostics import did_you_mean
+
+            err.print(
+                f"flowrt check: unknown mode {mode!r}" + did_you_mean(mode, graph.spec.modes),
+                markup=False,
+            )
+            return EXIT_BAD_GRAPH
+        timing = with_mode(timing, graph, mode)
+        if not args.json:
+            stdout_console().print(f"timing of mode {mode}", markup=False)
     verdict = analyse(timing, cpus)
     tables = load_tables(timing)
     advice = advise(timing)
     paste = snippet(advice, timing)
     if args.json:
-        print(json.dumps({**_graph_json(verdict, tables, advice, paste), "cpus": cpus}, indent=2))
+        extra = {"cpus": cpus, "mode": mode}
+        print(json.dumps({**_graph_json(verdict, tables, advice, paste), **extra}, indent=2))
     else:
         _print_graph(args.file, cpus, verdict, tables, advice, paste)
     if args.plot:
@@ -478,6 +492,9 @@ def add_parsers(sub: Any) -> None:
         type=_positive_int,
         metavar="N",
         help="CPUs of the target machine (default: this one's)",
+    )
+    ck.add_argument(
+        "--mode", metavar="NAME", help="analyse the timing of this mode (default: initial_mode)"
     )
     ck.add_argument("--json", action="store_true", help="machine-readable result")
     ck.add_argument("--plot", metavar="PNG", help="plot the load per tick (needs matplotlib)")
