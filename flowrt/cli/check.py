@@ -502,15 +502,19 @@ def add_parsers(sub: Any) -> None:
 
 
 def startup_check(graph: Any) -> tuple[bool, list[str]]:
-    """For ``flowrt run``: (no node shown to miss, lines to print) with the declared wcets.
+    """For ``flowrt run``: (no node shown to miss, lines to print) with the declared wcets,
+    in the graph's initial mode.
 
     Nodes without a declared ``wcet`` are not judged (one line says which); a node whose
     bound exceeds its deadline makes the graph unschedulable.
     """
     from ..analysis.schedulability import analyse
-    from ..analysis.timing import graph_timing
+    from ..analysis.timing import graph_timing, with_mode
 
-    verdict = analyse(graph_timing(graph), os.cpu_count() or 1)
+    timing = graph_timing(graph)
+    if graph.spec.initial_mode in graph.spec.modes:
+        timing = with_mode(timing, graph, graph.spec.initial_mode)
+    verdict = analyse(timing, os.cpu_count() or 1)
     misses = [v for v in verdict.nodes if v.schedulable is False]
     unknown = [v.name for v in verdict.nodes if v.schedulable is None]
     lines = [
