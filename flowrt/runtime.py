@@ -29,7 +29,7 @@ from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
-from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement
+from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement, TimingOverride
 from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
@@ -525,8 +525,25 @@ class Runtime:
         priority: int | None = None,
         enabled: bool | None = None,
         origin: str = "api",
+        force: bool = False,
     ) -> str:
-        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms."""
+        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
+
+        Admission control (:mod:`flowrt.analysis.admission`) refuses, with ValueError and
+        nothing applied, a change that would make a node with a deadline unschedulable,
+        unless ``force``. The overload controller's own steps (origin ``qos``) are not
+        checked: they act on measured load.
+        """
+        if not force and origin != "qos":
+            change = TimingOverride.model_construct(
+                period=period,
+                phase=phase,
+                timer=timer,
+                deadline=deadline,
+                priority=priority,
+                enabled=enabled,
+            )
+            self._admit({node: change})
         return self.scheduler.set_timing(
             node,
             period=period,
@@ -538,12 +555,13 @@ class Runtime:
             origin=origin,
         )
 
-    def set_mode(self, mode: str, origin: str = "api") -> None:
+    def set_mode(self, mode: str, origin: str = "api", force: bool = False) -> None:
         """Apply a named mode of the graph file: all of its overrides in one step.
 
         Overrides are relative to the graph's own timing: what the previous mode changed and
         this one does not is returned to the graph's values first (so an empty mode returns
-        to the graph's timing). Nothing else is touched.
+        to the graph's timing). Nothing else is touched. Admission control checks the whole
+        switch as one change (see :meth:`set_timing`), unless ``force``.
         """
         spec = self.graph.spec.modes.get(mode)
         if spec is None:
@@ -555,6 +573,8 @@ class Runtime:
         previous_spec = self.graph.spec.modes.get(self.mode) if self.mode else None
         plan = mode_plan(self.graph, previous_spec, spec)
         check_plan(self.scheduler.runners, plan)  # all or nothing
+        if not force and origin != "graph":  # the initial mode is the graph's own choice
+            self._admit(plan)
         for node, o in plan.items():
             self.set_timing(
                 node,
@@ -565,11 +585,19 @@ class Runtime:
                 priority=o.priority,
                 enabled=o.enabled,
                 origin=f"mode {mode}",
+                force=True,  # checked above as one change
             )
         self._apply_mode_params(previous_spec, spec)
         previous, self.mode = self.mode, mode
         self._emit(ModeChanged(self.now(), None, mode, previous, origin))
         self._record("flowrt.mode", mode)
+
+    def _admit(self, plan: Mapping[str, TimingOverride]) -> None:
+        """Raise ValueError (AdmissionRefused) if ``plan`` breaks a critical deadline."""
+        from .analysis.admission import check_change
+
+        if self._sched is not None:
+            check_change(self.graph, self.scheduler.runners, plan)
 
     async def swap(
         self,

@@ -7,6 +7,7 @@ sources) live in :mod:`flowrt.graph`.
 
 from __future__ import annotations
 
+import math
 import re
 from enum import StrEnum
 from typing import Annotated, Any, Literal
@@ -191,6 +192,10 @@ class NodeSpec(_Strict):
         default=None,
         description="its worker busy-polls this long before (and after) each expected activation",
     )
+    wcet: DurationMs | None = Field(
+        default=None,
+        description="execution-time budget (worst case) for flowrt check and admission control",
+    )
 
     @field_validator("trigger", mode="before")
     @classmethod
@@ -206,6 +211,13 @@ class NodeSpec(_Strict):
     def _positive(cls, v: float | None) -> float | None:
         if v is not None and v <= 0:
             raise ValueError(f"must be positive, got {v:g} ms")
+        return v
+
+    @field_validator("wcet")
+    @classmethod
+    def _wcet_finite(cls, v: float | None) -> float | None:
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ValueError(f"must be a finite positive duration, got {v:g} ms")
         return v
 
     @field_validator("spin")
