@@ -24,13 +24,13 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
 from .eventloop import run as run
-from .events import Event, HealthAlert, ModeChanged, RealtimeStatus
+from .events import Event, HealthAlert, ModeChanged, NodeGaveUp, RealtimeStatus
 from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
 from .spec import EdgePolicy, GraphSpec, Placement
-from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
+from .stats import FramePoolStats, LoopStats, NodeStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
     from .control import ControlConfig, ControlServer
@@ -107,7 +107,12 @@ class Runtime:
         kinds: Mapping[str, type[Node]] | None = None,
         control: ControlConfig | str | None = None,
         spin: float = 0.0,
+        stop_on_failure: bool = False,
     ) -> None:
+        """``stop_on_failure``: a node given up by supervision (state ``failed``) ends ``run``
+        at once (``flowrt run`` does this unless ``--keep-going``); by default the rest of
+        the graph keeps running and the host program reads :meth:`failures`."""
+        self.stop_on_failure = stop_on_failure
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
         if clock is not None and spin:
             raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
@@ -349,6 +354,9 @@ class Runtime:
     def _emit(self, event: Event) -> None:
         self.events.append(event)
         self.event_count += 1
+        if isinstance(event, NodeGaveUp) and self.stop_on_failure:
+            log.error("stopping: node %s failed (%s)", event.node, event.reason)
+            self.request_stop()
         if isinstance(event, HealthAlert):
             self._record("flowrt.alerts", event)
         for m in self.monitors:
@@ -476,6 +484,15 @@ class Runtime:
             frames=self._frame_stats(),
             events=self.event_count,
         )
+
+    def failures(self) -> list[NodeStats]:
+        """The nodes that failed: given up by supervision (state ``failed``) or in an error
+        state they reported (``ctx.set_error``: e.g. a source that cannot be opened or never
+        delivered a frame). Empty when the run went well; ``flowrt run`` exits 1 otherwise.
+        Valid during the run and after it (the verdict of the run's end)."""
+        if self._sched is None:
+            return []
+        return [n for n in self.stats().nodes if n.state in ("failed", "error")]
 
     def _frame_stats(self) -> list[FramePoolStats]:
         if self._frames is None or getattr(self._frames, "closed", False):

@@ -12,7 +12,15 @@ from typing import Any
 from rich.console import Console
 
 from ..eventloop import new_event_loop
-from .common import EXIT_BAD_GRAPH, load, plain_handler, setup_logging, stdout_console
+from .common import (
+    EXIT_BAD_GRAPH,
+    EXIT_FAILED,
+    EXIT_OK,
+    load,
+    plain_handler,
+    setup_logging,
+    stdout_console,
+)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -34,7 +42,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     monitors: list[Any] = [monitor]
     control = _control_config(args, err)
     rt = Runtime(
-        graph, monitors=monitors, realtime=args.realtime, control=control, spin=args.spin / 1000
+        graph,
+        monitors=monitors,
+        realtime=args.realtime,
+        control=control,
+        spin=args.spin / 1000,
+        stop_on_failure=not args.keep_going,
     )
 
     async def main() -> None:
@@ -63,7 +76,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
-    return 0
+    return _verdict(rt.failures(), err)
+
+
+def _verdict(failures: list[Any], err: Console) -> int:
+    """Exit 1 when the run ends with a node failed or in error, one line per node."""
+    for n in failures:
+        what = "failed" if n.state == "failed" else "in error"
+        err.print(f"flowrt run: node {n.name} {what}: {n.reason}", markup=False, style="red")
+    return EXIT_FAILED if failures else EXIT_OK
 
 
 def _control_config(args: argparse.Namespace, err: Console) -> Any:
@@ -132,4 +153,10 @@ def add_parsers(sub: Any) -> None:
         help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="keep the rest of the graph running when a node fails for good (default: stop at"
+        " once); the exit code is 1 either way",
+    )
     run.set_defaults(func=cmd_run)

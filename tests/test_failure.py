@@ -1,0 +1,262 @@
+"""Supervision (flowrt.supervision) and failure verdicts: back-off, give-up, log rate limit,
+``Runtime.failures()``, ``stop_on_failure`` and the exit codes of ``flowrt run``.
+
+Scheduler tests run on virtual time, so thousands of failures take milliseconds and nothing
+depends on the machine's speed.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import flowrt
+from flowrt import GraphBuilder, Runtime, VirtualClock
+from flowrt.spec import RestartPolicy
+from flowrt.supervision import SUMMARY_INTERVAL, backoff_s, give_up_reason
+
+TESTS = Path(__file__).resolve().parent
+REPO = TESTS.parent
+if str(TESTS) not in sys.path:
+    sys.path.insert(0, str(TESTS))
+
+from failkinds import AlwaysFails, FailsEveryOther, SetupFails  # noqa: E402
+
+pytestmark = pytest.mark.timeout(60)
+
+
+# --- the rule, as pure functions -------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("consecutive", "expected_ms"),
+    [(1, 100.0), (2, 200.0), (3, 400.0), (6, 3200.0), (7, 5000.0), (1025, 5000.0), (10**9, 5000.0)],
+)
+def test_backoff_doubles_then_caps_and_never_overflows(
+    consecutive: int, expected_ms: float
+) -> None:
+    assert backoff_s(RestartPolicy(), consecutive) * 1000 == pytest.approx(expected_ms)
+
+
+@pytest.mark.parametrize(
+    ("policy", "consecutive", "restarts", "fatal", "gives_up"),
+    [
+        ({}, 1, 0, False, None),
+        ({}, 9, 100, False, None),
+        ({}, 10, 9, False, "10 consecutive failures"),
+        ({"max_failures": 3}, 3, 2, False, "3 consecutive failures"),
+        ({"max_failures": None}, 10**6, 10**6, False, None),
+        ({"policy": "never"}, 1, 0, False, "restart policy never"),
+        ({"max_restarts": 5}, 1, 5, False, "max_restarts 5"),
+        ({}, 1, 0, True, "restarting cannot help"),
+    ],
+)
+def test_give_up_reason(
+    policy: dict[str, Any], consecutive: int, restarts: int, fatal: bool, gives_up: str | None
+) -> None:
+    why = give_up_reason(RestartPolicy(**policy), consecutive, restarts, fatal)
+    if gives_up is None:
+        assert why is None
+    else:
+        assert why is not None
+        assert gives_up in why
+
+
+# --- the scheduler applies it ----------------------------------------------------------------
+
+
+async def test_1025th_consecutive_failure_does_not_overflow() -> None:
+    """Driven by the failure count, not by waiting 85 minutes."""
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("bad", AlwaysFails, trigger={"timer": "10ms"}, restart={"max_failures": None})
+    async with Runtime(g.build(), clock=clock) as rt:
+        runner = rt.scheduler.runners["bad"]
+        runner.consecutive_failures = 1023
+        await clock.advance(0.015)  # the first activation fails: failure number 1024
+        assert runner.consecutive_failures == 1024
+        restarts = [e for e in rt.events if isinstance(e, flowrt.NodeRestarted)]
+        await clock.advance(5.02)
+        s = rt.stats().node("bad")
+        restarts = [e for e in rt.events if isinstance(e, flowrt.NodeRestarted)]
+        await clock.advance(5.02)
+        assert rt.stats().node("bad").errors >= 2  # failure 1025 and on: still supervised
+    assert s.state in ("backoff", "idle")
+    assert restarts
+    assert restarts[0].backoff_ms == pytest.approx(5000.0)
+
+
+async def test_crash_loop_at_startup_is_given_up() -> None:
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("dev", SetupFails, trigger={"timer": "10ms"}, restart={"max_failures": 3})
+    g.add("ok", "counter", trigger={"timer": "10ms"})
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(30.0)
+        s = rt.stats()
+        failures = rt.failures()
+        gave_up = [e for e in rt.events if isinstance(e, flowrt.NodeGaveUp)]
+    dev = s.node("dev")
+    assert dev.state == "failed"
+    assert dev.errors == 3
+    assert dev.restarts == 2
+    assert "3 consecutive failures" in dev.reason
+    assert "cannot open the device" in dev.reason
+    assert [e.node for e in gave_up] == ["dev"]
+    assert gave_up[0].reason == dev.reason
+    assert [n.name for n in failures] == ["dev"]
+    assert s.node("ok").completions >= 2990  # the rest of the graph kept running
+
+
+async def test_persistent_failure_is_given_up_by_default() -> None:
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("bad", AlwaysFails, trigger={"timer": "10ms"})
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(120.0)  # back-offs 0.1+0.2+...+5 s: given up after ~22 s
+        bad = rt.stats().node("bad")
+    assert bad.state == "failed"
+    assert bad.errors == RestartPolicy().max_failures == 10
+    assert "10 consecutive failures" in bad.reason
+
+
+async def test_intermittent_failure_is_never_given_up() -> None:
+    FailsEveryOther.calls = 0
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("flaky", FailsEveryOther, trigger={"timer": "10ms"}, restart={"max_failures": 2})
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(5.0)
+        flaky = rt.stats().node("flaky")
+        assert rt.failures() == []
+    assert flaky.state != "failed"
+    assert flaky.errors >= 10
+    assert flaky.completions >= 10
+
+
+async def test_failures_log_one_traceback_then_rate_limited_summaries(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    clock = VirtualClock()
+    g = GraphBuilder()
+    policy = {"backoff": "1ms", "max_backoff": "1ms", "max_failures": None}
+    g.add("ball_fr", AlwaysFails, trigger={"timer": "10ms"}, restart=policy)
+    caplog.set_level(logging.ERROR, logger="flowrt")
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(2.5 * SUMMARY_INTERVAL)
+        errors = rt.stats().node("ball_fr").errors
+    assert errors >= 2000  # one failure per 10 ms tick for 25 s
+    texts = [r.getMessage() for r in caplog.records if r.name.startswith("flowrt")]
+    tracebacks = [t for t in texts if "Traceback" in t]
+    assert len(tracebacks) == 1
+    assert "ValueError: boom" in tracebacks[0]
+    summaries = [
+        re.match(r"ball_fr: (\d+) more failures of the same kind in the last (\d+) s", t)
+        for t in texts
+    ]
+    counts = [int(m.group(1)) for m in summaries if m]
+    assert len(counts) == 3  # at 10 s and 20 s, then the rest at stop
+    assert sum(counts) + 1 == errors  # every failure accounted for, none lost
+    assert len(texts) <= 5
+
+
+async def test_stop_on_failure_ends_run_at_once() -> None:
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("dev", SetupFails, trigger={"timer": "10ms"}, restart={"policy": "never"})
+    g.add("ok", "counter", trigger={"timer": "10ms"})
+    async with Runtime(g.build(), clock=clock, stop_on_failure=True) as rt:
+        await rt.run()  # no duration: returns only because the node failed
+        assert [n.name for n in rt.failures()] == ["dev"]
+    assert rt.failures()[0].state == "failed"  # still the verdict after stop
+
+
+async def test_error_state_is_a_failure_until_cleared() -> None:
+    class Source(flowrt.Node):
+        tick = flowrt.Output(int)
+
+        def process(self) -> int:
+            if self.ctx.now() < 0.1:
+                self.ctx.set_error("device unplugged")
+            else:
+                self.ctx.clear_error()
+            return 1
+
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("src", Source, trigger={"timer": "10ms"})
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(0.05)
+        assert [(n.name, n.state, n.reason) for n in rt.failures()] == [
+            ("src", "error", "device unplugged")
+        ]
+        await clock.advance(0.2)
+        assert rt.failures() == []
+
+
+# --- flowrt run: exit codes ------------------------------------------------------------------
+
+
+def _run(args: list[str], timeout: float = 40) -> subprocess.CompletedProcess[str]:
+    env = {"PYTHONPATH": str(TESTS), "COLUMNS": "200"}
+    return subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", *args],
+        cwd=REPO,
+        env={**os.environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+
+
+GRAPH = """\
+nodes:
+  src: {kind: counter, trigger: {timer: 20ms}}
+  bad:
+    kind: failkinds:%s
+    trigger: {timer: 20ms}
+    restart: {backoff: 10ms, max_failures: 3}
+"""
+
+
+@pytest.mark.parametrize(
+    ("kind", "extra", "code", "stops_early"),
+    [
+        ("SetupFails", [], 1, True),
+        ("AlwaysFails", [], 1, True),
+        ("SetupFails", ["--keep-going"], 1, False),
+        ("FailsEveryOther", [], 0, False),
+    ],
+)
+def test_run_exit_codes(
+    tmp_path: Path, kind: str, extra: list[str], code: int, stops_early: bool
+) -> None:
+    graph = tmp_path / "g.yaml"
+    graph.write_text(GRAPH % kind)
+    stats = tmp_path / "stats.json"
+    proc = _run(
+        ["run", str(graph), "--duration", "3", "--no-ui", "--stats-json", str(stats), *extra]
+    )
+    assert proc.returncode == code, proc.stderr
+    assert "Traceback" not in proc.stdout
+    data = json.loads(stats.read_text())
+    uptime = data["uptime"]
+    bad = next(n for n in data["nodes"] if n["name"] == "bad")
+    if code:
+        assert "flowrt run: node bad failed: 3 consecutive failures" in proc.stderr
+        assert bad["state"] == "failed"
+        assert proc.stderr.count("Traceback") == 1  # one full traceback, then counted
+    else:
+        assert "flowrt run: node" not in proc.stderr
+    if stops_early:
+        assert uptime < 2.5
+    else:
+        assert uptime >= 2.9
