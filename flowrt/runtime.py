@@ -355,7 +355,7 @@ class Runtime:
         self.events.append(event)
         self.event_count += 1
         if isinstance(event, NodeGaveUp) and self.stop_on_failure:
-            log.error("stopping: node %s failed (%s)", event.node, event.reason)
+            log.info("stopping the run: node %s failed (stop_on_failure)", event.node)
             self.request_stop()
         if isinstance(event, HealthAlert):
             self._record("flowrt.alerts", event)

@@ -508,19 +508,24 @@ class NodeRunner:
         supervision rule of :mod:`flowrt.supervision`."""
         self.errors += 1
         self.consecutive_failures += 1
-        tb = getattr(exc, "traceback", None) or "".join(traceback.format_exception(exc))
-        error = f"{type(exc).__name__}: {exc}"
+        # A worker's error brings its own one-line summary and the worker's traceback (none
+        # for a dead worker): the main side's stack would only show the transport.
+        tb = getattr(exc, "traceback", None)
+        if not isinstance(tb, str):
+            tb = "".join(traceback.format_exception(exc))
+        error = getattr(exc, "summary", None) or f"{type(exc).__name__}: {exc}"
         now = self.sched.clock.now()
-        self.failure_log.failed(now, error, tb)
+        fatal = bool(getattr(exc, "fatal", False))
+        if not fatal:  # a fatal error is said once, below
+            self.failure_log.failed(now, error, tb)
         self.sched.emit(NodeFailed(self.sched.rel(now), self.name, error, tb))
         self.busy = False
         policy = self.rnode.spec.restart
-        why = give_up_reason(
-            policy, self.consecutive_failures, self.restarts, bool(getattr(exc, "fatal", False))
-        )
+        why = give_up_reason(policy, self.consecutive_failures, self.restarts, fatal)
         if why is not None:
             self.state = "failed"
-            self.failed_reason = f"{why}; last error: {failure_kind(error)}"
+            last = failure_kind(error)
+            self.failed_reason = last if fatal else f"{why}; last error: {last}"
             self.failure_log.flush(now)
             log.error("node %s given up: %s", self.name, self.failed_reason)
             self.sched.emit(NodeGaveUp(self.sched.rel(now), self.name, self.failed_reason))

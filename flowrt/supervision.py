@@ -61,7 +61,7 @@ def give_up_reason(
 
 def failure_kind(error: str) -> str:
     """The first line of ``Type: message``: what a summary or a give-up reason shows."""
-    return error.strip().splitlines()[0][:200] if error.strip() else "?"
+    return error.strip().splitlines()[0][:1000] if error.strip() else "?"
 
 
 _NUMBER = re.compile(r"\d+")
@@ -94,7 +94,10 @@ class FailureLog:
         key = _same_kind_key(error)
         if key not in self._seen and len(self._seen) < MAX_KINDS:
             self._seen[key] = failure_kind(error)
-            log.error("node %s failed: %s\n%s", self.node, error, traceback.rstrip())
+            if traceback.strip():
+                log.error("node %s failed: %s\n%s", self.node, error, traceback.rstrip())
+            else:
+                log.error("node %s failed: %s", self.node, error)
             return
         self.suppressed += 1
         if self._window_start is None:

@@ -106,17 +106,42 @@ class WorkerError(RuntimeError):
     - ``killed``: the worker was killed from outside (SIGKILL, SIGTERM, the OOM killer).
     - ``hung``: a call exceeded its watchdog; the worker was SIGKILLed at that instant.
 
-    After any kind, ``await executor.start()`` gives the node a fresh instance.
+    After any kind, ``await executor.start()`` gives the node a fresh instance. ``fatal``
+    says that it cannot help (the worker cannot load the node at all): the supervisor gives
+    the node up at once instead of restarting it.
     """
 
     def __init__(
-        self, node: str, kind: WorkerKind, detail: str, exitcode: int | None = None
+        self,
+        node: str,
+        kind: WorkerKind,
+        detail: str,
+        exitcode: int | None = None,
+        *,
+        fatal: bool = False,
     ) -> None:
         super().__init__(f"{node}: worker {kind}: {detail}")
         self.node = node
         self.kind: WorkerKind = kind
         self.detail = detail
         self.exitcode = exitcode
+        self.fatal = fatal
+
+    @property
+    def summary(self) -> str:
+        """One line for logs and reasons: the node's own exception, or what became of the
+        worker (the supervisor shows this instead of the main side's stack)."""
+        if self.kind == "exception":
+            lines = [ln for ln in self.detail.strip().splitlines() if ln.strip()]
+            return lines[-1].strip() if lines else "exception"
+        if self.fatal:
+            return self.detail
+        return f"worker {self.kind}: {self.detail}"
+
+    @property
+    def traceback(self) -> str:
+        """The worker's traceback for an exception; nothing for a death (no stack to show)."""
+        return self.detail if self.kind == "exception" else ""
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,6 +167,33 @@ def _context() -> multiprocessing.context.ForkServerContext:
 # Process names of workers that must not re-import the main script (see _install_prepare_hook).
 _NO_MAIN = "flowrt:"
 _WITH_MAIN = "flowrt+main:"
+# Exit code of a worker whose import of the main script started a flowrt runtime again.
+_EXIT_MAIN_UNGUARDED = 78
+_importing_main = False  # in a worker: re-running the main script to find the node's class
+
+
+def _exit_if_importing_main() -> None:
+    """Where a runtime would start worker processes: refuse inside a worker's import of the
+    main script, at once and quietly (the parent explains, from the exit code).
+
+    Reaching this there means the script starts a runtime at import: it has no
+    ``if __name__ == "__main__":`` guard. Letting it go on would start a runtime inside each
+    worker, whose workers would do the same (multiprocessing stops that with a traceback in
+    every attempt, and the node would crash-loop).
+    """
+    if _importing_main:
+        os._exit(_EXIT_MAIN_UNGUARDED)
+
+
+def _unguarded_main_message() -> str:
+    main = sys.modules.get("__main__")
+    script = getattr(main, "__file__", None) or "the main script"
+    return (
+        f"its node class is defined in {script}, which starts a flowrt runtime "
+        "again when a worker process imports it to load the class: put the code that starts "
+        'the runtime under `if __name__ == "__main__":` (or define the node class in a module '
+        "of its own)"
+    )
 
 
 def _install_prepare_hook() -> None:
@@ -161,13 +213,18 @@ def _install_prepare_hook() -> None:
         return
 
     def prepare(data: Mapping[str, Any]) -> None:
+        global _importing_main
         if str(data.get("name", "")).startswith(_NO_MAIN):
             data = {
                 k: v
                 for k, v in data.items()
                 if k not in ("init_main_from_path", "init_main_from_name")
             }
-        original(data)
+        _importing_main = True
+        try:
+            original(data)
+        finally:
+            _importing_main = False
 
     prepare._flowrt = True  # type: ignore[attr-defined]
     spawn.prepare = prepare
@@ -192,6 +249,7 @@ def start_forkserver() -> None:
     """
     from multiprocessing import forkserver
 
+    _exit_if_importing_main()
     _context()
     forkserver.ensure_running()
 
@@ -475,6 +533,7 @@ class _Worker:
         self.last_run_time = 0.0
 
     async def spawn(self) -> None:
+        _exit_if_importing_main()
         loop = asyncio.get_running_loop()
         self._loop = loop
         ctx = _context()
@@ -617,6 +676,10 @@ class _Worker:
                 signame = f"signal {-exitcode}"
             kind: WorkerKind = "killed" if -exitcode in _SIGNALS_KILLED else "crashed"
             return WorkerError(self.name, kind, f"worker {self.pid} died of {signame}", exitcode)
+        if exitcode == _EXIT_MAIN_UNGUARDED and self.import_main:
+            return WorkerError(
+                self.name, "crashed", _unguarded_main_message(), exitcode, fatal=True
+            )
         return WorkerError(
             self.name, "crashed", f"worker {self.pid} exited with code {exitcode}", exitcode
         )
@@ -630,7 +693,7 @@ class _Worker:
             return WorkerError(
                 node, "crashed", f"worker shared with {d.node}, which hung: {d.detail}", d.exitcode
             )
-        return WorkerError(node, d.kind, d.detail, d.exitcode)
+        return WorkerError(node, d.kind, d.detail, d.exitcode, fatal=d.fatal)
 
     @property
     def usable(self) -> bool:

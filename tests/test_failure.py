@@ -260,3 +260,64 @@ def test_run_exit_codes(
         assert uptime < 2.5
     else:
         assert uptime >= 2.9
+
+
+# --- a process-placed node defined in a script without a __main__ guard ----------------------
+
+SCRIPT = """\
+import sys
+import flowrt
+from flowrt import Input, Node
+
+
+class MySink(Node):
+    value = Input(object)
+
+    def process(self, value):
+        return None
+
+
+def main():
+    g = flowrt.GraphBuilder("demo")
+    g.add("src", "counter", trigger={"timer": "20ms"})
+    g.add("sink", MySink, inputs={"value": "src.value"}, placement="%s")
+
+    async def run():
+        async with flowrt.Runtime(g.build(), stop_on_failure=True) as rt:
+            await rt.run(1.0)
+            print("completions", rt.stats().node("sink").completions)
+            return rt.failures()
+
+    failures = flowrt.run(run())
+    for n in failures:
+        print(f"{n.name} {n.state}: {n.reason}", file=sys.stderr)
+    sys.exit(1 if failures else 0)
+
+
+%s
+"""
+
+
+@pytest.mark.parametrize("placement", ["process", "pool"])
+@pytest.mark.parametrize("guarded", [True, False])
+def test_process_node_in_script_without_main_guard(
+    tmp_path: Path, placement: str, guarded: bool
+) -> None:
+    script = tmp_path / "user_script.py"
+    call = 'if __name__ == "__main__":\n    main()' if guarded else "main()"
+    script.write_text(SCRIPT % (placement, call))
+    proc = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=40, cwd=tmp_path
+    )
+    assert "Traceback" not in proc.stderr
+    if guarded:
+        assert proc.returncode == 0, proc.stderr
+        assert int(proc.stdout.split()[-1]) >= 10
+        return
+    assert proc.returncode == 1
+    # one clear message, logged once, then reported by the script: what to add, and where
+    lines = [ln for ln in proc.stderr.splitlines() if "its node class is defined in" in ln]
+    assert len(lines) == 2, proc.stderr
+    assert 'under `if __name__ == "__main__":`' in lines[0]
+    assert str(script) in lines[0]
+    assert lines[1].startswith("sink failed: its node class is defined in")
