@@ -19,6 +19,7 @@ from .events import NodeRestarted as NodeRestarted
 from .events import TimingChanged as TimingChanged
 from .frames import Frame as Frame
 from .graph import Graph as Graph
+from .graph import resolve_path as resolve_path
 from .node import Input as Input
 from .node import Node as Node
 from .node import NodeContext as NodeContext
@@ -77,5 +78,6 @@ __all__ = [
     "TimerTrigger",
     "TimingChanged",
     "VirtualClock",
+    "resolve_path",
     "run",
 ]

@@ -321,3 +321,82 @@ def test_process_node_in_script_without_main_guard(
     assert 'under `if __name__ == "__main__":`' in lines[0]
     assert str(script) in lines[0]
     assert lines[1].startswith("sink failed: its node class is defined in")
+
+
+# --- sources that are missing or fail look failed ---------------------------------------------
+
+
+def _write_video(path: Path, n: int) -> None:
+    import cv2
+    import numpy as np
+
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 20, (64, 48))
+    assert w.isOpened()
+    for i in range(n):
+        w.write(np.full((48, 64, 3), 10 * i, np.uint8))
+    w.release()
+
+
+SOURCE_GRAPH = """\
+nodes:
+  cam:
+    kind: capture
+    params: {source: "%s", fps: 20, pacing: fast, on_eof: exit, backoff: 50ms}
+  sink: {kind: sink, inputs: {input: cam.frame}}
+"""
+
+
+@pytest.mark.parametrize(
+    ("source", "message"),
+    [
+        (
+            "file:missing.avi",
+            "video file not found: {dir}/missing.avi (a relative path resolves "
+            "against the graph file's directory, {dir})",
+        ),
+        ("file:{dir}/gone.avi", "video file not found: {dir}/gone.avi"),
+        ("data/missing.avi", "video file not found: {dir}/data/missing.avi"),
+        ("file:data", "{dir}/data is a directory, not a video file"),
+    ],
+)
+def test_validate_reports_a_missing_file_source_located(
+    tmp_path: Path, source: str, message: str
+) -> None:
+    (tmp_path / "data").mkdir()
+    graph = tmp_path / "g.yaml"
+    graph.write_text(SOURCE_GRAPH % source.format(dir=tmp_path))
+    proc = _run(["validate", str(graph)])
+    assert proc.returncode == 2
+    want = f"{graph}:4:14: error: nodes.cam.params.source: {message.format(dir=tmp_path)}"
+    assert want in " ".join(proc.stderr.split()), proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_relative_paths_resolve_against_the_graph_file(tmp_path: Path) -> None:
+    """The same graph runs from any working directory: its clip is found beside it."""
+    (tmp_path / "media").mkdir()
+    _write_video(tmp_path / "media" / "clip.avi", 12)
+    graph = tmp_path / "g.yaml"
+    graph.write_text(SOURCE_GRAPH % "file:media/clip.avi")
+    stats = tmp_path / "stats.json"
+    proc = _run(["run", str(graph), "--no-ui", "--duration", "20", "--stats-json", str(stats)])
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(stats.read_text())
+    assert next(n for n in data["nodes"] if n["name"] == "sink")["completions"] == 12
+    assert data["uptime"] < 15  # on_eof: exit ended the run
+
+
+def test_source_that_never_delivers_fails_the_run(tmp_path: Path) -> None:
+    graph = tmp_path / "g.yaml"
+    graph.write_text(SOURCE_GRAPH % "camera:99")
+    stats = tmp_path / "stats.json"
+    proc = _run(["run", str(graph), "--no-ui", "--duration", "1", "--stats-json", str(stats)])
+    assert proc.returncode == 1
+    flat = " ".join(proc.stderr.split())
+    assert "flowrt run: node cam in error: camera:99: never delivered a frame (" in flat
+    assert "failed attempts to read it; last error: cannot open camera 99" in flat
+    assert "Traceback" not in proc.stderr
+    assert "[ WARN" not in proc.stderr.replace("cam: opencv: [ WARN", "")  # never raw
+    cam = next(n for n in json.loads(stats.read_text())["nodes"] if n["name"] == "cam")
+    assert cam["state"] == "error"
+    assert "never delivered a frame" in cam["reason"]
