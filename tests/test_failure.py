@@ -116,6 +116,28 @@ async def test_crash_loop_at_startup_is_given_up() -> None:
     assert s.node("ok").completions >= 2990  # the rest of the graph kept running
 
 
+@pytest.mark.parametrize("placement", ["process", "pool"])
+async def test_crash_loop_in_a_worker_is_given_up(
+    placement: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Real worker processes (real time): setup raising in the worker, bounded the same way,
+    the worker's own traceback logged once."""
+    caplog.set_level(logging.ERROR, logger="flowrt")
+    g = GraphBuilder()
+    policy = {"backoff": "10ms", "max_failures": 3}
+    g.add("dev", SetupFails, trigger={"timer": "20ms"}, placement=placement, restart=policy)
+    async with Runtime(g.build(), stop_on_failure=True) as rt:
+        await rt.run(20.0)  # returns when the node is given up
+        dev = rt.stats().node("dev")
+    assert dev.state == "failed"
+    assert dev.errors == 3
+    assert "3 consecutive failures" in dev.reason
+    assert "RuntimeError: cannot open the device" in dev.reason
+    tracebacks = [r.getMessage() for r in caplog.records if "Traceback" in r.getMessage()]
+    assert len(tracebacks) == 1
+    assert "failkinds.py" in tracebacks[0]  # the worker's own stack, not the transport's
+
+
 async def test_persistent_failure_is_given_up_by_default() -> None:
     clock = VirtualClock()
     g = GraphBuilder()

@@ -83,7 +83,12 @@ def _verdict(failures: list[Any], err: Console) -> int:
     """Exit 1 when the run ends with a node failed or in error, one line per node."""
     for n in failures:
         what = "failed" if n.state == "failed" else "in error"
-        err.print(f"flowrt run: node {n.name} {what}: {n.reason}", markup=False, style="red")
+        err.print(
+            f"flowrt run: node {n.name} {what}: {n.reason}",
+            markup=False,
+            style="red",
+            soft_wrap=True,
+        )
     return EXIT_FAILED if failures else EXIT_OK
 
 
