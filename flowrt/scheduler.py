@@ -275,10 +275,10 @@ class NodeRunner:
 
     def release(self, t_release: float) -> None:
         """A trigger fired: run now unless disabled, down, or still running (overrun)."""
-        if not self.timing.enabled or self.stopping:
-            return
+        if not self.timing.enabled or self.stopping or self.state == "failed":
+            return  # a node given up is down for good: its releases are not activations
         self.activations += 1
-        if self.state in ("backoff", "failed", "starting"):
+        if self.state in ("backoff", "starting"):
             self.skipped += 1
             return
         if self.busy:

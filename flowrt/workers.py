@@ -185,6 +185,27 @@ def _exit_if_importing_main() -> None:
         os._exit(_EXIT_MAIN_UNGUARDED)
 
 
+def _check_main_importable(node: str, factory: Any) -> bool:
+    """True if the factory needs the main module; fatal if a worker could never import it.
+
+    A class defined in ``python -c``, on stdin or in a notebook lives in a ``__main__`` that
+    no other process can import: every start would fail the same way.
+    """
+    if not _needs_main(factory):
+        return False
+    main = sys.modules.get("__main__")
+    if getattr(main, "__file__", None) is None and getattr(main, "__spec__", None) is None:
+        raise WorkerError(
+            node,
+            "crashed",
+            "its node class is defined in an interactive session (python -c, stdin, a "
+            "notebook), which a worker process cannot import: define the class in a module "
+            "or a script file, or use placement: inline",
+            fatal=True,
+        )
+    return True
+
+
 def _unguarded_main_message() -> str:
     main = sys.modules.get("__main__")
     script = getattr(main, "__file__", None) or "the main script"
@@ -871,7 +892,7 @@ class ProcessExecutor(_NodeExecutor):
         if w is None or not w.usable:
             if w is not None:
                 await w.wait_exit()  # a killed worker: let it go before its successor starts
-            w = _Worker(self.name, import_main=_needs_main(self.factory))
+            w = _Worker(self.name, import_main=_check_main_importable(self.name, self.factory))
             await w.spawn()
         await self._add_to(w)
 
@@ -984,9 +1005,8 @@ class PoolNodeExecutor(_NodeExecutor):
 
     async def start(self) -> None:
         """Make sure this node's worker runs, then (re)create the node in it."""
-        await self._add_to(
-            await self.pool._worker(self.index, import_main=_needs_main(self.factory))
-        )
+        import_main = _check_main_importable(self.name, self.factory)
+        await self._add_to(await self.pool._worker(self.index, import_main=import_main))
 
     async def stop(self, grace: float = 2.0) -> None:
         """Tear this node down in its worker (the worker stays for the pool's other nodes)."""

@@ -100,7 +100,9 @@ async def test_crash_loop_at_startup_is_given_up() -> None:
     g.add("dev", SetupFails, trigger={"timer": "10ms"}, restart={"max_failures": 3})
     g.add("ok", "counter", trigger={"timer": "10ms"})
     async with Runtime(g.build(), clock=clock) as rt:
-        await clock.advance(30.0)
+        await clock.advance(15.0)
+        before = rt.stats().node("dev")
+        await clock.advance(15.0)
         s = rt.stats()
         failures = rt.failures()
         gave_up = [e for e in rt.events if isinstance(e, flowrt.NodeGaveUp)]
@@ -114,6 +116,8 @@ async def test_crash_loop_at_startup_is_given_up() -> None:
     assert gave_up[0].reason == dev.reason
     assert [n.name for n in failures] == ["dev"]
     assert s.node("ok").completions >= 2990  # the rest of the graph kept running
+    # down for good: its timer's releases are neither activations nor skips any more
+    assert (dev.activations, dev.skipped) == (before.activations, before.skipped)
 
 
 @pytest.mark.parametrize("placement", ["process", "pool"])
@@ -422,3 +426,13 @@ def test_source_that_never_delivers_fails_the_run(tmp_path: Path) -> None:
     cam = next(n for n in json.loads(stats.read_text())["nodes"] if n["name"] == "cam")
     assert cam["state"] == "error"
     assert "never delivered a frame" in cam["reason"]
+
+
+def test_process_node_defined_in_python_c_is_given_up_at_once() -> None:
+    code = (SCRIPT % ("process", "main()")).replace("await rt.run(1.0)", "await rt.run(20.0)")
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=40, cwd=REPO
+    )
+    assert proc.returncode == 1
+    assert "Traceback" not in proc.stderr
+    assert "sink failed: its node class is defined in an interactive session" in proc.stderr
