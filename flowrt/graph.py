@@ -95,6 +95,12 @@ class Graph:
     edges: list[Edge]
     warnings: list[Diagnostic] = field(default_factory=list)
     file: str = "<python>"
+    base_dir: Path | None = None  # the graph file's directory: where relative params resolve
+
+    def validate_params(self, cls: type[Node], data: Mapping[str, Any]) -> BaseModel:
+        """Validate params for ``cls`` as the graph file's own were (relative paths resolve
+        against its directory): for params changed at run time by a mode, a swap or the API."""
+        return cls.Params.model_validate(dict(data), context={PARAMS_BASE_DIR: self.base_dir})
 
     @classmethod
     def from_file(cls, path: str | Path, kinds: Mapping[str, type[Node]] | None = None) -> Graph:
@@ -304,7 +310,7 @@ def resolve(
             if o.params and node in classes:
                 merged = merge_params(spec.nodes[node].params, o.params)
                 try:
-                    classes[node].Params.model_validate(merged)
+                    classes[node].Params.model_validate(merged, context={PARAMS_BASE_DIR: base_dir})
                 except ValidationError as e:
                     at_params = (*path, "params")
                     diags.extend(pydantic_diagnostics(e, locs, at_params, classes[node].Params))
@@ -322,7 +328,7 @@ def resolve(
         for i, (name, ns) in enumerate(spec.nodes.items())
         if name in classes and name in params and name in triggers
     }
-    graph = Graph(spec, resolved, edges, file=locs.file)
+    graph = Graph(spec, resolved, edges, file=locs.file, base_dir=base_dir)
     if not [d for d in diags if d.severity is Severity.error]:
         _check_deadlines(graph, at)
     diags.sort(key=lambda d: (d.line, d.column))

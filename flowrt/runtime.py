@@ -607,7 +607,7 @@ class Runtime:
             if params is None and label == old_kind:
                 params = runner.rnode.params.model_dump()
             try:
-                model = cls.Params.model_validate(dict(params or {}))
+                model = self.graph.validate_params(cls, params or {})
             except ValidationError as e:
                 raise SwapError(f"{node}: params for {label}: {e}") from None
         await self._swap_to(runner, cls, model, label, origin)
@@ -655,7 +655,7 @@ class Runtime:
         current = runner.rnode.params.model_dump()
         target = merge_params(current, dict(params)) if merge else dict(params)
         try:
-            model = runner.rnode.cls.Params.model_validate(target)
+            model = self.graph.validate_params(runner.rnode.cls, target)
         except ValidationError as e:
             raise ValueError(f"{node}: params: {e}") from None
         runner.set_params(model)
@@ -680,7 +680,7 @@ class Runtime:
             base = self.graph.spec.nodes[name].params
             target = merge_params(base, o.params if o is not None else None)
             runner = self.scheduler.runners[name]
-            runner.set_params(runner.rnode.cls.Params.model_validate(target))
+            runner.set_params(self.graph.validate_params(runner.rnode.cls, target))
 
     def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
         from .diagnostics import did_you_mean

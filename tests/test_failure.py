@@ -435,3 +435,28 @@ def test_process_node_defined_in_python_c_is_given_up_at_once() -> None:
     assert proc.returncode == 1
     assert "Traceback" not in proc.stderr
     assert "sink failed: its node class is defined in an interactive session" in proc.stderr
+
+
+async def test_params_changed_at_run_time_resolve_like_the_graph_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A mode (and set_params) that names a relative file: the graph file's directory too,
+    whatever the working directory."""
+    (tmp_path / "media").mkdir()
+    for name in ("a.avi", "b.avi"):
+        _write_video(tmp_path / "media" / name, 3)
+    graph = tmp_path / "g.yaml"
+    graph.write_text(
+        (SOURCE_GRAPH % "file:media/a.avi").replace("on_eof: exit", "on_eof: loop")
+        + "modes:\n  other:\n    nodes:\n      cam: {params: {source: file:media/b.avi}}\n"
+    )
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    async with Runtime.from_file(graph) as rt:
+        cam = rt.scheduler.runners["cam"]
+        assert cam.rnode.params.source == f"file:{tmp_path}/media/a.avi"  # type: ignore[attr-defined]
+        rt.set_mode("other")
+        assert cam.rnode.params.source == f"file:{tmp_path}/media/b.avi"  # type: ignore[attr-defined]
+        rt.set_params("cam", {"source": "file:media/a.avi"})
+        assert cam.rnode.params.source == f"file:{tmp_path}/media/a.avi"  # type: ignore[attr-defined]
