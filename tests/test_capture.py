@@ -9,6 +9,7 @@ import asyncio
 import hashlib
 import itertools
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -766,3 +767,36 @@ async def test_opencv_messages_go_to_the_node_log(
     assert logged, [r.getMessage() for r in caplog.records]
     assert logged[0].getMessage().startswith("cam: opencv: ")
     assert [r.levelno for r in logged][:2] == [logging.INFO, logging.DEBUG]  # then quieter
+
+
+def test_a_hung_open_gives_stderr_back(
+    monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A driver stuck in its open must not keep the process's stderr (nor the other sources'
+    opens) for good: fd 2 comes back after the bound, and the stuck open's lines are still
+    collected when it returns."""
+    monkeypatch.setattr(capture_mod, "_REDIRECT_MAX", 0.2)
+    release, inside = threading.Event(), threading.Event()
+    lines: list[str] = []
+
+    def stuck_open() -> None:
+        with capture_mod._native_stderr(lines):
+            os.write(2, b"said while opening\n")
+            inside.set()
+            release.wait(10)
+
+    t = threading.Thread(target=stuck_open)
+    t.start()
+    try:
+        assert inside.wait(10)
+        # the lock is free again once fd 2 was given back (a bound, not a timing threshold)
+        assert capture_mod._STDERR_LOCK.acquire(timeout=10)
+        capture_mod._STDERR_LOCK.release()
+        os.write(2, b"said after the bound\n")
+    finally:
+        release.set()
+        t.join(10)
+    err = capfd.readouterr().err
+    assert "said after the bound" in err
+    assert "said while opening" not in err
+    assert lines == ["said while opening"]
