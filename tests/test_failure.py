@@ -279,6 +279,7 @@ def test_run_exit_codes(
         assert "flowrt run: node bad failed: 3 consecutive failures" in proc.stderr
         assert bad["state"] == "failed"
         assert proc.stderr.count("Traceback") == 1  # one full traceback, then counted
+        assert "NodeGaveUp bad 3 consecutive failures" in " ".join(proc.stdout.split())
     else:
         assert "flowrt run: node" not in proc.stderr
     if stops_early:
