@@ -16,6 +16,11 @@ Lifecycle and timing contract
    An inline ``process`` runs on the event loop and must be short; the runtime reports
    calls that block the loop.
 4. ``teardown()`` runs once when the runtime stops or before a restart, even after errors.
+5. An exception from ``setup`` or ``process`` (or a hung or dead worker) is a failure: the
+   node is restarted, a fresh instance after a doubling back-off, and given up (state
+   ``failed``) after ``restart.max_failures`` failures in a row without a completed
+   activation (:mod:`flowrt.supervision`). A problem the node can wait out (a device gone)
+   is better reported with ``ctx.set_error`` while it keeps running.
 """
 
 from __future__ import annotations
