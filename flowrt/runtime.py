@@ -359,7 +359,11 @@ class Runtime:
         self.events.append(event)
         self.event_count += 1
         if isinstance(event, NodeGaveUp) and self.stop_on_failure:
-            log.info("stopping the run: node %s failed (stop_on_failure)", event.node)
+            log.info(
+                "node %s failed: stopping the run (--keep-going, or stop_on_failure=False, "
+                "keeps the rest of the graph running)",
+                event.node,
+            )
             self.request_stop()
         if isinstance(event, HealthAlert):
             self._record("flowrt.alerts", event)
