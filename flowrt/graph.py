@@ -185,6 +185,7 @@ def resolve(
     def at(path: tuple[str | int, ...], msg: str, sev: Severity = Severity.error) -> None:
         err(locs.diag(path, msg, sev))
 
+    spec = _with_imports(spec, at)
     classes: dict[str, type[Node]] = {}
     params: dict[str, BaseModel] = {}
     for name, ns in spec.nodes.items():
@@ -211,6 +212,9 @@ def resolve(
         misspelt: set[str | None] = set()  # inputs already named by a "did you mean"
         for port, ins in ns.inputs.items():
             path = ("nodes", name, "inputs", port)
+            if "." not in ins.source and ins.node not in spec.imports:
+                at((*path, "from"), f"expected node.port, got {ins.source!r}")
+                continue
             if cls is not None and port not in cls.inputs and cls.any_inputs is None:
                 at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, cls.inputs))
                 misspelt.add(closest(port, cls.inputs))
@@ -296,6 +300,20 @@ def resolve(
                         "pool); an inline node runs in the loop process",
                     )
 
+    for key, ex in spec.exports.items():
+        src_cls = classes.get(ex.node)
+        if ex.node not in spec.nodes and ex.node not in invalid_nodes:
+            at(
+                ("export", key),
+                f"export from unknown node {ex.node!r}" + did_you_mean(ex.node, names),
+            )
+        elif src_cls is not None and ex.port not in src_cls.outputs:
+            at(
+                ("export", key),
+                f"node {ex.node!r} has no output {ex.port!r}"
+                + did_you_mean(ex.port, src_cls.outputs),
+            )
+
     _check_cycles(spec, edges, at)
     _check_frame_chains(triggers, at)
 
@@ -336,6 +354,27 @@ def resolve(
         raise GraphError(diags)
     graph.warnings = diags
     return graph
+
+
+REMOTE_SOURCE = "flowrt.remote:RemoteSource"
+REMOTE_FRAMES = "flowrt.remote:RemoteFrameSource"
+
+
+def _with_imports(spec: GraphSpec, at: Any) -> GraphSpec:
+    """``import:`` entries become nodes (one output, ``output``) of the resolved graph."""
+    if not spec.imports:
+        return spec
+    extra: dict[str, NodeSpec] = {}
+    for name, im in spec.imports.items():
+        if name in spec.nodes:
+            at(("import", name), f"import {name!r} has the name of a node; rename one of them")
+            continue
+        params = {"key": im.key, "stale_after": im.stale_after, "size": im.size}
+        if im.period is not None:
+            params["period_ms"] = im.period
+        kind = REMOTE_FRAMES if im.frames else REMOTE_SOURCE
+        extra[name] = NodeSpec(kind=kind, params=params, priority=90)
+    return spec.model_copy(update={"nodes": {**spec.nodes, **extra}})
 
 
 def _edge(

@@ -141,6 +141,7 @@ class Runtime:
         self._fair: FairShare | None = None
         self._nice_before: int | None = None
         self.qos: OverloadController | None = None
+        self._bridge: Any = None  # flowrt.remote.ZenohBridge when the graph spans machines
         if control is not None:  # a bad address or a missing token fails here, before any start
             from .control import ControlConfig
 
@@ -166,6 +167,14 @@ class Runtime:
     async def start(self) -> None:
         if self.started:
             return
+        spec = self.graph.spec
+        if spec.zenoh is not None or spec.exports or spec.imports:
+            # First: a port in use or a bad endpoint fails here, before anything runs.
+            from .remote import ZenohBridge
+
+            bridge = ZenohBridge(_RemoteHost(self), spec)
+            await bridge.open()
+            self._bridge = bridge
         if self.realtime_requested:
             from .realtime import enable_realtime
 
@@ -195,6 +204,8 @@ class Runtime:
         self._sched.stop_requester = self.request_stop
         self._sched.rtdb_provider = lambda: self.rtdb
         self._sched.mode_setter = self.set_mode
+        if self._bridge is not None:
+            self._bridge.attach_exports()
         overload = self.graph.spec.qos.overload
         if overload is not None and self.qos is None:
             from .qos import OverloadController
@@ -207,6 +218,8 @@ class Runtime:
         if self.realtime:
             self._emit(RealtimeStatus(0.0, None, self.realtime))
         await self._sched.start()
+        if self._bridge is not None:
+            self._bridge.attach_imports()
         gc.freeze()  # what the nodes' setup made, too
         if self.graph.spec.initial_mode:
             self.set_mode(self.graph.spec.initial_mode, origin="graph")
@@ -231,6 +244,10 @@ class Runtime:
         self._stop.set()
         if self._lag_handle is not None:
             self._lag_handle.cancel()
+        if self._bridge is not None:
+            with contextlib.suppress(Exception):
+                await self._bridge.close()
+            self._bridge = None
         if self.control is not None:
             with contextlib.suppress(Exception):
                 await self.control.stop()
@@ -719,6 +736,47 @@ class Runtime:
         runner.outputs[port].append(buf)
         self.scheduler.buffers.append(buf)
         return Subscription(buf)
+
+
+class _RemoteHost:
+    """The runtime as the Zenoh bridge sees it (flowrt.remote.BridgeHost)."""
+
+    def __init__(self, rt: Runtime) -> None:
+        self.rt = rt
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        return self.rt.scheduler.loop
+
+    def now_mono(self) -> float:
+        return self.rt.clock.now()
+
+    def runner_output(self, node: str, port: str) -> list[Buffer]:
+        return self.rt.scheduler.runners[node].outputs[port]
+
+    def add_buffer(self, buf: Buffer) -> None:
+        self.rt.scheduler.buffers.append(buf)
+
+    def publish(self, node: str, port: str, value: Any) -> None:
+        self.rt.scheduler.runners[node].publish(port, value, self.rt.clock.now())
+
+    def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pf: str) -> Frame:
+        return self.rt._new_frame(owner, shape, dtype, pf)
+
+    def import_node(self, name: str) -> Any:
+        return getattr(self.rt.scheduler.runners[name].executor, "node", None)
+
+    def emit(self, event: Event) -> None:
+        self.rt._emit(event)
+
+    def record(self, name: str, value: Any, validity_ms: float | None) -> None:
+        try:
+            self.rt.rtdb.write(name, value, validity_ms=validity_ms)
+        except Exception as e:  # a value the RTDB cannot hold: the edge still has it
+            log.debug("RTDB record %s: %s", name, e)
+
+    def is_frame_port(self, node: str, port: str) -> bool:
+        return port in self.rt.graph.nodes[node].cls.frame_ports()
 
 
 class _WorkerAdapter(Executor):

@@ -12,6 +12,7 @@ from typing import Any
 from rich.console import Console
 
 from ..eventloop import new_event_loop
+from ..remote import RemoteError
 from .common import (
     EXIT_BAD_GRAPH,
     EXIT_FAILED,
@@ -66,6 +67,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
         try:
             runner.run(main())
+        except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
+            err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
+            return 1
         except OSError as e:
             if rt.control_config is None or rt.control is not None:
                 raise
