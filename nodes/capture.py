@@ -810,7 +810,7 @@ class Capture(Node):
         if self._scene is None and self._seq == 0:  # the run's verdict: this source failed
             p: CaptureParams = self.params
             why = (
-                f" ({self.reopens} failed attempts to read it; last error: {self._last_error})"
+                f" ({self.reopens} attempts failed; last error: {self._last_error})"
                 if self.reopens
                 else ""
             )

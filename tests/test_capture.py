@@ -567,7 +567,7 @@ async def test_bad_sources_raise_health_events(tmp_path: Path, source: str, deta
     [(name, state, reason)] = run.verdict
     assert (name, state) == ("cam", "error")
     assert "never delivered a frame" in reason
-    assert f"failed attempts to read it; last error: {errors[0].detail.split(';')[0]}" in reason
+    assert f"attempts failed; last error: {errors[0].detail.split(';')[0]}" in reason
 
 
 def _truncated_sample(tmp_path: Path) -> Path | None:

@@ -420,7 +420,7 @@ def test_source_that_never_delivers_fails_the_run(tmp_path: Path) -> None:
     assert proc.returncode == 1
     flat = " ".join(proc.stderr.split())
     assert "flowrt run: node cam in error: camera:99: never delivered a frame (" in flat
-    assert "failed attempts to read it; last error: cannot open camera 99" in flat
+    assert "attempts failed; last error: cannot open camera 99" in flat
     assert "Traceback" not in proc.stderr
     assert "[ WARN" not in proc.stderr.replace("cam: opencv: [ WARN", "")  # never raw
     cam = next(n for n in json.loads(stats.read_text())["nodes"] if n["name"] == "cam")
