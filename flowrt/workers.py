@@ -43,6 +43,7 @@ import multiprocessing
 import multiprocessing.context
 import os
 import pickle
+import re
 import select
 import signal
 import socket
@@ -92,6 +93,7 @@ _OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
 # Replies (worker -> main).
 _R_OK = 0  # (status, payload, run_seconds)
 _R_ERR = 1  # (status, formatted traceback, run_seconds)
+_R_FATAL = 2  # as _R_ERR, from an exception whose ``fatal`` is true: do not restart
 
 _SIGNALS_KILLED = {signal.SIGKILL, signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
 
@@ -133,7 +135,8 @@ class WorkerError(RuntimeError):
         worker (the supervisor shows this instead of the main side's stack)."""
         if self.kind == "exception":
             lines = [ln for ln in self.detail.strip().splitlines() if ln.strip()]
-            return lines[-1].strip() if lines else "exception"
+            # "pkg.mod.Error: text" -> "Error: text", as an inline node's failure reads
+            return re.sub(r"^[\w.]+\.(\w+:)", r"\1", lines[-1].strip()) if lines else "exception"
         if self.fatal:
             return self.detail
         return f"worker {self.kind}: {self.detail}"
@@ -477,8 +480,9 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
                 break
             else:
                 raise ValueError(f"unknown request {op!r}")
-        except Exception:
-            _reply(conn, _R_ERR, traceback.format_exc(), time.perf_counter() - t0)
+        except Exception as e:
+            status = _R_FATAL if getattr(e, "fatal", False) is True else _R_ERR
+            _reply(conn, status, traceback.format_exc(), time.perf_counter() - t0)
         else:
             _reply(conn, _R_OK, result, time.perf_counter() - t0)
     if loop is not None:
@@ -630,7 +634,8 @@ class _Worker:
             if status == _R_OK:
                 fut.set_result(payload)
             else:
-                fut.set_exception(WorkerError(call.node, "exception", payload))
+                fatal = status == _R_FATAL
+                fut.set_exception(WorkerError(call.node, "exception", payload, fatal=fatal))
         self._dispatch_next()
 
     # -- failure -----------------------------------------------------------------------------

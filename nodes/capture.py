@@ -46,7 +46,8 @@ driver call can never race a release); an activation waits for the next frame at
 A failed open or read (missing file, corrupt or unreadable video, no such camera, a glob that
 matches nothing) emits ``source-error`` and is retried with the same backoff, so it shows up
 as an event every backoff interval until the source becomes readable; ``max_retries`` bounds
-that (then ``source-gave-up``, severity error, and the node stays idle). When frames flow
+that (then ``source-gave-up``, severity error, and the node is failed for good: a
+:class:`flowrt.FatalError`, so ``flowrt run`` stops unless ``--keep-going``). When frames flow
 again after a problem, a ``source-recovered`` info event follows. The first frame after an
 open gets ``open_timeout`` rather than ``grab_timeout``. Every alert is also logged, once per
 distinct problem.
@@ -86,7 +87,16 @@ from pydantic import (
 )
 from pydantic.functional_validators import BeforeValidator
 
-from flowrt import Frame, HealthAlert, LoopTrigger, Node, Output, TimerTrigger, resolve_path
+from flowrt import (
+    FatalError,
+    Frame,
+    HealthAlert,
+    LoopTrigger,
+    Node,
+    Output,
+    TimerTrigger,
+    resolve_path,
+)
 
 __all__ = [
     "INPUT_FORMATS",
@@ -936,8 +946,11 @@ class Capture(Node):
             )
         with contextlib.suppress(RuntimeError):  # red in the table, with the reason
             self.ctx.set_error(detail)
-        if self._ended:
-            return
+        if self._ended:  # retries exhausted: the node is failed for good (supervision)
+            raise FatalError(
+                f"{p.source}: {self._failures} consecutive failures, max_retries "
+                f"{p.max_retries} exhausted; last error: {detail}"
+            )
         self._retry_at = self.ctx.now() + self._backoff
         self._backoff = min(self._backoff * 2, max(p.max_backoff, p.backoff) / 1000)
 

@@ -5,7 +5,7 @@ Referenced from graph files as ``failkinds:Class`` (tests/ is on the path of the
 
 from __future__ import annotations
 
-from flowrt import Node, Output
+from flowrt import FatalError, Node, Output
 
 
 class AlwaysFails(Node):
@@ -40,3 +40,12 @@ class FailsEveryOther(Node):
         if FailsEveryOther.calls % 2:
             raise ValueError(f"odd call {FailsEveryOther.calls}")
         return FailsEveryOther.calls
+
+
+class GivesUp(Node):
+    """Knows that restarting cannot help: raises FatalError."""
+
+    tick = Output(int)
+
+    def process(self) -> int:
+        raise FatalError("calibration file unusable")

@@ -613,9 +613,13 @@ async def test_max_retries_gives_up(tmp_path: Path) -> None:
     nope.write_bytes(b"")
     params = {"source": str(nope), "backoff": "20ms", "max_retries": 2, "pacing": "fast"}
     run = await run_capture(params, 0.5, built=nope.unlink)
-    _assert_quiet_failure(run)
     assert [a.alert for a in run.alerts()] == ["source-error"] * 3 + ["source-gave-up"]
-    assert run.stats.node("cam").state == "error"
+    assert run.rows == []
+    # retries exhausted: failed for good, said once (no traceback), not restarted
+    cam = run.stats.node("cam")
+    assert (cam.state, cam.errors, cam.restarts) == ("failed", 1, 0)
+    assert "3 consecutive failures, max_retries 2 exhausted; last error: video file" in cam.reason
+    assert [f.error.split(":")[0] for f in run.failures] == ["FatalError"]
 
 
 async def test_slow_file_is_reported_then_resumed(

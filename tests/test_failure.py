@@ -28,7 +28,7 @@ REPO = TESTS.parent
 if str(TESTS) not in sys.path:
     sys.path.insert(0, str(TESTS))
 
-from failkinds import AlwaysFails, FailsEveryOther, SetupFails  # noqa: E402
+from failkinds import AlwaysFails, FailsEveryOther, GivesUp, SetupFails  # noqa: E402
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -139,6 +139,22 @@ async def test_crash_loop_in_a_worker_is_given_up(
     tracebacks = [r.getMessage() for r in caplog.records if "Traceback" in r.getMessage()]
     assert len(tracebacks) == 1
     assert "failkinds.py" in tracebacks[0]  # the worker's own stack, not the transport's
+
+
+@pytest.mark.parametrize("placement", ["inline", "process"])
+async def test_fatal_error_is_given_up_at_once(
+    placement: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.ERROR, logger="flowrt")
+    g = GraphBuilder()
+    g.add("cal", GivesUp, trigger={"timer": "20ms"}, placement=placement)
+    async with Runtime(g.build(), stop_on_failure=True) as rt:
+        await rt.run(20.0)  # returns when the node is given up
+        cal = rt.stats().node("cal")
+    assert (cal.state, cal.errors, cal.restarts) == ("failed", 1, 0)
+    assert cal.reason == "FatalError: calibration file unusable"
+    messages = [r.getMessage() for r in caplog.records]
+    assert messages == ["node cal given up: FatalError: calibration file unusable"]
 
 
 async def test_persistent_failure_is_given_up_by_default() -> None:
