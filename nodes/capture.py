@@ -820,7 +820,8 @@ class Capture(Node):
         if self._scene is None and self._seq == 0:  # the run's verdict: this source failed
             p: CaptureParams = self.params
             why = (
-                f" ({self.reopens} attempts failed; last error: {self._last_error})"
+                f" ({self.reopens} attempt{'' if self.reopens == 1 else 's'} failed; "
+                f"last error: {self._last_error})"
                 if self.reopens
                 else ""
             )
@@ -1039,10 +1040,12 @@ class Capture(Node):
         except SourceError as e:
             self._failed("source-error", str(e))
             return None
-        if self._troubled:
-            self._troubled = False
+        if self._troubled or frame.seq == 0:  # (the first frame also clears an error left
+            # by a previous instance: a swap or restart after "never delivered a frame")
             with contextlib.suppress(RuntimeError):
                 self.ctx.clear_error()
+        if self._troubled:
+            self._troubled = False
             self._alert("source-recovered", f"{p.source}: frames flowing again", "info")
         self._failures = 0
         self._backoff = p.backoff / 1000

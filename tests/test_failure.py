@@ -7,6 +7,7 @@ depends on the machine's speed.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 import os
@@ -477,3 +478,27 @@ async def test_params_changed_at_run_time_resolve_like_the_graph_file(
         assert cam.rnode.params.source == f"file:{tmp_path}/media/b.avi"  # type: ignore[attr-defined]
         rt.set_params("cam", {"source": "file:media/a.avi"})
         assert cam.rnode.params.source == f"file:{tmp_path}/media/a.avi"  # type: ignore[attr-defined]
+
+
+async def _until(check: Any, seconds: float = 10.0) -> None:
+    for _ in range(int(seconds / 0.02)):  # a bound, not a timing threshold
+        if check():
+            return
+        await asyncio.sleep(0.02)
+
+
+async def test_a_source_swapped_for_a_working_one_leaves_the_error_state(tmp_path: Path) -> None:
+    """The verdict follows the node, not the instance: a camera that never delivered, swapped
+    for a working file, is no longer in error once frames flow."""
+    _write_video(tmp_path / "clip.avi", 5)
+    g = GraphBuilder()
+    params = {"source": "camera:99", "backoff": "30ms"}
+    g.add("cam", "capture", params=params, trigger={"timer": "50ms"})
+    async with Runtime(g.build()) as rt:
+        await _until(lambda: rt.failures())
+        assert [n.name for n in rt.failures()] == ["cam"]
+        await rt.swap("cam", "capture", {"source": f"file:{tmp_path}/clip.avi", "on_eof": "loop"})
+        await _until(lambda: not rt.failures())
+        assert rt.failures() == []
+        assert rt.stats().node("cam").completions > 0
+    assert rt.failures() == []
