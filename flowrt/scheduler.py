@@ -45,6 +45,7 @@ from .graph import Graph, ResolvedNode
 from .node import Node, NodeContext, NodeFactory, make_node
 from .spec import FrameTrigger, InputTrigger, LoopTrigger, MissPolicy, Placement, TimerTrigger
 from .stats import NodeStats, Running
+from .supervision import FailureLog, backoff_s, failure_kind, give_up_reason
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -238,6 +239,8 @@ class NodeRunner:
         self.task: asyncio.Task[None] | None = None
         self.blocked: list[tuple[LosslessBuffer, Any, float]] = []
         self.consecutive_failures = 0
+        self.failure_log = FailureLog(self.name)
+        self.failed_reason = ""  # why supervision gave the node up (state "failed")
         self.swaps = 0
         self.idle_waiter: asyncio.Future[None] | None = None
         self.error_reason: str | None = None  # set_error(): an error state the node reports
@@ -515,30 +518,35 @@ class NodeRunner:
     # --- supervision --------------------------------------------------------------------
 
     def _failed(self, exc: BaseException) -> None:
+        """Count, log (rate-limited), then restart after a back-off or give up: the one
+        supervision rule of :mod:`flowrt.supervision`."""
         self.errors += 1
         self.consecutive_failures += 1
-        tb = getattr(exc, "traceback", None) or "".join(traceback.format_exception(exc))
-        log.error("node %s failed: %s\n%s", self.name, exc, tb)
+        # A worker's error brings its own one-line summary and the worker's traceback (none
+        # for a dead worker): the main side's stack would only show the transport.
+        tb = getattr(exc, "traceback", None)
+        if not isinstance(tb, str):
+            tb = "".join(traceback.format_exception(exc))
+        error = getattr(exc, "summary", None) or f"{type(exc).__name__}: {exc}"
         now = self.sched.clock.now()
-        self.sched.emit(
-            NodeFailed(self.sched.rel(now), self.name, f"{type(exc).__name__}: {exc}", tb)
-        )
+        fatal = bool(getattr(exc, "fatal", False))
+        if not fatal:  # a fatal error is said once, below
+            self.failure_log.failed(now, error, tb)
+        self.sched.emit(NodeFailed(self.sched.rel(now), self.name, error, tb))
         self.busy = False
         policy = self.rnode.spec.restart
-        if policy.policy == "never" or (
-            policy.max_restarts is not None and self.restarts >= policy.max_restarts
-        ):
+        why = give_up_reason(policy, self.consecutive_failures, self.restarts, fatal)
+        if why is not None:
             self.state = "failed"
-            self.sched.emit(
-                NodeGaveUp(self.sched.rel(now), self.name, f"restart policy {policy.policy}")
-            )
+            last = failure_kind(error)
+            self.failed_reason = last if fatal else f"{why}; last error: {last}"
+            self.failure_log.flush(now)
+            log.error("node %s given up: %s", self.name, self.failed_reason)
+            self.sched.emit(NodeGaveUp(self.sched.rel(now), self.name, self.failed_reason))
             self.sched.loop.create_task(self._stop_executor())
             return
-        backoff = (
-            min(policy.backoff * 2 ** (self.consecutive_failures - 1), policy.max_backoff) / 1000
-        )
         self.state = "backoff"
-        self.sched.loop.create_task(self._restart(backoff))
+        self.sched.loop.create_task(self._restart(backoff_s(policy, self.consecutive_failures)))
 
     async def _stop_executor(self) -> None:
         try:
@@ -670,7 +678,7 @@ class NodeRunner:
                 if self.error_reason is not None and self.state != "failed"
                 else self.state
             ),
-            reason=self.error_reason or "",
+            reason=self.failed_reason if self.state == "failed" else self.error_reason or "",
             activations=self.activations,
             completions=self.completions,
             skipped=self.skipped,
@@ -852,6 +860,8 @@ class Scheduler:
                 log.warning("node %s: teardown failed: %s", r.name, e)
         for buf in self.buffers:
             buf.clear()
+        for r in self.runners.values():
+            r.failure_log.flush(self.clock.now())
 
     # --- run-time changes ---------------------------------------------------------------
 
