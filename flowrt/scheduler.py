@@ -16,7 +16,6 @@ Activation semantics (the CAMBADA process manager):
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import inspect
 import logging
@@ -242,7 +241,8 @@ class NodeRunner:
         self.failure_log = FailureLog(self.name)
         self.failed_reason = ""  # why supervision gave the node up (state "failed")
         self.swaps = 0
-        self.idle_waiter: asyncio.Future[None] | None = None
+        self.idle_waiter: asyncio.Future[Executor] | None = None
+        self.pending_swap: Callable[[], Executor] | None = None
         self.error_reason: str | None = None  # set_error(): an error state the node reports
         self.error_reports = 0
         # counters
@@ -498,8 +498,11 @@ class NodeRunner:
         self.busy = False
         if self.state == "running":
             self.state = "idle"
-        if self.idle_waiter is not None and not self.idle_waiter.done():
-            self.idle_waiter.set_result(None)  # a swap waits for this moment
+        if self.pending_swap is not None:  # a swap waits for this moment
+            take_over, self.pending_swap = self.pending_swap, None
+            old = take_over()
+            if self.idle_waiter is not None and not self.idle_waiter.done():
+                self.idle_waiter.set_result(old)
         if self.stopping:
             return
         if isinstance(self.rnode.trigger, LoopTrigger):
@@ -624,12 +627,27 @@ class NodeRunner:
             new = self.sched.worker_executor(self, factory)
         await new.start()  # raises: the old instance keeps running
         if self.busy:
-            self.idle_waiter = asyncio.get_running_loop().create_future()
-            with contextlib.suppress(TimeoutError):  # real time: a virtual clock may stand still
-                await asyncio.wait_for(self.idle_waiter, SWAP_WAIT)
-        if self.busy:
-            await new.stop()
-            raise TimeoutError(f"{self.name}: still running after {SWAP_WAIT:g} s; not swapped")
+            # Take over inside _idle, before a loop or input trigger can release again.
+            loop = asyncio.get_running_loop()
+            self.idle_waiter = loop.create_future()
+            self.pending_swap = lambda: self._take_over(new, rnode)
+            try:  # real time: a virtual clock may stand still
+                old = await asyncio.wait_for(self.idle_waiter, SWAP_WAIT)
+            except TimeoutError:
+                self.pending_swap = None
+                await new.stop()
+                raise TimeoutError(
+                    f"{self.name}: still running after {SWAP_WAIT:g} s; not swapped"
+                ) from None
+        else:
+            old = self._take_over(new, rnode)
+        try:
+            await old.stop()
+        except Exception as e:
+            log.warning("node %s: teardown of the replaced instance failed: %s", self.name, e)
+
+    def _take_over(self, new: Executor, rnode: ResolvedNode) -> Executor:
+        """The new instance replaces the old one (synchronously: between two activations)."""
         old_node, new_node = getattr(self.executor, "node", None), getattr(new, "node", None)
         getter, setter = getattr(old_node, "get_state", None), getattr(new_node, "set_state", None)
         if getter is not None and setter is not None:
@@ -639,10 +657,7 @@ class NodeRunner:
             self.state = "idle"
         self.consecutive_failures = 0
         self.swaps += 1
-        try:
-            await old.stop()
-        except Exception as e:
-            log.warning("node %s: teardown of the replaced instance failed: %s", self.name, e)
+        return old
 
     # --- statistics ---------------------------------------------------------------------
 
