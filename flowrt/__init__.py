@@ -29,10 +29,12 @@ from .rtdb import Record as Record
 from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
 from .runtime import Subscription as Subscription
+from .spec import DurationMs as DurationMs
 from .spec import FrameTrigger as FrameTrigger
 from .spec import GraphSpec as GraphSpec
 from .spec import InputTrigger as InputTrigger
 from .spec import LoopTrigger as LoopTrigger
+from .spec import TimerMs as TimerMs
 from .spec import TimerTrigger as TimerTrigger
 from .stats import EdgeStats as EdgeStats
 from .stats import NodeStats as NodeStats
@@ -46,6 +48,7 @@ __all__ = [
     "ControlConfig",
     "DeadlineMissed",
     "Diagnostic",
+    "DurationMs",
     "EdgeStats",
     "Event",
     "Frame",
@@ -74,6 +77,7 @@ __all__ = [
     "RuntimeStats",
     "Subscription",
     "SystemClock",
+    "TimerMs",
     "TimerTrigger",
     "TimingChanged",
     "VirtualClock",

@@ -6,6 +6,7 @@ here, every problem collected with its location, so a bad graph never reaches th
 
 from __future__ import annotations
 
+import numbers
 import os
 from collections import deque
 from collections.abc import Collection, Iterable, Mapping
@@ -123,6 +124,20 @@ def _is_compatible(out_type: Any, in_type: Any) -> bool:
     return bool(out_type == in_type)
 
 
+_NUMERIC = {float: numbers.Real, int: numbers.Integral, complex: numbers.Complex}
+
+
+def checked_type(t: Any) -> type | None:
+    """The class a value on a port declared ``t`` must be an instance of; None: anything.
+
+    Generic aliases (``list[int]``) and ``object``/``Any`` are not checked at run time.
+    ``float`` takes any real number (an int, a numpy float), as static typing does.
+    """
+    if not isinstance(t, type) or t is object:
+        return None
+    return _NUMERIC.get(t, t)
+
+
 def _type_name(t: Any) -> str:
     return getattr(t, "__name__", str(t))
 
@@ -164,6 +179,13 @@ def resolve(
         except ValidationError as e:
             where = ("nodes", name, "params")
             diags.extend(pydantic_diagnostics(e, locs, where, classes[name].Params))
+            continue
+        try:
+            advice = classes[name].advise(params[name])
+        except Exception as e:  # a third-party hook must not turn validation into a traceback
+            advice = [("", f"{ns.kind}.advise failed: {e!r}")]
+        for key, message in advice:
+            at(("nodes", name, "params", *([key] if key else [])), message, Severity.warning)
 
     names = [*spec.nodes, *invalid_nodes]
     edges: list[Edge] = []
@@ -212,7 +234,12 @@ def resolve(
         cls = classes.get(name)
         trig = ns.trigger
         if trig is None and cls is not None and name in params:
-            trig = cls.default_trigger(params[name])
+            try:
+                trig = cls.default_trigger(params[name])
+            except ValueError as e:  # e.g. a rate that makes a timer out of range
+                problem = e.errors()[0]["msg"] if isinstance(e, ValidationError) else str(e)
+                at(("nodes", name, "params"), f"its default trigger: {problem}")
+                continue
         if trig is None:
             if ns.inputs:
                 trig = InputTrigger()

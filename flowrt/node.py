@@ -198,6 +198,16 @@ class Node:
         return None
 
     @classmethod
+    def advise(cls, params: Any) -> list[tuple[str, str]]:
+        """Warnings about valid but costly params, as ``(param key, message)``.
+
+        ``flowrt validate`` shows them located at the param (``""``: at ``params``); an
+        error belongs in the ``Params`` model instead. E.g. a capture node says how much
+        shared memory its frame size will take.
+        """
+        return []
+
+    @classmethod
     def frame_ports(cls) -> list[str]:
         """Output ports carrying frames: each publication on one is a tick of the frame clock."""
         from .frames import Frame
