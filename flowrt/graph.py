@@ -21,7 +21,7 @@ from .diagnostics import Diagnostic, GraphError, Severity, closest, did_you_mean
 from .frames import Frame
 from .loading import Locations, check_text, pydantic_diagnostics, read_graph_file
 from .node import Node
-from .registry import KindError, resolve_kind
+from .registry import KindError, NotImported, resolve_kind
 from .spec import (
     EdgePolicy,
     FrameTrigger,
@@ -75,14 +75,28 @@ class Graph:
     edges: list[Edge]
     warnings: list[Diagnostic] = field(default_factory=list)
     file: str = "<python>"
+    not_imported: dict[str, str] = field(default_factory=dict)
+    """Nodes whose dotted-path kind was not imported (``import_kinds=False``): name -> kind.
+    Their params, ports and triggers are unchecked and they are not in ``nodes``."""
 
     @classmethod
-    def from_file(cls, path: str | Path, kinds: Mapping[str, type[Node]] | None = None) -> Graph:
-        return cls.from_text(read_graph_file(path), str(path), kinds)
+    def from_file(
+        cls,
+        path: str | Path,
+        kinds: Mapping[str, type[Node]] | None = None,
+        *,
+        import_kinds: bool = True,
+    ) -> Graph:
+        return cls.from_text(read_graph_file(path), str(path), kinds, import_kinds=import_kinds)
 
     @classmethod
     def from_text(
-        cls, text: str, file: str = "<graph>", kinds: Mapping[str, type[Node]] | None = None
+        cls,
+        text: str,
+        file: str = "<graph>",
+        kinds: Mapping[str, type[Node]] | None = None,
+        *,
+        import_kinds: bool = True,
     ) -> Graph:
         loaded = check_text(text, file)
         if loaded.spec is None:
@@ -94,6 +108,7 @@ class Graph:
             kinds,
             earlier=loaded.errors,
             invalid_nodes=loaded.invalid_nodes,
+            import_kinds=import_kinds,
         )
 
     def frame_port(self, source: str) -> str:
@@ -149,12 +164,14 @@ def resolve(
     *,
     earlier: Iterable[Diagnostic] = (),
     invalid_nodes: Collection[str] = (),
+    import_kinds: bool = True,
 ) -> Graph:
     """Check everything that needs the node classes; raise GraphError with all problems.
 
     ``earlier`` are problems already found while loading, reported together with these;
     ``invalid_nodes`` were dropped from ``spec`` by then, so references to them are not
-    reported again as unknown nodes.
+    reported again as unknown nodes. ``import_kinds=False`` leaves dotted-path kinds
+    unimported (their nodes unchecked, listed in ``Graph.not_imported``).
     """
     locs = locs or Locations("<python>")
     diags: list[Diagnostic] = list(earlier)
@@ -165,9 +182,13 @@ def resolve(
 
     classes: dict[str, type[Node]] = {}
     params: dict[str, BaseModel] = {}
+    not_imported: dict[str, str] = {}
     for name, ns in spec.nodes.items():
         try:
-            classes[name] = resolve_kind(ns.kind, kinds)
+            classes[name] = resolve_kind(ns.kind, kinds, allow_import=import_kinds)
+        except NotImported:
+            not_imported[name] = ns.kind
+            continue
         except KindError as e:
             at(("nodes", name, "kind"), str(e))
             continue
@@ -309,7 +330,7 @@ def resolve(
         for i, (name, ns) in enumerate(spec.nodes.items())
         if name in classes and name in params and name in triggers
     }
-    graph = Graph(spec, resolved, edges, file=locs.file)
+    graph = Graph(spec, resolved, edges, file=locs.file, not_imported=not_imported)
     if not [d for d in diags if d.severity is Severity.error]:
         _check_deadlines(graph, at)
     diags.sort(key=lambda d: (d.line, d.column))
