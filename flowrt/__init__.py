@@ -1,5 +1,6 @@
 """flowrt: a real-time dataflow runtime for robot perception and control."""
 
+from . import _startup  # noqa: F401  (first: Ctrl-C while the flowrt command imports)
 from .builder import GraphBuilder as GraphBuilder
 from .clock import Clock as Clock
 from .clock import SystemClock as SystemClock
