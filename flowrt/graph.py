@@ -132,10 +132,12 @@ class Graph:
 
 
 def _is_compatible(out_type: Any, in_type: Any) -> bool:
+    """Where both ports declare a type, what the output produces must be what the input
+    takes (an ``int`` output may feed a ``float`` input, as at run time)."""
     if in_type in (object, Any) or out_type in (object, Any):
         return True
     if isinstance(out_type, type) and isinstance(in_type, type):
-        return issubclass(out_type, in_type)
+        return issubclass(out_type, checked_type(in_type) or object)
     return bool(out_type == in_type)
 
 

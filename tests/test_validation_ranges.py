@@ -250,3 +250,30 @@ def test_generated_graphs_both_ran_and_were_refused() -> None:
         pytest.skip("the generated-graph test did not run in this session")
     assert _OUTCOMES["ran"] >= 2, _OUTCOMES
     assert _OUTCOMES["refused"] >= 2, _OUTCOMES
+
+
+class FloatUser(Node):
+    x = Input(float)
+
+    def process(self, x: float) -> None:
+        pass
+
+
+class TextUser(Node):
+    x = Input(str)
+
+    def process(self, x: str) -> None:
+        pass
+
+
+@pytest.mark.parametrize(("reader", "ok"), [(FloatUser, True), (TextUser, False)])
+def test_declared_port_types_are_checked_like_at_run_time(reader: type[Node], ok: bool) -> None:
+    """An int output feeds a float input (as a value would pass at run time), not a str one."""
+    g = GraphBuilder("types")
+    g.add("count", "counter", trigger={"timer": "10ms"})
+    g.add("user", reader, inputs={"x": "count.value"})
+    if ok:
+        assert [e.name for e in g.build().edges] == ["count.value->user.x"]
+    else:
+        with pytest.raises(GraphError, match=r"count\.value produces int, user\.x expects str"):
+            g.build()
