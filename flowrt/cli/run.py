@@ -15,7 +15,8 @@ from typing import Any
 from rich.console import Console
 
 from ..eventloop import new_event_loop
-from .common import EXIT_BAD_GRAPH, load, plain_handler, setup_logging, stdout_console
+from ..remote import RemoteError
+from .common import EXIT_BAD_GRAPH, EXIT_FAILED, load, plain_handler, setup_logging, stdout_console
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -27,6 +28,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
+    from .check import startup_check
+
+    timing_ok, timing_lines = startup_check(graph)
+    if not timing_ok:
+        word = "refusing to start" if args.check else "warning"
+        err.print(f"flowrt run: {word}: the timing may not hold (flowrt check)", markup=False)
+        for line in timing_lines:
+            err.print(f"  {line}", markup=False)
+        if args.check:
+            return EXIT_FAILED
     monitor: LogLines | LiveTable
     if args.no_ui:
         monitor = LogLines(args.log_every)
@@ -56,6 +67,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
         try:
             runner.run(main())
+        except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
+            err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
+            return 1
         except OSError as e:
             if rt.control_config is None or rt.control is not None:
                 raise
@@ -63,7 +77,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             return 1
     stats = rt.stats()
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
-        console.print(render(stats, list(rt.events)[-5:], rt.qos_status()))
+        console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
@@ -158,7 +172,12 @@ def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
     run.add_argument(
-        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds of running, counted once every node is set up "
+        "(start-up, e.g. starting worker processes, and teardown come on top)",
     )
     run.add_argument(
         "--no-ui", action="store_true", help="periodic log lines instead of the live table"
@@ -188,4 +207,9 @@ def add_parsers(sub: Any) -> None:
         help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.add_argument(
+        "--check",
+        action="store_true",
+        help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
+    )
     run.set_defaults(func=cmd_run)
