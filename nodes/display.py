@@ -334,6 +334,7 @@ class Display(Node):
         max_fps: float | None = Field(
             None,
             gt=0,
+            le=1000,
             description="cap on the frames encoded per second and source; none: the source's rate",
         )
         jpeg_quality: int = Field(80, ge=1, le=100)

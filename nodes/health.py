@@ -83,10 +83,13 @@ class HealthReport:
     active: tuple[str, ...]  # conditions that still hold, e.g. "fps_drop front_cam"
 
 
+Fps = Annotated[float, Field(gt=0, le=1000)]
+
+
 class HealthParams(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     interval_ms: TimerMs = Field(default=1000.0, description="report period")
-    expected_fps: float | dict[str, float] | None = Field(
+    expected_fps: Fps | dict[str, Fps] | None = Field(
         default=None, description="nominal fps, for every stream or per input name"
     )
     fps_drop: float = Field(default=0.2, gt=0, lt=1, description="alert on this relative drop")
