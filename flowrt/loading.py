@@ -233,6 +233,30 @@ class _Constructor:
         return str(node.value)
 
 
+def _written_values(text: str) -> int:
+    """How many values the file writes, counted by libyaml's parser when PyYAML has it.
+
+    About 20 times faster than composing the file in Python (a 256 KiB flow list of 130 000
+    values: ~0.1 s instead of ~2.5 s), so an oversize file is refused before that cost. 0
+    when libyaml is missing or the YAML is broken: the composer below counts (and reports)
+    it then.
+    """
+    loader = getattr(yaml, "CSafeLoader", None)
+    if loader is None:
+        return 0
+    node_events = (yaml.ScalarEvent, yaml.SequenceStartEvent, yaml.MappingStartEvent)
+    count = 0
+    try:
+        for event in yaml.parse(text, Loader=loader):
+            if isinstance(event, node_events):
+                count += 1
+                if count > MAX_WRITTEN_VALUES:
+                    break
+    except yaml.YAMLError:
+        return 0
+    return count
+
+
 class _TooLarge(Exception):
     def __init__(self, aliased: bool) -> None:
         super().__init__()
@@ -250,6 +274,8 @@ def parse_yaml(text: str, file: str = "<graph>") -> tuple[Any, Locations, list[D
     if len(text) > MAX_FILE_BYTES:  # characters: at least as many bytes
         big = too_large(len(text.encode("utf-8", "replace")), file)
         return fail(big.message)
+    if _written_values(text) > MAX_WRITTEN_VALUES:
+        return fail(f"graph file too large: more than {MAX_WRITTEN_VALUES} values written")
     loader: _TagRecordingLoader | None = None
     try:
         loader = _TagRecordingLoader(text)
