@@ -294,7 +294,7 @@ def _local_host(host: str) -> str:
         )
     except concurrent.futures.TimeoutError:
         raise ValueError(
-            f"host {host!r} did not resolve within {RESOLVE_TIMEOUT:g} s: "
+            f"host {host!r} does not resolve (no answer within {RESOLVE_TIMEOUT:g} s): "
             "give an IP address (127.0.0.1, ::1, 0.0.0.0)"
         ) from None
     except (OSError, UnicodeError) as e:
