@@ -126,10 +126,21 @@ def test_fixtures_cover_every_check() -> None:
         "deadline: must be positive, got 0 ms",
         "deadline: must be positive, got -5 ms",
         "which produces no frames",
+        "must be a finite duration, got nan",
+        "timer period must be at least 0.1 ms",
+        "timer period must be at most 3600000 ms",
+        "watchdog: must be between 1 ms and 3600000 ms",
+        "cpus.0: Input should be less than or equal to 8191",
+        "period must be at most 100000 frames",
+        "front_cam.truth produces SceneTruth, ball.frame expects Frame",
+        "host 'example.invalid' does not resolve",
+        "above the 64 MiB limit of one frame: set allow_large: true",
+        "YAML tag '!!python/object/apply:os.system' is not allowed",
     ]:
         assert fragment in stated, f"no invalid-*.yaml fixture expects {fragment!r}"
     warned = [e for p in VALID for e in expectations(p) if e.severity is Severity.warning]
     assert any("longer than the period" in e.text for e in warned)
+    assert any("of shared memory at start" in e.text for e in warned)
 
 
 def test_all_errors_reported_at_once() -> None:
