@@ -60,8 +60,9 @@ DurationMs = Annotated[float, BeforeValidator(parse_duration_ms)]
 # --- the documented ranges ---------------------------------------------------------------
 #
 # Every duration, rate, count and id of a graph file is finite and within these bounds, so
-# that a graph that validates is a graph that runs. The same bounds apply to run-time changes
-# (TimingOverride: modes, the control endpoint, Runtime.set_timing). README "Timing ranges".
+# that a graph that validates is a graph that runs. TimingOverride carries the same bounds, so
+# that a run-time change (a mode, a request to the control endpoint) is checked with the same
+# rules: ``TimingOverride.model_validate(change)``. README "Timing ranges".
 
 MIN_TIMER_MS = 0.1
 """Shortest timer period: 100 us (10 kHz). Below it a timerfd interval rounds towards zero
