@@ -107,7 +107,13 @@ class Runtime:
         kinds: Mapping[str, type[Node]] | None = None,
         control: ControlConfig | str | None = None,
         spin: float = 0.0,
+        drain_timeout: float = 5.0,
     ) -> None:
+        """``drain_timeout``: seconds ``stop`` lets the graph finish what it holds (lossless
+        edges, in-flight activations) after stopping the sources; reported when hit."""
+        if not drain_timeout >= 0 or math.isinf(drain_timeout):
+            raise ValueError(f"drain_timeout must be finite and >= 0, got {drain_timeout}")
+        self.drain_timeout = drain_timeout
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
         if clock is not None and spin:
             raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
@@ -186,6 +192,7 @@ class Runtime:
         self._sched.stop_requester = self.request_stop
         self._sched.rtdb_provider = lambda: self.rtdb
         self._sched.mode_setter = self.set_mode
+        self._sched.drain_timeout = self.drain_timeout
         overload = self.graph.spec.qos.overload
         if overload is not None and self.qos is None:
             from .qos import OverloadController
@@ -215,7 +222,13 @@ class Runtime:
                 raise
 
     async def stop(self) -> None:
-        """Tear every node down, stop workers, free shared memory; safe to call twice."""
+        """Drain, tear every node down, stop workers, free shared memory; safe to call twice.
+
+        The drain first stops the sources, then lets every lossless edge deliver what it
+        holds and every in-flight activation finish, for at most ``drain_timeout`` seconds
+        (a ``drain-timeout`` HealthAlert says what was left); what is still undelivered then
+        is counted as dropped with its reason (``EdgeStats.drop_reasons``).
+        """
         if not self.started:
             return
         self.started = False

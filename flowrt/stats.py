@@ -125,6 +125,10 @@ class EdgeStats(_Frozen):
     published: int
     delivered: int
     dropped: int
+    drop_reasons: dict[str, int] = Field(
+        default_factory=dict,
+        description="drops counted at stop, by reason (stop, drain timeout, reader failed)",
+    )
     sampled: bool = Field(
         description="the reader samples the newest value; unread values are expected"
     )

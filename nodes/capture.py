@@ -718,9 +718,11 @@ class Capture(Node):
             )
 
     async def process(self) -> dict[str, Any] | None:
-        if self._scene is not None:
-            return self._synthetic()
-        return await self._grab()
+        out = self._synthetic() if self._scene is not None else await self._grab()
+        if out is not None and self.params.pacing == "fast" and self._kind != "camera":
+            # Offline: every period-1 frame reader (inline or in a worker) takes every frame.
+            await self.ctx.wait_readers()
+        return out
 
     # -- synthetic
 
