@@ -228,6 +228,8 @@ class NodeRunner:
         self._idle_waiters: list[asyncio.Future[None]] = []
         self.lossless: list[LosslessBuffer] = []  # inputs that must deliver every value
         self.drain_task: asyncio.Task[None] | None = None
+        self.deferred: float | None = None  # a paced source's tick that came while busy
+        self.untaken = False  # released, inputs not yet taken (the run is scheduled)
         self.more_input = False
         self.stopping = False
         self.current = 0  # activation id, so a late deadline timer recognises its activation
@@ -270,10 +272,18 @@ class NodeRunner:
                 fut.set_result(None)
 
     def ready_for_frame(self) -> bool:
-        """True when a tick now would run this node rather than be skipped (or it never will)."""
+        """True when this node has taken the previous frame of a paced source (or never will).
+
+        It may still be running on it: the next tick is then deferred (see Scheduler.tick),
+        so that the source prepares frame k+1 while a worker processes frame k.
+        """
         if not self.timing.enabled or self.state == "failed" or self.stopping:
             return True
-        return not self.busy and self.state not in ("starting", "backoff")
+        return (
+            self.deferred is None
+            and not self.untaken
+            and self.state not in ("starting", "backoff")
+        )
 
     async def wait_ready(self) -> None:
         fut = self.sched.loop.create_future()
@@ -338,6 +348,7 @@ class NodeRunner:
             self.skipped += 1
             return
         self.busy = True
+        self.untaken = True
         self.current += 1
         self.missed_current = False
         loop = self.sched.loop
@@ -371,6 +382,9 @@ class NodeRunner:
     def _begin(self) -> tuple[float, dict[str, Any] | None]:
         now = self.sched.clock.now()
         inputs = self._take_inputs()
+        self.untaken = False
+        if self._idle_waiters:
+            self.notify()  # a paced source may publish the next frame now
         if inputs is None:
             self.skipped += 1
             return now, None
@@ -542,6 +556,9 @@ class NodeRunner:
             self.state = "idle"
         if self.stopping:
             return
+        if self.deferred is not None:  # a paced source's frame waits: run on it now
+            t, self.deferred = self.deferred, None
+            self.release(t)
         if isinstance(self.rnode.trigger, LoopTrigger):
             self.sched.loop.call_soon(self.release, self.sched.clock.now())
         elif self.trigger_inputs:
@@ -703,6 +720,7 @@ class Scheduler:
             self.runners[edge.dst].connect_input(edge.dst_port, buf)
             self.buffers.append(buf)
             self.reader_of[id(buf)] = self.runners[edge.dst]
+        self.paced: set[str] = set()  # frame clocks whose source waits for its readers
         self.drain_timeout = 5.0  # seconds the drain at stop may take (then reported)
         self.drained = False
         self.drain_left: list[str] = []  # what a timed-out drain left undone
@@ -747,19 +765,27 @@ class Scheduler:
         if k is None:
             return
         self.ticks[key] = k + 1
+        paced = key in self.paced
         for r in self.readers[key]:
             tm = r.timing
             if k % tm.period == tm.phase:
-                r.release(t)
+                if paced and tm.period == 1 and r.busy and r.deferred is None:
+                    r.deferred = t  # not an overrun: the source waited for this reader
+                else:
+                    r.release(t)
 
     async def wait_readers(self, runner: NodeRunner) -> None:
         """Wait until every period-1 frame-triggered reader of ``runner``'s frames is ready.
 
         A ``pacing: fast`` source calls this before publishing: a reader in a worker process
         that is slower than the source is then never skipped (the source follows the slowest
-        such reader instead of outrunning it). Readers with a longer period sample by design
-        and are not waited for; nor are failed, disabled or stopping ones.
+        such reader instead of outrunning it). "Ready" means the reader has taken the previous
+        frame: it may still run on it, and the new frame's tick then waits for it to finish
+        (deferred, not skipped), so that the source prepares frame k+1 while the worker
+        processes frame k. Readers with a longer period sample by design and are not waited
+        for; nor are failed, disabled or stopping ones.
         """
+        self.paced.update(runner.tick_ports.values())
         while not runner.stopping:
             waiting = [
                 r
@@ -825,13 +851,16 @@ class Scheduler:
     async def drain(self, limit: float | None = None) -> list[str]:
         """Stop the sources, then let the graph finish what it holds (at most ``limit`` s).
 
-        The limit is a deadline for the whole graph, not for one awaited call, hence no
-        ``asyncio.timeout``. Sources (nodes without inputs, and free-running ones) are released
-        no more; their
-        in-flight activation ends and publishes. Every other node keeps running: in-flight
-        activations finish, every lossless edge delivers what it holds, producers waiting on
-        a full lossless edge get their values in. Returns what was left undone when the
+        Sources (nodes without inputs, and free-running ones) are released no more and their
+        in-flight activation is cancelled (a capture waiting for a frame, a paced source
+        waiting for its readers): nothing new is published after the stop request, but what
+        a source did publish, even a value waiting on a full lossless edge, is delivered.
+        Every other node keeps running: in-flight activations finish, every lossless edge
+        delivers what it holds, producers waiting on a full lossless edge get their values in.
+        Returns what was left undone when the
         timeout hit (then reported as a ``drain-timeout`` HealthAlert and a warning), or [].
+        The limit is a deadline for the whole graph, not for one awaited call (hence no
+        ``asyncio.timeout``).
         """
         if self.drained:
             return self.drain_left
@@ -845,8 +874,8 @@ class Scheduler:
                 if r.timer is not None:
                     r.timer.cancel()
                     r.timer = None
-        for r in self.runners.values():
-            r.notify()  # a paced source waiting for its readers: publish what it has, end
+                if r.task is not None and not r.task.done():
+                    r.task.cancel()  # e.g. a capture waiting for its next frame
         while True:
             left = self._undrained()
             if not left or loop.time() - t0 >= timeout:

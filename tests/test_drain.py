@@ -217,7 +217,10 @@ def frames_in(path: Path) -> int:
 
 @pytest.mark.skipif(VIDEO is None, reason="the sample video (../shared/data) is not available")
 @pytest.mark.timeout(90)
-@pytest.mark.parametrize(("placement", "policy"), [("process", "lossless"), ("process", "latest")])
+@pytest.mark.parametrize(
+    ("placement", "policy"),
+    [("process", "lossless"), ("process", "latest"), ("pool", "latest"), ("inline", "latest")],
+)
 async def test_fast_file_source_feeds_every_frame_to_a_worker(placement: str, policy: str) -> None:
     """The real video, ``pacing: fast`` + ``on_eof: exit``, tracker in a worker process.
 
