@@ -280,9 +280,7 @@ class NodeRunner:
         if not self.timing.enabled or self.state == "failed" or self.stopping:
             return True
         return (
-            self.deferred is None
-            and not self.untaken
-            and self.state not in ("starting", "backoff")
+            self.deferred is None and not self.untaken and self.state not in ("starting", "backoff")
         )
 
     async def wait_ready(self) -> None:
