@@ -145,6 +145,8 @@ class Runtime:
         self.control_config = control
         self.control: ControlServer | None = None
         self.started = False
+        self.starvation_events = 0  # worker calls spared by the watchdog: starved, not hung
+        self._starved_alert_at = -math.inf
 
     @classmethod
     def from_file(cls, path: str | Path, **kwargs: Any) -> Runtime:
@@ -342,7 +344,21 @@ class Runtime:
             ex = workers.ProcessExecutor(
                 runner.name, factory, realtime=rt_workers, nice_of=nice_of, **options
             )
+        ex.on_starved = self._worker_starved
         return _WorkerAdapter(ex)
+
+    def _worker_starved(self, node: str, detail: str) -> None:
+        """A watchdog spared a starved worker: counted each time, one alert per episode.
+
+        An episode is a run of such events less than 10 s apart: the whole machine starved
+        makes every worker's watchdog notice it, and one alert says it all.
+        """
+        self.starvation_events += 1
+        now = self.clock.now()
+        if now - self._starved_alert_at > 10.0:
+            log.warning("%s: %s", node, detail)
+            self._emit(HealthAlert(self.now(), node, "cpu-starvation", detail, "warning"))
+        self._starved_alert_at = now
 
     def _new_frame(
         self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str
@@ -485,7 +501,11 @@ class Runtime:
             loop_scheduling=self.loop_scheduling,
             nodes=[r.stats() for r in sched.runners.values()],
             edges=[b.stats() for b in sched.buffers],
-            loop=LoopStats(lag=self._lag.summary(), blocked_calls=sched.blocked_calls),
+            loop=LoopStats(
+                lag=self._lag.summary(),
+                blocked_calls=sched.blocked_calls,
+                starvation_events=self.starvation_events,
+            ),
             frames=self._frame_stats(),
             events=self.event_count,
         )

@@ -140,6 +140,11 @@ class LoopStats(_Frozen):
     blocked_calls: int = Field(
         description="inline calls that blocked the loop longer than the threshold"
     )
+    starvation_events: int = Field(
+        default=0,
+        description="worker calls past their watchdog spared because the worker was starved "
+        "of CPU (waiting on the run queue), not hung",
+    )
 
 
 class FramePoolStats(_Frozen):

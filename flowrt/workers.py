@@ -20,7 +20,9 @@ are expected to be small: detections, poses).
 Death detection: the process sentinel becomes readable when the worker exits for any reason
 (exception escaping, segfault, abort, SIGKILL); EOF on the socket is seen as well. The in-flight
 call fails with :class:`WorkerError` whose ``kind`` says what happened. A call running longer
-than its watchdog is failed at that instant (kind ``hung``) and the worker is SIGKILLed.
+than its watchdog is failed at that instant (kind ``hung``) and the worker is SIGKILLed,
+unless the kernel says the worker was starved of CPU meanwhile (it waited on the run queue):
+then the watchdog is extended and ``on_starved`` told, since killing it would not help.
 
 Workers are forked from a ``forkserver`` that has preloaded numpy and OpenCV, so their pages
 are shared (copy-on-write) and a worker starts in milliseconds. A worker dies with the runtime:
@@ -473,6 +475,10 @@ class _Worker:
         self.alive = False  # the process exists (until its sentinel fires)
         self._killing = False
         self.last_run_time = 0.0
+        # Watchdog progress check (see _on_hung): the worker's CPU and run-queue wait at the
+        # last check, and who hears of a call spared because the worker was starved of CPU.
+        self._progress: tuple[float, float, float | None] | None = None
+        self.on_starved: Callable[[str, str], None] | None = None
 
     async def spawn(self) -> None:
         loop = asyncio.get_running_loop()
@@ -523,6 +529,7 @@ class _Worker:
         self._inflight = call
         self._transport.write(_HDR.pack(len(call.payload)) + call.payload)
         if call.watchdog is not None:
+            self._progress = _progress_of(self.pid, self._loop.time())
             self._timer = self._loop.call_later(call.watchdog, self._on_hung)
 
     def _dispatch_next(self) -> None:
@@ -560,6 +567,17 @@ class _Worker:
         call = self._inflight
         if call is None or not self.alive:
             return
+        assert self._loop is not None
+        assert call.watchdog is not None
+        if self._reply_waiting():  # answered; the loop was late to read it (uvloop runs
+            self._timer = self._loop.call_later(0.005, self._on_hung)  # timers before I/O)
+            return
+        starved = self._starved(call.watchdog)
+        if starved:
+            if self.on_starved is not None:
+                self.on_starved(call.node, starved)
+            self._timer = self._loop.call_later(call.watchdog, self._on_hung)
+            return
         self._hung_node = call.node
         self.death = self._classify(None)
         err = WorkerError(
@@ -570,6 +588,51 @@ class _Worker:
         if not call.future.done():
             call.future.set_exception(err)
         self.kill()
+
+    def _reply_waiting(self) -> bool:
+        """Bytes from the worker wait in the socket (a reply, or EOF that the sentinel follows)."""
+        sock = None if self._transport is None else self._transport.get_extra_info("socket")
+        if sock is None:
+            return False
+        try:
+            readable, _, _ = select.select([sock.fileno()], [], [], 0)
+        except (OSError, ValueError):
+            return False
+        return bool(readable)
+
+    def _starved(self, watchdog: float) -> str:
+        """Why a call past its watchdog is spared ('' if it is not): the worker was starved.
+
+        A hung worker and a starved machine look the same from the loop's clock. The kernel
+        tells them apart: a starved worker waited on the run queue (``/proc/PID/schedstat``)
+        for most of the window, or, without schedstat, was runnable and got little CPU
+        (``/proc/PID/stat``). A hung worker that spins gets the CPU it asks for unless the
+        machine is starved, so it is killed at the first check after the starvation ends.
+        """
+        assert self._loop is not None
+        before, now = self._progress, _progress_of(self.pid, self._loop.time())
+        self._progress = now
+        if before is None or now is None:
+            return ""
+        t0, cpu0, wait0 = before
+        t1, cpu1, wait1 = now
+        window = t1 - t0
+        cpu = cpu1 - cpu0
+        if window <= 0 or cpu >= watchdog:
+            return ""
+        if wait0 is not None and wait1 is not None:
+            waited = wait1 - wait0
+            if waited < 0.5 * window:
+                return ""
+            what = f"waited {waited * 1000:.0f} ms for a CPU"
+        else:
+            if _state_of(self.pid) != "R" or cpu >= 0.5 * window:
+                return ""
+            what = "runnable"
+        return (
+            f"worker {self.pid} ran {cpu * 1000:.0f} ms of CPU in {window * 1000:.0f} ms and "
+            f"{what}: starved of CPU, not hung; watchdog extended by {watchdog * 1000:g} ms"
+        )
 
     def _on_eof(self) -> None:
         # Normally followed at once by the sentinel. A worker that closed its socket but lives
@@ -662,6 +725,34 @@ class _Worker:
         await self.wait_exit(grace)
 
 
+def _progress_of(pid: int | None, now: float) -> tuple[float, float, float | None] | None:
+    """(now, CPU seconds, run-queue wait seconds or None) of a process, from /proc."""
+    if pid is None:
+        return None
+    try:
+        with open(f"/proc/{pid}/schedstat") as f:
+            cpu_ns, wait_ns, _ = f.read().split()
+        return now, int(cpu_ns) / 1e9, int(wait_ns) / 1e9
+    except (OSError, ValueError):
+        pass
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        ticks = os.sysconf("SC_CLK_TCK")
+        return now, (int(fields[11]) + int(fields[12])) / ticks, None  # utime + stime
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _state_of(pid: int | None) -> str:
+    """The process state letter of /proc/PID/stat (R runnable, S sleeping, ...), or ''."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return ""
+
+
 def _check_priority(priority: int) -> int:
     if not 1 <= int(priority) <= 99:
         raise ValueError(f"priority must be in 1..99, got {priority}")
@@ -696,6 +787,9 @@ class _NodeExecutor:
         self.spin = spin
         self._worker: _Worker | None = None
         self._granted = "not started"
+        # Told (node, detail) when a call past its watchdog is spared because the worker
+        # was starved of CPU rather than hung (the runtime emits a HealthAlert).
+        self.on_starved: Callable[[str, str], None] | None = None
 
     @property
     def granted(self) -> str:
@@ -725,6 +819,8 @@ class _NodeExecutor:
 
     async def _add_to(self, worker: _Worker) -> None:
         self._worker = worker
+        if self.on_starved is not None:
+            worker.on_starved = self.on_starved
         msg = (_OP_ADD, self.nid, self.name, self.factory, self.scheduling)
         self._granted = await worker.request(msg, self.name, self.priority, self.setup_timeout)
 
