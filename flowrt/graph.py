@@ -31,6 +31,7 @@ from .spec import (
     NodeSpec,
     TimerTrigger,
     Trigger,
+    merge_params,
 )
 
 
@@ -201,7 +202,7 @@ def resolve(
                     f"{name}.{port} expects {_type_name(in_t)}",
                 )
                 continue
-            edges.append(_edge(name, port, ins, in_t, out_t))
+            edges.append(_edge(name, port, ins, in_t, out_t, in_port.policy))
         if cls is not None:
             for port, p in cls.inputs.items():
                 if p.required and port not in ns.inputs and port not in misspelt:
@@ -268,6 +269,13 @@ def resolve(
                 at(path, f"unknown node {node!r}" + hint)
                 continue
             _check_override(path, o, triggers.get(node), at)
+            if o.params and node in classes:
+                merged = merge_params(spec.nodes[node].params, o.params)
+                try:
+                    classes[node].Params.model_validate(merged)
+                except ValidationError as e:
+                    at_params = (*path, "params")
+                    diags.extend(pydantic_diagnostics(e, locs, at_params, classes[node].Params))
     if spec.qos.overload is not None:
         for i, node in enumerate(spec.qos.overload.protect):
             if node not in names:
@@ -292,8 +300,12 @@ def resolve(
     return graph
 
 
-def _edge(dst: str, dst_port: str, ins: InputSpec, in_type: Any, out_type: Any) -> Edge:
+def _edge(
+    dst: str, dst_port: str, ins: InputSpec, in_type: Any, out_type: Any, default: str | None
+) -> Edge:
     policy = ins.policy
+    if policy is None and default is not None:
+        policy = EdgePolicy(default)
     if policy is None:
         # Frames default to latest whichever side says so: a display reading ``object``
         # still wants the newest frame, not a backlog.

@@ -39,10 +39,18 @@ class Input(Generic[T]):
     """An input port. ``required`` inputs must be connected and hold a value to activate."""
 
     def __init__(
-        self, type_: type[T] | Any = object, *, required: bool = True, doc: str = ""
+        self,
+        type_: type[T] | Any = object,
+        *,
+        required: bool = True,
+        policy: str | None = None,
+        doc: str = "",
     ) -> None:
         self.type: Any = type_
         self.required = required
+        # The edge policy when the graph file names none: e.g. a command multiplexer wants
+        # the newest command of each source (latest), not a backlog (the message default).
+        self.policy = policy
         self.doc = doc
         self.name = ""
 
@@ -147,6 +155,12 @@ class NodeContext:
         """Switch the runtime to a mode of the graph file; only on the event loop."""
         raise RuntimeError("set_mode() is only available to inline nodes on the event loop")
 
+    @property
+    def period(self) -> float | None:
+        """The node's timer period in seconds (None unless timer-triggered): e.g. to derive a
+        timeout of "three periods" that follows run-time timing changes."""
+        return None
+
     def set_error(self, reason: str) -> None:
         """Mark the node in an error state (a source that cannot open, a bus gone).
 
@@ -226,6 +240,12 @@ class Node:
     def teardown(self) -> Any:
         """Release resources; may be async; runs even after errors."""
 
+    # Optional hooks (looked up by name, so a node defines only what it needs):
+    # ``get_state() -> Any`` / ``set_state(state)``: when the node is swapped for a new instance
+    # (``Runtime.swap``, ``flowrt ctl swap``/``reload``), the new one receives the old one's
+    # state, e.g. a tracker's last position. ``params_changed(old)``: params replaced between
+    # activations (a mode's weights); recompute what ``setup`` derived from them.
+
 
 def make_node(
     cls: type[Node], params: BaseModel | Mapping[str, Any] | None, ctx: NodeContext
@@ -247,6 +267,16 @@ class NodeFactory:
         self.params = params
         self.name = name
         self.rtdb: RtdbHandle | None = None  # set by the runtime: where ctx.rtdb attaches
+        # ``flowrt ctl reload``: a worker forked from a process that imported the module
+        # before the edit must import it anew to run the edited code.
+        self.reload = False
 
     def __call__(self) -> Node:
-        return make_node(self.cls, self.params, NodeContext(self.name, rtdb=self.rtdb))
+        cls = self.cls
+        if self.reload:
+            import importlib
+            import sys
+
+            module = importlib.reload(sys.modules[cls.__module__])
+            cls = getattr(module, cls.__qualname__)
+        return make_node(cls, self.params, NodeContext(self.name, rtdb=self.rtdb))

@@ -24,12 +24,12 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
 from .eventloop import run as run
-from .events import Event, HealthAlert, ModeChanged, RealtimeStatus
+from .events import Event, HealthAlert, ModeChanged, NodeSwapped, RealtimeStatus
 from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
-from .spec import EdgePolicy, GraphSpec, Placement
+from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement
 from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
@@ -40,6 +40,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("flowrt")
 T = TypeVar("T")
+
+
+class SwapError(Exception):
+    """A swap that did not happen; the old instance runs on. The message says why."""
 
 
 class Monitor(Protocol):
@@ -578,9 +582,121 @@ class Runtime:
                 enabled=o.enabled,
                 origin=f"mode {mode}",
             )
+        self._apply_mode_params(previous_spec, spec)
         previous, self.mode = self.mode, mode
         self._emit(ModeChanged(self.now(), None, mode, previous, origin))
         self._record("flowrt.mode", mode)
+
+    async def swap(
+        self,
+        node: str,
+        kind: str | type[Node],
+        params: Mapping[str, Any] | None = None,
+        *,
+        origin: str = "api",
+    ) -> None:
+        """Swap ``node``'s algorithm while running: a new instance of ``kind`` takes over.
+
+        The new instance is set up beside the old one and takes over between two of the
+        node's activations, with the old one's state (``get_state``/``set_state``); other
+        nodes see nothing. ``params`` default to the node's current ones when the kind is
+        unchanged, else to the new kind's defaults. Raises ``SwapError`` with the reason (an
+        unknown kind, an import error, bad params, a failing ``setup``): the old instance
+        keeps running.
+        """
+        from pydantic import ValidationError
+
+        from .registry import KindError, resolve_kind
+
+        runner = self._runner(node)
+        old_kind = runner.rnode.spec.kind
+        label = kind if isinstance(kind, str) else f"{kind.__module__}:{kind.__qualname__}"
+        try:
+            cls = resolve_kind(kind, None)
+        except KindError as e:
+            raise SwapError(f"{node}: {e}") from None
+        except Exception as e:
+            raise SwapError(f"{node}: kind {label!r}: import failed: {e!r}") from None
+        if params is None and cls is runner.rnode.cls:
+            model = runner.rnode.params
+        else:
+            if params is None and label == old_kind:
+                params = runner.rnode.params.model_dump()
+            try:
+                model = cls.Params.model_validate(dict(params or {}))
+            except ValidationError as e:
+                raise SwapError(f"{node}: params for {label}: {e}") from None
+        await self._swap_to(runner, cls, model, label, origin)
+
+    async def _swap_to(
+        self,
+        runner: NodeRunner,
+        cls: type[Node],
+        model: Any,
+        label: str,
+        origin: str,
+        reload: bool = False,
+    ) -> None:
+        old_kind = runner.rnode.spec.kind
+        try:
+            await runner.swap(cls, model, label, reload=reload)
+        except Exception as e:
+            raise SwapError(
+                f"{runner.name}: swap to {label} failed, the old instance runs on: {e}"
+            ) from e
+        self._emit(NodeSwapped(self.now(), runner.name, label, old_kind, origin))
+
+    async def reload(self, node: str, *, origin: str = "api") -> None:
+        """Re-import ``node``'s module from disk and swap to the edited class (see ``swap``)."""
+        import importlib
+        import sys
+
+        runner = self._runner(node)
+        cls = runner.rnode.cls
+        try:
+            module = importlib.reload(sys.modules[cls.__module__])
+            new_cls = getattr(module, cls.__qualname__)
+        except Exception as e:
+            raise SwapError(f"{node}: reloading {cls.__module__} failed: {e!r}") from None
+        kind = runner.rnode.spec.kind
+        await self._swap_to(runner, new_cls, runner.rnode.params, kind, origin, reload=True)
+
+    def set_params(self, node: str, params: Mapping[str, Any], *, merge: bool = True) -> None:
+        """Change a node's params between activations (merged over its current ones)."""
+        from pydantic import ValidationError
+
+        from .spec import merge_params
+
+        runner = self._runner(node)
+        current = runner.rnode.params.model_dump()
+        target = merge_params(current, dict(params)) if merge else dict(params)
+        try:
+            model = runner.rnode.cls.Params.model_validate(target)
+        except ValidationError as e:
+            raise ValueError(f"{node}: params: {e}") from None
+        runner.set_params(model)
+
+    def _runner(self, node: str) -> NodeRunner:
+        runner = self.scheduler.runners.get(node)
+        if runner is None:
+            from .diagnostics import did_you_mean
+
+            raise KeyError(f"unknown node {node!r}" + did_you_mean(node, self.scheduler.runners))
+        return runner
+
+    def _apply_mode_params(self, previous: ModeSpec | None, new: ModeSpec) -> None:
+        """Params a mode sets, merged over the graph file's; the previous mode's undone."""
+        from .spec import merge_params
+
+        before = previous.nodes if previous is not None else {}
+        for name in dict.fromkeys([*before, *new.nodes]):
+            o, old = new.nodes.get(name), before.get(name)
+            if not (o is not None and o.params) and not (old is not None and old.params):
+                continue
+            base = self.graph.spec.nodes[name].params
+            target = merge_params(base, o.params if o is not None else None)
+            runner = self.scheduler.runners[name]
+            runner.set_params(runner.rnode.cls.Params.model_validate(target))
 
     def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
         from .diagnostics import did_you_mean

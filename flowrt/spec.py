@@ -227,7 +227,7 @@ class NodeSpec(_Strict):
 class ModeSpec(_Strict):
     """A named set of timing overrides (e.g. attacker / defender), applied as one change."""
 
-    nodes: dict[str, TimingOverride] = Field(default_factory=dict)
+    nodes: dict[str, NodeOverride] = Field(default_factory=dict)
 
 
 class TimingOverride(_Strict):
@@ -241,7 +241,28 @@ class TimingOverride(_Strict):
     enabled: bool | None = None
 
 
+class NodeOverride(TimingOverride):
+    """A mode's change to one node: its timing, and params merged over the graph file's.
+
+    Params are merged key by key, into nested mappings too, so a mode can change one weight
+    of an arbiter (``sources: {avoid: {weight: 3}}``) and keep the rest.
+    """
+
+    params: dict[str, Any] | None = None
+
+
 ModeSpec.model_rebuild()
+
+
+def merge_params(base: dict[str, Any], override: dict[str, Any] | None) -> dict[str, Any]:
+    """``override`` over ``base``, recursively for mappings (a mode's params over the graph's)."""
+    out = dict(base)
+    for key, value in (override or {}).items():
+        old = out.get(key)
+        out[key] = (
+            merge_params(old, value) if isinstance(old, dict) and isinstance(value, dict) else value
+        )
+    return out
 
 
 class OverloadSpec(_Strict):

@@ -478,6 +478,7 @@ class _Worker:
         # Watchdog progress check (see _on_hung): the worker's CPU and run-queue wait at the
         # last check, and who hears of a call spared because the worker was starved of CPU.
         self._progress: tuple[float, float, float | None] | None = None
+        self._call_cpu = 0.0  # the worker's CPU time when the call in flight was sent
         self.on_starved: Callable[[str, str], None] | None = None
 
     async def spawn(self) -> None:
@@ -530,6 +531,7 @@ class _Worker:
         self._transport.write(_HDR.pack(len(call.payload)) + call.payload)
         if call.watchdog is not None:
             self._progress = _progress_of(self.pid, self._loop.time())
+            self._call_cpu = 0.0 if self._progress is None else self._progress[1]
             self._timer = self._loop.call_later(call.watchdog, self._on_hung)
 
     def _dispatch_next(self) -> None:
@@ -604,10 +606,13 @@ class _Worker:
         """Why a call past its watchdog is spared ('' if it is not): the worker was starved.
 
         A hung worker and a starved machine look the same from the loop's clock. The kernel
-        tells them apart: a starved worker waited on the run queue (``/proc/PID/schedstat``)
-        for most of the window, or, without schedstat, was runnable and got little CPU
-        (``/proc/PID/stat``). A hung worker that spins gets the CPU it asks for unless the
-        machine is starved, so it is killed at the first check after the starvation ends.
+        tells them apart: a starved worker got less than half the window's CPU and either
+        waited on the run queue for most of it (``/proc/PID/schedstat``) or is runnable now
+        (``/proc/PID/stat``: schedstat counts a wait only when it ends). A hung worker is
+        asleep or blocked, or it spins and gets the CPU; and a call is killed anyway once it
+        has had a whole watchdog of CPU time, so on a machine merely loaded (a spinning
+        worker gets a share, not half), a spinning hang is killed a few watchdogs late, and
+        on a starved one at the first check after the starvation ends.
         """
         assert self._loop is not None
         before, now = self._progress, _progress_of(self.pid, self._loop.time())
@@ -618,17 +623,17 @@ class _Worker:
         t1, cpu1, wait1 = now
         window = t1 - t0
         cpu = cpu1 - cpu0
-        if window <= 0 or cpu >= watchdog:
-            return ""
-        if wait0 is not None and wait1 is not None:
-            waited = wait1 - wait0
-            if waited < 0.5 * window:
-                return ""
-            what = f"waited {waited * 1000:.0f} ms for a CPU"
+        if cpu1 - self._call_cpu >= watchdog:
+            return ""  # a whole watchdog of CPU time and no result: hung however loaded
+        if window <= 0 or cpu >= 0.5 * window:
+            return ""  # it had the CPU: a hang (or a call longer than its watchdog)
+        if wait0 is not None and wait1 is not None and wait1 - wait0 >= 0.5 * window:
+            what = f"waited {(wait1 - wait0) * 1000:.0f} ms for a CPU"
+        elif _state_of(self.pid) == "R":
+            # schedstat adds a wait when it ends: a worker still queued shows none yet
+            what = "is runnable but not running"
         else:
-            if _state_of(self.pid) != "R" or cpu >= 0.5 * window:
-                return ""
-            what = "runnable"
+            return ""  # asleep or blocked: hung
         return (
             f"worker {self.pid} ran {cpu * 1000:.0f} ms of CPU in {window * 1000:.0f} ms and "
             f"{what}: starved of CPU, not hung; watchdog extended by {watchdog * 1000:g} ms"

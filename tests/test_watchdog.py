@@ -66,6 +66,8 @@ class _Loop:
     ("cpu", "wait", "state", "starved"),
     [
         (0.010, 0.450, "R", True),  # waited on the run queue nearly all the window
+        (0.010, 0.450, "S", True),  # ... and has just gone to sleep: starved all the same
+        (0.000, 0.000, "R", True),  # still queued: schedstat counts the wait when it ends
         (0.490, 0.005, "R", False),  # had the CPU and spun: hung
         (0.000, 0.000, "S", False),  # asleep, not waiting for a CPU: hung (blocked)
         (0.200, 0.250, "R", True),  # half-starved: waited more than half the window
@@ -78,11 +80,31 @@ class _Loop:
 def test_watchdog_tells_starved_from_hung(
     monkeypatch: pytest.MonkeyPatch, cpu: float, wait: float | None, state: str, starved: bool
 ) -> None:
+    check_starved(monkeypatch, cpu, wait, state, starved)
+
+
+def test_a_call_that_had_a_whole_watchdog_of_cpu_is_hung(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Spinning on a loaded machine: a share of the CPU in each window, never half; the CPU
+    time since the call began is what ends it (watchdog 0.5 s)."""
+    check_starved(monkeypatch, 0.2, 0.3, "R", True, call_cpu=0.8)  # 0.4 s of CPU in all
+    check_starved(monkeypatch, 0.2, 0.3, "R", False, call_cpu=0.7)  # 0.5 s: the watchdog
+
+
+def check_starved(
+    monkeypatch: pytest.MonkeyPatch,
+    cpu: float,
+    wait: float | None,
+    state: str,
+    starved: bool,
+    call_cpu: float = 1.0,
+) -> None:
+    """The verdict on a 0.5 s window in which the worker ran ``cpu`` s and waited ``wait``."""
     w = workers._Worker("w")
     loop = _Loop()
     w._loop = loop  # type: ignore[assignment]
     w.pid = 12345
     w._progress = (0.0, 1.0, None if wait is None else 2.0)
+    w._call_cpu = call_cpu
     loop.t = 0.5
     progress = (0.5, 1.0 + cpu, None if wait is None else 2.0 + wait)
     monkeypatch.setattr(workers, "_progress_of", lambda pid, now: progress)

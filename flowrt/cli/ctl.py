@@ -73,7 +73,7 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
         from ..status import render
 
         console = stdout_console()
-        console.print(render(RuntimeStats.model_validate(data)))
+        console.print(render(RuntimeStats.model_validate(data), width=console.width))
         console.print(client.get("/qos")["summary"], markup=False, highlight=False)
     elif cmd == "timing":
         body = {"node": args.node}
@@ -92,15 +92,21 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
         if not reply["modes"]:
             print("(the graph defines no modes)")
     elif cmd == "events":
-        for e in client.get(f"/events?n={args.n}"):
+        events = client.get(f"/events?n={args.n}")
+        for e in events:
             detail = {k: v for k, v in e.items() if k not in ("kind", "t", "node")}
             print(f"{e['t']:9.3f}s {e['kind']} {e.get('node') or ''} {json.dumps(detail)}")
+        if not events:
+            print("none (no event since the start: misses, failures, restarts, changes)")
     elif cmd == "qos":
         print(client.get("/qos")["summary"])
     elif cmd == "rtdb":
         path = f"/rtdb/{args.name}?n={args.n}" if args.name else "/rtdb"
-        for r in client.get(path):
+        records = client.get(path)
+        for r in records:
             flag = " STALE" if r["stale"] else ""
             when = f"t={r['timestamp']:.3f}s age={r['age'] * 1000:.1f}ms{flag}"
             print(f"{r['name']} #{r['seq']} {when}: {json.dumps(r['value'])}")
+        if not records:
+            print("none (no RTDB record yet)")  # an unknown NAME is an error (404)
     return 0

@@ -64,7 +64,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             err.print(f"flowrt run: control endpoint: {e}", markup=False)  # e.g. port taken
             return 1
     stats = rt.stats()
-    console.print(render(stats, list(rt.events)[-5:], rt.qos_status()))
+    console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
@@ -117,7 +117,12 @@ def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
     run.add_argument(
-        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds of running, counted once every node is set up "
+        "(start-up, e.g. starting worker processes, and teardown come on top)",
     )
     run.add_argument(
         "--no-ui", action="store_true", help="periodic log lines instead of the live table"
