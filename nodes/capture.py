@@ -21,7 +21,9 @@ Sources (``source`` param)
     reported (``source-error`` event) and skipped.
 
 Pacing: ``realtime`` publishes at ``fps`` on a precise timer of the runtime (cameras: at the
-device's rate); ``fast`` publishes as fast as the source delivers and the graph consumes.
+device's rate); ``fast`` publishes as fast as the source delivers and the graph consumes: each
+frame waits until every period-1 frame-triggered reader (inline or in a worker) has taken the
+previous one (``ctx.wait_readers()``), so an offline run processes every frame.
 
 Pixel formats: ``pixel_format`` is what the node publishes (BGR, RGB or GRAY). ``input_format``
 is what the source delivers: for a camera, a raw device format (YUYV, UYVY, I420, NV12, or
