@@ -943,10 +943,9 @@ class Scheduler:
         a source did publish, even a value waiting on a full lossless edge, is delivered.
         Every other node keeps running: in-flight activations finish, every lossless edge
         delivers what it holds, producers waiting on a full lossless edge get their values in.
-        Returns what was left undone when the
-        timeout hit (then reported as a ``drain-timeout`` HealthAlert and a warning), or [].
-        The limit is a deadline for the whole graph, not for one awaited call (hence no
-        ``asyncio.timeout``).
+        Returns what was left undone when the limit hit (then reported as a ``drain-timeout``
+        HealthAlert and a warning), or []. The limit is a deadline for the whole graph, not
+        for one awaited call (hence no ``asyncio.timeout``).
         """
         if self.drained:
             return self.drain_left
