@@ -8,7 +8,8 @@ uncounted warm-up run of each before), so that the ratio is measured under the s
 Time is from the runtime's start (workers up) to the source's end of stream; every frame of
 the file must be tracked in both placements.
 
-Run from the repository root: python benchmarks/bench_video.py [--reps 3] [--video PATH]
+Run from the repository root:
+python benchmarks/bench_video.py [--reps 3] [--video PATH] [--realtime]
 """
 
 from __future__ import annotations
@@ -50,8 +51,8 @@ def spec_for(video: Path, placement: str) -> GraphSpec:
     return GraphSpec.model_validate(data)
 
 
-async def one_run(video: Path, placement: str) -> dict[str, Any]:
-    rt = flowrt.Runtime(spec_for(video, placement))
+async def one_run(video: Path, placement: str, realtime: bool = False) -> dict[str, Any]:
+    rt = flowrt.Runtime(spec_for(video, placement), realtime=realtime)
     async with rt:
         t0 = time.perf_counter()
         await rt.run(300.0)  # ends at the end of the file (on_eof: exit)
@@ -65,6 +66,8 @@ async def one_run(video: Path, placement: str) -> dict[str, Any]:
         "tracked": lamp.completions,
         "skipped": lamp.skipped,
         "seconds": elapsed,
+        "exec_p50": lamp.execution.p50,  # ms; in a worker: the call's round trip included
+        "cam_p50": stats.node("cam").execution.p50,
     }
 
 
@@ -72,6 +75,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, default=3)
     ap.add_argument("--video", type=Path, default=None)
+    ap.add_argument(
+        "--realtime",
+        action="store_true",
+        help="as flowrt run --realtime: SCHED_FIFO loop and workers (wake-ups not delayed by "
+        "other processes' load)",
+    )
     args = ap.parse_args()
     video = args.video or next((p for p in CANDIDATES if p.exists()), None)
     if video is None:
@@ -79,29 +88,36 @@ def main() -> None:
     total = frames_in(video)
     runs: dict[str, list[dict[str, Any]]] = {"inline": [], "process": []}
     for placement in runs:  # warm-up, not counted: the forkserver, OpenCV's first decode
-        flowrt.run(one_run(video, placement))
+        flowrt.run(one_run(video, placement, args.realtime))
     for rep in range(args.reps):
         for placement in sorted(runs, reverse=rep % 2 == 1):  # alternate which goes first
-            r = flowrt.run(one_run(video, placement))
+            r = flowrt.run(one_run(video, placement, args.realtime))
             runs[placement].append(r)
             print(
                 f"{placement:8s} tracked {r['tracked']}/{total} (published {r['published']}, "
                 f"skipped {r['skipped']}) in {r['seconds']:.2f} s = "
-                f"{r['tracked'] / r['seconds']:.1f} frames/s",
+                f"{r['tracked'] / r['seconds']:.1f} frames/s; tracker call p50 "
+                f"{r['exec_p50']:.2f} ms, capture activation p50 {r['cam_p50']:.2f} ms",
                 flush=True,
             )
     print()
-    print(f"video: {video.name}, {total} frames; {args.reps} runs per placement (median)")
-    print("| placement | frames tracked / in file | frames/s (median) | min-max |")
-    print("|---|---:|---:|---:|")
+    mode = "--realtime (SCHED_FIFO)" if args.realtime else "fair scheduler (nice levels)"
+    print(f"video: {video.name}, {total} frames; {args.reps} runs per placement; {mode}")
+    print(
+        "| placement | frames tracked / in file | frames/s (median) | min-max "
+        "| tracker call p50 ms | capture activation p50 ms |"
+    )
+    print("|---|---:|---:|---:|---:|---:|")
     fps: dict[str, float] = {}
     for placement, rs in runs.items():
         rates = [r["tracked"] / r["seconds"] for r in rs]
         fps[placement] = statistics.median(rates)
         tracked = min(r["tracked"] for r in rs)
+        call = statistics.median(r["exec_p50"] for r in rs)
+        cam = statistics.median(r["cam_p50"] for r in rs)
         print(
             f"| {placement} | {tracked}/{total} | {fps[placement]:.1f} | "
-            f"{min(rates):.1f}-{max(rates):.1f} |"
+            f"{min(rates):.1f}-{max(rates):.1f} | {call:.2f} | {cam:.2f} |"
         )
     print(f"\nprocess / inline throughput: {fps['process'] / fps['inline']:.2f}")
 
