@@ -29,7 +29,7 @@ from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
-from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement
+from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement, TimingOverride
 from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
@@ -142,6 +142,7 @@ class Runtime:
         self._fair: FairShare | None = None
         self._nice_before: int | None = None
         self.qos: OverloadController | None = None
+        self._bridge: Any = None  # flowrt.remote.ZenohBridge when the graph spans machines
         if control is not None:  # a bad address or a missing token fails here, before any start
             from .control import ControlConfig
 
@@ -169,6 +170,14 @@ class Runtime:
     async def start(self) -> None:
         if self.started:
             return
+        spec = self.graph.spec
+        if spec.zenoh is not None or spec.exports or spec.imports:
+            # First: a port in use or a bad endpoint fails here, before anything runs.
+            from .remote import ZenohBridge
+
+            bridge = ZenohBridge(_RemoteHost(self), spec)
+            await bridge.open()
+            self._bridge = bridge
         if self.realtime_requested:
             from .realtime import enable_realtime
 
@@ -199,6 +208,8 @@ class Runtime:
         self._sched.rtdb_provider = lambda: self.rtdb
         self._sched.mode_setter = self.set_mode
         self._sched.drain_timeout = self.drain_timeout
+        if self._bridge is not None:
+            self._bridge.attach_exports()
         overload = self.graph.spec.qos.overload
         if overload is not None and self.qos is None:
             from .qos import OverloadController
@@ -211,6 +222,8 @@ class Runtime:
         if self.realtime:
             self._emit(RealtimeStatus(0.0, None, self.realtime))
         await self._sched.start()
+        if self._bridge is not None:
+            self._bridge.attach_imports()
         gc.freeze()  # what the nodes' setup made, too
         if self.graph.spec.initial_mode:
             self.set_mode(self.graph.spec.initial_mode, origin="graph")
@@ -241,6 +254,10 @@ class Runtime:
         self._stop.set()
         if self._lag_handle is not None:
             self._lag_handle.cancel()
+        if self._bridge is not None:
+            with contextlib.suppress(Exception):
+                await self._bridge.close()
+            self._bridge = None
         if self.control is not None:
             with contextlib.suppress(Exception):
                 await self.control.stop()
@@ -541,8 +558,25 @@ class Runtime:
         priority: int | None = None,
         enabled: bool | None = None,
         origin: str = "api",
+        force: bool = False,
     ) -> str:
-        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms."""
+        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
+
+        Admission control (:mod:`flowrt.analysis.admission`) refuses, with ValueError and
+        nothing applied, a change that would make a node with a deadline unschedulable,
+        unless ``force``. The overload controller's own steps (origin ``qos``) are not
+        checked: they act on measured load.
+        """
+        if not force and origin != "qos":
+            change = TimingOverride.model_construct(
+                period=period,
+                phase=phase,
+                timer=timer,
+                deadline=deadline,
+                priority=priority,
+                enabled=enabled,
+            )
+            self._admit({node: change})
         return self.scheduler.set_timing(
             node,
             period=period,
@@ -554,12 +588,13 @@ class Runtime:
             origin=origin,
         )
 
-    def set_mode(self, mode: str, origin: str = "api") -> None:
+    def set_mode(self, mode: str, origin: str = "api", force: bool = False) -> None:
         """Apply a named mode of the graph file: all of its overrides in one step.
 
         Overrides are relative to the graph's own timing: what the previous mode changed and
         this one does not is returned to the graph's values first (so an empty mode returns
-        to the graph's timing). Nothing else is touched.
+        to the graph's timing). Nothing else is touched. Admission control checks the whole
+        switch as one change (see :meth:`set_timing`), unless ``force``.
         """
         spec = self.graph.spec.modes.get(mode)
         if spec is None:
@@ -571,6 +606,8 @@ class Runtime:
         previous_spec = self.graph.spec.modes.get(self.mode) if self.mode else None
         plan = mode_plan(self.graph, previous_spec, spec)
         check_plan(self.scheduler.runners, plan)  # all or nothing
+        if not force and origin != "graph":  # the initial mode is the graph's own choice
+            self._admit(plan)
         for node, o in plan.items():
             self.set_timing(
                 node,
@@ -581,11 +618,19 @@ class Runtime:
                 priority=o.priority,
                 enabled=o.enabled,
                 origin=f"mode {mode}",
+                force=True,  # checked above as one change
             )
         self._apply_mode_params(previous_spec, spec)
         previous, self.mode = self.mode, mode
         self._emit(ModeChanged(self.now(), None, mode, previous, origin))
         self._record("flowrt.mode", mode)
+
+    def _admit(self, plan: Mapping[str, TimingOverride]) -> None:
+        """Raise ValueError (AdmissionRefused) if ``plan`` breaks a critical deadline."""
+        from .analysis.admission import check_change
+
+        if self._sched is not None:
+            check_change(self.graph, self.scheduler.runners, plan)
 
     async def swap(
         self,
@@ -731,6 +776,47 @@ class Runtime:
         runner.outputs[port].append(buf)
         self.scheduler.buffers.append(buf)
         return Subscription(buf)
+
+
+class _RemoteHost:
+    """The runtime as the Zenoh bridge sees it (flowrt.remote.BridgeHost)."""
+
+    def __init__(self, rt: Runtime) -> None:
+        self.rt = rt
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        return self.rt.scheduler.loop
+
+    def now_mono(self) -> float:
+        return self.rt.clock.now()
+
+    def runner_output(self, node: str, port: str) -> list[Buffer]:
+        return self.rt.scheduler.runners[node].outputs[port]
+
+    def add_buffer(self, buf: Buffer) -> None:
+        self.rt.scheduler.buffers.append(buf)
+
+    def publish(self, node: str, port: str, value: Any) -> None:
+        self.rt.scheduler.runners[node].publish(port, value, self.rt.clock.now())
+
+    def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pf: str) -> Frame:
+        return self.rt._new_frame(owner, shape, dtype, pf)
+
+    def import_node(self, name: str) -> Any:
+        return getattr(self.rt.scheduler.runners[name].executor, "node", None)
+
+    def emit(self, event: Event) -> None:
+        self.rt._emit(event)
+
+    def record(self, name: str, value: Any, validity_ms: float | None) -> None:
+        try:
+            self.rt.rtdb.write(name, value, validity_ms=validity_ms)
+        except Exception as e:  # a value the RTDB cannot hold: the edge still has it
+            log.debug("RTDB record %s: %s", name, e)
+
+    def is_frame_port(self, node: str, port: str) -> bool:
+        return port in self.rt.graph.nodes[node].cls.frame_ports()
 
 
 class _WorkerAdapter(Executor):

@@ -12,7 +12,8 @@ from typing import Any
 from rich.console import Console
 
 from ..eventloop import new_event_loop
-from .common import EXIT_BAD_GRAPH, load, plain_handler, setup_logging, stdout_console
+from ..remote import RemoteError
+from .common import EXIT_BAD_GRAPH, EXIT_FAILED, load, plain_handler, setup_logging, stdout_console
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -24,6 +25,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
+    from .check import startup_check
+
+    timing_ok, timing_lines = startup_check(graph)
+    if not timing_ok:
+        word = "refusing to start" if args.check else "warning"
+        err.print(f"flowrt run: {word}: the timing may not hold (flowrt check)", markup=False)
+        for line in timing_lines:
+            err.print(f"  {line}", markup=False)
+        if args.check:
+            return EXIT_FAILED
     monitor: LogLines | LiveTable
     if args.no_ui:
         monitor = LogLines(args.log_every)
@@ -58,6 +69,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
         try:
             runner.run(main())
+        except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
+            err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
+            return 1
         except OSError as e:
             if rt.control_config is None or rt.control is not None:
                 raise
@@ -160,4 +174,9 @@ def add_parsers(sub: Any) -> None:
         help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.add_argument(
+        "--check",
+        action="store_true",
+        help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
+    )
     run.set_defaults(func=cmd_run)
