@@ -7,6 +7,9 @@ and dropped is 0 when nothing went wrong (issue 12, items 6 and 7).
 from __future__ import annotations
 
 import asyncio
+import json
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -240,3 +243,50 @@ async def test_fast_file_source_feeds_every_frame_to_a_worker(placement: str, po
     assert lamp.skipped == 0
     assert edge.delivered == total
     check_lossless(stats)
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=cwd,
+    )
+
+
+@pytest.mark.skipif(VIDEO is None, reason="the sample video (../shared/data) is not available")
+@pytest.mark.timeout(90)
+def test_cli_run_to_the_end_of_a_file_through_a_lossless_edge_into_a_worker(
+    tmp_path: Path,
+) -> None:
+    """The issue's case from the command line: it ends by itself, exit 0, nothing lost."""
+    graph = tmp_path / "lossless.yaml"
+    graph.write_text(
+        "nodes:\n"
+        "  cam:\n"
+        "    kind: capture\n"
+        f'    params: {{source: "file:{VIDEO}", pacing: fast, on_eof: exit}}\n'
+        "  lamp:\n"
+        "    kind: tracker\n"
+        "    params: {object: candle, space: hsv}\n"
+        "    trigger: {frame: cam}\n"
+        "    placement: process\n"
+        "    inputs: {frame: {from: cam.frame, policy: lossless, size: 4}}\n"
+    )
+    out = tmp_path / "stats.json"
+    r = _cli("run", str(graph), "--no-ui", "--stats-json", str(out), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "Traceback" not in r.stdout + r.stderr
+    stats = json.loads(out.read_text())
+    (edge,) = stats["edges"]
+    assert edge["published"] == edge["delivered"] == frames_in(VIDEO)
+    assert edge["dropped"] == 0
+
+
+@pytest.mark.parametrize("bad", ["-1", "nan", "soon"])
+def test_cli_refuses_a_bad_drain_timeout(bad: str, tmp_path: Path) -> None:
+    r = _cli("run", "graphs/video.yaml", "--drain-timeout", bad, cwd=REPO)
+    assert r.returncode == 2
+    assert "--drain-timeout" in r.stderr
+    assert "Traceback" not in r.stderr
