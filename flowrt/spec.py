@@ -169,6 +169,12 @@ class RestartPolicy(_Strict):
     backoff: DurationMs = 100.0
     max_backoff: DurationMs = 5000.0
     max_restarts: int | None = None
+    max_failures: int | None = Field(
+        default=10,
+        ge=1,
+        description="consecutive failures without a completed activation in between (a crash "
+        "loop) after which the node is given up and marked failed; null: never give up",
+    )
 
 
 class NodeSpec(_Strict):

@@ -13,7 +13,15 @@ from rich.console import Console
 
 from ..eventloop import new_event_loop
 from ..remote import RemoteError
-from .common import EXIT_BAD_GRAPH, EXIT_FAILED, load, plain_handler, setup_logging, stdout_console
+from .common import (
+    EXIT_BAD_GRAPH,
+    EXIT_FAILED,
+    EXIT_OK,
+    load,
+    plain_handler,
+    setup_logging,
+    stdout_console,
+)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -51,6 +59,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         control=control,
         spin=args.spin / 1000,
         drain_timeout=args.drain_timeout,
+        stop_on_failure=not args.keep_going,
     )
 
     async def main() -> None:
@@ -82,7 +91,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
-    return 0
+    return _verdict(rt.failures(), err)
+
+
+def _verdict(failures: list[Any], err: Console) -> int:
+    """Exit 1 when the run ends with a node failed or in error, one line per node."""
+    for n in failures:
+        what = "failed" if n.state == "failed" else "in error"
+        err.print(
+            f"flowrt run: node {n.name} {what}: {n.reason}",
+            markup=False,
+            style="red",
+            soft_wrap=True,
+        )
+    return EXIT_FAILED if failures else EXIT_OK
 
 
 def _control_config(args: argparse.Namespace, err: Console) -> Any:
@@ -178,5 +200,11 @@ def add_parsers(sub: Any) -> None:
         "--check",
         action="store_true",
         help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
+    )
+    run.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="keep the rest of the graph running when a node fails for good (default: stop at"
+        " once); the exit code is 1 either way",
     )
     run.set_defaults(func=cmd_run)
