@@ -304,6 +304,15 @@ class NodeRunner:
         self._idle_waiters.append(fut)
         await fut
 
+    def _cancelled(self, task: asyncio.Task[None]) -> None:
+        """A task cancelled before its first step never ran ``run_async``'s own clean-up."""
+        if task is self.task and task.cancelled() and self.busy and not self.blocked:
+            self._release_created()
+            self.untaken = False
+            self.busy = False
+            if self.state == "running":
+                self.state = "idle"
+
     def _backlog(self) -> bool:
         """A lossless input holds values not yet delivered."""
         return any(b.pending() for b in self.lossless)
@@ -985,6 +994,7 @@ class Scheduler:
                     r.timer.cancel()
                     r.timer = None
                 if r.task is not None and not r.task.done():
+                    r.task.add_done_callback(r._cancelled)
                     r.task.cancel()  # e.g. a capture waiting for its next frame
         while True:
             left = self._undrained()

@@ -290,3 +290,33 @@ def test_cli_refuses_a_bad_drain_timeout(bad: str, tmp_path: Path) -> None:
     assert r.returncode == 2
     assert "--drain-timeout" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+class Tick(Node):
+    """An async source, idle between its (rare) timer releases."""
+
+    value = Output(int)
+
+    async def process(self) -> int:
+        await asyncio.sleep(0)
+        return 1
+
+
+@pytest.mark.timeout(30)
+async def test_a_source_stopped_before_its_activation_starts_does_not_stall_the_drain() -> None:
+    """The drain cancels a source's activation that was released but has not run yet: its
+    task never runs ``process`` nor its clean-up, and the node must not stay busy."""
+    g = GraphBuilder("early")
+    g.add("src", Tick, trigger={"timer": "10s"})
+    g.add("sink", Collect, inputs={"value": "src.value"})
+    rt = Runtime(g.build(), drain_timeout=2.0)
+    async with rt:
+        await rt.run(0.1)
+        src = rt.scheduler.runners["src"]
+        assert not src.busy
+        src.release(rt.clock.now())  # its task is created, not started ...
+        assert src.busy
+        left = await rt.scheduler.drain()  # ... and the drain cancels it before it runs
+        assert not src.busy
+    assert left == []
+    assert not [e for e in rt.events if isinstance(e, HealthAlert) and e.alert == "drain-timeout"]
