@@ -239,6 +239,16 @@ class Node:
         return None
 
     @classmethod
+    def advise(cls, params: Any) -> list[tuple[str, str]]:
+        """Warnings about valid but costly params, as ``(param key, message)``.
+
+        ``flowrt validate`` shows them located at the param (``""``: at ``params``); an
+        error belongs in the ``Params`` model instead. E.g. a capture node says how much
+        shared memory its frame size will take.
+        """
+        return []
+
+    @classmethod
     def params_inputs(cls, params: Any) -> Mapping[str, Input[Any]]:
         """Inputs that exist because of the params (a CAN node transmits the messages of its
         DBC file, one input each), beside the class's own; checked when the graph loads."""

@@ -886,5 +886,12 @@ def _frame_store() -> Any:
     if store_cls is None:
         return None
     with contextlib.suppress(Exception):
-        store_cls.reclaim_orphans()
+        reclaimed = store_cls.reclaim_orphans()
+        if reclaimed:
+            log.info(
+                "reclaimed %d shared-memory segment%s left in %s by a runtime that was killed",
+                reclaimed,
+                "" if reclaimed == 1 else "s",
+                getattr(frames, "SHM_DIR", "/dev/shm"),
+            )
     return store_cls()

@@ -40,7 +40,7 @@ from .events import (
     TimingChanged,
 )
 from .frames import Frame
-from .graph import Graph, ResolvedNode
+from .graph import Graph, ResolvedNode, checked_type
 from .node import Node, NodeContext, NodeFactory, make_node
 from .spec import FrameTrigger, InputTrigger, LoopTrigger, MissPolicy, Placement, TimerTrigger
 from .stats import NodeStats, Running
@@ -228,6 +228,8 @@ class NodeRunner:
         }
         self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
         self.required = [p for p, port in rnode.cls.inputs.items() if port.required]
+        self.port_types: dict[str, type] = {}  # inputs whose values are type-checked
+        self.type_errors: set[tuple[str, str]] = set()  # (port, type) already logged
         self.trigger_inputs: list[str] = []
         self.executor: Executor = Executor()
         self.timer: PeriodicTimer | None = None
@@ -345,6 +347,10 @@ class NodeRunner:
         if isinstance(buf, LosslessBuffer):
             self.lossless.append(buf)
             buf.on_full = self._catch_up
+        declared = self.rnode.cls.inputs.get(port) or self.rnode.cls.any_inputs
+        checked = checked_type(declared.type) if declared is not None else None
+        if checked is not None:
+            self.port_types[port] = checked
         trig = self.rnode.trigger
         if isinstance(trig, InputTrigger):
             wanted = [trig.input] if isinstance(trig.input, str) else trig.input
@@ -398,8 +404,33 @@ class NodeRunner:
                     _release_all(values.values())
                     return None
                 value = None
+            elif port in self.port_types and not isinstance(value, self.port_types[port]):
+                self._wrong_type(port, value)
+                _release_all([*values.values(), value])
+                return None
             values[port] = value
         return values
+
+    def _wrong_type(self, port: str, value: Any) -> None:
+        """A value the input's type refuses: one counted error, one log line per type.
+
+        Validation refuses edges whose declared types differ; this catches what an
+        ``object``-typed output (a relay, ``Runtime.publish``) lets through. The node is
+        not called (it would raise on every value) and the activation is skipped.
+        """
+        self.errors += 1
+        got = type(value).__name__
+        if (port, got) not in self.type_errors:
+            self.type_errors.add((port, got))
+            want = self.rnode.cls.inputs.get(port) or self.rnode.cls.any_inputs
+            log.error(
+                "node %s: input %r expects %s, got %s: values of this type are dropped "
+                "and counted as errors",
+                self.name,
+                port,
+                getattr(want.type if want else None, "__name__", "?"),
+                got,
+            )
 
     def _begin(self) -> tuple[float, dict[str, Any] | None]:
         now = self.sched.clock.now()

@@ -27,8 +27,9 @@ then the watchdog is extended and ``on_starved`` told, since killing it would no
 Workers are forked from a ``forkserver`` that has preloaded numpy and OpenCV, so their pages
 are shared (copy-on-write) and a worker starts in milliseconds. A worker dies with the runtime:
 PR_SET_PDEATHSIG ties it to the forkserver, which exits when the main process does, and EOF on
-its socket ends it too. Workers ignore SIGINT: Ctrl-C is the main process's business, which
-then stops them in order.
+its socket ends it too. Workers ignore SIGINT, SIGTERM and SIGHUP (sent to the whole process
+group by Ctrl-C, ``kill`` of the group or a closed terminal): stopping is the main process's
+business, which then stops them in order (SIGKILL still ends one, and it is replaced).
 """
 
 from __future__ import annotations
@@ -79,6 +80,7 @@ PRELOAD_MODULES = [
     "flowrt.frames",
     "flowrt.oscheduling",
     "flowrt.workers",
+    "flowrt._forkserver_signals",  # SIGTERM/SIGHUP ignored, inherited by every worker
     "flowrt._forkserver_freeze",  # last: freezes all of the above before any fork
 ]
 
@@ -306,13 +308,17 @@ class _BlockingConn:
                 want = 4 + n - len(buf)
             else:
                 want = 4
-            chunk = self.sock.recv(max(want, 1 << 16))
+            try:
+                chunk = self.sock.recv(max(want, 1 << 16))
+            except ConnectionResetError:  # the runtime is gone (killed): as EOF
+                return None
             if not chunk:
                 return None
             buf += chunk
 
     def send(self, payload: bytes) -> None:
-        self.sock.sendall(_HDR.pack(len(payload)) + payload)
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):  # runtime gone: the
+            self.sock.sendall(_HDR.pack(len(payload)) + payload)  # next recv sees EOF
 
     def _complete(self) -> bool:
         buf = self.buf
@@ -338,6 +344,8 @@ class _BlockingConn:
                 chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 continue
+            except ConnectionResetError:
+                return  # left for recv to see
             if chunk:
                 self.buf += chunk
             return  # data, or EOF (left for recv to see)
@@ -410,7 +418,8 @@ def _reply(conn: _BlockingConn, status: int, payload: Any, seconds: float) -> No
 
 def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     """Entry point of a worker process: serve requests until EXIT or EOF."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
     _set_pdeathsig()
     try:
         os.kill(main_pid, 0)
@@ -601,6 +610,7 @@ class _Worker:
         if not self.usable or self._loop is None:
             raise self.death_for(node)
         fut = self._loop.create_future()
+        fut.add_done_callback(_retrieved)
         call = _Call((-priority, next(self._seq)), pickle.dumps(msg, _PICKLE), fut, node, watchdog)
         if self._inflight is None:
             self._send(call)
@@ -868,6 +878,14 @@ def _state_of(pid: int | None) -> str:
         return _proc_read(pid, "stat").rsplit(b")", 1)[1].split()[0].decode()
     except (OSError, IndexError, UnicodeDecodeError):
         return ""
+
+
+def _retrieved(fut: asyncio.Future[Any]) -> None:
+    """Mark a request's error as seen: whoever awaits it still gets it, and a caller that
+    gave up (a node task cancelled at stop while its worker died) leaves no "Future exception
+    was never retrieved" behind."""
+    if not fut.cancelled():
+        fut.exception()
 
 
 def _check_priority(priority: int) -> int:
