@@ -16,6 +16,12 @@ Lifecycle and timing contract
    An inline ``process`` runs on the event loop and must be short; the runtime reports
    calls that block the loop.
 4. ``teardown()`` runs once when the runtime stops or before a restart, even after errors.
+5. An exception from ``setup`` or ``process`` (or a hung or dead worker) is a failure: the
+   node is restarted, a fresh instance after a doubling back-off, and given up (state
+   ``failed``) after ``restart.max_failures`` failures in a row without a completed
+   activation (:mod:`flowrt.supervision`), or at once if it raises :class:`FatalError`. A
+   problem the node can wait out (a device gone) is better reported with ``ctx.set_error``
+   while it keeps running.
 """
 
 from __future__ import annotations
@@ -76,6 +82,18 @@ class Output(Generic[T]):
         return f"Output({getattr(self.type, '__name__', self.type)}, name={self.name!r})"
 
 
+class FatalError(Exception):
+    """Raise from ``setup`` or ``process`` when restarting the node cannot help (a device
+    that retried its bound and is gone, a configuration that cannot work): the node is given
+    up at once (state ``failed``, this message as the reason) instead of being restarted.
+
+    Supervision recognises any exception whose ``fatal`` attribute is true, in every
+    placement; this class is the ready-made one.
+    """
+
+    fatal = True
+
+
 class NoParams(BaseModel):
     """The params model of a node that takes none: any key given is an error."""
 
@@ -126,6 +144,15 @@ class NodeContext:
     def elapsed(self) -> float:
         """Seconds since the runtime started (the time base of events); approximate here."""
         return self.now()
+
+    async def wait_readers(self) -> None:
+        """Wait until every period-1 frame-triggered reader of this node's frame outputs is
+        ready for the next frame (idle, started), whatever its placement.
+
+        A source that paces itself by its readers (``pacing: fast``) awaits this before
+        publishing, so that a reader slower than the source is never skipped. Outside a
+        runtime there are no readers: it returns at once.
+        """
 
     def request_stop(self) -> None:
         """Ask the runtime to stop; only on the event loop."""
@@ -210,6 +237,28 @@ class Node:
     def default_trigger(cls, params: Any) -> Trigger | None:
         """The trigger used when the graph gives none (e.g. a capture node's own fps)."""
         return None
+
+    @classmethod
+    def advise(cls, params: Any) -> list[tuple[str, str]]:
+        """Warnings about valid but costly params, as ``(param key, message)``.
+
+        ``flowrt validate`` shows them located at the param (``""``: at ``params``); an
+        error belongs in the ``Params`` model instead. E.g. a capture node says how much
+        shared memory its frame size will take.
+        """
+        return []
+
+    @classmethod
+    def params_inputs(cls, params: Any) -> Mapping[str, Input[Any]]:
+        """Inputs that exist because of the params (a CAN node transmits the messages of its
+        DBC file, one input each), beside the class's own; checked when the graph loads."""
+        return {}
+
+    @classmethod
+    def params_outputs(cls, params: Any) -> Mapping[str, Output[Any]]:
+        """Outputs that exist because of the params (a CAN node publishes each message of its
+        DBC file on an output named after it), beside the class's own."""
+        return {}
 
     @classmethod
     def frame_ports(cls) -> list[str]:

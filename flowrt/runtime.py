@@ -24,13 +24,13 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
 from .eventloop import run as run
-from .events import Event, HealthAlert, ModeChanged, NodeSwapped, RealtimeStatus
+from .events import Event, HealthAlert, ModeChanged, NodeGaveUp, NodeSwapped, RealtimeStatus
 from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
-from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement
-from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
+from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement, TimingOverride
+from .stats import FramePoolStats, LoopStats, NodeStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
     from .control import ControlConfig, ControlServer
@@ -119,7 +119,18 @@ class Runtime:
         kinds: Mapping[str, type[Node]] | None = None,
         control: ControlConfig | str | None = None,
         spin: float = 0.0,
+        drain_timeout: float = 5.0,
+        stop_on_failure: bool = False,
     ) -> None:
+        """``drain_timeout``: seconds ``stop`` lets the graph finish what it holds (lossless
+        edges, in-flight activations) after stopping the sources; reported when hit.
+        ``stop_on_failure``: a node given up by supervision (state ``failed``) ends ``run``
+        at once (``flowrt run`` does this unless ``--keep-going``); by default the rest of
+        the graph keeps running and the host program reads :meth:`failures`."""
+        if not drain_timeout >= 0 or math.isinf(drain_timeout):
+            raise ValueError(f"drain_timeout must be finite and >= 0, got {drain_timeout}")
+        self.drain_timeout = drain_timeout
+        self.stop_on_failure = stop_on_failure
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
         if clock is not None and spin:
             raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
@@ -152,6 +163,8 @@ class Runtime:
         self.control_config = control
         self.control: ControlServer | None = None
         self.started = False
+        self.starvation_events = 0  # worker calls spared by the watchdog: starved, not hung
+        self._starved_alert_at = -math.inf
 
     @classmethod
     def from_file(cls, path: str | Path, **kwargs: Any) -> Runtime:
@@ -207,6 +220,7 @@ class Runtime:
         self._sched.stop_requester = self.request_stop
         self._sched.rtdb_provider = lambda: self.rtdb
         self._sched.mode_setter = self.set_mode
+        self._sched.drain_timeout = self.drain_timeout
         if self._bridge is not None:
             self._bridge.attach_exports()
         overload = self.graph.spec.qos.overload
@@ -240,7 +254,13 @@ class Runtime:
                 raise
 
     async def stop(self) -> None:
-        """Tear every node down, stop workers, free shared memory; safe to call twice."""
+        """Drain, tear every node down, stop workers, free shared memory; safe to call twice.
+
+        The drain first stops the sources, then lets every lossless edge deliver what it
+        holds and every in-flight activation finish, for at most ``drain_timeout`` seconds
+        (a ``drain-timeout`` HealthAlert says what was left); what is still undelivered then
+        is counted as dropped with its reason (``EdgeStats.drop_reasons``).
+        """
         if not self.started:
             return
         self.started = False
@@ -358,7 +378,21 @@ class Runtime:
             ex = workers.ProcessExecutor(
                 runner.name, factory, realtime=rt_workers, nice_of=nice_of, **options
             )
+        ex.on_starved = self._worker_starved
         return _WorkerAdapter(ex)
+
+    def _worker_starved(self, node: str, detail: str) -> None:
+        """A watchdog spared a starved worker: counted each time, one alert per episode.
+
+        An episode is a run of such events less than 10 s apart: the whole machine starved
+        makes every worker's watchdog notice it, and one alert says it all.
+        """
+        self.starvation_events += 1
+        now = self.clock.now()
+        if now - self._starved_alert_at > 10.0:
+            log.warning("%s: %s", node, detail)
+            self._emit(HealthAlert(self.now(), node, "cpu-starvation", detail, "warning"))
+        self._starved_alert_at = now
 
     def _new_frame(
         self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str
@@ -378,6 +412,13 @@ class Runtime:
     def _emit(self, event: Event) -> None:
         self.events.append(event)
         self.event_count += 1
+        if isinstance(event, NodeGaveUp) and self.stop_on_failure:
+            log.info(
+                "node %s failed: stopping the run (--keep-going, or stop_on_failure=False, "
+                "keeps the rest of the graph running)",
+                event.node,
+            )
+            self.request_stop()
         if isinstance(event, HealthAlert):
             self._record("flowrt.alerts", event)
         for m in self.monitors:
@@ -501,10 +542,23 @@ class Runtime:
             loop_scheduling=self.loop_scheduling,
             nodes=[r.stats() for r in sched.runners.values()],
             edges=[b.stats() for b in sched.buffers],
-            loop=LoopStats(lag=self._lag.summary(), blocked_calls=sched.blocked_calls),
+            loop=LoopStats(
+                lag=self._lag.summary(),
+                blocked_calls=sched.blocked_calls,
+                starvation_events=self.starvation_events,
+            ),
             frames=self._frame_stats(),
             events=self.event_count,
         )
+
+    def failures(self) -> list[NodeStats]:
+        """The nodes that failed: given up by supervision (state ``failed``) or in an error
+        state they reported (``ctx.set_error``: e.g. a source that cannot be opened or never
+        delivered a frame). Empty when the run went well; ``flowrt run`` exits 1 otherwise.
+        Valid during the run and after it (the verdict of the run's end)."""
+        if self._sched is None:
+            return []
+        return [n for n in self.stats().nodes if n.state in ("failed", "error")]
 
     def _frame_stats(self) -> list[FramePoolStats]:
         if self._frames is None or getattr(self._frames, "closed", False):
@@ -533,8 +587,25 @@ class Runtime:
         priority: int | None = None,
         enabled: bool | None = None,
         origin: str = "api",
+        force: bool = False,
     ) -> str:
-        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms."""
+        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
+
+        Admission control (:mod:`flowrt.analysis.admission`) refuses, with ValueError and
+        nothing applied, a change that would make a node with a deadline unschedulable,
+        unless ``force``. The overload controller's own steps (origin ``qos``) are not
+        checked: they act on measured load.
+        """
+        if not force and origin != "qos":
+            change = TimingOverride.model_construct(
+                period=period,
+                phase=phase,
+                timer=timer,
+                deadline=deadline,
+                priority=priority,
+                enabled=enabled,
+            )
+            self._admit({node: change})
         return self.scheduler.set_timing(
             node,
             period=period,
@@ -546,12 +617,13 @@ class Runtime:
             origin=origin,
         )
 
-    def set_mode(self, mode: str, origin: str = "api") -> None:
+    def set_mode(self, mode: str, origin: str = "api", force: bool = False) -> None:
         """Apply a named mode of the graph file: all of its overrides in one step.
 
         Overrides are relative to the graph's own timing: what the previous mode changed and
         this one does not is returned to the graph's values first (so an empty mode returns
-        to the graph's timing). Nothing else is touched.
+        to the graph's timing). Nothing else is touched. Admission control checks the whole
+        switch as one change (see :meth:`set_timing`), unless ``force``.
         """
         spec = self.graph.spec.modes.get(mode)
         if spec is None:
@@ -563,6 +635,8 @@ class Runtime:
         previous_spec = self.graph.spec.modes.get(self.mode) if self.mode else None
         plan = mode_plan(self.graph, previous_spec, spec)
         check_plan(self.scheduler.runners, plan)  # all or nothing
+        if not force and origin != "graph":  # the initial mode is the graph's own choice
+            self._admit(plan)
         for node, o in plan.items():
             self.set_timing(
                 node,
@@ -573,11 +647,19 @@ class Runtime:
                 priority=o.priority,
                 enabled=o.enabled,
                 origin=f"mode {mode}",
+                force=True,  # checked above as one change
             )
         self._apply_mode_params(previous_spec, spec)
         previous, self.mode = self.mode, mode
         self._emit(ModeChanged(self.now(), None, mode, previous, origin))
         self._record("flowrt.mode", mode)
+
+    def _admit(self, plan: Mapping[str, TimingOverride]) -> None:
+        """Raise ValueError (AdmissionRefused) if ``plan`` breaks a critical deadline."""
+        from .analysis.admission import check_change
+
+        if self._sched is not None:
+            check_change(self.graph, self.scheduler.runners, plan)
 
     async def swap(
         self,
@@ -615,7 +697,7 @@ class Runtime:
             if params is None and label == old_kind:
                 params = runner.rnode.params.model_dump()
             try:
-                model = cls.Params.model_validate(dict(params or {}))
+                model = self.graph.validate_params(cls, params or {})
             except ValidationError as e:
                 raise SwapError(f"{node}: params for {label}: {e}") from None
         await self._swap_to(runner, cls, model, label, origin)
@@ -663,7 +745,7 @@ class Runtime:
         current = runner.rnode.params.model_dump()
         target = merge_params(current, dict(params)) if merge else dict(params)
         try:
-            model = runner.rnode.cls.Params.model_validate(target)
+            model = self.graph.validate_params(runner.rnode.cls, target)
         except ValidationError as e:
             raise ValueError(f"{node}: params: {e}") from None
         runner.set_params(model)
@@ -688,7 +770,7 @@ class Runtime:
             base = self.graph.spec.nodes[name].params
             target = merge_params(base, o.params if o is not None else None)
             runner = self.scheduler.runners[name]
-            runner.set_params(runner.rnode.cls.Params.model_validate(target))
+            runner.set_params(self.graph.validate_params(runner.rnode.cls, target))
 
     def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
         from .diagnostics import did_you_mean
@@ -812,5 +894,12 @@ def _frame_store() -> Any:
     if store_cls is None:
         return None
     with contextlib.suppress(Exception):
-        store_cls.reclaim_orphans()
+        reclaimed = store_cls.reclaim_orphans()
+        if reclaimed:
+            log.info(
+                "reclaimed %d shared-memory segment%s left in %s by a runtime that was killed",
+                reclaimed,
+                "" if reclaimed == 1 else "s",
+                getattr(frames, "SHM_DIR", "/dev/shm"),
+            )
     return store_cls()

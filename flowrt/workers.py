@@ -20,13 +20,16 @@ are expected to be small: detections, poses).
 Death detection: the process sentinel becomes readable when the worker exits for any reason
 (exception escaping, segfault, abort, SIGKILL); EOF on the socket is seen as well. The in-flight
 call fails with :class:`WorkerError` whose ``kind`` says what happened. A call running longer
-than its watchdog is failed at that instant (kind ``hung``) and the worker is SIGKILLed.
+than its watchdog is failed at that instant (kind ``hung``) and the worker is SIGKILLed,
+unless the kernel says the worker was starved of CPU meanwhile (it waited on the run queue):
+then the watchdog is extended and ``on_starved`` told, since killing it would not help.
 
 Workers are forked from a ``forkserver`` that has preloaded numpy and OpenCV, so their pages
 are shared (copy-on-write) and a worker starts in milliseconds. A worker dies with the runtime:
 PR_SET_PDEATHSIG ties it to the forkserver, which exits when the main process does, and EOF on
-its socket ends it too. Workers ignore SIGINT: Ctrl-C is the main process's business, which
-then stops them in order.
+its socket ends it too. Workers ignore SIGINT, SIGTERM and SIGHUP (sent to the whole process
+group by Ctrl-C, ``kill`` of the group or a closed terminal): stopping is the main process's
+business, which then stops them in order (SIGKILL still ends one, and it is replaced).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ import multiprocessing
 import multiprocessing.context
 import os
 import pickle
+import re
 import select
 import signal
 import socket
@@ -76,6 +80,7 @@ PRELOAD_MODULES = [
     "flowrt.frames",
     "flowrt.oscheduling",
     "flowrt.workers",
+    "flowrt._forkserver_signals",  # SIGTERM/SIGHUP ignored, inherited by every worker
     "flowrt._forkserver_freeze",  # last: freezes all of the above before any fork
 ]
 
@@ -92,6 +97,7 @@ _OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
 # Replies (worker -> main).
 _R_OK = 0  # (status, payload, run_seconds)
 _R_ERR = 1  # (status, formatted traceback, run_seconds)
+_R_FATAL = 2  # as _R_ERR, from an exception whose ``fatal`` is true: do not restart
 
 _SIGNALS_KILLED = {signal.SIGKILL, signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
 
@@ -106,17 +112,43 @@ class WorkerError(RuntimeError):
     - ``killed``: the worker was killed from outside (SIGKILL, SIGTERM, the OOM killer).
     - ``hung``: a call exceeded its watchdog; the worker was SIGKILLed at that instant.
 
-    After any kind, ``await executor.start()`` gives the node a fresh instance.
+    After any kind, ``await executor.start()`` gives the node a fresh instance. ``fatal``
+    says that it cannot help (the worker cannot load the node at all): the supervisor gives
+    the node up at once instead of restarting it.
     """
 
     def __init__(
-        self, node: str, kind: WorkerKind, detail: str, exitcode: int | None = None
+        self,
+        node: str,
+        kind: WorkerKind,
+        detail: str,
+        exitcode: int | None = None,
+        *,
+        fatal: bool = False,
     ) -> None:
         super().__init__(f"{node}: worker {kind}: {detail}")
         self.node = node
         self.kind: WorkerKind = kind
         self.detail = detail
         self.exitcode = exitcode
+        self.fatal = fatal
+
+    @property
+    def summary(self) -> str:
+        """One line for logs and reasons: the node's own exception, or what became of the
+        worker (the supervisor shows this instead of the main side's stack)."""
+        if self.kind == "exception":
+            lines = [ln for ln in self.detail.strip().splitlines() if ln.strip()]
+            # "pkg.mod.Error: text" -> "Error: text", as an inline node's failure reads
+            return re.sub(r"^[\w.]+\.(\w+:)", r"\1", lines[-1].strip()) if lines else "exception"
+        if self.fatal:
+            return self.detail
+        return f"worker {self.kind}: {self.detail}"
+
+    @property
+    def traceback(self) -> str:
+        """The worker's traceback for an exception; nothing for a death (no stack to show)."""
+        return self.detail if self.kind == "exception" else ""
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,6 +174,54 @@ def _context() -> multiprocessing.context.ForkServerContext:
 # Process names of workers that must not re-import the main script (see _install_prepare_hook).
 _NO_MAIN = "flowrt:"
 _WITH_MAIN = "flowrt+main:"
+# Exit code of a worker whose import of the main script started a flowrt runtime again.
+_EXIT_MAIN_UNGUARDED = 78
+_importing_main = False  # in a worker: re-running the main script to find the node's class
+
+
+def _exit_if_importing_main() -> None:
+    """Where a runtime would start worker processes: refuse inside a worker's import of the
+    main script, at once and quietly (the parent explains, from the exit code).
+
+    Reaching this there means the script starts a runtime at import: it has no
+    ``if __name__ == "__main__":`` guard. Letting it go on would start a runtime inside each
+    worker, whose workers would do the same (multiprocessing stops that with a traceback in
+    every attempt, and the node would crash-loop).
+    """
+    if _importing_main:
+        os._exit(_EXIT_MAIN_UNGUARDED)
+
+
+def _check_main_importable(node: str, factory: Any) -> bool:
+    """True if the factory needs the main module; fatal if a worker could never import it.
+
+    A class defined in ``python -c``, on stdin or in a notebook lives in a ``__main__`` that
+    no other process can import: every start would fail the same way.
+    """
+    if not _needs_main(factory):
+        return False
+    main = sys.modules.get("__main__")
+    if getattr(main, "__file__", None) is None and getattr(main, "__spec__", None) is None:
+        raise WorkerError(
+            node,
+            "crashed",
+            "its node class is defined in an interactive session (python -c, stdin, a "
+            "notebook), which a worker process cannot import: define the class in a module "
+            "or a script file, or use placement: inline",
+            fatal=True,
+        )
+    return True
+
+
+def _unguarded_main_message() -> str:
+    main = sys.modules.get("__main__")
+    script = getattr(main, "__file__", None) or "the main script"
+    return (
+        f"its node class is defined in {script}, which starts a flowrt runtime "
+        "again when a worker process imports it to load the class: put the code that starts "
+        'the runtime under `if __name__ == "__main__":` (or define the node class in a module '
+        "of its own)"
+    )
 
 
 def _install_prepare_hook() -> None:
@@ -161,13 +241,18 @@ def _install_prepare_hook() -> None:
         return
 
     def prepare(data: Mapping[str, Any]) -> None:
+        global _importing_main
         if str(data.get("name", "")).startswith(_NO_MAIN):
             data = {
                 k: v
                 for k, v in data.items()
                 if k not in ("init_main_from_path", "init_main_from_name")
             }
-        original(data)
+        _importing_main = True
+        try:
+            original(data)
+        finally:
+            _importing_main = False
 
     prepare._flowrt = True  # type: ignore[attr-defined]
     spawn.prepare = prepare
@@ -192,6 +277,7 @@ def start_forkserver() -> None:
     """
     from multiprocessing import forkserver
 
+    _exit_if_importing_main()
     _context()
     forkserver.ensure_running()
 
@@ -222,13 +308,17 @@ class _BlockingConn:
                 want = 4 + n - len(buf)
             else:
                 want = 4
-            chunk = self.sock.recv(max(want, 1 << 16))
+            try:
+                chunk = self.sock.recv(max(want, 1 << 16))
+            except ConnectionResetError:  # the runtime is gone (killed): as EOF
+                return None
             if not chunk:
                 return None
             buf += chunk
 
     def send(self, payload: bytes) -> None:
-        self.sock.sendall(_HDR.pack(len(payload)) + payload)
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):  # runtime gone: the
+            self.sock.sendall(_HDR.pack(len(payload)) + payload)  # next recv sees EOF
 
     def _complete(self) -> bool:
         buf = self.buf
@@ -254,6 +344,8 @@ class _BlockingConn:
                 chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 continue
+            except ConnectionResetError:
+                return  # left for recv to see
             if chunk:
                 self.buf += chunk
             return  # data, or EOF (left for recv to see)
@@ -326,7 +418,8 @@ def _reply(conn: _BlockingConn, status: int, payload: Any, seconds: float) -> No
 
 def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     """Entry point of a worker process: serve requests until EXIT or EOF."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
     _set_pdeathsig()
     try:
         os.kill(main_pid, 0)
@@ -398,8 +491,9 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
                 break
             else:
                 raise ValueError(f"unknown request {op!r}")
-        except Exception:
-            _reply(conn, _R_ERR, traceback.format_exc(), time.perf_counter() - t0)
+        except Exception as e:
+            status = _R_FATAL if getattr(e, "fatal", False) is True else _R_ERR
+            _reply(conn, status, traceback.format_exc(), time.perf_counter() - t0)
         else:
             _reply(conn, _R_OK, result, time.perf_counter() - t0)
     if loop is not None:
@@ -473,8 +567,14 @@ class _Worker:
         self.alive = False  # the process exists (until its sentinel fires)
         self._killing = False
         self.last_run_time = 0.0
+        # Watchdog progress check (see _on_hung): the worker's CPU and run-queue wait at the
+        # last check, and who hears of a call spared because the worker was starved of CPU.
+        self._progress: tuple[float, float, float | None] | None = None
+        self._call_cpu = 0.0  # the worker's CPU time when the call in flight was sent
+        self.on_starved: Callable[[str, str], None] | None = None
 
     async def spawn(self) -> None:
+        _exit_if_importing_main()
         loop = asyncio.get_running_loop()
         self._loop = loop
         ctx = _context()
@@ -510,6 +610,7 @@ class _Worker:
         if not self.usable or self._loop is None:
             raise self.death_for(node)
         fut = self._loop.create_future()
+        fut.add_done_callback(_retrieved)
         call = _Call((-priority, next(self._seq)), pickle.dumps(msg, _PICKLE), fut, node, watchdog)
         if self._inflight is None:
             self._send(call)
@@ -523,6 +624,8 @@ class _Worker:
         self._inflight = call
         self._transport.write(_HDR.pack(len(call.payload)) + call.payload)
         if call.watchdog is not None:
+            self._progress = _progress_of(self.pid, self._loop.time())
+            self._call_cpu = 0.0 if self._progress is None else self._progress[1]
             self._timer = self._loop.call_later(call.watchdog, self._on_hung)
 
     def _dispatch_next(self) -> None:
@@ -550,7 +653,8 @@ class _Worker:
             if status == _R_OK:
                 fut.set_result(payload)
             else:
-                fut.set_exception(WorkerError(call.node, "exception", payload))
+                fatal = status == _R_FATAL
+                fut.set_exception(WorkerError(call.node, "exception", payload, fatal=fatal))
         self._dispatch_next()
 
     # -- failure -----------------------------------------------------------------------------
@@ -559,6 +663,17 @@ class _Worker:
         self._timer = None
         call = self._inflight
         if call is None or not self.alive:
+            return
+        assert self._loop is not None
+        assert call.watchdog is not None
+        if self._reply_waiting():  # answered; the loop was late to read it (uvloop runs
+            self._timer = self._loop.call_later(0.005, self._on_hung)  # timers before I/O)
+            return
+        starved = self._starved(call.watchdog)
+        if starved:
+            if self.on_starved is not None:
+                self.on_starved(call.node, starved)
+            self._timer = self._loop.call_later(call.watchdog, self._on_hung)
             return
         self._hung_node = call.node
         self.death = self._classify(None)
@@ -570,6 +685,54 @@ class _Worker:
         if not call.future.done():
             call.future.set_exception(err)
         self.kill()
+
+    def _reply_waiting(self) -> bool:
+        """Bytes from the worker wait in the socket (a reply, or EOF that the sentinel follows)."""
+        sock = None if self._transport is None else self._transport.get_extra_info("socket")
+        if sock is None:
+            return False
+        try:
+            readable, _, _ = select.select([sock.fileno()], [], [], 0)
+        except (OSError, ValueError):
+            return False
+        return bool(readable)
+
+    def _starved(self, watchdog: float) -> str:
+        """Why a call past its watchdog is spared ('' if it is not): the worker was starved.
+
+        A hung worker and a starved machine look the same from the loop's clock. The kernel
+        tells them apart: a starved worker got less than half the window's CPU and either
+        waited on the run queue for most of it (``/proc/PID/schedstat``) or is runnable now
+        (``/proc/PID/stat``: schedstat counts a wait only when it ends). A hung worker is
+        asleep or blocked, or it spins and gets the CPU; and a call is killed anyway once it
+        has had a whole watchdog of CPU time, so on a machine merely loaded (a spinning
+        worker gets a share, not half), a spinning hang is killed a few watchdogs late, and
+        on a starved one at the first check after the starvation ends.
+        """
+        assert self._loop is not None
+        before, now = self._progress, _progress_of(self.pid, self._loop.time())
+        self._progress = now
+        if before is None or now is None:
+            return ""
+        t0, cpu0, wait0 = before
+        t1, cpu1, wait1 = now
+        window = t1 - t0
+        cpu = cpu1 - cpu0
+        if cpu1 - self._call_cpu >= watchdog:
+            return ""  # a whole watchdog of CPU time and no result: hung however loaded
+        if window <= 0 or cpu >= 0.5 * window:
+            return ""  # it had the CPU: a hang (or a call longer than its watchdog)
+        if wait0 is not None and wait1 is not None and wait1 - wait0 >= 0.5 * window:
+            what = f"waited {(wait1 - wait0) * 1000:.0f} ms for a CPU"
+        elif _state_of(self.pid) == "R":
+            # schedstat adds a wait when it ends: a worker still queued shows none yet
+            what = "is runnable but not running"
+        else:
+            return ""  # asleep or blocked: hung
+        return (
+            f"worker {self.pid} ran {cpu * 1000:.0f} ms of CPU in {window * 1000:.0f} ms and "
+            f"{what}: starved of CPU, not hung; watchdog extended by {watchdog * 1000:g} ms"
+        )
 
     def _on_eof(self) -> None:
         # Normally followed at once by the sentinel. A worker that closed its socket but lives
@@ -589,6 +752,7 @@ class _Worker:
         self.proc.join(0)
         exitcode = self.proc.exitcode
         self.alive = False
+        _proc_forget(self.pid)
         self.death = self._classify(exitcode)
         if self._transport is not None:
             self._transport.abort()
@@ -617,6 +781,10 @@ class _Worker:
                 signame = f"signal {-exitcode}"
             kind: WorkerKind = "killed" if -exitcode in _SIGNALS_KILLED else "crashed"
             return WorkerError(self.name, kind, f"worker {self.pid} died of {signame}", exitcode)
+        if exitcode == _EXIT_MAIN_UNGUARDED and self.import_main:
+            return WorkerError(
+                self.name, "crashed", _unguarded_main_message(), exitcode, fatal=True
+            )
         return WorkerError(
             self.name, "crashed", f"worker {self.pid} exited with code {exitcode}", exitcode
         )
@@ -630,7 +798,7 @@ class _Worker:
             return WorkerError(
                 node, "crashed", f"worker shared with {d.node}, which hung: {d.detail}", d.exitcode
             )
-        return WorkerError(node, d.kind, d.detail, d.exitcode)
+        return WorkerError(node, d.kind, d.detail, d.exitcode, fatal=d.fatal)
 
     @property
     def usable(self) -> bool:
@@ -660,6 +828,64 @@ class _Worker:
             with contextlib.suppress(WorkerError, TimeoutError):
                 await asyncio.wait_for(self.request((_OP_EXIT,), self.name, 1 << 30, grace), grace)
         await self.wait_exit(grace)
+
+
+_PROC_FDS: dict[tuple[int, str], int] = {}  # (pid, file) -> an open /proc descriptor
+
+
+def _proc_read(pid: int, name: str) -> bytes:
+    """/proc/PID/NAME through a descriptor kept open: ~2 us a read, against ~60 us to open,
+    read and close it, which matters at every dispatch of a call that has a watchdog."""
+    key = (pid, name)
+    fd = _PROC_FDS.get(key)
+    if fd is None:
+        fd = os.open(f"/proc/{pid}/{name}", os.O_RDONLY | os.O_CLOEXEC)
+        _PROC_FDS[key] = fd
+    return os.pread(fd, 1024, 0)
+
+
+def _proc_forget(pid: int | None) -> None:
+    """Close the /proc descriptors of a worker that is gone."""
+    for name in ("schedstat", "stat"):
+        fd = _PROC_FDS.pop((pid, name), None) if pid is not None else None
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def _progress_of(pid: int | None, now: float) -> tuple[float, float, float | None] | None:
+    """(now, CPU seconds, run-queue wait seconds or None) of a process, from /proc."""
+    if pid is None:
+        return None
+    try:
+        cpu_ns, wait_ns, _ = _proc_read(pid, "schedstat").split()
+        return now, int(cpu_ns) / 1e9, int(wait_ns) / 1e9
+    except (OSError, ValueError):
+        pass
+    try:
+        fields = _proc_read(pid, "stat").rsplit(b")", 1)[1].split()
+        ticks = os.sysconf("SC_CLK_TCK")
+        return now, (int(fields[11]) + int(fields[12])) / ticks, None  # utime + stime
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _state_of(pid: int | None) -> str:
+    """The process state letter of /proc/PID/stat (R runnable, S sleeping, ...), or ''."""
+    if pid is None:
+        return ""
+    try:
+        return _proc_read(pid, "stat").rsplit(b")", 1)[1].split()[0].decode()
+    except (OSError, IndexError, UnicodeDecodeError):
+        return ""
+
+
+def _retrieved(fut: asyncio.Future[Any]) -> None:
+    """Mark a request's error as seen: whoever awaits it still gets it, and a caller that
+    gave up (a node task cancelled at stop while its worker died) leaves no "Future exception
+    was never retrieved" behind."""
+    if not fut.cancelled():
+        fut.exception()
 
 
 def _check_priority(priority: int) -> int:
@@ -696,6 +922,9 @@ class _NodeExecutor:
         self.spin = spin
         self._worker: _Worker | None = None
         self._granted = "not started"
+        # Told (node, detail) when a call past its watchdog is spared because the worker
+        # was starved of CPU rather than hung (the runtime emits a HealthAlert).
+        self.on_starved: Callable[[str, str], None] | None = None
 
     @property
     def granted(self) -> str:
@@ -725,6 +954,8 @@ class _NodeExecutor:
 
     async def _add_to(self, worker: _Worker) -> None:
         self._worker = worker
+        if self.on_starved is not None:
+            worker.on_starved = self.on_starved
         msg = (_OP_ADD, self.nid, self.name, self.factory, self.scheduling)
         self._granted = await worker.request(msg, self.name, self.priority, self.setup_timeout)
 
@@ -808,7 +1039,7 @@ class ProcessExecutor(_NodeExecutor):
         if w is None or not w.usable:
             if w is not None:
                 await w.wait_exit()  # a killed worker: let it go before its successor starts
-            w = _Worker(self.name, import_main=_needs_main(self.factory))
+            w = _Worker(self.name, import_main=_check_main_importable(self.name, self.factory))
             await w.spawn()
         await self._add_to(w)
 
@@ -921,9 +1152,8 @@ class PoolNodeExecutor(_NodeExecutor):
 
     async def start(self) -> None:
         """Make sure this node's worker runs, then (re)create the node in it."""
-        await self._add_to(
-            await self.pool._worker(self.index, import_main=_needs_main(self.factory))
-        )
+        import_main = _check_main_importable(self.name, self.factory)
+        await self._add_to(await self.pool._worker(self.index, import_main=import_main))
 
     async def stop(self, grace: float = 2.0) -> None:
         """Tear this node down in its worker (the worker stays for the pool's other nodes)."""

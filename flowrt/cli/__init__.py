@@ -1,7 +1,8 @@
 """The ``flowrt`` command: one module per command group.
 
-``run`` (run.py), ``validate``/``graph``/``schema`` (inspect.py), ``ctl`` (ctl.py). A new
-group is a module with an ``add_parsers(sub)`` function, listed in ``GROUPS`` below.
+``run`` (run.py), ``validate``/``graph``/``schema`` (inspect.py), ``ctl`` (ctl.py), ``check``
+(check.py). A new group is a module with an ``add_parsers(sub)`` function, listed in
+``GROUPS`` below.
 Exit codes: see :mod:`flowrt.cli.common`.
 """
 
@@ -12,7 +13,7 @@ import importlib
 
 from .common import EXIT_BAD_GRAPH as EXIT_BAD_GRAPH
 
-GROUPS = ("run", "inspect", "ctl", "record")
+GROUPS = ("run", "inspect", "ctl", "can", "check", "record")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,8 +30,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    from .._startup import imports_done
+
     try:
+        imports_done()  # from here Ctrl-C is a KeyboardInterrupt, caught below
+        args = build_parser().parse_args(argv)
         return int(args.func(args))
     except KeyboardInterrupt:
         return 130

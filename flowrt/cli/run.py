@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
+import os
 import signal
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +16,15 @@ from rich.console import Console
 
 from ..eventloop import new_event_loop
 from ..remote import RemoteError
-from .common import EXIT_BAD_GRAPH, load, plain_handler, setup_logging, stdout_console
+from .common import (
+    EXIT_BAD_GRAPH,
+    EXIT_FAILED,
+    EXIT_OK,
+    load,
+    plain_handler,
+    setup_logging,
+    stdout_console,
+)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -25,6 +36,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
+    from .check import startup_check
+
+    timing_ok, timing_lines = startup_check(graph)
+    if not timing_ok:
+        word = "refusing to start" if args.check else "warning"
+        err.print(f"flowrt run: {word}: the timing may not hold (flowrt check)", markup=False)
+        for line in timing_lines:
+            err.print(f"  {line}", markup=False)
+        if args.check:
+            return EXIT_FAILED
     monitor: LogLines | LiveTable
     if args.no_ui:
         monitor = LogLines(args.log_every)
@@ -46,21 +67,27 @@ def cmd_run(args: argparse.Namespace) -> int:
         monitors.append(live)
     control = _control_config(args, err)
     rt = Runtime(
-        graph, monitors=monitors, realtime=args.realtime, control=control, spin=args.spin / 1000
+        graph,
+        monitors=monitors,
+        realtime=args.realtime,
+        control=control,
+        spin=args.spin / 1000,
+        drain_timeout=args.drain_timeout,
+        stop_on_failure=not args.keep_going,
     )
 
+    stop_signals = StopSignals(rt.request_stop)
+    stop_signals.install()
+
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, rt.request_stop)
+        stop_signals.loop = asyncio.get_running_loop()
         try:
             async with rt:
                 if rt.control is not None:
                     logging.getLogger("flowrt").info("control endpoint %s", rt.control.url)
                 await rt.run(args.duration)
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(sig)
+            stop_signals.loop = None
 
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
         try:
@@ -74,11 +101,77 @@ def cmd_run(args: argparse.Namespace) -> int:
             err.print(f"flowrt run: control endpoint: {e}", markup=False)  # e.g. port taken
             return 1
     stats = rt.stats()
-    console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
+    with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
+        console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
-    return 0
+    return _verdict(rt.failures(), err)
+
+
+def _verdict(failures: list[Any], err: Console) -> int:
+    """Exit 1 when the run ends with a node failed or in error, one line per node."""
+    for n in failures:
+        what = "failed" if n.state == "failed" else "in error"
+        err.print(
+            f"flowrt run: node {n.name} {what}: {n.reason}",
+            markup=False,
+            style="red",
+            soft_wrap=True,
+        )
+    return EXIT_FAILED if failures else EXIT_OK
+
+
+class StopSignals:
+    """SIGINT, SIGTERM and SIGHUP (terminal closed, ssh dropped) all stop a run in order.
+
+    The first one stops the runtime: every node torn down, workers stopped, shared memory
+    freed, the final table printed. A second one while that runs is noted and ignored, so
+    teardown finishes (it is bounded: each node's stop has a grace time, then its worker is
+    killed). A third forces the exit at once, with 128 + the signal's number; what it leaves
+    in /dev/shm is reclaimed at the next start.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+    def __init__(self, stop: Callable[[], None]) -> None:
+        self.stop = stop
+        self.received: list[int] = []
+        self.loop: asyncio.AbstractEventLoop | None = None  # the run's loop, while it runs
+
+    def install(self) -> None:
+        """Plain ``signal.signal`` handlers, not the loop's: they also run while the loop is
+        blocked (an inline node's teardown that hangs), so a third signal can always force
+        the exit; and they stay until the process exits (the final table and the
+        interpreter's own clean-up come after the loop: a signal then killed it, rc -15)."""
+        for sig in self.SIGNALS:
+            signal.signal(sig, self._handler)
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        self(signum)
+
+    def __call__(self, sig: int) -> None:
+        self.received.append(sig)
+        if len(self.received) == 1:
+            loop = self.loop
+            if loop is not None and not loop.is_closed():
+                loop.call_soon_threadsafe(self.stop)  # wakes the loop; safe in a handler
+            else:
+                self.stop()  # before the loop runs: run() returns as soon as it starts
+        elif len(self.received) == 2:
+            _say(
+                f"flowrt run: {signal.Signals(sig).name}: still stopping (tearing the nodes "
+                "down); a third signal forces the exit"
+            )
+        else:
+            _say(f"flowrt run: {signal.Signals(sig).name}: forced exit")
+            os._exit(128 + sig)
+
+
+def _say(text: str) -> None:
+    """One line on stderr from a signal handler; a terminal that hung up is no error."""
+    with contextlib.suppress(OSError):
+        os.write(2, (text + "\n").encode())
 
 
 def _control_config(args: argparse.Namespace, err: Console) -> Any:
@@ -113,6 +206,16 @@ def _spin_ms(text: str) -> float:
     return ms
 
 
+def _drain_s(text: str) -> float:
+    try:
+        s = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0 <= s <= 3600:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 3600 s, got {text}")
+    return s
+
+
 def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
@@ -140,6 +243,14 @@ def add_parsers(sub: Any) -> None:
         metavar="DURATION",
         help="the loop busy-waits this long before each timer release (e.g. 300us; default 0)",
     )
+    run.add_argument(
+        "--drain-timeout",
+        type=_drain_s,
+        default=5.0,
+        metavar="S",
+        help="at stop, let lossless edges and running activations finish for at most S seconds "
+        "(default 5; reported when hit)",
+    )
     run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
     run.add_argument(
         "--log-every", type=float, default=2.0, metavar="S", help="--no-ui summary period"
@@ -159,5 +270,16 @@ def add_parsers(sub: Any) -> None:
         const=8765,
         metavar="PORT",
         help="serve the graph live to Foxglove on ws://127.0.0.1:PORT (default 8765)",
+    )
+    run.add_argument(
+        "--check",
+        action="store_true",
+        help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
+    )
+    run.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="keep the rest of the graph running when a node fails for good (default: stop at"
+        " once); the exit code is 1 either way",
     )
     run.set_defaults(func=cmd_run)
