@@ -33,7 +33,6 @@ from .spec import EdgePolicy, GraphSpec, Placement
 from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
-    from .control import ControlConfig, ControlServer
     from .oscheduling import FairShare
     from .qos import OverloadController, QosStatus
     from .rtdb import RTDB
@@ -105,7 +104,6 @@ class Runtime:
         monitors: Iterable[Monitor] = (),
         realtime: bool = False,
         kinds: Mapping[str, type[Node]] | None = None,
-        control: ControlConfig | str | None = None,
         spin: float = 0.0,
     ) -> None:
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
@@ -132,12 +130,6 @@ class Runtime:
         self._fair: FairShare | None = None
         self._nice_before: int | None = None
         self.qos: OverloadController | None = None
-        if control is not None:  # a bad address or a missing token fails here, before any start
-            from .control import ControlConfig
-
-            control = ControlConfig.checked(control)
-        self.control_config = control
-        self.control: ControlServer | None = None
         self.started = False
 
     @classmethod
@@ -203,16 +195,6 @@ class Runtime:
             self.set_mode(self.graph.spec.initial_mode, origin="graph")
         if isinstance(self.clock, SystemClock):
             self._probe_lag(self.clock.now())
-        if self.control_config is not None:
-            from .control import ControlServer
-
-            self.control = ControlServer(self, self.control_config)
-            try:
-                await self.control.start()
-            except OSError:  # e.g. the port is taken: leave nothing running
-                self.control = None
-                await self.stop()
-                raise
 
     async def stop(self) -> None:
         """Tear every node down, stop workers, free shared memory; safe to call twice."""
@@ -222,9 +204,6 @@ class Runtime:
         self._stop.set()
         if self._lag_handle is not None:
             self._lag_handle.cancel()
-        if self.control is not None:
-            with contextlib.suppress(Exception):
-                await self.control.stop()
         try:
             if self._sched is not None:
                 await self._sched.stop()
@@ -505,7 +484,24 @@ class Runtime:
         enabled: bool | None = None,
         origin: str = "api",
     ) -> str:
-        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms."""
+        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
+
+        The whole change is checked first (the ranges of graph files: finite, in range, a
+        phase below its period) and applied at once, or refused with ValueError and nothing
+        changed.
+        """
+        from .qos import check_change
+
+        check_change(
+            self.scheduler.runners,
+            node,
+            period=period,
+            phase=phase,
+            timer=timer,
+            deadline=deadline,
+            priority=priority,
+            enabled=enabled,
+        )
         return self.scheduler.set_timing(
             node,
             period=period,

@@ -273,6 +273,7 @@ class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
     inline_only = True
+    listens = True  # params host/port: `flowrt run --display-host/--display-port` set them
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")

@@ -27,22 +27,32 @@ def graph() -> flowrt.Graph:
     return g.build()
 
 
+SERVERS: dict[int, ControlServer] = {}
+
+
+async def served(config: ControlConfig) -> AsyncIterator[Runtime]:
+    """A runtime on a virtual clock and its control endpoint, a user of it."""
+    async with Runtime(graph(), clock=VirtualClock()) as r, ControlServer(r, config) as server:
+        SERVERS[id(r)] = server
+        yield r
+        del SERVERS[id(r)]
+
+
 @pytest.fixture
 async def rt() -> AsyncIterator[Runtime]:
-    async with Runtime(graph(), clock=VirtualClock(), control=ControlConfig("127.0.0.1", 0)) as r:
+    async for r in served(ControlConfig("127.0.0.1", 0)):
         yield r
 
 
 @pytest.fixture
 async def rt_token() -> AsyncIterator[Runtime]:
     config = ControlConfig("127.0.0.1", 0, token=TOKEN)  # a token given on loopback is required
-    async with Runtime(graph(), clock=VirtualClock(), control=config) as r:
+    async for r in served(config):
         yield r
 
 
 def url(rt: Runtime, path: str) -> str:
-    assert rt.control is not None
-    return rt.control.url + path
+    return SERVERS[id(rt)].url + path
 
 
 async def call(
@@ -161,7 +171,9 @@ async def test_refuses_to_serve_beyond_loopback_without_a_token() -> None:
                 ControlServer(rt, ControlConfig(host, 0))  # refused before binding anything
         ControlServer(rt, ControlConfig("0.0.0.0", 0, token=TOKEN))  # allowed (not started here)
     with pytest.raises(ValueError, match="without a token"):
-        Runtime(graph(), control="0.0.0.0:8765")  # before anything runs
+        ControlConfig.checked("0.0.0.0:8765")  # before anything runs
+    with pytest.raises(ValueError, match="token_required without a token"):
+        ControlConfig.checked(ControlConfig("127.0.0.1", 0, token_required=True))
 
 
 async def ctl(*args: str, token: str | None = None) -> tuple[int, str, str]:
@@ -182,8 +194,7 @@ async def ctl(*args: str, token: str | None = None) -> tuple[int, str, str]:
 
 
 async def test_flowrt_ctl_client(rt_token: Runtime) -> None:
-    assert rt_token.control is not None
-    base = ["--url", rt_token.control.url]
+    base = ["--url", url(rt_token, "")]
     code, out, err = await ctl(*base, "mode", "attack", token=TOKEN)
     assert (code, out.strip()) == (0, "mode attack"), err
     assert rt_token.mode == "attack"
@@ -214,14 +225,15 @@ async def test_flowrt_ctl_client(rt_token: Runtime) -> None:
     assert "unknown node 'nope'" in err
 
 
-async def test_a_taken_port_fails_the_start_and_leaves_nothing_running(rt: Runtime) -> None:
-    assert rt.control is not None
-    other = Runtime(
-        graph(), clock=VirtualClock(), control=ControlConfig("127.0.0.1", rt.control.port)
-    )
-    with pytest.raises(OSError, match="address already in use"):
-        await other.start()
+async def test_a_taken_port_fails_before_anything_starts(rt: Runtime) -> None:
+    port = SERVERS[id(rt)].port
+    other = Runtime(graph(), clock=VirtualClock())
+    server = ControlServer(other, ControlConfig("127.0.0.1", port))
+    with pytest.raises(OSError, match=f"cannot listen on 127.0.0.1:{port}: .*in use"):
+        server.bind()  # checked before the runtime is started
     assert not other.started
+    with pytest.raises(RuntimeError, match="start the runtime"):
+        await server.start()
 
 
 async def test_flowrt_ctl_without_a_runtime() -> None:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
+import dataclasses
 import logging
 import signal
 from pathlib import Path
@@ -12,7 +14,15 @@ from typing import Any
 from rich.console import Console
 
 from ..eventloop import new_event_loop
-from .common import EXIT_BAD_GRAPH, load, plain_handler, setup_logging, stdout_console
+from ..graph import Graph
+from .common import (
+    EXIT_BAD_GRAPH,
+    EXIT_FAILED,
+    load,
+    plain_handler,
+    setup_logging,
+    stdout_console,
+)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -24,6 +34,30 @@ def cmd_run(args: argparse.Namespace) -> int:
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
+    problem = _display_options(graph, args)
+    if problem:
+        err.print(f"flowrt run: {problem}", markup=False)
+        return EXIT_BAD_GRAPH
+    control = _control_config(args, err)
+    # Every address is checked before anything starts: a taken port is one line and exit 1.
+    problem = _check_addresses(graph)
+    if problem:
+        err.print(f"flowrt run: {problem}", markup=False)
+        return EXIT_FAILED
+    rt = Runtime(graph, realtime=args.realtime, spin=args.spin / 1000)
+    server = None
+    if control is not None:
+        from ..control import ControlServer
+
+        server = ControlServer(rt, control)
+        try:
+            server.bind()  # held from now on: nothing can take it before the runtime starts
+        except OSError as e:
+            err.print(
+                f"flowrt run: control endpoint: {e} (choose another with --control PORT)",
+                markup=False,
+            )
+            return EXIT_FAILED
     monitor: LogLines | LiveTable
     if args.no_ui:
         monitor = LogLines(args.log_every)
@@ -31,33 +65,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     else:
         monitor = LiveTable(console, hz=args.refresh)
         setup_logging(monitor.log_handler())
-    monitors: list[Any] = [monitor]
-    control = _control_config(args, err)
-    rt = Runtime(
-        graph, monitors=monitors, realtime=args.realtime, control=control, spin=args.spin / 1000
-    )
+    rt.monitors.append(monitor)
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, rt.request_stop)
         try:
-            async with rt:
-                if rt.control is not None:
-                    logging.getLogger("flowrt").info("control endpoint %s", rt.control.url)
+            async with rt, server or contextlib.nullcontext():
+                if server is not None:
+                    logging.getLogger("flowrt").info("control endpoint %s", server.url)
                 await rt.run(args.duration)
         finally:
             for sig in (signal.SIGINT, signal.SIGTERM):
                 loop.remove_signal_handler(sig)
 
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
-        try:
-            runner.run(main())
-        except OSError as e:
-            if rt.control_config is None or rt.control is not None:
-                raise
-            err.print(f"flowrt run: control endpoint: {e}", markup=False)  # e.g. port taken
-            return 1
+        runner.run(main())
     stats = rt.stats()
     console.print(render(stats, list(rt.events)[-5:], rt.qos_status()))
     if args.stats_json:
@@ -66,9 +90,79 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _display_nodes(graph: Graph) -> list[str]:
+    """The nodes that serve a web view (their class says ``listens``: params host and port)."""
+    return [name for name, n in graph.nodes.items() if getattr(n.cls, "listens", False)]
+
+
+def _display_options(graph: Graph, args: argparse.Namespace) -> str | None:
+    """Apply ``--no-display`` / ``--display-host`` / ``--display-port`` to the graph's views."""
+    names = _display_nodes(graph)
+    if args.no_display:
+        _remove_nodes(graph, set(names))
+        return None
+    update = {
+        k: v
+        for k, v in (("host", args.display_host), ("port", args.display_port))
+        if v is not None
+    }
+    if not update:
+        return None
+    if not names:
+        return "--display-host/--display-port: the graph has no display node"
+    if "port" in update and len(names) > 1 and update["port"] != 0:
+        return f"--display-port: the graph has {len(names)} display nodes ({', '.join(names)})"
+    for name in names:
+        n = graph.nodes[name]
+        try:
+            n.params = n.params.model_validate({**n.params.model_dump(), **update})
+        except ValueError as e:
+            return f"--display-host/--display-port: {e}"
+    return None
+
+
+def _remove_nodes(graph: Graph, names: set[str]) -> None:
+    """Take nodes that nothing reads from out of the graph (and out of its modes)."""
+    if not names:
+        return
+    for name in names:
+        graph.nodes.pop(name)
+    graph.edges = [e for e in graph.edges if e.src not in names and e.dst not in names]
+    modes = {
+        mode: spec.model_copy(
+            update={"nodes": {k: v for k, v in spec.nodes.items() if k not in names}}
+        )
+        for mode, spec in graph.spec.modes.items()
+    }
+    nodes = {k: v for k, v in graph.spec.nodes.items() if k not in names}
+    graph.spec = graph.spec.model_copy(update={"nodes": nodes, "modes": modes})
+
+
+def _check_addresses(graph: Graph) -> str | None:
+    """Try to bind every display node's address; the first that fails, in one line."""
+    from ..control import listen
+
+    for name in _display_nodes(graph):
+        params = graph.nodes[name].params
+        host, port = getattr(params, "host", "127.0.0.1"), getattr(params, "port", 0)
+        if not port:
+            continue
+        try:
+            listen(host, port).close()
+        except OSError as e:
+            return (
+                f"display {name!r}: {e} "
+                "(choose another with --display-port PORT, or run with --no-display)"
+            )
+    return None
+
+
 def _control_config(args: argparse.Namespace, err: Console) -> Any:
-    """``--control [HOST:]PORT``: a token is generated (and printed) off loopback if none given."""
+    """``--control [HOST:]PORT``: a token is generated (and printed) if one is needed."""
     if args.control is None:
+        if args.control_token_required:
+            err.print("flowrt run: --control-token-required needs --control", markup=False)
+            raise SystemExit(EXIT_BAD_GRAPH)
         return None
     import os
     import secrets
@@ -76,12 +170,16 @@ def _control_config(args: argparse.Namespace, err: Console) -> Any:
     from ..control import ControlConfig
 
     try:
-        config = ControlConfig.parse(args.control, args.token or os.environ.get("FLOWRT_TOKEN"))
+        config = ControlConfig.parse(
+            args.control,
+            args.token or os.environ.get("FLOWRT_TOKEN"),
+            token_required=args.control_token_required,
+        )
     except ValueError as e:
         err.print(f"flowrt run: {e}", markup=False)
-        raise SystemExit(2) from None
+        raise SystemExit(EXIT_BAD_GRAPH) from None
     if config.needs_token and not config.token:
-        config = ControlConfig(config.host, config.port, secrets.token_urlsafe(24))
+        config = dataclasses.replace(config, token=secrets.token_urlsafe(24))
         err.print(f"control token (give it to flowrt ctl --token): {config.token}", markup=False)
     return config
 
@@ -132,4 +230,23 @@ def add_parsers(sub: Any) -> None:
         help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.add_argument(
+        "--control-token-required",
+        action="store_true",
+        help="require the token on loopback too (one is generated and printed if none is given)",
+    )
+    run.add_argument(
+        "--display-host",
+        metavar="HOST",
+        help="address of the graph's live view (overrides its display nodes' host)",
+    )
+    run.add_argument(
+        "--display-port",
+        type=int,
+        metavar="PORT",
+        help="port of the graph's live view (overrides its display node's port; 0: any free)",
+    )
+    run.add_argument(
+        "--no-display", action="store_true", help="run without the graph's display nodes"
+    )
     run.set_defaults(func=cmd_run)
