@@ -211,9 +211,17 @@ class ControlServer:
     ``start()`` binds if needed and starts the server process. Use as ``async with``.
     """
 
-    def __init__(self, rt: Runtime, config: ControlConfig | str) -> None:
+    def __init__(
+        self,
+        rt: Runtime,
+        config: ControlConfig | str,
+        *,
+        max_connections: int = MAX_CONNECTIONS,
+        request_timeout: float = REQUEST_TIMEOUT,
+    ) -> None:
         self.rt = rt
         self.config = ControlConfig.checked(config)
+        self.limits = {"max_connections": max_connections, "request_timeout": request_timeout}
         self.port = self.config.port
         self._sock: socket.socket | None = None
         self._proc: Any = None
@@ -249,7 +257,7 @@ class ControlServer:
         assert self._sock is not None
         ours, theirs = socket.socketpair()
         ctx = multiprocessing.get_context("spawn")
-        settings = {"host": self.config.host, "token": self.config.token}
+        settings = {"host": self.config.host, "token": self.config.token, **self.limits}
         proc = ctx.Process(
             target=_serve, args=(self._sock, theirs, settings), name="flowrt-control", daemon=True
         )
@@ -413,6 +421,8 @@ class _Gateway:
     def __init__(self, settings: dict[str, Any]) -> None:
         self.host: str = settings["host"]
         self.token: str | None = settings["token"]
+        self.max_connections: int = settings["max_connections"]
+        self.timeout: float = settings["request_timeout"]
         self.conns: dict[asyncio.BaseTransport, _Conn] = {}
         self.refused = 0
         self.timed_out = 0
@@ -444,7 +454,7 @@ class _Gateway:
             ]
         )
         runner = web.AppRunner(
-            app, access_log=None, handle_signals=False, keepalive_timeout=REQUEST_TIMEOUT
+            app, access_log=None, handle_signals=False, keepalive_timeout=self.timeout
         )
         await runner.setup()
         server = runner.server
@@ -452,7 +462,7 @@ class _Gateway:
         gateway = self
 
         def factory() -> asyncio.Protocol:
-            if len(gateway.conns) >= MAX_CONNECTIONS:
+            if len(gateway.conns) >= gateway.max_connections:
                 gateway.refused += 1
                 return _Refuse()
             return _Tracked(server(), gateway)
@@ -489,7 +499,7 @@ class _Gateway:
     async def _sweep(self) -> None:
         """Close connections that sent no complete request in time (slow or idle clients)."""
         while True:
-            await asyncio.sleep(0.5)
+            await asyncio.sleep(min(0.5, self.timeout / 4))
             now = time.monotonic()
             for conn in list(self.conns.values()):
                 if not conn.busy and now > conn.deadline:
@@ -563,14 +573,14 @@ class _Gateway:
                 if request.method == "POST" and request.content_type != "application/json":
                     return _error(415, "send a JSON body with Content-Type: application/json")
                 try:
-                    async with asyncio.timeout(REQUEST_TIMEOUT):
+                    async with asyncio.timeout(self.timeout):
                         return await handler(request)  # type: ignore[no-any-return]
                 except TimeoutError:
-                    return _error(408, f"request not complete within {REQUEST_TIMEOUT:g} s")
+                    return _error(408, f"request not complete within {self.timeout:g} s")
             finally:
                 if conn is not None:
                     conn.busy -= 1
-                    conn.deadline = time.monotonic() + REQUEST_TIMEOUT
+                    conn.deadline = time.monotonic() + self.timeout
 
         return guard
 
@@ -615,7 +625,8 @@ class _Tracked(asyncio.Protocol):
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport
-        self.gateway.conns[transport] = _Conn(transport, time.monotonic() + REQUEST_TIMEOUT)
+        deadline = time.monotonic() + self.gateway.timeout
+        self.gateway.conns[transport] = _Conn(transport, deadline)
         self.inner.connection_made(transport)
 
     def connection_lost(self, exc: Exception | None) -> None:

@@ -523,3 +523,59 @@ def test_display_kind_is_registered() -> None:
     g.add("view", "display", params={"port": 0})
     graph = g.build()
     assert isinstance(graph, flowrt.Graph)
+
+
+VIEW_GRAPH = """
+name: view-cli
+nodes:
+  src: {kind: counter, trigger: {timer: 50ms}}
+  view: {kind: display, params: {port: PORT}}
+"""
+
+
+def flowrt_run(tmp_path: Path, port: int, *options: str) -> tuple[int, str, str]:
+    import subprocess
+    import sys
+
+    graph = tmp_path / "view.yaml"
+    graph.write_text(VIEW_GRAPH.replace("PORT", str(port)))
+    proc = subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", "run", str(graph), "--no-ui", *options],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+def test_flowrt_run_display_options_and_a_taken_port(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as taken, socket.socket() as free:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        # the graph's port is taken: one line naming it and the options, before anything runs
+        code, out, err = flowrt_run(tmp_path, port, "--duration", "5")
+        assert code == 1
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, err
+        assert f"127.0.0.1:{port}" in lines[0]
+        assert "--display-port" in lines[0]
+        assert "--no-display" in lines[0]
+        assert "display:" not in out  # nothing started
+        # --display-port moves it
+        free.bind(("127.0.0.1", 0))
+        other = free.getsockname()[1]
+        free.close()
+        code, out, err = flowrt_run(
+            tmp_path, port, "--display-port", str(other), "--duration", "0.5"
+        )
+        assert code == 0, err
+        assert f"display: http://127.0.0.1:{other}" in out
+        # --no-display runs the graph without it (the taken port does not matter)
+        code, out, err = flowrt_run(tmp_path, port, "--no-display", "--duration", "0.5")
+        assert code == 0, err
+        assert "display:" not in out
+        assert "src" in out
+        assert "Traceback" not in err

@@ -36,13 +36,13 @@ def cmd_run(args: argparse.Namespace) -> int:
         return EXIT_BAD_GRAPH
     problem = _display_options(graph, args)
     if problem:
-        err.print(f"flowrt run: {problem}", markup=False)
+        err.print(f"flowrt run: {problem}", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
     control = _control_config(args, err)
     # Every address is checked before anything starts: a taken port is one line and exit 1.
     problem = _check_addresses(graph)
     if problem:
-        err.print(f"flowrt run: {problem}", markup=False)
+        err.print(f"flowrt run: {problem}", markup=False, soft_wrap=True)
         return EXIT_FAILED
     rt = Runtime(graph, realtime=args.realtime, spin=args.spin / 1000)
     server = None
@@ -54,8 +54,10 @@ def cmd_run(args: argparse.Namespace) -> int:
             server.bind()  # held from now on: nothing can take it before the runtime starts
         except OSError as e:
             err.print(
-                f"flowrt run: control endpoint: {e} (choose another with --control PORT)",
+                f"flowrt run: control endpoint: {e.strerror or e} "
+                "(choose another with --control PORT)",
                 markup=False,
+                soft_wrap=True,
             )
             return EXIT_FAILED
     monitor: LogLines | LiveTable
@@ -102,9 +104,7 @@ def _display_options(graph: Graph, args: argparse.Namespace) -> str | None:
         _remove_nodes(graph, set(names))
         return None
     update = {
-        k: v
-        for k, v in (("host", args.display_host), ("port", args.display_port))
-        if v is not None
+        k: v for k, v in (("host", args.display_host), ("port", args.display_port)) if v is not None
     }
     if not update:
         return None
@@ -151,7 +151,7 @@ def _check_addresses(graph: Graph) -> str | None:
             listen(host, port).close()
         except OSError as e:
             return (
-                f"display {name!r}: {e} "
+                f"display {name!r}: {e.strerror or e} "
                 "(choose another with --display-port PORT, or run with --no-display)"
             )
     return None
