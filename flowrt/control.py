@@ -17,13 +17,15 @@ Endpoints (JSON in and out): ``GET /stats`` (``RuntimeStats``), ``GET /events?n=
 ``GET /rtdb`` and ``GET /rtdb/NAME?n=8``.
 
 Off the scheduler's path: HTTP is served by a process of its own (``flowrt-control``, nice
-10), not by the runtime's event loop nor a thread of its process, so that no number of
+19), not by the runtime's event loop nor a thread of its process, so that no number of
 clients takes the loop's time or its GIL, and slow clients hold that process's descriptors,
 never the runtime's (which its workers need to restart). The server forwards what it cannot
 answer itself over a socket pair to the runtime, which answers one request at a time, in the
 quiet gap between timer releases (:meth:`flowrt.Runtime.quiet_delay`); reads are cached for
 ``READ_MAX_AGE`` and shared by every client asking meanwhile, so 200 clients polling
-``/stats`` cost the loop what one client polling 5 times a second costs. Changes are checked
+``/stats`` cost the loop what one client polling 5 times a second costs; and a connection
+that asks again sooner than that is answered when the cache may hold news (its client waits
+rather than spins). Changes are checked
 completely (:func:`flowrt.qos.check_change`, the ranges of graph files) before any of it is
 applied, and applied between ticks, at once. Limits: ``MAX_CONNECTIONS`` at once (more are
 closed as they arrive), a request's headers within ``REQUEST_TIMEOUT`` of the connection or
@@ -76,11 +78,12 @@ log = logging.getLogger("flowrt.control")
 DEFAULT_PORT = 8765
 DEFAULT_URL = f"http://127.0.0.1:{DEFAULT_PORT}"
 
-MAX_CONNECTIONS = 128  # open connections at once; more are closed as they arrive
+MAX_CONNECTIONS = 256  # open connections at once; more are closed as they arrive
 REQUEST_TIMEOUT = 10.0  # seconds for a request's headers (from accept or the previous one)
 MAX_BODY = 1 << 20  # bytes of a request body
 READ_MAX_AGE = 0.2  # seconds a read (stats, events, ...) is served from the server's cache
 MAX_EVENTS = 1000  # ?n= of /events, /rtdb/NAME
+NICE = 19  # the server's nice level: it gets the CPU the graph leaves
 START_TIMEOUT = 30.0  # seconds for the server process to start (spawn + imports)
 _FRAME = struct.Struct(">II")  # header length, body length
 
@@ -401,7 +404,7 @@ def _serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # never the loop's FIFO
     with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, 0, 10)
+        os.setpriority(os.PRIO_PROCESS, 0, NICE)
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(_Gateway(settings).run(sock, channel))
 
@@ -413,6 +416,7 @@ class _Conn:
     transport: asyncio.BaseTransport
     deadline: float
     busy: int = 0
+    next_read: float = 0.0  # a read on this connection is answered no sooner than this
 
 
 class _Gateway:
@@ -572,6 +576,13 @@ class _Gateway:
                     return _error(403, f"Host {request.host!r} is not a loopback name")
                 if request.method == "POST" and request.content_type != "application/json":
                     return _error(415, "send a JSON body with Content-Type: application/json")
+                if conn is not None and request.method == "GET":
+                    # One connection polling faster than the data changes gets the next
+                    # answer when there may be news: its client waits instead of spinning.
+                    now = time.monotonic()
+                    if conn.next_read > now:
+                        await asyncio.sleep(conn.next_read - now)
+                    conn.next_read = max(now, conn.next_read) + READ_MAX_AGE
                 try:
                     async with asyncio.timeout(self.timeout):
                         return await handler(request)  # type: ignore[no-any-return]

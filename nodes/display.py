@@ -52,6 +52,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hmac
+import ipaddress
 import json
 import math
 import struct
@@ -62,11 +64,12 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import cv2
 import numpy as np
 from aiohttp import WSMsgType, web
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from flowrt import Frame, Input, InputTrigger, Node
 
@@ -80,6 +83,8 @@ STATS_MAX_AGE = (
 CLOSE_TIMEOUT = 1.0  # seconds given to clients to close at teardown
 JPEG_PART = "Content-Type: image/jpeg\r\nContent-Length: "
 SOURCE_WAIT = 3.0  # seconds a request for a source that has sent no frame yet waits for one
+HEADER_TIMEOUT = 10.0  # seconds a connection has to send a request's headers
+COOKIE = "flowrt_view"  # holds the token once the page was opened with ?token=
 
 #: Colours (BGR) of the soccer objects; other labels get a colour from their name.
 COLOURS: dict[str, tuple[int, int, int]] = {
@@ -269,6 +274,69 @@ class _Client:
         self.messages = 0
 
 
+@dataclass
+class _Conn:
+    """An open connection: when it must have sent its next request, and if one is running."""
+
+    transport: asyncio.BaseTransport
+    deadline: float
+    busy: int = 0
+
+
+class _Tracked(asyncio.Protocol):
+    """aiohttp's protocol for one connection, counted while it is open."""
+
+    def __init__(self, inner: Any, conns: dict[asyncio.BaseTransport, _Conn]) -> None:
+        self.inner = inner
+        self.conns = conns
+        self.transport: asyncio.BaseTransport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport
+        self.conns[transport] = _Conn(transport, time.monotonic() + HEADER_TIMEOUT)
+        self.inner.connection_made(transport)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.transport is not None:
+            self.conns.pop(self.transport, None)
+        self.inner.connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        self.inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return self.inner.eof_received()  # type: ignore[no-any-return]
+
+    def pause_writing(self) -> None:
+        self.inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        self.inner.resume_writing()
+
+
+class _Refuse(asyncio.Protocol):
+    """Over ``max_clients``: closed at once."""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        transport.close()
+
+
+def _is_loopback(host: str) -> bool:
+    if host.lower() in ("localhost", "localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def _hostname(host: str) -> str:
+    """The name in a Host header, without its port."""
+    if host.startswith("["):
+        return host[1 : host.find("]")] if "]" in host else host
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
 class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
@@ -279,9 +347,22 @@ class Display(Node):
         model_config = ConfigDict(extra="forbid")
 
         host: str = Field(
-            "127.0.0.1", description="address to listen on (0.0.0.0: every interface)"
+            "127.0.0.1",
+            description="address to listen on (0.0.0.0: every interface; needs a token)",
         )
         port: int = Field(8750, ge=0, le=65535, description="TCP port; 0 picks a free one")
+        token: str | None = Field(
+            None,
+            min_length=8,
+            description="required of every client (Bearer header, or ?token= once: a cookie)",
+        )
+        allowed_hosts: list[str] = Field(
+            default_factory=list,
+            description="names besides loopback a browser may use in Host (without a token)",
+        )
+        max_clients: int = Field(
+            32, ge=1, le=1000, description="open connections at once; more are closed at once"
+        )
         max_fps: float | None = Field(
             None,
             gt=0,
@@ -295,6 +376,15 @@ class Display(Node):
             1.0, gt=0, description="seconds after which a detection is no longer drawn"
         )
         refresh_ms: int = Field(333, ge=50, description="how often the page polls the statistics")
+
+        @model_validator(mode="after")
+        def _token_beyond_loopback(self) -> Display.Params:
+            if not self.token and not _is_loopback(self.host):
+                raise ValueError(
+                    f"serving the live view on {self.host} needs a token (params.token, or "
+                    "flowrt run --display-token): any machine that reaches it sees the cameras"
+                )
+            return self
 
     any_inputs = Input(
         object, required=False, doc="frames (a source each) and detections, under any name"
@@ -319,7 +409,7 @@ class Display(Node):
         self._page = PAGE.read_bytes().replace(
             b"__REFRESH_MS__", str(self.params.refresh_ms).encode()
         )
-        app = web.Application()
+        app = web.Application(middlewares=[self._guard])
         app.add_routes(
             [
                 web.get("/", self._index),
@@ -330,16 +420,28 @@ class Display(Node):
             ]
         )
         self._runner = web.AppRunner(
-            app, access_log=None, handle_signals=False, shutdown_timeout=CLOSE_TIMEOUT
+            app,
+            access_log=None,
+            handle_signals=False,
+            shutdown_timeout=CLOSE_TIMEOUT,
+            keepalive_timeout=HEADER_TIMEOUT,
         )
         await self._runner.setup()
         host, port = self.params.host, self.params.port
+        self.conns: dict[asyncio.BaseTransport, _Conn] = {}
+        self.refused = 0
+        server = self._runner.server
+        assert server is not None
+        loop = asyncio.get_running_loop()
         try:
-            await web.TCPSite(self._runner, host, port).start()
+            self._listener = await loop.create_server(
+                lambda: self._protocol(server), host, port, reuse_address=True
+            )
         except OSError as e:
             await self._runner.cleanup()
             raise RuntimeError(f"display: cannot listen on {host}:{port}: {e.strerror or e}") from e
-        self.port = int(self._runner.addresses[0][1])
+        self._sweeper = loop.create_task(self._sweep())
+        self.port = int(self._listener.sockets[0].getsockname()[1])
         shown = f"[{host}]" if ":" in host else host
         self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else shown}:{self.port}"
         self.ctx.log.info("%s: live view at %s", self.ctx.name, self.url)
@@ -349,6 +451,8 @@ class Display(Node):
         runner = getattr(self, "_runner", None)
         if runner is None:
             return
+        self._listener.close()
+        self._sweeper.cancel()
         closing = [c.ws.close(code=1001, message=b"runtime stopping") for c in list(self.clients)]
         if closing:
             tasks = [asyncio.ensure_future(c) for c in closing]
@@ -501,6 +605,85 @@ class Display(Node):
         return b"".join(
             (struct.pack(">I", len(header)), header, enc.raw, b"" if same else enc.processed)
         )
+
+    # --- who may connect -----------------------------------------------------------------
+
+    def _protocol(self, server: Any) -> asyncio.Protocol:
+        """aiohttp's protocol for a new connection, or a refusal over ``max_clients``."""
+        if len(self.conns) >= self.params.max_clients:
+            self.refused += 1
+            return _Refuse()
+        return _Tracked(server(), self.conns)
+
+    async def _sweep(self) -> None:
+        """Close connections that sent no complete request in time (slow or idle clients)."""
+        while True:
+            await asyncio.sleep(1.0)
+            now = time.monotonic()
+            for conn in list(self.conns.values()):
+                if not conn.busy and now > conn.deadline:
+                    conn.transport.close()
+
+    @property
+    def _guard(self) -> Any:
+        """Host and Origin checks (or the token), so that no web page can read the cameras.
+
+        Without a token the view answers only requests addressed to a loopback name (or one
+        of ``allowed_hosts``): a page that rebinds its own DNS name to 127.0.0.1 sends its
+        own name in ``Host`` and is refused (421). A request that carries an ``Origin``
+        (every WebSocket upgrade from a browser, every cross-origin fetch) must come from the
+        view's own origin, else 403: another page cannot open ``/ws`` on the user's behalf.
+        """
+
+        @web.middleware
+        async def guard(request: web.Request, handler: Any) -> web.StreamResponse:
+            conn = self.conns.get(request.transport) if request.transport is not None else None
+            if conn is not None:
+                conn.busy += 1
+            try:
+                refused = self._refusal(request)
+                if refused is not None:
+                    return refused
+                response: web.StreamResponse = await handler(request)
+                if self.params.token and request.query.get("token") == self.params.token:
+                    response.set_cookie(COOKIE, self.params.token, httponly=True, samesite="Strict")
+                return response
+            finally:
+                if conn is not None:
+                    conn.busy -= 1
+                    conn.deadline = time.monotonic() + HEADER_TIMEOUT
+
+        return guard
+
+    def _refusal(self, request: web.Request) -> web.Response | None:
+        token = self.params.token
+        if token:
+            scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+            candidates = [
+                given.strip() if scheme.lower() == "bearer" else "",
+                request.cookies.get(COOKIE, ""),
+                request.query.get("token", ""),
+            ]
+            if not any(hmac.compare_digest(c.encode(), token.encode()) for c in candidates):
+                return web.Response(
+                    status=401,
+                    text="this live view needs its token: open it as /?token=TOKEN\n",
+                    headers={"WWW-Authenticate": 'Bearer realm="flowrt view"'},
+                )
+        else:
+            name = _hostname(request.host)
+            if not _is_loopback(name) and name not in self.params.allowed_hosts:
+                return web.Response(
+                    status=421,
+                    text=f"Host {request.host!r} is not this view's address "
+                    "(add it to the display's allowed_hosts, or give it a token)\n",
+                )
+        origin = request.headers.get("Origin")
+        if origin is not None and urlsplit(origin).netloc.lower() != request.host.lower():
+            return web.Response(
+                status=403, text=f"Origin {origin!r} is not this view's own origin\n"
+            )
+        return None
 
     # --- HTTP ---------------------------------------------------------------------------
 

@@ -579,3 +579,61 @@ def test_flowrt_run_display_options_and_a_taken_port(tmp_path: Path) -> None:
         assert "display:" not in out
         assert "src" in out
         assert "Traceback" not in err
+
+
+# --- no web page may read the cameras (issue 19, item 7) -------------------------------------
+
+
+async def test_foreign_host_and_origin_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    async with running(capsys) as (rt, url), aiohttp.ClientSession() as http:
+        host = url.removeprefix("http://")
+        for path in ("/frame/cam.jpg", "/stats.json", "/", "/stream/cam.mjpg"):
+            # DNS rebinding: the page's own name arrives in Host
+            async with http.get(url + path, headers={"Host": "evil.example"}) as r:
+                assert r.status == 421, path
+                assert "not this view's address" in await r.text()
+        # cross-site WebSocket hijacking: another page opens /ws with its own Origin
+        with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+            await http.ws_connect(url + "/ws", origin="http://evil.example")
+        assert refused.value.status == 403
+        async with http.get(url + "/stats.json", headers={"Origin": "http://evil.example"}) as r:
+            assert r.status == 403
+        # the view's own page (same origin) and tools without an Origin are served
+        async with http.ws_connect(url + "/ws", origin=f"http://{host}") as ws:
+            msg = await asyncio.wait_for(ws.receive(), 5)
+            assert msg.type is aiohttp.WSMsgType.BINARY
+        async with http.get(
+            url + "/stats.json", headers={"Host": f"localhost:{host.split(':')[1]}"}
+        ) as r:
+            assert r.status == 200
+        assert rt.stats().node("view").errors == 0
+
+
+async def test_a_token_serves_the_view_beyond_loopback_on_purpose(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with pytest.raises(flowrt.GraphError, match="needs a token"):
+        demo_graph(host="0.0.0.0")
+    token = "view-token-123"
+    async with (
+        running(capsys, token=token, max_clients=2) as (_, url),
+        aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as http,  # an IP host
+    ):
+        async with http.get(url + "/stats.json") as r:
+            assert r.status == 401
+        async with http.get(url + "/stats.json", headers={"Authorization": f"Bearer {token}"}) as r:
+            assert r.status == 200
+        # a browser opens /?token=...: the page's own requests then carry the cookie
+        async with http.get(url + f"/?token={token}") as r:
+            assert r.status == 200
+        async with http.get(url + "/stats.json", headers={"Host": "robot.lan:8750"}) as r:
+            assert r.status == 200  # with the token, any name of the machine will do
+        # over max_clients, a connection is closed at once
+        port = int(url.rsplit(":", 1)[1])
+        held = [await asyncio.open_connection("127.0.0.1", port) for _ in range(2)]
+        await asyncio.sleep(0.1)
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        assert await asyncio.wait_for(reader.read(), 2) == b""
+        writer.close()
+        for _, w in held:
+            w.close()

@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import os
 import signal
 from pathlib import Path
 from typing import Any
@@ -98,27 +99,48 @@ def _display_nodes(graph: Graph) -> list[str]:
 
 
 def _display_options(graph: Graph, args: argparse.Namespace) -> str | None:
-    """Apply ``--no-display`` / ``--display-host`` / ``--display-port`` to the graph's views."""
+    """Apply ``--no-display`` and ``--display-host/-port/-token`` to the graph's views."""
     names = _display_nodes(graph)
     if args.no_display:
         _remove_nodes(graph, set(names))
         return None
-    update = {
-        k: v for k, v in (("host", args.display_host), ("port", args.display_port)) if v is not None
-    }
+    token = args.display_token or os.environ.get("FLOWRT_DISPLAY_TOKEN")
+    options = (("host", args.display_host), ("port", args.display_port), ("token", token))
+    update = {k: v for k, v in options if v is not None}
     if not update:
         return None
     if not names:
-        return "--display-host/--display-port: the graph has no display node"
+        return "--display-host/--display-port/--display-token: the graph has no display node"
     if "port" in update and len(names) > 1 and update["port"] != 0:
         return f"--display-port: the graph has {len(names)} display nodes ({', '.join(names)})"
+    if args.display_host and not token and not _loopback(args.display_host):
+        import secrets
+
+        update["token"] = secrets.token_urlsafe(18)
+        print(f"live view token (open the view as /?token=...): {update['token']}", flush=True)
     for name in names:
         n = graph.nodes[name]
         try:
             n.params = n.params.model_validate({**n.params.model_dump(), **update})
         except ValueError as e:
-            return f"--display-host/--display-port: {e}"
+            return f"--display-host/--display-port/--display-token: {_one_line(e)}"
     return None
+
+
+def _loopback(host: str) -> bool:
+    from ..control import is_loopback
+
+    return is_loopback(host)
+
+
+def _one_line(e: Exception) -> str:
+    errors = getattr(e, "errors", None)
+    if callable(errors):
+        return "; ".join(
+            f"{'.'.join(str(x) for x in err.get('loc', ())) or 'params'}: {err.get('msg')}"
+            for err in errors()
+        )
+    return str(e).splitlines()[0]
 
 
 def _remove_nodes(graph: Graph, names: set[str]) -> None:
@@ -164,7 +186,6 @@ def _control_config(args: argparse.Namespace, err: Console) -> Any:
             err.print("flowrt run: --control-token-required needs --control", markup=False)
             raise SystemExit(EXIT_BAD_GRAPH)
         return None
-    import os
     import secrets
 
     from ..control import ControlConfig
@@ -245,6 +266,12 @@ def add_parsers(sub: Any) -> None:
         type=int,
         metavar="PORT",
         help="port of the graph's live view (overrides its display node's port; 0: any free)",
+    )
+    run.add_argument(
+        "--display-token",
+        metavar="TOKEN",
+        help="token the live view requires (default $FLOWRT_DISPLAY_TOKEN; generated and "
+        "printed when --display-host is not loopback)",
     )
     run.add_argument(
         "--no-display", action="store_true", help="run without the graph's display nodes"
