@@ -265,6 +265,7 @@ class ControlServer:
             target=_serve, args=(self._sock, theirs, settings), name="flowrt-control", daemon=True
         )
         proc.start()
+        _lower_priority(proc.pid)  # before its imports, which would compete with the loop
         theirs.close()
         self._sock.close()  # the server process holds its own copy
         self._sock = None
@@ -398,13 +399,18 @@ def _frame(header: dict[str, Any], body: bytes = b"") -> bytes:
 # --- the server's process -----------------------------------------------------------------
 
 
+def _lower_priority(pid: int) -> None:
+    """SCHED_OTHER at nice NICE (0: this process)."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))  # never the loop's FIFO
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, pid, NICE)
+
+
 def _serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]) -> None:
     """The server process: below the runtime's priority, ended by the channel's end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # never the loop's FIFO
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, 0, NICE)
+    _lower_priority(0)
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(_Gateway(settings).run(sock, channel))
 
