@@ -265,7 +265,8 @@ class ControlServer:
             target=_serve, args=(self._sock, theirs, settings), name="flowrt-control", daemon=True
         )
         proc.start()
-        _lower_priority(proc.pid or 0)  # before its imports, which would compete with the loop
+        if proc.pid is not None:  # before its imports, which would compete with the loop
+            _lower_priority(proc.pid)
         theirs.close()
         self._sock.close()  # the server process holds its own copy
         self._sock = None

@@ -234,7 +234,8 @@ class Display(Node):
         )
         try:
             self._proc.start()
-            display_server.lower_priority(self._proc.pid)
+            if self._proc.pid is not None:
+                display_server.lower_priority(self._proc.pid)
         finally:
             theirs.close()
             sock.close()  # the server's process holds its own copy
