@@ -1,4 +1,4 @@
-"""The live view: a web page served from the runtime's own event loop.
+"""The live view: a web page of the cameras, detections and statistics, for a browser.
 
 Connect any number of frame outputs and detection outputs to a ``display`` node under any
 input names; it serves, at ``http://127.0.0.1:8750`` by default (the address is logged and
@@ -29,13 +29,25 @@ Endpoints:
   (the schema of ``flowrt schema stats``) and what the display measures per source (fps,
   frames, encodes, detections), its clients and its total JPEG encodes.
 
-Why the graph never waits for a browser: ``process`` only keeps a link on the newest frame of
-each source and the newest detections of each input, and wakes the clients (none: nothing to
-do). JPEG encoding happens only when a client asks for a frame newer than its last one, in a
-thread (OpenCV releases the GIL), once per frame whatever the number of clients, at most at
-``max_fps``; a client that is slow, or does not read at all, holds at most one frame in
-flight per source. The server is on the event loop, so the display must be placed ``inline``
-(the default).
+Who may look: the view binds 127.0.0.1 and answers only requests addressed to a loopback name
+(``Host``; add names with ``allowed_hosts``) and, when they carry an ``Origin`` (every
+browser WebSocket), from its own origin: no other web page open in a browser on the robot's
+computer can read the cameras (DNS rebinding: 421; cross-site WebSocket: 403). To serve it to
+other machines on purpose, give ``host`` (e.g. 0.0.0.0) and a ``token`` (required off
+loopback): clients send ``Authorization: Bearer TOKEN`` or open ``/?token=TOKEN`` once (a
+cookie keeps it). ``max_clients`` connections at once; one that sends no complete request
+within 10 s is closed.
+
+Why neither the graph nor the cameras wait for a browser: the web server is a process of its
+own (:mod:`flowrt.nodes.display_server`, at nice 19), so HTTP work and JPEG encoding take
+neither the loop's time nor its GIL. ``process`` only keeps a link on the newest frame of each
+source and the newest detections of each input. While a client waits for a frame newer than
+the server has, the node lends the server the newest one (a descriptor of its shared-memory
+slot, not the pixels), at most one per source at a time and at most ``max_fps``; the server
+encodes it once and shares the JPEGs among all its clients. So the node's work per frame is
+one small message whatever the number of clients, and none without clients; a client that is
+slow, or does not read at all, holds at most one frame per source. The node owns the channel
+on the event loop, so it must be placed ``inline`` (the default).
 
 Detections are duck-typed: anything with ``found``, ``bbox`` (x, y, w, h) and ``centroid``
 (e.g. ``flowrt.nodes.colour.Detection``), or a list of such; ``object`` labels it and
