@@ -87,6 +87,7 @@ PAGE = Path(__file__).with_name("display.html")
 FPS_WINDOW = 2.0  # seconds of arrivals over which a source's rate is measured
 STATS_MAX_AGE = 0.2  # seconds: the runtime's statistics are serialised at most 5 times a second
 SOURCE_WAIT = 3.0  # seconds a request for a source that has sent no frame yet waits for one
+HEADER_TIMEOUT = 10.0  # seconds a connection has to send a complete request
 START_TIMEOUT = 30.0  # seconds for the view's server process to start (spawn + imports)
 
 
@@ -235,6 +236,7 @@ class Display(Node):
             "url": self.url,
             "page": page,
             "source_wait": SOURCE_WAIT,
+            "header_timeout": HEADER_TIMEOUT,
         }
         ours, theirs = socket.socketpair()
         ctx = multiprocessing.get_context("spawn")

@@ -143,6 +143,7 @@ class ViewServer:
         self.url: str = settings.get("url", "")
         self.page: bytes = settings.get("page", b"")
         self.source_wait = float(settings.get("source_wait", SOURCE_WAIT))
+        self.header_timeout = float(settings.get("header_timeout", HEADER_TIMEOUT))
         self.sources: dict[str, _Shown] = {}
         self.names: set[str] = set()  # inputs that have sent frames, as the node says
         self.clients: set[_Client] = set()
@@ -175,7 +176,7 @@ class ViewServer:
             access_log=None,
             handle_signals=False,
             shutdown_timeout=CLOSE_TIMEOUT,
-            keepalive_timeout=HEADER_TIMEOUT,
+            keepalive_timeout=self.header_timeout,
         )
         await runner.setup()
         server = runner.server
@@ -185,7 +186,7 @@ class ViewServer:
             if len(self.conns) >= self.max_clients:
                 self.refused += 1
                 return _Refuse()
-            return _Tracked(server(), self.conns)
+            return _Tracked(server(), self.conns, self.header_timeout)
 
         listener = await loop.create_server(factory, sock=sock)
         sweeper = loop.create_task(self._sweep())
@@ -302,7 +303,7 @@ class ViewServer:
     async def _sweep(self) -> None:
         """Close connections that sent no complete request in time (slow or idle clients)."""
         while True:
-            await asyncio.sleep(1.0)
+            await asyncio.sleep(min(1.0, self.header_timeout / 4))
             now = time.monotonic()
             for conn in list(self.conns.values()):
                 if not conn.busy and now > conn.deadline:
@@ -337,7 +338,7 @@ class ViewServer:
             finally:
                 if conn is not None:
                     conn.busy -= 1
-                    conn.deadline = time.monotonic() + HEADER_TIMEOUT
+                    conn.deadline = time.monotonic() + self.header_timeout
 
         return guard
 
@@ -528,14 +529,17 @@ def _render(header: dict[str, Any], frame: bytes) -> tuple[bytes, bytes]:
 class _Tracked(asyncio.Protocol):
     """aiohttp's protocol for one connection, counted while it is open."""
 
-    def __init__(self, inner: Any, conns: dict[asyncio.BaseTransport, _Conn]) -> None:
+    def __init__(
+        self, inner: Any, conns: dict[asyncio.BaseTransport, _Conn], timeout: float
+    ) -> None:
         self.inner = inner
         self.conns = conns
+        self.timeout = timeout
         self.transport: asyncio.BaseTransport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport
-        self.conns[transport] = _Conn(transport, time.monotonic() + HEADER_TIMEOUT)
+        self.conns[transport] = _Conn(transport, time.monotonic() + self.timeout)
         self.inner.connection_made(transport)
 
     def connection_lost(self, exc: Exception | None) -> None:

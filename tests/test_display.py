@@ -610,8 +610,9 @@ async def test_foreign_host_and_origin_are_refused(capsys: pytest.CaptureFixture
 
 
 async def test_a_token_serves_the_view_beyond_loopback_on_purpose(
-    capsys: pytest.CaptureFixture[str],
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(display_module, "HEADER_TIMEOUT", 0.5)
     with pytest.raises(flowrt.GraphError, match="needs a token"):
         demo_graph(host="0.0.0.0")
     token = "view-token-123"
@@ -633,7 +634,11 @@ async def test_a_token_serves_the_view_beyond_loopback_on_purpose(
         held = [await asyncio.open_connection("127.0.0.1", port) for _ in range(2)]
         await asyncio.sleep(0.1)
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        assert await asyncio.wait_for(reader.read(), 2) == b""
+        assert await asyncio.wait_for(reader.read(), 0.4) == b""  # before any timeout
         writer.close()
+        # a client that sends its request a byte at a time is closed when its time is up
+        slow_r, slow_w = held[0]
+        slow_w.write(b"GET /stats.json HTTP/1.1\r\nHo")
+        assert await asyncio.wait_for(slow_r.read(), 5) == b""
         for _, w in held:
             w.close()
