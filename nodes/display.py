@@ -221,10 +221,19 @@ class Display(Node):
         self._proc: Any = None
         self._task: asyncio.Task[None] | None = None
         host, port = self.params.host, self.params.port
+        self.url = ""
         try:
             sock = _listen(host, port)
         except OSError as e:
-            raise RuntimeError(f"display: cannot listen on {host}:{port}: {e.strerror or e}") from e
+            # An error state, not a failure: restarting cannot free the port (flowrt run checks
+            # it before anything starts; an embedding program sees the state and the reason).
+            reason = f"display: cannot listen on {host}:{port}: {e.strerror or e}"
+            try:
+                self.ctx.set_error(reason)
+            except RuntimeError:  # no runtime around the node (a bare test harness)
+                raise RuntimeError(reason) from e
+            self.ctx.log.error("%s: %s; the live view is off", self.ctx.name, reason)
+            return
         self.port = int(sock.getsockname()[1])
         shown = f"[{host}]" if ":" in host else host
         self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '::', '') else shown}:{self.port}"

@@ -644,3 +644,22 @@ async def test_a_token_serves_the_view_beyond_loopback_on_purpose(
         assert await asyncio.wait_for(slow_r.read(), 5) == b""
         for _, w in held:
             w.close()
+
+
+async def test_a_taken_port_is_an_error_state_not_a_restart_loop(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        async with flowrt.Runtime(demo_graph(port=port)) as rt:
+            await asyncio.sleep(0.5)
+            view = rt.stats().node("view")
+            assert view.state == "error"
+            assert f"cannot listen on 127.0.0.1:{port}" in (view.reason or "")
+            assert (view.errors, view.restarts) == (0, 0)
+            assert rt.stats().node("cam").activations >= 5  # the graph runs on without it
+    assert "display:" not in capsys.readouterr().out

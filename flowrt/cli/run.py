@@ -167,14 +167,13 @@ def _check_addresses(graph: Graph) -> str | None:
     for name in _display_nodes(graph):
         params = graph.nodes[name].params
         host, port = getattr(params, "host", "127.0.0.1"), getattr(params, "port", 0)
-        if not port:
-            continue
-        try:
+        try:  # port 0 too: the host must resolve to an address of this machine
             listen(host, port).close()
         except OSError as e:
             return (
                 f"display {name!r}: {e.strerror or e} "
-                "(choose another with --display-port PORT, or run with --no-display)"
+                "(choose another with --display-port PORT or --display-host HOST, "
+                "or run with --no-display)"
             )
     return None
 
