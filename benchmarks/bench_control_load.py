@@ -16,8 +16,11 @@ The clients run in a process of their own (at the shell's priority). After a war
 interval statistics are reset, the clients start, and after ``--seconds`` the table gives,
 per critical node (the cameras, Avoid_*, Ball_Om), the inter-activation interval mean and
 std, skipped activations and deadline misses, the std's ratio to the baseline run, and how
-many requests the clients got answered (and refused or failed). Target (issue 19): 200
-clients change the critical nodes' interval std by less than 10 %.
+many requests the clients got answered (and refused or failed), with the CPU time the
+runtime's own process (the event loop, and its threads) used per second of the run: the work
+the clients cost the scheduler's process, which the machine's other load does not change
+much. Target (issue 19): 200 clients change the critical nodes' interval std by less than
+10 %.
 """
 
 from __future__ import annotations
@@ -97,6 +100,8 @@ async def scenario(
             r.interval = Running()
         first = rt.stats()
         before = {c: (first.node(c).skipped, first.node(c).deadline_misses) for c in CRITICAL}
+        cpu0 = time.process_time()  # the runtime's process: the loop and its threads
+        wall0 = time.monotonic()
         proc = None
         if name != "baseline":
             base = server.url if name == "control" else f"http://127.0.0.1:{view_port}"
@@ -105,6 +110,7 @@ async def scenario(
             proc = ctx.Process(target=clients, args=(base, PATHS[name], n, seconds, theirs))
             proc.start()
         await asyncio.sleep(seconds)
+        cpu = (time.process_time() - cpu0) / (time.monotonic() - wall0) * 1000
         stats = rt.stats()
         counts: dict[str, int] = {}
         if proc is not None:
@@ -124,6 +130,7 @@ async def scenario(
             "rows": rows,
             "counts": counts,
             "lag_p99": stats.loop.lag.p99,
+            "cpu": cpu,
             "answered": server.answered,
         }
 
@@ -185,9 +192,10 @@ def main() -> int:
             )
             print(f"| {name} | **all critical** | | | **{ratio:.2f}** | | | |")
     print(
-        "\n| scenario | loop lag p99 ms | client requests (by outcome) | answered by the runtime |"
+        "\n| scenario | runtime process CPU ms/s | loop lag p99 ms "
+        "| client requests (by outcome) | answered by the runtime |"
     )
-    print("|---|---|---|---|")
+    print("|---|---|---|---|---|")
     for name, runs in results.items():
         counts: dict[str, int] = {}
         for r in runs:
@@ -195,7 +203,9 @@ def main() -> int:
                 counts[k] = counts.get(k, 0) + v
         outcome = ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "-"
         lag = max(r["lag_p99"] for r in runs)
-        print(f"| {name} | {lag:.3f} | {outcome} | {sum(r['answered'] for r in runs)} |")
+        cpu = sum(r["cpu"] for r in runs) / len(runs)
+        answered = sum(r["answered"] for r in runs)
+        print(f"| {name} | {cpu:.0f} | {lag:.3f} | {outcome} | {answered} |")
     return 0
 
 
