@@ -17,6 +17,7 @@ from .events import ModeChanged as ModeChanged
 from .events import NodeFailed as NodeFailed
 from .events import NodeGaveUp as NodeGaveUp
 from .events import NodeRestarted as NodeRestarted
+from .events import NodeSwapped as NodeSwapped
 from .events import TimingChanged as TimingChanged
 from .frames import Frame as Frame
 from .graph import Graph as Graph
@@ -30,11 +31,13 @@ from .rtdb import Record as Record
 from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
 from .runtime import Subscription as Subscription
+from .runtime import SwapError as SwapError
 from .spec import FrameTrigger as FrameTrigger
 from .spec import GraphSpec as GraphSpec
 from .spec import InputTrigger as InputTrigger
 from .spec import LoopTrigger as LoopTrigger
 from .spec import TimerTrigger as TimerTrigger
+from .spec import parse_duration_ms as parse_duration_ms
 from .stats import EdgeStats as EdgeStats
 from .stats import NodeStats as NodeStats
 from .stats import RuntimeStats as RuntimeStats
@@ -69,15 +72,18 @@ __all__ = [
     "NodeGaveUp",
     "NodeRestarted",
     "NodeStats",
+    "NodeSwapped",
     "Output",
     "QosStatus",
     "Record",
     "Runtime",
     "RuntimeStats",
     "Subscription",
+    "SwapError",
     "SystemClock",
     "TimerTrigger",
     "TimingChanged",
     "VirtualClock",
+    "parse_duration_ms",
     "run",
 ]

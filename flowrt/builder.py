@@ -22,6 +22,7 @@ class GraphBuilder:
         self._nodes: dict[str, dict[str, Any]] = {}
         self._kinds: dict[str, type[Node]] = {}
         self._modes: dict[str, ModeSpec] = {}
+        self._remote: dict[str, Any] = {}
 
     def add(
         self,
@@ -55,6 +56,21 @@ class GraphBuilder:
         self._modes[name] = ModeSpec.model_validate({"nodes": overrides})
         return self
 
+    def zenoh(self, **settings: Any) -> GraphBuilder:
+        """The Zenoh session of a graph that spans machines (the ``zenoh:`` section)."""
+        self._remote["zenoh"] = settings
+        return self
+
+    def export(self, key: str, source: str | dict[str, Any]) -> GraphBuilder:
+        """Publish ``node.port`` under the Zenoh key ``key`` (an ``export:`` entry)."""
+        self._remote.setdefault("export", {})[key] = source
+        return self
+
+    def import_(self, name: str, key: str | dict[str, Any]) -> GraphBuilder:
+        """A remote stream as node ``name`` with output ``output`` (an ``import:`` entry)."""
+        self._remote.setdefault("import", {})[name] = key
+        return self
+
     def spec(self) -> GraphSpec:
         return GraphSpec.model_validate(
             {
@@ -62,6 +78,7 @@ class GraphBuilder:
                 "description": self.description,
                 "nodes": self._nodes,
                 "modes": self._modes,
+                **self._remote,
             }
         )
 
@@ -70,7 +87,12 @@ class GraphBuilder:
         from .diagnostics import GraphError
         from .loading import Locations, check_data
 
-        data = {"name": self.name, "description": self.description, "nodes": self._nodes}
+        data = {
+            "name": self.name,
+            "description": self.description,
+            "nodes": self._nodes,
+            **self._remote,
+        }
         if self._modes:
             data["modes"] = {k: v.model_dump(exclude_none=True) for k, v in self._modes.items()}
         loaded = check_data(data, Locations("<python>"))

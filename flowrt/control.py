@@ -146,15 +146,18 @@ class TimingRequest(TimingOverride):
 
     The graph file's own model (:class:`flowrt.spec.TimingOverride`), so a request obeys the
     same rules as a mode in a graph file; the ranges are checked again where the change is
-    applied (:func:`flowrt.qos.check_change`).
+    applied (:func:`flowrt.qos.check_change`). ``force`` passes admission control (never the
+    ranges).
     """
 
     node: str = Field(max_length=256)
+    force: bool = False  # past admission control
 
 
 class ModeRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     mode: str = Field(max_length=256)
+    force: bool = False  # past admission control
 
 
 def jsonable(value: Any) -> Any:
@@ -355,7 +358,7 @@ class ControlServer:
             return 200, _dumps({"modes": list(rt.graph.spec.modes), "current": rt.mode})
         if op == "mode":
             mode = ModeRequest.model_validate(args)
-            rt.set_mode(mode.mode, origin="control")
+            rt.set_mode(mode.mode, origin="control", force=mode.force)
             return 200, _dumps({"mode": rt.mode})
         if op == "timing":
             req = TimingRequest.model_validate(args)

@@ -1,7 +1,10 @@
 """Edge buffers: one per connected input, so a slow reader never slows a fast one.
 
 - ``LatestBuffer``: the cyclic asynchronous buffer. The writer never waits and the reader
-  always gets the newest value; a value replaced before anyone read it counts as dropped.
+  always gets the newest value. A value replaced before anyone read it is ``unread`` when the
+  reader samples (a period-4 reader runs on one frame in four by design) and ``dropped`` when
+  the reader wanted it: an input-triggered reader, or a sampling reader whose release for that
+  value was skipped (overrun, restart).
 - ``QueueBuffer``: bounded FIFO that drops the oldest when full (counted).
 - ``LosslessBuffer``: bounded FIFO whose producer waits when it is full (for recorders).
 
@@ -51,7 +54,8 @@ class Buffer:
         self.size = size
         self.published = 0
         self.delivered = 0
-        self.dropped = 0
+        self.dropped = 0  # values lost: the reader wanted them (see the module docstring)
+        self.unread = 0  # values a sampling reader never needed: by design, not a loss
         self.sampled = False
         self.age = Running()
         self.now = clock or time.monotonic
@@ -73,6 +77,13 @@ class Buffer:
     def clear(self) -> None:
         raise NotImplementedError
 
+    def reader_skipped(self) -> None:
+        """The reader was released for the value now held but could not run (overrun, down).
+
+        A queue keeps the value for the next run; a latest buffer counts it as dropped, not
+        unread, if it is replaced before being read.
+        """
+
     def _delivered(self, seq: int, t: float) -> None:
         assert seq >= self._last_seq, "a reader saw an older message after a newer one"
         self._last_seq = seq
@@ -87,6 +98,7 @@ class Buffer:
             published=self.published,
             delivered=self.delivered,
             dropped=self.dropped,
+            unread=self.unread,
             sampled=self.sampled,
             age=self.age.summary(),
         )
@@ -103,14 +115,19 @@ class LatestBuffer(Buffer):
         self._t = 0.0
         self._seq = -1
         self._read = True
+        self._due = False  # the reader was released for the value held and skipped it
 
     def put(self, value: Any, t: float) -> bool:
         self.published += 1
         old = self._value
         if old is not EMPTY:
             if not self._read:
-                self.dropped += 1
+                if self.sampled and not self._due:
+                    self.unread += 1
+                else:
+                    self.dropped += 1
             _drop(old)
+        self._due = False
         hold(value)
         self._value, self._t, self._seq, self._read = value, t, self.published, False
         if self.on_put is not None:
@@ -125,6 +142,9 @@ class LatestBuffer(Buffer):
             self._delivered(self._seq, self._t)
         hold(self._value)
         return self._value
+
+    def reader_skipped(self) -> None:
+        self._due = not self._read and self._value is not EMPTY
 
     def take_new(self) -> Any:
         """Like take, but EMPTY when the newest value was already delivered."""

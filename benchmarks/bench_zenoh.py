@@ -1,0 +1,352 @@
+"""Remote edges over Zenoh on loopback: latency, sustained rate, memory, and the timing of a
+critical node while frames are exported.
+
+    python -m benchmarks.bench_zenoh [--duration 10] [--out benchmarks/results/zenoh.json]
+
+Rows, each measured in the same run:
+
+- latency from publication (the source's clock) to the activation of the remote sink, for a
+  small message (8 B of payload in a JSON mapping), 640x480x3 and 1920x1080x3 frames at 20 Hz:
+  flowrt local edge (one process), flowrt over Zenoh (two processes), and Zenoh's own Python
+  publisher/subscriber sending the same bytes (two processes, no flowrt);
+- sustained 640x480x3 at 30 fps for ``--duration`` seconds: published, received, lost;
+- memory (RSS, PSS) of the exporting and importing processes;
+- a critical 20 Hz timer node's inter-activation std on the exporting side, with and without
+  the 640x480 @ 30 fps export.
+
+Both processes run on this machine, so their clocks agree: latency is one-way.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel
+
+import flowrt
+from flowrt import Frame, Input, Node, Output, TimerTrigger
+
+SIZES = {"8B": None, "640x480": (480, 640, 3), "1920x1080": (1080, 1920, 3)}
+
+
+class PayloadSource(Node):
+    class Params(BaseModel):
+        payload: str = "8B"
+        rate: float = 20.0
+
+    out = Output(object)
+    frame = Output(Frame)
+
+    @classmethod
+    def default_trigger(cls, params: Any) -> TimerTrigger:
+        return TimerTrigger(timer=1000.0 / params.rate)
+
+    def setup(self) -> None:
+        self.n = 0
+
+    def process(self) -> Any:
+        self.n += 1
+        shape = SIZES[self.params.payload]
+        if shape is None:
+            return {"out": {"t": time.time(), "p": "12345678", "n": self.n}}
+        f = self.ctx.new_frame(shape)
+        f.data[0, 0, 0] = self.n % 256
+        f.timestamp = self.ctx.now()
+        return {"frame": f}
+
+
+class LatencySink(Node):
+    class Params(BaseModel):
+        out: str = ""
+
+    value = Input(object)
+
+    def setup(self) -> None:
+        self.lat: list[float] = []
+
+    def process(self, value: Any) -> None:
+        if isinstance(value, Frame):
+            self.lat.append(self.ctx.now() - value.timestamp)
+        elif isinstance(value, dict):
+            self.lat.append(time.time() - value["t"])
+
+    def teardown(self) -> None:
+        if self.params.out:
+            Path(self.params.out).write_text(json.dumps(self.lat))
+
+
+class Critical(Node):
+    tick = Output(int)
+
+    def process(self) -> int:
+        return 1
+
+
+def _pss() -> dict[str, float]:
+    import psutil
+
+    m = psutil.Process().memory_full_info()
+    return {"rss_mb": m.rss / 2**20, "pss_mb": getattr(m, "pss", m.rss) / 2**20}
+
+
+def _port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def exporter_graph(payload: str, rate: float, port: int | None, critical: bool) -> Any:
+    g = flowrt.GraphBuilder("exporter")
+    g.add("src", PayloadSource, params={"payload": payload, "rate": rate})
+    if critical:
+        g.add("crit", Critical, trigger={"timer": "50ms"}, priority=90)
+    if port is not None:
+        g.zenoh(listen=[f"tcp/127.0.0.1:{port}"])
+        g.export("bench/x", "src.out" if SIZES[payload] is None else "src.frame")
+    return g.build()
+
+
+def importer_graph(payload: str, port: int, out: str, rate: float) -> Any:
+    g = flowrt.GraphBuilder("importer")
+    g.zenoh(listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    frames = SIZES[payload] is not None
+    g.import_("rx", {"key": "bench/x", "frames": frames, "period": 1000 / rate})
+    g.add("sink", LatencySink, params={"out": out}, inputs={"value": {"from": "rx.output"}})
+    return g.build()
+
+
+async def _run(spec: Any, seconds: float, result: Path | None = None) -> dict[str, Any]:
+    async with flowrt.Runtime(spec) as rt:
+        await rt.run(seconds)
+        stats = rt.stats()
+        mem = _pss()
+    out = {"stats": json.loads(stats.model_dump_json()), "mem": mem}
+    if result is not None:
+        result.write_text(json.dumps(out))
+    return out
+
+
+def role_main(args: argparse.Namespace) -> None:
+    if args.role == "exporter":
+        spec = exporter_graph(args.payload, args.rate, args.port, args.critical)
+        flowrt.run(_run(spec, args.seconds, Path(args.result)))
+    elif args.role == "importer":
+        spec = importer_graph(args.payload, args.port, args.lat, args.rate)
+        flowrt.run(_run(spec, args.seconds, Path(args.result)))
+    elif args.role == "raw_pub":
+        raw_pub(args)
+    elif args.role == "raw_sub":
+        raw_sub(args)
+
+
+def _zenoh(listen: list[str], connect: list[str]) -> Any:
+    import zenoh
+
+    c = zenoh.Config()
+    c.insert_json5("mode", '"peer"')
+    c.insert_json5("listen/endpoints", json.dumps(listen))
+    c.insert_json5("connect/endpoints", json.dumps(connect))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    c.insert_json5("scouting/gossip/enabled", "false")
+    return zenoh.open(c)
+
+
+def raw_pub(args: argparse.Namespace) -> None:
+    s = _zenoh([f"tcp/127.0.0.1:{args.port}"], [])
+    pub = s.declare_publisher("bench/raw")
+    shape = SIZES[args.payload]
+    data = b"12345678" if shape is None else np.zeros(shape, np.uint8).tobytes()
+    end = time.monotonic() + args.seconds
+    period = 1 / args.rate
+    nxt = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        time.sleep(max(0.0, nxt - time.monotonic()))
+        pub.put(data, attachment=repr(time.time()).encode())
+        nxt += period
+    s.close()
+
+
+def raw_sub(args: argparse.Namespace) -> None:
+    lat: list[float] = []
+    s = _zenoh([], [f"tcp/127.0.0.1:{args.port}"])
+
+    def on(sample: Any) -> None:
+        sample.payload.to_bytes()
+        lat.append(time.time() - float(sample.attachment.to_bytes()))
+
+    sub = s.declare_subscriber("bench/raw", on)
+    time.sleep(args.seconds)
+    sub.undeclare()
+    s.close()
+    Path(args.lat).write_text(json.dumps(lat))
+
+
+def _spawn(role: str, **kw: Any) -> subprocess.Popen[bytes]:
+    cmd = [sys.executable, "-m", "benchmarks.bench_zenoh", "--role", role]
+    for k, v in kw.items():
+        if v is True:
+            cmd.append(f"--{k}")
+        elif v is not None and v is not False:
+            cmd += [f"--{k}", str(v)]
+    return subprocess.Popen(cmd)
+
+
+def _summ(lat: list[float]) -> dict[str, float]:
+    if not lat:
+        return {"n": 0, "p50_ms": float("nan"), "p99_ms": float("nan")}
+    a = np.array(lat[5:] or lat) * 1000
+    return {
+        "n": len(lat),
+        "p50_ms": float(np.percentile(a, 50)),
+        "p99_ms": float(np.percentile(a, 99)),
+    }
+
+
+def latency_row(payload: str, seconds: float, tmp: Path) -> dict[str, Any]:
+    row: dict[str, Any] = {"payload": payload}
+    # local: one process, inline edge
+    g = flowrt.GraphBuilder("local")
+    g.add("src", PayloadSource, params={"payload": payload, "rate": 20.0})
+    port = "out" if SIZES[payload] is None else "frame"
+    g.add(
+        "sink",
+        LatencySink,
+        params={"out": str(tmp / "local.json")},
+        inputs={"value": {"from": f"src.{port}"}},
+    )
+    flowrt.run(_run(g.build(), seconds))
+    row["local"] = _summ(json.loads((tmp / "local.json").read_text()))
+    # flowrt over Zenoh
+    p = _port()
+    exp = _spawn(
+        "exporter", payload=payload, rate=20, port=p, seconds=seconds + 3, result=tmp / "exp.json"
+    )
+    time.sleep(1.0)
+    imp = _spawn(
+        "importer",
+        payload=payload,
+        rate=20,
+        port=p,
+        seconds=seconds,
+        result=tmp / "imp.json",
+        lat=tmp / "remote.json",
+    )
+    imp.wait()
+    exp.wait()
+    row["flowrt_zenoh"] = _summ(json.loads((tmp / "remote.json").read_text()))
+    # raw Zenoh
+    p = _port()
+    pub = _spawn("raw_pub", payload=payload, rate=20, port=p, seconds=seconds + 1)
+    time.sleep(0.5)
+    sub = _spawn("raw_sub", payload=payload, rate=20, port=p, seconds=seconds, lat=tmp / "raw.json")
+    sub.wait()
+    pub.wait()
+    row["raw_zenoh"] = _summ(json.loads((tmp / "raw.json").read_text()))
+    return row
+
+
+def sustained(seconds: float, tmp: Path) -> dict[str, Any]:
+    p = _port()
+    exp = _spawn(
+        "exporter",
+        payload="640x480",
+        rate=30,
+        port=p,
+        seconds=seconds + 4,
+        result=tmp / "exp.json",
+        critical=True,
+    )
+    time.sleep(1.5)
+    imp = _spawn(
+        "importer",
+        payload="640x480",
+        rate=30,
+        port=p,
+        seconds=seconds,
+        result=tmp / "imp.json",
+        lat=tmp / "s.json",
+    )
+    imp.wait()
+    exp.wait()
+    e = json.loads((tmp / "exp.json").read_text())
+    i = json.loads((tmp / "imp.json").read_text())
+    link = next(x for x in i["stats"]["edges"] if x["policy"] == "remote")
+    export = next(x for x in e["stats"]["edges"] if "zenoh:" in x["name"])
+    crit = next(n for n in e["stats"]["nodes"] if n["name"] == "crit")
+    # baseline: the same exporter graph without the export
+    base = flowrt.run(_run(exporter_graph("640x480", 30, None, True), seconds))
+    crit0 = next(n for n in base["stats"]["nodes"] if n["name"] == "crit")
+    return {
+        "seconds": seconds,
+        "export_edge": {k: export[k] for k in ("published", "delivered", "dropped")},
+        "remote_link": {k: link[k] for k in ("published", "delivered", "dropped")},
+        "latency": _summ(json.loads((tmp / "s.json").read_text())),
+        "mem_exporter": e["mem"],
+        "mem_importer": i["mem"],
+        "crit_std_ms_with_export": crit["interval"]["std"],
+        "crit_std_ms_without": crit0["interval"]["std"],
+    }
+
+
+def report(res: dict[str, Any]) -> str:
+    lines = [
+        "| payload | local p50/p99 ms | flowrt over Zenoh p50/p99 ms | raw Zenoh p50/p99 ms |",
+        "|---|---|---|---|",
+    ]
+    for r in res["latency"]:
+        cells = [
+            f"{r[k]['p50_ms']:.2f} / {r[k]['p99_ms']:.2f}"
+            for k in ("local", "flowrt_zenoh", "raw_zenoh")
+        ]
+        lines.append(f"| {r['payload']} | " + " | ".join(cells) + " |")
+    s = res["sustained"]
+    lines.append("")
+    lines.append(
+        f"sustained 640x480x3 @ 30 fps, {s['seconds']:g} s: exported {s['export_edge']}, "
+        f"remote link {s['remote_link']}, latency p50 {s['latency']['p50_ms']:.2f} ms "
+        f"p99 {s['latency']['p99_ms']:.2f} ms; memory exporter {s['mem_exporter']}, "
+        f"importer {s['mem_importer']}; critical 20 Hz node interval std "
+        f"{s['crit_std_ms_with_export']:.3f} ms with the export vs "
+        f"{s['crit_std_ms_without']:.3f} ms without"
+    )
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--duration", type=float, default=10.0)
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--role")
+    ap.add_argument("--payload", default="8B")
+    ap.add_argument("--rate", type=float, default=20.0)
+    ap.add_argument("--port", type=int)
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--result")
+    ap.add_argument("--lat", default="")
+    ap.add_argument("--critical", action="store_true")
+    args = ap.parse_args()
+    if args.role:
+        role_main(args)
+        return
+    tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"bench_zenoh_{os.getpid()}"
+    tmp.mkdir(exist_ok=True)
+    res = {
+        "latency": [latency_row(p, args.duration, tmp) for p in SIZES],
+        "sustained": sustained(args.duration * 3, tmp),
+    }
+    print(report(res))
+    if args.out:
+        args.out.write_text(json.dumps(res, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,639 @@
+"""Remote edges: graph outputs exported, and remote streams imported, over Zenoh.
+
+flowrt does not invent a network protocol: a graph's ``export:`` entries become Zenoh
+publishers and its ``import:`` entries Zenoh subscribers, on a session configured by the
+graph's ``zenoh:`` section (Zenoh's own discovery, routing, reliability, TLS and access
+control). As the agent-based control source keeps its network links as sender/receiver agents
+outside the real-time router, no network I/O runs on the event loop:
+
+- Export: a buffer on the output (the edge's own policy: ``latest`` for frames, ``queue``
+  for messages, counted like any edge) hands one value at a time to a sender thread that
+  encodes and publishes it; when that send is done the next value is taken. A slow network
+  therefore drops at the edge, where it is counted, and never slows the producer.
+- Import: Zenoh's callback thread decodes (JPEG too) and parks the value in a hand-over slot
+  (frames: the newest only) or a bounded queue; one ``call_soon_threadsafe`` wakes the loop,
+  which copies frames into its own frame pool (local trackers read them zero-copy) and
+  publishes on the import node's ``output``.
+
+Every message carries its stream id, sequence number, send time and capture time: the
+importing side counts sequence gaps as drops of the remote link (an edge named
+``zenoh:KEY->NAME`` in the statistics, beside the local ones) and reports the age at arrival.
+Clocks of two machines differ, so each exporter answers a clock query
+(``_flowrt/clock/<session id>``); the importer estimates the offset from the round trip
+(NTP's method, error <= rtt/2) and reports the age on the exporter's corrected clock, so it
+holds without synchronised clocks. An import that hears nothing for ``stale_after`` periods is
+stale: its node is in an error state (red, with the reason), a health alert is raised, its
+RTDB record (written with that validity) turns stale; it resumes by itself when the exporter
+comes back (a restarted exporter is a new stream: its sequence starts again, not a gap).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import queue
+import threading
+import time
+import types
+import uuid
+from collections import deque
+from dataclasses import dataclass, field, fields, is_dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from .edges import EMPTY, Buffer, make_buffer
+from .events import Event
+from .frames import Frame
+from .node import Node, Output
+from .spec import EdgePolicy, GraphSpec, TimerTrigger, ZenohSpec
+from .stats import EdgeStats, Running
+
+log = logging.getLogger("flowrt.remote")
+
+WIRE_VERSION = 1
+CLOCK_PREFIX = "_flowrt/clock"
+
+
+class RemoteError(Exception):
+    """A remote-edge problem found at start (bad endpoint, a port in use, no zenoh)."""
+
+
+class BridgeHost(Protocol):
+    """What the bridge needs from the runtime (kept narrow: the runtime owns it)."""
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop: ...
+
+    def now_mono(self) -> float: ...
+
+    def runner_output(self, node: str, port: str) -> list[Buffer]: ...
+
+    def add_buffer(self, buf: Buffer) -> None: ...
+
+    def publish(self, node: str, port: str, value: Any) -> None: ...
+
+    def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pf: str) -> Frame: ...
+
+    def import_node(self, name: str) -> Any: ...
+
+    def is_frame_port(self, node: str, port: str) -> bool: ...
+
+    def emit(self, event: Event) -> None: ...
+
+    def record(self, name: str, value: Any, validity_ms: float | None) -> None: ...
+
+
+# --- encoding ----------------------------------------------------------------------------
+
+
+def to_wire(value: Any) -> Any:
+    """JSON-ready data: dataclasses and pydantic models become marked mappings, numpy plain.
+
+    Never pickle: a graph's network peers must not be able to run code in it.
+    """
+    if value is None or isinstance(value, bool | int | str):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, BaseModel):
+        return {"__type__": type(value).__name__, **to_wire(value.model_dump())}
+    if is_dataclass(value) and not isinstance(value, type):
+        out = {"__type__": type(value).__name__}
+        out.update({f.name: to_wire(getattr(value, f.name)) for f in fields(value)})
+        return out
+    if isinstance(value, dict):
+        return {str(k): to_wire(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [to_wire(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return to_wire(value.tolist())
+    item = getattr(value, "item", None)  # numpy scalars
+    if callable(item) and getattr(value, "shape", None) == ():
+        return to_wire(item())
+    return repr(value)
+
+
+def from_wire(data: Any) -> Any:
+    """Marked mappings come back as attribute objects (``det.found``), the rest as JSON gives."""
+    if isinstance(data, dict):
+        if "__type__" in data:
+            ns = types.SimpleNamespace(
+                **{k: from_wire(v) for k, v in data.items() if k != "__type__"}
+            )
+            ns.__dict__["_type"] = data["__type__"]
+            return ns
+        return {k: from_wire(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [from_wire(v) for v in data]
+    return data
+
+
+@dataclass
+class Header:
+    """What travels beside every payload (as the Zenoh attachment)."""
+
+    stream: str  # new at every start of the exporter: a restart is not a gap
+    zid: str  # the exporter's Zenoh session: whom to ask for its clock
+    seq: int
+    sent: float  # exporter's wall clock, seconds
+    captured: float  # exporter's wall clock at capture (frames) or publication
+    kind: str  # "json" or "frame"
+    frame: dict[str, Any] = field(default_factory=dict)
+
+    def encode(self) -> bytes:
+        d = {
+            "v": WIRE_VERSION,
+            "s": self.stream,
+            "z": self.zid,
+            "n": self.seq,
+            "t": self.sent,
+            "c": self.captured,
+            "k": self.kind,
+        }
+        if self.frame:
+            d["f"] = self.frame
+        return json.dumps(d, separators=(",", ":")).encode()
+
+    @classmethod
+    def decode(cls, raw: bytes) -> Header:
+        d = json.loads(raw)
+        if d.get("v") != WIRE_VERSION:
+            raise ValueError(f"wire version {d.get('v')!r}, expected {WIRE_VERSION}")
+        return cls(
+            str(d["s"]),
+            str(d["z"]),
+            int(d["n"]),
+            float(d["t"]),
+            float(d["c"]),
+            str(d["k"]),
+            dict(d.get("f") or {}),
+        )
+
+
+def encode_frame(frame: Frame, encoding: str, quality: int) -> tuple[dict[str, Any], bytes]:
+    """Header fields and payload of a frame: raw pixels, or JPEG/PNG when the export asks."""
+    meta = {
+        "shape": list(frame.shape),
+        "dtype": str(frame.dtype),
+        "pf": frame.pixel_format,
+        "seq": frame.seq,
+        "enc": encoding,
+    }
+    if encoding == "raw":
+        return meta, frame.data.tobytes()
+    import cv2
+
+    img = frame.data
+    if frame.pixel_format == "RGB":
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+        meta["pf"] = "BGR"
+    params = [cv2.IMWRITE_JPEG_QUALITY, quality] if encoding == "jpeg" else []
+    ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
+    if not ok:
+        raise ValueError(f"cannot encode a {frame.shape} frame as {encoding}")
+    return meta, buf.tobytes()
+
+
+def decode_frame(meta: dict[str, Any], payload: bytes) -> np.ndarray:
+    shape = tuple(int(x) for x in meta["shape"])
+    if meta.get("enc", "raw") == "raw":
+        arr = np.frombuffer(payload, dtype=np.dtype(meta["dtype"]))
+        if arr.size != math.prod(shape):
+            raise ValueError(f"frame payload of {arr.size} values for shape {shape}")
+        return arr.reshape(shape)
+    import cv2
+
+    flag = cv2.IMREAD_UNCHANGED
+    img = cv2.imdecode(np.frombuffer(payload, dtype=np.uint8), flag)
+    if img is None:
+        raise ValueError("undecodable compressed frame")
+    return img
+
+
+# --- the import node ---------------------------------------------------------------------
+
+
+class RemoteSourceParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    key: str
+    period_ms: float | None = Field(default=None, gt=0)
+    stale_after: float = Field(default=5.0, gt=0)
+    size: int = Field(default=16, ge=1)
+
+
+class RemoteSource(Node):
+    """What an ``import:`` entry becomes: a node whose ``output`` is the remote stream.
+
+    Its activations are liveness checks (every 50 ms); values are published when they
+    arrive, not on the checks.
+    """
+
+    Params = RemoteSourceParams
+    output: Output[Any] = Output(object, doc="the remote stream's values (frames: local pool)")
+
+    @classmethod
+    def default_trigger(cls, params: Any) -> TimerTrigger:
+        return TimerTrigger(timer=50.0)
+
+    def setup(self) -> None:
+        self.link: _Import | None = None  # bound by the bridge once the runtime runs
+
+    def process(self) -> None:
+        if self.link is not None:
+            self.link.check_liveness(self.ctx)
+
+
+class RemoteFrameSource(RemoteSource):
+    """An import with ``frames: true``: its ``output`` is a frame source (every frame a tick)."""
+
+    output: Output[Any] = Output(Frame, doc="the remote frames, in the local frame pool")
+
+
+# --- statistics of a remote link -----------------------------------------------------------
+
+
+class RemoteLinkStats(Buffer):
+    """The network hop of an import, shown as an edge: published = what the exporter sent
+    (by sequence number), delivered = received, dropped = sequence gaps and hand-over
+    overruns; age = one-way, on the exporter's clock corrected by the measured offset."""
+
+    policy = "remote"
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name, 1)
+
+    def stats(self) -> EdgeStats:
+        return super().stats()
+
+    def pending(self) -> int:
+        return 0
+
+    def clear(self) -> None:
+        pass
+
+
+# --- the bridge ----------------------------------------------------------------------------
+
+
+@dataclass
+class _Export:
+    key: str
+    node: str
+    port: str
+    encoding: str
+    quality: int
+    buf: Buffer
+    publisher: Any = None
+    seq: int = 0
+    busy: bool = False
+    errors: int = 0
+
+
+class _Import:
+    """One imported stream: hand-over between Zenoh's thread and the loop, liveness."""
+
+    def __init__(
+        self,
+        bridge: ZenohBridge,
+        name: str,
+        key: str,
+        period_ms: float | None,
+        stale_after: float,
+        size: int,
+    ) -> None:
+        self.bridge = bridge
+        self.name = name
+        self.key = key
+        self.period = None if period_ms is None else period_ms / 1000
+        self.stale_after = stale_after
+        self.lock = threading.Lock()
+        self.pending: deque[tuple[Header, Any]] = deque()
+        self.size = size
+        self.scheduled = False
+        self.stream: str | None = None
+        self.last_seq = -1
+        self.link = RemoteLinkStats(f"zenoh:{key}->{name}")
+        self.arrivals = Running()
+        self.last_arrival: float | None = None  # loop clock
+        self.started = bridge.host.now_mono()
+        self.stale = False
+        self.decode_errors = 0
+        self.ctx: Any = None
+
+    # Zenoh's thread ---------------------------------------------------------------------
+
+    def on_sample(self, sample: Any) -> None:
+        try:
+            raw_att = sample.attachment
+            if raw_att is None:
+                raise ValueError("no flowrt header (not published by flowrt?)")
+            header = Header.decode(raw_att.to_bytes())
+            payload = sample.payload.to_bytes()
+            if header.kind == "frame":
+                value: Any = decode_frame(header.frame, payload)
+            else:
+                value = from_wire(json.loads(payload))
+        except Exception as e:
+            with self.lock:
+                self.decode_errors += 1
+                self.link.dropped += 1
+            log.warning("import %s: undecodable message on %s: %s", self.name, self.key, e)
+            return
+        self.bridge.clock_probe(header.zid)
+        with self.lock:
+            if header.stream != self.stream:
+                self.stream, self.last_seq = header.stream, header.seq - 1
+            gap = header.seq - self.last_seq - 1
+            if gap > 0:
+                self.link.published += gap
+                self.link.dropped += gap
+            self.last_seq = max(self.last_seq, header.seq)
+            self.link.published += 1
+            if header.kind == "frame" and self.pending:  # frames: the newest only
+                self.pending.clear()
+                self.link.dropped += 1
+            elif len(self.pending) >= self.size:
+                self.pending.popleft()
+                self.link.dropped += 1
+            self.pending.append((header, value))
+            if self.scheduled:
+                return
+            self.scheduled = True
+        with contextlib.suppress(RuntimeError):  # the loop is closing
+            self.bridge.host.loop.call_soon_threadsafe(self.deliver)
+
+    # the loop ---------------------------------------------------------------------------
+
+    def deliver(self) -> None:
+        with self.lock:
+            items = list(self.pending)
+            self.pending.clear()
+            self.scheduled = False
+        host = self.bridge.host
+        for header, value in items:
+            now = host.now_mono()
+            offset = self.bridge.offset(header.zid)
+            wall_now = time.time()
+            age = max(0.0, wall_now - (header.sent - offset))
+            self.link.delivered += 1
+            self.link.age.add(age)
+            if self.last_arrival is not None:
+                self.arrivals.add(now - self.last_arrival)
+            self.last_arrival = now
+            captured_mono = now - max(0.0, wall_now - (header.captured - offset))
+            if header.kind == "frame":
+                arr = value
+                pf = str(header.frame.get("pf", "BGR"))
+                if header.frame.get("enc", "raw") != "raw" and arr.ndim == 3:
+                    pf = "BGR"
+                frame = host.new_frame(self.name, tuple(arr.shape), arr.dtype, pf)
+                np.copyto(frame.data, arr)
+                frame.seq = int(header.frame.get("seq", header.seq))
+                frame.timestamp = captured_mono
+                host.publish(self.name, "output", frame)
+                frame.release()
+            else:
+                host.publish(self.name, "output", value)
+                host.record(self.name, value, self._validity_ms())
+        if self.stale and items:
+            self._resumed()
+
+    def _period(self) -> float | None:
+        if self.period is not None:
+            return self.period
+        s = self.arrivals
+        return s.mean if s.count >= 3 else None
+
+    def _validity_ms(self) -> float | None:
+        p = self._period()
+        return None if p is None else p * self.stale_after * 1000
+
+    def check_liveness(self, ctx: Any) -> None:
+        self.ctx = ctx
+        now = self.bridge.host.now_mono()
+        p = self._period()
+        limit = max(0.1, (p if p is not None else 0.2) * self.stale_after)
+        since = now - (self.last_arrival if self.last_arrival is not None else self.started)
+        if since <= limit or self.stale:
+            return
+        self.stale = True
+        what = "no message yet" if self.last_arrival is None else "stale"
+        reason = f"{what} on {self.key} for {since * 1000:.0f} ms (limit {limit * 1000:.0f} ms)"
+        ctx.set_error(reason)
+
+    def _resumed(self) -> None:
+        self.stale = False
+        if self.ctx is not None:
+            self.ctx.clear_error()
+
+
+class ZenohBridge:
+    """The graph's Zenoh session, its exports and imports (see the module docstring)."""
+
+    def __init__(self, host: BridgeHost, spec: GraphSpec) -> None:
+        self.host = host
+        self.spec = spec
+        self.zspec = spec.zenoh or ZenohSpec()
+        self.session: Any = None
+        self.stream = uuid.uuid4().hex[:16]
+        self.zid = ""
+        self.exports: list[_Export] = []
+        self.imports: dict[str, _Import] = {}
+        self._subs: list[Any] = []
+        self._queryable: Any = None
+        self._jobs: queue.SimpleQueue[tuple[_Export, Any] | None] = queue.SimpleQueue()
+        self._sender: threading.Thread | None = None
+        self._offsets: dict[str, tuple[float, float]] = {}  # zid -> (offset s, rtt s)
+        self._probing: set[str] = set()
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    def config(self) -> Any:
+        import zenoh
+
+        z = self.zspec
+        cfg = zenoh.Config.from_file(z.config_file) if z.config_file else zenoh.Config()
+        cfg.insert_json5("mode", json.dumps(z.mode))
+        cfg.insert_json5("listen/endpoints", json.dumps(z.listen if z.mode == "peer" else []))
+        cfg.insert_json5("connect/endpoints", json.dumps(z.connect))
+        cfg.insert_json5("scouting/multicast/enabled", json.dumps(z.scouting))
+        cfg.insert_json5("scouting/gossip/enabled", json.dumps(z.scouting))
+        for path, value in z.config.items():
+            cfg.insert_json5(path, json.dumps(value))
+        return cfg
+
+    async def open(self) -> None:
+        """Open the session (before any node runs): a port in use fails here, in one line."""
+        try:
+            import zenoh
+        except ImportError as e:  # pragma: no cover - a dependency
+            raise RemoteError(f"zenoh: the eclipse-zenoh package is missing ({e})") from None
+        try:
+            cfg = self.config()
+            self.session = await asyncio.to_thread(zenoh.open, cfg)
+        except Exception as e:
+            text = _first_line(e)
+            if "Address already in use" in text:
+                where = self.zspec.listen
+                raise RemoteError(
+                    f"zenoh: cannot listen on {', '.join(where)}: address already in use "
+                    "(change zenoh.listen in the graph file, or stop the other process)"
+                ) from None
+            raise RemoteError(f"zenoh: {text}") from None
+        self.zid = str(self.session.info.zid())
+        self._queryable = self.session.declare_queryable(
+            f"{CLOCK_PREFIX}/{self.zid}", _answer_clock
+        )
+
+    def attach_exports(self) -> None:
+        """Buffers on the exported outputs, before the nodes start publishing."""
+        for key, ex in self.spec.exports.items():
+            node, port = ex.source.split(".")
+            outs = self.host.runner_output(node, port)
+            policy = ex.policy
+            if policy is None:
+                frames = self.host.is_frame_port(node, port)
+                policy = EdgePolicy.latest if frames else EdgePolicy.queue
+            buf = make_buffer(
+                policy.value, f"{ex.source}->zenoh:{key}", ex.size, self.host.now_mono
+            )
+            exp = _Export(key, node, port, ex.encoding, ex.quality, buf)
+            exp.publisher = self.session.declare_publisher(key)
+            buf.on_put = lambda exp=exp: self._take(exp)
+            outs.append(buf)
+            self.host.add_buffer(buf)
+            self.exports.append(exp)
+        if self.exports:
+            self._sender = threading.Thread(
+                target=self._send_loop, name="flowrt-zenoh-send", daemon=True
+            )
+            self._sender.start()
+
+    def attach_imports(self) -> None:
+        """Subscribers for the imports, bound to their nodes (once the nodes are set up)."""
+        for name, im in self.spec.imports.items():
+            imp = _Import(self, name, im.key, im.period, im.stale_after, im.size)
+            node = self.host.import_node(name)
+            if node is not None:
+                node.link = imp
+            self.imports[name] = imp
+            self.host.add_buffer(imp.link)
+            self._subs.append(self.session.declare_subscriber(im.key, imp.on_sample))
+
+    async def close(self) -> None:
+        for s in self._subs:
+            with contextlib.suppress(Exception):
+                s.undeclare()
+        self._subs.clear()
+        if self._sender is not None:
+            self._jobs.put(None)
+            await asyncio.to_thread(self._sender.join, 2.0)
+            self._sender = None
+        if self.session is not None:
+            session, self.session = self.session, None
+            with contextlib.suppress(Exception):
+                await asyncio.to_thread(session.close)
+
+    # --- exports ------------------------------------------------------------------------
+
+    def _take(self, exp: _Export) -> None:
+        """On the loop: hand the next value to the sender when the previous one is sent."""
+        if exp.busy or self._sender is None:
+            return
+        value = exp.buf.take()
+        if value is EMPTY:
+            return
+        exp.busy = True
+        self._jobs.put((exp, value))
+
+    def _sent(self, exp: _Export, value: Any) -> None:
+        if isinstance(value, Frame):
+            value.release()
+        exp.busy = False
+        if exp.buf.pending():
+            self._take(exp)
+
+    def _send_loop(self) -> None:
+        mono0, wall0 = time.monotonic(), time.time()
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            exp, value = job
+            try:
+                now_wall = time.time()
+                if isinstance(value, Frame):
+                    meta, payload = encode_frame(value, exp.encoding, exp.quality)
+                    captured = wall0 + (value.timestamp - mono0) if value.timestamp else now_wall
+                    header = Header(
+                        self.stream, self.zid, exp.seq, now_wall, captured, "frame", meta
+                    )
+                else:
+                    payload = json.dumps(to_wire(value), separators=(",", ":")).encode()
+                    header = Header(self.stream, self.zid, exp.seq, now_wall, now_wall, "json")
+                exp.seq += 1
+                exp.publisher.put(payload, attachment=header.encode())
+            except Exception as e:
+                exp.errors += 1
+                log.warning("export %s: %s", exp.key, e)
+            try:
+                self.host.loop.call_soon_threadsafe(self._sent, exp, value)
+            except RuntimeError:  # the loop is closed
+                return
+
+    # --- clocks -------------------------------------------------------------------------
+
+    def offset(self, zid: str) -> float:
+        """Exporter clock minus ours, seconds (0 until measured; same host: ~0)."""
+        got = self._offsets.get(zid)
+        return 0.0 if got is None else got[0]
+
+    def clock_probe(self, zid: str) -> None:
+        """From Zenoh's thread: measure an exporter's clock once, off the loop."""
+        if zid in self._offsets or zid in self._probing or self.session is None:
+            return
+        self._probing.add(zid)
+        threading.Thread(target=self._probe, args=(zid,), daemon=True).start()
+
+    def _probe(self, zid: str) -> None:
+        best: tuple[float, float] | None = None
+        for _ in range(5):
+            t0 = time.time()
+            try:
+                replies = list(self.session.get(f"{CLOCK_PREFIX}/{zid}", timeout=1.0))
+            except Exception:
+                break
+            t1 = time.time()
+            for r in replies:
+                ok = getattr(r, "ok", None)
+                if ok is None:
+                    continue
+                remote = float(ok.payload.to_bytes())
+                rtt = t1 - t0
+                if best is None or rtt < best[1]:
+                    best = (remote - (t0 + t1) / 2, rtt)
+        if best is not None:
+            self._offsets[zid] = best
+            log.info(
+                "zenoh: clock of %s: offset %.3f ms, rtt %.3f ms", zid, best[0] * 1e3, best[1] * 1e3
+            )
+        self._probing.discard(zid)
+
+    def clocks(self) -> dict[str, tuple[float, float]]:
+        return dict(self._offsets)
+
+
+def _answer_clock(query: Any) -> None:
+    query.reply(query.key_expr, repr(time.time()).encode())
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    # Zenoh's errors end with " at /path/to/source.rs:line." twice; keep the message.
+    cut = text.find(" at /")
+    return text[:cut] if cut > 0 else text

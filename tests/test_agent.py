@@ -1,0 +1,76 @@
+"""The agent example (graphs/agent.yaml) on virtual time: the decision table switches the
+situation, the modes change the arbiter's weights, the robot moves without colliding, and
+disabling a behaviour mid-run leaves the others' activations untouched."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+from flowrt.nodes.agent import ARENA, OBSTACLES, cast
+
+from flowrt import Graph, ModeChanged, Runtime, VirtualClock
+from flowrt.graph import resolve
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def agent_graph() -> Graph:
+    spec = Graph.from_file(REPO / "graphs" / "agent.yaml").spec
+    nodes = {k: v for k, v in spec.nodes.items() if v.kind != "display"}
+    return resolve(spec.model_copy(update={"nodes": nodes}))
+
+
+@pytest.mark.parametrize(
+    ("x", "y", "angle", "expected"),
+    [
+        (1.0, 0.5, -math.pi / 2, 0.5),  # down to the floor wall
+        (5.0, 2.0, 0.0, 1.0),  # right wall
+        (1.0, 1.4, 0.0, 1.0 - OBSTACLES[0][2]),  # the first obstacle, centre (2.0, 1.4)
+        (0.5, 3.9, math.pi / 2, 0.1),  # top wall
+    ],
+)
+def test_cast(x: float, y: float, angle: float, expected: float) -> None:
+    assert cast(x, y, angle, 10.0) == pytest.approx(expected, abs=1e-9)
+    assert cast(x, y, angle, expected / 2) == pytest.approx(expected / 2)
+
+
+async def test_agent_runs_switches_situations_and_stays_clear() -> None:
+    clock = VirtualClock()
+    async with Runtime(agent_graph(), clock=clock) as rt:
+        pose = rt.subscribe("robot.pose", policy="latest")
+        await clock.advance(40.0)
+        final = pose.drain()[-1]
+        stats = rt.stats()
+        modes = {e.mode for e in rt.events if isinstance(e, ModeChanged)}
+        weights = rt.scheduler.runners["drive"].rnode.params.sources
+    assert final["collisions"] == 0
+    assert 0 < final["x"] < ARENA[0]
+    assert 0 < final["y"] < ARENA[1]
+    moved = math.hypot(final["x"] - 0.6, final["y"] - 0.6)
+    assert moved > 0.3
+    assert "wall_following" in modes
+    assert len(modes) >= 2, modes  # the decision table switched at least once
+    assert {n.name for n in stats.nodes if n.errors} == set()
+    mode = rt.mode
+    assert mode is not None
+    expected = {"tracking": 4.0, "avoidance": 0.2, "wall_following": 0.0}[mode]
+    assert weights["track"].weight == expected
+
+
+async def test_disabling_a_behaviour_leaves_the_others_untouched() -> None:
+    clock = VirtualClock()
+    async with Runtime(agent_graph(), clock=clock) as rt:
+        await clock.advance(2.0)
+        before = {n.name: n.activations for n in rt.stats().nodes}
+        rt.set_timing("wall", enabled=False)
+        await clock.advance(2.0)
+        rt.set_timing("wall", enabled=True)
+        await clock.advance(2.0)
+        stats = {n.name: n for n in rt.stats().nodes}
+    for name, period in (("robot", 0.02), ("avoid", 0.02), ("drive", 0.02), ("track", 0.04)):
+        assert stats[name].activations - before[name] == pytest.approx(4.0 / period, abs=1)
+        assert stats[name].deadline_misses == 0
+        assert stats[name].skipped == 0
+    assert stats["wall"].activations - before["wall"] == pytest.approx(20, abs=1)  # 2 s of 4
