@@ -328,6 +328,8 @@ class ControlServer:
         except (asyncio.IncompleteReadError, ConnectionError) as e:
             if not ready.done():
                 ready.set_exception(e)
+            elif self.rt.started and self._writer is not None:
+                log.warning("control endpoint: its server process ended; %s is gone", self.url)
 
     def answer(self, op: str, body: bytes) -> tuple[int, bytes]:
         """(HTTP status, JSON body) for one request the server forwarded; never raises."""

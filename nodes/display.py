@@ -317,6 +317,10 @@ class Display(Node):
         except (asyncio.IncompleteReadError, ConnectionError) as e:
             if not ready.done():
                 ready.set_exception(e)
+            elif self._writer is not None:  # not our teardown: the server's process died
+                reason = f"display: the view's server process ended; {self.url} is gone"
+                self.ctx.set_error(reason)
+                self.ctx.log.error("%s: %s", self.ctx.name, reason)
 
     def _send(self, header: dict[str, Any], body: bytes = b"") -> None:
         if self._writer is not None and not self._writer.is_closing():

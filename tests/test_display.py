@@ -662,3 +662,17 @@ async def test_a_taken_port_is_an_error_state_not_a_restart_loop(
             assert (view.errors, view.restarts) == (0, 0)
             assert rt.stats().node("cam").activations >= 5  # the graph runs on without it
     assert "display:" not in capsys.readouterr().out
+
+
+async def test_a_dead_view_server_is_an_error_state(capsys: pytest.CaptureFixture[str]) -> None:
+    async with running(capsys) as (rt, _):
+        view = rt.scheduler.runners["view"].executor.node  # type: ignore[attr-defined]
+        view._proc.kill()
+        for _ in range(50):
+            await asyncio.sleep(0.1)
+            if rt.stats().node("view").state == "error":
+                break
+        st = rt.stats().node("view")
+        assert st.state == "error"
+        assert "server process ended" in st.reason
+        assert rt.stats().node("cam").errors == 0
