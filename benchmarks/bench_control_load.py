@@ -10,7 +10,10 @@ with its control endpoint on a free loopback port, once per scenario:
 - ``control``: ``--clients`` clients, each its own connection, polling ``GET /stats`` of the
   control endpoint as fast as it answers;
 - ``view``: as many clients of the live view, each looping over ``/frame/front_cam.jpg``,
-  ``/frame/omni_cam.jpg`` and ``/stats.json``.
+  ``/frame/omni_cam.jpg`` and ``/stats.json``;
+- ``echo`` (with ``--scenarios``): the ``control`` clients against a server with nothing
+  behind it (the same answer, pacing and priority): what the clients' own CPU load does to
+  the graph on this machine, whatever serves them.
 
 The clients run in a process of their own (at the shell's priority). After a warm-up the
 interval statistics are reset, the clients start, and after ``--seconds`` the table gives,
@@ -38,6 +41,7 @@ ROOT = Path(__file__).resolve().parent.parent
 CRITICAL = ["front_cam", "omni_cam", "avoid_fr", "avoid_om", "ball_om"]
 PATHS = {
     "control": ["/stats"],
+    "echo": ["/stats"],
     "view": ["/frame/front_cam.jpg", "/frame/omni_cam.jpg", "/stats.json"],
 }
 
@@ -72,10 +76,42 @@ def clients(base: str, paths: list[str], n: int, seconds: float, out: Any) -> No
     async def main() -> dict[str, int]:
         counts: dict[str, int] = {}
         end = time.monotonic() + seconds
+        cpu = time.process_time()
         await asyncio.gather(*(one(i, counts, end) for i in range(n)))
+        counts["cpu"] = round((time.process_time() - cpu) / seconds * 1000)
         return counts
 
     out.send(asyncio.run(main()))
+
+
+def echo(sock: socket.socket, body: bytes, pace: float) -> None:
+    """The ``echo`` scenario's server: the same answer and pacing as the control endpoint's
+    server (one answer per connection per ``pace`` s, nice 19), but nothing behind it, so
+    the run shows what the clients' load alone does to the graph."""
+    import os
+
+    from aiohttp import web
+
+    os.setpriority(os.PRIO_PROCESS, 0, 19)
+    due: dict[Any, float] = {}
+
+    async def stats(request: web.Request) -> web.Response:
+        now = time.monotonic()
+        wait = due.get(request.transport, 0.0) - now
+        if wait > 0:
+            await asyncio.sleep(wait)
+        due[request.transport] = max(now, due.get(request.transport, 0.0)) + pace
+        return web.Response(body=body, content_type="application/json")
+
+    async def main() -> None:
+        app = web.Application()
+        app.add_routes([web.get("/stats", stats)])
+        runner = web.AppRunner(app, access_log=None)
+        await runner.setup()
+        await web.SockSite(runner, sock).start()
+        await asyncio.Event().wait()
+
+    asyncio.run(main())
 
 
 async def scenario(
@@ -102,10 +138,23 @@ async def scenario(
         before = {c: (first.node(c).skipped, first.node(c).deadline_misses) for c in CRITICAL}
         cpu0 = time.process_time()  # the runtime's process: the loop and its threads
         wall0 = time.monotonic()
-        proc = None
+        proc = echo_proc = None
+        ctx = multiprocessing.get_context("spawn")
+        if name == "echo":
+            from flowrt.control import READ_MAX_AGE, listen
+
+            sock = listen("127.0.0.1", 0)
+            echo_port = sock.getsockname()[1]
+            body = rt.stats().model_dump_json().encode()
+            echo_proc = ctx.Process(target=echo, args=(sock, body, READ_MAX_AGE), daemon=True)
+            echo_proc.start()
+            sock.close()
         if name != "baseline":
-            base = server.url if name == "control" else f"http://127.0.0.1:{view_port}"
-            ctx = multiprocessing.get_context("spawn")
+            base = {
+                "control": server.url,
+                "view": f"http://127.0.0.1:{view_port}",
+                "echo": f"http://127.0.0.1:{echo_port}" if name == "echo" else "",
+            }[name]
             ours, theirs = ctx.Pipe()
             proc = ctx.Process(target=clients, args=(base, PATHS[name], n, seconds, theirs))
             proc.start()
@@ -116,6 +165,9 @@ async def scenario(
         if proc is not None:
             counts = await asyncio.to_thread(ours.recv)
             await asyncio.to_thread(proc.join, 10)
+        if echo_proc is not None:
+            echo_proc.kill()
+            await asyncio.to_thread(echo_proc.join, 5)
         rows = {}
         for c in CRITICAL:
             s = stats.node(c)
@@ -192,20 +244,22 @@ def main() -> int:
             )
             print(f"| {name} | **all critical** | | | **{ratio:.2f}** | | | |")
     print(
-        "\n| scenario | runtime process CPU ms/s | loop lag p99 ms "
+        "\n| scenario | runtime process CPU ms/s | clients' CPU ms/s | loop lag p99 ms "
         "| client requests (by outcome) | answered by the runtime |"
     )
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|")
     for name, runs in results.items():
         counts: dict[str, int] = {}
+        client_cpu = sum(r["counts"].get("cpu", 0) for r in runs) / len(runs)
         for r in runs:
             for k, v in r["counts"].items():
-                counts[k] = counts.get(k, 0) + v
+                if k != "cpu":
+                    counts[k] = counts.get(k, 0) + v
         outcome = ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) or "-"
         lag = max(r["lag_p99"] for r in runs)
         cpu = sum(r["cpu"] for r in runs) / len(runs)
         answered = sum(r["answered"] for r in runs)
-        print(f"| {name} | {cpu:.0f} | {lag:.3f} | {outcome} | {answered} |")
+        print(f"| {name} | {cpu:.0f} | {client_cpu:.0f} | {lag:.3f} | {outcome} | {answered} |")
     return 0
 
 
