@@ -1,5 +1,6 @@
 """flowrt: a real-time dataflow runtime for robot perception and control."""
 
+from . import _startup  # noqa: F401  (first: Ctrl-C while the flowrt command imports)
 from .builder import GraphBuilder as GraphBuilder
 from .clock import Clock as Clock
 from .clock import SystemClock as SystemClock
@@ -21,6 +22,8 @@ from .events import NodeSwapped as NodeSwapped
 from .events import TimingChanged as TimingChanged
 from .frames import Frame as Frame
 from .graph import Graph as Graph
+from .graph import resolve_path as resolve_path
+from .node import FatalError as FatalError
 from .node import Input as Input
 from .node import Node as Node
 from .node import NodeContext as NodeContext
@@ -32,10 +35,12 @@ from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
 from .runtime import Subscription as Subscription
 from .runtime import SwapError as SwapError
+from .spec import DurationMs as DurationMs
 from .spec import FrameTrigger as FrameTrigger
 from .spec import GraphSpec as GraphSpec
 from .spec import InputTrigger as InputTrigger
 from .spec import LoopTrigger as LoopTrigger
+from .spec import TimerMs as TimerMs
 from .spec import TimerTrigger as TimerTrigger
 from .spec import parse_duration_ms as parse_duration_ms
 from .stats import EdgeStats as EdgeStats
@@ -51,8 +56,10 @@ __all__ = [
     "ControlServer",
     "DeadlineMissed",
     "Diagnostic",
+    "DurationMs",
     "EdgeStats",
     "Event",
+    "FatalError",
     "Frame",
     "FrameTrigger",
     "Graph",
@@ -81,9 +88,11 @@ __all__ = [
     "Subscription",
     "SwapError",
     "SystemClock",
+    "TimerMs",
     "TimerTrigger",
     "TimingChanged",
     "VirtualClock",
     "parse_duration_ms",
+    "resolve_path",
     "run",
 ]

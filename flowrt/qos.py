@@ -23,9 +23,23 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
+from pydantic import ValidationError
+
 from .clock import Clock, Handle, PeriodicTimer
 from .events import Event, TimingChanged
-from .spec import FrameTrigger, ModeSpec, OverloadSpec, TimerTrigger, TimingOverride
+from .spec import (
+    MAX_DURATION_MS,
+    MAX_FRAME_PERIOD,
+    MAX_PRIORITY,
+    MIN_DEADLINE_MS,
+    MIN_PRIORITY,
+    MIN_TIMER_MS,
+    FrameTrigger,
+    ModeSpec,
+    OverloadSpec,
+    TimerTrigger,
+    TimingOverride,
+)
 
 if TYPE_CHECKING:
     from .graph import Graph, ResolvedNode
@@ -84,13 +98,14 @@ def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[st
     return plan
 
 
-#: The ranges a run-time change must keep (the graph files' own: see README "Timing ranges").
-#: A 1e-9 ms timer rounds to a zero timerfd interval (it fires once, then never); a 1e300 ms
-#: timer or a 10**18-frame period stops a node for good; NaN makes every activation a miss.
-TIMER_MS = (0.1, 3_600_000.0)  # 100 us .. 1 h
-DEADLINE_MS = (0.01, 3_600_000.0)  # 10 us .. 1 h
-MAX_PERIOD = 100_000  # frames
-PRIORITY = (1, 99)
+#: The ranges a run-time change must keep: the graph files' own (flowrt.spec, README "Timing
+#: ranges"). A 1e-9 ms timer rounds to a zero timerfd interval (it fires once, then never); a
+#: 1e300 ms timer or a 10**18-frame period stops a node for good; NaN makes every activation a
+#: miss. Checked again here for plans built without validation (``model_construct``).
+TIMER_MS = (MIN_TIMER_MS, MAX_DURATION_MS)
+DEADLINE_MS = (MIN_DEADLINE_MS, MAX_DURATION_MS)
+MAX_PERIOD = MAX_FRAME_PERIOD
+PRIORITY = (MIN_PRIORITY, MAX_PRIORITY)
 
 
 def _range_problems(name: str, o: TimingOverride) -> list[str]:
@@ -123,15 +138,23 @@ def _range_problems(name: str, o: TimingOverride) -> list[str]:
 
 
 def check_change(runners: Mapping[str, NodeRunner], node: str, **change: Any) -> None:
-    """Raise (KeyError: no such node; ValueError: a bad value) before anything is applied."""
+    """Raise (KeyError: no such node; ValueError: a bad value) before anything is applied.
+
+    The change is validated by the graph files' own model (:class:`flowrt.spec.TimingOverride`,
+    the same rules as a mode in a graph file), then against the node (:func:`check_plan`).
+    """
     if node not in runners:
         from .diagnostics import did_you_mean
 
         raise KeyError(f"unknown node {node!r}" + did_you_mean(node, runners))
+    given = {k: v for k, v in change.items() if v is not None}
     try:
-        override = TimingOverride.model_construct(**change)  # checked below, field by field
-    except TypeError as e:
-        raise ValueError(f"{node}: {e}") from None
+        override = TimingOverride.model_validate(given)
+    except ValidationError as e:
+        found = "; ".join(
+            f"{'.'.join(str(x) for x in err['loc'])}: {err['msg']}" for err in e.errors()
+        )
+        raise ValueError(f"{node}: {found}") from None
     check_plan(runners, {node: override})
 
 

@@ -24,13 +24,13 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
 from .eventloop import run as run
-from .events import Event, HealthAlert, ModeChanged, NodeSwapped, RealtimeStatus
+from .events import Event, HealthAlert, ModeChanged, NodeGaveUp, NodeSwapped, RealtimeStatus
 from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
 from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement, TimingOverride
-from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
+from .stats import FramePoolStats, LoopStats, NodeStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
     from .oscheduling import FairShare
@@ -109,7 +109,12 @@ class Runtime:
         realtime: bool = False,
         kinds: Mapping[str, type[Node]] | None = None,
         spin: float = 0.0,
+        stop_on_failure: bool = False,
     ) -> None:
+        """``stop_on_failure``: a node given up by supervision (state ``failed``) ends ``run``
+        at once (``flowrt run`` does this unless ``--keep-going``); by default the rest of
+        the graph keeps running and the host program reads :meth:`failures`."""
+        self.stop_on_failure = stop_on_failure
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
         if clock is not None and spin:
             raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
@@ -349,6 +354,13 @@ class Runtime:
     def _emit(self, event: Event) -> None:
         self.events.append(event)
         self.event_count += 1
+        if isinstance(event, NodeGaveUp) and self.stop_on_failure:
+            log.info(
+                "node %s failed: stopping the run (--keep-going, or stop_on_failure=False, "
+                "keeps the rest of the graph running)",
+                event.node,
+            )
+            self.request_stop()
         if isinstance(event, HealthAlert):
             self._record("flowrt.alerts", event)
         for m in self.monitors:
@@ -476,6 +488,15 @@ class Runtime:
             frames=self._frame_stats(),
             events=self.event_count,
         )
+
+    def failures(self) -> list[NodeStats]:
+        """The nodes that failed: given up by supervision (state ``failed``) or in an error
+        state they reported (``ctx.set_error``: e.g. a source that cannot be opened or never
+        delivered a frame). Empty when the run went well; ``flowrt run`` exits 1 otherwise.
+        Valid during the run and after it (the verdict of the run's end)."""
+        if self._sched is None:
+            return []
+        return [n for n in self.stats().nodes if n.state in ("failed", "error")]
 
     def _frame_stats(self) -> list[FramePoolStats]:
         if self._frames is None or getattr(self._frames, "closed", False):
@@ -628,7 +649,7 @@ class Runtime:
             if params is None and label == old_kind:
                 params = runner.rnode.params.model_dump()
             try:
-                model = cls.Params.model_validate(dict(params or {}))
+                model = self.graph.validate_params(cls, params or {})
             except ValidationError as e:
                 raise SwapError(f"{node}: params for {label}: {e}") from None
         await self._swap_to(runner, cls, model, label, origin)
@@ -676,7 +697,7 @@ class Runtime:
         current = runner.rnode.params.model_dump()
         target = merge_params(current, dict(params)) if merge else dict(params)
         try:
-            model = runner.rnode.cls.Params.model_validate(target)
+            model = self.graph.validate_params(runner.rnode.cls, target)
         except ValidationError as e:
             raise ValueError(f"{node}: params: {e}") from None
         runner.set_params(model)
@@ -701,7 +722,7 @@ class Runtime:
             base = self.graph.spec.nodes[name].params
             target = merge_params(base, o.params if o is not None else None)
             runner = self.scheduler.runners[name]
-            runner.set_params(runner.rnode.cls.Params.model_validate(target))
+            runner.set_params(self.graph.validate_params(runner.rnode.cls, target))
 
     def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
         from .diagnostics import did_you_mean
@@ -825,5 +846,12 @@ def _frame_store() -> Any:
     if store_cls is None:
         return None
     with contextlib.suppress(Exception):
-        store_cls.reclaim_orphans()
+        reclaimed = store_cls.reclaim_orphans()
+        if reclaimed:
+            log.info(
+                "reclaimed %d shared-memory segment%s left in %s by a runtime that was killed",
+                reclaimed,
+                "" if reclaimed == 1 else "s",
+                getattr(frames, "SHM_DIR", "/dev/shm"),
+            )
     return store_cls()

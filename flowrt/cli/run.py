@@ -9,6 +9,7 @@ import dataclasses
 import logging
 import os
 import signal
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,7 @@ from ..remote import RemoteError
 from .common import (
     EXIT_BAD_GRAPH,
     EXIT_FAILED,
+    EXIT_OK,
     load,
     plain_handler,
     setup_logging,
@@ -56,7 +58,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     if problem:
         err.print(f"flowrt run: {problem}", markup=False, soft_wrap=True)
         return EXIT_FAILED
-    rt = Runtime(graph, realtime=args.realtime, spin=args.spin / 1000)
+    rt = Runtime(
+        graph,
+        realtime=args.realtime,
+        spin=args.spin / 1000,
+        stop_on_failure=not args.keep_going,
+    )
     server = None
     if control is not None:
         from ..control import ControlServer
@@ -81,18 +88,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         setup_logging(monitor.log_handler())
     rt.monitors.append(monitor)
 
+    stop_signals = StopSignals(rt.request_stop)
+    stop_signals.install()
+
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, rt.request_stop)
+        stop_signals.loop = asyncio.get_running_loop()
         try:
             async with rt, server or contextlib.nullcontext():
                 if server is not None:
                     logging.getLogger("flowrt").info("control endpoint %s", server.url)
                 await rt.run(args.duration)
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(sig)
+            stop_signals.loop = None
 
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
         try:
@@ -101,11 +108,77 @@ def cmd_run(args: argparse.Namespace) -> int:
             err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
             return 1
     stats = rt.stats()
-    console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
+    with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
+        console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
-    return 0
+    return _verdict(rt.failures(), err)
+
+
+def _verdict(failures: list[Any], err: Console) -> int:
+    """Exit 1 when the run ends with a node failed or in error, one line per node."""
+    for n in failures:
+        what = "failed" if n.state == "failed" else "in error"
+        err.print(
+            f"flowrt run: node {n.name} {what}: {n.reason}",
+            markup=False,
+            style="red",
+            soft_wrap=True,
+        )
+    return EXIT_FAILED if failures else EXIT_OK
+
+
+class StopSignals:
+    """SIGINT, SIGTERM and SIGHUP (terminal closed, ssh dropped) all stop a run in order.
+
+    The first one stops the runtime: every node torn down, workers stopped, shared memory
+    freed, the final table printed. A second one while that runs is noted and ignored, so
+    teardown finishes (it is bounded: each node's stop has a grace time, then its worker is
+    killed). A third forces the exit at once, with 128 + the signal's number; what it leaves
+    in /dev/shm is reclaimed at the next start.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+    def __init__(self, stop: Callable[[], None]) -> None:
+        self.stop = stop
+        self.received: list[int] = []
+        self.loop: asyncio.AbstractEventLoop | None = None  # the run's loop, while it runs
+
+    def install(self) -> None:
+        """Plain ``signal.signal`` handlers, not the loop's: they also run while the loop is
+        blocked (an inline node's teardown that hangs), so a third signal can always force
+        the exit; and they stay until the process exits (the final table and the
+        interpreter's own clean-up come after the loop: a signal then killed it, rc -15)."""
+        for sig in self.SIGNALS:
+            signal.signal(sig, self._handler)
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        self(signum)
+
+    def __call__(self, sig: int) -> None:
+        self.received.append(sig)
+        if len(self.received) == 1:
+            loop = self.loop
+            if loop is not None and not loop.is_closed():
+                loop.call_soon_threadsafe(self.stop)  # wakes the loop; safe in a handler
+            else:
+                self.stop()  # before the loop runs: run() returns as soon as it starts
+        elif len(self.received) == 2:
+            _say(
+                f"flowrt run: {signal.Signals(sig).name}: still stopping (tearing the nodes "
+                "down); a third signal forces the exit"
+            )
+        else:
+            _say(f"flowrt run: {signal.Signals(sig).name}: forced exit")
+            os._exit(128 + sig)
+
+
+def _say(text: str) -> None:
+    """One line on stderr from a signal handler; a terminal that hung up is no error."""
+    with contextlib.suppress(OSError):
+        os.write(2, (text + "\n").encode())
 
 
 def _display_nodes(graph: Graph) -> list[str]:
@@ -299,5 +372,11 @@ def add_parsers(sub: Any) -> None:
         "--check",
         action="store_true",
         help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
+    )
+    run.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="keep the rest of the graph running when a node fails for good (default: stop at"
+        " once); the exit code is 1 either way",
     )
     run.set_defaults(func=cmd_run)
