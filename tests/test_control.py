@@ -389,3 +389,27 @@ def test_flowrt_run_with_a_taken_control_port_says_so_and_exits_1(tmp_path: Path
     assert len(lines) == 1, proc.stderr
     assert f"127.0.0.1:{port}" in lines[0]
     assert "--control PORT" in lines[0]
+
+
+async def test_clients_hold_the_servers_descriptors_not_the_runtimes() -> None:
+    """Slow or idle clients cannot exhaust the descriptors the runtime's workers need."""
+    import os
+    import socket
+
+    import psutil
+
+    async with (
+        Runtime(graph(), clock=VirtualClock()) as rt,
+        ControlServer(rt, ControlConfig("127.0.0.1", 0)) as server,
+    ):
+        before = len(os.listdir("/proc/self/fd"))
+        server_before = psutil.Process(server._proc.pid).num_fds()
+        clients = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(40)]
+        try:
+            await asyncio.sleep(0.5)
+            # this process holds only the clients' own ends; the server's ends are elsewhere
+            assert len(os.listdir("/proc/self/fd")) - before == 40
+            assert psutil.Process(server._proc.pid).num_fds() - server_before >= 40
+        finally:
+            for c in clients:
+                c.close()
