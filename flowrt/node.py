@@ -145,6 +145,15 @@ class NodeContext:
         """Seconds since the runtime started (the time base of events); approximate here."""
         return self.now()
 
+    async def wait_readers(self) -> None:
+        """Wait until every period-1 frame-triggered reader of this node's frame outputs is
+        ready for the next frame (idle, started), whatever its placement.
+
+        A source that paces itself by its readers (``pacing: fast``) awaits this before
+        publishing, so that a reader slower than the source is never skipped. Outside a
+        runtime there are no readers: it returns at once.
+        """
+
     def request_stop(self) -> None:
         """Ask the runtime to stop; only on the event loop."""
         raise RuntimeError("request_stop() is only available to inline nodes on the event loop")

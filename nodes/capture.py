@@ -23,7 +23,9 @@ Sources (``source`` param)
     reported (``source-error`` event) and skipped.
 
 Pacing: ``realtime`` publishes at ``fps`` on a precise timer of the runtime (cameras: at the
-device's rate); ``fast`` publishes as fast as the source delivers and the graph consumes.
+device's rate); ``fast`` publishes as fast as the source delivers and the graph consumes: each
+frame waits until every period-1 frame-triggered reader (inline or in a worker) has taken the
+previous one (``ctx.wait_readers()``), so an offline run processes every frame.
 
 Pixel formats: ``pixel_format`` is what the node publishes (BGR, RGB or GRAY). ``input_format``
 is what the source delivers: for a camera, a raw device format (YUYV, UYVY, I420, NV12, or
@@ -901,9 +903,11 @@ class Capture(Node):
             )
 
     async def process(self) -> dict[str, Any] | None:
-        if self._scene is not None:
-            return self._synthetic()
-        return await self._grab()
+        out = self._synthetic() if self._scene is not None else await self._grab()
+        if out is not None and self.params.pacing == "fast" and self._kind != "camera":
+            # Offline: every period-1 frame reader (inline or in a worker) takes every frame.
+            await self.ctx.wait_readers()
+        return out
 
     # -- synthetic
 

@@ -62,6 +62,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         graph,
         realtime=args.realtime,
         spin=args.spin / 1000,
+        drain_timeout=args.drain_timeout,
         stop_on_failure=not args.keep_going,
     )
     server = None
@@ -304,6 +305,16 @@ def _spin_ms(text: str) -> float:
     return ms
 
 
+def _drain_s(text: str) -> float:
+    try:
+        s = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0 <= s <= 3600:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 3600 s, got {text}")
+    return s
+
+
 def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
@@ -330,6 +341,14 @@ def add_parsers(sub: Any) -> None:
         default=0.0,
         metavar="DURATION",
         help="the loop busy-waits this long before each timer release (e.g. 300us; default 0)",
+    )
+    run.add_argument(
+        "--drain-timeout",
+        type=_drain_s,
+        default=5.0,
+        metavar="S",
+        help="at stop, let lossless edges and running activations finish for at most S seconds "
+        "(default 5; reported when hit)",
     )
     run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
     run.add_argument(
