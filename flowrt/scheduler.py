@@ -726,6 +726,12 @@ class NodeRunner:
         missing += [p for p, bufs in self.outputs.items() if bufs and p not in cls.outputs]
         if missing:
             raise ValueError(f"{self.name}: kind {kind!r} has no port(s) {', '.join(missing)}")
+        unfed = [p for p, port in cls.inputs.items() if port.required and p not in self.inputs]
+        if unfed:
+            raise ValueError(
+                f"{self.name}: kind {kind!r} needs input(s) {', '.join(unfed)}, "
+                "which nothing feeds in this graph"
+            )
         rnode = dataclasses.replace(
             self.rnode,
             cls=cls,
