@@ -472,9 +472,13 @@ class ViewServer:
                 if msg.type is not WSMsgType.TEXT:
                     continue
                 try:
-                    ack = json.loads(msg.data).get("ack")
+                    data = json.loads(msg.data)
+                    ack = data.get("ack")
                 except (ValueError, AttributeError):
                     continue
+                joy = _joystick(data.get("joy"))
+                if joy is not None:
+                    self._send({"op": "joy", "value": joy})  # the node writes the RTDB
                 if isinstance(ack, str):
                     client.waiting_ack.discard(ack)
                     self.any_change.set()
@@ -508,6 +512,24 @@ class ViewServer:
             if not sent_any:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self.any_change.wait(), 1.0)
+
+
+def _joystick(value: Any) -> dict[str, Any] | None:
+    """The page's joystick state, bounded and typed (a page is not trusted with more)."""
+    if not isinstance(value, dict):
+        return None
+    axes, buttons = value.get("axes"), value.get("buttons")
+    if not isinstance(axes, dict) or not isinstance(buttons, dict):
+        return None
+    out_axes: dict[str, float] = {}
+    for k, v in list(axes.items())[:16]:
+        if isinstance(k, str) and len(k) <= 32 and isinstance(v, int | float):
+            x = float(v)
+            out_axes[k] = max(-1.0, min(1.0, x)) if x == x and abs(x) != float("inf") else 0.0
+    out_buttons = {
+        k: bool(v) for k, v in list(buttons.items())[:32] if isinstance(k, str) and len(k) <= 32
+    }
+    return {"axes": out_axes, "buttons": out_buttons}
 
 
 def _render(header: dict[str, Any], frame: bytes) -> tuple[bytes, bytes]:
