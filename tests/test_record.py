@@ -451,9 +451,8 @@ async def test_ctl_record_starts_and_stops_sessions(
         inputs={"cam.frame": {"from": "cam.frame", "policy": "lossless"}},
     )
     config = flowrt.ControlConfig("127.0.0.1", 0)
-    async with flowrt.Runtime(g.build(), control=config) as rt:
-        assert rt.control is not None
-        url = ["ctl", "--url", rt.control.url]
+    async with flowrt.Runtime(g.build()) as rt, flowrt.ControlServer(rt, config) as server:
+        url = ["ctl", "--url", server.url]
         await rt.run(0.3)
         assert not os.listdir(tmp_path)  # start: false records nothing yet
         for _ in range(2):

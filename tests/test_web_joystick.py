@@ -28,6 +28,7 @@ def graph() -> Any:
                 "w": {"input": "x", "dead_band": 0.05, "scale": 2.0},
             },
             "buttons": {"start": "start", "stop": "stop"},
+            "timeout_ms": 500,  # a browser's 20 Hz, on a loaded machine
         },
         inputs={"joy": "joy.output"},
     )
@@ -62,7 +63,7 @@ async def test_on_screen_joystick_drives_teleop() -> None:
                 " const p = document.querySelector('#pad').getBoundingClientRect();"
                 " return [r.x + r.width / 2, r.y + r.height / 2, p.x, p.y, p.width]; })()"
             )
-            cx, cy, px, py, size = box
+            cx, cy = box[0], box[1]
 
             async def mouse(kind: str, x: float, y: float) -> None:
                 await page.call(
@@ -94,7 +95,13 @@ async def test_on_screen_joystick_drives_teleop() -> None:
             await key("keyUp", "Enter", "Enter", 13)
             await until(lambda: _value(mode, "run"), 5, "teleop in run")
 
-            # drag the pad's knob to the top: full forward speed (scale 0.5)
+            # drag the pad's knob to the top: full forward speed (scale 0.5); measured now, as
+            # the tables above it may have grown since
+            px, py, size = await page.eval(
+                "(() => { const p = document.querySelector('#pad');"
+                " p.scrollIntoView({block: 'center'}); const r = p.getBoundingClientRect();"
+                " return [r.x, r.y, r.width]; })()"
+            )
             centre = (px + size / 2, py + size / 2)
             await mouse("mousePressed", *centre)
             await mouse("mouseMoved", centre[0], py + 2)
