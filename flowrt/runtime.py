@@ -196,6 +196,10 @@ class Runtime:
             from .workers import start_forkserver
 
             await asyncio.to_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
+        # Imported now, not at the first run-time change: an import on the loop at that moment
+        # (tens of ms) would make the ticks around a `ctl timing` late.
+        from .analysis import admission  # noqa: F401
+
         _freeze_heap()
         self.clock.origin = self.clock.now() + (
             0.005 if isinstance(self.clock, SystemClock) else 0.0
