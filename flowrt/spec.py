@@ -118,26 +118,24 @@ def check_phase_ms(v: float) -> float:
     return v
 
 
-def check_deadline_ms(v: float) -> float:
-    """A deadline within [MIN_DEADLINE_MS, MAX_DURATION_MS]."""
+def _positive_duration(v: float, least: float) -> float:
     if v <= 0:
         raise ValueError(f"must be positive, got {_ms(v)}")
-    if not MIN_DEADLINE_MS <= v <= MAX_DURATION_MS:
+    if not least <= v <= MAX_DURATION_MS:
         raise ValueError(
-            f"must be between {_ms(MIN_DEADLINE_MS)} and {_ms(MAX_DURATION_MS)} (1 h), got {_ms(v)}"
+            f"must be between {_ms(least)} and {_ms(MAX_DURATION_MS)} (1 h), got {_ms(v)}"
         )
     return v
+
+
+def check_deadline_ms(v: float) -> float:
+    """A deadline within [MIN_DEADLINE_MS, MAX_DURATION_MS]."""
+    return _positive_duration(v, MIN_DEADLINE_MS)
 
 
 def check_watchdog_ms(v: float) -> float:
     """A watchdog within [MIN_WATCHDOG_MS, MAX_DURATION_MS]."""
-    if v <= 0:
-        raise ValueError(f"must be positive, got {_ms(v)}")
-    if not MIN_WATCHDOG_MS <= v <= MAX_DURATION_MS:
-        raise ValueError(
-            f"must be between {_ms(MIN_WATCHDOG_MS)} and {_ms(MAX_DURATION_MS)} (1 h), got {_ms(v)}"
-        )
-    return v
+    return _positive_duration(v, MIN_WATCHDOG_MS)
 
 
 def check_frame_period(v: int) -> int:
@@ -264,6 +262,13 @@ class EdgePolicy(StrEnum):
     lossless = "lossless"
 
 
+def node_dot_port(v: str) -> str:
+    """``node.port``: one dot, both sides non-empty."""
+    if v.count(".") != 1 or not all(v.split(".")):
+        raise ValueError(f"expected node.port, got {v!r}")
+    return v
+
+
 class InputSpec(_Strict):
     """Where an input reads from and how its buffer behaves."""
 
@@ -289,9 +294,7 @@ class InputSpec(_Strict):
     def _node_dot_port(cls, v: str) -> str:
         if "." not in v and re.fullmatch(r"[A-Za-z_][A-Za-z0-9_\-]*", v):
             return v  # a bare name: an import's output (checked where imports are known)
-        if v.count(".") != 1 or not all(v.split(".")):
-            raise ValueError(f"expected node.port, got {v!r}")
-        return v
+        return node_dot_port(v)
 
     @property
     def node(self) -> str:
@@ -562,9 +565,7 @@ class ExportSpec(_Strict):
     @field_validator("source")
     @classmethod
     def _node_dot_port(cls, v: str) -> str:
-        if v.count(".") != 1 or not all(v.split(".")):
-            raise ValueError(f"expected node.port, got {v!r}")
-        return v
+        return node_dot_port(v)
 
     @property
     def node(self) -> str:
