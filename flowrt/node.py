@@ -285,6 +285,8 @@ class Node:
     # (``Runtime.swap``, ``flowrt ctl swap``/``reload``), the new one receives the old one's
     # state, e.g. a tracker's last position. ``params_changed(old)``: params replaced between
     # activations (a mode's weights); recompute what ``setup`` derived from them.
+    # ``report() -> Any``: JSON-able facts about the node (a recorder's per-stream tables),
+    # published in ``RuntimeStats.reports`` (``--stats-json``, ``ctl stats --json``).
 
 
 def make_node(

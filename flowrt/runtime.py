@@ -532,6 +532,7 @@ class Runtime:
             ),
             frames=self._frame_stats(),
             events=self.event_count,
+            reports=self._reports(),
         )
 
     def failures(self) -> list[NodeStats]:
@@ -542,6 +543,24 @@ class Runtime:
         if self._sched is None:
             return []
         return [n for n in self.stats().nodes if n.state in ("failed", "error")]
+
+    def _reports(self) -> dict[str, Any]:
+        """Each inline node's optional ``report()`` (also after stop: its last instance's)."""
+        out: dict[str, Any] = {}
+        for name, r in self.scheduler.runners.items():
+            ex = r.executor
+            node = getattr(ex, "node", None) or getattr(ex, "last_node", None)
+            hook = getattr(node, "report", None)
+            if not callable(hook):
+                continue
+            try:
+                value = hook()
+            except Exception as e:  # a report must never break the statistics
+                log.warning("node %s: report() failed: %s", name, e)
+                continue
+            if value is not None:
+                out[name] = value
+        return out
 
     def _frame_stats(self) -> list[FramePoolStats]:
         if self._frames is None or getattr(self._frames, "closed", False):

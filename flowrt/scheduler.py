@@ -73,6 +73,7 @@ class InlineExecutor(Executor):
     def __init__(self, factory: Callable[[], Node]) -> None:
         self._factory = factory
         self.node: Node | None = None
+        self.last_node: Node | None = None
         self.sync = False
 
     async def start(self) -> None:
@@ -96,6 +97,7 @@ class InlineExecutor(Executor):
 
     async def stop(self) -> None:
         node, self.node = self.node, None
+        self.last_node = node  # what it reported last stays readable after stop
         if node is not None:
             result = node.teardown()
             if inspect.isawaitable(result):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from array import array
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -193,6 +194,11 @@ class RuntimeStats(_Frozen):
         default_factory=list, description="shared-memory frame pools: slots, growth, drops"
     )
     events: int = Field(description="events published so far (misses, errors, restarts, changes)")
+    reports: dict[str, Any] = Field(
+        default_factory=dict,
+        description="what nodes report about themselves (their optional report() hook), by "
+        "node name: e.g. a recorder's per-stream table of each recording",
+    )
 
     def node(self, name: str) -> NodeStats:
         for n in self.nodes:

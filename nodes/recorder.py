@@ -205,6 +205,12 @@ class Recorder(Node):
         elif self.params.log_report:
             self.ctx.log.info("%s: recording stopped\n%s", self.ctx.name, report_text(report))
 
+    def report(self) -> Any:
+        """The per-stream table of every recording this node made (in ``stats.json``)."""
+        if not self.reports:
+            return None
+        return [r.model_dump(mode="json") for r in self.reports]
+
     def _stats(self) -> Any:
         try:
             return self.ctx.stats()

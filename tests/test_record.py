@@ -393,11 +393,18 @@ def test_record_then_info_and_replay_from_the_cli(graph_file: Path, tmp_path: Pa
         "--duration",
         "1.5",
         "--no-ui",
+        "--stats-json",
+        str(tmp_path / "stats.json"),
     )
     assert r.returncode == 0, r.stderr
     assert "cam.frame" in r.stdout
     assert "ball.detection" not in r.stdout
     session = out / "drive_001"
+    # the per-stream table is in stats.json too, the same as the session's streams.json
+    reports = json.loads((tmp_path / "stats.json").read_text())["reports"]
+    (table,) = next(iter(reports.values()))
+    assert table == json.loads((session / "streams.json").read_text())
+    assert {s["topic"] for s in table["streams"]} == {"cam.frame", "cam.truth"}
     r = flowrt_cli("info", str(session), "--json")
     assert r.returncode == 0, r.stderr
     (info,) = json.loads(r.stdout)
