@@ -172,13 +172,14 @@ def resolve(
     for name, ns in spec.nodes.items():
         cls = classes.get(name)
         misspelt: set[str | None] = set()  # inputs already named by a "did you mean"
+        own_ins = {**cls.inputs, **_params_ports(cls, params, name, True)} if cls else {}
         for port, ins in ns.inputs.items():
             path = ("nodes", name, "inputs", port)
             if "." not in ins.source and ins.node not in spec.imports:
                 at((*path, "from"), f"expected node.port, got {ins.source!r}")
                 continue
-            if cls is not None and port not in cls.inputs and cls.any_inputs is None:
-                at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, cls.inputs))
+            if cls is not None and port not in own_ins and cls.any_inputs is None:
+                at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, own_ins))
                 misspelt.add(closest(port, cls.inputs))
                 continue
             if ins.node not in spec.nodes:
@@ -189,16 +190,17 @@ def resolve(
             src_cls = classes.get(ins.node)
             if src_cls is None or cls is None:
                 continue
-            if ins.port not in src_cls.outputs:
+            src_outs = {**src_cls.outputs, **_params_ports(src_cls, params, ins.node, False)}
+            if ins.port not in src_outs:
                 at(
                     path,
                     f"node {ins.node!r} ({spec.nodes[ins.node].kind}) has no output {ins.port!r}"
-                    + did_you_mean(ins.port, src_cls.outputs),
+                    + did_you_mean(ins.port, src_outs),
                 )
                 continue
-            in_port = cls.inputs.get(port) or cls.any_inputs
+            in_port = own_ins.get(port) or cls.any_inputs
             assert in_port is not None
-            out_t, in_t = src_cls.outputs[ins.port].type, in_port.type
+            out_t, in_t = src_outs[ins.port].type, in_port.type
             if not _is_compatible(out_t, in_t):
                 at(
                     path,
@@ -269,11 +271,12 @@ def resolve(
                 ("export", key),
                 f"export from unknown node {ex.node!r}" + did_you_mean(ex.node, names),
             )
-        elif src_cls is not None and ex.port not in src_cls.outputs:
+        elif src_cls is not None and ex.port not in (
+            src_outs := {**src_cls.outputs, **_params_ports(src_cls, params, ex.node, False)}
+        ):
             at(
                 ("export", key),
-                f"node {ex.node!r} has no output {ex.port!r}"
-                + did_you_mean(ex.port, src_cls.outputs),
+                f"node {ex.node!r} has no output {ex.port!r}" + did_you_mean(ex.port, src_outs),
             )
 
     _check_cycles(spec, edges, at)
@@ -316,6 +319,15 @@ def resolve(
         raise GraphError(diags)
     graph.warnings = diags
     return graph
+
+
+def _params_ports(
+    cls: type[Node], params: Mapping[str, BaseModel], name: str, inputs: bool
+) -> Mapping[str, Any]:
+    """The ports a node has because of its params (none while its params are invalid)."""
+    if name not in params:
+        return {}
+    return cls.params_inputs(params[name]) if inputs else cls.params_outputs(params[name])
 
 
 REMOTE_SOURCE = "flowrt.remote:RemoteSource"

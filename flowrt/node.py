@@ -212,6 +212,18 @@ class Node:
         return None
 
     @classmethod
+    def params_inputs(cls, params: Any) -> Mapping[str, Input[Any]]:
+        """Inputs that exist because of the params (a CAN node transmits the messages of its
+        DBC file, one input each), beside the class's own; checked when the graph loads."""
+        return {}
+
+    @classmethod
+    def params_outputs(cls, params: Any) -> Mapping[str, Output[Any]]:
+        """Outputs that exist because of the params (a CAN node publishes each message of its
+        DBC file on an output named after it), beside the class's own."""
+        return {}
+
+    @classmethod
     def frame_ports(cls) -> list[str]:
         """Output ports carrying frames: each publication on one is a tick of the frame clock."""
         from .frames import Frame

@@ -219,7 +219,9 @@ class NodeRunner:
         )
         self.inputs: dict[str, Buffer] = {}
         self.ports = list(rnode.cls.inputs)  # declared inputs, then any-named ones connected
-        self.outputs: dict[str, list[Buffer]] = {p: [] for p in rnode.cls.outputs}
+        self.outputs: dict[str, list[Buffer]] = {
+            p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
+        }
         self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
         self.required = [p for p, port in rnode.cls.inputs.items() if port.required]
         self.trigger_inputs: list[str] = []

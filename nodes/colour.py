@@ -262,6 +262,9 @@ class ObjectSpec(BaseModel):
     of interest together (field lines: their centroid and count, no shape).
     `roi` is (x0, y0, x1, y1) as fractions of the image, for objects known to appear only in
     part of it (obstacles in the lower part of a front camera's image).
+    `centroid` (blobs): "silhouette" (default) reports the centre of the region's outer
+    contour with its holes filled, so printing, labels or highlights inside an object do not
+    pull its position off; "pixels" reports the mean of the matching pixels (the paper's).
     """
 
     model_config = ConfigDict(frozen=True, extra="forbid")
@@ -275,6 +278,7 @@ class ObjectSpec(BaseModel):
     min_fill: float = Field(0.0, ge=0.0, le=1.0)
     surround: Surround | None = None
     roi: tuple[float, float, float, float] | None = None
+    centroid: Literal["silhouette", "pixels"] = "silhouette"
 
     @model_validator(mode="after")
     def _check(self) -> ObjectSpec:
@@ -371,6 +375,20 @@ class _Candidate:
     centroid: tuple[float, float]
     bbox: tuple[int, int, int, int]
     area: int
+    mask: np.ndarray | None = None  # the component's pixels inside its bbox (for silhouettes)
+
+
+def silhouette_centroid(mask: np.ndarray) -> tuple[float, float] | None:
+    """Centre of the outer contour of ``mask`` (uint8, nonzero = object) with holes filled."""
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not contours:
+        return None
+    filled = np.zeros(mask.shape, np.uint8)
+    cv2.drawContours(filled, contours, -1, 1, thickness=cv2.FILLED)
+    m = cv2.moments(filled, binaryImage=True)
+    if m["m00"] <= 0:
+        return None
+    return m["m10"] / m["m00"], m["m01"] / m["m00"]
 
 
 Window = tuple[int, int, int, int]  # x0, y0, x1, y1 (exclusive)
@@ -432,7 +450,7 @@ class ObjectTracker:
             labels = self.table.classify(image, win)
             cost += labels.size
             mask = (labels == self.label).view(np.uint8)
-            n, _, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            n, comp, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
             cands = [
                 _Candidate(
                     (float(cents[i][0]) + x0, float(cents[i][1]) + y0),
@@ -443,6 +461,11 @@ class ObjectTracker:
                         int(stats[i][3]),
                     ),
                     int(stats[i][4]),
+                    comp[
+                        stats[i][1] : stats[i][1] + stats[i][3],
+                        stats[i][0] : stats[i][0] + stats[i][2],
+                    ]
+                    == i,
                 )
                 for i in range(1, n)
             ]
@@ -536,6 +559,11 @@ class ObjectTracker:
         return None, 0.0, cost
 
     def _found(self, c: _Candidate, conf: float, cost: int, near: bool) -> Detection:
+        if self.spec.centroid == "silhouette" and c.mask is not None:
+            centre = silhouette_centroid(c.mask.view(np.uint8))
+            if centre is not None:
+                c.centroid = (centre[0] + c.bbox[0], centre[1] + c.bbox[1])
+            c.mask = None  # the tracker keeps the candidate: not its pixels
         # Velocity only from consecutive detections in the first window around the prediction:
         # a re-acquisition further away (another object, a scene cut) says nothing about motion.
         if near and self._last is not None and self._misses == 0:

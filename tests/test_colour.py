@@ -277,3 +277,39 @@ def test_objects_table_is_complete() -> None:
     ):
         assert name in OBJECTS
         assert tracker_for(name).name == name
+
+
+# --- silhouette vs pixel centroid (a printed box) -------------------------------------------
+
+PRINTED_BOX_PARAMS = {
+    "object": "box",
+    "colours": {"box_orange": [[20, 45], [120, 255], [120, 255]]},  # H degrees, S, V
+    "spec": {"colour": "box_orange", "min_area": 300, "min_fill": 0.2},
+}
+
+
+def printed_box(print_box: tuple[int, int, int, int]) -> np.ndarray:
+    """A yellow-orange box (100x70 at (110, 90)) on grey, with dark printing inside it."""
+    img = np.full((240, 320, 3), 90, np.uint8)
+    img[90:160, 110:210] = (0, 160, 240)  # BGR: yellow-orange, hue ~ 30 degrees
+    x, y, w, h = print_box
+    img[y : y + h, x : x + w] = (20, 20, 20)  # a large dark logo, off-centre
+    return img
+
+
+@pytest.mark.parametrize(
+    "print_box",
+    [(115, 95, 45, 50), (150, 100, 50, 30), (120, 130, 60, 25)],
+)
+def test_silhouette_centroid_is_the_objects_centre(print_box: tuple[int, int, int, int]) -> None:
+    from flowrt import Frame
+    from flowrt.nodes.tracker import Tracker
+    from flowrt.testing import NodeHarness
+
+    img = printed_box(print_box)
+    centre = (110 + 99 / 2, 90 + 69 / 2)
+    det = NodeHarness(Tracker, PRINTED_BOX_PARAMS).process(frame=Frame(img)).centroid
+    assert det == pytest.approx(centre, abs=0.6)
+    pixels = dict(PRINTED_BOX_PARAMS, spec={**PRINTED_BOX_PARAMS["spec"], "centroid": "pixels"})
+    off = NodeHarness(Tracker, pixels).process(frame=Frame(img)).centroid
+    assert np.hypot(off[0] - centre[0], off[1] - centre[1]) > 4  # the print pulls it away

@@ -12,7 +12,7 @@ import importlib
 
 from .common import EXIT_BAD_GRAPH as EXIT_BAD_GRAPH
 
-GROUPS = ("run", "inspect", "ctl")
+GROUPS = ("run", "inspect", "ctl", "can")
 
 
 def build_parser() -> argparse.ArgumentParser:
