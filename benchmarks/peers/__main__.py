@@ -323,10 +323,14 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
     """640x480x3 into a receiver process through a queue of 10; rate None = flat out."""
     out: dict[str, Sample] = {}
     label = "flat out" if rate is None else f"{rate} Hz"
-    for side in ("flowrt", "dora"):
+    sides = ("flowrt", "flowrt pipeline 1", "dora") if rate is None else ("flowrt", "dora")
+    for side in sides:
         sent, got = b.path("sent.json"), b.path("got.json")
-        if side == "flowrt":
+        if side.startswith("flowrt"):
             trig = {"loop": True} if rate is None else {"timer": f"{1000 / rate:g}ms"}
+            # Flat out is "a video file as fast as possible": the producer waits for the
+            # worker (lossless); dora has no such edge, its queue of 10 drops the oldest.
+            policy = "lossless" if rate is None else "queue"
             nodes = {
                 "src": {
                     "kind": f"{FN}:FrameSource",
@@ -339,7 +343,8 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
                     "placement": "process",
                     "priority": 40,
                     "trigger": {"input": "frame"},
-                    "inputs": {"frame": {"from": "src.frame", "policy": "queue", "size": 10}},
+                    "inputs": {"frame": {"from": "src.frame", "policy": policy, "size": 10}},
+                    **({"pipeline": 1} if side == "flowrt pipeline 1" else {}),
                 },
                 "count": {
                     "kind": f"{FN}:Count",
