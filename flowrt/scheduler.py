@@ -419,8 +419,22 @@ class NodeRunner:
                 deadline.cancel()
             if watchdog is not None:
                 watchdog.cancel()
+        self._adopt(result)
         _release_all(inputs.values())
         self._complete(result, t_release, start, clock.now())
+
+    def _adopt(self, result: Any) -> None:
+        """Hold pooled frames in a result until they are published (released after).
+
+        A worker that passes on a frame it received returns its descriptor, which resolves
+        to the very frame the activation sent (:func:`flowrt.frames._attach_frame`): without
+        a link of its own it would be recycled when the inputs are released.
+        """
+        values = result.values() if isinstance(result, Mapping) else (result,)
+        for v in values:
+            if isinstance(v, Frame) and v.shared:
+                v.acquire()
+                self.created.append(v)
 
     # --- pipelined calls ------------------------------------------------------------------
 
@@ -534,17 +548,18 @@ class NodeRunner:
         finally:
             if deadline is not None:
                 deadline.cancel()
-        _release_all(inputs.values())
         self.inflight -= 1
         missed = self._acts.pop(act, False)
         if gen != self._gen:  # the node failed under an earlier call: this instance is gone
             self.aborted += 1
-            _release_all([result] if not isinstance(result, Mapping) else result.values())
+            _release_all(inputs.values())
             return
         if self._draining:  # a lossless reader is full: keep the order of the results
             if self._drained is None:
                 self._drained = asyncio.Event()
             await self._drained.wait()
+        self._adopt(result)
+        _release_all(inputs.values())
         end = clock.now()
         # The worker ran it from when the previous one finished (or from the send).
         exec_start = max(start, self._pipe_end)
