@@ -62,6 +62,7 @@ BEGIN, END = "<!-- peers:begin -->", "<!-- peers:end -->"
 
 SIZES = {"8 B": 8, "640x480x3": 640 * 480 * 3, "1920x1080x3": 1920 * 1080 * 3, "40 MiB": 40 << 20}
 RATES = (250, 500, 1000)
+BASELINE = " (baseline)"
 
 
 # --- running one side --------------------------------------------------------------------------
@@ -154,7 +155,7 @@ def run_side(
 
 
 class Bench:
-    def __init__(self, tmp: Path, quiet_dora: bool) -> None:
+    def __init__(self, tmp: Path, quiet_dora: bool, baseline: Path | None = None) -> None:
         self.tmp = tmp
         self.n = 0
         self.env = dict(os.environ)
@@ -163,6 +164,20 @@ class Bench:
         self.flowrt = shutil.which("flowrt", path=str(self.bindir)) or "flowrt"
         self.dora = shutil.which("dora", path=str(self.bindir)) or shutil.which("dora") or "dora"
         self.quiet_dora = quiet_dora
+        self.baseline_env: dict[str, str] | None = None
+        self.baseline = baseline
+        if baseline is not None:  # an older checkout of flowrt, run the same way (before/after)
+            self.baseline_env = dict(self.env)
+            self.baseline_env["PYTHONPATH"] = str(baseline) + os.pathsep + self.env["PYTHONPATH"]
+
+    def sides(self, *names: str) -> list[str]:
+        """The sides of a scenario: each flowrt side also as the baseline checkout, if any."""
+        out: list[str] = []
+        for n in names:
+            out.append(n)
+            if n.startswith("flowrt") and self.baseline_env is not None and "pipeline" not in n:
+                out.append(n + BASELINE)
+        return out
 
     def path(self, name: str) -> str:
         self.n += 1
@@ -170,6 +185,7 @@ class Bench:
 
     def flowrt_run(
         self,
+        side: str,
         nodes: dict[str, Any],
         before: list[str],
         after: list[str] = (),
@@ -178,7 +194,12 @@ class Bench:
         g = self.path("graph.yaml")
         Path(g).write_text(yaml.safe_dump({"name": "peers", "nodes": nodes}, sort_keys=False))
         cmd = [self.flowrt, "run", g, "--no-ui", "--log-every", "3600"]
-        return run_side(cmd, self.env, REPO, Path(g + ".log"), before, after, **kw)
+        env, cwd = self.env, REPO
+        if side.endswith(BASELINE):  # cwd too: the forkserver's sys.path starts with it
+            assert self.baseline_env is not None
+            assert self.baseline is not None
+            env, cwd = self.baseline_env, self.baseline
+        return run_side(cmd, env, cwd, Path(g + ".log"), before, after, **kw)
 
     def dora_run(
         self,
@@ -211,9 +232,9 @@ def _us(xs: list[float]) -> tuple[float, float]:
 
 def lat(b: Bench, label: str, nbytes: int, count: int) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
-    for side in ("flowrt", "dora"):
+    for side in b.sides("flowrt", "dora"):
         res = b.path("lat.json")
-        if side == "flowrt":
+        if side.startswith("flowrt"):
             nodes = {
                 "src": {
                     "kind": f"{FN}:LatSource",
@@ -234,7 +255,7 @@ def lat(b: Bench, label: str, nbytes: int, count: int) -> dict[str, Sample]:
                     "inputs": {"back": "echo.back"},
                 },
             }
-            r = b.flowrt_run(nodes, [res], timeout=60)
+            r = b.flowrt_run(side, nodes, [res], timeout=60)
         else:
             dnodes = [
                 {
@@ -281,9 +302,9 @@ def timer(b: Bench, label: str, burners: int, count: int) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
     procs = _burners(burners)
     try:
-        for side in ("flowrt", "dora"):
+        for side in b.sides("flowrt", "dora"):
             res = b.path("timer.json")
-            if side == "flowrt":
+            if side.startswith("flowrt"):
                 nodes = {
                     "tick": {
                         "kind": f"{FN}:TimerRecorder",
@@ -292,7 +313,7 @@ def timer(b: Bench, label: str, burners: int, count: int) -> dict[str, Sample]:
                         "priority": 40,
                     }
                 }
-                r = b.flowrt_run(nodes, [res], timeout=60)
+                r = b.flowrt_run(side, nodes, [res], timeout=60)
             else:
                 dnodes = [
                     {
@@ -324,7 +345,7 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
     label = "flat out" if rate is None else f"{rate} Hz"
     sides = ("flowrt", "flowrt pipeline 1", "dora") if rate is None else ("flowrt", "dora")
-    for side in sides:
+    for side in b.sides(*sides):
         sent, got = b.path("sent.json"), b.path("got.json")
         if side.startswith("flowrt"):
             trig = {"loop": True} if rate is None else {"timer": f"{1000 / rate:g}ms"}
@@ -344,7 +365,7 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
                     "priority": 40,
                     "trigger": {"input": "frame"},
                     "inputs": {"frame": {"from": "src.frame", "policy": policy, "size": 10}},
-                    **({"pipeline": 1} if side == "flowrt pipeline 1" else {}),
+                    **({"pipeline": 1} if side.startswith("flowrt pipeline 1") else {}),
                 },
                 "count": {
                     "kind": f"{FN}:Count",
@@ -353,7 +374,7 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
                     "inputs": {"result": {"from": "mean.result", "policy": "queue", "size": 64}},
                 },
             }
-            r = b.flowrt_run(nodes, [sent], [got], settle=0.5, timeout=60)
+            r = b.flowrt_run(side, nodes, [sent], [got], settle=0.5, timeout=60)
         else:
             env: dict[str, Any] = {"SECONDS": seconds, "OUT": sent}
             inputs: dict[str, Any] = {}
@@ -394,7 +415,7 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
 
 def pipe(b: Bench, count: int) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
-    for side in ("flowrt inline", "flowrt workers", "dora"):
+    for side in b.sides("flowrt inline", "flowrt workers", "dora"):
         res = b.path("pipe.json")
         if side.startswith("flowrt"):
             nodes: dict[str, Any] = {
@@ -408,7 +429,7 @@ def pipe(b: Bench, count: int) -> dict[str, Sample]:
             prev = "src.frame"
             for i in range(8):
                 node: dict[str, Any] = {"kind": "relay", "priority": 40, "inputs": {"input": prev}}
-                if side == "flowrt workers":
+                if side.startswith("flowrt workers"):
                     node["placement"] = "process"
                 nodes[f"r{i}"] = node
                 prev = f"r{i}.output"
@@ -418,7 +439,7 @@ def pipe(b: Bench, count: int) -> dict[str, Sample]:
                 "priority": 40,
                 "inputs": {"frame": prev},
             }
-            r = b.flowrt_run(nodes, [res], settle=0.3, pss=True, timeout=60)
+            r = b.flowrt_run(side, nodes, [res], settle=0.3, pss=True, timeout=60)
         else:
             dn: list[dict[str, Any]] = [
                 {
@@ -632,6 +653,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-write", action="store_true", help="do not touch RESULTS.md")
     ap.add_argument("--json", metavar="PATH", help="also write every per-round sample here")
     ap.add_argument(
+        "--baseline",
+        metavar="DIR",
+        type=Path,
+        help="also run every flowrt side with this checkout of flowrt first on PYTHONPATH "
+        "(e.g. a `git worktree` of an older commit): before/after in the same run",
+    )
+    ap.add_argument(
         "--dora-logs", action="store_true", help="leave dora's per-message diagnostics on"
     )
     args = ap.parse_args(argv)
@@ -647,7 +675,7 @@ def main(argv: list[str] | None = None) -> int:
     per_round: list[dict[str, dict[str, Sample]]] = []
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="flowrt-peers-") as tmp:
-        b = Bench(Path(tmp), quiet_dora=not args.dora_logs)
+        b = Bench(Path(tmp), quiet_dora=not args.dora_logs, baseline=args.baseline)
         for rnd in range(args.rounds):
             this: dict[str, dict[str, Sample]] = {}
             for _group, name, fn in scenarios(only, args.quick):

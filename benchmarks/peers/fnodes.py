@@ -214,19 +214,22 @@ class PipeSink(Node):
 
     class Params(_Out):
         count: int = 90
+        warmup: int = 15  # the first frames queue behind start-up (both systems)
 
     frame = Input(Frame)
 
     def setup(self) -> None:
         self.lat: list[float] = []
         self.first: float | None = None
+        self.seen = 0
 
     def process(self, frame: Frame) -> None:
         now = time.monotonic()
         if self.first is None:
             self.first = now
             _write(self.params.out + ".first", {"first": now})
-        if len(self.lat) < self.params.count:
+        self.seen += 1
+        if self.seen > self.params.warmup and len(self.lat) < self.params.count:
             self.lat.append(now - _stamp_of(frame))
             if len(self.lat) == self.params.count:
                 _write(self.params.out, {"lat": self.lat, "first": self.first})

@@ -10,16 +10,18 @@ sys.path.insert(0, os.path.dirname(__file__))
 from common import stamp_of, write
 
 count = int(os.environ.get("COUNT", "90"))
+warmup = int(os.environ.get("WARMUP", "15"))  # the first frames queue behind start-up
 out = os.environ["OUT"]
 node = Node()
-lat, first = [], None
+lat, first, seen = [], None, 0
 for event in node:
     if event["type"] == "INPUT":
         now = time.monotonic()
         if first is None:
             first = now
             write(out + ".first", {"first": now})
-        if len(lat) < count:
+        seen += 1
+        if seen > warmup and len(lat) < count:
             lat.append(now - stamp_of(event["value"]))
             if len(lat) == count:
                 write(out, {"lat": lat, "first": first})
