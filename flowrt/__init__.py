@@ -20,6 +20,8 @@ from .events import NodeSwapped as NodeSwapped
 from .events import TimingChanged as TimingChanged
 from .frames import Frame as Frame
 from .graph import Graph as Graph
+from .graph import resolve_path as resolve_path
+from .node import FatalError as FatalError
 from .node import Input as Input
 from .node import Node as Node
 from .node import NodeContext as NodeContext
@@ -51,6 +53,7 @@ __all__ = [
     "Diagnostic",
     "EdgeStats",
     "Event",
+    "FatalError",
     "Frame",
     "FrameTrigger",
     "Graph",
@@ -83,5 +86,6 @@ __all__ = [
     "TimingChanged",
     "VirtualClock",
     "parse_duration_ms",
+    "resolve_path",
     "run",
 ]

@@ -103,11 +103,13 @@ class TimingRequest(BaseModel):
     deadline: float | None = None
     priority: int | None = None
     enabled: bool | None = None
+    force: bool = False  # past admission control
 
 
 class ModeRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     mode: str
+    force: bool = False  # past admission control
 
 
 def jsonable(value: Any) -> Any:
@@ -244,7 +246,7 @@ class ControlServer:
     async def _mode(self, request: web.Request) -> web.Response:
         body = await _body(request, ModeRequest)
         try:
-            self.rt.set_mode(body.mode, origin="control")
+            self.rt.set_mode(body.mode, origin="control", force=body.force)
         except KeyError as e:
             return _error(404, str(e.args[0]))
         except ValueError as e:

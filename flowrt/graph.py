@@ -14,7 +14,7 @@ from math import gcd
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ValidationError, ValidationInfo
 
 from .diagnostics import Diagnostic, GraphError, Severity, closest, did_you_mean
 from .frames import Frame
@@ -33,6 +33,26 @@ from .spec import (
     Trigger,
     merge_params,
 )
+
+PARAMS_BASE_DIR = "base_dir"
+"""Key of the validation context that a node's params model is validated with: the graph
+file's directory (a ``Path``), or None for a graph built in Python."""
+
+
+def resolve_path(path: str, info: ValidationInfo) -> str:
+    """A path written in a node's params, made absolute the way users expect.
+
+    For use in a params model's validator (``info`` is pydantic's ``ValidationInfo``): a
+    relative path in a graph file resolves against the graph file's directory, so that a
+    graph runs the same from any working directory; in a graph built in Python (no graph
+    file) against the current directory, like ``open()``. ``~`` is expanded.
+    """
+    expanded = os.path.expanduser(path)
+    if os.path.isabs(expanded):
+        return expanded
+    context = info.context if isinstance(info.context, Mapping) else {}
+    base = context.get(PARAMS_BASE_DIR)
+    return os.path.abspath(os.path.join(base if base is not None else os.getcwd(), expanded))
 
 
 @dataclass(frozen=True)
@@ -75,14 +95,27 @@ class Graph:
     edges: list[Edge]
     warnings: list[Diagnostic] = field(default_factory=list)
     file: str = "<python>"
+    base_dir: Path | None = None  # the graph file's directory: where relative params resolve
+
+    def validate_params(self, cls: type[Node], data: Mapping[str, Any]) -> BaseModel:
+        """Validate params for ``cls`` as the graph file's own were (relative paths resolve
+        against its directory): for params changed at run time by a mode, a swap or the API."""
+        return cls.Params.model_validate(dict(data), context={PARAMS_BASE_DIR: self.base_dir})
 
     @classmethod
     def from_file(cls, path: str | Path, kinds: Mapping[str, type[Node]] | None = None) -> Graph:
-        return cls.from_text(read_graph_file(path), str(path), kinds)
+        """Load a graph file; relative paths in its params resolve against its directory."""
+        base_dir = Path(path).resolve().parent
+        return cls.from_text(read_graph_file(path), str(path), kinds, base_dir=base_dir)
 
     @classmethod
     def from_text(
-        cls, text: str, file: str = "<graph>", kinds: Mapping[str, type[Node]] | None = None
+        cls,
+        text: str,
+        file: str = "<graph>",
+        kinds: Mapping[str, type[Node]] | None = None,
+        *,
+        base_dir: Path | None = None,
     ) -> Graph:
         loaded = check_text(text, file)
         if loaded.spec is None:
@@ -94,6 +127,7 @@ class Graph:
             kinds,
             earlier=loaded.errors,
             invalid_nodes=loaded.invalid_nodes,
+            base_dir=base_dir,
         )
 
     def frame_port(self, source: str) -> str:
@@ -135,12 +169,14 @@ def resolve(
     *,
     earlier: Iterable[Diagnostic] = (),
     invalid_nodes: Collection[str] = (),
+    base_dir: Path | None = None,
 ) -> Graph:
     """Check everything that needs the node classes; raise GraphError with all problems.
 
     ``earlier`` are problems already found while loading, reported together with these;
     ``invalid_nodes`` were dropped from ``spec`` by then, so references to them are not
-    reported again as unknown nodes.
+    reported again as unknown nodes. ``base_dir`` is the graph file's directory, handed to
+    the params models as validation context (see :func:`resolve_path`).
     """
     locs = locs or Locations("<python>")
     diags: list[Diagnostic] = list(earlier)
@@ -162,7 +198,9 @@ def resolve(
             at(("nodes", name, "kind"), f"node kind {ns.kind!r}: import failed: {e!r}")
             continue
         try:
-            params[name] = classes[name].Params.model_validate(ns.params)
+            params[name] = classes[name].Params.model_validate(
+                ns.params, context={PARAMS_BASE_DIR: base_dir}
+            )
         except ValidationError as e:
             where = ("nodes", name, "params")
             diags.extend(pydantic_diagnostics(e, locs, where, classes[name].Params))
@@ -293,7 +331,7 @@ def resolve(
             if o.params and node in classes:
                 merged = merge_params(spec.nodes[node].params, o.params)
                 try:
-                    classes[node].Params.model_validate(merged)
+                    classes[node].Params.model_validate(merged, context={PARAMS_BASE_DIR: base_dir})
                 except ValidationError as e:
                     at_params = (*path, "params")
                     diags.extend(pydantic_diagnostics(e, locs, at_params, classes[node].Params))
@@ -311,7 +349,7 @@ def resolve(
         for i, (name, ns) in enumerate(spec.nodes.items())
         if name in classes and name in params and name in triggers
     }
-    graph = Graph(spec, resolved, edges, file=locs.file)
+    graph = Graph(spec, resolved, edges, file=locs.file, base_dir=base_dir)
     if not [d for d in diags if d.severity is Severity.error]:
         _check_deadlines(graph, at)
     diags.sort(key=lambda d: (d.line, d.column))

@@ -16,6 +16,12 @@ Lifecycle and timing contract
    An inline ``process`` runs on the event loop and must be short; the runtime reports
    calls that block the loop.
 4. ``teardown()`` runs once when the runtime stops or before a restart, even after errors.
+5. An exception from ``setup`` or ``process`` (or a hung or dead worker) is a failure: the
+   node is restarted, a fresh instance after a doubling back-off, and given up (state
+   ``failed``) after ``restart.max_failures`` failures in a row without a completed
+   activation (:mod:`flowrt.supervision`), or at once if it raises :class:`FatalError`. A
+   problem the node can wait out (a device gone) is better reported with ``ctx.set_error``
+   while it keeps running.
 """
 
 from __future__ import annotations
@@ -74,6 +80,18 @@ class Output(Generic[T]):
 
     def __repr__(self) -> str:
         return f"Output({getattr(self.type, '__name__', self.type)}, name={self.name!r})"
+
+
+class FatalError(Exception):
+    """Raise from ``setup`` or ``process`` when restarting the node cannot help (a device
+    that retried its bound and is gone, a configuration that cannot work): the node is given
+    up at once (state ``failed``, this message as the reason) instead of being restarted.
+
+    Supervision recognises any exception whose ``fatal`` attribute is true, in every
+    placement; this class is the ready-made one.
+    """
+
+    fatal = True
 
 
 class NoParams(BaseModel):

@@ -24,13 +24,13 @@ from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
 from .eventloop import run as run
-from .events import Event, HealthAlert, ModeChanged, NodeSwapped, RealtimeStatus
+from .events import Event, HealthAlert, ModeChanged, NodeGaveUp, NodeSwapped, RealtimeStatus
 from .frames import Frame
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
-from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement
-from .stats import FramePoolStats, LoopStats, Running, RuntimeStats
+from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement, TimingOverride
+from .stats import FramePoolStats, LoopStats, NodeStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
     from .control import ControlConfig, ControlServer
@@ -111,7 +111,12 @@ class Runtime:
         kinds: Mapping[str, type[Node]] | None = None,
         control: ControlConfig | str | None = None,
         spin: float = 0.0,
+        stop_on_failure: bool = False,
     ) -> None:
+        """``stop_on_failure``: a node given up by supervision (state ``failed``) ends ``run``
+        at once (``flowrt run`` does this unless ``--keep-going``); by default the rest of
+        the graph keeps running and the host program reads :meth:`failures`."""
+        self.stop_on_failure = stop_on_failure
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
         if clock is not None and spin:
             raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
@@ -370,6 +375,13 @@ class Runtime:
     def _emit(self, event: Event) -> None:
         self.events.append(event)
         self.event_count += 1
+        if isinstance(event, NodeGaveUp) and self.stop_on_failure:
+            log.info(
+                "node %s failed: stopping the run (--keep-going, or stop_on_failure=False, "
+                "keeps the rest of the graph running)",
+                event.node,
+            )
+            self.request_stop()
         if isinstance(event, HealthAlert):
             self._record("flowrt.alerts", event)
         for m in self.monitors:
@@ -498,6 +510,15 @@ class Runtime:
             events=self.event_count,
         )
 
+    def failures(self) -> list[NodeStats]:
+        """The nodes that failed: given up by supervision (state ``failed``) or in an error
+        state they reported (``ctx.set_error``: e.g. a source that cannot be opened or never
+        delivered a frame). Empty when the run went well; ``flowrt run`` exits 1 otherwise.
+        Valid during the run and after it (the verdict of the run's end)."""
+        if self._sched is None:
+            return []
+        return [n for n in self.stats().nodes if n.state in ("failed", "error")]
+
     def _frame_stats(self) -> list[FramePoolStats]:
         if self._frames is None or getattr(self._frames, "closed", False):
             return self._last_frame_stats
@@ -525,8 +546,25 @@ class Runtime:
         priority: int | None = None,
         enabled: bool | None = None,
         origin: str = "api",
+        force: bool = False,
     ) -> str:
-        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms."""
+        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
+
+        Admission control (:mod:`flowrt.analysis.admission`) refuses, with ValueError and
+        nothing applied, a change that would make a node with a deadline unschedulable,
+        unless ``force``. The overload controller's own steps (origin ``qos``) are not
+        checked: they act on measured load.
+        """
+        if not force and origin != "qos":
+            change = TimingOverride.model_construct(
+                period=period,
+                phase=phase,
+                timer=timer,
+                deadline=deadline,
+                priority=priority,
+                enabled=enabled,
+            )
+            self._admit({node: change})
         return self.scheduler.set_timing(
             node,
             period=period,
@@ -538,12 +576,13 @@ class Runtime:
             origin=origin,
         )
 
-    def set_mode(self, mode: str, origin: str = "api") -> None:
+    def set_mode(self, mode: str, origin: str = "api", force: bool = False) -> None:
         """Apply a named mode of the graph file: all of its overrides in one step.
 
         Overrides are relative to the graph's own timing: what the previous mode changed and
         this one does not is returned to the graph's values first (so an empty mode returns
-        to the graph's timing). Nothing else is touched.
+        to the graph's timing). Nothing else is touched. Admission control checks the whole
+        switch as one change (see :meth:`set_timing`), unless ``force``.
         """
         spec = self.graph.spec.modes.get(mode)
         if spec is None:
@@ -555,6 +594,8 @@ class Runtime:
         previous_spec = self.graph.spec.modes.get(self.mode) if self.mode else None
         plan = mode_plan(self.graph, previous_spec, spec)
         check_plan(self.scheduler.runners, plan)  # all or nothing
+        if not force and origin != "graph":  # the initial mode is the graph's own choice
+            self._admit(plan)
         for node, o in plan.items():
             self.set_timing(
                 node,
@@ -565,11 +606,19 @@ class Runtime:
                 priority=o.priority,
                 enabled=o.enabled,
                 origin=f"mode {mode}",
+                force=True,  # checked above as one change
             )
         self._apply_mode_params(previous_spec, spec)
         previous, self.mode = self.mode, mode
         self._emit(ModeChanged(self.now(), None, mode, previous, origin))
         self._record("flowrt.mode", mode)
+
+    def _admit(self, plan: Mapping[str, TimingOverride]) -> None:
+        """Raise ValueError (AdmissionRefused) if ``plan`` breaks a critical deadline."""
+        from .analysis.admission import check_change
+
+        if self._sched is not None:
+            check_change(self.graph, self.scheduler.runners, plan)
 
     async def swap(
         self,
@@ -607,7 +656,7 @@ class Runtime:
             if params is None and label == old_kind:
                 params = runner.rnode.params.model_dump()
             try:
-                model = cls.Params.model_validate(dict(params or {}))
+                model = self.graph.validate_params(cls, params or {})
             except ValidationError as e:
                 raise SwapError(f"{node}: params for {label}: {e}") from None
         await self._swap_to(runner, cls, model, label, origin)
@@ -655,7 +704,7 @@ class Runtime:
         current = runner.rnode.params.model_dump()
         target = merge_params(current, dict(params)) if merge else dict(params)
         try:
-            model = runner.rnode.cls.Params.model_validate(target)
+            model = self.graph.validate_params(runner.rnode.cls, target)
         except ValidationError as e:
             raise ValueError(f"{node}: params: {e}") from None
         runner.set_params(model)
@@ -680,7 +729,7 @@ class Runtime:
             base = self.graph.spec.nodes[name].params
             target = merge_params(base, o.params if o is not None else None)
             runner = self.scheduler.runners[name]
-            runner.set_params(runner.rnode.cls.Params.model_validate(target))
+            runner.set_params(self.graph.validate_params(runner.rnode.cls, target))
 
     def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
         from .diagnostics import did_you_mean

@@ -16,7 +16,6 @@ Activation semantics (the CAMBADA process manager):
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import inspect
 import logging
@@ -45,6 +44,7 @@ from .graph import Graph, ResolvedNode
 from .node import Node, NodeContext, NodeFactory, make_node
 from .spec import FrameTrigger, InputTrigger, LoopTrigger, MissPolicy, Placement, TimerTrigger
 from .stats import NodeStats, Running
+from .supervision import FailureLog, backoff_s, failure_kind, give_up_reason
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -244,8 +244,11 @@ class NodeRunner:
         self.task: asyncio.Task[None] | None = None
         self.blocked: list[tuple[LosslessBuffer, Any, float]] = []
         self.consecutive_failures = 0
+        self.failure_log = FailureLog(self.name)
+        self.failed_reason = ""  # why supervision gave the node up (state "failed")
         self.swaps = 0
-        self.idle_waiter: asyncio.Future[None] | None = None
+        self.idle_waiter: asyncio.Future[Executor] | None = None
+        self.pending_swap: Callable[[], Executor] | None = None
         self.error_reason: str | None = None  # set_error(): an error state the node reports
         self.error_reports = 0
         # pipelined calls (a worker node fed by queues): see _pump
@@ -481,6 +484,7 @@ class NodeRunner:
             and self.state in ("idle", "running")
             and not self.blocked
             and not self._draining
+            and self.pending_swap is None  # let the calls in flight finish: the swap is next
             and any(self.inputs[p].pending() for p in self.trigger_inputs)
         ):
             t_release = self.sched.clock.now()
@@ -681,8 +685,11 @@ class NodeRunner:
         self.busy = False
         if self.state == "running":
             self.state = "idle"
-        if self.idle_waiter is not None and not self.idle_waiter.done():
-            self.idle_waiter.set_result(None)  # a swap waits for this moment
+        if self.pending_swap is not None:  # a swap waits for this moment
+            take_over, self.pending_swap = self.pending_swap, None
+            old = take_over()
+            if self.idle_waiter is not None and not self.idle_waiter.done():
+                self.idle_waiter.set_result(old)
         if self.stopping:
             return
         if isinstance(self.rnode.trigger, LoopTrigger):
@@ -707,30 +714,35 @@ class NodeRunner:
     # --- supervision --------------------------------------------------------------------
 
     def _failed(self, exc: BaseException) -> None:
+        """Count, log (rate-limited), then restart after a back-off or give up: the one
+        supervision rule of :mod:`flowrt.supervision`."""
         self.errors += 1
         self.consecutive_failures += 1
-        tb = getattr(exc, "traceback", None) or "".join(traceback.format_exception(exc))
-        log.error("node %s failed: %s\n%s", self.name, exc, tb)
+        # A worker's error brings its own one-line summary and the worker's traceback (none
+        # for a dead worker): the main side's stack would only show the transport.
+        tb = getattr(exc, "traceback", None)
+        if not isinstance(tb, str):
+            tb = "".join(traceback.format_exception(exc))
+        error = getattr(exc, "summary", None) or f"{type(exc).__name__}: {exc}"
         now = self.sched.clock.now()
-        self.sched.emit(
-            NodeFailed(self.sched.rel(now), self.name, f"{type(exc).__name__}: {exc}", tb)
-        )
+        fatal = bool(getattr(exc, "fatal", False))
+        if not fatal:  # a fatal error is said once, below
+            self.failure_log.failed(now, error, tb)
+        self.sched.emit(NodeFailed(self.sched.rel(now), self.name, error, tb))
         self.busy = False
         policy = self.rnode.spec.restart
-        if policy.policy == "never" or (
-            policy.max_restarts is not None and self.restarts >= policy.max_restarts
-        ):
+        why = give_up_reason(policy, self.consecutive_failures, self.restarts, fatal)
+        if why is not None:
             self.state = "failed"
-            self.sched.emit(
-                NodeGaveUp(self.sched.rel(now), self.name, f"restart policy {policy.policy}")
-            )
+            last = failure_kind(error)
+            self.failed_reason = last if fatal else f"{why}; last error: {last}"
+            self.failure_log.flush(now)
+            log.error("node %s given up: %s", self.name, self.failed_reason)
+            self.sched.emit(NodeGaveUp(self.sched.rel(now), self.name, self.failed_reason))
             self.sched.loop.create_task(self._stop_executor())
             return
-        backoff = (
-            min(policy.backoff * 2 ** (self.consecutive_failures - 1), policy.max_backoff) / 1000
-        )
         self.state = "backoff"
-        self.sched.loop.create_task(self._restart(backoff))
+        self.sched.loop.create_task(self._restart(backoff_s(policy, self.consecutive_failures)))
 
     async def _stop_executor(self) -> None:
         try:
@@ -808,12 +820,27 @@ class NodeRunner:
             new = self.sched.worker_executor(self, factory)
         await new.start()  # raises: the old instance keeps running
         if self.busy:
-            self.idle_waiter = asyncio.get_running_loop().create_future()
-            with contextlib.suppress(TimeoutError):  # real time: a virtual clock may stand still
-                await asyncio.wait_for(self.idle_waiter, SWAP_WAIT)
-        if self.busy:
-            await new.stop()
-            raise TimeoutError(f"{self.name}: still running after {SWAP_WAIT:g} s; not swapped")
+            # Take over inside _idle, before a loop or input trigger can release again.
+            loop = asyncio.get_running_loop()
+            self.idle_waiter = loop.create_future()
+            self.pending_swap = lambda: self._take_over(new, rnode)
+            try:  # real time: a virtual clock may stand still
+                old = await asyncio.wait_for(self.idle_waiter, SWAP_WAIT)
+            except TimeoutError:
+                self.pending_swap = None
+                await new.stop()
+                raise TimeoutError(
+                    f"{self.name}: still running after {SWAP_WAIT:g} s; not swapped"
+                ) from None
+        else:
+            old = self._take_over(new, rnode)
+        try:
+            await old.stop()
+        except Exception as e:
+            log.warning("node %s: teardown of the replaced instance failed: %s", self.name, e)
+
+    def _take_over(self, new: Executor, rnode: ResolvedNode) -> Executor:
+        """The new instance replaces the old one (synchronously: between two activations)."""
         old_node, new_node = getattr(self.executor, "node", None), getattr(new, "node", None)
         getter, setter = getattr(old_node, "get_state", None), getattr(new_node, "set_state", None)
         if getter is not None and setter is not None:
@@ -823,10 +850,7 @@ class NodeRunner:
             self.state = "idle"
         self.consecutive_failures = 0
         self.swaps += 1
-        try:
-            await old.stop()
-        except Exception as e:
-            log.warning("node %s: teardown of the replaced instance failed: %s", self.name, e)
+        return old
 
     # --- statistics ---------------------------------------------------------------------
 
@@ -862,7 +886,7 @@ class NodeRunner:
                 if self.error_reason is not None and self.state != "failed"
                 else self.state
             ),
-            reason=self.error_reason or "",
+            reason=self.failed_reason if self.state == "failed" else self.error_reason or "",
             activations=self.activations,
             completions=self.completions,
             skipped=self.skipped,
@@ -1047,6 +1071,8 @@ class Scheduler:
                 log.warning("node %s: teardown failed: %s", r.name, e)
         for buf in self.buffers:
             buf.clear()
+        for r in self.runners.values():
+            r.failure_log.flush(self.clock.now())
 
     # --- run-time changes ---------------------------------------------------------------
 

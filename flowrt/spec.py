@@ -7,6 +7,7 @@ sources) live in :mod:`flowrt.graph`.
 
 from __future__ import annotations
 
+import math
 import re
 from enum import StrEnum
 from typing import Annotated, Any, Literal
@@ -168,6 +169,12 @@ class RestartPolicy(_Strict):
     backoff: DurationMs = 100.0
     max_backoff: DurationMs = 5000.0
     max_restarts: int | None = None
+    max_failures: int | None = Field(
+        default=10,
+        ge=1,
+        description="consecutive failures without a completed activation in between (a crash "
+        "loop) after which the node is given up and marked failed; null: never give up",
+    )
 
 
 class NodeSpec(_Strict):
@@ -198,6 +205,10 @@ class NodeSpec(_Strict):
         description="activations in flight to its worker when its trigger inputs are queues "
         "(default 4; 1: one call at a time); latest inputs always have one",
     )
+    wcet: DurationMs | None = Field(
+        default=None,
+        description="execution-time budget (worst case) for flowrt check and admission control",
+    )
 
     @field_validator("trigger", mode="before")
     @classmethod
@@ -213,6 +224,13 @@ class NodeSpec(_Strict):
     def _positive(cls, v: float | None) -> float | None:
         if v is not None and v <= 0:
             raise ValueError(f"must be positive, got {v:g} ms")
+        return v
+
+    @field_validator("wcet")
+    @classmethod
+    def _wcet_finite(cls, v: float | None) -> float | None:
+        if v is not None and not (math.isfinite(v) and v > 0):
+            raise ValueError(f"must be a finite positive duration, got {v:g} ms")
         return v
 
     @field_validator("spin")

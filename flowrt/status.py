@@ -314,7 +314,7 @@ def _describe(ev: Event) -> str:
         return f"deadline {ev.deadline_ms:g} ms" + (" (still running)" if ev.still_running else "")
     if isinstance(ev, LoopBlocked):
         return f"blocked the loop {ev.duration_ms:.1f} ms"
-    for attr in ("change", "mode", "alert", "granted", "detail"):
+    for attr in ("change", "mode", "alert", "granted", "detail", "reason"):
         if hasattr(ev, attr):
             return str(getattr(ev, attr))
     return ""

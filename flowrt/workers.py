@@ -43,6 +43,7 @@ import multiprocessing
 import multiprocessing.context
 import os
 import pickle
+import re
 import select
 import signal
 import socket
@@ -94,6 +95,7 @@ _OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
 # worker has read (0, 1, 2, ...), so that the main side matches each reply to its call.
 _R_OK = 0  # (status, payload, run_seconds, index)
 _R_ERR = 1  # (status, formatted traceback, run_seconds, index)
+_R_FATAL = 2  # as _R_ERR, from an exception whose ``fatal`` is true: do not restart
 
 _SIGNALS_KILLED = {signal.SIGKILL, signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
 
@@ -108,17 +110,43 @@ class WorkerError(RuntimeError):
     - ``killed``: the worker was killed from outside (SIGKILL, SIGTERM, the OOM killer).
     - ``hung``: a call exceeded its watchdog; the worker was SIGKILLed at that instant.
 
-    After any kind, ``await executor.start()`` gives the node a fresh instance.
+    After any kind, ``await executor.start()`` gives the node a fresh instance. ``fatal``
+    says that it cannot help (the worker cannot load the node at all): the supervisor gives
+    the node up at once instead of restarting it.
     """
 
     def __init__(
-        self, node: str, kind: WorkerKind, detail: str, exitcode: int | None = None
+        self,
+        node: str,
+        kind: WorkerKind,
+        detail: str,
+        exitcode: int | None = None,
+        *,
+        fatal: bool = False,
     ) -> None:
         super().__init__(f"{node}: worker {kind}: {detail}")
         self.node = node
         self.kind: WorkerKind = kind
         self.detail = detail
         self.exitcode = exitcode
+        self.fatal = fatal
+
+    @property
+    def summary(self) -> str:
+        """One line for logs and reasons: the node's own exception, or what became of the
+        worker (the supervisor shows this instead of the main side's stack)."""
+        if self.kind == "exception":
+            lines = [ln for ln in self.detail.strip().splitlines() if ln.strip()]
+            # "pkg.mod.Error: text" -> "Error: text", as an inline node's failure reads
+            return re.sub(r"^[\w.]+\.(\w+:)", r"\1", lines[-1].strip()) if lines else "exception"
+        if self.fatal:
+            return self.detail
+        return f"worker {self.kind}: {self.detail}"
+
+    @property
+    def traceback(self) -> str:
+        """The worker's traceback for an exception; nothing for a death (no stack to show)."""
+        return self.detail if self.kind == "exception" else ""
 
 
 # --------------------------------------------------------------------------------------------
@@ -144,6 +172,54 @@ def _context() -> multiprocessing.context.ForkServerContext:
 # Process names of workers that must not re-import the main script (see _install_prepare_hook).
 _NO_MAIN = "flowrt:"
 _WITH_MAIN = "flowrt+main:"
+# Exit code of a worker whose import of the main script started a flowrt runtime again.
+_EXIT_MAIN_UNGUARDED = 78
+_importing_main = False  # in a worker: re-running the main script to find the node's class
+
+
+def _exit_if_importing_main() -> None:
+    """Where a runtime would start worker processes: refuse inside a worker's import of the
+    main script, at once and quietly (the parent explains, from the exit code).
+
+    Reaching this there means the script starts a runtime at import: it has no
+    ``if __name__ == "__main__":`` guard. Letting it go on would start a runtime inside each
+    worker, whose workers would do the same (multiprocessing stops that with a traceback in
+    every attempt, and the node would crash-loop).
+    """
+    if _importing_main:
+        os._exit(_EXIT_MAIN_UNGUARDED)
+
+
+def _check_main_importable(node: str, factory: Any) -> bool:
+    """True if the factory needs the main module; fatal if a worker could never import it.
+
+    A class defined in ``python -c``, on stdin or in a notebook lives in a ``__main__`` that
+    no other process can import: every start would fail the same way.
+    """
+    if not _needs_main(factory):
+        return False
+    main = sys.modules.get("__main__")
+    if getattr(main, "__file__", None) is None and getattr(main, "__spec__", None) is None:
+        raise WorkerError(
+            node,
+            "crashed",
+            "its node class is defined in an interactive session (python -c, stdin, a "
+            "notebook), which a worker process cannot import: define the class in a module "
+            "or a script file, or use placement: inline",
+            fatal=True,
+        )
+    return True
+
+
+def _unguarded_main_message() -> str:
+    main = sys.modules.get("__main__")
+    script = getattr(main, "__file__", None) or "the main script"
+    return (
+        f"its node class is defined in {script}, which starts a flowrt runtime "
+        "again when a worker process imports it to load the class: put the code that starts "
+        'the runtime under `if __name__ == "__main__":` (or define the node class in a module '
+        "of its own)"
+    )
 
 
 def _install_prepare_hook() -> None:
@@ -163,13 +239,18 @@ def _install_prepare_hook() -> None:
         return
 
     def prepare(data: Mapping[str, Any]) -> None:
+        global _importing_main
         if str(data.get("name", "")).startswith(_NO_MAIN):
             data = {
                 k: v
                 for k, v in data.items()
                 if k not in ("init_main_from_path", "init_main_from_name")
             }
-        original(data)
+        _importing_main = True
+        try:
+            original(data)
+        finally:
+            _importing_main = False
 
     prepare._flowrt = True  # type: ignore[attr-defined]
     spawn.prepare = prepare
@@ -194,6 +275,7 @@ def start_forkserver() -> None:
     """
     from multiprocessing import forkserver
 
+    _exit_if_importing_main()
     _context()
     forkserver.ensure_running()
 
@@ -399,8 +481,9 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
                 break
             else:
                 raise ValueError(f"unknown request {op!r}")
-        except Exception:
-            _reply(conn, _R_ERR, traceback.format_exc(), time.perf_counter() - t0, index)
+        except Exception as e:
+            status = _R_FATAL if getattr(e, "fatal", False) is True else _R_ERR
+            _reply(conn, status, traceback.format_exc(), time.perf_counter() - t0, index)
         else:
             _reply(conn, _R_OK, result, time.perf_counter() - t0, index)
     if loop is not None:
@@ -487,6 +570,7 @@ class _Worker:
         self.last_run_time = 0.0
 
     async def spawn(self) -> None:
+        _exit_if_importing_main()
         loop = asyncio.get_running_loop()
         self._loop = loop
         ctx = _context()
@@ -608,7 +692,8 @@ class _Worker:
             if status == _R_OK:
                 fut.set_result(payload)
             else:
-                fut.set_exception(WorkerError(call.node, "exception", payload))
+                fatal = status == _R_FATAL
+                fut.set_exception(WorkerError(call.node, "exception", payload, fatal=fatal))
         self._dispatch_next()
 
     # -- failure -----------------------------------------------------------------------------
@@ -674,6 +759,10 @@ class _Worker:
                 signame = f"signal {-exitcode}"
             kind: WorkerKind = "killed" if -exitcode in _SIGNALS_KILLED else "crashed"
             return WorkerError(self.name, kind, f"worker {self.pid} died of {signame}", exitcode)
+        if exitcode == _EXIT_MAIN_UNGUARDED and self.import_main:
+            return WorkerError(
+                self.name, "crashed", _unguarded_main_message(), exitcode, fatal=True
+            )
         return WorkerError(
             self.name, "crashed", f"worker {self.pid} exited with code {exitcode}", exitcode
         )
@@ -687,7 +776,7 @@ class _Worker:
             return WorkerError(
                 node, "crashed", f"worker shared with {d.node}, which hung: {d.detail}", d.exitcode
             )
-        return WorkerError(node, d.kind, d.detail, d.exitcode)
+        return WorkerError(node, d.kind, d.detail, d.exitcode, fatal=d.fatal)
 
     @property
     def usable(self) -> bool:
@@ -886,7 +975,7 @@ class ProcessExecutor(_NodeExecutor):
         if w is None or not w.usable:
             if w is not None:
                 await w.wait_exit()  # a killed worker: let it go before its successor starts
-            w = _Worker(self.name, import_main=_needs_main(self.factory))
+            w = _Worker(self.name, import_main=_check_main_importable(self.name, self.factory))
             await w.spawn()
         await self._add_to(w)
 
@@ -999,9 +1088,8 @@ class PoolNodeExecutor(_NodeExecutor):
 
     async def start(self) -> None:
         """Make sure this node's worker runs, then (re)create the node in it."""
-        await self._add_to(
-            await self.pool._worker(self.index, import_main=_needs_main(self.factory))
-        )
+        import_main = _check_main_importable(self.name, self.factory)
+        await self._add_to(await self.pool._worker(self.index, import_main=import_main))
 
     async def stop(self, grace: float = 2.0) -> None:
         """Tear this node down in its worker (the worker stays for the pool's other nodes)."""

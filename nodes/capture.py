@@ -13,7 +13,9 @@ Sources (``source`` param)
     An OpenCV capture device. ``size`` and ``fps`` are requested from the device (and ``size``
     enforced by resizing). The device paces itself: the node free-runs and waits for frames.
 ``file:PATH`` or a bare path (or an ``rtsp://``/``http://`` URL)
-    Anything OpenCV/FFmpeg decodes. ``on_eof``: ``stop`` (an ``end-of-stream`` info event,
+    Anything OpenCV/FFmpeg decodes. A relative path in a graph file resolves against the
+    graph file's directory (:func:`flowrt.resolve_path`); a file that does not exist is a
+    validation error located at ``source``. ``on_eof``: ``stop`` (an ``end-of-stream`` info event,
     then no more frames), ``loop`` (start over, seamlessly) or ``exit`` (as ``stop``, then the
     runtime is asked to stop: a recording played through a graph).
 ``images:GLOB`` or a bare path with ``*``/``?``/``[``
@@ -44,10 +46,18 @@ driver call can never race a release); an activation waits for the next frame at
 A failed open or read (missing file, corrupt or unreadable video, no such camera, a glob that
 matches nothing) emits ``source-error`` and is retried with the same backoff, so it shows up
 as an event every backoff interval until the source becomes readable; ``max_retries`` bounds
-that (then ``source-gave-up``, severity error, and the node stays idle). When frames flow
+that (then ``source-gave-up``, severity error, and the node is failed for good: a
+:class:`flowrt.FatalError`, so ``flowrt run`` stops unless ``--keep-going``). When frames flow
 again after a problem, a ``source-recovered`` info event follows. The first frame after an
 open gets ``open_timeout`` rather than ``grab_timeout``. Every alert is also logged, once per
 distinct problem.
+
+Meanwhile the node is in an error state (``ctx.set_error``: red in the table, the reason in
+the statistics, a ``node-error`` alert), left when frames flow again. A source that never
+delivered a frame is left in the error state at teardown ("never delivered a frame", with the
+count of failed attempts and the last error), so the run's verdict (``Runtime.failures()``,
+the exit code of ``flowrt run``) says it failed. What OpenCV, V4L2 and FFmpeg print on stderr
+while a device opens goes to the node's log (each kind of line once at INFO, then DEBUG).
 """
 
 from __future__ import annotations
@@ -58,9 +68,11 @@ import glob
 import math
 import os
 import re
+import sys
+import tempfile
 import threading
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Annotated, Any, Literal
 
 import cv2
@@ -75,7 +87,16 @@ from pydantic import (
 )
 from pydantic.functional_validators import BeforeValidator
 
-from flowrt import Frame, HealthAlert, LoopTrigger, Node, Output, TimerTrigger
+from flowrt import (
+    FatalError,
+    Frame,
+    HealthAlert,
+    LoopTrigger,
+    Node,
+    Output,
+    TimerTrigger,
+    resolve_path,
+)
 
 __all__ = [
     "INPUT_FORMATS",
@@ -195,6 +216,13 @@ def parse_source(source: str) -> tuple[SourceKind, str | int]:
     return "file", s
 
 
+def _relative_hint(info: ValidationInfo) -> str:
+    ctx = info.context if isinstance(info.context, dict) else {}
+    if ctx.get("base_dir") is not None:
+        return f" (a relative path resolves against the graph file's directory, {ctx['base_dir']})"
+    return f" (a relative path resolves against the current directory, {os.getcwd()})"
+
+
 class CaptureParams(BaseModel):
     """Params of the ``capture`` node (see the module documentation)."""
 
@@ -230,9 +258,23 @@ class CaptureParams(BaseModel):
 
     @field_validator("source")
     @classmethod
-    def _check_source(cls, v: str) -> str:
-        parse_source(v)
-        return v
+    def _check_source(cls, v: str, info: ValidationInfo) -> str:
+        """A ``file:`` that is not there is a graph error, located at this param; file and
+        image paths become absolute (relative ones resolve against the graph file's
+        directory), so the graph runs the same from any working directory."""
+        kind, target = parse_source(v)
+        if kind not in ("file", "images") or not isinstance(target, str) or "://" in target:
+            return v
+        path = resolve_path(target, info)
+        if kind == "file":
+            if not os.path.exists(path):
+                where = "" if os.path.isabs(os.path.expanduser(target)) else _relative_hint(info)
+                raise ValueError(f"video file not found: {path}{where}")
+            if os.path.isdir(path):
+                raise ValueError(
+                    f"{path} is a directory, not a video file (for images use images:GLOB)"
+                )
+        return f"{kind}:{path}"
 
     @field_validator("size")
     @classmethod
@@ -512,7 +554,72 @@ class _ImageDevice(_Device):
         return None
 
 
-_FRAME, _EOF, _ERROR, _ALERT = "frame", "eof", "error", "alert"
+_FRAME, _EOF, _ERROR, _ALERT, _LOG = "frame", "eof", "error", "alert", "log"
+
+_STDERR_LOCK = threading.Lock()  # fd 2 is the process's: one redirection at a time
+_REDIRECT_MAX = 3.0  # seconds: fd 2 is given back then even if the open has not returned
+# What differs between two lines saying the same: OpenCV's "[ WARN:3@0.618]" prefix
+# (thread and time) and FFmpeg's "@ 0x55d0..." context addresses.
+_NOISE = re.compile(r"^\[\s*\w+:\d+@[\d.]+\]\s*|0x[0-9a-fA-F]+")
+
+
+class _Redirect:
+    """fd 2 pointed at a temporary file; given back exactly once: when the open returns, or
+    after ``_REDIRECT_MAX`` by a timer if the driver hangs in it (a hung open must not keep
+    the process's stderr, nor the other sources' opens, forever)."""
+
+    def __init__(self) -> None:
+        self._mutex = threading.Lock()
+        self._restored = False
+        self.tmp = tempfile.TemporaryFile()  # noqa: SIM115 (closed in close())
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()
+        self.saved = os.dup(2)
+        os.dup2(self.tmp.fileno(), 2)
+        self.timer = threading.Timer(_REDIRECT_MAX, self.restore)
+        self.timer.daemon = True
+        self.timer.start()
+
+    def restore(self) -> None:
+        with self._mutex:
+            if self._restored:
+                return
+            self._restored = True
+            os.dup2(self.saved, 2)
+            os.close(self.saved)
+            _STDERR_LOCK.release()
+
+    def close(self) -> list[str]:
+        self.timer.cancel()
+        self.restore()
+        self.tmp.seek(0)
+        text = self.tmp.read().decode(errors="replace")
+        self.tmp.close()
+        return [line.rstrip() for line in text.splitlines() if line.strip()]
+
+
+@contextlib.contextmanager
+def _native_stderr(lines: list[str]) -> Iterator[None]:
+    """Collect what C libraries (OpenCV, V4L2, FFmpeg) print on file descriptor 2 meanwhile.
+
+    OpenCV and FFmpeg write their warnings straight to fd 2, past Python's logging, so they
+    would land raw between the lines of the status table. Around a device open (where they
+    say why it failed) fd 2 is pointed at a temporary file, and the lines go to the node's
+    log instead. Whatever another thread writes to stderr in that window (milliseconds; at
+    most ``_REDIRECT_MAX``) is logged there too, not lost. Should another source be opening
+    for longer than that, this open is not redirected rather than waited for.
+    """
+    redirect: _Redirect | None = None
+    if _STDERR_LOCK.acquire(timeout=_REDIRECT_MAX):
+        try:
+            redirect = _Redirect()
+        except OSError:
+            _STDERR_LOCK.release()
+    try:
+        yield
+    finally:
+        if redirect is not None:
+            lines.extend(redirect.close())
 
 
 class _Reader:
@@ -578,10 +685,19 @@ class _Reader:
                 self._cond.wait()
             return not self._stop
 
+    def _open(self, start: int) -> _Device:
+        lines: list[str] = []
+        try:
+            with _native_stderr(lines):
+                return self._opener(self._alert, start)
+        finally:
+            if lines:
+                self._push(_LOG, lines)
+
     def _run(self) -> None:
         dev: _Device | None = None
         try:
-            dev = self._opener(self._alert, self._start)
+            dev = self._open(self._start)
             while self._room():
                 img = dev.read()
                 if img is None:
@@ -590,7 +706,7 @@ class _Reader:
                         return
                     dev.release()
                     dev = None
-                    dev = self._opener(self._alert, 0)
+                    dev = self._open(0)
                     continue
                 self._push(_FRAME, (img, dev.dims, dev.position))
         except SourceError as e:
@@ -685,6 +801,9 @@ class Capture(Node):
         self._retry_at = 0.0
         self._backoff = p.backoff / 1000
         self._failures = 0  # consecutive failed (re)opens
+        self.reopens = 0  # failed opens and reads in all: each one is followed by a reopen
+        self._last_error = ""
+        self._native_seen: set[str] = set()
         self._troubled = False  # a problem was reported and frames have not flowed since
         self._ended = False  # end of stream with on_eof: stop, or gave up
         self._last_problem = ("", "")
@@ -698,6 +817,16 @@ class Capture(Node):
             self._scene = SoccerScene(w, h, seed=p.seed, clutter=p.clutter, fps=p.fps)
 
     async def teardown(self) -> None:
+        if self._scene is None and self._seq == 0:  # the run's verdict: this source failed
+            p: CaptureParams = self.params
+            why = (
+                f" ({self.reopens} attempt{'' if self.reopens == 1 else 's'} failed; "
+                f"last error: {self._last_error})"
+                if self.reopens
+                else ""
+            )
+            with contextlib.suppress(RuntimeError):
+                self.ctx.set_error(f"{p.source}: never delivered a frame{why}")
         readers = [*self._abandoned, *([self._reader] if self._reader else [])]
         self._reader = None
         self._abandoned = []
@@ -757,6 +886,16 @@ class Capture(Node):
             log("%s: %s: %s%s", self.ctx.name, alert, detail, note)
         self._last_problem = (alert, detail)
 
+    def _native_log(self, lines: list[str]) -> None:
+        """OpenCV's and FFmpeg's own messages: in this node's log, each kind once at INFO."""
+        for line in lines:
+            key = _NOISE.sub("", line)
+            first = key not in self._native_seen
+            if first and len(self._native_seen) < 256:
+                self._native_seen.add(key)
+            log = self.ctx.log.info if first else self.ctx.log.debug
+            log("%s: opencv: %s", self.ctx.name, line)
+
     def _open(self) -> _Reader:
         p: CaptureParams = self.params
         kind, target = self._kind, self._target
@@ -791,14 +930,28 @@ class Capture(Node):
         self._drop_reader()
         self._troubled = True
         self._failures += 1
+        self.reopens += 1
+        self._last_error = detail
         if p.max_retries is not None and self._failures > p.max_retries:
             self._alert(alert, detail, "error")
             self._alert(
                 "source-gave-up", f"{self._failures} consecutive failures; no more retries", "error"
             )
             self._ended = True
-            return
-        self._alert(alert, detail, "error", f"; reopening in {self._backoff * 1000:.0f} ms")
+        else:
+            self._alert(
+                alert,
+                detail,
+                "error",
+                f"; reopening in {self._backoff * 1000:.0f} ms (attempt {self.reopens + 1})",
+            )
+        with contextlib.suppress(RuntimeError):  # red in the table, with the reason
+            self.ctx.set_error(detail)
+        if self._ended:  # retries exhausted: the node is failed for good (supervision)
+            raise FatalError(
+                f"{p.source}: {self._failures} consecutive failures, max_retries "
+                f"{p.max_retries} exhausted; last error: {detail}"
+            )
         self._retry_at = self.ctx.now() + self._backoff
         self._backoff = min(self._backoff * 2, max(p.max_backoff, p.backoff) / 1000)
 
@@ -863,6 +1016,9 @@ class Capture(Node):
             if kind == _ALERT:
                 self._alert(*value)
                 continue
+            if kind == _LOG:
+                self._native_log(value)
+                continue
             if kind == _ERROR:
                 self._failed("source-error", value)
                 return None
@@ -884,6 +1040,10 @@ class Capture(Node):
         except SourceError as e:
             self._failed("source-error", str(e))
             return None
+        if self._troubled or frame.seq == 0:  # (the first frame also clears an error left
+            # by a previous instance: a swap or restart after "never delivered a frame")
+            with contextlib.suppress(RuntimeError):
+                self.ctx.clear_error()
         if self._troubled:
             self._troubled = False
             self._alert("source-recovered", f"{p.source}: frames flowing again", "info")

@@ -8,6 +8,8 @@ from __future__ import annotations
 import asyncio
 import hashlib
 import itertools
+import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -75,12 +77,23 @@ class Run:
         self.events = events
         self.stats = stats
         self.truths = truths
+        self.verdict: list[tuple[str, str, str]] = []
 
     def alerts(self, name: str | None = None) -> list[HealthAlert]:
+        """The source's own alerts (all but the node-state ones), or those named ``name``."""
         return [
             e
             for e in self.events
-            if isinstance(e, HealthAlert) and (name is None or e.alert == name)
+            if isinstance(e, HealthAlert)
+            and (e.alert == name if name else e.alert not in NODE_STATE_ALERTS)
+        ]
+
+    def node_states(self) -> list[str]:
+        """The node's error-state changes (ctx.set_error / clear_error), in order."""
+        return [
+            e.alert
+            for e in self.events
+            if isinstance(e, HealthAlert) and e.alert in NODE_STATE_ALERTS
         ]
 
     def problems(self) -> list[str]:
@@ -97,6 +110,9 @@ class Run:
         return [e for e in self.events if isinstance(e, NodeFailed)]
 
 
+NODE_STATE_ALERTS = ("node-error", "node-recovered")
+
+
 async def run_capture(
     params: dict[str, Any],
     seconds: float,
@@ -104,8 +120,12 @@ async def run_capture(
     keep: int = 0,
     extra: Callable[[flowrt.GraphBuilder], None] | None = None,
     until: Callable[[Run], bool] | None = None,
+    built: Callable[[], None] | None = None,
 ) -> Run:
-    """Run a capture node ``cam`` with a recorder for ``seconds`` (or until ``until``)."""
+    """Run a capture node ``cam`` with a recorder for ``seconds`` (or until ``until``).
+
+    ``built`` runs between validation and the run: e.g. to remove a file that validation
+    saw, so that the run-time path of a missing source is what is tested."""
     key = f"rec{id(params)}-{len(Recorder.store)}"
     g = flowrt.GraphBuilder("capture-test")
     g.add("cam", "capture", params=params)
@@ -119,6 +139,8 @@ async def run_capture(
     if extra:
         extra(g)
     rt = flowrt.Runtime(g.build())
+    if built is not None:
+        built()
     events: list[Any] = []
     rt.on_event(events.append)
     truths: list[Any] = []
@@ -132,7 +154,9 @@ async def run_capture(
                 break
         stats = rt.stats()
         truths.extend(sub.drain())
-    return Run(Recorder.store.pop(key, []), events, stats, truths)
+    run = Run(Recorder.store.pop(key, []), events, stats, truths)
+    run.verdict = [(n.name, n.state, n.reason) for n in rt.failures()]  # after teardown
+    return run
 
 
 def _assert_quiet_failure(run: Run) -> None:
@@ -193,7 +217,8 @@ def test_default_trigger() -> None:
     assert isinstance(Capture.default_trigger(CaptureParams(source="camera:0")), LoopTrigger)
 
 
-def test_unsupported_pixel_format_is_a_located_load_error() -> None:
+def test_unsupported_pixel_format_is_a_located_load_error(tmp_path: Path) -> None:
+    (tmp_path / "clip.avi").write_bytes(b"")  # exists: only its pixel format is wrong
     text = """\
 nodes:
   cam:
@@ -205,7 +230,7 @@ nodes:
     params: {source: "clip.avi", input_format: NV12}
 """
     with pytest.raises(flowrt.GraphError) as info:
-        flowrt.Graph.from_text(text, "bad.yaml")
+        flowrt.Graph.from_text(text, "bad.yaml", base_dir=tmp_path)
     msg = str(info.value)
     assert (
         "bad.yaml:5:7: error: nodes.cam.params.pixel_format: Input should be 'BGR', 'RGB' or 'GRAY'"
@@ -504,16 +529,45 @@ async def test_bad_sources_raise_health_events(tmp_path: Path, source: str, deta
         g.add("tick", "counter", trigger={"timer": "20ms"})
 
     src = source.format(tmp=tmp_path)
+    vanish: Callable[[], None] | None = None
+    # Validation refuses a missing file or a directory; at run time it happens when the file
+    # goes away after validation (an unmounted disk): created for validation, then removed.
+    target = tmp_path / "missing.avi"
+    if detail == "video file not found":
+        target.write_bytes(b"")
+        vanish = target.unlink
+    elif detail == "is a directory":
+        src = str(target)
+        target.write_bytes(b"")
+
+        def vanish() -> None:
+            target.unlink()
+            target.mkdir()
+
     run = await run_capture(
-        {"source": src, "backoff": "50ms", "max_backoff": "100ms"}, 0.6, extra=counter
+        {"source": src, "backoff": "50ms", "max_backoff": "100ms"},
+        0.6,
+        extra=counter,
+        built=vanish,
     )
     _assert_quiet_failure(run)
     errors = run.alerts("source-error")
     assert len(errors) >= 3  # reopened with backoff, again and again
     assert all(detail in e.detail and e.node == "cam" and e.severity == "error" for e in errors)
-    assert "reopening in 50 ms" in errors[0].detail
-    assert "reopening in 100 ms" in errors[1].detail
+    assert "reopening in 50 ms (attempt 2)" in errors[0].detail
+    assert "reopening in 100 ms (attempt 3)" in errors[1].detail
     assert run.stats.node("tick").completions >= 15  # the runtime kept running
+    # The node is in an error state with the reason (red in the table), once, and the run's
+    # verdict is a failure: it never delivered a frame.
+    cam = run.stats.node("cam")
+    assert cam.state == "error"
+    assert detail in cam.reason
+    # once when it failed (the same reason each time after), once at the end with the verdict
+    assert run.node_states() == ["node-error", "node-error"]
+    [(name, state, reason)] = run.verdict
+    assert (name, state) == ("cam", "error")
+    assert "never delivered a frame" in reason
+    assert f"attempts failed; last error: {errors[0].detail.split(';')[0]}" in reason
 
 
 def _truncated_sample(tmp_path: Path) -> Path | None:
@@ -555,15 +609,17 @@ async def test_corrupt_and_truncated_videos(tmp_path: Path) -> None:
 
 
 async def test_max_retries_gives_up(tmp_path: Path) -> None:
-    params = {
-        "source": str(tmp_path / "nope.avi"),
-        "backoff": "20ms",
-        "max_retries": 2,
-        "pacing": "fast",
-    }
-    run = await run_capture(params, 0.5)
-    _assert_quiet_failure(run)
+    nope = tmp_path / "nope.avi"
+    nope.write_bytes(b"")
+    params = {"source": str(nope), "backoff": "20ms", "max_retries": 2, "pacing": "fast"}
+    run = await run_capture(params, 0.5, built=nope.unlink)
     assert [a.alert for a in run.alerts()] == ["source-error"] * 3 + ["source-gave-up"]
+    assert run.rows == []
+    # retries exhausted: failed for good, said once (no traceback), not restarted
+    cam = run.stats.node("cam")
+    assert (cam.state, cam.errors, cam.restarts) == ("failed", 1, 0)
+    assert "3 consecutive failures, max_retries 2 exhausted; last error: video file" in cam.reason
+    assert [f.error.split(":")[0] for f in run.failures] == ["FatalError"]
 
 
 async def test_slow_file_is_reported_then_resumed(
@@ -671,8 +727,11 @@ async def test_stalled_camera_is_reopened(monkeypatch: pytest.MonkeyPatch) -> No
     # The first camera hung for good: teardown left its thread behind, bounded, and said so.
     assert not run.failures
     assert [a.alert for a in run.alerts()][:2] == ["grab-timeout", "source-recovered"]
+    assert run.node_states()[:2] == ["node-error", "node-recovered"]  # red, then no more
+    assert run.stats.node("cam").state != "error"
+    assert run.verdict == []
     timeout = run.alerts("grab-timeout")[0]
-    assert timeout.detail == "no frame from camera:0 within 50 ms; reopening in 30 ms"
+    assert timeout.detail == "no frame from camera:0 within 50 ms; reopening in 30 ms (attempt 2)"
     assert len(FakeCamera.instances) >= 2
     cam = FakeCamera.instances[0]
     assert cam.props[cv2.CAP_PROP_FOURCC] == cv2.VideoWriter.fourcc(*"YUYV")
@@ -687,3 +746,61 @@ async def test_stalled_camera_is_reopened(monkeypatch: pytest.MonkeyPatch) -> No
     missing = await run_capture({"source": "camera:3", "backoff": "50ms"}, 0.3)
     _assert_quiet_failure(missing)
     assert missing.alerts("source-error")[0].detail.startswith("cannot open camera 3")
+
+
+@pytest.mark.parametrize(
+    ("source", "said"),
+    [("camera:99", "camera by index"), ("{tmp}/garbage.mp4", "moov atom not found")],
+)
+async def test_opencv_messages_go_to_the_node_log(
+    tmp_path: Path,
+    source: str,
+    said: str,
+    capfd: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """What OpenCV, V4L2 and FFmpeg print on fd 2 while a device opens: in the node's log
+    (each kind of line once at INFO), never raw on the terminal."""
+    (tmp_path / "garbage.mp4").write_bytes(b"\0" * 4000)
+    caplog.set_level(logging.DEBUG, logger="flowrt")
+    run = await run_capture({"source": source.format(tmp=tmp_path), "backoff": "30ms"}, 0.4)
+    assert len(run.alerts("source-error")) >= 2
+    _, err = capfd.readouterr()
+    assert said not in err
+    logged = [r for r in caplog.records if r.name == "flowrt.node.cam" and said in r.getMessage()]
+    assert logged, [r.getMessage() for r in caplog.records]
+    assert logged[0].getMessage().startswith("cam: opencv: ")
+    assert [r.levelno for r in logged][:2] == [logging.INFO, logging.DEBUG]  # then quieter
+
+
+def test_a_hung_open_gives_stderr_back(
+    monkeypatch: pytest.MonkeyPatch, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """A driver stuck in its open must not keep the process's stderr (nor the other sources'
+    opens) for good: fd 2 comes back after the bound, and the stuck open's lines are still
+    collected when it returns."""
+    monkeypatch.setattr(capture_mod, "_REDIRECT_MAX", 0.2)
+    release, inside = threading.Event(), threading.Event()
+    lines: list[str] = []
+
+    def stuck_open() -> None:
+        with capture_mod._native_stderr(lines):
+            os.write(2, b"said while opening\n")
+            inside.set()
+            release.wait(10)
+
+    t = threading.Thread(target=stuck_open)
+    t.start()
+    try:
+        assert inside.wait(10)
+        # the lock is free again once fd 2 was given back (a bound, not a timing threshold)
+        assert capture_mod._STDERR_LOCK.acquire(timeout=10)
+        capture_mod._STDERR_LOCK.release()
+        os.write(2, b"said after the bound\n")
+    finally:
+        release.set()
+        t.join(10)
+    err = capfd.readouterr().err
+    assert "said after the bound" in err
+    assert "said while opening" not in err
+    assert lines == ["said while opening"]

@@ -279,3 +279,33 @@ async def test_swap_of_a_process_node() -> None:
     assert alg.kind == "burn"
     assert alg.errors == 0
     assert alg.placement == "process"
+
+
+class Spinner(Node):
+    """A free-running (loop-triggered) node: released again as soon as it returns."""
+
+    class Params(BaseModel):
+        sign: int = 1
+
+    out = Output(int)
+
+    async def process(self) -> int:
+        await asyncio.sleep(0.002)
+        return self.params.sign
+
+
+async def test_swap_of_a_loop_triggered_node() -> None:
+    g = GraphBuilder("swap-loop")
+    g.add("spin", Spinner, trigger="loop")
+    async with Runtime(g.build()) as rt:
+        out = rt.subscribe("spin.out", size=100_000)
+        await asyncio.sleep(0.1)
+        await rt.swap("spin", Spinner, {"sign": -1})
+        await asyncio.sleep(0.1)
+        values = out.drain()
+        errors = rt.stats().node("spin").errors
+    assert 1 in values
+    assert -1 in values
+    assert values.index(-1) > values.index(1)
+    assert set(values[values.index(-1) :]) == {-1}  # no old instance after the swap
+    assert errors == 0

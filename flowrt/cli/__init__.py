@@ -1,7 +1,8 @@
 """The ``flowrt`` command: one module per command group.
 
-``run`` (run.py), ``validate``/``graph``/``schema`` (inspect.py), ``ctl`` (ctl.py). A new
-group is a module with an ``add_parsers(sub)`` function, listed in ``GROUPS`` below.
+``run`` (run.py), ``validate``/``graph``/``schema`` (inspect.py), ``ctl`` (ctl.py), ``check``
+(check.py). A new group is a module with an ``add_parsers(sub)`` function, listed in
+``GROUPS`` below.
 Exit codes: see :mod:`flowrt.cli.common`.
 """
 
@@ -12,7 +13,7 @@ import importlib
 
 from .common import EXIT_BAD_GRAPH as EXIT_BAD_GRAPH
 
-GROUPS = ("run", "inspect", "ctl", "can")
+GROUPS = ("run", "inspect", "ctl", "can", "check")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -40,8 +40,14 @@ def add_parsers(sub: Any) -> None:
     on = tm.add_mutually_exclusive_group()
     on.add_argument("--enable", dest="enabled", action="store_const", const=True)
     on.add_argument("--disable", dest="enabled", action="store_const", const=False)
+    tm.add_argument(
+        "--force", action="store_true", help="apply even if admission control refuses it"
+    )
     md = what.add_parser("mode", help="switch to a mode of the graph file")
     md.add_argument("name")
+    md.add_argument(
+        "--force", action="store_true", help="apply even if admission control refuses it"
+    )
     what.add_parser("modes", help="list the graph's modes and the current one")
     ev = what.add_parser("events", help="recent events")
     ev.add_argument("-n", type=int, default=20)
@@ -80,10 +86,12 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
         for key in ("period", "phase", "timer", "deadline", "priority", "enabled"):
             if getattr(args, key) is not None:
                 body[key] = getattr(args, key)
+        if args.force:
+            body["force"] = True
         reply = client.post("/timing", body)
         print(f"{reply['node']}: {reply['change']}")
     elif cmd == "mode":
-        reply = client.post("/mode", {"mode": args.name})
+        reply = client.post("/mode", {"mode": args.name, **({"force": True} if args.force else {})})
         print(f"mode {reply['mode']}")
     elif cmd == "modes":
         reply = client.get("/modes")

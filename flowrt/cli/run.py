@@ -13,7 +13,15 @@ from rich.console import Console
 
 from ..eventloop import new_event_loop
 from ..remote import RemoteError
-from .common import EXIT_BAD_GRAPH, load, plain_handler, setup_logging, stdout_console
+from .common import (
+    EXIT_BAD_GRAPH,
+    EXIT_FAILED,
+    EXIT_OK,
+    load,
+    plain_handler,
+    setup_logging,
+    stdout_console,
+)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -25,6 +33,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
+    from .check import startup_check
+
+    timing_ok, timing_lines = startup_check(graph)
+    if not timing_ok:
+        word = "refusing to start" if args.check else "warning"
+        err.print(f"flowrt run: {word}: the timing may not hold (flowrt check)", markup=False)
+        for line in timing_lines:
+            err.print(f"  {line}", markup=False)
+        if args.check:
+            return EXIT_FAILED
     monitor: LogLines | LiveTable
     if args.no_ui:
         monitor = LogLines(args.log_every)
@@ -35,7 +53,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     monitors: list[Any] = [monitor]
     control = _control_config(args, err)
     rt = Runtime(
-        graph, monitors=monitors, realtime=args.realtime, control=control, spin=args.spin / 1000
+        graph,
+        monitors=monitors,
+        realtime=args.realtime,
+        control=control,
+        spin=args.spin / 1000,
+        stop_on_failure=not args.keep_going,
     )
 
     async def main() -> None:
@@ -67,7 +90,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
-    return 0
+    return _verdict(rt.failures(), err)
+
+
+def _verdict(failures: list[Any], err: Console) -> int:
+    """Exit 1 when the run ends with a node failed or in error, one line per node."""
+    for n in failures:
+        what = "failed" if n.state == "failed" else "in error"
+        err.print(
+            f"flowrt run: node {n.name} {what}: {n.reason}",
+            markup=False,
+            style="red",
+            soft_wrap=True,
+        )
+    return EXIT_FAILED if failures else EXIT_OK
 
 
 def _control_config(args: argparse.Namespace, err: Console) -> Any:
@@ -141,4 +177,15 @@ def add_parsers(sub: Any) -> None:
         help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.add_argument(
+        "--check",
+        action="store_true",
+        help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
+    )
+    run.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="keep the rest of the graph running when a node fails for good (default: stop at"
+        " once); the exit code is 1 either way",
+    )
     run.set_defaults(func=cmd_run)

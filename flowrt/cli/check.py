@@ -1,0 +1,527 @@
+"""``flowrt check``: will the timing hold? Load per tick, response times, phase advice.
+
+Works on a graph file (budgets from ``wcet:``, a previous run's ``--stats-json``, or a short
+measuring run) or on a task-set file (``tasks:``). Exit 0 when every node/task is shown to
+meet its deadline, 1 when not (or when a node has no budget, so nothing can be shown), 2 for
+a bad file or bad arguments. The analyses are in :mod:`flowrt.analysis`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from ..diagnostics import GraphError
+from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, load, print_diagnostics, stdout_console
+
+
+def _ms(x: float | None) -> str:
+    if x is None:
+        return "-"
+    return "inf" if not math.isfinite(x) else f"{x:.3f}".rstrip("0").rstrip(".")
+
+
+def _json_ms(x: float | None) -> float | None:
+    return x if x is not None and math.isfinite(x) else None
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from ..analysis.taskset import is_task_set
+    from ..loading import parse_yaml, read_graph_file
+
+    err = Console(stderr=True)
+    try:
+        text = read_graph_file(args.file)
+    except GraphError as e:
+        print_diagnostics(err, e)
+        return EXIT_BAD_GRAPH
+    data, _, _ = parse_yaml(text, args.file)
+    if is_task_set(data):
+        return _check_tasks(args, text, err)
+    return _check_graph(args, err)
+
+
+# --- task-set files ----------------------------------------------------------------------------
+
+
+def _check_tasks(args: argparse.Namespace, text: str, err: Console) -> int:
+    from ..analysis.rta import response_times, utilisation
+    from ..analysis.taskset import parse_task_set
+
+    if args.wcet_from or args.measure:
+        err.print("flowrt check: --wcet-from and --measure apply to graphs, not task sets")
+        return EXIT_BAD_GRAPH
+    try:
+        tasks, preemptive = parse_task_set(text, args.file)
+    except GraphError as e:
+        print_diagnostics(err, e)
+        return EXIT_BAD_GRAPH
+    res = response_times(tasks, preemptive=preemptive)
+    ok = all(r.schedulable for r in res)
+    util = utilisation(tasks)
+    if args.json:
+        print(
+            json.dumps(
+                {
+                    "schedulable": ok,
+                    "utilisation": util,
+                    "tasks": [
+                        {
+                            "name": r.task.name,
+                            "wcet_ms": r.task.wcet,
+                            "period_ms": r.task.period,
+                            "deadline_ms": r.task.effective_deadline,
+                            "response_ms": _json_ms(r.response),
+                            "schedulable": r.schedulable,
+                        }
+                        for r in res
+                    ],
+                },
+                indent=2,
+            )
+        )
+    else:
+        console = stdout_console()
+        kind = "preemptive" if preemptive else "non-preemptive"
+        console.print(f"{args.file}: {kind} fixed priority, response R = J + w (ms)")
+        t = Table()
+        for col in ("task", "prio", "C", "T", "D", "J", "B", "R", ""):
+            t.add_column(col, justify="left" if col in ("task", "") else "right")
+        for r in sorted(res, key=lambda r: -r.task.priority):
+            k = r.task
+            t.add_row(
+                k.name,
+                f"{k.priority:g}",
+                _ms(k.wcet),
+                _ms(k.period),
+                _ms(k.effective_deadline),
+                _ms(k.jitter),
+                _ms(k.blocking),
+                _ms(r.response),
+                "[green]ok[/]" if r.schedulable else "[red]MISS[/]",
+            )
+        console.print(t)
+        misses = [r.task.name for r in res if not r.schedulable]
+        console.print(_verdict_line(ok, util, misses, []))
+    return EXIT_OK if ok else EXIT_FAILED
+
+
+def _verdict_line(ok: bool, util: float, misses: list[str], unknown: list[str]) -> str:
+    """The last line: the verdict, who may miss, who has no budget; utilisation is summed
+    over every resource (so above 100 % is possible on several CPUs)."""
+    if ok:
+        return f"[green]schedulable[/]: every deadline holds (utilisation {util:.1%})"
+    parts = []
+    if misses:
+        parts.append(f"may miss: {', '.join(misses)}")
+    if unknown:
+        parts.append(
+            f"no budget for {', '.join(unknown)} (declare wcet:, or use --wcet-from / --measure)"
+        )
+    return f"[red]NOT shown schedulable[/]: {'; '.join(parts)} (utilisation {util:.1%})"
+
+
+# --- graphs ------------------------------------------------------------------------------------
+
+
+def _check_graph(args: argparse.Namespace, err: Console) -> int:
+    from ..analysis.load import load_tables
+    from ..analysis.phases import advise, snippet
+    from ..analysis.schedulability import analyse
+    from ..analysis.timing import Budget, graph_timing, with_mode
+
+    graph = load(args.file, err)
+    if graph is None:
+        return EXIT_BAD_GRAPH
+    cpus = args.cpus or os.cpu_count() or 1
+    for name, n in graph.nodes.items():
+        if n.spec.cpus and max(n.spec.cpus) >= cpus:
+            err.print(
+                f"flowrt check: {name} is pinned to CPU {max(n.spec.cpus)}, "
+                f"but --cpus says the machine has {cpus}",
+                markup=False,
+            )
+            return EXIT_BAD_GRAPH
+    budgets: dict[str, Budget] = {}
+    if args.wcet_from:
+        got = _stats_budgets(args, err)
+        if got is None:
+            return EXIT_BAD_GRAPH
+        budgets = got
+    elif args.measure is not None:
+        try:
+            budgets = _measure(graph, args.measure, args.wcet_stat, err)
+        except Exception as e:  # a node that cannot start, a port taken: one line, exit 1
+            err.print(f"flowrt check: the measuring run failed: {e}", markup=False)
+            return EXIT_FAILED
+    timing = graph_timing(graph, budgets)
+    mode = args.mode if args.mode is not None else graph.spec.initial_mode
+    if mode:
+        if mode not in graph.spec.modes:
+            from ..diagnostics import did_you_mean
+
+            err.print(
+                f"flowrt check: unknown mode {mode!r}" + did_you_mean(mode, graph.spec.modes),
+                markup=False,
+            )
+            return EXIT_BAD_GRAPH
+        timing = with_mode(timing, graph, mode)
+        if not args.json:
+            stdout_console().print(f"timing of mode {mode}", markup=False)
+    verdict = analyse(timing, cpus)
+    tables = load_tables(timing)
+    advice = advise(timing)
+    paste = snippet(advice, timing)
+    if args.json:
+        extra = {"cpus": cpus, "mode": mode}
+        print(json.dumps({**_graph_json(verdict, tables, advice, paste), **extra}, indent=2))
+    else:
+        _print_graph(args.file, cpus, verdict, tables, advice, paste)
+    if args.plot:
+        problem = _plot(tables, args.plot)
+        if problem:
+            err.print(f"flowrt check: {problem}", markup=False)
+            return EXIT_BAD_GRAPH
+        if not args.json:
+            stdout_console().print(f"load per tick plotted to {args.plot}")
+    return EXIT_OK if verdict.schedulable else EXIT_FAILED
+
+
+def _stats_budgets(args: argparse.Namespace, err: Console) -> dict[str, Any] | None:
+    from pydantic import ValidationError
+
+    from ..analysis.budgets import budgets_from_stats
+    from ..stats import RuntimeStats
+
+    try:
+        stats = RuntimeStats.model_validate_json(Path(args.wcet_from).read_text())
+    except OSError as e:
+        err.print(f"flowrt check: cannot read {args.wcet_from}: {e.strerror}", markup=False)
+        return None
+    except ValidationError as e:
+        first = e.errors()[0]
+        where = ".".join(str(x) for x in first["loc"])
+        err.print(
+            f"flowrt check: {args.wcet_from} is not a flowrt --stats-json file "
+            f"({where}: {first['msg']})",
+            markup=False,
+        )
+        return None
+    return budgets_from_stats(stats.nodes, args.wcet_stat, "stats")
+
+
+def _measure(graph: Any, seconds: float, stat: Any, err: Console) -> dict[str, Any]:
+    """Run the graph headless for ``seconds`` and take each node's execution-time ``stat``."""
+    import asyncio
+
+    from ..analysis.budgets import budgets_from_stats
+    from ..eventloop import new_event_loop
+    from ..runtime import Runtime
+
+    err.print(f"measuring: running {graph.spec.name} for {seconds:g} s ...", markup=False)
+    rt = Runtime(graph)
+
+    async def main() -> None:
+        async with rt:
+            await rt.run(seconds)
+
+    with asyncio.Runner(loop_factory=new_event_loop) as runner:
+        runner.run(main())
+    return budgets_from_stats(rt.stats().nodes, stat, "measured")
+
+
+def _graph_json(verdict: Any, tables: Any, advice: Any, paste: str) -> dict[str, Any]:
+    return {
+        "schedulable": verdict.schedulable,
+        "utilisation": verdict.utilisation,
+        "tasks": [
+            {
+                "name": v.name,
+                "wcet_ms": v.budget.ms if v.budget else None,
+                "period_ms": v.period_ms,
+                "deadline_ms": v.deadline_ms,
+                "response_ms": _json_ms(v.response_ms),
+                "schedulable": v.schedulable is True,
+            }
+            for v in verdict.nodes
+        ],
+        "analysis": [
+            {
+                "name": v.name,
+                "resource": v.resource,
+                "priority": v.priority,
+                "budget_source": v.budget.source if v.budget else None,
+                "jitter_ms": _json_ms(v.jitter_ms),
+                "blocking_ms": v.blocking_ms,
+                "note": v.note,
+            }
+            for v in verdict.nodes
+        ],
+        "ticks": [
+            {
+                "source": t.source,
+                "frame_ms": t.frame_ms,
+                "heaviest": t.heaviest,
+                "truncated": t.truncated,
+                "ticks": [
+                    {
+                        "tick": k.tick,
+                        "nodes": k.nodes,
+                        "total_ms": k.total_ms,
+                        "loop_ms": k.loop_ms,
+                        "workers_ms": k.workers_ms,
+                        "pool_ms": k.pool_ms,
+                        "per_cpu_ms": k.per_cpu_ms,
+                        "per_worker_ms": k.per_worker_ms,
+                        "unbudgeted": k.unbudgeted,
+                    }
+                    for k in t.ticks
+                ],
+            }
+            for t in tables
+        ],
+        "phase_advice": [
+            {
+                "clock": a.clock,
+                "unit": a.unit,
+                "measure": a.measure,
+                "before": a.before,
+                "after": a.after,
+                "peak_before": a.peak_before,
+                "peak_after": a.peak_after,
+            }
+            for a in advice
+        ],
+        "phase_snippet": paste,
+    }
+
+
+def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, paste: str) -> None:
+    console = stdout_console()
+    console.print(f"{file}: worst-case response times on {cpus} CPUs (from release, ms)")
+    t = Table()
+    for col in (
+        "node",
+        "where",
+        "prio",
+        "budget",
+        "from",
+        "period",
+        "deadline",
+        "jitter",
+        "block",
+        "response",
+        "",
+    ):
+        t.add_column(col, justify="left" if col in ("node", "where", "from", "") else "right")
+    for v in verdict.nodes:
+        if v.schedulable is None:
+            mark = f"[yellow]?[/] {v.note}"
+        elif v.schedulable:
+            mark = "[green]ok[/]"
+        else:
+            mark = "[red]MISS[/]" + (f" {v.note}" if v.note else "")
+        t.add_row(
+            v.name,
+            v.resource,
+            str(v.priority),
+            _ms(v.budget.ms) if v.budget else "-",
+            v.budget.source if v.budget else "-",
+            _ms(v.period_ms),
+            _ms(v.deadline_ms) + ("" if v.has_deadline else " (T)"),
+            _ms(v.jitter_ms),
+            _ms(v.blocking_ms),
+            _ms(v.response_ms),
+            mark,
+        )
+    console.print(t)
+    for tab in tables:
+        cpu_cols = sorted({c for k in tab.ticks for c in k.per_cpu_ms})
+        frame = f"{tab.frame_ms:g} ms" if tab.frame_ms else "unknown interval"
+        console.print(
+            f"load per tick of {tab.source} (frame {frame}; summed budgets, ms)"
+            + (" - first ticks only" if tab.truncated else "")
+        )
+        lt = Table()
+        for col in ("tick", "nodes", "loop", "workers", "pool", *cpu_cols, "total", "of frame"):
+            lt.add_column(col, justify="left" if col == "nodes" else "right")
+        heavy = tab.heaviest
+        for k in tab.ticks:
+            share = f"{k.total_ms / tab.frame_ms:.0%}" if tab.frame_ms else "-"
+            names = ", ".join(n + ("?" if n in k.unbudgeted else "") for n in k.nodes)
+            lt.add_row(
+                str(k.tick),
+                names,
+                _ms(k.loop_ms),
+                _ms(k.workers_ms),
+                _ms(k.pool_ms),
+                *[_ms(k.per_cpu_ms.get(c, 0.0)) for c in cpu_cols],
+                _ms(k.total_ms),
+                share,
+                style="bold red" if k.tick == heavy else None,
+            )
+        console.print(lt)
+    for a in advice:
+        unit = "ms" if a.measure == "ms" else " nodes"
+        what = f"{a.clock} ({'frames' if a.unit == 'frame' else 'ms'})"
+        if a.changed:
+            console.print(
+                f"phase advice for {what}: heaviest tick {a.peak_before:.4g}{unit} -> "
+                f"{a.peak_after:.4g}{unit}; "
+                + ", ".join(f"{n} {a.before[n]:g} -> {p:g}" for n, p in a.changed.items()),
+                markup=False,
+            )
+        else:
+            console.print(
+                f"phase advice for {what}: the current phases are already best "
+                f"(heaviest tick {a.peak_before:.4g}{unit})",
+                markup=False,
+            )
+    if paste:
+        console.print("paste into the graph file (replaces these nodes' triggers):")
+        console.print(paste, markup=False, highlight=False)
+    misses = [v.name for v in verdict.nodes if v.schedulable is False]
+    unknown = [v.name for v in verdict.nodes if v.schedulable is None]
+    console.print(_verdict_line(verdict.schedulable, verdict.utilisation, misses, unknown))
+
+
+def _plot(tables: Any, path: str) -> str | None:
+    """A PNG of the load per tick, one panel per frame source; an error text or None."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return "--plot needs matplotlib (pip install matplotlib, or flowrt[dev])"
+    if not tables:
+        return "--plot: the graph has no frame-triggered nodes, so no per-tick load"
+    fig, axes = plt.subplots(len(tables), 1, figsize=(9, 2.6 * len(tables)), squeeze=False)
+    for ax, tab in zip(axes[:, 0], tables, strict=True):
+        xs = [k.tick for k in tab.ticks]
+        bottom = [0.0] * len(xs)
+        for label, attr, colour in (
+            ("loop", "loop_ms", "#4c72b0"),
+            ("workers", "workers_ms", "#55a868"),
+            ("pool", "pool_ms", "#8172b2"),
+        ):
+            ys = [getattr(k, attr) for k in tab.ticks]
+            if any(ys):
+                ax.bar(xs, ys, bottom=bottom, label=label, color=colour)
+                bottom = [b + y for b, y in zip(bottom, ys, strict=True)]
+        heavy = tab.heaviest
+        ax.bar(
+            [heavy],
+            [bottom[heavy]],
+            fill=False,
+            edgecolor="red",
+            linewidth=2,
+            label="heaviest tick",
+        )
+        if tab.frame_ms:
+            ax.axhline(tab.frame_ms, color="grey", linestyle="--", label="frame interval")
+        ax.set_xlim(-0.6, len(xs) - 0.4)
+        if len(xs) <= 32:
+            ax.set_xticks(xs)
+        ax.set_ylim(0, 1.4 * max(tab.frame_ms or 0.0, max(bottom, default=0.0), 1e-3))
+        ax.set_title(f"{tab.source}: summed budget per tick")
+        ax.set_xlabel("tick (frame)")
+        ax.set_ylabel("ms")
+        ax.legend(fontsize="small", loc="upper right")
+    fig.tight_layout()
+    try:
+        fig.savefig(path, dpi=100)
+    except OSError as e:
+        return f"cannot write {path}: {e.strerror}"
+    finally:
+        plt.close(fig)
+    return None
+
+
+def _duration_s(text: str) -> float:
+    from ..spec import parse_duration_ms
+
+    try:
+        ms = parse_duration_ms(text if any(c.isalpha() for c in text) else f"{text}s")
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    if not 0 < ms <= 3_600_000:
+        raise argparse.ArgumentTypeError("must be between 0 and 1 h")
+    return ms / 1000
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError("must be at least 1")
+    return n
+
+
+def add_parsers(sub: Any) -> None:
+    ck = sub.add_parser(
+        "check",
+        help="schedulability: load per tick, worst-case response times, phase advice",
+    )
+    ck.add_argument("file", help="a graph file, or a task-set file (tasks: [...])")
+    src = ck.add_mutually_exclusive_group()
+    src.add_argument("--wcet-from", metavar="STATS.json", help="budgets from a run's --stats-json")
+    src.add_argument(
+        "--measure",
+        type=_duration_s,
+        metavar="DURATION",
+        help="budgets from a measuring run of this long first (e.g. 20s)",
+    )
+    ck.add_argument(
+        "--wcet-stat",
+        choices=["p99", "max"],
+        default="p99",
+        help="which execution-time statistic is the budget (default p99)",
+    )
+    ck.add_argument(
+        "--cpus",
+        type=_positive_int,
+        metavar="N",
+        help="CPUs of the target machine (default: this one's)",
+    )
+    ck.add_argument(
+        "--mode", metavar="NAME", help="analyse the timing of this mode (default: initial_mode)"
+    )
+    ck.add_argument("--json", action="store_true", help="machine-readable result")
+    ck.add_argument("--plot", metavar="PNG", help="plot the load per tick (needs matplotlib)")
+    ck.set_defaults(func=cmd_check)
+
+
+def startup_check(graph: Any) -> tuple[bool, list[str]]:
+    """For ``flowrt run``: (no node shown to miss, lines to print) with the declared wcets,
+    in the graph's initial mode.
+
+    Nodes without a declared ``wcet`` are not judged (one line says which); a node whose
+    bound exceeds its deadline makes the graph unschedulable.
+    """
+    from ..analysis.schedulability import analyse
+    from ..analysis.timing import graph_timing, with_mode
+
+    timing = graph_timing(graph)
+    if graph.spec.initial_mode in graph.spec.modes:
+        timing = with_mode(timing, graph, graph.spec.initial_mode)
+    verdict = analyse(timing, os.cpu_count() or 1)
+    misses = [v for v in verdict.nodes if v.schedulable is False]
+    unknown = [v.name for v in verdict.nodes if v.schedulable is None]
+    lines = [
+        f"{v.name}: worst-case response {_ms(v.response_ms)} ms > "
+        f"{'deadline' if v.has_deadline else 'period'} {_ms(v.deadline_ms)} ms"
+        for v in misses
+    ]
+    if unknown and len(unknown) < len(verdict.nodes):
+        lines.append(f"not checked (no wcet:): {', '.join(unknown)}")
+    return not misses, lines

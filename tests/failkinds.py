@@ -1,0 +1,51 @@
+"""Node kinds that fail on purpose, for the supervision and exit-code tests.
+
+Referenced from graph files as ``failkinds:Class`` (tests/ is on the path of the CLI tests).
+"""
+
+from __future__ import annotations
+
+from flowrt import FatalError, Node, Output
+
+
+class AlwaysFails(Node):
+    """Every activation raises the same error: a persistently failing node."""
+
+    tick = Output(int)
+
+    def process(self) -> int:
+        raise ValueError("boom")
+
+
+class SetupFails(Node):
+    """``setup`` raises: a crash loop at start-up, whatever the placement."""
+
+    tick = Output(int)
+
+    def setup(self) -> None:
+        raise RuntimeError("cannot open the device")
+
+    def process(self) -> int:
+        return 1
+
+
+class FailsEveryOther(Node):
+    """Fails one activation in two (counted across restarts): never two failures in a row."""
+
+    tick = Output(int)
+    calls = 0
+
+    def process(self) -> int:
+        FailsEveryOther.calls += 1
+        if FailsEveryOther.calls % 2:
+            raise ValueError(f"odd call {FailsEveryOther.calls}")
+        return FailsEveryOther.calls
+
+
+class GivesUp(Node):
+    """Knows that restarting cannot help: raises FatalError."""
+
+    tick = Output(int)
+
+    def process(self) -> int:
+        raise FatalError("calibration file unusable")
