@@ -411,9 +411,13 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
             out[side] = {"error": r.error}  # type: ignore[dict-item]
             continue
         span = max(g["last"] - g["first"], 1e-9)
+        # Dropped: the gaps between the first and the last frame received. Frames sent before
+        # the receiver was up (dora drops those while a node is starting) are not counted:
+        # this is the sustained rate, not start-up.
+        gaps = g["last_seq"] - g["first_seq"] + 1 - g["n"] if g["n"] else float(s["sent"])
         out[side] = {
             f"fps {label} delivered/s": (g["n"] - 1) / span if g["n"] > 1 else 0.0,
-            f"fps {label} dropped": float(s["sent"] - g["n"]),
+            f"fps {label} dropped": float(gaps),
             f"fps {label} sent": float(s["sent"]),
         }
     return out
@@ -508,7 +512,13 @@ def collect(rows: dict[tuple[str, str], Row], result: dict[str, Sample], unit: s
         if side == "dora":
             continue
         for metric, v in sample.items():
-            if metric == "error" or metric.endswith(" sent") or metric == "fps flat out dropped":
+            paced = metric.startswith("fps") and "flat out" not in metric
+            if (
+                metric == "error"
+                or metric.endswith(" sent")
+                or metric == "fps flat out dropped"
+                or (paced and metric.endswith("/s"))  # paced: the rate is the source's; drops count
+            ):
                 # flat out, a source outruns any receiver: the queue of 10 drops by design
                 continue
             key = (metric, side)
@@ -680,11 +690,14 @@ def main(argv: list[str] | None = None) -> int:
     print(header)
     rows: dict[tuple[str, str], Row] = {}
     per_round: list[dict[str, dict[str, Sample]]] = []
+    loads: list[float] = []
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="flowrt-peers-") as tmp:
         b = Bench(Path(tmp), quiet_dora=not args.dora_logs, baseline=args.baseline)
         for rnd in range(args.rounds):
             this: dict[str, dict[str, Sample]] = {}
+            loads.append(os.getloadavg()[0])
+            print(f"round {rnd + 1}: load average {loads[-1]:.2f}", flush=True)
             for _group, name, fn in scenarios(only, args.quick):
                 t = time.monotonic()
                 result = fn(b)
@@ -708,7 +721,9 @@ def main(argv: list[str] | None = None) -> int:
         cmd = "python -m benchmarks.peers" + (" " + " ".join(argv or sys.argv[1:])).rstrip()
         section = (
             f"{BEGIN}\n### Measured table ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, "
-            f"{args.rounds} rounds, {took:.0f} s)\n\nCommand: `{cmd}`  \n{header}\n\n{text}\n{END}"
+            f"{args.rounds} rounds, {took:.0f} s)\n\nCommand: `{cmd}`  \n{header}; "
+            f"load average at the start of each round: {', '.join(f'{x:.1f}' for x in loads)}"
+            f"\n\n{text}\n{END}"
         )
         old = RESULTS.read_text()
         if BEGIN in old and END in old:

@@ -171,7 +171,7 @@ class Mean(Node):
 
 
 class Count(Node):
-    """Counts the worker's results; writes count, first and last arrival after ``idle`` s."""
+    """Counts the worker's results (first/last arrival and sequence number) at teardown."""
 
     class Params(_Out):
         seconds: float = 3.0
@@ -184,12 +184,13 @@ class Count(Node):
         self.last = 0.0
         self.seqs_in_order = True
         self.prev = -1.0
-        self.wrote = False
+        self.first_seq = -1.0
 
     def process(self, result: tuple[float, float]) -> None:
         now = time.monotonic()
         if self.n == 0:
             self.first = now
+            self.first_seq = result[0]
         self.n += 1
         self.last = now
         if result[0] <= self.prev:
@@ -197,16 +198,17 @@ class Count(Node):
         self.prev = result[0]
 
     def teardown(self) -> None:
-        if not self.wrote:
-            _write(
-                self.params.out,
-                {
-                    "n": self.n,
-                    "first": self.first,
-                    "last": self.last,
-                    "ordered": self.seqs_in_order,
-                },
-            )
+        _write(
+            self.params.out,
+            {
+                "n": self.n,
+                "first": self.first,
+                "last": self.last,
+                "ordered": self.seqs_in_order,
+                "first_seq": self.first_seq,
+                "last_seq": self.prev,
+            },
+        )
 
 
 class PipeSink(Node):

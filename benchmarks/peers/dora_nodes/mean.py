@@ -11,7 +11,7 @@ from common import STAMP, write
 
 out = os.environ["OUT"]
 node = Node()
-n, first, last, prev, ordered = 0, 0.0, 0.0, -1.0, True
+n, first, last, prev, ordered, first_seq = 0, 0.0, 0.0, -1.0, True, -1.0
 for event in node:
     if event["type"] == "INPUT":
         data = event["value"].to_numpy(zero_copy_only=True)
@@ -20,10 +20,21 @@ for event in node:
         now = time.monotonic()
         if n == 0:
             first = now
+            first_seq = seq
         n += 1
         last = now
         ordered = ordered and seq > prev
         prev = seq
     elif event["type"] == "STOP":
         break
-write(out, {"n": n, "first": first, "last": last, "ordered": ordered})
+write(
+    out,
+    {
+        "n": n,
+        "first": first,
+        "last": last,
+        "ordered": ordered,
+        "first_seq": first_seq,
+        "last_seq": prev,
+    },
+)
