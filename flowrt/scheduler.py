@@ -322,7 +322,7 @@ class NodeRunner:
             self.task = loop.create_task(self.run_async(t_release))
 
     def input_arrived(self) -> None:
-        if self.window > 1:
+        if self.executor.pipelined and self.window > 1:  # (inline: one attribute, no more)
             self._schedule_pump()
             return
         if self.busy or self.state != "idle" or self.stopping or not self.timing.enabled:

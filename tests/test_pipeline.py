@@ -49,6 +49,7 @@ class Slow(Node):
         model_config = ConfigDict(extra="forbid")
         ms: float = 2.0
         die_at: int = -1
+        hang_at: int = -1
 
     x = Input(int)
     result = Output(object)
@@ -59,6 +60,8 @@ class Slow(Node):
     def process(self, x: int) -> tuple[int, int]:
         if x == self.params.die_at:  # sent once: the replacement never sees it
             os._exit(3)
+        while x == self.params.hang_at:
+            time.sleep(0.01)
         time.sleep(self.params.ms / 1000)
         return x, os.getpid()
 
@@ -70,11 +73,14 @@ def graph(
     n: int = 10,
     limit: int = 60,
     pipeline: int | None = None,
+    watchdog: str | None = None,
     **slow: Any,
 ) -> flowrt.Graph:
     g = GraphBuilder("pipeline")
     g.add("src", Burst, params={"n": n, "limit": limit}, trigger={"timer": "20ms"})
     extra: dict[str, Any] = {} if pipeline is None else {"pipeline": pipeline}
+    if watchdog is not None:
+        extra["watchdog"] = watchdog
     g.add(
         "w",
         Slow,
@@ -177,3 +183,37 @@ async def test_crash_with_calls_in_flight_is_counted_and_recovered() -> None:
     # flight behind it (aborted), values the queue dropped while the worker restarted, no more.
     assert len(lost) == 1 + s.aborted + stats.edge("w.x").dropped
     assert s.aborted >= 1
+
+
+async def test_watchdog_measures_each_call_not_its_wait_in_the_window() -> None:
+    # 40 ms per call, 4 in flight: the last waits ~120 ms behind the others, more than the
+    # 100 ms watchdog. The watchdog starts when a call starts running, so none is hung.
+    async with Runtime(
+        graph("queue", size=64, n=4, limit=12, ms=40, watchdog="100ms", pipeline=4)
+    ) as rt:
+        got = await _collect(rt, 12)
+        s = rt.stats().node("w")
+    peak = got.pop()[1]
+    assert [v for v, _ in got] == list(range(12))
+    assert peak > 1
+    assert s.errors == 0
+
+
+async def test_hung_call_with_calls_in_flight_is_killed_and_counted() -> None:
+    async with Runtime(
+        graph("queue", size=64, n=10, limit=40, ms=1, hang_at=5, watchdog="200ms")
+    ) as rt:
+        got = await _collect(rt, 40 - 5, within=10)
+        stats = rt.stats()
+        failures = [e for e in rt.events if isinstance(e, flowrt.NodeFailed) and e.node == "w"]
+    got.pop()
+    s = stats.node("w")
+    values = [v for v, _ in got]
+    assert failures
+    assert "hung" in failures[0].error
+    assert s.restarts == 1
+    assert values == sorted(values)
+    assert values[-1] == 39
+    lost = set(range(40)) - set(values)
+    assert 5 in lost
+    assert len(lost) == 1 + s.aborted + stats.edge("w.x").dropped
