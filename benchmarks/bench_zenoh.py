@@ -124,24 +124,21 @@ def importer_graph(payload: str, port: int, out: str, rate: float) -> Any:
     return g.build()
 
 
-async def _run(spec: Any, seconds: float, result: Path | None = None) -> dict[str, Any]:
+async def _run(spec: Any, seconds: float) -> dict[str, Any]:
     async with flowrt.Runtime(spec) as rt:
         await rt.run(seconds)
         stats = rt.stats()
         mem = _pss()
-    out = {"stats": json.loads(stats.model_dump_json()), "mem": mem}
-    if result is not None:
-        result.write_text(json.dumps(out))
-    return out
+    return {"stats": json.loads(stats.model_dump_json()), "mem": mem}
 
 
 def role_main(args: argparse.Namespace) -> None:
     if args.role == "exporter":
         spec = exporter_graph(args.payload, args.rate, args.port, args.critical)
-        flowrt.run(_run(spec, args.seconds, Path(args.result)))
+        Path(args.result).write_text(json.dumps(flowrt.run(_run(spec, args.seconds))))
     elif args.role == "importer":
         spec = importer_graph(args.payload, args.port, args.lat, args.rate)
-        flowrt.run(_run(spec, args.seconds, Path(args.result)))
+        Path(args.result).write_text(json.dumps(flowrt.run(_run(spec, args.seconds))))
     elif args.role == "raw_pub":
         raw_pub(args)
     elif args.role == "raw_sub":

@@ -1,5 +1,6 @@
 """flowrt: a real-time dataflow runtime for robot perception and control."""
 
+from . import _startup  # noqa: F401  (first: Ctrl-C while the flowrt command imports)
 from .builder import GraphBuilder as GraphBuilder
 from .clock import Clock as Clock
 from .clock import SystemClock as SystemClock
@@ -33,10 +34,12 @@ from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
 from .runtime import Subscription as Subscription
 from .runtime import SwapError as SwapError
+from .spec import DurationMs as DurationMs
 from .spec import FrameTrigger as FrameTrigger
 from .spec import GraphSpec as GraphSpec
 from .spec import InputTrigger as InputTrigger
 from .spec import LoopTrigger as LoopTrigger
+from .spec import TimerMs as TimerMs
 from .spec import TimerTrigger as TimerTrigger
 from .spec import parse_duration_ms as parse_duration_ms
 from .stats import EdgeStats as EdgeStats
@@ -51,6 +54,7 @@ __all__ = [
     "ControlConfig",
     "DeadlineMissed",
     "Diagnostic",
+    "DurationMs",
     "EdgeStats",
     "Event",
     "FatalError",
@@ -82,6 +86,7 @@ __all__ = [
     "Subscription",
     "SwapError",
     "SystemClock",
+    "TimerMs",
     "TimerTrigger",
     "TimingChanged",
     "VirtualClock",

@@ -60,6 +60,7 @@ class Buffer:
         self.age = Running()
         self.now = clock or time.monotonic
         self.on_put: Callable[[], None] | None = None
+        self.drop_reasons: dict[str, int] = {}  # drops counted at stop/drain, by reason
         self._last_seq = -1
 
     def put(self, value: Any, t: float) -> bool:
@@ -76,6 +77,25 @@ class Buffer:
 
     def clear(self) -> None:
         raise NotImplementedError
+
+    def discard(self, reason: str) -> int:
+        """Drop every value still waiting (at stop), counted as dropped with ``reason``."""
+        n = self.pending()
+        if n:
+            self.dropped += n
+            self.drop_reasons[reason] = self.drop_reasons.get(reason, 0) + n
+        self.clear()
+        return n
+
+    def abandon(self, value: Any, reason: str) -> None:
+        """A value its producer could not put (a lossless edge full at stop): published, lost.
+
+        Keeps ``published == delivered + dropped`` true for values that never got in.
+        """
+        self.published += 1
+        self.dropped += 1
+        self.drop_reasons[reason] = self.drop_reasons.get(reason, 0) + 1
+        _drop(value)
 
     def reader_skipped(self) -> None:
         """The reader was released for the value now held but could not run (overrun, down).
@@ -98,6 +118,7 @@ class Buffer:
             published=self.published,
             delivered=self.delivered,
             dropped=self.dropped,
+            drop_reasons=dict(self.drop_reasons),
             unread=self.unread,
             sampled=self.sampled,
             age=self.age.summary(),
@@ -207,9 +228,14 @@ class LosslessBuffer(QueueBuffer):
     def __init__(self, name: str, size: int = 8, clock: Callable[[], float] | None = None) -> None:
         super().__init__(name, size, clock)
         self._space = asyncio.Event()
+        # Called when a put finds the buffer full: the reader must take now, whatever its
+        # trigger says, or the waiting producer (and every tick it would make) stops for good.
+        self.on_full: Callable[[], None] | None = None
 
     def put(self, value: Any, t: float) -> bool:
         if len(self._q) >= self.size:
+            if self.on_full is not None:
+                self.on_full()
             return False
         return super().put(value, t)
 

@@ -6,6 +6,7 @@ here, every problem collected with its location, so a bad graph never reaches th
 
 from __future__ import annotations
 
+import numbers
 import os
 from collections import deque
 from collections.abc import Collection, Iterable, Mapping
@@ -20,7 +21,7 @@ from .diagnostics import Diagnostic, GraphError, Severity, closest, did_you_mean
 from .frames import Frame
 from .loading import Locations, check_text, pydantic_diagnostics, read_graph_file
 from .node import Node
-from .registry import KindError, resolve_kind
+from .registry import KindError, NotImported, resolve_kind
 from .spec import (
     EdgePolicy,
     FrameTrigger,
@@ -96,6 +97,9 @@ class Graph:
     warnings: list[Diagnostic] = field(default_factory=list)
     file: str = "<python>"
     base_dir: Path | None = None  # the graph file's directory: where relative params resolve
+    not_imported: dict[str, str] = field(default_factory=dict)
+    """Nodes whose dotted-path kind was not imported (``import_kinds=False``): name -> kind.
+    Their params, ports and triggers are unchecked and they are not in ``nodes``."""
 
     def validate_params(self, cls: type[Node], data: Mapping[str, Any]) -> BaseModel:
         """Validate params for ``cls`` as the graph file's own were (relative paths resolve
@@ -103,10 +107,18 @@ class Graph:
         return cls.Params.model_validate(dict(data), context={PARAMS_BASE_DIR: self.base_dir})
 
     @classmethod
-    def from_file(cls, path: str | Path, kinds: Mapping[str, type[Node]] | None = None) -> Graph:
+    def from_file(
+        cls,
+        path: str | Path,
+        kinds: Mapping[str, type[Node]] | None = None,
+        *,
+        import_kinds: bool = True,
+    ) -> Graph:
         """Load a graph file; relative paths in its params resolve against its directory."""
         base_dir = Path(path).resolve().parent
-        return cls.from_text(read_graph_file(path), str(path), kinds, base_dir=base_dir)
+        return cls.from_text(
+            read_graph_file(path), str(path), kinds, base_dir=base_dir, import_kinds=import_kinds
+        )
 
     @classmethod
     def from_text(
@@ -116,6 +128,7 @@ class Graph:
         kinds: Mapping[str, type[Node]] | None = None,
         *,
         base_dir: Path | None = None,
+        import_kinds: bool = True,
     ) -> Graph:
         loaded = check_text(text, file)
         if loaded.spec is None:
@@ -128,6 +141,7 @@ class Graph:
             earlier=loaded.errors,
             invalid_nodes=loaded.invalid_nodes,
             base_dir=base_dir,
+            import_kinds=import_kinds,
         )
 
     def frame_port(self, source: str) -> str:
@@ -151,11 +165,27 @@ class Graph:
 
 
 def _is_compatible(out_type: Any, in_type: Any) -> bool:
+    """Where both ports declare a type, what the output produces must be what the input
+    takes (an ``int`` output may feed a ``float`` input, as at run time)."""
     if in_type in (object, Any) or out_type in (object, Any):
         return True
     if isinstance(out_type, type) and isinstance(in_type, type):
-        return issubclass(out_type, in_type)
+        return issubclass(out_type, checked_type(in_type) or object)
     return bool(out_type == in_type)
+
+
+_NUMERIC = {float: numbers.Real, int: numbers.Integral, complex: numbers.Complex}
+
+
+def checked_type(t: Any) -> type | None:
+    """The class a value on a port declared ``t`` must be an instance of; None: anything.
+
+    Generic aliases (``list[int]``) and ``object``/``Any`` are not checked at run time.
+    ``float`` takes any real number (an int, a numpy float), as static typing does.
+    """
+    if not isinstance(t, type) or t is object:
+        return None
+    return _NUMERIC.get(t, t)
 
 
 def _type_name(t: Any) -> str:
@@ -170,13 +200,16 @@ def resolve(
     earlier: Iterable[Diagnostic] = (),
     invalid_nodes: Collection[str] = (),
     base_dir: Path | None = None,
+    import_kinds: bool = True,
 ) -> Graph:
     """Check everything that needs the node classes; raise GraphError with all problems.
 
     ``earlier`` are problems already found while loading, reported together with these;
     ``invalid_nodes`` were dropped from ``spec`` by then, so references to them are not
     reported again as unknown nodes. ``base_dir`` is the graph file's directory, handed to
-    the params models as validation context (see :func:`resolve_path`).
+    the params models as validation context (see :func:`resolve_path`). ``import_kinds=False``
+    leaves dotted-path kinds unimported (their nodes unchecked, listed in
+    ``Graph.not_imported``).
     """
     locs = locs or Locations("<python>")
     diags: list[Diagnostic] = list(earlier)
@@ -188,9 +221,13 @@ def resolve(
     spec = _with_imports(spec, at)
     classes: dict[str, type[Node]] = {}
     params: dict[str, BaseModel] = {}
+    not_imported: dict[str, str] = {}
     for name, ns in spec.nodes.items():
         try:
-            classes[name] = resolve_kind(ns.kind, kinds)
+            classes[name] = resolve_kind(ns.kind, kinds, allow_import=import_kinds)
+        except NotImported:
+            not_imported[name] = ns.kind
+            continue
         except KindError as e:
             at(("nodes", name, "kind"), str(e))
             continue
@@ -204,6 +241,13 @@ def resolve(
         except ValidationError as e:
             where = ("nodes", name, "params")
             diags.extend(pydantic_diagnostics(e, locs, where, classes[name].Params))
+            continue
+        try:
+            advice = classes[name].advise(params[name])
+        except Exception as e:  # a third-party hook must not turn validation into a traceback
+            advice = [("", f"{ns.kind}.advise failed: {e!r}")]
+        for key, message in advice:
+            at(("nodes", name, "params", *([key] if key else [])), message, Severity.warning)
 
     names = [*spec.nodes, *invalid_nodes]
     edges: list[Edge] = []
@@ -257,7 +301,12 @@ def resolve(
         cls = classes.get(name)
         trig = ns.trigger
         if trig is None and cls is not None and name in params:
-            trig = cls.default_trigger(params[name])
+            try:
+                trig = cls.default_trigger(params[name])
+            except ValueError as e:  # e.g. a rate that makes a timer out of range
+                problem = e.errors()[0]["msg"] if isinstance(e, ValidationError) else str(e)
+                at(("nodes", name, "params"), f"its default trigger: {problem}")
+                continue
         if trig is None:
             if ns.inputs:
                 trig = InputTrigger()
@@ -349,7 +398,9 @@ def resolve(
         for i, (name, ns) in enumerate(spec.nodes.items())
         if name in classes and name in params and name in triggers
     }
-    graph = Graph(spec, resolved, edges, file=locs.file, base_dir=base_dir)
+    graph = Graph(
+        spec, resolved, edges, file=locs.file, base_dir=base_dir, not_imported=not_imported
+    )
     if not [d for d in diags if d.severity is Severity.error]:
         _check_deadlines(graph, at)
     diags.sort(key=lambda d: (d.line, d.column))

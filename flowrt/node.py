@@ -145,6 +145,15 @@ class NodeContext:
         """Seconds since the runtime started (the time base of events); approximate here."""
         return self.now()
 
+    async def wait_readers(self) -> None:
+        """Wait until every period-1 frame-triggered reader of this node's frame outputs is
+        ready for the next frame (idle, started), whatever its placement.
+
+        A source that paces itself by its readers (``pacing: fast``) awaits this before
+        publishing, so that a reader slower than the source is never skipped. Outside a
+        runtime there are no readers: it returns at once.
+        """
+
     def request_stop(self) -> None:
         """Ask the runtime to stop; only on the event loop."""
         raise RuntimeError("request_stop() is only available to inline nodes on the event loop")
@@ -228,6 +237,16 @@ class Node:
     def default_trigger(cls, params: Any) -> Trigger | None:
         """The trigger used when the graph gives none (e.g. a capture node's own fps)."""
         return None
+
+    @classmethod
+    def advise(cls, params: Any) -> list[tuple[str, str]]:
+        """Warnings about valid but costly params, as ``(param key, message)``.
+
+        ``flowrt validate`` shows them located at the param (``""``: at ``params``); an
+        error belongs in the ``Params`` model instead. E.g. a capture node says how much
+        shared memory its frame size will take.
+        """
+        return []
 
     @classmethod
     def params_inputs(cls, params: Any) -> Mapping[str, Input[Any]]:

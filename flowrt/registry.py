@@ -21,6 +21,10 @@ class KindError(LookupError):
     """A kind that does not resolve; the message is meant for the user."""
 
 
+class NotImported(KindError):
+    """A dotted-path kind left unimported on purpose (``flowrt validate --no-import``)."""
+
+
 @cache
 def _entry_points() -> dict[str, str]:
     return {ep.name: ep.value for ep in entry_points(group=GROUP)}
@@ -31,9 +35,17 @@ def available_kinds() -> list[str]:
 
 
 def resolve_kind(
-    kind: str | type[Node], extra: Mapping[str, type[Node]] | None = None
+    kind: str | type[Node],
+    extra: Mapping[str, type[Node]] | None = None,
+    *,
+    allow_import: bool = True,
 ) -> type[Node]:
-    """The node class for ``kind``; raises KindError with a 'did you mean' hint."""
+    """The node class for ``kind``; raises KindError with a 'did you mean' hint.
+
+    A dotted path (``package.module:Class``) imports that module, which runs its code: a
+    graph file is code, like a Python script. ``allow_import=False`` raises NotImported for
+    such a kind instead (installed entry-point kinds still resolve).
+    """
     if isinstance(kind, type):
         if not issubclass(kind, Node):
             raise KindError(f"{kind.__qualname__} is not a flowrt.Node subclass")
@@ -45,6 +57,8 @@ def resolve_kind(
         names = [*_entry_points(), *(extra or {})]
         raise KindError(f"unknown node kind {kind!r}" + did_you_mean(kind, names))
     module_name, _, attr = (target or kind).partition(":")
+    if target is None and not allow_import:
+        raise NotImported(f"node kind {kind!r} not imported (--no-import)")
     try:
         module = importlib.import_module(module_name)
     except (ImportError, ValueError, TypeError) as e:

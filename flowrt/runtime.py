@@ -111,11 +111,17 @@ class Runtime:
         kinds: Mapping[str, type[Node]] | None = None,
         control: ControlConfig | str | None = None,
         spin: float = 0.0,
+        drain_timeout: float = 5.0,
         stop_on_failure: bool = False,
     ) -> None:
-        """``stop_on_failure``: a node given up by supervision (state ``failed``) ends ``run``
+        """``drain_timeout``: seconds ``stop`` lets the graph finish what it holds (lossless
+        edges, in-flight activations) after stopping the sources; reported when hit.
+        ``stop_on_failure``: a node given up by supervision (state ``failed``) ends ``run``
         at once (``flowrt run`` does this unless ``--keep-going``); by default the rest of
         the graph keeps running and the host program reads :meth:`failures`."""
+        if not drain_timeout >= 0 or math.isinf(drain_timeout):
+            raise ValueError(f"drain_timeout must be finite and >= 0, got {drain_timeout}")
+        self.drain_timeout = drain_timeout
         self.stop_on_failure = stop_on_failure
         self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
         if clock is not None and spin:
@@ -149,6 +155,8 @@ class Runtime:
         self.control_config = control
         self.control: ControlServer | None = None
         self.started = False
+        self.starvation_events = 0  # worker calls spared by the watchdog: starved, not hung
+        self._starved_alert_at = -math.inf
 
     @classmethod
     def from_file(cls, path: str | Path, **kwargs: Any) -> Runtime:
@@ -204,6 +212,7 @@ class Runtime:
         self._sched.stop_requester = self.request_stop
         self._sched.rtdb_provider = lambda: self.rtdb
         self._sched.mode_setter = self.set_mode
+        self._sched.drain_timeout = self.drain_timeout
         if self._bridge is not None:
             self._bridge.attach_exports()
         overload = self.graph.spec.qos.overload
@@ -237,7 +246,13 @@ class Runtime:
                 raise
 
     async def stop(self) -> None:
-        """Tear every node down, stop workers, free shared memory; safe to call twice."""
+        """Drain, tear every node down, stop workers, free shared memory; safe to call twice.
+
+        The drain first stops the sources, then lets every lossless edge deliver what it
+        holds and every in-flight activation finish, for at most ``drain_timeout`` seconds
+        (a ``drain-timeout`` HealthAlert says what was left); what is still undelivered then
+        is counted as dropped with its reason (``EdgeStats.drop_reasons``).
+        """
         if not self.started:
             return
         self.started = False
@@ -355,7 +370,21 @@ class Runtime:
             ex = workers.ProcessExecutor(
                 runner.name, factory, realtime=rt_workers, nice_of=nice_of, **options
             )
+        ex.on_starved = self._worker_starved
         return _WorkerAdapter(ex)
+
+    def _worker_starved(self, node: str, detail: str) -> None:
+        """A watchdog spared a starved worker: counted each time, one alert per episode.
+
+        An episode is a run of such events less than 10 s apart: the whole machine starved
+        makes every worker's watchdog notice it, and one alert says it all.
+        """
+        self.starvation_events += 1
+        now = self.clock.now()
+        if now - self._starved_alert_at > 10.0:
+            log.warning("%s: %s", node, detail)
+            self._emit(HealthAlert(self.now(), node, "cpu-starvation", detail, "warning"))
+        self._starved_alert_at = now
 
     def _new_frame(
         self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str
@@ -505,7 +534,11 @@ class Runtime:
             loop_scheduling=self.loop_scheduling,
             nodes=[r.stats() for r in sched.runners.values()],
             edges=[b.stats() for b in sched.buffers],
-            loop=LoopStats(lag=self._lag.summary(), blocked_calls=sched.blocked_calls),
+            loop=LoopStats(
+                lag=self._lag.summary(),
+                blocked_calls=sched.blocked_calls,
+                starvation_events=self.starvation_events,
+            ),
             frames=self._frame_stats(),
             events=self.event_count,
         )
@@ -860,5 +893,12 @@ def _frame_store() -> Any:
     if store_cls is None:
         return None
     with contextlib.suppress(Exception):
-        store_cls.reclaim_orphans()
+        reclaimed = store_cls.reclaim_orphans()
+        if reclaimed:
+            log.info(
+                "reclaimed %d shared-memory segment%s left in %s by a runtime that was killed",
+                reclaimed,
+                "" if reclaimed == 1 else "s",
+                getattr(frames, "SHM_DIR", "/dev/shm"),
+            )
     return store_cls()

@@ -40,7 +40,7 @@ from .events import (
     TimingChanged,
 )
 from .frames import Frame
-from .graph import Graph, ResolvedNode
+from .graph import Graph, ResolvedNode, checked_type
 from .node import Node, NodeContext, NodeFactory, make_node
 from .spec import FrameTrigger, InputTrigger, LoopTrigger, MissPolicy, Placement, TimerTrigger
 from .stats import NodeStats, Running
@@ -173,6 +173,10 @@ class RunnerContext(NodeContext):
         """Seconds since the runtime started: the time base of events and statistics."""
         return self._runner.sched.rel(self._runner.sched.clock.now())
 
+    async def wait_readers(self) -> None:
+        """Wait until this node's period-1 frame readers can take a new frame (fast pacing)."""
+        await self._runner.sched.wait_readers(self._runner)
+
     def request_stop(self) -> None:
         """Ask the runtime to stop (e.g. a video source at its end with on_eof: stop)."""
         stopper = self._runner.sched.stop_requester
@@ -230,13 +234,20 @@ class NodeRunner:
         }
         self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
         self.required = [p for p, port in rnode.cls.inputs.items() if port.required]
+        self.port_types: dict[str, type] = {}  # inputs whose values are type-checked
+        self.type_errors: set[tuple[str, str]] = set()  # (port, type) already logged
         self.trigger_inputs: list[str] = []
         self.executor: Executor = Executor()
         self.timer: PeriodicTimer | None = None
         self.created: list[Frame] = []
         # state
         self.state = "idle"
-        self.busy = False
+        self._busy = False
+        self._idle_waiters: list[asyncio.Future[None]] = []
+        self.lossless: list[LosslessBuffer] = []  # inputs that must deliver every value
+        self.drain_task: asyncio.Task[None] | None = None
+        self.deferred: float | None = None  # a paced source's tick that came while busy
+        self.untaken = False  # released, inputs not yet taken (the run is scheduled)
         self.more_input = False
         self.stopping = False
         self.current = 0  # activation id, so a late deadline timer recognises its activation
@@ -276,6 +287,68 @@ class NodeRunner:
         self.execution = Running()
         self.response = Running()
 
+    @property
+    def busy(self) -> bool:
+        """An activation is running (or its producer waits on a full lossless edge)."""
+        return self._busy
+
+    @busy.setter
+    def busy(self, value: bool) -> None:
+        self._busy = value
+        if not value and self._idle_waiters:
+            self.notify()
+
+    def notify(self) -> None:
+        """Wake whoever waits for this node to be ready (a paced source)."""
+        waiters, self._idle_waiters = self._idle_waiters, []
+        for fut in waiters:
+            if not fut.done():
+                fut.set_result(None)
+
+    def ready_for_frame(self) -> bool:
+        """True when this node has taken the previous frame of a paced source (or never will).
+
+        It may still be running on it: the next tick is then deferred (see Scheduler.tick),
+        so that the source prepares frame k+1 while a worker processes frame k.
+        """
+        if not self.timing.enabled or self.state == "failed" or self.stopping:
+            return True
+        return (
+            self.deferred is None and not self.untaken and self.state not in ("starting", "backoff")
+        )
+
+    async def wait_ready(self) -> None:
+        fut = self.sched.loop.create_future()
+        self._idle_waiters.append(fut)
+        await fut
+
+    def _cancelled(self, task: asyncio.Task[None]) -> None:
+        """A task cancelled before its first step never ran ``run_async``'s own clean-up."""
+        if task is self.task and task.cancelled() and self.busy and not self.blocked:
+            self._release_created()
+            self.untaken = False
+            self.busy = False
+            if self.state == "running":
+                self.state = "idle"
+
+    def _backlog(self) -> bool:
+        """A lossless input holds values not yet delivered."""
+        return any(b.pending() for b in self.lossless)
+
+    def _catch_up(self) -> None:
+        """Run once more for a lossless input's backlog (never skipped: see release)."""
+        if self.executor.pipelined and self.window > 1:
+            self._schedule_pump()  # several activations may take from the backlog at once
+            return
+        if (
+            not self.busy
+            and self.state == "idle"
+            and not self.stopping
+            and self.timing.enabled
+            and self._backlog()
+        ):
+            self.release(self.sched.clock.now())
+
     # --- wiring -------------------------------------------------------------------------
 
     def make_executor(self) -> Executor:
@@ -290,6 +363,13 @@ class NodeRunner:
         self.inputs[port] = buf
         if port not in self.ports:
             self.ports.append(port)
+        if isinstance(buf, LosslessBuffer):
+            self.lossless.append(buf)
+            buf.on_full = self._catch_up
+        declared = self.rnode.cls.inputs.get(port) or self.rnode.cls.any_inputs
+        checked = checked_type(declared.type) if declared is not None else None
+        if checked is not None:
+            self.port_types[port] = checked
         trig = self.rnode.trigger
         if isinstance(trig, InputTrigger):
             wanted = [trig.input] if isinstance(trig.input, str) else trig.input
@@ -306,6 +386,8 @@ class NodeRunner:
         """A trigger fired: run now unless disabled, down, or still running (overrun)."""
         if not self.timing.enabled or self.stopping:
             return
+        if (self.busy or self.state in ("backoff", "starting")) and self._backlog():
+            return  # not skipped: the lossless value waits, and _idle runs the node for it
         self.activations += 1
         if self.state in ("backoff", "failed", "starting") or self.busy:
             self.skipped += 1
@@ -313,6 +395,7 @@ class NodeRunner:
                 buf.reader_skipped()  # the value it was due to read is lost if replaced
             return
         self.busy = True
+        self.untaken = True
         self.current += 1
         self.missed_current = False
         loop = self.sched.loop
@@ -343,12 +426,40 @@ class NodeRunner:
                     _release_all(values.values())
                     return None
                 value = None
+            elif port in self.port_types and not isinstance(value, self.port_types[port]):
+                self._wrong_type(port, value)
+                _release_all([*values.values(), value])
+                return None
             values[port] = value
         return values
+
+    def _wrong_type(self, port: str, value: Any) -> None:
+        """A value the input's type refuses: one counted error, one log line per type.
+
+        Validation refuses edges whose declared types differ; this catches what an
+        ``object``-typed output (a relay, ``Runtime.publish``) lets through. The node is
+        not called (it would raise on every value) and the activation is skipped.
+        """
+        self.errors += 1
+        got = type(value).__name__
+        if (port, got) not in self.type_errors:
+            self.type_errors.add((port, got))
+            want = self.rnode.cls.inputs.get(port) or self.rnode.cls.any_inputs
+            log.error(
+                "node %s: input %r expects %s, got %s: values of this type are dropped "
+                "and counted as errors",
+                self.name,
+                port,
+                getattr(want.type if want else None, "__name__", "?"),
+                got,
+            )
 
     def _begin(self) -> tuple[float, dict[str, Any] | None]:
         now = self.sched.clock.now()
         inputs = self._take_inputs()
+        self.untaken = False
+        if self._idle_waiters:
+            self.notify()  # a paced source may publish the next frame now
         if inputs is None:
             self.skipped += 1
             return now, None
@@ -662,11 +773,12 @@ class NodeRunner:
 
     async def _drain_blocked(self) -> None:
         """Lossless readers are full: the producer waits (stays busy) until they take."""
-        for buf, value, t in self.blocked:
+        while self.blocked:
+            buf, value, t = self.blocked[0]
             await buf.wait_space()
             buf.put(value, t)
+            self.blocked.pop(0)
             _release_all([value])
-        self.blocked = []
 
     def _release_created(self) -> None:
         if self.created:
@@ -677,7 +789,7 @@ class NodeRunner:
         if self.blocked:
             if not self._draining:
                 self._draining = True
-                self.sched.loop.create_task(self._drain_then_idle())
+                self.drain_task = self.sched.loop.create_task(self._drain_then_idle())
             return
         if self.inflight > 0:  # pipelined: more activations in flight; take the next input
             self._schedule_pump()
@@ -692,6 +804,9 @@ class NodeRunner:
                 self.idle_waiter.set_result(old)
         if self.stopping:
             return
+        if self.deferred is not None:  # a paced source's frame waits: run on it now
+            t, self.deferred = self.deferred, None
+            self.release(t)
         if isinstance(self.rnode.trigger, LoopTrigger):
             self.sched.loop.call_soon(self.release, self.sched.clock.now())
         elif self.trigger_inputs:
@@ -700,6 +815,8 @@ class NodeRunner:
                 if self.inputs[p].pending():
                     self.input_arrived()  # release() schedules the run: no re-entry
                     break
+        if self.lossless and not self.busy:
+            self.sched.loop.call_soon(self._catch_up)
 
     async def _drain_then_idle(self) -> None:
         try:
@@ -946,11 +1063,17 @@ class Scheduler:
         for name in sorted(graph.nodes, key=lambda n: graph.nodes[n].order):
             self.runners[name] = NodeRunner(self, graph.nodes[name])
         self.buffers: list[Buffer] = []
+        self.reader_of: dict[int, NodeRunner] = {}  # id(edge buffer) -> the node reading it
         for edge in graph.edges:
             buf = make_buffer(edge.policy.value, edge.name, edge.size, clock.now)
             self.runners[edge.src].outputs[edge.src_port].append(buf)
             self.runners[edge.dst].connect_input(edge.dst_port, buf)
             self.buffers.append(buf)
+            self.reader_of[id(buf)] = self.runners[edge.dst]
+        self.paced: set[str] = set()  # frame clocks whose source waits for its readers
+        self.drain_timeout = 5.0  # seconds the drain at stop may take (then reported)
+        self.drained = False
+        self.drain_left: list[str] = []  # what a timed-out drain left undone
         # frame clocks: source key -> (tick count, readers in dispatch order)
         self.ticks: dict[str, int] = {}
         self.readers: dict[str, list[NodeRunner]] = {}
@@ -992,10 +1115,37 @@ class Scheduler:
         if k is None:
             return
         self.ticks[key] = k + 1
+        paced = key in self.paced
         for r in self.readers[key]:
             tm = r.timing
             if k % tm.period == tm.phase:
-                r.release(t)
+                if paced and tm.period == 1 and r.busy and r.deferred is None:
+                    r.deferred = t  # not an overrun: the source waited for this reader
+                else:
+                    r.release(t)
+
+    async def wait_readers(self, runner: NodeRunner) -> None:
+        """Wait until every period-1 frame-triggered reader of ``runner``'s frames is ready.
+
+        A ``pacing: fast`` source calls this before publishing: a reader in a worker process
+        that is slower than the source is then never skipped (the source follows the slowest
+        such reader instead of outrunning it). "Ready" means the reader has taken the previous
+        frame: it may still run on it, and the new frame's tick then waits for it to finish
+        (deferred, not skipped), so that the source prepares frame k+1 while the worker
+        processes frame k. Readers with a longer period sample by design and are not waited
+        for; nor are failed, disabled or stopping ones.
+        """
+        self.paced.update(runner.tick_ports.values())
+        while not runner.stopping:
+            waiting = [
+                r
+                for key in runner.tick_ports.values()
+                for r in self.readers.get(key, ())
+                if r.timing.period == 1 and not r.ready_for_frame()
+            ]
+            if not waiting:
+                return
+            await waiting[0].wait_ready()
 
     async def sleep(self, seconds: float) -> None:
         fut = self.loop.create_future()
@@ -1048,8 +1198,98 @@ class Scheduler:
 
         return fire
 
+    async def drain(self, limit: float | None = None) -> list[str]:
+        """Stop the sources, then let the graph finish what it holds (at most ``limit`` s).
+
+        Sources (nodes without inputs, and free-running ones) are released no more and their
+        in-flight activation is cancelled (a capture waiting for a frame, a paced source
+        waiting for its readers): nothing new is published after the stop request, but what
+        a source did publish, even a value waiting on a full lossless edge, is delivered.
+        Every other node keeps running: in-flight activations finish, every lossless edge
+        delivers what it holds, producers waiting on a full lossless edge get their values in.
+        Returns what was left undone when the limit hit (then reported as a ``drain-timeout``
+        HealthAlert and a warning), or []. The limit is a deadline for the whole graph, not
+        for one awaited call (hence no ``asyncio.timeout``).
+        """
+        if self.drained:
+            return self.drain_left
+        self.drained = True
+        timeout = self.drain_timeout if limit is None else limit
+        loop = self.loop
+        t0 = loop.time()
+        for r in self.runners.values():
+            if not r.inputs or isinstance(r.rnode.trigger, LoopTrigger):
+                r.stopping = True
+                if r.timer is not None:
+                    r.timer.cancel()
+                    r.timer = None
+                if r.task is not None and not r.task.done():
+                    r.task.add_done_callback(r._cancelled)
+                    r.task.cancel()  # e.g. a capture waiting for its next frame
+        while True:
+            left = self._undrained()
+            if not left or loop.time() - t0 >= timeout:
+                break
+            for r in self.runners.values():
+                r._catch_up()
+            await asyncio.sleep(0.002)
+        self.drain_left = left
+        if left:
+            detail = f"not drained within {timeout:g} s: " + "; ".join(left)
+            log.warning("drain: %s", detail)
+            self.emit(HealthAlert(self.rel(self.clock.now()), None, "drain-timeout", detail))
+        else:
+            log.debug("drained in %.1f ms", (loop.time() - t0) * 1000)
+        return left
+
+    def _undrained(self) -> list[str]:
+        """What the drain still waits for, in words."""
+        left = []
+        for r in self.runners.values():
+            if r.busy:
+                left.append(
+                    f"{r.name} waits on a full lossless edge" if r.blocked else f"{r.name} running"
+                )
+            elif r.state in ("starting", "backoff") and r._backlog() and r.timing.enabled:
+                left.append(f"{r.name} restarting")
+        for buf in self.buffers:
+            reader = self.reader_of.get(id(buf))
+            if (
+                reader is not None
+                and isinstance(buf, LosslessBuffer)
+                and buf.pending()
+                and reader.timing.enabled
+                and reader.state != "failed"
+            ):
+                left.append(f"{buf.name} holds {buf.pending()}")
+        return left
+
+    def _discard_leftovers(self) -> None:
+        """Count what a stop leaves undelivered on queue and lossless edges, with a reason."""
+        late = "drain timeout" if self.drain_left else "stop"
+        for r in self.runners.values():
+            for blocked, value, _ in r.blocked:
+                blocked.abandon(value, late)
+            r.blocked = []
+        for buf in self.buffers:
+            reader = self.reader_of.get(id(buf))
+            if reader is None or isinstance(buf, LatestBuffer):
+                buf.clear()  # a host subscription, or a sampled/latest value: not a loss
+                continue
+            why = (
+                "reader failed"
+                if reader.state == "failed"
+                else "reader disabled"
+                if not reader.timing.enabled
+                else late
+            )
+            n = buf.discard(why)
+            if n:
+                log.warning("%s: %d value(s) dropped at stop (%s)", buf.name, n, why)
+
     async def stop(self, grace: float = 1.0) -> None:
-        """Stop releasing, let running activations finish (bounded), tear every node down."""
+        """Drain (bounded), stop releasing, cancel what still runs, tear every node down."""
+        await self.drain()
         for r in self.runners.values():
             r.stopping = True
             if r.timer is not None:
@@ -1064,13 +1304,21 @@ class Scheduler:
                 t.cancel()
             if still:
                 await asyncio.wait(still, timeout=grace)
+        drains = [
+            r.drain_task
+            for r in self.runners.values()
+            if r.drain_task is not None and not r.drain_task.done()
+        ]
+        for t in drains:
+            t.cancel()
+        if drains:
+            await asyncio.wait(drains, timeout=grace)
+        self._discard_leftovers()
         for r in reversed(self.order):
             try:
                 await asyncio.wait_for(r.executor.stop(), timeout=max(grace, 2.0))
             except Exception as e:
                 log.warning("node %s: teardown failed: %s", r.name, e)
-        for buf in self.buffers:
-            buf.clear()
         for r in self.runners.values():
             r.failure_log.flush(self.clock.now())
 

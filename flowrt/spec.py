@@ -28,24 +28,160 @@ _UNIT_MS = {"us": 0.001, "ms": 1.0, "s": 1000.0, None: 1.0}
 
 
 def parse_duration_ms(value: Any) -> float:
-    """Read ``10ms``, ``1.5s``, ``200us`` or a bare number (milliseconds) as milliseconds."""
+    """Read ``10ms``, ``1.5s``, ``200us`` or a bare number (milliseconds) as milliseconds.
+
+    Only finite durations: a NaN or infinite timer, phase, deadline or watchdog validated
+    once and then crashed the clock (``OverflowError``) or failed every call.
+    """
+    ms: float | None = None
     if isinstance(value, bool):
         raise ValueError("expected a duration such as 10ms, 1.5s or 200us")
     if isinstance(value, int | float):
-        return float(value)
-    if isinstance(value, str):
+        try:
+            ms = float(value)
+        except OverflowError:  # an int beyond a float's range
+            ms = math.inf
+    elif isinstance(value, str):
         m = _DURATION.match(value)
         if m:
-            return float(m.group("num")) * _UNIT_MS[m.group("unit")]
-    raise ValueError(f"expected a duration such as 10ms, 1.5s or 200us, got {value!r}")
+            ms = float(m.group("num")) * _UNIT_MS[m.group("unit")]
+    if ms is None:
+        raise ValueError(f"expected a duration such as 10ms, 1.5s or 200us, got {value!r}")
+    if not math.isfinite(ms):
+        shown = repr(value) if len(repr(value)) <= 40 else f"{repr(value)[:30]}... (too large)"
+        raise ValueError(f"must be a finite duration, got {shown}")
+    return ms
 
 
 DurationMs = Annotated[float, BeforeValidator(parse_duration_ms)]
-"""A duration in milliseconds; YAML may write it with a unit (us, ms, s)."""
+"""A finite duration in milliseconds; YAML may write it with a unit (us, ms, s)."""
+
+
+# --- the documented ranges ---------------------------------------------------------------
+#
+# Every duration, rate, count and id of a graph file is finite and within these bounds, so
+# that a graph that validates is a graph that runs. TimingOverride carries the same bounds, so
+# that a run-time change (a mode, a request to the control endpoint) is checked with the same
+# rules: ``TimingOverride.model_validate(change)``. README "Timing ranges".
+
+MIN_TIMER_MS = 0.1
+"""Shortest timer period: 100 us (10 kHz). Below it a timerfd interval rounds towards zero
+(``1e-9ms`` armed a zero interval: the timer fired once, then never) and no Python node keeps
+up anyway."""
+MAX_DURATION_MS = 3_600_000.0
+"""Longest timer period, phase, deadline, watchdog, back-off: one hour. Longer is a node that
+never runs again (``1e300ms``), which is ``enabled: false``."""
+MIN_DEADLINE_MS = 0.01
+"""Shortest deadline: 10 us, about the resolution at which activations are measured."""
+MIN_WATCHDOG_MS = 1.0
+"""Shortest watchdog: 1 ms. A call's round trip to a worker process takes tens to hundreds of
+microseconds; a ``1us`` watchdog killed every call as hung."""
+MAX_FRAME_PERIOD = 100_000
+"""Longest frame-trigger period, in frames (83 min at 20 fps)."""
+MIN_PRIORITY, MAX_PRIORITY = 1, 99
+MAX_CPU_ID = 8191
+"""Largest CPU number (Linux's CONFIG_NR_CPUS is at most 8192). A huge id overflowed
+``sched_setaffinity`` and restarted the worker forever."""
+MAX_QUEUE_SIZE = 100_000
+"""Largest queue/lossless edge capacity."""
+MAX_SPIN_MS = 10.0
+"""Longest busy-poll around an expected activation."""
+
+
+def _ms(v: float) -> str:
+    """``3600000 ms`` rather than ``3.6e+06 ms``; tiny and huge values stay exponents."""
+    v = float(v)
+    if v.is_integer() and abs(v) < 1e12:
+        return f"{int(v)} ms"
+    return f"{v:g} ms"
+
+
+def check_timer_ms(v: float) -> float:
+    """A timer period within [MIN_TIMER_MS, MAX_DURATION_MS]."""
+    if v <= 0:
+        raise ValueError(f"timer period must be positive, got {_ms(v)}")
+    if v < MIN_TIMER_MS:
+        raise ValueError(
+            f"timer period must be at least {_ms(MIN_TIMER_MS)} (100 us), got {_ms(v)}"
+        )
+    if v > MAX_DURATION_MS:
+        raise ValueError(f"timer period must be at most {_ms(MAX_DURATION_MS)} (1 h), got {_ms(v)}")
+    return v
+
+
+def check_phase_ms(v: float) -> float:
+    """A timer phase within [0, MAX_DURATION_MS] (and below the period: checked by the graph)."""
+    if v < 0:
+        raise ValueError(f"phase must be >= 0, got {_ms(v)}")
+    if v > MAX_DURATION_MS:
+        raise ValueError(f"phase must be at most {_ms(MAX_DURATION_MS)} (1 h), got {_ms(v)}")
+    return v
+
+
+def check_deadline_ms(v: float) -> float:
+    """A deadline within [MIN_DEADLINE_MS, MAX_DURATION_MS]."""
+    if v <= 0:
+        raise ValueError(f"must be positive, got {_ms(v)}")
+    if not MIN_DEADLINE_MS <= v <= MAX_DURATION_MS:
+        raise ValueError(
+            f"must be between {_ms(MIN_DEADLINE_MS)} and {_ms(MAX_DURATION_MS)} (1 h), got {_ms(v)}"
+        )
+    return v
+
+
+def check_watchdog_ms(v: float) -> float:
+    """A watchdog within [MIN_WATCHDOG_MS, MAX_DURATION_MS]."""
+    if v <= 0:
+        raise ValueError(f"must be positive, got {_ms(v)}")
+    if not MIN_WATCHDOG_MS <= v <= MAX_DURATION_MS:
+        raise ValueError(
+            f"must be between {_ms(MIN_WATCHDOG_MS)} and {_ms(MAX_DURATION_MS)} (1 h), got {_ms(v)}"
+        )
+    return v
+
+
+def check_frame_period(v: int) -> int:
+    """A frame-trigger period within [1, MAX_FRAME_PERIOD] frames."""
+    if v <= 0:
+        raise ValueError(f"period must be a positive number of frames, got {v}")
+    if v > MAX_FRAME_PERIOD:
+        raise ValueError(f"period must be at most {MAX_FRAME_PERIOD} frames, got {v}")
+    return v
+
+
+def check_frame_phase(v: int) -> int:
+    """A frame-trigger phase within [0, MAX_FRAME_PERIOD) (and below the period)."""
+    if v < 0:
+        raise ValueError(f"phase must be >= 0, got {v}")
+    if v >= MAX_FRAME_PERIOD:
+        raise ValueError(f"phase must be less than {MAX_FRAME_PERIOD} frames, got {v}")
+    return v
+
+
+def _bounded_ms(lo: float, hi: float) -> AfterValidator:
+    def check(v: float) -> float:
+        if not lo <= v <= hi:
+            raise ValueError(f"must be between {_ms(lo)} and {_ms(hi)}, got {_ms(v)}")
+        return v
+
+    return AfterValidator(check)
+
+
+TimerMs = Annotated[float, BeforeValidator(parse_duration_ms), AfterValidator(check_timer_ms)]
+PhaseMs = Annotated[float, BeforeValidator(parse_duration_ms), AfterValidator(check_phase_ms)]
+DeadlineMs = Annotated[float, BeforeValidator(parse_duration_ms), AfterValidator(check_deadline_ms)]
+WatchdogMs = Annotated[float, BeforeValidator(parse_duration_ms), AfterValidator(check_watchdog_ms)]
+BackoffMs = Annotated[float, BeforeValidator(parse_duration_ms), _bounded_ms(0, MAX_DURATION_MS)]
+SpinMs = Annotated[float, BeforeValidator(parse_duration_ms)]
+FramePeriod = Annotated[int, AfterValidator(check_frame_period)]
+FramePhase = Annotated[int, AfterValidator(check_frame_phase)]
+Priority = Annotated[int, Field(ge=MIN_PRIORITY, le=MAX_PRIORITY)]
+CpuId = Annotated[int, Field(ge=0, le=MAX_CPU_ID)]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: every float of a graph file is finite.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class FrameTrigger(_Strict):
@@ -58,15 +194,15 @@ class FrameTrigger(_Strict):
     frame: str = Field(
         description="frame source: a node name, or node.port for a node with several"
     )
-    period: int = 1
-    phase: int = 0
+    period: FramePeriod = 1
+    phase: FramePhase = 0
 
 
 class TimerTrigger(_Strict):
     """Activate every ``timer`` milliseconds, ``phase`` ms after the runtime's time origin."""
 
-    timer: DurationMs
-    phase: DurationMs = 0.0
+    timer: TimerMs
+    phase: PhaseMs = 0.0
 
 
 class InputTrigger(_Strict):
@@ -133,9 +269,13 @@ class InputSpec(_Strict):
 
     source: str = Field(alias="from", description="node.port that feeds this input")
     policy: EdgePolicy | None = None  # None: latest for frames, queue for messages
-    size: int = Field(default=8, ge=1, description="capacity of queue/lossless buffers")
+    size: int = Field(
+        default=8, ge=1, le=MAX_QUEUE_SIZE, description="capacity of queue/lossless buffers"
+    )
 
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    model_config = ConfigDict(
+        extra="forbid", frozen=True, populate_by_name=True, allow_inf_nan=False
+    )
 
     @model_validator(mode="before")
     @classmethod
@@ -166,12 +306,13 @@ class RestartPolicy(_Strict):
     """When a node that raised is started again, and how long to wait (doubling each time)."""
 
     policy: Literal["always", "on-failure", "never"] = "on-failure"
-    backoff: DurationMs = 100.0
-    max_backoff: DurationMs = 5000.0
-    max_restarts: int | None = None
+    backoff: BackoffMs = 100.0
+    max_backoff: BackoffMs = 5000.0
+    max_restarts: int | None = Field(default=None, ge=0, le=1_000_000_000)
     max_failures: int | None = Field(
         default=10,
         ge=1,
+        le=1_000_000_000,
         description="consecutive failures without a completed activation in between (a crash "
         "loop) after which the node is given up and marked failed; null: never give up",
     )
@@ -183,18 +324,18 @@ class NodeSpec(_Strict):
     kind: str
     params: dict[str, Any] = Field(default_factory=dict)
     trigger: Trigger | None = None
-    deadline: DurationMs | None = None
+    deadline: DeadlineMs | None = None
     miss_policy: MissPolicy = MissPolicy.continue_
-    priority: int = Field(default=10, ge=1, le=99)
+    priority: Priority = 10
     placement: Placement = Placement.inline
     enabled: bool = True
-    watchdog: DurationMs | None = None
+    watchdog: WatchdogMs | None = None
     restart: RestartPolicy = RestartPolicy()
     inputs: dict[str, InputSpec] = Field(default_factory=dict)
-    cpus: list[int] | None = Field(
+    cpus: list[CpuId] | None = Field(
         default=None, min_length=1, description="CPUs its worker process may run on"
     )
-    spin: DurationMs | None = Field(
+    spin: SpinMs | None = Field(
         default=None,
         description="its worker busy-polls this long before (and after) each expected activation",
     )
@@ -219,13 +360,6 @@ class NodeSpec(_Strict):
             return {"input": "any"}
         return v
 
-    @field_validator("deadline", "watchdog")
-    @classmethod
-    def _positive(cls, v: float | None) -> float | None:
-        if v is not None and v <= 0:
-            raise ValueError(f"must be positive, got {v:g} ms")
-        return v
-
     @field_validator("wcet")
     @classmethod
     def _wcet_finite(cls, v: float | None) -> float | None:
@@ -236,8 +370,8 @@ class NodeSpec(_Strict):
     @field_validator("spin")
     @classmethod
     def _spin_range(cls, v: float | None) -> float | None:
-        if v is not None and not 0 < v <= 10:
-            raise ValueError(f"must be in (0, 10 ms], got {v:g} ms")
+        if v is not None and not 0 < v <= MAX_SPIN_MS:
+            raise ValueError(f"must be in (0, {MAX_SPIN_MS:g} ms], got {v:g} ms")
         return v
 
     @field_validator("cpus")
@@ -258,13 +392,19 @@ class ModeSpec(_Strict):
 
 
 class TimingOverride(_Strict):
-    """The run-time adjustable part of a node's timing; unset fields keep their value."""
+    """The run-time adjustable part of a node's timing; unset fields keep their value.
 
-    period: int | None = None
-    phase: int | None = None
-    timer: DurationMs | None = None
-    deadline: DurationMs | None = None
-    priority: int | None = Field(default=None, ge=1, le=99)
+    Validated with the graph files' ranges (``TimingOverride.model_validate(change)``), so a
+    change from a mode, the control endpoint or the API can be checked whole before any of
+    it is applied. Whether it fits the node's trigger (frames take period/phase, timers ms)
+    is checked against the graph (``flowrt.graph`` / ``flowrt.qos.check_plan``).
+    """
+
+    period: FramePeriod | None = None
+    phase: FramePhase | None = None
+    timer: TimerMs | None = None
+    deadline: DeadlineMs | None = None
+    priority: Priority | None = None
     enabled: bool | None = None
 
 
@@ -306,7 +446,9 @@ class OverloadSpec(_Strict):
     could be shed), input- and loop-triggered nodes.
     """
 
-    interval: DurationMs = Field(default=500.0, gt=0, description="evaluation window, ms")
+    interval: DurationMs = Field(
+        default=500.0, gt=0, le=MAX_DURATION_MS, description="evaluation window, ms"
+    )
     loop_lag_ms: float | None = Field(
         default=5.0, gt=0, description="mean lateness of a 10 ms probe timer over the window, ms"
     )
@@ -317,8 +459,12 @@ class OverloadSpec(_Strict):
         default=0.05, gt=0, le=1, description="deadline misses / activations, nodes with a deadline"
     )
     hysteresis: float = Field(default=0.5, gt=0, lt=1)
-    restore_after: DurationMs = Field(default=2000.0, ge=0, description="calm this long, ms")
-    max_slowdown: int = Field(default=4, ge=1, description="longest period, times the node's own")
+    restore_after: DurationMs = Field(
+        default=2000.0, ge=0, le=MAX_DURATION_MS, description="calm this long, ms"
+    )
+    max_slowdown: int = Field(
+        default=4, ge=1, le=MAX_FRAME_PERIOD, description="longest period, times the node's own"
+    )
     disable: bool = Field(default=True, description="disable nodes once none can be slowed further")
     protect: list[str] = Field(default_factory=list, description="nodes never shed")
     protect_priority: int | None = Field(default=None, ge=1, le=99)

@@ -148,6 +148,10 @@ class EdgeStats(_Frozen):
         description="values a sampling reader (frame/timer trigger on a latest edge) never "
         "needed: e.g. 3 frames in 4 for a period-4 reader; by design, not a loss",
     )
+    drop_reasons: dict[str, int] = Field(
+        default_factory=dict,
+        description="drops counted at stop, by reason (stop, drain timeout, reader failed)",
+    )
     sampled: bool = Field(
         description="the reader samples the newest value; unread values are expected"
     )
@@ -158,6 +162,11 @@ class LoopStats(_Frozen):
     lag: Summary = Field(description="lateness of a 10 ms probe timer on the event loop, ms")
     blocked_calls: int = Field(
         description="inline calls that blocked the loop longer than the threshold"
+    )
+    starvation_events: int = Field(
+        default=0,
+        description="worker calls past their watchdog spared because the worker was starved "
+        "of CPU (waiting on the run queue), not hung",
     )
 
 

@@ -20,13 +20,16 @@ are expected to be small: detections, poses).
 Death detection: the process sentinel becomes readable when the worker exits for any reason
 (exception escaping, segfault, abort, SIGKILL); EOF on the socket is seen as well. The in-flight
 call fails with :class:`WorkerError` whose ``kind`` says what happened. A call running longer
-than its watchdog is failed at that instant (kind ``hung``) and the worker is SIGKILLed.
+than its watchdog is failed at that instant (kind ``hung``) and the worker is SIGKILLed,
+unless the kernel says the worker was starved of CPU meanwhile (it waited on the run queue):
+then the watchdog is extended and ``on_starved`` told, since killing it would not help.
 
 Workers are forked from a ``forkserver`` that has preloaded numpy and OpenCV, so their pages
 are shared (copy-on-write) and a worker starts in milliseconds. A worker dies with the runtime:
 PR_SET_PDEATHSIG ties it to the forkserver, which exits when the main process does, and EOF on
-its socket ends it too. Workers ignore SIGINT: Ctrl-C is the main process's business, which
-then stops them in order.
+its socket ends it too. Workers ignore SIGINT, SIGTERM and SIGHUP (sent to the whole process
+group by Ctrl-C, ``kill`` of the group or a closed terminal): stopping is the main process's
+business, which then stops them in order (SIGKILL still ends one, and it is replaced).
 """
 
 from __future__ import annotations
@@ -78,6 +81,7 @@ PRELOAD_MODULES = [
     "flowrt.frames",
     "flowrt.oscheduling",
     "flowrt.workers",
+    "flowrt._forkserver_signals",  # SIGTERM/SIGHUP ignored, inherited by every worker
     "flowrt._forkserver_freeze",  # last: freezes all of the above before any fork
 ]
 
@@ -306,13 +310,17 @@ class _BlockingConn:
                 want = 4 + n - len(buf)
             else:
                 want = 4
-            chunk = self.sock.recv(max(want, 1 << 16))
+            try:
+                chunk = self.sock.recv(max(want, 1 << 16))
+            except ConnectionResetError:  # the runtime is gone (killed): as EOF
+                return None
             if not chunk:
                 return None
             buf += chunk
 
     def send(self, payload: bytes) -> None:
-        self.sock.sendall(_HDR.pack(len(payload)) + payload)
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):  # runtime gone: the
+            self.sock.sendall(_HDR.pack(len(payload)) + payload)  # next recv sees EOF
 
     def _complete(self) -> bool:
         buf = self.buf
@@ -338,6 +346,8 @@ class _BlockingConn:
                 chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
             except BlockingIOError:
                 continue
+            except ConnectionResetError:
+                return  # left for recv to see
             if chunk:
                 self.buf += chunk
             return  # data, or EOF (left for recv to see)
@@ -409,7 +419,8 @@ def _reply(conn: _BlockingConn, status: int, payload: Any, seconds: float, index
 
 def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     """Entry point of a worker process: serve requests until EXIT or EOF."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
     _set_pdeathsig()
     try:
         os.kill(main_pid, 0)
@@ -568,6 +579,11 @@ class _Worker:
         self.alive = False  # the process exists (until its sentinel fires)
         self._killing = False
         self.last_run_time = 0.0
+        # Watchdog progress check (see _on_hung): the worker's CPU and run-queue wait at the
+        # last check, and who hears of a call spared because the worker was starved of CPU.
+        self._progress: tuple[float, float, float | None] | None = None
+        self._call_cpu = 0.0  # the worker's CPU time when the call in flight was sent
+        self.on_starved: Callable[[str, str], None] | None = None
 
     async def spawn(self) -> None:
         _exit_if_importing_main()
@@ -615,6 +631,7 @@ class _Worker:
         if not self.usable or self._loop is None:
             raise self.death_for(node)
         fut = self._loop.create_future()
+        fut.add_done_callback(_retrieved)
         seq = next(self._seq)
         call = _Call((-priority, seq), pickle.dumps(msg, _PICKLE), fut, node, watchdog, window)
         if not self._inflight or self._may_follow(call):
@@ -650,6 +667,8 @@ class _Worker:
         """The call at the head of the line starts running now: its watchdog starts too."""
         assert self._loop is not None
         if call.watchdog is not None:
+            self._progress = _progress_of(self.pid, self._loop.time())
+            self._call_cpu = 0.0 if self._progress is None else self._progress[1]
             self._timer = self._loop.call_later(call.watchdog, self._on_hung)
 
     def _dispatch_next(self) -> None:
@@ -703,6 +722,17 @@ class _Worker:
         if not self._inflight or not self.alive:
             return
         call = self._inflight[0]
+        assert self._loop is not None
+        assert call.watchdog is not None
+        if self._reply_waiting():  # answered; the loop was late to read it (uvloop runs
+            self._timer = self._loop.call_later(0.005, self._on_hung)  # timers before I/O)
+            return
+        starved = self._starved(call.watchdog)
+        if starved:
+            if self.on_starved is not None:
+                self.on_starved(call.node, starved)
+            self._timer = self._loop.call_later(call.watchdog, self._on_hung)
+            return
         self._hung_node = call.node
         self.death = self._classify(None)
         err = WorkerError(
@@ -713,6 +743,54 @@ class _Worker:
         if not call.future.done():
             call.future.set_exception(err)
         self.kill()
+
+    def _reply_waiting(self) -> bool:
+        """Bytes from the worker wait in the socket (a reply, or EOF that the sentinel follows)."""
+        sock = None if self._transport is None else self._transport.get_extra_info("socket")
+        if sock is None:
+            return False
+        try:
+            readable, _, _ = select.select([sock.fileno()], [], [], 0)
+        except (OSError, ValueError):
+            return False
+        return bool(readable)
+
+    def _starved(self, watchdog: float) -> str:
+        """Why a call past its watchdog is spared ('' if it is not): the worker was starved.
+
+        A hung worker and a starved machine look the same from the loop's clock. The kernel
+        tells them apart: a starved worker got less than half the window's CPU and either
+        waited on the run queue for most of it (``/proc/PID/schedstat``) or is runnable now
+        (``/proc/PID/stat``: schedstat counts a wait only when it ends). A hung worker is
+        asleep or blocked, or it spins and gets the CPU; and a call is killed anyway once it
+        has had a whole watchdog of CPU time, so on a machine merely loaded (a spinning
+        worker gets a share, not half), a spinning hang is killed a few watchdogs late, and
+        on a starved one at the first check after the starvation ends.
+        """
+        assert self._loop is not None
+        before, now = self._progress, _progress_of(self.pid, self._loop.time())
+        self._progress = now
+        if before is None or now is None:
+            return ""
+        t0, cpu0, wait0 = before
+        t1, cpu1, wait1 = now
+        window = t1 - t0
+        cpu = cpu1 - cpu0
+        if cpu1 - self._call_cpu >= watchdog:
+            return ""  # a whole watchdog of CPU time and no result: hung however loaded
+        if window <= 0 or cpu >= 0.5 * window:
+            return ""  # it had the CPU: a hang (or a call longer than its watchdog)
+        if wait0 is not None and wait1 is not None and wait1 - wait0 >= 0.5 * window:
+            what = f"waited {(wait1 - wait0) * 1000:.0f} ms for a CPU"
+        elif _state_of(self.pid) == "R":
+            # schedstat adds a wait when it ends: a worker still queued shows none yet
+            what = "is runnable but not running"
+        else:
+            return ""  # asleep or blocked: hung
+        return (
+            f"worker {self.pid} ran {cpu * 1000:.0f} ms of CPU in {window * 1000:.0f} ms and "
+            f"{what}: starved of CPU, not hung; watchdog extended by {watchdog * 1000:g} ms"
+        )
 
     def _on_eof(self) -> None:
         # Normally followed at once by the sentinel. A worker that closed its socket but lives
@@ -732,6 +810,7 @@ class _Worker:
         self.proc.join(0)
         exitcode = self.proc.exitcode
         self.alive = False
+        _proc_forget(self.pid)
         self.death = self._classify(exitcode)
         if self._transport is not None:
             self._transport.abort()
@@ -808,6 +887,64 @@ class _Worker:
         await self.wait_exit(grace)
 
 
+_PROC_FDS: dict[tuple[int, str], int] = {}  # (pid, file) -> an open /proc descriptor
+
+
+def _proc_read(pid: int, name: str) -> bytes:
+    """/proc/PID/NAME through a descriptor kept open: ~2 us a read, against ~60 us to open,
+    read and close it, which matters at every dispatch of a call that has a watchdog."""
+    key = (pid, name)
+    fd = _PROC_FDS.get(key)
+    if fd is None:
+        fd = os.open(f"/proc/{pid}/{name}", os.O_RDONLY | os.O_CLOEXEC)
+        _PROC_FDS[key] = fd
+    return os.pread(fd, 1024, 0)
+
+
+def _proc_forget(pid: int | None) -> None:
+    """Close the /proc descriptors of a worker that is gone."""
+    for name in ("schedstat", "stat"):
+        fd = _PROC_FDS.pop((pid, name), None) if pid is not None else None
+        if fd is not None:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+
+
+def _progress_of(pid: int | None, now: float) -> tuple[float, float, float | None] | None:
+    """(now, CPU seconds, run-queue wait seconds or None) of a process, from /proc."""
+    if pid is None:
+        return None
+    try:
+        cpu_ns, wait_ns, _ = _proc_read(pid, "schedstat").split()
+        return now, int(cpu_ns) / 1e9, int(wait_ns) / 1e9
+    except (OSError, ValueError):
+        pass
+    try:
+        fields = _proc_read(pid, "stat").rsplit(b")", 1)[1].split()
+        ticks = os.sysconf("SC_CLK_TCK")
+        return now, (int(fields[11]) + int(fields[12])) / ticks, None  # utime + stime
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _state_of(pid: int | None) -> str:
+    """The process state letter of /proc/PID/stat (R runnable, S sleeping, ...), or ''."""
+    if pid is None:
+        return ""
+    try:
+        return _proc_read(pid, "stat").rsplit(b")", 1)[1].split()[0].decode()
+    except (OSError, IndexError, UnicodeDecodeError):
+        return ""
+
+
+def _retrieved(fut: asyncio.Future[Any]) -> None:
+    """Mark a request's error as seen: whoever awaits it still gets it, and a caller that
+    gave up (a node task cancelled at stop while its worker died) leaves no "Future exception
+    was never retrieved" behind."""
+    if not fut.cancelled():
+        fut.exception()
+
+
 def _check_priority(priority: int) -> int:
     if not 1 <= int(priority) <= 99:
         raise ValueError(f"priority must be in 1..99, got {priority}")
@@ -844,6 +981,9 @@ class _NodeExecutor:
         self.spin = spin
         self._worker: _Worker | None = None
         self._granted = "not started"
+        # Told (node, detail) when a call past its watchdog is spared because the worker
+        # was starved of CPU rather than hung (the runtime emits a HealthAlert).
+        self.on_starved: Callable[[str, str], None] | None = None
 
     @property
     def granted(self) -> str:
@@ -873,6 +1013,8 @@ class _NodeExecutor:
 
     async def _add_to(self, worker: _Worker) -> None:
         self._worker = worker
+        if self.on_starved is not None:
+            worker.on_starved = self.on_starved
         msg = (_OP_ADD, self.nid, self.name, self.factory, self.scheduling)
         self._granted = await worker.request(msg, self.name, self.priority, self.setup_timeout)
 

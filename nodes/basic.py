@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field
 
 from flowrt import Input, Node, Output
 
@@ -35,8 +35,8 @@ class Burn(Node):
     """Keeps the CPU busy for ``ms`` (not a sleep), then passes its input through."""
 
     class Params(BaseModel):
-        model_config = ConfigDict(extra="forbid")
-        ms: float = 1.0
+        model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+        ms: float = Field(1.0, ge=0, le=60_000, description="CPU time per call, ms")
 
     input = Input(object, required=False)
     output = Output(object)

@@ -23,7 +23,9 @@ Sources (``source`` param)
     reported (``source-error`` event) and skipped.
 
 Pacing: ``realtime`` publishes at ``fps`` on a precise timer of the runtime (cameras: at the
-device's rate); ``fast`` publishes as fast as the source delivers and the graph consumes.
+device's rate); ``fast`` publishes as fast as the source delivers and the graph consumes: each
+frame waits until every period-1 frame-triggered reader (inline or in a worker) has taken the
+previous one (``ctx.wait_readers()``), so an offline run processes every frame.
 
 Pixel formats: ``pixel_format`` is what the node publishes (BGR, RGB or GRAY). ``input_format``
 is what the source delivers: for a camera, a raw device format (YUYV, UYVY, I420, NV12, or
@@ -97,6 +99,8 @@ from flowrt import (
     TimerTrigger,
     resolve_path,
 )
+
+from .scene import SceneTruth
 
 __all__ = [
     "INPUT_FORMATS",
@@ -172,7 +176,37 @@ def _duration_ms(value: Any) -> Any:
     return value
 
 
-Ms = Annotated[float, BeforeValidator(_duration_ms), Field(gt=0)]
+Ms = Annotated[float, BeforeValidator(_duration_ms), Field(gt=0, le=3_600_000)]
+
+# The runtime's frame pool of a capture node: 4 slots allocated at the first frame, growing
+# up to 16 while readers hold frames (flowrt.frames.FrameStore.pool).
+POOL_SLOTS_AT_START = 4
+POOL_SLOTS_MAX = 16
+WARN_FRAME_BYTES = 8 * 2**20
+"""A frame above this (about 1920x1440 BGR) gets a warning at validate with its memory."""
+MAX_FRAME_BYTES = 64 * 2**20
+"""A frame above this (about 4730x4730 BGR) is refused unless ``allow_large: true``: a
+16384x16384 frame took 3 GB of shared memory, lagged the loop 6.6 s and 15 s to stop."""
+
+
+def _mib(n: float) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"
+
+
+def frame_bytes(size: tuple[int, int], pixel_format: str) -> int:
+    """Bytes of one published frame of ``size`` (width, height) in ``pixel_format``."""
+    return size[0] * size[1] * (1 if pixel_format == "GRAY" else 3)
+
+
+def pool_memory_text(size: tuple[int, int], pixel_format: str) -> str:
+    """What a frame of this size costs in the frame pool, for messages."""
+    one = frame_bytes(size, pixel_format)
+    return (
+        f"a {size[0]}x{size[1]} {pixel_format} frame is {_mib(one)}: its frame pool takes "
+        f"{_mib(one * POOL_SLOTS_AT_START)} of shared memory at start ({POOL_SLOTS_AT_START} "
+        f"slots) and up to {_mib(one * POOL_SLOTS_MAX)} ({POOL_SLOTS_MAX} slots)"
+    )
+
 
 SourceKind = Literal["synthetic", "camera", "file", "images"]
 _SCHEME = re.compile(r"^([A-Za-z][A-Za-z0-9_-]*):(.*)$")
@@ -226,14 +260,14 @@ def _relative_hint(info: ValidationInfo) -> str:
 class CaptureParams(BaseModel):
     """Params of the ``capture`` node (see the module documentation)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     source: str = Field(
         "synthetic:soccer",
         description="synthetic:soccer | camera:N | camera:/dev/videoN | file:PATH | images:GLOB",
     )
     fps: float = Field(
-        20.0, gt=0, le=1000, description="frame rate (realtime pacing; requested from cameras)"
+        20.0, ge=0.001, le=1000, description="frame rate (realtime pacing; requested from cameras)"
     )
     size: tuple[int, int] | None = Field(
         None, description="output [width, height]; resized once at capture"
@@ -244,7 +278,7 @@ class CaptureParams(BaseModel):
     )
     pacing: Literal["realtime", "fast"] = "realtime"
     on_eof: Literal["stop", "loop", "exit"] = "stop"
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     clutter: float = Field(
         0.3, ge=0.0, le=1.0, description="synthetic scene: noise, lighting, distractors"
     )
@@ -254,6 +288,11 @@ class CaptureParams(BaseModel):
     max_backoff: Ms = 5000.0
     max_retries: int | None = Field(
         None, ge=0, description="consecutive failed reopens before giving up"
+    )
+    allow_large: bool = Field(
+        False,
+        description=f"accept a frame above {MAX_FRAME_BYTES // 2**20} MiB (its pool takes "
+        f"{POOL_SLOTS_AT_START} to {POOL_SLOTS_MAX} times that in shared memory)",
     )
 
     @field_validator("source")
@@ -318,6 +357,16 @@ class CaptureParams(BaseModel):
         w, h = self.size or (320, 240)
         if self.kind()[0] == "synthetic" and (w < 32 or h < 24):
             raise ValueError(f"the synthetic scene needs a size of at least 32x24, got {w}x{h}")
+        if (
+            self.size is not None
+            and frame_bytes(self.size, self.pixel_format) > MAX_FRAME_BYTES
+            and not self.allow_large
+        ):
+            raise ValueError(
+                f"{pool_memory_text(self.size, self.pixel_format)}; above the "
+                f"{MAX_FRAME_BYTES // 2**20} MiB limit of one frame: set allow_large: true "
+                "to accept it"
+            )
         return self
 
     def kind(self) -> tuple[SourceKind, str | int]:
@@ -777,7 +826,14 @@ class Capture(Node):
     inline_only = True
 
     frame = Output(Frame, doc="the captured frame, in pixel_format, at size")
-    truth = Output(object, doc="ground truth of the synthetic scene (SceneTruth), per frame")
+    truth = Output(SceneTruth, doc="ground truth of the synthetic scene, per frame")
+
+    @classmethod
+    def advise(cls, params: Any) -> list[tuple[str, str]]:
+        p: CaptureParams = params
+        if p.size is not None and frame_bytes(p.size, p.pixel_format) > WARN_FRAME_BYTES:
+            return [("size", pool_memory_text(p.size, p.pixel_format))]
+        return []
 
     @classmethod
     def default_trigger(cls, params: Any) -> Any:
@@ -847,9 +903,11 @@ class Capture(Node):
             )
 
     async def process(self) -> dict[str, Any] | None:
-        if self._scene is not None:
-            return self._synthetic()
-        return await self._grab()
+        out = self._synthetic() if self._scene is not None else await self._grab()
+        if out is not None and self.params.pacing == "fast" and self._kind != "camera":
+            # Offline: every period-1 frame reader (inline or in a worker) takes every frame.
+            await self.ctx.wait_readers()
+        return out
 
     # -- synthetic
 

@@ -36,14 +36,16 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from flowrt import Input, Node, Output, TimerTrigger
+from flowrt import Input, Node, Output, TimerMs, TimerTrigger
 
 __all__ = ["Decision", "Rule", "Store"]
 
 
 class StoreParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    validity_ms: float | None = Field(default=None, gt=0, description="None: valid forever")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    validity_ms: float | None = Field(
+        default=None, gt=0, le=3_600_000, description="None: valid forever"
+    )
     records: dict[str, str] = Field(default_factory=dict, description="input name -> record")
 
 
@@ -116,10 +118,10 @@ def _get(value: Any, path: str | None) -> Any:
 
 
 class DecisionParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     rules: list[Rule] = Field(min_length=1, description="first match wins")
     default: str | None = Field(default=None, description="mode when no rule matches")
-    interval_ms: float = Field(default=100.0, gt=0, description="default timer trigger")
+    interval_ms: TimerMs = Field(default=100.0, description="default timer trigger")
 
 
 class Decision(Node):

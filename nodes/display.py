@@ -61,12 +61,12 @@ from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import cv2
 import numpy as np
 from aiohttp import WSMsgType, web
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 from flowrt import Frame, Input, InputTrigger, Node
 
@@ -269,21 +269,72 @@ class _Client:
         self.messages = 0
 
 
+def _local_host(host: str) -> str:
+    """An IP address, or a name that resolves to an address of this machine.
+
+    Checked when the graph is validated: a name that does not resolve (``example.invalid``)
+    or resolves elsewhere made the view fail to listen at every restart. Resolution is given
+    ``RESOLVE_TIMEOUT`` seconds, so a dead DNS server cannot hang ``flowrt validate``.
+    """
+    import concurrent.futures
+    import ipaddress
+    import socket
+
+    try:
+        ipaddress.ip_address(host)
+        return host
+    except ValueError:
+        pass
+    if host in ("", "localhost"):
+        return host
+    pool = concurrent.futures.ThreadPoolExecutor(1)
+    try:
+        infos = pool.submit(socket.getaddrinfo, host, None, 0, socket.SOCK_STREAM).result(
+            RESOLVE_TIMEOUT
+        )
+    except concurrent.futures.TimeoutError:
+        raise ValueError(
+            f"host {host!r} does not resolve (no answer within {RESOLVE_TIMEOUT:g} s): "
+            "give an IP address (127.0.0.1, ::1, 0.0.0.0)"
+        ) from None
+    except (OSError, UnicodeError) as e:
+        raise ValueError(
+            f"host {host!r} does not resolve ({e}): give an IP address (127.0.0.1, ::1, "
+            "0.0.0.0) or a name of this machine"
+        ) from None
+    finally:
+        pool.shutdown(wait=False)
+    addresses = sorted({str(info[4][0]) for info in infos})
+    for family, _, _, _, sockaddr in infos:
+        with contextlib.suppress(OSError), socket.socket(family, socket.SOCK_STREAM) as s:
+            s.bind((sockaddr[0], 0))
+            return host
+    raise ValueError(
+        f"host {host!r} resolves to {', '.join(addresses)}, not an address of this machine"
+    )
+
+
+RESOLVE_TIMEOUT = 2.0
+
+
 class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
     inline_only = True
 
     class Params(BaseModel):
-        model_config = ConfigDict(extra="forbid")
+        model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
-        host: str = Field(
-            "127.0.0.1", description="address to listen on (0.0.0.0: every interface)"
+        host: Annotated[str, AfterValidator(_local_host)] = Field(
+            "127.0.0.1",
+            description="address to listen on: an IP address (0.0.0.0: every interface) or a "
+            "name of this machine",
         )
         port: int = Field(8750, ge=0, le=65535, description="TCP port; 0 picks a free one")
         max_fps: float | None = Field(
             None,
             gt=0,
+            le=1000,
             description="cap on the frames encoded per second and source; none: the source's rate",
         )
         jpeg_quality: int = Field(80, ge=1, le=100)
@@ -291,9 +342,11 @@ class Display(Node):
             default_factory=dict, description="detection input -> the frame input it is drawn on"
         )
         detection_ttl: float = Field(
-            1.0, gt=0, description="seconds after which a detection is no longer drawn"
+            1.0, gt=0, le=3600, description="seconds after which a detection is no longer drawn"
         )
-        refresh_ms: int = Field(333, ge=50, description="how often the page polls the statistics")
+        refresh_ms: int = Field(
+            333, ge=50, le=3_600_000, description="how often the page polls the statistics"
+        )
 
     any_inputs = Input(
         object, required=False, doc="frames (a source each) and detections, under any name"

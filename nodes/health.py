@@ -24,11 +24,20 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from flowrt import Frame, HealthAlert, Input, Node, Output, RuntimeStats, TimerTrigger
+from flowrt import (
+    Frame,
+    HealthAlert,
+    Input,
+    Node,
+    Output,
+    RuntimeStats,
+    TimerMs,
+    TimerTrigger,
+)
 
 __all__ = ["Health", "HealthReport", "MachineState", "StreamState"]
 
@@ -74,20 +83,30 @@ class HealthReport:
     active: tuple[str, ...]  # conditions that still hold, e.g. "fps_drop front_cam"
 
 
+Fps = Annotated[float, Field(gt=0, le=1000)]
+
+
 class HealthParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    interval_ms: float = Field(default=1000.0, gt=0, description="report period")
-    expected_fps: float | dict[str, float] | None = Field(
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    interval_ms: TimerMs = Field(default=1000.0, description="report period")
+    expected_fps: Fps | dict[str, Fps] | None = Field(
         default=None, description="nominal fps, for every stream or per input name"
     )
     fps_drop: float = Field(default=0.2, gt=0, lt=1, description="alert on this relative drop")
     miss_rate: float = Field(default=0.05, gt=0, le=1, description="per-node deadline misses")
-    loop_lag_ms: float = Field(default=10.0, gt=0, description="mean loop lag over the interval")
+    loop_lag_ms: float = Field(
+        default=10.0, gt=0, le=3_600_000, description="mean loop lag over the interval"
+    )
     memory_percent: float | None = Field(default=90.0, gt=0, le=100)
     watchdog_ms: float | None = Field(
-        default=None, gt=0, description="for nodes without their own watchdog (None: skip them)"
+        default=None,
+        gt=0,
+        le=3_600_000,
+        description="for nodes without their own watchdog (None: skip them)",
     )
-    watchdogs: dict[str, float] = Field(default_factory=dict, description="per node, ms")
+    watchdogs: dict[str, Annotated[float, Field(gt=0, le=3_600_000)]] = Field(
+        default_factory=dict, description="per node, ms"
+    )
     machine: bool = Field(default=True, description="report machine state (psutil)")
     record: str | None = Field(default="health", description="RTDB record of the report")
 

@@ -302,8 +302,9 @@ def printed_box(print_box: tuple[int, int, int, int]) -> np.ndarray:
     [(115, 95, 45, 50), (150, 100, 50, 30), (120, 130, 60, 25)],
 )
 def test_silhouette_centroid_is_the_objects_centre(print_box: tuple[int, int, int, int]) -> None:
-    from flowrt import Frame
     from flowrt.nodes.tracker import Tracker
+
+    from flowrt import Frame
     from flowrt.testing import NodeHarness
 
     img = printed_box(print_box)

@@ -65,7 +65,7 @@ async def test_a_frame_whose_release_was_skipped_is_dropped_not_unread() -> None
     Gate.gates["slow"] = asyncio.Event()
     Gate.log.clear()
     g = GraphBuilder()
-    g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False)
+    g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False)
     g.add("slow", Gate, trigger={"frame": "cam.frame", "period": 1},
           inputs={"value": "cam.frame"})  # fmt: skip
     g.add("every", Recorder, trigger={"frame": "cam.frame", "period": 2},

@@ -125,7 +125,7 @@ class Source(Node):
 
 def modes_graph() -> Graph:
     g = GraphBuilder("modes")
-    g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False)
+    g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False)
     g.add(
         "a",
         Reader,
@@ -142,7 +142,7 @@ def modes_graph() -> Graph:
 
 def test_a_mode_that_cannot_apply_is_refused_at_load() -> None:
     g = GraphBuilder("modes")
-    g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False)
+    g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False)
     g.add(
         "a",
         Reader,
@@ -199,7 +199,7 @@ class Decider(Node):
 async def test_a_node_switches_modes_from_rtdb_state() -> None:
     clock = VirtualClock()
     g = GraphBuilder()
-    g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False)
+    g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False)
     g.add("b", Reader, trigger={"frame": "cam"}, inputs={"frame": "cam.frame"})
     g.add("decide", Decider, trigger={"timer": "100ms"})
     g.mode("attack", b={"priority": 30})
@@ -228,7 +228,7 @@ def with_qos(g: GraphBuilder, **overload: Any) -> Graph:
 def overload_graph(**overload: Any) -> Graph:
     frames = {"frame": "cam.frame"}
     g = GraphBuilder("overload")
-    g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False, priority=50)
+    g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False, priority=50)
     g.add("crit", Reader, trigger={"frame": "cam"}, inputs=frames, priority=45, deadline=15)
     g.add("low_a", Reader, trigger={"frame": "cam"}, inputs=frames, priority=10)
     g.add("low_b", "counter", trigger={"timer": "40ms"}, priority=15)
@@ -457,7 +457,7 @@ async def test_decision_table_node_switches_modes_from_recorded_tracker_output()
     clock = VirtualClock()
     Distance.value = 5.0
     g = GraphBuilder()
-    g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False)
+    g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False)
     g.add("b", Reader, trigger={"frame": "cam"}, inputs={"frame": "cam.frame"})
     g.add("ball", Distance, trigger={"timer": "50ms"})
     g.add("world", "rtdb", params={"validity_ms": 120}, inputs={"ball_distance": "ball.out"})

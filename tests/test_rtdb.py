@@ -202,10 +202,15 @@ async def test_worker_processes_share_the_records() -> None:
 
 
 async def test_runtime_without_rtdb_use_creates_no_segment() -> None:
-    before = {n for n in os.listdir(SHM_DIR) if "rtdb" in n}
+    mine = f"flowrt_{os.getpid()}_rtdb"  # other processes on the machine have their own
+
+    def segments() -> set[str]:
+        return {n for n in os.listdir(SHM_DIR) if n.startswith(mine)}
+
+    before = segments()
     g = GraphBuilder()
     g.add("a", "counter", trigger={"timer": "10ms"})
     clock = VirtualClock()
     async with Runtime(g.build(), clock=clock):
         await clock.advance(0.05)
-        assert {n for n in os.listdir(SHM_DIR) if "rtdb" in n} == before
+        assert segments() == before

@@ -93,7 +93,7 @@ async def publish_frames(rt: Runtime, clock: VirtualClock, seqs: range) -> None:
 
 def cambada_like() -> GraphBuilder:
     g = GraphBuilder("pattern")
-    g.add("cam", Camera, trigger={"timer": 1e9}, enabled=False)
+    g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False)
     g.add(
         "every",
         Recorder,
@@ -180,7 +180,7 @@ async def test_latest_only_under_slow_consumer_never_goes_back_in_time() -> None
     Gate.gates["slow"] = asyncio.Event()
     Gate.log.clear()
     g = GraphBuilder()
-    g.add("src", Count, trigger={"timer": 1e9}, enabled=False)
+    g.add("src", Count, trigger={"timer": 3_600_000}, enabled=False)
     g.add("slow", Gate, inputs={"value": {"from": "src.tick", "policy": "latest"}})
     async with Runtime(g.build(), clock=clock) as rt:
         rt.publish("src.tick", 1)
@@ -204,7 +204,7 @@ async def test_queue_drops_oldest_and_counts() -> None:
     Gate.gates["q"] = asyncio.Event()
     Gate.log.clear()
     g = GraphBuilder()
-    g.add("src", Count, trigger={"timer": 1e9}, enabled=False)
+    g.add("src", Count, trigger={"timer": 3_600_000}, enabled=False)
     g.add("q", Gate, inputs={"value": {"from": "src.tick", "policy": "queue", "size": 2}})
     async with Runtime(g.build(), clock=clock) as rt:
         for v in range(1, 7):  # 1 is taken at once; 2..6 queue into 2 slots
@@ -356,7 +356,7 @@ async def test_host_publish_and_subscribe_through_input_triggered_chain() -> Non
     g.add("a", "relay", inputs={"input": "b.output"})
     g.add("b", "relay", inputs={"input": "c.output"})
     g.add("c", "relay", inputs={"input": "src.tick"})
-    g.add("src", Count, trigger={"timer": 1e9}, enabled=False)
+    g.add("src", Count, trigger={"timer": 3_600_000}, enabled=False)
     async with Runtime(g.build(), clock=clock) as rt:
         sub = rt.subscribe("a.output")
         for v in range(5):

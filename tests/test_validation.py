@@ -126,10 +126,21 @@ def test_fixtures_cover_every_check() -> None:
         "deadline: must be positive, got 0 ms",
         "deadline: must be positive, got -5 ms",
         "which produces no frames",
+        "must be a finite duration, got nan",
+        "timer period must be at least 0.1 ms",
+        "timer period must be at most 3600000 ms",
+        "watchdog: must be between 1 ms and 3600000 ms",
+        "cpus.0: Input should be less than or equal to 8191",
+        "period must be at most 100000 frames",
+        "front_cam.truth produces SceneTruth, ball.frame expects Frame",
+        "host 'example.invalid' does not resolve",
+        "above the 64 MiB limit of one frame: set allow_large: true",
+        "YAML tag '!!python/object/apply:os.system' is not allowed",
     ]:
         assert fragment in stated, f"no invalid-*.yaml fixture expects {fragment!r}"
     warned = [e for p in VALID for e in expectations(p) if e.severity is Severity.warning]
     assert any("longer than the period" in e.text for e in warned)
+    assert any("of shared memory at start" in e.text for e in warned)
 
 
 def test_all_errors_reported_at_once() -> None:
@@ -166,12 +177,40 @@ def test_unreadable_files_are_graph_errors(tmp_path: Path) -> None:
         ("nodes:\x00\n", (1, 7), "control character U+0000"),
         ("nodes: &a\n  x: *a\n", (1, 8), "recursive alias"),
         ("? [a, b]\n: 1\n", (1, 3), "a key must be a plain name"),
-        ("nodes: !foo bar\n", (1, 8), "could not determine a constructor for the tag '!foo'"),
+        ("nodes: !foo bar\n", (1, 8), "YAML tag '!foo' is not allowed"),
+        (
+            "nodes:\n  t:\n    cpus: !!python/object/apply:os.system [1]\n",
+            (3, 11),
+            "YAML tag '!!python/object/apply:os.system' is not allowed",
+        ),
+        (
+            "nodes: !!python/object/apply:os.system {t: {kind: counter}}\n",
+            (1, 8),
+            "YAML tag '!!python/object/apply:os.system' is not allowed",
+        ),
+        ("nodes:\n  t: {kind: !!python/name:os.system }\n", (2, 13), "YAML tag '!!python/name"),
+        ("nodes:\n  !!str t: {kind: counter}\n", (2, 3), "YAML tag '!!str' is not allowed"),
+        ("nodes:\n  t: {kind: counter, priority: !!int 5}\n", (2, 32), "YAML tag '!!int'"),
+        ("[" + "1," * 60_000 + "1]", (1, 1), "graph file too large: more than 50000 values"),
         ("a: 1\n---\nb: 2\n", (2, 1), "expected a single document"),
         ("[" * 1000 + "]" * 1000, (1, 1), "nested too deeply"),
         ("nodes:\n  t:\n    kind: counter\n    trigger: {input: 5}\n", (4, 15), "valid list"),
     ],
-    ids=["nul", "recursive-alias", "list-key", "unknown-tag", "two-documents", "deep", "union"],
+    ids=[
+        "nul",
+        "recursive-alias",
+        "list-key",
+        "unknown-tag",
+        "tag-on-sequence",
+        "tag-on-mapping",
+        "tag-on-scalar",
+        "tag-on-key",
+        "standard-tag",
+        "too-many-values",
+        "two-documents",
+        "deep",
+        "union",
+    ],
 )
 def test_odd_yaml_is_a_located_error(text: str, where: tuple[int, int], fragment: str) -> None:
     with pytest.raises(GraphError) as info:

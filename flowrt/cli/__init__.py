@@ -30,8 +30,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    from .._startup import imports_done
+
     try:
+        imports_done()  # from here Ctrl-C is a KeyboardInterrupt, caught below
+        args = build_parser().parse_args(argv)
         return int(args.func(args))
     except KeyboardInterrupt:
         return 130

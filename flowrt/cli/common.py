@@ -27,9 +27,9 @@ def print_diagnostics(console: Console, e: GraphError) -> None:
     console.print(f"{n} error{'s' if n != 1 else ''}", style="bold red")
 
 
-def load(path: str, console: Console) -> Graph | None:
+def load(path: str, console: Console, *, import_kinds: bool = True) -> Graph | None:
     try:
-        graph = Graph.from_file(path)
+        graph = Graph.from_file(path, import_kinds=import_kinds)
     except GraphError as e:
         print_diagnostics(console, e)
         return None

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
+import os
 import signal
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -81,21 +84,22 @@ def cmd_run(args: argparse.Namespace) -> int:
         realtime=args.realtime,
         control=control,
         spin=args.spin / 1000,
+        drain_timeout=args.drain_timeout,
         stop_on_failure=not args.keep_going,
     )
 
+    stop_signals = StopSignals(rt.request_stop)
+    stop_signals.install()
+
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, rt.request_stop)
+        stop_signals.loop = asyncio.get_running_loop()
         try:
             async with rt:
                 if rt.control is not None:
                     logging.getLogger("flowrt").info("control endpoint %s", rt.control.url)
                 await rt.run(args.duration)
         finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(sig)
+            stop_signals.loop = None
 
     with asyncio.Runner(loop_factory=new_event_loop) as runner:
         try:
@@ -109,7 +113,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             err.print(f"flowrt run: control endpoint: {e}", markup=False)  # e.g. port taken
             return 1
     stats = rt.stats()
-    console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
+    with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
+        console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
@@ -127,6 +132,58 @@ def _verdict(failures: list[Any], err: Console) -> int:
             soft_wrap=True,
         )
     return EXIT_FAILED if failures else EXIT_OK
+
+
+class StopSignals:
+    """SIGINT, SIGTERM and SIGHUP (terminal closed, ssh dropped) all stop a run in order.
+
+    The first one stops the runtime: every node torn down, workers stopped, shared memory
+    freed, the final table printed. A second one while that runs is noted and ignored, so
+    teardown finishes (it is bounded: each node's stop has a grace time, then its worker is
+    killed). A third forces the exit at once, with 128 + the signal's number; what it leaves
+    in /dev/shm is reclaimed at the next start.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+    def __init__(self, stop: Callable[[], None]) -> None:
+        self.stop = stop
+        self.received: list[int] = []
+        self.loop: asyncio.AbstractEventLoop | None = None  # the run's loop, while it runs
+
+    def install(self) -> None:
+        """Plain ``signal.signal`` handlers, not the loop's: they also run while the loop is
+        blocked (an inline node's teardown that hangs), so a third signal can always force
+        the exit; and they stay until the process exits (the final table and the
+        interpreter's own clean-up come after the loop: a signal then killed it, rc -15)."""
+        for sig in self.SIGNALS:
+            signal.signal(sig, self._handler)
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        self(signum)
+
+    def __call__(self, sig: int) -> None:
+        self.received.append(sig)
+        if len(self.received) == 1:
+            loop = self.loop
+            if loop is not None and not loop.is_closed():
+                loop.call_soon_threadsafe(self.stop)  # wakes the loop; safe in a handler
+            else:
+                self.stop()  # before the loop runs: run() returns as soon as it starts
+        elif len(self.received) == 2:
+            _say(
+                f"flowrt run: {signal.Signals(sig).name}: still stopping (tearing the nodes "
+                "down); a third signal forces the exit"
+            )
+        else:
+            _say(f"flowrt run: {signal.Signals(sig).name}: forced exit")
+            os._exit(128 + sig)
+
+
+def _say(text: str) -> None:
+    """One line on stderr from a signal handler; a terminal that hung up is no error."""
+    with contextlib.suppress(OSError):
+        os.write(2, (text + "\n").encode())
 
 
 def _control_config(args: argparse.Namespace, err: Console) -> Any:
@@ -161,6 +218,16 @@ def _spin_ms(text: str) -> float:
     return ms
 
 
+def _drain_s(text: str) -> float:
+    try:
+        s = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0 <= s <= 3600:
+        raise argparse.ArgumentTypeError(f"must be between 0 and 3600 s, got {text}")
+    return s
+
+
 def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
@@ -187,6 +254,14 @@ def add_parsers(sub: Any) -> None:
         default=0.0,
         metavar="DURATION",
         help="the loop busy-waits this long before each timer release (e.g. 300us; default 0)",
+    )
+    run.add_argument(
+        "--drain-timeout",
+        type=_drain_s,
+        default=5.0,
+        metavar="S",
+        help="at stop, let lossless edges and running activations finish for at most S seconds "
+        "(default 5; reported when hit)",
     )
     run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
     run.add_argument(

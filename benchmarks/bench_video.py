@@ -1,0 +1,126 @@
+"""An offline run over a real video: frames tracked and frames/s, tracker inline vs in a worker.
+
+graphs/video.yaml as it is (capture -> candle tracker -> display), with the capture switched to
+``pacing: fast`` and ``on_eof: exit`` (process the file once, as fast as the graph consumes it)
+and the display on a free port. The tracker's placement alternates between ``inline`` and
+``process`` in the same run, ``--reps`` times each (which goes first alternates too; one
+uncounted warm-up run of each before), so that the ratio is measured under the same load.
+Time is from the runtime's start (workers up) to the source's end of stream; every frame of
+the file must be tracked in both placements.
+
+Run from the repository root:
+python benchmarks/bench_video.py [--reps 3] [--video PATH] [--realtime]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import yaml
+
+import flowrt
+from flowrt.spec import GraphSpec
+
+REPO = Path(__file__).resolve().parents[1]
+CANDIDATES = (
+    REPO.parent / "shared/data/sample_720x528.avi",
+    Path("/work/shared/data/sample_720x528.avi"),
+)
+
+
+def frames_in(path: Path) -> int:
+    cap = cv2.VideoCapture(str(path))
+    n = 0
+    while cap.grab():
+        n += 1
+    cap.release()
+    return n
+
+
+def spec_for(video: Path, placement: str) -> GraphSpec:
+    data: dict[str, Any] = yaml.safe_load((REPO / "graphs/video.yaml").read_text())
+    cam = data["nodes"]["cam"]["params"]
+    cam.update(source=f"file:{video}", pacing="fast", on_eof="exit")
+    data["nodes"]["lamp"]["placement"] = placement
+    data["nodes"]["view"]["params"]["port"] = 0  # a free port: nothing else is disturbed
+    return GraphSpec.model_validate(data)
+
+
+async def one_run(video: Path, placement: str, realtime: bool = False) -> dict[str, Any]:
+    rt = flowrt.Runtime(spec_for(video, placement), realtime=realtime)
+    async with rt:
+        t0 = time.perf_counter()
+        await rt.run(300.0)  # ends at the end of the file (on_eof: exit)
+        elapsed = time.perf_counter() - t0
+    stats = rt.stats()
+    lamp = stats.node("lamp")
+    edge = stats.edge("lamp.frame")
+    return {
+        "placement": placement,
+        "published": edge.published,
+        "tracked": lamp.completions,
+        "skipped": lamp.skipped,
+        "seconds": elapsed,
+        "exec_p50": lamp.execution.p50,  # ms; in a worker: the call's round trip included
+        "cam_p50": stats.node("cam").execution.p50,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--video", type=Path, default=None)
+    ap.add_argument(
+        "--realtime",
+        action="store_true",
+        help="as flowrt run --realtime: SCHED_FIFO loop and workers (wake-ups not delayed by "
+        "other processes' load)",
+    )
+    args = ap.parse_args()
+    video = args.video or next((p for p in CANDIDATES if p.exists()), None)
+    if video is None:
+        raise SystemExit("sample video not found in ../shared/data; pass --video PATH")
+    total = frames_in(video)
+    runs: dict[str, list[dict[str, Any]]] = {"inline": [], "process": []}
+    for placement in runs:  # warm-up, not counted: the forkserver, OpenCV's first decode
+        flowrt.run(one_run(video, placement, args.realtime))
+    for rep in range(args.reps):
+        for placement in sorted(runs, reverse=rep % 2 == 1):  # alternate which goes first
+            r = flowrt.run(one_run(video, placement, args.realtime))
+            runs[placement].append(r)
+            print(
+                f"{placement:8s} tracked {r['tracked']}/{total} (published {r['published']}, "
+                f"skipped {r['skipped']}) in {r['seconds']:.2f} s = "
+                f"{r['tracked'] / r['seconds']:.1f} frames/s; tracker call p50 "
+                f"{r['exec_p50']:.2f} ms, capture activation p50 {r['cam_p50']:.2f} ms",
+                flush=True,
+            )
+    print()
+    mode = "--realtime (SCHED_FIFO)" if args.realtime else "fair scheduler (nice levels)"
+    print(f"video: {video.name}, {total} frames; {args.reps} runs per placement; {mode}")
+    print(
+        "| placement | frames tracked / in file | frames/s (median) | min-max "
+        "| tracker call p50 ms | capture activation p50 ms |"
+    )
+    print("|---|---:|---:|---:|---:|---:|")
+    fps: dict[str, float] = {}
+    for placement, rs in runs.items():
+        rates = [r["tracked"] / r["seconds"] for r in rs]
+        fps[placement] = statistics.median(rates)
+        tracked = min(r["tracked"] for r in rs)
+        call = statistics.median(r["exec_p50"] for r in rs)
+        cam = statistics.median(r["cam_p50"] for r in rs)
+        print(
+            f"| {placement} | {tracked}/{total} | {fps[placement]:.1f} | "
+            f"{min(rates):.1f}-{max(rates):.1f} | {call:.2f} | {cam:.2f} |"
+        )
+    print(f"\nprocess / inline throughput: {fps['process'] / fps['inline']:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,15 @@
+"""Imported by the workers' forkserver only: stopping is the main process's business.
+
+SIGTERM (systemd, ``kill`` of the process group) and SIGHUP (terminal closed) reach every
+process of the group at once. Had the forkserver and the workers died of them, the runtime
+would have seen every worker crash during its own orderly stop (tracebacks, "Future exception
+was never retrieved") and no node's ``teardown`` would have run in its worker. So they ignore
+them, as they ignore SIGINT (Ctrl-C); the main process stops the workers in order, and they
+die with it anyway (EOF on their socket, PR_SET_PDEATHSIG). SIGKILL still ends a worker, and
+the runtime replaces it.
+"""
+
+import signal
+
+for _sig in (signal.SIGTERM, signal.SIGHUP):
+    signal.signal(_sig, signal.SIG_IGN)
