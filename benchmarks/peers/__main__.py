@@ -190,12 +190,13 @@ class Bench:
         side: str,
         nodes: dict[str, Any],
         before: list[str],
-        after: list[str] = (),
-        **kw: Any,  # type: ignore[assignment]
+        after: list[str] = (),  # type: ignore[assignment]
+        args: list[str] = (),  # type: ignore[assignment]
+        **kw: Any,
     ) -> Run:
         g = self.path("graph.yaml")
         Path(g).write_text(yaml.safe_dump({"name": "peers", "nodes": nodes}, sort_keys=False))
-        cmd = [self.flowrt, "run", g, "--no-ui", "--log-every", "3600"]
+        cmd = [self.flowrt, "run", g, "--no-ui", "--log-every", "3600", *args]
         env, cwd = self.env, REPO
         if side.endswith(BASELINE):  # cwd too: the forkserver's sys.path starts with it
             assert self.baseline_env is not None
@@ -307,7 +308,7 @@ def timer(b: Bench, label: str, burners: int, count: int) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
     procs = _burners(burners)
     try:
-        for side in b.sides("flowrt", "dora"):
+        for side in b.sides("flowrt", "flowrt --realtime", "dora"):
             res = b.path("timer.json")
             if side.startswith("flowrt"):
                 nodes = {
@@ -318,7 +319,8 @@ def timer(b: Bench, label: str, burners: int, count: int) -> dict[str, Sample]:
                         "priority": 40,
                     }
                 }
-                r = b.flowrt_run(side, nodes, [res], timeout=60)
+                extra = ["--realtime"] if "--realtime" in side else []
+                r = b.flowrt_run(side, nodes, [res], timeout=60, args=extra)
             else:
                 dnodes = [
                     {
