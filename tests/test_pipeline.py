@@ -217,3 +217,25 @@ async def test_hung_call_with_calls_in_flight_is_killed_and_counted() -> None:
     lost = set(range(40)) - set(values)
     assert 5 in lost
     assert len(lost) == 1 + s.aborted + stats.edge("w.x").dropped
+
+
+async def test_swap_of_a_pipelined_worker_node_loses_nothing() -> None:
+    # A swap waits for the node's idle step: the pipeline stops taking new values, the calls
+    # in flight finish on the old instance, the new one takes the queue from there.
+    async with Runtime(graph("queue", size=64, n=10, limit=400, ms=1)) as rt:
+        sub = rt.subscribe("w.result", size=1000)
+        await rt.run(0.1)
+        await rt.swap("w", Slow, {"ms": 1.0})
+        got = sub.drain()
+        end = time.monotonic() + 10
+        while len(got) < 400 and time.monotonic() < end:
+            await rt.run(0.05)
+            got += sub.drain()
+        s = rt.stats().node("w")
+    values = [v for v, _ in got]
+    pids = [p for _, p in got]
+    assert values == list(range(400))
+    assert len(set(pids)) == 2  # the old instance's worker, then the new one's
+    assert pids.index(pids[-1]) > 0  # ... in that order, each a contiguous run
+    assert len(set(pids[pids.index(pids[-1]) :])) == 1
+    assert s.aborted == 0
