@@ -6,6 +6,7 @@ from .clock import Clock as Clock
 from .clock import SystemClock as SystemClock
 from .clock import VirtualClock as VirtualClock
 from .control import ControlConfig as ControlConfig
+from .control import ControlServer as ControlServer
 from .diagnostics import Diagnostic as Diagnostic
 from .diagnostics import GraphError as GraphError
 from .eventloop import run as run
@@ -52,6 +53,7 @@ __all__ = [
     "RTDB",
     "Clock",
     "ControlConfig",
+    "ControlServer",
     "DeadlineMissed",
     "Diagnostic",
     "DurationMs",

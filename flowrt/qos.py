@@ -18,17 +18,31 @@ half of it) and modes are :meth:`flowrt.Runtime.set_mode`. This module holds wha
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
-from .clock import Handle, PeriodicTimer
+from pydantic import ValidationError
+
+from .clock import Clock, Handle, PeriodicTimer
 from .events import Event, TimingChanged
-from .spec import FrameTrigger, ModeSpec, OverloadSpec, TimerTrigger, TimingOverride
+from .spec import (
+    MAX_DURATION_MS,
+    MAX_FRAME_PERIOD,
+    MAX_PRIORITY,
+    MIN_DEADLINE_MS,
+    MIN_PRIORITY,
+    MIN_TIMER_MS,
+    FrameTrigger,
+    ModeSpec,
+    OverloadSpec,
+    TimerTrigger,
+    TimingOverride,
+)
 
 if TYPE_CHECKING:
     from .graph import Graph, ResolvedNode
-    from .runtime import Runtime
     from .scheduler import NodeRunner
 
 log = logging.getLogger("flowrt.qos")
@@ -84,11 +98,75 @@ def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[st
     return plan
 
 
+#: The ranges a run-time change must keep: the graph files' own (flowrt.spec, README "Timing
+#: ranges"). A 1e-9 ms timer rounds to a zero timerfd interval (it fires once, then never); a
+#: 1e300 ms timer or a 10**18-frame period stops a node for good; NaN makes every activation a
+#: miss. Checked again here for plans built without validation (``model_construct``).
+TIMER_MS = (MIN_TIMER_MS, MAX_DURATION_MS)
+DEADLINE_MS = (MIN_DEADLINE_MS, MAX_DURATION_MS)
+MAX_PERIOD = MAX_FRAME_PERIOD
+PRIORITY = (MIN_PRIORITY, MAX_PRIORITY)
+
+
+def _range_problems(name: str, o: TimingOverride) -> list[str]:
+    """Finite numbers within the documented ranges (whatever the model let through)."""
+    problems = []
+    for label, value, (lo, hi) in (
+        ("timer", o.timer, TIMER_MS),
+        ("deadline", o.deadline, DEADLINE_MS),
+    ):
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            problems.append(f"{name}: {label} must be a number of ms, got {value!r}")
+        elif not math.isfinite(value) or not lo <= value <= hi:
+            problems.append(f"{name}: {label} must be between {lo:g} and {hi:g} ms, got {value!r}")
+    for label, value, (lo, hi) in (
+        ("period", o.period, (1, MAX_PERIOD)),
+        ("phase", o.phase, (0, MAX_PERIOD - 1)),
+        ("priority", o.priority, PRIORITY),
+    ):
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, int):
+            problems.append(f"{name}: {label} must be an integer, got {value!r}")
+        elif not lo <= value <= hi:
+            problems.append(f"{name}: {label} must be between {lo} and {hi}, got {value}")
+    if o.enabled is not None and not isinstance(o.enabled, bool):
+        problems.append(f"{name}: enabled must be true or false, got {o.enabled!r}")
+    return problems
+
+
+def check_change(runners: Mapping[str, NodeRunner], node: str, **change: Any) -> None:
+    """Raise (KeyError: no such node; ValueError: a bad value) before anything is applied.
+
+    The change is validated by the graph files' own model (:class:`flowrt.spec.TimingOverride`,
+    the same rules as a mode in a graph file), then against the node (:func:`check_plan`).
+    """
+    if node not in runners:
+        from .diagnostics import did_you_mean
+
+        raise KeyError(f"unknown node {node!r}" + did_you_mean(node, runners))
+    given = {k: v for k, v in change.items() if v is not None}
+    try:
+        override = TimingOverride.model_validate(given)
+    except ValidationError as e:
+        found = "; ".join(
+            f"{'.'.join(str(x) for x in err['loc'])}: {err['msg']}" for err in e.errors()
+        )
+        raise ValueError(f"{node}: {found}") from None
+    check_plan(runners, {node: override})
+
+
 def check_plan(runners: Mapping[str, NodeRunner], plan: Mapping[str, TimingOverride]) -> None:
     """Raise ValueError, before anything is applied, if any change of ``plan`` is invalid."""
     problems = []
     for name, o in plan.items():
         r = runners[name]
+        found = _range_problems(name, o)
+        if found:
+            problems += found
+            continue
         is_frame = isinstance(r.rnode.trigger, FrameTrigger)
         if (o.period is not None or o.phase is not None) and not is_frame:
             problems.append(f"{name}: period/phase in frames apply to frame-triggered nodes")
@@ -104,6 +182,44 @@ def check_plan(runners: Mapping[str, NodeRunner], plan: Mapping[str, TimingOverr
             problems.append(f"{name}: timer and deadline must be positive")
     if problems:
         raise ValueError("; ".join(problems))
+
+
+class Runners(Protocol):
+    """What the controller reads of the scheduler: its node runners by name."""
+
+    @property
+    def runners(self) -> Mapping[str, NodeRunner]: ...
+
+
+class QosHost(Protocol):
+    """What the overload controller needs of the runtime that runs it (owned here, so that
+    this module does not import :mod:`flowrt.runtime`, which imports it)."""
+
+    @property
+    def clock(self) -> Clock: ...
+
+    @property
+    def started(self) -> bool: ...
+
+    @property
+    def scheduler(self) -> Runners: ...
+
+    def set_timing(
+        self,
+        node: str,
+        *,
+        period: int | None = None,
+        phase: int | None = None,
+        timer: float | None = None,
+        deadline: float | None = None,
+        priority: int | None = None,
+        enabled: bool | None = None,
+        origin: str = "api",
+    ) -> str: ...
+
+    def qos_status(self) -> QosStatus: ...
+
+    def _record(self, name: str, value: Any) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -182,7 +298,7 @@ class OverloadController:
     def __init__(self, spec: OverloadSpec) -> None:
         self.spec = spec
         self.measure: Callable[[], LoadSample] | None = None
-        self.rt: Runtime | None = None
+        self.rt: QosHost | None = None
         self.overloaded = False
         self.reason = ""
         self.last: LoadSample | None = None
@@ -200,7 +316,7 @@ class OverloadController:
 
     # --- monitor interface ----------------------------------------------------------------
 
-    def started(self, rt: Runtime) -> None:
+    def started(self, rt: QosHost) -> None:
         self.rt = rt
         runners = rt.scheduler.runners
         for name in self.spec.protect:
@@ -231,7 +347,7 @@ class OverloadController:
         if labels & {"period", "timer_ms", "enabled"}:
             self._forget(event.node)
 
-    def stopped(self, rt: Runtime) -> None:
+    def stopped(self, rt: QosHost) -> None:
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None

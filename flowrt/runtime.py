@@ -33,7 +33,6 @@ from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement, TimingOverride
 from .stats import FramePoolStats, LoopStats, NodeStats, Running, RuntimeStats
 
 if TYPE_CHECKING:
-    from .control import ControlConfig, ControlServer
     from .oscheduling import FairShare
     from .qos import OverloadController, QosStatus
     from .rtdb import RTDB
@@ -73,6 +72,14 @@ class Subscription:
             value.release()  # the host keeps a plain reference; the slot may be reused later
         return value
 
+    def take_held(self) -> Any:
+        """The next value with its frame link kept (the caller must ``release()`` it), or EMPTY.
+
+        For a monitor that hands frames to another thread: the pool slot is not recycled
+        before that thread is done with the pixels.
+        """
+        return self._buf.take_new()  # type: ignore[attr-defined]
+
     def drain(self) -> list[Any]:
         """Every value waiting now, oldest first (the newest only, for a latest buffer)."""
         out = []
@@ -109,7 +116,6 @@ class Runtime:
         monitors: Iterable[Monitor] = (),
         realtime: bool = False,
         kinds: Mapping[str, type[Node]] | None = None,
-        control: ControlConfig | str | None = None,
         spin: float = 0.0,
         drain_timeout: float = 5.0,
         stop_on_failure: bool = False,
@@ -148,12 +154,6 @@ class Runtime:
         self._nice_before: int | None = None
         self.qos: OverloadController | None = None
         self._bridge: Any = None  # flowrt.remote.ZenohBridge when the graph spans machines
-        if control is not None:  # a bad address or a missing token fails here, before any start
-            from .control import ControlConfig
-
-            control = ControlConfig.checked(control)
-        self.control_config = control
-        self.control: ControlServer | None = None
         self.started = False
         self.starvation_events = 0  # worker calls spared by the watchdog: starved, not hung
         self._starved_alert_at = -math.inf
@@ -234,16 +234,6 @@ class Runtime:
             self.set_mode(self.graph.spec.initial_mode, origin="graph")
         if isinstance(self.clock, SystemClock):
             self._probe_lag(self.clock.now())
-        if self.control_config is not None:
-            from .control import ControlServer
-
-            self.control = ControlServer(self, self.control_config)
-            try:
-                await self.control.start()
-            except OSError:  # e.g. the port is taken: leave nothing running
-                self.control = None
-                await self.stop()
-                raise
 
     async def stop(self) -> None:
         """Drain, tear every node down, stop workers, free shared memory; safe to call twice.
@@ -263,9 +253,6 @@ class Runtime:
             with contextlib.suppress(Exception):
                 await self._bridge.close()
             self._bridge = None
-        if self.control is not None:
-            with contextlib.suppress(Exception):
-                await self.control.stop()
         try:
             if self._sched is not None:
                 await self._sched.stop()
@@ -583,11 +570,25 @@ class Runtime:
     ) -> str:
         """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
 
-        Admission control (:mod:`flowrt.analysis.admission`) refuses, with ValueError and
-        nothing applied, a change that would make a node with a deadline unschedulable,
-        unless ``force``. The overload controller's own steps (origin ``qos``) are not
-        checked: they act on measured load.
+        The whole change is checked first (the ranges of graph files: finite, in range, a
+        phase below its period; ``force`` does not skip this) and applied at once, or refused
+        with ValueError and nothing changed. Then admission control
+        (:mod:`flowrt.analysis.admission`) refuses, the same way, a change that would make a
+        node with a deadline unschedulable, unless ``force``. The overload controller's own
+        steps (origin ``qos``) are not admission-checked: they act on measured load.
         """
+        from .qos import check_change
+
+        check_change(
+            self.scheduler.runners,
+            node,
+            period=period,
+            phase=phase,
+            timer=timer,
+            deadline=deadline,
+            priority=priority,
+            enabled=enabled,
+        )
         if not force and origin != "qos":
             change = TimingOverride.model_construct(
                 period=period,

@@ -44,7 +44,7 @@ from .graph import Graph, ResolvedNode, checked_type
 from .node import Node, NodeContext, NodeFactory, make_node
 from .spec import FrameTrigger, InputTrigger, LoopTrigger, MissPolicy, Placement, TimerTrigger
 from .stats import NodeStats, Running
-from .supervision import FailureLog, backoff_s, failure_kind, give_up_reason
+from .supervision import FailureLog, backoff_s, failure_kind, give_up_reason, out_of_resources
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -848,7 +848,9 @@ class NodeRunner:
         self.sched.emit(NodeFailed(self.sched.rel(now), self.name, error, tb))
         self.busy = False
         policy = self.rnode.spec.restart
-        why = give_up_reason(policy, self.consecutive_failures, self.restarts, fatal)
+        # Out of descriptors/processes/memory: the machine's failure, retried without a bound.
+        counted = 0 if out_of_resources(exc) else self.consecutive_failures
+        why = give_up_reason(policy, counted, self.restarts, fatal)
         if why is not None:
             self.state = "failed"
             last = failure_kind(error)
@@ -922,6 +924,12 @@ class NodeRunner:
         missing += [p for p, bufs in self.outputs.items() if bufs and p not in cls.outputs]
         if missing:
             raise ValueError(f"{self.name}: kind {kind!r} has no port(s) {', '.join(missing)}")
+        unfed = [p for p, port in cls.inputs.items() if port.required and p not in self.inputs]
+        if unfed:
+            raise ValueError(
+                f"{self.name}: kind {kind!r} needs input(s) {', '.join(unfed)}, "
+                "which nothing feeds in this graph"
+            )
         rnode = dataclasses.replace(
             self.rnode,
             cls=cls,

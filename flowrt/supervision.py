@@ -13,6 +13,11 @@ One rule for every node and placement (the scheduler's restart path applies it):
   restarted ``restart.max_restarts`` times in all, when the policy is ``never``, or at once
   when the error says restarting cannot help (``error.fatal`` is true, e.g. a worker that
   cannot import the node's script).
+- A failure for want of operating-system resources (out of file descriptors, processes or
+  memory: EMFILE, ENFILE, EAGAIN, ENOMEM), e.g. a worker that cannot be started while a
+  flood of clients holds the descriptors, says nothing about the node: it is retried with
+  the same back-off but never counts towards ``max_failures``, so the node comes back by
+  itself once the resources do.
 - Logging never floods: the first failure of each kind (exception type and message) is
   logged with its full traceback; repeats of a kind already logged are counted and summed
   up at most once per :data:`SUMMARY_INTERVAL` ("ball_fr: 412 more failures of the same
@@ -21,6 +26,7 @@ One rule for every node and placement (the scheduler's restart path applies it):
 
 from __future__ import annotations
 
+import errno
 import logging
 import re
 from dataclasses import dataclass
@@ -57,6 +63,21 @@ def give_up_reason(
     if policy.max_restarts is not None and restarts >= policy.max_restarts:
         return f"max_restarts {policy.max_restarts} reached"
     return None
+
+
+RESOURCE_ERRNOS = frozenset({errno.EMFILE, errno.ENFILE, errno.EAGAIN, errno.ENOMEM})
+
+
+def out_of_resources(exc: BaseException | None) -> bool:
+    """Did ``exc`` (or what caused it) come from the operating system running out of
+    descriptors, processes or memory? Such a failure is the machine's, not the node's."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in RESOURCE_ERRNOS:
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def failure_kind(error: str) -> str:

@@ -1,4 +1,4 @@
-"""The live view: a web page served from the runtime's own event loop.
+"""The live view: a web page of the cameras, detections and statistics, for a browser.
 
 Connect any number of frame outputs and detection outputs to a ``display`` node under any
 input names; it serves, at ``http://127.0.0.1:8750`` by default (the address is logged and
@@ -29,13 +29,25 @@ Endpoints:
   (the schema of ``flowrt schema stats``) and what the display measures per source (fps,
   frames, encodes, detections), its clients and its total JPEG encodes.
 
-Why the graph never waits for a browser: ``process`` only keeps a link on the newest frame of
-each source and the newest detections of each input, and wakes the clients (none: nothing to
-do). JPEG encoding happens only when a client asks for a frame newer than its last one, in a
-thread (OpenCV releases the GIL), once per frame whatever the number of clients, at most at
-``max_fps``; a client that is slow, or does not read at all, holds at most one frame in
-flight per source. The server is on the event loop, so the display must be placed ``inline``
-(the default).
+Who may look: the view binds 127.0.0.1 and answers only requests addressed to a loopback name
+(``Host``; add names with ``allowed_hosts``) and, when they carry an ``Origin`` (every
+browser WebSocket), from its own origin: no other web page open in a browser on the robot's
+computer can read the cameras (DNS rebinding: 421; cross-site WebSocket: 403). To serve it to
+other machines on purpose, give ``host`` (e.g. 0.0.0.0) and a ``token`` (required off
+loopback): clients send ``Authorization: Bearer TOKEN`` or open ``/?token=TOKEN`` once (a
+cookie keeps it). ``max_clients`` connections at once; one that sends no complete request
+within 10 s is closed.
+
+Why neither the graph nor the cameras wait for a browser: the web server is a process of its
+own (:mod:`flowrt.nodes.display_server`, at nice 19), so HTTP work and JPEG encoding take
+neither the loop's time nor its GIL. ``process`` only keeps a link on the newest frame of each
+source and the newest detections of each input. While a client waits for a frame newer than
+the server has, the node lends the server the newest one (a descriptor of its shared-memory
+slot, not the pixels), at most one per source at a time and at most ``max_fps``; the server
+encodes it once and shares the JPEGs among all its clients. So the node's work per frame is
+one small message whatever the number of clients, and none without clients; a client that is
+slow, or does not read at all, holds at most one frame per source. The node owns the channel
+on the event loop, so it must be placed ``inline`` (the default).
 
 Detections are duck-typed: anything with ``found``, ``bbox`` (x, y, w, h) and ``centroid``
 (e.g. ``flowrt.nodes.colour.Detection``), or a list of such; ``object`` labels it and
@@ -52,78 +64,32 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import math
-import struct
+import multiprocessing
+import pickle
+import socket
 import time
-import zlib
 from collections import deque
-from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
-import cv2
-import numpy as np
-from aiohttp import WSMsgType, web
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
 from flowrt import Frame, Input, InputTrigger, Node
+
+from . import display_server
+from .display_render import Mark, render
 
 __all__ = ["Display", "Mark", "render"]
 
 PAGE = Path(__file__).with_name("display.html")
 FPS_WINDOW = 2.0  # seconds of arrivals over which a source's rate is measured
-STATS_MAX_AGE = (
-    0.2  # seconds: /stats.json is computed at most 5 times a second, whatever the clients
-)
-CLOSE_TIMEOUT = 1.0  # seconds given to clients to close at teardown
-JPEG_PART = "Content-Type: image/jpeg\r\nContent-Length: "
+STATS_MAX_AGE = 0.2  # seconds: the runtime's statistics are serialised at most 5 times a second
+WEB_JOYSTICK = "joystick.web"  # RTDB record of the page's joystick (nodes/joystick.py reads it)
 SOURCE_WAIT = 3.0  # seconds a request for a source that has sent no frame yet waits for one
-
-#: Colours (BGR) of the soccer objects; other labels get a colour from their name.
-COLOURS: dict[str, tuple[int, int, int]] = {
-    "ball": (0, 140, 255),
-    "yellow_goal": (0, 230, 255),
-    "yellow_post": (0, 230, 255),
-    "blue_goal": (255, 140, 0),
-    "blue_post": (255, 140, 0),
-    "obstacle": (255, 0, 255),
-    "lines": (255, 255, 255),
-}
-
-
-@dataclass(frozen=True)
-class Mark:
-    """A detection reduced to what is drawn: plain values, safe to hand to the encoder thread."""
-
-    label: str
-    found: bool
-    bbox: tuple[int, int, int, int] | None
-    centroid: tuple[float, float] | None
-    confidence: float | None
-
-    @classmethod
-    def of(cls, det: Any, default_label: str) -> Mark:
-        bbox = getattr(det, "bbox", None)
-        centroid = getattr(det, "centroid", None)
-        conf = getattr(det, "confidence", None)
-        return cls(
-            label=str(getattr(det, "object", "") or default_label),
-            found=bool(getattr(det, "found", False)),
-            bbox=None if bbox is None else (int(bbox[0]), int(bbox[1]), int(bbox[2]), int(bbox[3])),
-            centroid=None if centroid is None else (float(centroid[0]), float(centroid[1])),
-            confidence=None if conf is None else float(conf),
-        )
-
-    def json(self) -> dict[str, Any]:
-        return {
-            "label": self.label,
-            "found": self.found,
-            "bbox": self.bbox,
-            "centroid": self.centroid,
-            "confidence": self.confidence,
-        }
+HEADER_TIMEOUT = 10.0  # seconds a connection has to send a complete request
+START_TIMEOUT = 30.0  # seconds for the view's server process to start (spawn + imports)
 
 
 def _is_detection(value: Any) -> bool:
@@ -141,107 +107,16 @@ def _detections(value: Any) -> list[Any] | None:
     return None
 
 
-def colour_of(label: str) -> tuple[int, int, int]:
-    """A stable, saturated BGR colour per label."""
-    known = COLOURS.get(label)
-    if known is not None:
-        return known
-    hue = zlib.crc32(label.encode()) % 180
-    hsv = np.array([[[hue, 220, 255]]], dtype=np.uint8)
-    b, g, r = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0]
-    return int(b), int(g), int(r)
-
-
-def to_bgr8(data: np.ndarray, pixel_format: str) -> np.ndarray:
-    """An 8-bit BGR or grey image that OpenCV can encode, from a frame's pixels."""
-    img = data
-    if img.dtype != np.uint8:
-        lo, hi = float(img.min()), float(img.max())
-        img = ((img.astype(np.float32) - lo) * (255.0 / (hi - lo) if hi > lo else 0.0)).astype(
-            np.uint8
-        )
-    if img.ndim == 3 and img.shape[2] == 1:
-        img = img[:, :, 0]
-    fmt = pixel_format.upper()
-    if img.ndim == 3 and img.shape[2] == 3 and fmt.startswith("RGB"):
-        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    elif img.ndim == 3 and img.shape[2] == 4:
-        img = cv2.cvtColor(img, cv2.COLOR_RGBA2BGR if fmt.startswith("RGB") else cv2.COLOR_BGRA2BGR)
-    return img
-
-
-def draw(img: np.ndarray, marks: Iterable[Mark]) -> np.ndarray:
-    """A BGR copy of ``img`` with every found mark drawn (box, centroid, label)."""
-    canvas = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
-    h, w = canvas.shape[:2]
-    scale = max(w, h) / 320
-    thick = max(1, round(scale))
-    font = 0.4 * max(scale, 0.75)
-    for m in marks:
-        if not m.found:
-            continue
-        colour = colour_of(m.label)
-        text = m.label if m.confidence is None else f"{m.label} {m.confidence:.2f}"
-        x, y = 2, 2
-        if m.bbox is not None:
-            x, y, bw, bh = m.bbox
-            cv2.rectangle(canvas, (x, y), (x + bw - 1, y + bh - 1), colour, thick)
-        if m.centroid is not None:
-            cx, cy = round(m.centroid[0]), round(m.centroid[1])
-            cv2.drawMarker(canvas, (cx, cy), colour, cv2.MARKER_CROSS, max(6, 4 * thick), thick)
-            if m.bbox is None:
-                x, y = cx + 4, cy - 4
-        (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font, 1)
-        ty = y - 3 if y - th - base - 3 >= 0 else y + th + 3
-        cv2.rectangle(canvas, (x, ty - th - 1), (x + tw + 1, ty + base - 1), (0, 0, 0), cv2.FILLED)
-        cv2.putText(
-            canvas, text, (x + 1, ty - 1), cv2.FONT_HERSHEY_SIMPLEX, font, colour, 1, cv2.LINE_AA
-        )
-    return canvas
-
-
-def render(
-    data: np.ndarray, pixel_format: str, marks: list[Mark], quality: int
-) -> tuple[bytes, bytes]:
-    """JPEGs of the raw frame and of the processed one (the same bytes when nothing is drawn)."""
-    img = to_bgr8(data, pixel_format)
-    params = [cv2.IMWRITE_JPEG_QUALITY, quality]
-    ok, raw = cv2.imencode(".jpg", img, params)
-    if not ok:
-        raise ValueError(f"cannot encode a {data.shape} {data.dtype} {pixel_format} frame as JPEG")
-    raw_bytes = raw.tobytes()
-    if not any(m.found for m in marks):
-        return raw_bytes, raw_bytes
-    ok, proc = cv2.imencode(".jpg", draw(img, marks), params)
-    if not ok:
-        raise ValueError("cannot encode the processed frame")
-    return raw_bytes, proc.tobytes()
-
-
-@dataclass(frozen=True)
-class Encoded:
-    """One source's frame as sent: both JPEGs and what the page shows beside them."""
-
-    n: int  # the display's count of frames received from the source
-    seq: int
-    timestamp: float
-    shape: tuple[int, ...]
-    pixel_format: str
-    marks: tuple[Mark, ...]
-    raw: bytes
-    processed: bytes
-
-
 class _Source:
-    """The newest frame of one input, its arrival times and its encoding cache."""
+    """The newest frame of one input and its arrival times."""
 
     def __init__(self, name: str) -> None:
         self.name = name
         self.frame: Frame | None = None
         self.n = 0
         self.arrivals: deque[float] = deque(maxlen=256)
-        self.encoded: Encoded | None = None
-        self.encoding: asyncio.Task[Encoded] | None = None
+        self.delayed = False  # the next frame for the server waits for max_fps
+        self.lent: Frame | None = None  # the frame the server is encoding (a link held)
         self.last_encode = -math.inf  # time.monotonic() of the last encode start
         self.encodes = 0
         self.failing = False  # the last encode failed (logged once until one succeeds)
@@ -258,15 +133,21 @@ class _Source:
         return (len(times) - 1) / span
 
 
-class _Client:
-    """A websocket client: what it was last sent per source and whether it acked it."""
-
-    def __init__(self, ws: web.WebSocketResponse) -> None:
-        self.ws = ws
-        self.wake = asyncio.Event()
-        self.sent: dict[str, int] = {}
-        self.waiting_ack: set[str] = set()
-        self.messages = 0
+def _listen(host: str, port: int) -> socket.socket:
+    """A listening socket (taken here, so that a taken port fails the set-up at once)."""
+    family, *_, address = socket.getaddrinfo(
+        host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+    )[0]
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(128)
+    except OSError:
+        sock.close()
+        raise
+    sock.setblocking(False)
+    return sock
 
 
 def _local_host(host: str) -> str:
@@ -321,6 +202,7 @@ class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
     inline_only = True
+    listens = True  # params host/port: `flowrt run --display-host/--display-port` set them
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -328,9 +210,21 @@ class Display(Node):
         host: Annotated[str, AfterValidator(_local_host)] = Field(
             "127.0.0.1",
             description="address to listen on: an IP address (0.0.0.0: every interface) or a "
-            "name of this machine",
+            "name of this machine; beyond loopback a token is required",
         )
         port: int = Field(8750, ge=0, le=65535, description="TCP port; 0 picks a free one")
+        token: str | None = Field(
+            None,
+            min_length=8,
+            description="required of every client (Bearer header, or ?token= once: a cookie)",
+        )
+        allowed_hosts: list[str] = Field(
+            default_factory=list,
+            description="names besides loopback a browser may use in Host (without a token)",
+        )
+        max_clients: int = Field(
+            32, ge=1, le=1000, description="open connections at once; more are closed at once"
+        )
         max_fps: float | None = Field(
             None,
             gt=0,
@@ -348,6 +242,15 @@ class Display(Node):
             333, ge=50, le=3_600_000, description="how often the page polls the statistics"
         )
 
+        @model_validator(mode="after")
+        def _token_beyond_loopback(self) -> Display.Params:
+            if not self.token and not display_server.is_loopback(self.host):
+                raise ValueError(
+                    f"serving the live view on {self.host} needs a token (params.token, or "
+                    "flowrt run --display-token): any machine that reaches it sees the cameras"
+                )
+            return self
+
     any_inputs = Input(
         object, required=False, doc="frames (a source each) and detections, under any name"
     )
@@ -362,62 +265,137 @@ class Display(Node):
     async def setup(self) -> None:
         self.sources: dict[str, _Source] = {}
         self.detections: dict[str, tuple[float, list[Any]]] = {}  # input -> (arrival, detections)
-        self.clients: set[_Client] = set()
-        self.streams: set[asyncio.Task[Any]] = set()
-        self.wakers: set[asyncio.Event] = set()
         self.encodes = 0
         self.ignored: set[str] = set()
+        self.wanted: dict[str, int] = {}  # source -> the server holds its frame n; wants newer
+        self._kick_due = False
         self._stats_cache: tuple[float, bytes] | None = None
-        self._page = PAGE.read_bytes().replace(
-            b"__REFRESH_MS__", str(self.params.refresh_ms).encode()
-        )
-        app = web.Application()
-        app.add_routes(
-            [
-                web.get("/", self._index),
-                web.get("/ws", self._websocket),
-                web.get("/stats.json", self._stats),
-                web.get("/frame/{source}.jpg", self._snapshot),
-                web.get("/stream/{source}.mjpg", self._mjpeg),
-            ]
-        )
-        self._runner = web.AppRunner(
-            app, access_log=None, handle_signals=False, shutdown_timeout=CLOSE_TIMEOUT
-        )
-        await self._runner.setup()
+        self._writer: asyncio.StreamWriter | None = None
+        self._proc: Any = None
+        self._task: asyncio.Task[None] | None = None
         host, port = self.params.host, self.params.port
+        self.url = ""
         try:
-            await web.TCPSite(self._runner, host, port).start()
+            sock = _listen(host, port)
         except OSError as e:
-            await self._runner.cleanup()
-            raise RuntimeError(f"display: cannot listen on {host}:{port}: {e.strerror or e}") from e
-        self.port = int(self._runner.addresses[0][1])
+            # An error state, not a failure: restarting cannot free the port (flowrt run checks
+            # it before anything starts; an embedding program sees the state and the reason).
+            reason = f"display: cannot listen on {host}:{port}: {e.strerror or e}"
+            try:
+                self.ctx.set_error(reason)
+            except RuntimeError:  # no runtime around the node (a bare test harness)
+                raise RuntimeError(reason) from e
+            self.ctx.log.error("%s: %s; the live view is off", self.ctx.name, reason)
+            return
+        self.port = int(sock.getsockname()[1])
         shown = f"[{host}]" if ":" in host else host
-        self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else shown}:{self.port}"
+        self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '::', '') else shown}:{self.port}"
+        page = PAGE.read_bytes().replace(b"__REFRESH_MS__", str(self.params.refresh_ms).encode())
+        settings = {
+            "token": self.params.token,
+            "allowed_hosts": list(self.params.allowed_hosts),
+            "max_clients": self.params.max_clients,
+            "url": self.url,
+            "page": page,
+            "source_wait": SOURCE_WAIT,
+            "header_timeout": HEADER_TIMEOUT,
+        }
+        ours, theirs = socket.socketpair()
+        ctx = multiprocessing.get_context("spawn")
+        self._proc = ctx.Process(
+            target=display_server.serve,
+            args=(sock, theirs, settings),
+            name=f"flowrt-view-{self.ctx.name}",
+            daemon=True,
+        )
+        try:
+            self._proc.start()
+            if self._proc.pid is not None:
+                display_server.lower_priority(self._proc.pid)
+        finally:
+            theirs.close()
+            sock.close()  # the server's process holds its own copy
+        reader, self._writer = await asyncio.open_unix_connection(sock=ours)
+        ready: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._task = asyncio.get_running_loop().create_task(self._talk(reader, ready))
+        try:
+            await asyncio.wait_for(asyncio.shield(ready), START_TIMEOUT)
+        except (TimeoutError, ConnectionError, asyncio.IncompleteReadError) as e:
+            await self.teardown()
+            raise RuntimeError(f"display: the view's server did not start: {e!r}") from None
         self.ctx.log.info("%s: live view at %s", self.ctx.name, self.url)
         print(f"display: {self.url}", flush=True)
 
     async def teardown(self) -> None:
-        runner = getattr(self, "_runner", None)
-        if runner is None:
-            return
-        closing = [c.ws.close(code=1001, message=b"runtime stopping") for c in list(self.clients)]
-        if closing:
-            tasks = [asyncio.ensure_future(c) for c in closing]
-            _, late = await asyncio.wait(tasks, timeout=CLOSE_TIMEOUT)
-            for task in late:
-                task.cancel()
-        for task in list(self.streams):
-            task.cancel()
-        await runner.cleanup()
-        # An encode in flight reads frame pixels in a thread: let it finish before the links go.
-        pending = [s.encoding for s in self.sources.values() if s.encoding is not None]
-        if pending:
-            await asyncio.wait(pending)
+        if self._writer is not None:
+            self._writer.close()  # the server's process closes its clients and ends
+            self._writer = None
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._task
+            self._task = None
+        proc, self._proc = self._proc, None
+        if proc is not None:
+            await asyncio.to_thread(proc.join, 3.0)
+            if proc.is_alive():
+                proc.kill()
+                await asyncio.to_thread(proc.join, 1.0)
         for src in self.sources.values():
+            if src.lent is not None:
+                src.lent.release()
+                src.lent = None
             if src.frame is not None:
                 src.frame.release()
                 src.frame = None
+
+    async def _talk(self, reader: asyncio.StreamReader, ready: asyncio.Future[None]) -> None:
+        """Answer the server: a frame it wants, statistics. Bounded whatever its clients do."""
+        try:
+            while True:
+                header, _ = await display_server.unpack(reader)
+                op = header.get("op")
+                if op == "ready":
+                    ready.set_result(None)
+                elif op == "want":
+                    name, after = str(header["source"]), int(header["after"])
+                    self.wanted[name] = after
+                    src = self.sources.get(name)
+                    if src is not None and src.n > after:
+                        self._kick(src)
+                elif op == "done":
+                    self._returned(str(header["source"]))
+                elif op == "stats":
+                    self._send_stats()
+                elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
+                    self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
+        except (asyncio.IncompleteReadError, ConnectionError) as e:
+            if not ready.done():
+                ready.set_exception(e)
+            elif self._writer is not None:  # not our teardown: the server's process died
+                reason = f"display: the view's server process ended; {self.url} is gone"
+                self.ctx.set_error(reason)
+                self.ctx.log.error("%s: %s", self.ctx.name, reason)
+
+    def _send(self, header: dict[str, Any], body: bytes = b"") -> None:
+        if self._writer is not None and not self._writer.is_closing():
+            self._writer.write(display_server.pack(header, body))
+
+    def _send_stats(self) -> None:
+        try:
+            runtime: bytes = self._runtime_stats()
+        except RuntimeError:  # no runtime around the node (a bare test harness)
+            runtime = b"null"
+        self._send({"op": "stats", "display": self.display_stats()}, runtime)
+
+    def _runtime_stats(self) -> bytes:
+        """The runtime's statistics, serialised at most every STATS_MAX_AGE."""
+        mono = time.monotonic()
+        if self._stats_cache is not None and mono - self._stats_cache[0] < STATS_MAX_AGE:
+            return self._stats_cache[1]
+        body: bytes = self.ctx.stats().model_dump_json().encode()
+        self._stats_cache = (mono, body)
+        return body
 
     # --- the hot path -------------------------------------------------------------------
 
@@ -440,13 +418,23 @@ class Display(Node):
                     port,
                     type(value).__name__,
                 )
-        for ev in self.wakers:
-            ev.set()
+        if self.wanted and not self._kick_due:
+            # Lent after this call, in a callback of its own: process() only stores.
+            self._kick_due = True
+            asyncio.get_running_loop().call_soon(self._kick_wanted)
+
+    def _kick_wanted(self) -> None:
+        self._kick_due = False
+        for name, after in list(self.wanted.items()):
+            src = self.sources.get(name)
+            if src is not None and src.n > after:
+                self._kick(src)
 
     def _frame(self, port: str, frame: Frame, now: float) -> None:
         src = self.sources.get(port)
         if src is None:
             src = self.sources[port] = _Source(port)
+            self._send({"op": "sources", "names": list(self.sources)})
         if frame is src.frame:  # a periodic trigger re-reads the same newest frame
             return
         frame.acquire()  # the runtime releases the activation's link when process returns
@@ -489,101 +477,61 @@ class Display(Node):
         cap = float(self.params.max_fps)
         return max(0.0, src.last_encode + 1.0 / cap - time.monotonic())
 
-    async def _latest(self, src: _Source) -> Encoded:
-        """The newest frame of ``src`` encoded: cached, or shared with an encode in flight."""
-        enc = src.encoded
-        if enc is not None and enc.n == src.n:
-            return enc
-        if src.encoding is None:
-            src.encoding = asyncio.get_running_loop().create_task(self._encode(src))
-        # Shielded: a client going away must not cancel an encode that reads frame pixels.
-        return await asyncio.shield(src.encoding)
+    def _kick(self, src: _Source) -> None:
+        """Hand the newest frame of ``src`` to the server, which encodes and shares it.
 
-    async def _encode(self, src: _Source) -> Encoded:
+        A frame in the shared frame pool travels as a descriptor (``pickle``: the slot's
+        name, not its pixels); the server maps the slot and encodes there, so the JPEG work
+        (milliseconds holding a GIL) is not this process's. A link keeps the slot until the
+        server says it is done; one frame per source is in its hands at a time.
+        """
         frame = src.frame
-        assert frame is not None
-        n, marks = src.n, self._marks(src)
+        if frame is None or src.delayed or src.lent is not None:
+            return
+        delay = self._throttle(src)
+        if delay > 0:
+            src.delayed = True
+            asyncio.get_running_loop().call_later(delay, self._rekick, src)
+            return
         src.last_encode = time.monotonic()
-        frame.acquire()  # kept until the thread is done, whatever arrives meanwhile
-        try:
-            raw, processed = await asyncio.to_thread(
-                render, frame.data, frame.pixel_format, marks, self.params.jpeg_quality
-            )
-            enc = Encoded(
-                n,
-                frame.seq,
-                frame.timestamp,
-                frame.shape,
-                frame.pixel_format,
-                tuple(marks),
-                raw,
-                processed,
-            )
-        except Exception as e:
-            if not src.failing:
-                src.failing = True
-                self.ctx.log.warning("%s: cannot show %s frames: %s", self.ctx.name, src.name, e)
-            raise
-        finally:
-            frame.release()
-            src.encoding = None
-        src.failing = False
-        src.encoded = enc
+        self.wanted.pop(src.name, None)
+        header = {
+            "op": "frame",
+            "source": src.name,
+            "node": frame.source,
+            "n": src.n,
+            "seq": frame.seq,
+            "timestamp": frame.timestamp,
+            "shape": list(frame.shape),
+            "pixel_format": frame.pixel_format,
+            "fps": round(src.fps(self.ctx.now()), 2),
+            "marks": [m.json() for m in self._marks(src)],
+            "quality": self.params.jpeg_quality,
+        }
+        frame.acquire()  # until the server is done with it
+        src.lent = frame
+        self._send(header, pickle.dumps(frame, protocol=pickle.HIGHEST_PROTOCOL))
         src.encodes += 1
         self.encodes += 1
-        return enc
 
-    def _message(self, src: _Source, enc: Encoded) -> bytes:
-        same = enc.processed is enc.raw
-        header = json.dumps(
-            {
-                "source": src.name,
-                "node": src.frame.source if src.frame is not None else "",
-                "n": enc.n,
-                "seq": enc.seq,
-                "timestamp": enc.timestamp,
-                "shape": enc.shape,
-                "pixel_format": enc.pixel_format,
-                "fps": round(src.fps(self.ctx.now()), 2),
-                "marks": [m.json() for m in enc.marks],
-                "raw": len(enc.raw),
-                "processed": 0 if same else len(enc.processed),
-            }
-        ).encode()
-        return b"".join(
-            (struct.pack(">I", len(header)), header, enc.raw, b"" if same else enc.processed)
-        )
+    def _returned(self, name: str) -> None:
+        """The server is done with the frame of ``name`` it was lent."""
+        src = self.sources.get(name)
+        if src is None or src.lent is None:
+            return
+        src.lent.release()
+        src.lent = None
+        after = self.wanted.get(name)
+        if after is not None and src.n > after:
+            self._kick(src)
 
-    # --- HTTP ---------------------------------------------------------------------------
+    def _rekick(self, src: _Source) -> None:
+        src.delayed = False
+        after = self.wanted.get(src.name)
+        if after is not None and src.n > after:
+            self._kick(src)
 
-    async def _index(self, request: web.Request) -> web.Response:
-        return web.Response(body=self._page, content_type="text/html", charset="utf-8")
-
-    async def _stats(self, request: web.Request) -> web.Response:
-        return web.Response(
-            body=self.stats_json(),
-            content_type="application/json",
-            headers={"Cache-Control": "no-store"},
-        )
-
-    def stats_json(self) -> bytes:
-        """``{"runtime": RuntimeStats | null, "display": {...}}``, cached for STATS_MAX_AGE."""
-        mono = time.monotonic()
-        if self._stats_cache is not None and mono - self._stats_cache[0] < STATS_MAX_AGE:
-            return self._stats_cache[1]
-        try:
-            runtime: bytes = self.ctx.stats().model_dump_json().encode()
-        except RuntimeError:  # no runtime around the node (a bare test harness)
-            runtime = b"null"
-        body = (
-            b'{"runtime":'
-            + runtime
-            + b',"display":'
-            + json.dumps(self.display_stats()).encode()
-            + b"}"
-        )
-        self._stats_cache = (mono, body)
-        return body
+    # --- statistics ----------------------------------------------------------------
 
     def display_stats(self) -> dict[str, Any]:
         """What the display measures: per source fps and frames, its clients and encodes."""
@@ -616,148 +564,7 @@ class Display(Node):
         ]
         return {
             "url": self.url,
-            "clients": len(self.clients),
-            "streams": len(self.streams),
             "encodes": self.encodes,
             "sources": sources,
             "detections": detections,
         }
-
-    async def _snapshot(self, request: web.Request) -> web.Response:
-        src, kind = await self._requested(request)
-        try:
-            enc = await self._latest(src)
-        except Exception as e:
-            raise web.HTTPInternalServerError(text=f"cannot show {src.name!r}: {e}") from e
-        return web.Response(
-            body=enc.raw if kind == "raw" else enc.processed,
-            content_type="image/jpeg",
-            headers={"Cache-Control": "no-store", "X-Frame-Seq": str(enc.seq)},
-        )
-
-    async def _requested(self, request: web.Request) -> tuple[_Source, str]:
-        """The source and kind a frame request names; a source not seen yet is waited for."""
-        name = request.match_info["source"]
-        kind = request.query.get("kind", "processed")
-        if kind not in ("raw", "processed"):
-            raise web.HTTPBadRequest(text="kind must be raw or processed")
-        src = self.sources.get(name)
-        if src is None:
-            wake = asyncio.Event()
-            self.wakers.add(wake)
-            try:
-                async with asyncio.timeout(SOURCE_WAIT):
-                    while (src := self.sources.get(name)) is None:
-                        wake.clear()
-                        await wake.wait()
-            except TimeoutError:
-                raise web.HTTPNotFound(
-                    text=f"no frames from {name!r}; sources: {sorted(self.sources)}"
-                ) from None
-            finally:
-                self.wakers.discard(wake)
-        return src, kind
-
-    async def _mjpeg(self, request: web.Request) -> web.StreamResponse:
-        src, kind = await self._requested(request)
-        resp = web.StreamResponse(
-            headers={
-                "Content-Type": "multipart/x-mixed-replace; boundary=flowrtframe",
-                "Cache-Control": "no-store",
-            }
-        )
-        await resp.prepare(request)
-        wake = asyncio.Event()
-        task = asyncio.current_task()
-        assert task is not None
-        self.wakers.add(wake)
-        self.streams.add(task)
-        sent = 0
-        try:
-            while True:
-                if src.n <= sent or src.frame is None:
-                    wake.clear()
-                    await wake.wait()
-                    continue
-                delay = self._throttle(src)
-                if delay > 0:
-                    await asyncio.sleep(delay)
-                try:
-                    enc = await self._latest(src)
-                except Exception:  # logged by _encode; wait for the next frame
-                    sent = src.n
-                    continue
-                jpeg = enc.raw if kind == "raw" else enc.processed
-                head = f"--flowrtframe\r\n{JPEG_PART}{len(jpeg)}\r\n\r\n"
-                # write() waits for the socket to drain once its buffer is full: a slow reader
-                # holds this loop, and when it continues it gets the newest frame.
-                await resp.write(head.encode() + jpeg + b"\r\n")
-                sent = enc.n
-        except (ConnectionError, asyncio.CancelledError):
-            pass
-        finally:
-            self.wakers.discard(wake)
-            self.streams.discard(task)
-        return resp
-
-    async def _websocket(self, request: web.Request) -> web.WebSocketResponse:
-        ws = web.WebSocketResponse(
-            heartbeat=10.0, compress=False, timeout=CLOSE_TIMEOUT, max_msg_size=1 << 16
-        )
-        await ws.prepare(request)
-        client = _Client(ws)
-        self.clients.add(client)
-        self.wakers.add(client.wake)
-        client.wake.set()
-        feeder = asyncio.get_running_loop().create_task(self._feed(client))
-        try:
-            async for msg in ws:
-                if msg.type is not WSMsgType.TEXT:
-                    continue
-                try:
-                    ack = json.loads(msg.data).get("ack")
-                except (ValueError, AttributeError):
-                    continue
-                if isinstance(ack, str):
-                    client.waiting_ack.discard(ack)
-                    client.wake.set()
-        finally:
-            feeder.cancel()
-            with contextlib.suppress(asyncio.CancelledError, ConnectionError):
-                await feeder
-            self.wakers.discard(client.wake)
-            self.clients.discard(client)
-        return ws
-
-    async def _feed(self, client: _Client) -> None:
-        """Send each source's newest frame to one client, one unacknowledged message at most."""
-        while not client.ws.closed:
-            ready, wait = [], None
-            for src in list(self.sources.values()):
-                if (
-                    src.name in client.waiting_ack
-                    or src.frame is None
-                    or src.n <= client.sent.get(src.name, 0)
-                ):
-                    continue
-                delay = self._throttle(src)
-                if delay > 0:
-                    wait = delay if wait is None else min(wait, delay)
-                else:
-                    ready.append(src)
-            if not ready:
-                client.wake.clear()
-                with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(client.wake.wait(), wait)
-                continue
-            encoded = await asyncio.gather(
-                *(self._latest(s) for s in ready), return_exceptions=True
-            )
-            for src, enc in zip(ready, encoded, strict=True):
-                if isinstance(enc, BaseException):  # logged by _encode; wait for the next frame
-                    client.sent[src.name] = src.n
-                    continue
-                client.waiting_ack.add(src.name)
-                client.sent[src.name] = enc.n
-                await client.ws.send_bytes(self._message(src, enc))
-                client.messages += 1

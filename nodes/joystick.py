@@ -23,10 +23,13 @@ column ``time`` (seconds from the start) first, then one column per axis (``x`` 
 come is published; after the last row ``end`` says what happens: ``hold`` (keep publishing
 it), ``loop`` (start again) or ``silent`` (publish nothing: a lost link, for tests).
 
-``web``: the live view (``display`` node) has an on-screen stick and keyboard (arrows/WASD,
-space = button ``a``); the page sends its state over its WebSocket and the display writes it
-to the RTDB record ``joystick.web``, which this node reads. A page closed or silent for more
-than ``web_timeout_ms`` is a lost device.
+``web``: the live view (``display`` node) has a joystick panel: tick "drive from this page",
+then drag the on-screen stick (axes ``x``, ``y``), or use the keyboard (arrows or WASD for the
+axes; Enter = ``start``, Escape = ``stop``, space = ``a``, b = ``b``, Shift = ``deadman``), or
+the panel's buttons. The page sends its state at 20 Hz over its WebSocket (guarded like the
+view: Host, Origin, and the view's token off loopback) and the display writes it to the RTDB
+record ``joystick.web``, which this node reads. A page closed, hidden or silent for more than
+``web_timeout_ms`` is a lost device.
 """
 
 from __future__ import annotations

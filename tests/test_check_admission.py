@@ -13,7 +13,7 @@ import flowrt
 from flowrt import GraphBuilder, Runtime, VirtualClock
 from flowrt.analysis.admission import AdmissionRefused, admit, current_timing
 from flowrt.cli import main
-from flowrt.control import ControlConfig
+from flowrt.control import ControlConfig, ControlServer
 from flowrt.spec import TimingOverride
 
 pytestmark = pytest.mark.timeout(60)
@@ -30,10 +30,18 @@ def graph() -> flowrt.Graph:
     return g.build()
 
 
+URLS: dict[int, str] = {}  # runtime -> its control endpoint
+
+
 @pytest.fixture
 async def rt() -> AsyncIterator[Runtime]:
-    async with Runtime(graph(), clock=VirtualClock(), control=ControlConfig("127.0.0.1", 0)) as r:
+    async with (
+        Runtime(graph(), clock=VirtualClock()) as r,
+        ControlServer(r, ControlConfig("127.0.0.1", 0)) as control,
+    ):
+        URLS[id(r)] = control.url
         yield r
+        del URLS[id(r)]
 
 
 async def test_a_change_that_breaks_a_deadline_is_refused(rt: Runtime) -> None:
@@ -68,8 +76,7 @@ async def test_the_overload_controller_is_not_checked(rt: Runtime) -> None:
 async def test_flowrt_ctl_refuses_then_forces(
     rt: Runtime, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert rt.control is not None
-    base = ["ctl", "--url", rt.control.url]
+    base = ["ctl", "--url", URLS[id(rt)]]
 
     def ctl(*args: str) -> int:
         return main([*base, *args])

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from flowrt import GraphBuilder, Node, Output, Runtime, VirtualClock
-from flowrt.control import ControlConfig
+from flowrt.control import ControlConfig, ControlServer
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -35,9 +35,11 @@ async def test_ctl_says_none_when_empty(args: list[str], said: str) -> None:
     g = GraphBuilder("quiet")
     g.add("src", "counter", trigger={"timer": "50ms"})
     config = ControlConfig("127.0.0.1", 0)
-    async with Runtime(g.build(), clock=VirtualClock(), control=config) as rt:
-        assert rt.control is not None
-        code, out, err = await ctl(rt.control.url, *args)
+    async with (
+        Runtime(g.build(), clock=VirtualClock()) as rt,
+        ControlServer(rt, config) as control,
+    ):
+        code, out, err = await ctl(control.url, *args)
     assert code == 0, err
     assert out.strip().startswith(said), out
 

@@ -6,6 +6,7 @@ import asyncio
 import json
 import sys
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
 import aiohttp
@@ -27,22 +28,32 @@ def graph() -> flowrt.Graph:
     return g.build()
 
 
+SERVERS: dict[int, ControlServer] = {}
+
+
+async def served(config: ControlConfig) -> AsyncIterator[Runtime]:
+    """A runtime on a virtual clock and its control endpoint, a user of it."""
+    async with Runtime(graph(), clock=VirtualClock()) as r, ControlServer(r, config) as server:
+        SERVERS[id(r)] = server
+        yield r
+        del SERVERS[id(r)]
+
+
 @pytest.fixture
 async def rt() -> AsyncIterator[Runtime]:
-    async with Runtime(graph(), clock=VirtualClock(), control=ControlConfig("127.0.0.1", 0)) as r:
+    async for r in served(ControlConfig("127.0.0.1", 0)):
         yield r
 
 
 @pytest.fixture
 async def rt_token() -> AsyncIterator[Runtime]:
     config = ControlConfig("127.0.0.1", 0, token=TOKEN)  # a token given on loopback is required
-    async with Runtime(graph(), clock=VirtualClock(), control=config) as r:
+    async for r in served(config):
         yield r
 
 
 def url(rt: Runtime, path: str) -> str:
-    assert rt.control is not None
-    return rt.control.url + path
+    return SERVERS[id(rt)].url + path
 
 
 async def call(
@@ -161,7 +172,9 @@ async def test_refuses_to_serve_beyond_loopback_without_a_token() -> None:
                 ControlServer(rt, ControlConfig(host, 0))  # refused before binding anything
         ControlServer(rt, ControlConfig("0.0.0.0", 0, token=TOKEN))  # allowed (not started here)
     with pytest.raises(ValueError, match="without a token"):
-        Runtime(graph(), control="0.0.0.0:8765")  # before anything runs
+        ControlConfig.checked("0.0.0.0:8765")  # before anything runs
+    with pytest.raises(ValueError, match="token_required without a token"):
+        ControlConfig.checked(ControlConfig("127.0.0.1", 0, token_required=True))
 
 
 async def ctl(*args: str, token: str | None = None) -> tuple[int, str, str]:
@@ -182,8 +195,7 @@ async def ctl(*args: str, token: str | None = None) -> tuple[int, str, str]:
 
 
 async def test_flowrt_ctl_client(rt_token: Runtime) -> None:
-    assert rt_token.control is not None
-    base = ["--url", rt_token.control.url]
+    base = ["--url", url(rt_token, "")]
     code, out, err = await ctl(*base, "mode", "attack", token=TOKEN)
     assert (code, out.strip()) == (0, "mode attack"), err
     assert rt_token.mode == "attack"
@@ -214,14 +226,15 @@ async def test_flowrt_ctl_client(rt_token: Runtime) -> None:
     assert "unknown node 'nope'" in err
 
 
-async def test_a_taken_port_fails_the_start_and_leaves_nothing_running(rt: Runtime) -> None:
-    assert rt.control is not None
-    other = Runtime(
-        graph(), clock=VirtualClock(), control=ControlConfig("127.0.0.1", rt.control.port)
-    )
-    with pytest.raises(OSError, match="address already in use"):
-        await other.start()
+async def test_a_taken_port_fails_before_anything_starts(rt: Runtime) -> None:
+    port = SERVERS[id(rt)].port
+    other = Runtime(graph(), clock=VirtualClock())
+    server = ControlServer(other, ControlConfig("127.0.0.1", port))
+    with pytest.raises(OSError, match=f"cannot listen on 127.0.0.1:{port}: .*in use"):
+        server.bind()  # checked before the runtime is started
     assert not other.started
+    with pytest.raises(RuntimeError, match="start the runtime"):
+        await server.start()
 
 
 async def test_flowrt_ctl_without_a_runtime() -> None:
@@ -229,3 +242,199 @@ async def test_flowrt_ctl_without_a_runtime() -> None:
     assert code == 1
     assert "cannot reach the runtime" in err
     assert "Traceback" not in err
+
+
+# --- the endpoint cannot break the robot (issue 19, item 6) ---------------------------------
+
+
+async def post_raw(target: str, text: str) -> tuple[int, str]:
+    async with (
+        aiohttp.ClientSession() as s,
+        s.post(target, data=text, headers={"Content-Type": "application/json"}) as r,
+    ):
+        return r.status, await r.text()
+
+
+BAD_CHANGES = [
+    ('{"node": "slow", "timer": 1e-9}', "timer period must be at least 0.1 ms"),
+    ('{"node": "slow", "timer": 1e300}', "timer period must be at most 3600000 ms"),
+    ('{"node": "slow", "timer": NaN}', "NaN is not a number"),
+    ('{"node": "slow", "deadline": NaN}', "NaN is not a number"),
+    ('{"node": "slow", "deadline": Infinity}', "Infinity is not a number"),
+    ('{"node": "slow", "deadline": -Infinity, "priority": 30}', "Infinity is not a number"),
+    ('{"node": "slow", "priority": 30, "deadline": 1e300}', "deadline: Value error, must be"),
+    ('{"node": "slow", "priority": 30, "timer": 0}', "timer period must be positive"),
+    ('{"node": "slow", "priority": 30, "period": 1000000000000000000}', "period must be"),
+    ('{"node": "slow", "priority": 300}', "priority"),
+    ('{"node": "slow", "enabled": "yes please"}', "enabled"),
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    ('{"node": ' + "[" * 100_000 + "]" * 100_000 + "}", "nested too deeply"),
+    ("{not json", "bad request body"),
+]
+
+
+async def test_a_bad_change_is_refused_whole_and_nothing_is_applied(rt: Runtime) -> None:
+    for body, reason in BAD_CHANGES:
+        before = rt.stats().node("slow")
+        status, text = await post_raw(url(rt, "/timing"), body)
+        assert status == 400, (body[:60], text)
+        assert reason in json.loads(text)["error"], body[:60]
+        assert "Traceback" not in text
+        after = rt.stats().node("slow")
+        assert (after.period, after.priority, after.enabled) == (
+            before.period,
+            before.priority,
+            before.enabled,
+        ), body[:60]
+        assert not [e for e in rt.events if isinstance(e, flowrt.TimingChanged)], body[:60]
+    # the endpoint still works after them
+    status, reply = await call("POST", url(rt, "/timing"), {"node": "slow", "priority": 30})
+    assert (status, reply["change"]) == (200, "priority 20 -> 30")
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"timer": float("nan")},
+        {"timer": float("inf")},
+        {"timer": 1e-9},
+        {"deadline": float("nan"), "priority": 30},
+        {"priority": 30, "deadline": 1e300},
+        {"priority": 30, "period": 10**18},
+        {"priority": 30, "phase": -1},
+    ],
+)
+async def test_the_api_checks_a_change_whole_before_applying_it(change: dict[str, Any]) -> None:
+    async with Runtime(graph(), clock=VirtualClock()) as rt:
+        with pytest.raises(ValueError, match="slow: "):
+            rt.set_timing("slow", **change)
+        s = rt.stats().node("slow")
+        assert (s.period, s.priority) == ("100ms+0", 20)
+        assert rt.scheduler.runners["slow"].timing.deadline is None
+
+
+async def test_slow_clients_are_timed_out_and_connections_capped() -> None:
+    async with (
+        Runtime(graph(), clock=VirtualClock()) as rt,
+        ControlServer(
+            rt, ControlConfig("127.0.0.1", 0), max_connections=3, request_timeout=0.5
+        ) as server,
+    ):
+        # a client sending its headers a byte at a time is closed once its time is up
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(b"GET /stats HTTP/1.1\r\nHo")
+        await writer.drain()
+        assert await asyncio.wait_for(reader.read(), 5) == b""  # closed by the server
+        writer.close()
+        # three idle connections fill the cap: the fourth is closed at once
+        idle = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(3)]
+        await asyncio.sleep(0.1)
+        extra_r, extra_w = await asyncio.open_connection("127.0.0.1", server.port)
+        assert await asyncio.wait_for(extra_r.read(), 0.4) == b""  # before any timeout
+        extra_w.close()
+        for _, w in idle:
+            w.close()
+        await asyncio.sleep(0.2)
+        status, stats = await call("GET", server.url + "/stats")  # served again
+        assert status == 200
+        assert stats["graph"] == "ctl"
+
+
+async def test_token_required_on_loopback() -> None:
+    config = ControlConfig("127.0.0.1", 0, token=TOKEN, token_required=True)
+    async with Runtime(graph(), clock=VirtualClock()) as rt, ControlServer(rt, config) as server:
+        status, _ = await call("POST", server.url + "/mode", {"mode": "defend"})
+        assert status == 401
+        assert rt.mode is None
+        status, _ = await call(
+            "GET", server.url + "/stats", headers={"Authorization": f"Bearer {TOKEN}"}
+        )
+        assert status == 200
+
+
+async def test_many_readers_cost_the_runtime_one_answer_per_cache_period(rt: Runtime) -> None:
+    server = SERVERS[id(rt)]
+    before = server.answered
+    async with aiohttp.ClientSession() as s:
+
+        async def poll() -> int:
+            async with s.get(url(rt, "/stats")) as r:
+                await r.read()
+                return r.status
+
+        statuses = await asyncio.gather(*(poll() for _ in range(50)))
+    assert statuses == [200] * 50
+    assert server.answered - before < 10  # shared answers, not one per client
+
+
+def test_flowrt_run_with_a_taken_control_port_says_so_and_exits_1(tmp_path: Path) -> None:
+    import socket
+    import subprocess
+
+    graph_file = tmp_path / "g.yaml"
+    graph_file.write_text("name: g\nnodes:\n  src: {kind: counter, trigger: {timer: 50ms}}\n")
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        command = [sys.executable, "-m", "flowrt.cli", "run", str(graph_file), "--no-ui"]
+        proc = subprocess.run(
+            [*command, "--duration", "5", "--control", str(port)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert proc.returncode == 1
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert f"127.0.0.1:{port}" in lines[0]
+    assert "--control PORT" in lines[0]
+
+
+async def test_clients_hold_the_servers_descriptors_not_the_runtimes() -> None:
+    """Slow or idle clients cannot exhaust the descriptors the runtime's workers need."""
+    import os
+    import socket
+
+    import psutil
+
+    async with (
+        Runtime(graph(), clock=VirtualClock()) as rt,
+        ControlServer(rt, ControlConfig("127.0.0.1", 0)) as server,
+    ):
+        before = len(os.listdir("/proc/self/fd"))
+        server_before = psutil.Process(server._proc.pid).num_fds()
+        clients = [socket.create_connection(("127.0.0.1", server.port)) for _ in range(40)]
+        try:
+            await asyncio.sleep(0.5)
+            # this process holds only the clients' own ends; the server's ends are elsewhere
+            assert len(os.listdir("/proc/self/fd")) - before == 40
+            assert psutil.Process(server._proc.pid).num_fds() - server_before >= 40
+        finally:
+            for c in clients:
+                c.close()
+
+
+async def test_ctl_swap_and_reload(rt_token: Runtime) -> None:
+    """``flowrt ctl swap``/``reload``: the node's kind changes while running; a bad kind is
+    refused with the reason (409) and the old node runs on."""
+    base = ["--url", url(rt_token, "")]
+    code, out, err = await ctl(*base, "swap", "slow", "relay", token=TOKEN)
+    assert code == 1  # relay needs an input that `slow` has no edge for: refused, old one kept
+    assert "swap" in err
+    assert rt_token.stats().node("slow").kind == "burn"
+    code, out, err = await ctl(
+        *base, "swap", "slow", "burn", "--params", '{"ms": 0.2}', token=TOKEN
+    )
+    assert (code, out.strip()) == (0, "slow: now burn (swap)"), err
+    assert rt_token.scheduler.runners["slow"].rnode.params.ms == 0.2  # type: ignore[attr-defined]
+    code, out, err = await ctl(*base, "swap", "slow", "no_such_kind", token=TOKEN)
+    assert code == 1
+    assert "unknown node kind" in err
+    assert "Traceback" not in err
+    code, out, err = await ctl(*base, "swap", "slow", "burn", "--params", "[1]", token=TOKEN)
+    assert code == 2
+    code, out, err = await ctl(*base, "reload", "slow", token=TOKEN)
+    assert (code, out.strip()) == (0, "slow: now burn (reload)"), err
+    kinds = [e.node_kind for e in rt_token.events if isinstance(e, flowrt.NodeSwapped)]
+    assert kinds == ["burn", "burn"]

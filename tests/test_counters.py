@@ -185,7 +185,9 @@ def web_view(stats: RuntimeStats) -> dict[str, Any]:
     html = (ROOT / "nodes" / "display.html").read_text()
     script = html[html.index("<script>") + len("<script>") : html.index("</script>")]
     script = script.replace("__REFRESH_MS__", "500")
-    script = re.sub(r"^connect\(\);\s*poll\(\);\s*$", "", script, flags=re.M)
+    script = re.sub(
+        r"^(setupJoystick\(\);\s*)?connect\(\);\s*poll\(\);\s*$", "", script, flags=re.M
+    )
     program = DOM_STUB + script + f"\nconst STATS = {stats.model_dump_json()};\n" + DUMP
     node = shutil.which("node") or shutil.which("nodejs")
     assert node is not None

@@ -300,7 +300,9 @@ async def test_chromium_sees_frames_and_statistics_update(
         assert second["seq"] > first["seq"]
         # the frame rate follows the source (20 Hz): the display's measure, shown on the card
         assert 15 <= second["header"]["fps"] <= 25, second["header"]
-        assert re.search(r"\b(1[5-9]|2[0-5])\.\d fps", second["cardText"]), second["cardText"]
+        assert re.search(r"(?<![\d.])(1[5-9]|2[0-5])\.\d fps", second["cardText"]), second[
+            "cardText"
+        ]
         # the detection is drawn on the processed frame, not on the raw one
         assert second["header"]["marks"][0]["label"] == "ball"
         assert second["header"]["processed"] > 0
@@ -522,3 +524,155 @@ def test_display_kind_is_registered() -> None:
     g.add("view", "display", params={"port": 0})
     graph = g.build()
     assert isinstance(graph, flowrt.Graph)
+
+
+VIEW_GRAPH = """
+name: view-cli
+nodes:
+  src: {kind: counter, trigger: {timer: 50ms}}
+  view: {kind: display, params: {port: PORT}}
+"""
+
+
+def flowrt_run(tmp_path: Path, port: int, *options: str) -> tuple[int, str, str]:
+    import subprocess
+    import sys
+
+    graph = tmp_path / "view.yaml"
+    graph.write_text(VIEW_GRAPH.replace("PORT", str(port)))
+    proc = subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", "run", str(graph), "--no-ui", *options],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    return proc.returncode, proc.stdout, proc.stderr
+
+
+def test_flowrt_run_display_options_and_a_taken_port(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket() as taken, socket.socket() as free:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        # the graph's port is taken: one line naming it and the options, before anything runs
+        code, out, err = flowrt_run(tmp_path, port, "--duration", "5")
+        assert code == 1
+        lines = err.strip().splitlines()
+        assert len(lines) == 1, err
+        assert f"127.0.0.1:{port}" in lines[0]
+        assert "--display-port" in lines[0]
+        assert "--no-display" in lines[0]
+        assert "display:" not in out  # nothing started
+        # --display-port moves it
+        free.bind(("127.0.0.1", 0))
+        other = free.getsockname()[1]
+        free.close()
+        code, out, err = flowrt_run(
+            tmp_path, port, "--display-port", str(other), "--duration", "0.5"
+        )
+        assert code == 0, err
+        assert f"display: http://127.0.0.1:{other}" in out
+        # --no-display runs the graph without it (the taken port does not matter)
+        code, out, err = flowrt_run(tmp_path, port, "--no-display", "--duration", "0.5")
+        assert code == 0, err
+        assert "display:" not in out
+        assert "src" in out
+        assert "Traceback" not in err
+
+
+# --- no web page may read the cameras (issue 19, item 7) -------------------------------------
+
+
+async def test_foreign_host_and_origin_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    async with running(capsys) as (rt, url), aiohttp.ClientSession() as http:
+        host = url.removeprefix("http://")
+        for path in ("/frame/cam.jpg", "/stats.json", "/", "/stream/cam.mjpg"):
+            # DNS rebinding: the page's own name arrives in Host
+            async with http.get(url + path, headers={"Host": "evil.example"}) as r:
+                assert r.status == 421, path
+                assert "not this view's address" in await r.text()
+        # cross-site WebSocket hijacking: another page opens /ws with its own Origin
+        with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+            await http.ws_connect(url + "/ws", origin="http://evil.example")
+        assert refused.value.status == 403
+        async with http.get(url + "/stats.json", headers={"Origin": "http://evil.example"}) as r:
+            assert r.status == 403
+        # the view's own page (same origin) and tools without an Origin are served
+        async with http.ws_connect(url + "/ws", origin=f"http://{host}") as ws:
+            msg = await asyncio.wait_for(ws.receive(), 5)
+            assert msg.type is aiohttp.WSMsgType.BINARY
+        async with http.get(
+            url + "/stats.json", headers={"Host": f"localhost:{host.split(':')[1]}"}
+        ) as r:
+            assert r.status == 200
+        assert rt.stats().node("view").errors == 0
+
+
+async def test_a_token_serves_the_view_beyond_loopback_on_purpose(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(display_module, "HEADER_TIMEOUT", 0.5)
+    with pytest.raises(flowrt.GraphError, match="needs a token"):
+        demo_graph(host="0.0.0.0")
+    token = "view-token-123"
+    async with (
+        running(capsys, token=token, max_clients=2) as (_, url),
+        aiohttp.ClientSession(cookie_jar=aiohttp.CookieJar(unsafe=True)) as http,  # an IP host
+    ):
+        async with http.get(url + "/stats.json") as r:
+            assert r.status == 401
+        async with http.get(url + "/stats.json", headers={"Authorization": f"Bearer {token}"}) as r:
+            assert r.status == 200
+        # a browser opens /?token=...: the page's own requests then carry the cookie
+        async with http.get(url + f"/?token={token}") as r:
+            assert r.status == 200
+        async with http.get(url + "/stats.json", headers={"Host": "robot.lan:8750"}) as r:
+            assert r.status == 200  # with the token, any name of the machine will do
+        # over max_clients, a connection is closed at once
+        port = int(url.rsplit(":", 1)[1])
+        held = [await asyncio.open_connection("127.0.0.1", port) for _ in range(2)]
+        await asyncio.sleep(0.1)
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        assert await asyncio.wait_for(reader.read(), 0.4) == b""  # before any timeout
+        writer.close()
+        # a client that sends its request a byte at a time is closed when its time is up
+        slow_r, slow_w = held[0]
+        slow_w.write(b"GET /stats.json HTTP/1.1\r\nHo")
+        assert await asyncio.wait_for(slow_r.read(), 5) == b""
+        for _, w in held:
+            w.close()
+
+
+async def test_a_taken_port_is_an_error_state_not_a_restart_loop(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        async with flowrt.Runtime(demo_graph(port=port)) as rt:
+            await asyncio.sleep(0.5)
+            view = rt.stats().node("view")
+            assert view.state == "error"
+            assert f"cannot listen on 127.0.0.1:{port}" in (view.reason or "")
+            assert (view.errors, view.restarts) == (0, 0)
+            assert rt.stats().node("cam").activations >= 5  # the graph runs on without it
+    assert "display:" not in capsys.readouterr().out
+
+
+async def test_a_dead_view_server_is_an_error_state(capsys: pytest.CaptureFixture[str]) -> None:
+    async with running(capsys) as (rt, _):
+        view = rt.scheduler.runners["view"].executor.node  # type: ignore[attr-defined]
+        view._proc.kill()
+        for _ in range(50):
+            await asyncio.sleep(0.1)
+            if rt.stats().node("view").state == "error":
+                break
+        st = rt.stats().node("view")
+        assert st.state == "error"
+        assert "server process ended" in st.reason
+        assert rt.stats().node("cam").errors == 0

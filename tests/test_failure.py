@@ -8,6 +8,7 @@ depends on the machine's speed.
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
 import logging
 import os
@@ -502,3 +503,56 @@ async def test_a_source_swapped_for_a_working_one_leaves_the_error_state(tmp_pat
         assert rt.failures() == []
         assert rt.stats().node("cam").completions > 0
     assert rt.failures() == []
+
+
+class _OutOfDescriptors(flowrt.Node):
+    """set-up fails with EMFILE for the first ``failures`` instances (a descriptor flood)."""
+
+    tick = flowrt.Output(int)
+    starts = 0
+
+    def setup(self) -> None:
+        type(self).starts += 1
+        if type(self).starts <= 6:
+            raise OSError(errno.EMFILE, "Too many open files")
+
+    def process(self) -> int:
+        return 1
+
+
+@pytest.mark.parametrize(
+    ("exc", "expected"),
+    [
+        (OSError(errno.EMFILE, "Too many open files"), True),
+        (OSError(errno.ENOMEM, "Cannot allocate memory"), True),
+        (OSError(errno.ENOENT, "No such file"), False),
+        (ValueError("boom"), False),
+    ],
+)
+def test_out_of_resources(exc: BaseException, expected: bool) -> None:
+    from flowrt.supervision import out_of_resources
+
+    assert out_of_resources(exc) is expected
+    wrapped = RuntimeError("worker start failed")  # found through the cause too
+    wrapped.__cause__ = exc
+    assert out_of_resources(wrapped) is expected
+
+
+async def test_out_of_descriptors_is_retried_until_it_recovers() -> None:
+    """Six EMFILE failures in a row with max_failures 3: never given up, back once the
+    descriptors are (the issue: worker restarts must recover once descriptors return)."""
+    _OutOfDescriptors.starts = 0
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add(
+        "dev",
+        _OutOfDescriptors,
+        trigger={"timer": "10ms"},
+        restart={"max_failures": 3, "backoff": "10ms", "max_backoff": "50ms"},
+    )
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(3.0)
+        dev = rt.stats().node("dev")
+    assert dev.errors == 6
+    assert dev.state != "failed"
+    assert dev.completions > 100

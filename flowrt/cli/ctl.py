@@ -55,6 +55,17 @@ def add_parsers(sub: Any) -> None:
     db = what.add_parser("rtdb", help="RTDB records (all, or the history of one)")
     db.add_argument("name", nargs="?")
     db.add_argument("-n", type=int, default=8, help="history length for one record")
+    rc = what.add_parser("record", help="start or stop the graph's recorder node(s)")
+    rc.add_argument("action", choices=("start", "stop"))
+    rc.add_argument("--node", help="one recorder (default: every recorder of the graph)")
+    sw = what.add_parser(
+        "swap", help="replace a node's algorithm while running (set up beside, then take over)"
+    )
+    sw.add_argument("node")
+    sw.add_argument("kind", help="a node kind: an entry-point name or package.module:Class")
+    sw.add_argument("--params", metavar="JSON", help="the new instance's params (a JSON object)")
+    rl = what.add_parser("reload", help="re-import a node's module from disk and swap to it")
+    rl.add_argument("node")
     ctl.set_defaults(func=ctl_main)
 
 
@@ -117,4 +128,55 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
             print(f"{r['name']} #{r['seq']} {when}: {json.dumps(r['value'])}")
         if not records:
             print("none (no RTDB record yet)")  # an unknown NAME is an error (404)
+    elif cmd == "record":
+        return _record(client, args)
+    elif cmd in ("swap", "reload"):
+        return _swap(args)
+    return 0
+
+
+def _swap(args: argparse.Namespace) -> int:
+    """Swap or reload: setting up the new instance (a worker process) may take seconds."""
+    client = ControlClient(args.url, args.token, timeout=60.0)
+    body: dict[str, Any] = {"node": args.node}
+    if args.ctl_command == "swap":
+        body["kind"] = args.kind
+        if args.params is not None:
+            try:
+                params = json.loads(args.params)
+            except ValueError as e:
+                print(f"flowrt ctl swap: --params is not JSON: {e}", file=sys.stderr)
+                return 2
+            if not isinstance(params, dict):
+                print("flowrt ctl swap: --params must be a JSON object", file=sys.stderr)
+                return 2
+            body["params"] = params
+    reply = client.post(f"/{args.ctl_command}", body)
+    print(f"{reply['node']}: now {reply['kind']} ({reply['op']})")
+    return 0
+
+
+def _record(client: ControlClient, args: argparse.Namespace) -> int:
+    """Ask, then wait (up to 5 s) for each recorder to say where it records, or that it stopped."""
+    import time
+
+    body: dict[str, Any] = {"action": args.action}
+    if args.node:
+        body["node"] = args.node
+    nodes = client.post("/record", body)["nodes"]
+    for node in nodes:
+        end = time.monotonic() + 5.0
+        session: Any = None
+        while time.monotonic() < end:
+            try:
+                session = client.get(f"/rtdb/flowrt.recording.{node}?n=1")[-1]["value"]
+            except ControlError:
+                session = None
+            if session is not None and bool(session) == (args.action == "start"):
+                break
+            time.sleep(0.1)
+        else:
+            print(f"flowrt ctl: {node} did not {args.action} within 5 s", file=sys.stderr)
+            return 1
+        print(f"{node}: recording into {session}" if session else f"{node}: stopped")
     return 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import dataclasses
 import logging
 import os
 import signal
@@ -15,6 +16,7 @@ from typing import Any
 from rich.console import Console
 
 from ..eventloop import new_event_loop
+from ..graph import Graph
 from ..remote import RemoteError
 from .common import (
     EXIT_BAD_GRAPH,
@@ -69,6 +71,38 @@ def cmd_run(args: argparse.Namespace) -> int:
             err.print(f"  {line}", markup=False)
         if args.check:
             return EXIT_FAILED
+    problem = _display_options(graph, args)
+    if problem:
+        err.print(f"flowrt run: {problem}", markup=False, soft_wrap=True)
+        return EXIT_BAD_GRAPH
+    control = _control_config(args, err)
+    # Every address is checked before anything starts: a taken port is one line and exit 1.
+    problem = _check_addresses(graph)
+    if problem:
+        err.print(f"flowrt run: {problem}", markup=False, soft_wrap=True)
+        return EXIT_FAILED
+    rt = Runtime(
+        graph,
+        realtime=args.realtime,
+        spin=args.spin / 1000,
+        drain_timeout=args.drain_timeout,
+        stop_on_failure=not args.keep_going,
+    )
+    server = None
+    if control is not None:
+        from ..control import ControlServer
+
+        server = ControlServer(rt, control)
+        try:
+            server.bind()  # held from now on: nothing can take it before the runtime starts
+        except OSError as e:
+            err.print(
+                f"flowrt run: control endpoint: {e.strerror or e} "
+                "(choose another with --control PORT)",
+                markup=False,
+                soft_wrap=True,
+            )
+            return EXIT_FAILED
     monitor: LogLines | LiveTable
     if args.no_ui:
         monitor = LogLines(args.log_every)
@@ -76,17 +110,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     else:
         monitor = LiveTable(console, hz=args.refresh)
         setup_logging(monitor.log_handler())
-    monitors: list[Any] = [monitor]
-    control = _control_config(args, err)
-    rt = Runtime(
-        graph,
-        monitors=monitors,
-        realtime=args.realtime,
-        control=control,
-        spin=args.spin / 1000,
-        drain_timeout=args.drain_timeout,
-        stop_on_failure=not args.keep_going,
-    )
+    rt.monitors.append(monitor)
+    if args.foxglove is not None:  # the live Foxglove server: started now, so a taken port
+        from ..recording.live import FoxgloveLive  # is one line before anything runs
+
+        live = FoxgloveLive(port=args.foxglove)
+        try:
+            live.open()
+        except OSError as e:
+            err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
+            return EXIT_FAILED
+        logging.getLogger("flowrt").info("foxglove: open %s in the Foxglove app", live.url)
+        rt.monitors.append(live)
 
     stop_signals = StopSignals(rt.request_stop)
     stop_signals.install()
@@ -94,9 +129,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     async def main() -> None:
         stop_signals.loop = asyncio.get_running_loop()
         try:
-            async with rt:
-                if rt.control is not None:
-                    logging.getLogger("flowrt").info("control endpoint %s", rt.control.url)
+            async with rt, server or contextlib.nullcontext():
+                if server is not None:
+                    logging.getLogger("flowrt").info("control endpoint %s", server.url)
                 await rt.run(args.duration)
         finally:
             stop_signals.loop = None
@@ -106,11 +141,6 @@ def cmd_run(args: argparse.Namespace) -> int:
             runner.run(main())
         except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
             err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
-            return 1
-        except OSError as e:
-            if rt.control_config is None or rt.control is not None:
-                raise
-            err.print(f"flowrt run: control endpoint: {e}", markup=False)  # e.g. port taken
             return 1
     stats = rt.stats()
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
@@ -186,22 +216,113 @@ def _say(text: str) -> None:
         os.write(2, (text + "\n").encode())
 
 
-def _control_config(args: argparse.Namespace, err: Console) -> Any:
-    """``--control [HOST:]PORT``: a token is generated (and printed) off loopback if none given."""
-    if args.control is None:
+def _display_nodes(graph: Graph) -> list[str]:
+    """The nodes that serve a web view (their class says ``listens``: params host and port)."""
+    return [name for name, n in graph.nodes.items() if getattr(n.cls, "listens", False)]
+
+
+def _display_options(graph: Graph, args: argparse.Namespace) -> str | None:
+    """Apply ``--no-display`` and ``--display-host/-port/-token`` to the graph's views."""
+    names = _display_nodes(graph)
+    if args.no_display:
+        _remove_nodes(graph, set(names))
         return None
-    import os
+    token = args.display_token or os.environ.get("FLOWRT_DISPLAY_TOKEN")
+    options = (("host", args.display_host), ("port", args.display_port), ("token", token))
+    update = {k: v for k, v in options if v is not None}
+    if not update:
+        return None
+    if not names:
+        return "--display-host/--display-port/--display-token: the graph has no display node"
+    if "port" in update and len(names) > 1 and update["port"] != 0:
+        return f"--display-port: the graph has {len(names)} display nodes ({', '.join(names)})"
+    if args.display_host and not token and not _loopback(args.display_host):
+        import secrets
+
+        update["token"] = secrets.token_urlsafe(18)
+        print(f"live view token (open the view as /?token=...): {update['token']}", flush=True)
+    for name in names:
+        n = graph.nodes[name]
+        try:
+            n.params = n.params.model_validate({**n.params.model_dump(), **update})
+        except ValueError as e:
+            return f"--display-host/--display-port/--display-token: {_one_line(e)}"
+    return None
+
+
+def _loopback(host: str) -> bool:
+    from ..control import is_loopback
+
+    return is_loopback(host)
+
+
+def _one_line(e: Exception) -> str:
+    errors = getattr(e, "errors", None)
+    if callable(errors):
+        return "; ".join(
+            f"{'.'.join(str(x) for x in err.get('loc', ())) or 'params'}: {err.get('msg')}"
+            for err in errors()
+        )
+    return str(e).splitlines()[0]
+
+
+def _remove_nodes(graph: Graph, names: set[str]) -> None:
+    """Take nodes that nothing reads from out of the graph (and out of its modes)."""
+    if not names:
+        return
+    for name in names:
+        graph.nodes.pop(name)
+    graph.edges = [e for e in graph.edges if e.src not in names and e.dst not in names]
+    modes = {
+        mode: spec.model_copy(
+            update={"nodes": {k: v for k, v in spec.nodes.items() if k not in names}}
+        )
+        for mode, spec in graph.spec.modes.items()
+    }
+    nodes = {k: v for k, v in graph.spec.nodes.items() if k not in names}
+    graph.spec = graph.spec.model_copy(update={"nodes": nodes, "modes": modes})
+
+
+def _check_addresses(graph: Graph) -> str | None:
+    """Try to bind every display node's address; the first that fails, in one line."""
+    from ..control import listen
+
+    for name in _display_nodes(graph):
+        params = graph.nodes[name].params
+        host, port = getattr(params, "host", "127.0.0.1"), getattr(params, "port", 0)
+        try:  # port 0 too: the host must resolve to an address of this machine
+            listen(host, port).close()
+        except OSError as e:
+            return (
+                f"display {name!r}: {e.strerror or e} "
+                "(choose another with --display-port PORT or --display-host HOST, "
+                "or run with --no-display)"
+            )
+    return None
+
+
+def _control_config(args: argparse.Namespace, err: Console) -> Any:
+    """``--control [HOST:]PORT``: a token is generated (and printed) if one is needed."""
+    if args.control is None:
+        if args.control_token_required:
+            err.print("flowrt run: --control-token-required needs --control", markup=False)
+            raise SystemExit(EXIT_BAD_GRAPH)
+        return None
     import secrets
 
     from ..control import ControlConfig
 
     try:
-        config = ControlConfig.parse(args.control, args.token or os.environ.get("FLOWRT_TOKEN"))
+        config = ControlConfig.parse(
+            args.control,
+            args.token or os.environ.get("FLOWRT_TOKEN"),
+            token_required=args.control_token_required,
+        )
     except ValueError as e:
         err.print(f"flowrt run: {e}", markup=False)
-        raise SystemExit(2) from None
+        raise SystemExit(EXIT_BAD_GRAPH) from None
     if config.needs_token and not config.token:
-        config = ControlConfig(config.host, config.port, secrets.token_urlsafe(24))
+        config = dataclasses.replace(config, token=secrets.token_urlsafe(24))
         err.print(f"control token (give it to flowrt ctl --token): {config.token}", markup=False)
     return config
 
@@ -275,6 +396,39 @@ def add_parsers(sub: Any) -> None:
         help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.add_argument(
+        "--foxglove",
+        nargs="?",
+        type=int,
+        const=8765,
+        metavar="PORT",
+        help="serve the graph live to Foxglove on ws://127.0.0.1:PORT (default 8765)",
+    )
+    run.add_argument(
+        "--control-token-required",
+        action="store_true",
+        help="require the token on loopback too (one is generated and printed if none is given)",
+    )
+    run.add_argument(
+        "--display-host",
+        metavar="HOST",
+        help="address of the graph's live view (overrides its display nodes' host)",
+    )
+    run.add_argument(
+        "--display-port",
+        type=int,
+        metavar="PORT",
+        help="port of the graph's live view (overrides its display node's port; 0: any free)",
+    )
+    run.add_argument(
+        "--display-token",
+        metavar="TOKEN",
+        help="token the live view requires (default $FLOWRT_DISPLAY_TOKEN; generated and "
+        "printed when --display-host is not loopback)",
+    )
+    run.add_argument(
+        "--no-display", action="store_true", help="run without the graph's display nodes"
+    )
     run.add_argument(
         "--check",
         action="store_true",

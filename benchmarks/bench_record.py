@@ -1,0 +1,347 @@
+"""Recording: throughput at the acquisition paper's resolution, timing disturbance, rate fidelity.
+
+    python benchmarks/bench_record.py throughput --seconds 15   # 2 (and 3) x 1936x1216 @ 20 fps
+    python benchmarks/bench_record.py cambada --seconds 15      # critical-task std with/without
+    python benchmarks/bench_record.py fidelity --seconds 5      # reduced Table 5 + PNG plot
+    python benchmarks/bench_record.py all                       # the three, as in RESULTS.md
+
+What runs:
+
+1. throughput: N synthetic BGR streams of 1936x1216 at 20 fps (a source node copying one of
+   eight pre-rendered scene frames into a shared-memory pool slot per tick, so the scene's
+   renderer is not what is measured), each timer-phased 50/N ms apart, recorded by a
+   ``recorder`` node over lossless edges (RawImage, no compression). Reported from the
+   session's own report: expected/received/written/lost per stream, the writer's MB/s over the
+   recording (bytes written / recording time; the file is fsync'd at close and the close is
+   timed), the process CPU (user+sys, every thread) with and without the recorder in the same
+   run, and the raw disk write speed in the same run: ``dd if=/dev/zero bs=8M oflag=direct``
+   into the same folder.
+2. cambada: ``flowrt run graphs/cambada.yaml`` and ``flowrt record graphs/cambada.yaml`` (every
+   output) for the same time, one after the other: inter-activation std of the critical tasks
+   (avoid_fr, avoid_om), skipped activations, edge drops, frame-pool drops.
+3. fidelity: 640x480, 1280x720, 1936x1216 at 5, 10, 20, 30 fps, 1 and 2 streams: recorded fps
+   (written-1 over the span of their log times, read back from the file) vs requested, lost.
+   Writes benchmarks/results/record_fidelity.png.
+
+The machine is shared (2 cores, other engineers' test runs): every comparison is made within
+one run, and RESULTS.md says when it was noisy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import platform
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+from pydantic import BaseModel, ConfigDict
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+import flowrt  # noqa: E402
+from flowrt import Frame, Node, Output  # noqa: E402
+
+
+class Frames(Node):
+    """A synthetic camera: one of eight pre-rendered scene frames per tick, into the pool."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        width: int = 1936
+        height: int = 1216
+        seed: int = 1
+
+    frame = Output(Frame)
+
+    def setup(self) -> None:
+        from flowrt.nodes.scene import SoccerScene
+
+        scene = SoccerScene(self.params.width, self.params.height, seed=self.params.seed)
+        self.images = [scene.render(i)[0] for i in range(8)]
+        self.seq = 0
+
+    def process(self) -> Frame:
+        img = self.images[self.seq % len(self.images)]
+        frame = self.ctx.new_frame(img.shape, np.uint8, "BGR")
+        np.copyto(frame.data, img)
+        frame.seq, frame.timestamp = self.seq, self.ctx.now()
+        self.seq += 1
+        return frame
+
+
+def streams_graph(
+    n: int, fps: float, size: tuple[int, int], out: Path | None, crc: bool = True
+) -> flowrt.Graph:
+    g = flowrt.GraphBuilder(f"{n}x{size[0]}x{size[1]}@{fps:g}")
+    period = 1000.0 / fps
+    for i in range(n):
+        g.add(
+            f"cam{i}",
+            Frames,
+            params={"width": size[0], "height": size[1], "seed": i + 1},
+            trigger={"timer": f"{period}ms", "phase": f"{period * i / n}ms"},
+            priority=50,
+        )
+    if out is not None:
+        g.add(
+            "rec",
+            "recorder",
+            params={"path": str(out), "name": "bench", "crc": crc},
+            inputs={
+                f"cam{i}.frame": {"from": f"cam{i}.frame", "policy": "lossless", "size": 16}
+                for i in range(n)
+            },
+        )
+    return g.build()
+
+
+def cpu_seconds() -> float:
+    t = psutil.Process().cpu_times()
+    return t.user + t.system
+
+
+async def run_streams(
+    n: int, fps: float, size: tuple[int, int], seconds: float, out: Path | None, crc: bool = True
+) -> dict[str, Any]:
+    graph = streams_graph(n, fps, size, out, crc)
+    c0 = cpu_seconds()
+    t0 = time.perf_counter()
+    async with flowrt.Runtime(graph) as rt:
+        await rt.run(seconds)
+        t_stop = time.perf_counter()
+        stats = rt.stats()
+    from flowrt.cli.record import wait_for_writers
+
+    await asyncio.to_thread(wait_for_writers)
+    t_closed = time.perf_counter()
+    cpu = cpu_seconds() - c0
+    result: dict[str, Any] = {
+        "cpu_percent": 100 * cpu / (t_closed - t0),
+        "close_s": t_closed - t_stop,
+        "pool_dropped": sum(p.dropped for p in stats.frames),
+        "skipped": sum(x.skipped for x in stats.nodes if x.name.startswith("cam")),
+    }
+    if out is not None:
+        (name,) = [n for n in os.listdir(out) if n.startswith("bench_")]
+        session = out / name
+        report = json.loads((session / "streams.json").read_text())
+        result["report"] = report
+        result["session"] = session
+    return result
+
+
+def disk_speed(folder: Path, mib: int = 512, direct: bool = True) -> float:
+    """MB/s of ``dd`` into ``folder``, direct I/O or through the page cache (file removed)."""
+    target = folder / "dd.tmp"
+    flags = ["oflag=direct", "conv=fsync"] if direct else []
+    r = subprocess.run(
+        ["dd", "if=/dev/zero", f"of={target}", "bs=8M", f"count={mib // 8}", *flags],
+        capture_output=True,
+        text=True,
+    )
+    target.unlink(missing_ok=True)
+    m = re.search(r"copied, ([0-9.]+) s", r.stderr)
+    if not m:
+        raise RuntimeError(f"dd: {r.stderr}")
+    return mib * 1024 * 1024 / float(m.group(1)) / 1e6
+
+
+def machine() -> str:
+    import uvloop  # noqa: F401  (the runtime's loop)
+
+    return (
+        f"{platform.node()} · {platform.platform()} · {os.cpu_count()} CPUs · "
+        f"Python {platform.python_version()} · load average {os.getloadavg()[0]:.2f} at start"
+    )
+
+
+def throughput(args: argparse.Namespace) -> None:
+    base = Path(args.dir)
+    base.mkdir(parents=True, exist_ok=True)
+    print(f"### Recording throughput, 1936x1216 BGR at 20 fps ({args.seconds:g} s per run)\n")
+    print(machine() + "\n")
+    dd_before = disk_speed(base)
+    rows = []
+    for n, crc in [(n, crc) for n in args.streams for crc in (True, False)]:
+        folder = Path(tempfile.mkdtemp(dir=base))
+        base_run = flowrt.run(run_streams(n, 20, (1936, 1216), args.seconds, None))
+        rec = flowrt.run(run_streams(n, 20, (1936, 1216), args.seconds, folder, crc))
+        rep = rec["report"]
+        written = sum(s["bytes"] for s in rep["streams"])
+        mbps = written / rep["duration"] / 1e6
+        for s in rep["streams"]:
+            rows.append(
+                f"| {n} | {'yes' if crc else 'no'} | {s['topic']} | {s['expected']} | "
+                f"{s['received']} | {s['written']} | "
+                f"**{s['lost']}** | {s['rate_mean']:.2f} | {s['rate_min']:.2f} | "
+                f"{s['rate_max']:.2f} | {s['bytes'] / 1e6:.0f} MB |"
+            )
+        rows.append(
+            f"| {n} | {'yes' if crc else 'no'} | *all* | | | | | | | | writer **{mbps:.0f} MB/s**; "
+            f"close {rec['close_s']:.2f} s; CPU {rec['cpu_percent']:.0f}% vs "
+            f"{base_run['cpu_percent']:.0f}% without recording; pool drops "
+            f"{rec['pool_dropped']}; source skips {rec['skipped']} |"
+        )
+        shutil.rmtree(folder)
+    dd_after = disk_speed(base)
+    cached = disk_speed(base, 2048, direct=False)
+    print(
+        "| streams | CRC | stream | expected | received | written | lost | Hz mean | Hz min | "
+        "Hz max | bytes |"
+    )
+    print("|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|")
+    print("\n".join(rows))
+    print(
+        f"\nRaw disk, same run: `dd if=/dev/zero bs=8M count=64 oflag=direct conv=fsync` "
+        f"{dd_before:.0f} MB/s before, {dd_after:.0f} MB/s after; through the page cache "
+        f"(`dd bs=8M count=256`, no sync, as the writer writes) {cached:.0f} MB/s.\n"
+    )
+
+
+def _stats_row(label: str, stats: dict[str, Any]) -> list[str]:
+    rows = []
+    edge_drops = sum(e["dropped"] for e in stats["edges"] if not e["sampled"])
+    pool = sum(p["dropped"] for p in stats.get("frames", []))
+    for n in stats["nodes"]:
+        if n["name"] in ("avoid_fr", "avoid_om"):
+            iv = n["interval"]
+            rows.append(
+                f"| {label} | {n['name']} | {iv['count']} | {iv['mean']:.3f} | {iv['std']:.3f} | "
+                f"{iv['min']:.3f} | {iv['max']:.3f} | {n['skipped']} | {n['deadline_misses']} | "
+                f"{edge_drops} | {pool} |"
+            )
+    return rows
+
+
+def cambada(args: argparse.Namespace) -> None:
+    print(f"### Timing with and without recording: cambada graph ({args.seconds:g} s each)\n")
+    print(machine() + "\n")
+    rows = []
+    with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
+        for label, cmd in (
+            ("run (no recording)", ["run", "graphs/cambada.yaml"]),
+            ("record (every output)", ["record", "graphs/cambada.yaml", "-o", tmp]),
+            ("run (no recording), again", ["run", "graphs/cambada.yaml"]),
+        ):
+            out = Path(tmp) / "stats.json"
+            subprocess.run(
+                [
+                    sys.executable,
+                    "-m",
+                    "flowrt.cli",
+                    *cmd,
+                    "--no-ui",
+                    "--duration",
+                    str(args.seconds),
+                    "--stats-json",
+                    str(out),
+                ],
+                cwd=REPO,
+                capture_output=True,
+                check=False,
+            )
+            rows += _stats_row(label, json.loads(out.read_text()))
+        sessions = sorted(Path(tmp).glob("rec_*"))
+        report = json.loads((sessions[0] / "streams.json").read_text()) if sessions else {}
+    print(
+        "| run | task | n | mean ms | std ms | min | max | skipped | misses | edge drops | "
+        "pool drops |"
+    )
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("\n".join(rows))
+    lost = sum(s["lost"] for s in report.get("streams", []))
+    n = sum(s["written"] for s in report.get("streams", []))
+    print(
+        f"\nThe recording: {len(report.get('streams', []))} streams, {n} messages written, "
+        f"{lost} lost.\n"
+    )
+
+
+def fidelity(args: argparse.Namespace) -> None:
+    from flowrt.recording.reader import scan
+
+    print(f"### Rate fidelity (reduced Table 5, {args.seconds:g} s per cell)\n")
+    print(machine() + "\n")
+    base = Path(args.dir)
+    base.mkdir(parents=True, exist_ok=True)
+    results = []
+    for size in ((640, 480), (1280, 720), (1936, 1216)):
+        for fps in (5, 10, 20, 30):
+            for n in (1, 2):
+                folder = Path(tempfile.mkdtemp(dir=base))
+                rec = flowrt.run(run_streams(n, fps, size, args.seconds, folder, crc=False))
+                mcap = rec["session"] / "bench_001.mcap"
+                info = scan(mcap)
+                lost = sum(s["lost"] for s in rec["report"]["streams"])
+                got = [s.rate_mean or 0.0 for s in info.streams]
+                results.append((size, fps, n, min(got), max(got), lost))
+                shutil.rmtree(folder)
+                print(f"<!-- {size} {fps} {n}: {got} lost {lost} -->", flush=True)
+    report_fidelity(results)
+
+
+def report_fidelity(results: list[Any]) -> None:
+    """The table and the plot of (size, fps, streams, lowest fps, highest fps, lost) rows."""
+    print(
+        "| resolution | requested fps | streams | recorded fps (min of streams) | "
+        "error fps | lost |"
+    )
+    print("|---|---:|---:|---:|---:|---:|")
+    for size, fps, n, lo, hi, lost in results:
+        err = max(abs(lo - fps), abs(hi - fps))
+        print(f"| {size[0]}x{size[1]} | {fps} | {n} | {lo:.3f} | {err:.3f} | {lost} |")
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for size in ((640, 480), (1280, 720), (1936, 1216)):
+            for n, marker in ((1, "o"), (2, "s")):
+                pts = [(r[1], r[3]) for r in results if r[0] == size and r[2] == n]
+                ax.plot(*zip(*pts, strict=True), marker=marker, label=f"{size[0]}x{size[1]} x{n}")
+        ax.plot([0, 32], [0, 32], color="grey", lw=0.5, ls="--")
+        ax.set_xlabel("requested fps")
+        ax.set_ylabel("recorded fps")
+        ax.legend(fontsize=7)
+        png = REPO / "benchmarks" / "results" / "record_fidelity.png"
+        png.parent.mkdir(exist_ok=True)
+        fig.tight_layout()
+        fig.savefig(png, dpi=100)
+        print(f"\nPlot: benchmarks/results/{png.name}\n")
+    except ImportError:
+        print("\n(matplotlib not installed: no plot)\n")
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("what", choices=("throughput", "cambada", "fidelity", "all"))
+    p.add_argument("--seconds", type=float, default=None)
+    p.add_argument("--streams", type=int, nargs="+", default=[2, 3])
+    p.add_argument("--dir", default=str(REPO / "benchmarks" / "results" / "rec_tmp"))
+    args = p.parse_args()
+    Path(args.dir).mkdir(parents=True, exist_ok=True)
+    todo = ("throughput", "cambada", "fidelity") if args.what == "all" else (args.what,)
+    default = {"throughput": 15.0, "cambada": 15.0, "fidelity": 5.0}
+    given = args.seconds
+    for what in todo:
+        args.seconds = given or default[what]
+        {"throughput": throughput, "cambada": cambada, "fidelity": fidelity}[what](args)
+    shutil.rmtree(args.dir, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

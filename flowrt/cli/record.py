@@ -1,0 +1,559 @@
+"""``flowrt record``, ``flowrt info`` and ``flowrt replay``: MCAP sessions from the CLI.
+
+- ``record GRAPH -o DIR``: the graph with a ``recorder`` node added on the chosen outputs
+  (lossless edges), into the next free session ``DIR/NAME_NNN/``; the per-stream table at
+  the end. Bad arguments (an unwritable folder, a topic pattern matching nothing) are one
+  line and exit 2 before anything runs.
+- ``info PATH``: what a session or file holds, whether it was closed cleanly, ``--repair``.
+- ``replay PATH``: the recorded streams stand in for the graph's sources of the same names.
+
+The recorder and replay node classes are found through the node registry, like any kind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import datetime as dt
+import fnmatch
+import json
+import signal
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from ..eventloop import new_event_loop
+from .common import (
+    EXIT_BAD_GRAPH,
+    EXIT_FAILED,
+    EXIT_OK,
+    load,
+    plain_handler,
+    setup_logging,
+    stdout_console,
+)
+
+RECORDER = "recorder"
+
+
+# --- record ------------------------------------------------------------------------------
+
+
+def split_patterns(text: str | None) -> list[str]:
+    return [p.strip() for p in (text or "").split(",") if p.strip()]
+
+
+def select_outputs(outputs: list[str], patterns: list[str]) -> tuple[list[str], list[str]]:
+    """(outputs matching any pattern, in graph order; the patterns that matched nothing)."""
+    if not patterns:
+        return outputs, []
+    chosen = [o for o in outputs if any(fnmatch.fnmatchcase(o, p) for p in patterns)]
+    unmatched = [p for p in patterns if not any(fnmatch.fnmatchcase(o, p) for o in outputs)]
+    return chosen, unmatched
+
+
+def graph_outputs(graph: Any) -> list[str]:
+    return [f"{name}.{port}" for name, n in graph.nodes.items() for port in n.cls.outputs]
+
+
+def with_recorder(spec: Any, topics: list[str], params: dict[str, Any], size: int = 16) -> Any:
+    """``spec`` plus a recorder node reading ``topics`` over lossless edges."""
+    from ..spec import NodeSpec
+
+    name = RECORDER
+    while name in spec.nodes:
+        name += "_"
+    node = NodeSpec.model_validate(
+        {
+            "kind": "recorder",
+            "params": params,
+            "priority": 5,
+            "inputs": {t: {"from": t, "policy": "lossless", "size": size} for t in topics},
+        }
+    )
+    return spec.model_copy(update={"nodes": {**spec.nodes, name: node}})
+
+
+def _image_formats(text: str | None, topics: list[str]) -> dict[str, str] | str:
+    """``jpeg`` (every image stream) or ``front_cam.frame=jpeg,omni_cam.frame=png``."""
+    out: dict[str, str] = {}
+    for part in split_patterns(text):
+        pattern, eq, fmt = part.rpartition("=")
+        if not eq:
+            pattern, fmt = "*", part
+        if fmt not in ("raw", "jpeg", "png"):
+            return f"--images {part!r}: the format is raw, jpeg or png"
+        matched = [t for t in topics if fnmatch.fnmatchcase(t, pattern)]
+        if not matched:
+            return f"--images {part!r}: {pattern!r} matches no recorded stream"
+        out.update(dict.fromkeys(matched, fmt))
+    return out
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from ..graph import resolve
+    from ..recording import check_writable, new_session
+    from ..recording.session import SESSION_FILE
+
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
+    problem = check_writable(args.output)
+    if problem is not None:
+        err.print(f"flowrt record: {problem}", markup=False)
+        return EXIT_BAD_GRAPH
+    graph = load(args.file, err)
+    if graph is None:
+        return EXIT_BAD_GRAPH
+    outputs = graph_outputs(graph)
+    topics, unmatched = select_outputs(outputs, split_patterns(args.topics))
+    if unmatched:
+        err.print(
+            f"flowrt record: --topics {', '.join(map(repr, unmatched))} matches no output "
+            f"of {args.file} (outputs: {', '.join(outputs)})",
+            markup=False,
+        )
+        return EXIT_BAD_GRAPH
+    images = _image_formats(args.images, topics)
+    if isinstance(images, str):
+        err.print(f"flowrt record: {images}", markup=False)
+        return EXIT_BAD_GRAPH
+    try:
+        session = new_session(args.output, args.name)
+    except (ValueError, OSError) as e:
+        err.print(f"flowrt record: {e}", markup=False)
+        return EXIT_BAD_GRAPH
+    params = {
+        "session": str(session),
+        "path": str(args.output),  # where a session started later (flowrt ctl) goes
+        "name": args.name,
+        "graph_file": str(Path(args.file).resolve()),
+        "images": images,
+        "compression": args.compression,
+        "crc": not args.no_crc,
+        "log_report": False,  # printed below, once
+    }
+    try:
+        rgraph = resolve(with_recorder(graph.spec, topics, params))
+    except Exception as e:  # a recorder the graph cannot take: say so, leave no empty session
+        session.rmdir()
+        err.print(f"flowrt record: {e}", markup=False)
+        return EXIT_BAD_GRAPH
+    rgraph.file = graph.file
+    console = stdout_console()
+    console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
+    rt = _run(rgraph, args, console)
+    wait_for_writers()
+    if args.stats_json:
+        Path(args.stats_json).write_text(rt.stats().model_dump_json(indent=2))
+    report_path = session / SESSION_FILE
+    if not report_path.exists():
+        err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
+        return EXIT_FAILED
+    from ..recording import RecordingReport, report_table
+
+    report = RecordingReport.model_validate_json(report_path.read_text())
+    console.print(report_table(report))
+    if report.error:
+        err.print(f"flowrt record: recording stopped early: {report.error}", markup=False)
+        return EXIT_FAILED
+    if report.lost:
+        err.print(f"flowrt record: {report.lost} message(s) lost", markup=False)
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+def wait_for_writers() -> None:
+    """Until every MCAP file of this process is finished (a slow disk may still be writing)."""
+    import threading
+
+    from ..recording.writer import THREAD_PREFIX
+
+    for t in threading.enumerate():
+        if t.name.startswith(THREAD_PREFIX):
+            t.join()
+
+
+def _run(
+    graph: Any,
+    args: argparse.Namespace,
+    console: Console,
+    kinds: dict[str, Any] | None = None,
+    progress: Callable[[Any], Any] | None = None,
+) -> Any:
+    """Run ``graph`` until ``--duration``, Ctrl-C/SIGTERM or a node asks to stop."""
+    from ..runtime import Runtime
+    from ..status import LiveTable, LogLines
+
+    monitors: list[Any] = []
+    if args.no_ui or progress is not None:
+        if args.no_ui:
+            monitors.append(LogLines(getattr(args, "log_every", 2.0)))
+        setup_logging(plain_handler())
+    else:
+        table = LiveTable(console, hz=4.0)
+        monitors.append(table)
+        setup_logging(table.log_handler())
+    rt = Runtime(graph, monitors=monitors, kinds=kinds)
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, rt.request_stop)
+        try:
+            async with rt:
+                if progress is not None and not args.no_ui:
+                    await progress(rt)
+                else:
+                    await rt.run(args.duration)
+        finally:
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
+
+    with asyncio.Runner(loop_factory=new_event_loop) as runner:
+        runner.run(main())
+    return rt
+
+
+# --- info --------------------------------------------------------------------------------
+
+
+def _when(t: float | None) -> str:
+    if t is None:
+        return "-"
+    return dt.datetime.fromtimestamp(t, dt.UTC).isoformat(timespec="milliseconds")
+
+
+def _hz(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
+def print_info(console: Console, info: Any) -> None:
+    from rich.table import Table
+
+    from ..recording.report import human_bytes
+
+    console.print(f"[bold]{info.path}[/bold]  {human_bytes(info.size)}", highlight=False)
+    if info.closed_cleanly:
+        console.print("closed cleanly: yes (summary and index read)", highlight=False)
+    else:
+        why = info.damage or "no summary"
+        console.print(
+            f"[bold red]NOT closed cleanly[/bold red]: {why}"
+            + (f" at byte {info.damage_offset}" if info.damage_offset is not None else "")
+            + f"; recovered {info.messages} messages in {info.chunks} chunks "
+            f"(flowrt info --repair rewrites the summary)",
+            highlight=False,
+        )
+    console.print(
+        f"start {_when(info.start)}  end {_when(info.end)}  duration {info.duration:.3f} s  "
+        f"messages {info.messages}  chunks {info.chunks}",
+        highlight=False,
+    )
+    t = Table(title_justify="left")
+    for col in ("stream", "schema", "count", "Hz mean", "Hz min", "Hz max", "gaps", "size"):
+        t.add_column(col, justify="left" if col in ("stream", "schema") else "right")
+    for s in info.streams:
+        gaps = "0"
+        if s.gaps:
+            longest = max(g.length for g in s.gaps)
+            gaps = f"[red]{len(s.gaps)}[/red] (longest {longest * 1000:.0f} ms)"
+        t.add_row(
+            s.topic,
+            s.schema_name,
+            str(s.count),
+            _hz(s.rate_mean),
+            _hz(s.rate_min),
+            _hz(s.rate_max),
+            gaps,
+            human_bytes(s.bytes),
+        )
+    console.print(t)
+    for name, meta in info.metadata.items():
+        console.print(
+            f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in meta.items()),
+            highlight=False,
+            markup=False,
+        )
+    if info.attachments:
+        console.print("attachments: " + ", ".join(info.attachments), markup=False)
+    if info.graph:
+        console.print("recorded graph:", style="bold")
+        console.print(info.graph.rstrip(), markup=False, highlight=False)
+
+
+def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
+    from ..recording.session import mcap_files
+
+    p = Path(path)
+    if not p.exists():
+        err.print(f"flowrt {cmd}: {path}: no such file or folder", markup=False)
+        return None
+    files = mcap_files(p)
+    if not files:
+        err.print(f"flowrt {cmd}: {path}: no .mcap file in this folder", markup=False)
+        return None
+    return files
+
+
+def _not_mcap(path: Path) -> bool:
+    with open(path, "rb") as f:
+        return f.read(8) != b"\x89MCAP0\r\n"
+
+
+def _print_session_report(console: Console, path: Path) -> None:
+    """A session's own post-recording table (expected / received / written / lost)."""
+    from ..recording import RecordingReport, report_table
+    from ..recording.session import SESSION_FILE
+
+    report = path / SESSION_FILE
+    if path.is_dir() and report.exists():
+        try:
+            console.print(report_table(RecordingReport.model_validate_json(report.read_text())))
+        except ValueError:
+            console.print(f"{report}: unreadable", style="red", markup=False)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from ..recording.reader import repair, scan
+
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = stdout_console()
+    files = _files(args.path, err, "info")
+    if files is None:
+        return EXIT_BAD_GRAPH
+    status = EXIT_OK
+    out = []
+    for f in files:
+        if _not_mcap(f):
+            err.print(f"flowrt info: {f}: not an MCAP file", markup=False)
+            return EXIT_BAD_GRAPH
+        info = scan(f)
+        if args.repair and not info.closed_cleanly:
+            fixed, kept = repair(f)
+            err.print(
+                f"flowrt info: {fixed}: rewritten with {kept} messages and a summary; "
+                f"the original is kept as {fixed.stem}.damaged.mcap",
+                markup=False,
+            )
+            info = scan(fixed)
+        if not info.closed_cleanly:
+            status = EXIT_FAILED
+        out.append(info)
+    if args.json:
+        print(json.dumps([i.model_dump(mode="json") for i in out], indent=1))
+    else:
+        for info in out:
+            print_info(console, info)
+        _print_session_report(console, Path(args.path))
+    if status != EXIT_OK:
+        err.print(
+            f"flowrt info: {', '.join(i.path for i in out if not i.closed_cleanly)} "
+            "not closed cleanly (damaged or the recorder was killed)",
+            markup=False,
+        )
+    return status
+
+
+# --- replay ------------------------------------------------------------------------------
+
+
+def _seconds(text: str) -> float:
+    from ..spec import parse_duration_ms
+
+    t = text.strip()
+    try:
+        # a bare number is seconds here (``--start 10``), unlike graph files' milliseconds
+        return float(t) if t.replace(".", "", 1).isdigit() else parse_duration_ms(t) / 1000
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from ..graph import Graph, resolve
+    from ..recording.reader import scan
+    from ..registry import resolve_kind
+    from ..spec import NodeSpec
+
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = stdout_console()
+    if args.rate <= 0:
+        err.print("flowrt replay: --rate must be positive", markup=False)
+        return EXIT_BAD_GRAPH
+    files = _files(args.path, err, "replay")
+    if files is None:
+        return EXIT_BAD_GRAPH
+    path = files[0]
+    if _not_mcap(path):
+        err.print(f"flowrt replay: {path}: not an MCAP file", markup=False)
+        return EXIT_BAD_GRAPH
+    info = scan(path)
+    if not info.messages:
+        why = info.damage or "no messages"
+        err.print(f"flowrt replay: {path}: nothing to replay ({why})", markup=False)
+        return EXIT_BAD_GRAPH
+    if not info.closed_cleanly:
+        err.print(
+            f"flowrt replay: {path} was not closed cleanly ({info.damage or 'no summary'}): "
+            f"replaying the {info.messages} messages before the damage",
+            markup=False,
+        )
+    if args.start >= info.duration and info.duration > 0:
+        err.print(
+            f"flowrt replay: --start {args.start:g}s is past the end ({info.duration:.1f} s)",
+            markup=False,
+        )
+        return EXIT_BAD_GRAPH
+    streams = info.streams
+    patterns = split_patterns(args.topics)
+    if patterns:
+        names = [s.topic for s in streams]
+        chosen, unmatched = select_outputs(names, patterns)
+        if unmatched:
+            err.print(
+                f"flowrt replay: --topics {', '.join(map(repr, unmatched))} matches no "
+                f"recorded stream ({', '.join(names)})",
+                markup=False,
+            )
+            return EXIT_BAD_GRAPH
+        streams = [s for s in streams if s.topic in chosen]
+    by_node: dict[str, list[str]] = {}
+    for s in streams:
+        by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
+
+    replay_cls: Any = resolve_kind("replay")
+    common = {"path": str(path), "rate": args.rate, "start": args.start, "loop": args.loop}
+    kinds: dict[str, Any] = {}
+    if args.graph or info.graph:
+        if args.graph:
+            graph = load(args.graph, err)
+            if graph is None:
+                return EXIT_BAD_GRAPH
+            graph_name = args.graph
+        else:
+            graph = Graph.from_text(info.graph or "", f"{path} (recorded graph)")
+            graph_name = "the recorded graph"
+        nodes = dict(graph.spec.nodes)
+        for name, nspec in graph.spec.nodes.items():
+            if nspec.kind == RECORDER or nspec.inputs or name not in by_node:
+                continue
+            kind = f"replay-as-{name}"
+            kinds[kind] = replay_cls.standing_in_for(graph.nodes[name].cls, name)
+            nodes[name] = NodeSpec(
+                kind=kind,
+                params={**common, "node": name, "topics": by_node[name]},
+                priority=nspec.priority,
+            )
+        if not kinds:
+            err.print(
+                f"flowrt replay: no source node of {graph_name} has recorded streams "
+                f"(recorded from: {', '.join(by_node)})",
+                markup=False,
+            )
+            return EXIT_BAD_GRAPH
+        spec: Any = graph.spec.model_copy(update={"nodes": nodes})
+    else:
+        from ..spec import GraphSpec
+
+        spec = GraphSpec(
+            name="replay",
+            nodes={
+                name: NodeSpec(kind="replay", params={**common, "topics": topics})
+                for name, topics in by_node.items()
+            },
+        )
+    try:
+        rgraph = resolve(spec, kinds=kinds)
+    except Exception as e:
+        err.print(f"flowrt replay: {e}", markup=False)
+        return EXIT_BAD_GRAPH
+    total = max(0.0, info.duration - args.start) / args.rate
+    console.print(
+        f"replaying {path} ({len(streams)} stream(s), {info.duration:.1f} s) "
+        f"at x{args.rate:g} into {', '.join(sorted(by_node))}",
+        highlight=False,
+    )
+
+    async def progress(rt: Any) -> None:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+
+        with Progress(
+            TextColumn("replay"),
+            BarColumn(),
+            TextColumn("{task.fields[pos]}"),
+            TimeRemainingColumn(),
+            console=console,
+            transient=False,
+        ) as bar:
+            task = bar.add_task("replay", total=max(total, 1e-6), pos="")
+            run = asyncio.ensure_future(rt.run(args.duration))
+            while not run.done():
+                t = rt.now()
+                pos = args.start + (
+                    t * args.rate
+                    if not args.loop
+                    else (t * args.rate) % max(info.duration - args.start, 1e-6)
+                )
+                bar.update(
+                    task,
+                    completed=min(t, total) if not args.loop else (pos - args.start) / args.rate,
+                    pos=f"{min(pos, info.duration):.1f}/{info.duration:.1f} s",
+                )
+                await asyncio.wait([run], timeout=0.25)
+            await run
+
+    rt = _run(rgraph, args, console, kinds=kinds, progress=progress)
+    failed = [n.name for n in rt.stats().nodes if n.state in ("failed", "error")]
+    if failed:
+        for n in rt.stats().nodes:
+            if n.name in failed:
+                err.print(f"flowrt replay: {n.name}: {n.state} {n.reason}", markup=False)
+    if not info.closed_cleanly:
+        return EXIT_FAILED
+    return EXIT_FAILED if failed else EXIT_OK
+
+
+def add_parsers(sub: Any) -> None:
+    rec = sub.add_parser("record", help="run a graph and record its outputs into an MCAP session")
+    rec.add_argument("file", help="graph file")
+    rec.add_argument("-o", "--output", default="recordings", help="sessions folder")
+    rec.add_argument("--name", default="rec", help="session prefix: NAME_001, NAME_002 ...")
+    rec.add_argument(
+        "--topics",
+        metavar="PATTERNS",
+        help="outputs to record, comma-separated node.port patterns (default: every output)",
+    )
+    rec.add_argument("--duration", type=_seconds, default=None, metavar="S", help="stop after")
+    rec.add_argument(
+        "--images",
+        metavar="FORMATS",
+        help="jpeg|png|raw for every image stream, or TOPIC=jpeg,... (default raw RawImage)",
+    )
+    rec.add_argument("--compression", choices=("none", "lz4", "zstd"), default="none")
+    rec.add_argument(
+        "--no-crc",
+        action="store_true",
+        help="no chunk CRCs: half the writer's CPU, but damage inside a chunk goes unseen",
+    )
+    rec.add_argument("--no-ui", action="store_true", help="log lines instead of the live table")
+    rec.add_argument("--stats-json", metavar="PATH", help="write the run's final statistics")
+    rec.set_defaults(func=cmd_record)
+
+    info = sub.add_parser("info", help="what a recording holds (session folder or .mcap)")
+    info.add_argument("path")
+    info.add_argument("--json", action="store_true", help="machine-readable")
+    info.add_argument(
+        "--repair", action="store_true", help="rewrite a file that was not closed cleanly"
+    )
+    info.set_defaults(func=cmd_info)
+
+    rep = sub.add_parser("replay", help="replay a recording into a graph")
+    rep.add_argument("path", help="session folder or .mcap file")
+    rep.add_argument("--graph", help="run this graph, recorded streams replacing its sources")
+    rep.add_argument("--rate", type=float, default=1.0, help="playback speed (default 1.0)")
+    rep.add_argument("--loop", action="store_true", help="start over at the end")
+    rep.add_argument("--start", type=_seconds, default=0.0, metavar="T", help="e.g. 10s")
+    rep.add_argument("--topics", metavar="PATTERNS", help="streams to replay (default all)")
+    rep.add_argument("--duration", type=_seconds, default=None, metavar="S", help="stop after")
+    rep.add_argument("--no-ui", action="store_true", help="no progress bar")
+    rep.set_defaults(func=cmd_replay)

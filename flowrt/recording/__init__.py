@@ -1,0 +1,34 @@
+"""Recording and replay: MCAP sessions that Foxglove and the ``mcap`` tools open.
+
+- :mod:`.encoding`: values to messages and back (foxglove RawImage/CompressedImage, JSON)
+- :mod:`.writer`: the writer thread and its per-stream counters
+- :mod:`.session`: session folders and the metadata a recording carries
+- :mod:`.report`: the per-stream table after a recording
+- :mod:`.reader`: ``info``, damage-tolerant reading, repair, and the replay message stream
+
+The runtime never imports this package; the ``recorder`` and ``replay`` nodes and the CLI do.
+"""
+
+from .encoding import Decoder as Decoder
+from .report import RecordingReport as RecordingReport
+from .report import StreamReport as StreamReport
+from .report import build_report as build_report
+from .report import nominal_rates as nominal_rates
+from .report import report_table as report_table
+from .session import check_writable as check_writable
+from .session import new_session as new_session
+from .writer import RecordingWriter as RecordingWriter
+from .writer import StreamCounters as StreamCounters
+
+__all__ = [
+    "Decoder",
+    "RecordingReport",
+    "RecordingWriter",
+    "StreamCounters",
+    "StreamReport",
+    "build_report",
+    "check_writable",
+    "new_session",
+    "nominal_rates",
+    "report_table",
+]

@@ -1,0 +1,248 @@
+"""The live Foxglove connection: a running graph's outputs served as Foxglove channels.
+
+``flowrt run g.yaml --foxglove [PORT]`` starts foxglove-sdk's WebSocket server (loopback by
+default) and serves every output with the schemas a recording uses: frames as
+``foxglove.CompressedImage`` (JPEG: a live view over a socket, not an archive), every other
+output as JSON, the statistics table once a second on ``/flowrt/stats`` and events on
+``/flowrt/events``. The Foxglove app shows a running graph as it shows a recording.
+
+A viewer never slows the graph: the monitor reads each output through its own ``latest``
+buffer (the graph never waits on it), takes values off the loop only when some client is
+subscribed to that channel, encodes and sends on its own thread with at most one value per
+channel in flight (a newer one replaces it, counted), and foxglove-sdk's server keeps a bounded
+queue per client (``BACKLOG`` messages) that drops the oldest when a client does not read.
+At stop, a client that does not read cannot hold the runtime: the server is given
+``STOP_WAIT`` to close.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import threading
+import time
+from collections import deque
+from typing import TYPE_CHECKING, Any
+
+from ..frames import Frame
+from .encoding import (
+    StreamSchema,
+    encode_frame,
+    encode_json,
+    image_schema,
+    schema_for,
+    to_jsonable,
+)
+
+if TYPE_CHECKING:
+    from ..events import Event
+    from ..runtime import Runtime, Subscription
+
+__all__ = ["FoxgloveLive"]
+
+PUMP_INTERVAL = 0.01  # s: how often the loop looks for new values (a few microseconds each)
+BACKLOG = 32  # messages queued per client before the oldest is dropped (foxglove-sdk's queue)
+STOP_WAIT = 1.0  # s: at stop, how long to wait for the server to say goodbye to its clients
+
+
+class FoxgloveLive:
+    """A runtime monitor serving the graph live to Foxglove. Call :meth:`open` first.
+
+    Args:
+        port: TCP port (0: any free one; see :attr:`port` after :meth:`open`).
+        host: loopback by default; the server has no authentication.
+        image_format: ``jpeg`` (default), ``png`` or ``raw`` for frame outputs.
+    """
+
+    def __init__(self, port: int = 8765, host: str = "127.0.0.1", image_format: str = "jpeg"):
+        self.host = host
+        self.port = port
+        self.image_format = image_format
+        self.sent = 0
+        self.replaced = 0  # values superseded before the sender thread took them (by design)
+        self.failed = 0  # values that could not be encoded
+        self._server: Any = None
+        self._ctx: Any = None
+        self._subs: dict[str, Subscription] = {}
+        self._channels: dict[str, Any] = {}
+        self._schemas: dict[str, StreamSchema] = {}
+        self._frame_topics: set[str] = set()
+        self._pending: dict[str, tuple[Any, float]] = {}
+        self._cond = threading.Condition()
+        self._done: deque[Frame] = deque()
+        self._thread: threading.Thread | None = None
+        self._stopping = False
+        self._handle: asyncio.TimerHandle | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._rt: Runtime | None = None
+        self._next_stats = 0.0
+        self._epoch = 0.0
+
+    @property
+    def url(self) -> str:
+        return f"ws://{self.host}:{self.port}"
+
+    def open(self) -> None:
+        """Start the server; raises OSError with the reason (e.g. the port is taken)."""
+        import foxglove
+
+        self._ctx = foxglove.Context()
+        try:
+            self._server = foxglove.start_server(
+                name="flowrt",
+                host=self.host,
+                port=self.port,
+                context=self._ctx,
+                message_backlog_size=BACKLOG,
+            )
+        except RuntimeError as e:
+            raise OSError(f"foxglove server on {self.host}:{self.port}: {e}") from None
+        self.port = int(self._server.port)
+
+    # --- Monitor -------------------------------------------------------------------------
+
+    def started(self, rt: Runtime) -> None:
+        if self._server is None:
+            self.open()
+        self._rt = rt
+        self._loop = asyncio.get_running_loop()
+        self._epoch = time.time() - rt.clock.now()
+        for name, node in rt.graph.nodes.items():
+            frames = set(node.cls.frame_ports())
+            for port in node.cls.outputs:
+                topic = f"{name}.{port}"
+                self._subs[topic] = rt.subscribe(topic, policy="latest", size=1)
+                if port in frames:
+                    self._frame_topics.add(topic)
+                    schema = image_schema(self.image_format != "raw")
+                    self._channels[topic] = self._channel(topic, schema)
+        self._stats_channel = self._channel("/flowrt/stats", _json_schema("flowrt.RuntimeStats"))
+        self._events_channel = self._channel("/flowrt/events", _json_schema("flowrt.Event"))
+        self._thread = threading.Thread(target=self._send_loop, name="foxglove", daemon=True)
+        self._thread.start()
+        self._handle = self._loop.call_later(PUMP_INTERVAL, self._pump)
+
+    def event(self, event: Event) -> None:
+        ch = getattr(self, "_events_channel", None)
+        if ch is not None and ch.has_sinks():
+            self._offer("/flowrt/events", event, time.time())
+
+    def stopped(self, rt: Runtime) -> None:
+        if self._handle is not None:
+            self._handle.cancel()
+        with self._cond:
+            self._stopping = True
+            self._cond.notify()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        for value, _ in self._pending.values():
+            _release(value)
+        self._pending.clear()
+        self._release_done()
+        if self._server is not None:
+            # The server's stop waits for its clients to go; a viewer that never reads would
+            # hold the runtime's stop forever. Stop on a thread, wait a bounded time.
+            server, self._server = self._server, None
+            stopper = threading.Thread(target=_stop_server, args=(server,), daemon=True)
+            stopper.start()
+            stopper.join(timeout=STOP_WAIT)
+
+    # --- on the loop ---------------------------------------------------------------------
+
+    def _pump(self) -> None:
+        """Take the newest value of each output that some client wants; never waits."""
+        from ..edges import EMPTY
+
+        self._release_done()
+        for topic, sub in self._subs.items():
+            ch = self._channels.get(topic)
+            if ch is not None and not ch.has_sinks():
+                continue  # nobody watches: the latest buffer just keeps the newest value
+            value = sub.take_held()
+            if value is EMPTY:
+                continue
+            t = value.timestamp if isinstance(value, Frame) else time.monotonic()
+            self._offer(topic, value, t + self._epoch if isinstance(value, Frame) else time.time())
+        rt = self._rt
+        now = time.monotonic()
+        if rt is not None and now >= self._next_stats:
+            self._next_stats = now + 1.0
+            if self._stats_channel.has_sinks():
+                self._offer("/flowrt/stats", rt.stats(), time.time())
+        if self._loop is not None and not self._stopping:
+            self._handle = self._loop.call_later(PUMP_INTERVAL, self._pump)
+
+    def _offer(self, topic: str, value: Any, epoch_time: float) -> None:
+        with self._cond:
+            old = self._pending.pop(topic, None)
+            self._pending[topic] = (value, epoch_time)
+            self._cond.notify()
+        if old is not None:
+            self.replaced += 1
+            _release(old[0])
+
+    def _release_done(self) -> None:
+        while self._done:
+            self._done.popleft().release()
+
+    # --- on the sender thread --------------------------------------------------------------
+
+    def _send_loop(self) -> None:
+        while True:
+            with self._cond:
+                while not self._pending and not self._stopping:
+                    self._cond.wait()
+                if self._stopping:
+                    return
+                topic = next(iter(self._pending))
+                value, epoch_time = self._pending.pop(topic)
+            try:
+                self._send(topic, value, epoch_time)
+            except Exception:  # a value that cannot be shown must not stop the others
+                self.failed += 1
+            finally:
+                if isinstance(value, Frame):
+                    self._done.append(value)
+
+    def _send(self, topic: str, value: Any, epoch_time: float) -> None:
+        ns = round(epoch_time * 1e9)
+        if topic == "/flowrt/stats":
+            self._stats_channel.log(value.model_dump_json().encode(), log_time=ns)
+        elif topic == "/flowrt/events":
+            body = {"kind": getattr(value, "kind", type(value).__name__), **to_jsonable(value)}
+            self._events_channel.log(json.dumps(body).encode(), log_time=ns)
+        elif isinstance(value, Frame):
+            enc = encode_frame(value, epoch_time, self.image_format)
+            self._channels[topic].log(enc.data, log_time=ns)
+        else:
+            ch = self._channels.get(topic)
+            if ch is None:  # a message channel is advertised with its first value's schema
+                self._schemas[topic] = schema_for(value)
+                ch = self._channels[topic] = self._channel(topic, self._schemas[topic])
+            ch.log(encode_json(value, self._schemas[topic]).data, log_time=ns)
+        self.sent += 1
+
+    def _channel(self, topic: str, schema: StreamSchema) -> Any:
+        import foxglove
+
+        return foxglove.Channel(
+            topic,
+            schema=foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data),
+            message_encoding=schema.message_encoding,
+            context=self._ctx,
+        )
+
+
+def _stop_server(server: Any) -> None:
+    with contextlib.suppress(Exception):
+        server.stop()
+
+
+def _json_schema(name: str) -> StreamSchema:
+    return StreamSchema(name, "jsonschema", b'{"type": "object"}', "json")
+
+
+def _release(value: Any) -> None:
+    if isinstance(value, Frame):
+        value.release()

@@ -1,0 +1,189 @@
+"""The post-recording check (the acquisition paper's per-stream table): expected vs received
+vs written, lost, rate mean/min/max and bytes per stream, lost in red.
+
+``expected`` is the source's nominal rate times the recording's active window (from the
+first to the last message the recorder received, any stream, plus one): a source that
+delivered less than it should shows up as ``missing`` even when the recorder lost nothing.
+The nominal rate comes from the running graph's timing (a timer trigger's period; a frame
+trigger's source rate divided by its period), as the runtime's statistics report it.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from .writer import RecordingWriter, StreamCounters
+
+__all__ = ["RecordingReport", "StreamReport", "build_report", "nominal_rates", "report_table"]
+
+
+class StreamReport(BaseModel):
+    """One stream of a recording."""
+
+    topic: str
+    source: str = Field(description="node.port the stream was recorded from")
+    nominal_hz: float | None = Field(description="the source's rate by the graph's timing")
+    expected: int | None = Field(description="nominal rate x duration (None: not periodic)")
+    received: int
+    written: int
+    lost: int = Field(description="received and not written (lost_behind + lost_error)")
+    lost_behind: int = Field(description="refused: the writer could not keep up")
+    lost_error: int = Field(description="not written after a write error (disk full)")
+    missing: int = Field(description="expected - received, when the source delivered less")
+    rate_mean: float | None = Field(description="written messages per second")
+    rate_min: float | None = Field(description="from the longest interval between messages")
+    rate_max: float | None = Field(description="from the shortest interval between messages")
+    bytes: int
+
+
+class RecordingReport(BaseModel):
+    """A whole recording: where, how long, and every stream."""
+
+    session: str
+    files: list[str]
+    start_time: str
+    duration: float = Field(description="seconds, start of recording to stop")
+    error: str | None = Field(description="the write error that stopped the recording, if any")
+    notes: list[str] = Field(default_factory=list)
+    streams: list[StreamReport]
+
+    @property
+    def lost(self) -> int:
+        return sum(s.lost for s in self.streams)
+
+
+_TIMER = re.compile(r"^([0-9.]+)ms")
+_FRAME = re.compile(r"^(\d+)/")
+
+
+def nominal_rates(stats: Any) -> dict[str, float]:
+    """Node name -> nominal activations per second, for timer- and frame-triggered nodes."""
+    rows = {n.name: n for n in stats.nodes}
+    out: dict[str, float] = {}
+
+    def rate(name: str, depth: int = 0) -> float | None:
+        if name in out:
+            return out[name]
+        n = rows.get(name)
+        if n is None or depth > 20:
+            return None
+        r: float | None = None
+        if n.trigger == "timer" and (m := _TIMER.match(n.period)):
+            ms = float(m.group(1))
+            r = 1000.0 / ms if ms > 0 else None
+        elif n.trigger.startswith("frame ") and (m := _FRAME.match(n.period)):
+            src = rate(n.trigger.split()[1].split(".")[0], depth + 1)
+            r = None if src is None else src / int(m.group(1))
+        if r is not None:
+            out[name] = r
+        return r
+
+    for name in rows:
+        rate(name)
+    return out
+
+
+def _stream(c: StreamCounters, hz: float | None, window: float | None) -> StreamReport:
+    expected = None if hz is None or window is None else round(hz * window) + 1
+    iv = c.intervals
+    mean = None
+    if c.written > 1 and c.first_time is not None and c.last_time is not None:
+        span = c.last_time - c.first_time
+        mean = (c.written - 1) / span if span > 0 else None
+    return StreamReport(
+        topic=c.topic,
+        source=c.source,
+        nominal_hz=hz,
+        expected=expected,
+        received=c.received,
+        written=c.written,
+        lost=c.lost,
+        lost_behind=c.lost_behind,
+        lost_error=c.lost_error,
+        missing=max(0, expected - c.received) if expected is not None else 0,
+        rate_mean=mean,
+        rate_min=1.0 / iv.max if iv.count and iv.max > 0 else None,
+        rate_max=1.0 / iv.min if iv.count and iv.min > 0 else None,
+        bytes=c.bytes,
+    )
+
+
+def build_report(
+    writer: RecordingWriter,
+    session: str,
+    start_time: str,
+    duration: float,
+    rates: dict[str, float],
+) -> RecordingReport:
+    """The report of a finished (or stopped) writer."""
+    firsts = [c.first_seen for c in writer.streams.values() if c.first_seen is not None]
+    lasts = [c.last_seen for c in writer.streams.values() if c.last_seen is not None]
+    window = max(lasts) - min(firsts) if firsts else None
+    return RecordingReport(
+        session=session,
+        files=[str(writer.path)],
+        start_time=start_time,
+        duration=duration,
+        error=writer.error,
+        notes=list(writer.notes),
+        streams=[
+            _stream(c, rates.get(c.source.split(".")[0]), window) for c in writer.streams.values()
+        ],
+    )
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n:.1f} GiB"
+
+
+def _hz(x: float | None) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
+def report_table(report: RecordingReport) -> Any:
+    """A rich Table of the report; lost (and missing) in red."""
+    from rich.table import Table
+
+    title = f"recording {report.session}: {report.duration:.1f} s"
+    if report.error:
+        title += f" [red](stopped: {report.error})[/red]"
+    t = Table(title=title, title_justify="left")
+    for col in ("stream", "expected", "received", "written", "lost", "missing"):
+        t.add_column(col, justify="left" if col == "stream" else "right")
+    for col in ("Hz mean", "Hz min", "Hz max", "bytes"):
+        t.add_column(col, justify="right")
+    for s in report.streams:
+        lost = f"[bold red]{s.lost}[/bold red]" if s.lost else "0"
+        missing = f"[red]{s.missing}[/red]" if s.missing > 1 else str(s.missing)
+        t.add_row(
+            s.topic,
+            "-" if s.expected is None else str(s.expected),
+            str(s.received),
+            str(s.written),
+            lost,
+            missing,
+            _hz(s.rate_mean),
+            _hz(s.rate_min),
+            _hz(s.rate_max),
+            human_bytes(s.bytes),
+        )
+    return t
+
+
+def report_text(report: RecordingReport) -> str:
+    """The table as plain text (for logs)."""
+    import io
+
+    from rich.console import Console
+
+    console = Console(width=120, color_system=None, file=io.StringIO())
+    console.print(report_table(report))
+    out: str = console.file.getvalue()  # type: ignore[attr-defined]
+    return out

@@ -1,0 +1,110 @@
+"""Sessions: ``recordings/drive_001/`` (next free number), and what a recording says about itself.
+
+A session folder holds the MCAP file and ``streams.json`` (the per-stream report): nothing a
+user could lose by copying the folder. The file itself says how it was made: metadata
+``flowrt`` (version, host, start time, graph name, Python), attachments ``graph.yaml`` (the
+graph file's text, when known) and ``timing.json`` (every node's trigger, period, deadline,
+priority and placement at the start), and at a clean stop ``streams.json`` again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as dt
+import os
+import platform
+import re
+import socket
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+__all__ = ["SESSION_FILE", "check_writable", "mcap_files", "new_session", "session_metadata"]
+
+SESSION_FILE = "streams.json"
+_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
+
+
+def check_writable(root: str | Path) -> str | None:
+    """None if sessions can be created under ``root`` (made if missing), else why not."""
+    path = Path(root)
+    if path.exists() and not path.is_dir():
+        return f"{path} is not a directory"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        return f"cannot create {path}: {e.strerror or e}"
+    try:
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".flowrt-write-test-"):
+            pass
+    except OSError as e:
+        return f"{path} is not writable: {e.strerror or e}"
+    return None
+
+
+def new_session(root: str | Path, name: str = "rec") -> Path:
+    """Create ``root/NAME_NNN`` with the next free number (``drive_001``, ``drive_002``...)."""
+    if not _NAME.match(name):
+        raise ValueError(f"session name {name!r}: use letters, digits, _ and -")
+    base = Path(root)
+    base.mkdir(parents=True, exist_ok=True)
+    pattern = re.compile(rf"^{re.escape(name)}_(\d+)$")
+    taken = [int(m.group(1)) for p in base.iterdir() if (m := pattern.match(p.name))]
+    n = max(taken, default=0) + 1
+    while True:  # another recorder may take a number at the same moment: try the next one
+        path = base / f"{name}_{n:03d}"
+        try:
+            path.mkdir()
+            return path
+        except FileExistsError:
+            n += 1
+
+
+def mcap_files(path: str | Path) -> list[Path]:
+    """The MCAP file(s) of a session folder, or the file itself."""
+    p = Path(path)
+    if p.is_dir():
+        return sorted(p.glob("*.mcap"))
+    return [p]
+
+
+def session_metadata(
+    graph: str, started: float, extra: dict[str, str] | None = None
+) -> dict[str, dict[str, str]]:
+    """The ``flowrt`` metadata record: who recorded, where, when, which graph."""
+    from .. import __version__
+
+    meta = {
+        "flowrt_version": __version__,
+        "host": socket.gethostname(),
+        "platform": platform.platform(),
+        "python": sys.version.split()[0],
+        "pid": str(os.getpid()),
+        "start_time": dt.datetime.fromtimestamp(started, dt.UTC).isoformat(),
+        "graph": graph,
+    }
+    meta.update(extra or {})
+    return {"flowrt": meta}
+
+
+def timing_json(stats: Any) -> bytes:
+    """Every node's timing at the start, from a ``RuntimeStats`` snapshot (JSON)."""
+    import json
+
+    nodes = []
+    with contextlib.suppress(Exception):
+        for n in stats.nodes:
+            nodes.append(
+                {
+                    "name": n.name,
+                    "kind": n.kind,
+                    "placement": n.placement,
+                    "trigger": n.trigger,
+                    "period": n.period,
+                    "priority": n.priority,
+                    "deadline_ms": n.deadline_ms,
+                    "enabled": n.enabled,
+                }
+            )
+    return json.dumps({"graph": getattr(stats, "graph", ""), "nodes": nodes}, indent=1).encode()

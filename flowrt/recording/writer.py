@@ -1,0 +1,463 @@
+"""The MCAP writer: on its own thread, so the event loop never waits on the disk.
+
+The recorder node hands each message to :meth:`RecordingWriter.submit`, which only appends to
+a bounded queue (frames by reference: the node holds a link on the shared-memory slot, so no
+pixel is copied on the loop). Two threads follow: the *encoder* turns each message into its
+bytes (see :mod:`.encoding`; for a frame that is the one copy of its pixels, after which the
+slot goes back to its pool) and the *disk* thread writes them through the official ``mcap``
+writer. Encoded messages may wait up to ``max_bytes``, so a disk that stalls for a moment
+holds memory, not the camera's pool slots. The disk thread finishes a chunk at least every
+``flush_interval`` seconds: after a ``kill -9`` the file is readable up to the last finished
+chunk, so at most ``flush_interval`` (1 s by default) or one chunk is lost.
+
+Nothing is lost silently. A full queue (the disk or the encoder cannot keep up) refuses the
+message and counts it against its stream (``lost_behind``); a write error (disk full, file
+too large) stops writing, keeps what is in the file, records the error and counts every
+message not written from then on (``lost_error``). The graph goes on either way.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..frames import Frame
+from ..stats import Running
+from .directio import open_direct
+from .encoding import Encoded, StreamSchema, encode_frame, encode_json, schema_for
+
+__all__ = ["RecordingWriter", "StreamCounters"]
+
+PROFILE = "flowrt"
+THREAD_PREFIX = "mcap writer "
+"""Writer threads are not daemons: a process that ends waits for its files to be finished."""
+
+
+@dataclass
+class StreamCounters:
+    """What happened to one stream: received, written, lost (and why), bytes, timing."""
+
+    topic: str
+    source: str = ""
+    received: int = 0
+    written: int = 0
+    bytes: int = 0
+    lost_behind: int = 0
+    refused_error: int = 0  # refused at submit after a write error (the loop counts these)
+    unwritten: int = 0  # queued but not written: encode or write failed (the writer counts)
+    first_time: float | None = None  # seconds, the runtime clock (log time of the first)
+    last_time: float | None = None
+    first_seen: float | None = None  # runtime clock when the first / last one arrived
+    last_seen: float | None = None
+    intervals: Running = field(default_factory=Running)
+
+    @property
+    def lost_error(self) -> int:
+        return self.refused_error + self.unwritten
+
+    @property
+    def lost(self) -> int:
+        return self.lost_behind + self.lost_error
+
+
+@dataclass
+class _Item:
+    topic: str
+    value: Any
+    t: float
+    seq: int
+
+
+class RecordingWriter:
+    """One MCAP file written by a thread. Create, :meth:`open`, :meth:`submit`, :meth:`close`.
+
+    Args:
+        path: the ``.mcap`` file to create (its directory must exist).
+        image_formats: per topic ``raw`` (default), ``jpeg`` or ``png``.
+        epoch_offset: added to the runtime clock's seconds to get Unix time (log times are
+            nanoseconds since the epoch, as Foxglove expects).
+        max_frames: frames a stream may have waiting; each holds a shared-memory slot, and a
+            frame pool has 16 by default, so this stays well below.
+        max_messages: other messages that may wait, all streams together.
+        max_bytes: encoded messages that may wait for the disk (256 MiB by default: more
+            than a second of two 1936x1216 cameras at 20 fps).
+        direct_io: write with ``O_DIRECT`` (see :mod:`.directio`), where the file system
+            allows it.
+        crc: chunk CRCs, so that damage inside a chunk is found (``info``, ``replay``); they
+            cost as much CPU as the rest of the writing (zlib's CRC-32, ~12 ms per 7 MB frame
+            on the loaded dev VM), so a high-rate recording may turn them off.
+        on_written: called from the writer thread after a frame was written, so the owner can
+            give its link back on the event loop.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        image_formats: dict[str, str] | None = None,
+        epoch_offset: float = 0.0,
+        chunk_size: int = 4 << 20,
+        compression: str = "none",
+        flush_interval: float = 1.0,
+        max_frames: int = 8,
+        max_messages: int = 10000,
+        max_bytes: int = 256 << 20,
+        crc: bool = True,
+        direct_io: bool = False,
+        on_written: Callable[[], None] | None = None,
+    ) -> None:
+        self.path = Path(path)
+        self.image_formats = image_formats or {}
+        self.epoch_offset = epoch_offset
+        self.chunk_size = chunk_size
+        self.compression = compression
+        self.flush_interval = flush_interval
+        self.max_frames = max_frames
+        self.max_messages = max_messages
+        self.max_bytes = max_bytes
+        self.crc = crc
+        self.direct_io = direct_io
+        self.on_written = on_written
+        self.streams: dict[str, StreamCounters] = {}
+        self.error: str | None = None
+        self.closed = False
+        self.done: deque[Frame] = deque()  # frames written: their links go back on the loop
+        self._queue: deque[_Item] = deque()
+        self._frames_waiting: dict[str, int] = {}
+        self._messages_waiting = 0
+        self._cond = threading.Condition()
+        self._closing = False
+        self._thread: threading.Thread | None = None
+        self._encoder: threading.Thread | None = None
+        self._encoded: deque[tuple[_Item, Encoded | None] | None] = deque()  # None: the end
+        self._encoded_bytes = 0
+        self._disk = threading.Condition()
+        self._file: Any = None
+        self._writer: Any = None
+        self._schemas: dict[StreamSchema, int] = {}
+        self._channels: dict[str, int] = {}
+        self._channel_meta: dict[str, dict[str, str]] = {}
+        self._end_attachments: Callable[[], list[tuple[str, str, bytes]]] = list
+        self._on_finished: Callable[[], None] | None = None
+        self._inflight: Frame | None = None
+        self._json_schemas: dict[tuple[str, type], StreamSchema] = {}
+        self._unencodable: set[str] = set()
+        self.notes: list[str] = []  # problems other than write errors (said once per stream)
+
+    # --- on the event loop ------------------------------------------------------------------
+
+    def open(
+        self,
+        metadata: dict[str, dict[str, str]],
+        attachments: list[tuple[str, str, bytes]] = (),  # type: ignore[assignment]
+    ) -> None:
+        """Create the file and write header, metadata and attachments; raise OSError if not."""
+        from mcap.writer import CompressionType, Writer
+
+        comp = {
+            "none": CompressionType.NONE,
+            "lz4": CompressionType.LZ4,
+            "zstd": CompressionType.ZSTD,
+        }[self.compression]
+        self._file = open_direct(self.path) if self.direct_io else None
+        if self._file is None:
+            self._file = open(self.path, "xb")  # noqa: SIM115 - closed by the writer thread
+        try:
+            w = Writer(
+                self._file, chunk_size=self.chunk_size, compression=comp, enable_crcs=self.crc
+            )
+            w.start(profile=PROFILE, library=_library())
+            now = time.time_ns()
+            for name, data in metadata.items():
+                w.add_metadata(name, data)
+            for name, media, blob in attachments:
+                w.add_attachment(now, now, name, media, blob)
+            self._file.flush()
+        except BaseException:
+            self._file.close()
+            raise
+        self._writer = w
+        self._encoder = threading.Thread(
+            target=self._encode_loop, name=f"{THREAD_PREFIX}{self.path.name} encoder"
+        )
+        self._thread = threading.Thread(target=self._run, name=f"{THREAD_PREFIX}{self.path.name}")
+        self._encoder.start()
+        self._thread.start()
+
+    def declare(self, topic: str, source: str = "", **meta: str) -> StreamCounters:
+        """Name a stream before its first message (its source ``node.port`` and metadata)."""
+        s = self.streams.get(topic)
+        if s is None:
+            s = self.streams[topic] = StreamCounters(topic, source)
+        if source:
+            s.source = source
+        self._channel_meta[topic] = {"source": s.source, **meta}
+        return s
+
+    def submit(self, topic: str, value: Any, t: float, seq: int) -> bool:
+        """Queue a message logged at runtime-clock time ``t``; False (and counted) if refused.
+
+        A frame is kept by reference: the caller must hold one link on it for the writer and
+        take it back from :attr:`done` once written (or at once, when refused).
+        """
+        s = self.streams.get(topic) or self.declare(topic)
+        s.received += 1
+        if s.first_seen is None:
+            s.first_seen = t
+        s.last_seen = t
+        if self.error is not None or self.closed:
+            s.refused_error += 1
+            return False
+        is_frame = isinstance(value, Frame)
+        with self._cond:
+            if is_frame:
+                if self._frames_waiting.get(topic, 0) >= self.max_frames:
+                    s.lost_behind += 1
+                    return False
+                self._frames_waiting[topic] = self._frames_waiting.get(topic, 0) + 1
+            else:
+                if self._messages_waiting >= self.max_messages:
+                    s.lost_behind += 1
+                    return False
+                self._messages_waiting += 1
+            self._queue.append(_Item(topic, value, t, seq))
+            self._cond.notify()
+        return True
+
+    def waiting(self) -> int:
+        """Messages queued and not yet written."""
+        return len(self._queue)
+
+    def close(self, attachments: list[tuple[str, str, bytes]] = ()) -> None:  # type: ignore[assignment]
+        """Write what is queued, the end attachments and the summary; blocks: use a thread."""
+        self.request_close(lambda: list(attachments))
+        self.join()
+
+    def request_close(
+        self,
+        attachments: Callable[[], list[tuple[str, str, bytes]]] = list,
+        on_finished: Callable[[], None] | None = None,
+    ) -> None:
+        """Finish the file after what is queued, without waiting (see :meth:`join`).
+
+        ``attachments`` is called on the writer thread once the queue is written, so what it
+        attaches (the per-stream report) counts everything; ``on_finished`` is called there
+        after the summary is written (or the write failed).
+        """
+        self._end_attachments = attachments
+        self._on_finished = on_finished
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+
+    def join(self, timeout: float | None = None) -> bool:
+        """Wait for a requested close; True when the file is finished."""
+        end = None if timeout is None else time.monotonic() + timeout
+        for t in (self._encoder, self._thread):
+            if t is not None:
+                t.join(None if end is None else max(0.0, end - time.monotonic()))
+                if t.is_alive():
+                    return False
+        self.closed = True
+        return True
+
+    def detach_frames(self) -> list[Frame]:
+        """Copy the queued frames' pixels to the heap; returns the originals to release.
+
+        At stop the shared-memory pools go away, but a slow disk may still be writing: after
+        this (and once :meth:`encoding_frame` is false) the writer holds no pool slot.
+        """
+        originals: list[Frame] = []
+        with self._cond:
+            for item in self._queue:
+                v = item.value
+                if isinstance(v, Frame) and v.shared:
+                    item.value = Frame(
+                        np.array(v.data),
+                        source=v.source,
+                        seq=v.seq,
+                        timestamp=v.timestamp,
+                        pixel_format=v.pixel_format,
+                    )
+                    originals.append(v)
+        return originals
+
+    def encoding_frame(self) -> bool:
+        """True while the thread reads a frame's pixels (they are copied into the message)."""
+        return self._inflight is not None
+
+    # --- on the writer thread ---------------------------------------------------------------
+
+    def _encode_loop(self) -> None:
+        """Encoder thread: messages to bytes; a frame's slot goes back right after."""
+        while True:
+            with self._cond:
+                while not self._queue and not self._closing:
+                    self._cond.wait()
+                if not self._queue:
+                    break  # closing and nothing left
+                item = self._queue.popleft()
+                if isinstance(item.value, Frame):
+                    self._inflight = item.value
+            enc = self._encode_item(item)
+            with self._disk:
+                while self._encoded_bytes > self.max_bytes and self.error is None:
+                    self._disk.wait(0.1)  # the disk is behind: the queue above fills, counted
+                self._encoded.append((item, enc))
+                self._encoded_bytes += len(enc.data) if enc is not None else 0
+                self._disk.notify()
+        with self._disk:
+            self._encoded.append(None)
+            self._disk.notify()
+
+    def _encode_item(self, item: _Item) -> Encoded | None:
+        is_frame = isinstance(item.value, Frame)
+        try:
+            return None if self.error is not None else self._encode(item)
+        except Exception as e:  # a value that cannot be encoded: counted, said once
+            if item.topic not in self._unencodable:
+                self._unencodable.add(item.topic)
+                self.notes.append(f"{item.topic}: cannot encode {type(item.value).__name__}: {e}")
+            return None
+        finally:
+            # The pixels are in the encoded bytes now: the slot goes back to its pool.
+            if is_frame:
+                self._inflight = None
+                self._frame_done(item)
+            else:
+                with self._cond:
+                    self._messages_waiting -= 1
+
+    def _run(self) -> None:
+        """Disk thread: encoded messages into the file, a chunk finished every flush_interval."""
+        last_flush = time.monotonic()
+        while True:
+            with self._disk:
+                while not self._encoded:
+                    self._disk.wait(timeout=max(0.0, self.flush_interval / 2))
+                    if time.monotonic() - last_flush >= self.flush_interval:
+                        break
+                got = bool(self._encoded)
+                entry = self._encoded.popleft() if got else None
+                if entry is not None:
+                    enc = entry[1]
+                    self._encoded_bytes -= len(enc.data) if enc is not None else 0
+                    self._disk.notify()
+            if got and entry is None:
+                break  # the encoder's end mark: everything queued is in
+            if entry is not None:
+                self._write(entry[0], entry[1])
+            if self.error is None and time.monotonic() - last_flush >= self.flush_interval:
+                self._guard(self._writer.flush)  # a finished chunk survives kill -9
+                last_flush = time.monotonic()
+        self._finish()
+        if self._on_finished is not None:
+            self._on_finished()
+
+    def _write(self, item: _Item, enc: Encoded | None) -> None:
+        s = self.streams[item.topic]
+        if enc is None or self.error is not None:
+            s.unwritten += 1
+            return
+        cid = self._channel(item.topic, enc.schema)
+        ns = round((item.t + self.epoch_offset) * 1e9)
+        if not self._guard(
+            lambda: self._writer.add_message(cid, ns, enc.data, ns, item.seq & 0xFFFFFFFF)
+        ):
+            s.unwritten += 1
+            return
+        s.written += 1
+        s.bytes += len(enc.data)
+        if s.last_time is not None:
+            s.intervals.add(item.t - s.last_time)
+        else:
+            s.first_time = item.t
+        s.last_time = item.t
+
+    def _frame_done(self, item: _Item) -> None:
+        with self._cond:
+            self._frames_waiting[item.topic] -= 1
+        self.done.append(item.value)
+        if self.on_written is not None:
+            self.on_written()
+
+    def _encode(self, item: _Item) -> Encoded:
+        v = item.value
+        if isinstance(v, Frame):
+            return encode_frame(
+                v, v.timestamp + self.epoch_offset, self.image_formats.get(item.topic, "raw")
+            )
+        cached = self._json_schemas
+        key = (item.topic, type(v))
+        schema = cached.get(key)
+        if schema is None:
+            schema = cached[key] = schema_for(v)
+        return encode_json(v, schema)
+
+    def _channel(self, topic: str, schema: StreamSchema) -> int:
+        cid = self._channels.get(topic)
+        if cid is not None:
+            return cid
+        sid = self._schemas.get(schema)
+        if sid is None:
+            sid = self._schemas[schema] = self._writer.register_schema(
+                schema.name, schema.encoding, schema.data
+            )
+        new: int = self._writer.register_channel(
+            topic, schema.message_encoding, sid, self._channel_meta.get(topic, {})
+        )
+        self._channels[topic] = new
+        return new
+
+    def _guard(self, fn: Callable[[], Any]) -> bool:
+        """Run a write; on OSError stop writing for good (what is in the file stays)."""
+        if self.error is not None:
+            return False
+        try:
+            fn()
+            return True
+        except OSError as e:
+            self.error = f"{self.path}: {os.strerror(e.errno) if e.errno else e}"
+            return False
+
+    def _finish(self) -> None:
+        if self.error is None:
+            now = time.time_ns()
+            try:
+                attachments = self._end_attachments()
+            except Exception as e:  # the report failed: the file is still finished
+                self.notes.append(f"end attachments: {e}")
+                attachments = []
+            for name, media, blob in attachments:
+                if not self._guard(
+                    partial(self._writer.add_attachment, now, now, name, media, blob)
+                ):
+                    break
+            self._guard(self._writer.finish)
+        self._guard(self._file.flush)
+        # After a write error the buffered tail cannot be written either: close regardless
+        # (the descriptor is closed even when the final flush fails); the file stays.
+        with contextlib.suppress(OSError, ValueError):
+            self._file.close()
+
+
+def _library() -> str:
+    from .. import __version__
+
+    try:
+        from importlib.metadata import version
+
+        mcap_version = version("mcap")
+    except Exception:
+        mcap_version = "?"
+    return f"flowrt {__version__} (mcap {mcap_version})"

@@ -1,0 +1,318 @@
+"""The ``recorder`` node: records its inputs, under any names, into an MCAP session.
+
+    recorder:
+      kind: recorder
+      params: {path: recordings, name: drive}
+      inputs:
+        front_cam.frame: {from: front_cam.frame, policy: lossless, size: 16}
+        ball.detection: {from: ball_fr.detection, policy: lossless}
+
+Each input is a stream; its input name is the MCAP topic (``flowrt record`` names them after
+their source, ``node.port``). Inputs should be ``lossless`` edges: the producer is never
+dropped on, and since ``process`` only queues (frames by reference, holding their
+shared-memory slot), the producer does not wait either unless the disk falls behind. Writing
+happens on the writer thread (:mod:`flowrt.recording.writer`), never on the event loop.
+
+A writer that cannot keep up loses messages *counted per stream*, and the node goes into the
+error state at once (red in the status table, a ``HealthAlert``); a write error (disk full)
+stops the recording, keeps the file, says why, and the graph goes on. When a recording stops
+its per-stream table is logged and saved as ``streams.json`` in the session.
+
+At run time ``flowrt ctl record start|stop`` (RTDB record ``flowrt.record.NODE``) starts a new
+session or closes the current one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as dt
+import time
+from functools import partial
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from flowrt import Frame, Input, InputTrigger, Node
+from flowrt.recording import RecordingWriter, build_report, new_session, nominal_rates
+from flowrt.recording.report import RecordingReport, report_text
+from flowrt.recording.session import SESSION_FILE, session_metadata, timing_json
+
+COMMAND_RECORD = "flowrt.record."
+"""RTDB record ``flowrt.record.NODE`` = ``start`` | ``stop``: what ``flowrt ctl record`` writes."""
+FINISH_WAIT = 1.0
+"""Seconds a stop waits for the file to be finished before leaving it to the writer thread."""
+STATUS_RECORD = "flowrt.recording."
+"""RTDB record ``flowrt.recording.NODE``: the current session folder, or "" when stopped."""
+
+
+class Recorder(Node):
+    """Records every input into ``path/NAME_NNN/NAME_NNN.mcap``; see the module doc."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        path: str = Field(default="recordings", description="folder of the sessions")
+        name: str = Field(default="rec", description="session prefix: NAME_001, NAME_002 ...")
+        session: str | None = Field(
+            default=None, description="an existing empty folder to record into (the CLI's)"
+        )
+        start: bool = Field(default=True, description="record from the start (else: ctl)")
+        images: dict[str, Literal["raw", "jpeg", "png"]] = Field(
+            default_factory=dict, description="per topic: raw (RawImage), jpeg or png"
+        )
+        compression: Literal["none", "lz4", "zstd"] = "none"
+        chunk_size: int = Field(default=4 << 20, ge=1024)
+        flush_interval: float = Field(
+            default=1.0, gt=0, description="s: a chunk is finished at least this often"
+        )
+        max_frames: int = Field(default=8, ge=1, description="frames waiting, per stream")
+        direct_io: bool = Field(
+            default=True, description="O_DIRECT writes where possible: past a slow page cache"
+        )
+        crc: bool = Field(
+            default=True, description="chunk CRCs: damage found; off halves the CPU cost"
+        )
+        graph_file: str | None = Field(default=None, description="attached as graph.yaml")
+        log_report: bool = Field(default=True, description="log the table when a recording stops")
+
+    any_inputs = Input(object, required=False, doc="any stream, under its topic name")
+    inline_only = True
+
+    @classmethod
+    def default_trigger(cls, params: Any) -> InputTrigger:
+        return InputTrigger()
+
+    async def setup(self) -> None:
+        self._loop = asyncio.get_running_loop()
+        self.writer: RecordingWriter | None = None
+        self.session: Path | None = None
+        self.sessions: list[Path] = []
+        self.reports: list[RecordingReport] = []
+        self._started_at = 0.0
+        self._started_wall = 0.0
+        self._seq: dict[str, int] = {}
+        self._sources: dict[str, str] = {}
+        self._said_lost = 0
+        self._said_error = False
+        self._next_command_check = 0.0
+        self._command_seq = 0
+        self._draining: RecordingWriter | None = None  # closing: its frames still come back
+        self._rtdb_ok = True
+        self._task: asyncio.Task[None] | None = None  # a start/stop asked for by ctl
+        self._publish_status("")
+        if self.params.start:
+            await asyncio.to_thread(self._open, self._stats())
+            self._publish_status(str(self.session))
+
+    # --- sessions ---------------------------------------------------------------------------
+
+    def _open(self, stats: Any) -> None:
+        """Create the session folder and the file (on a thread: it touches the disk).
+
+        ``stats`` is taken on the loop before: the runtime's tables are not read from here.
+        """
+        p = self.params
+        session = Path(p.session) if p.session and not self.sessions else None
+        if session is not None:
+            session.mkdir(parents=True, exist_ok=True)
+        else:
+            session = new_session(p.path, p.name)
+        self._started_wall = time.time()
+        self._started_at = self.ctx.now()
+        writer = RecordingWriter(
+            session / f"{session.name}.mcap",
+            image_formats=dict(p.images),
+            epoch_offset=self._started_wall - self._started_at,
+            chunk_size=p.chunk_size,
+            compression=p.compression,
+            flush_interval=p.flush_interval,
+            max_frames=p.max_frames,
+            crc=p.crc,
+            direct_io=p.direct_io,
+            on_written=self._written,
+        )
+        attachments = [("timing.json", "application/json", timing_json(stats))]
+        if p.graph_file:
+            try:
+                text = Path(p.graph_file).read_bytes()
+                attachments.insert(0, ("graph.yaml", "application/yaml", text))
+            except OSError as e:
+                self.ctx.log.warning("%s: graph file not attached: %s", self.ctx.name, e)
+        graph = getattr(stats, "graph", "") if stats is not None else ""
+        writer.open(session_metadata(graph, self._started_wall), attachments)
+        self.writer, self.session = writer, session
+        self.sessions.append(session)
+        self._said_lost, self._said_error = 0, False
+        self.ctx.log.info("%s: recording into %s", self.ctx.name, writer.path)
+
+    async def _close(self) -> None:
+        """Stop recording: the file is finished on the writer thread, whatever the loop does.
+
+        The teardown of a node is bounded (the runtime then frees the frame pools), and a slow
+        disk may need longer: so the queued frames are first copied off the pool, the report
+        is written by the writer thread once the file is complete, and the thread keeps the
+        process alive until then.
+        """
+        writer, session = self.writer, self.session
+        if writer is None or session is None:
+            return
+        self.writer, self._draining = None, writer
+        duration = self.ctx.now() - self._started_at
+        start = dt.datetime.fromtimestamp(self._started_wall, dt.UTC).isoformat()
+        stats = self._stats()
+        rates = nominal_rates(stats) if stats is not None else {}
+
+        def report() -> RecordingReport:
+            return build_report(writer, session.name, start, duration, rates)
+
+        def attachments() -> list[tuple[str, str, bytes]]:
+            return [("streams.json", "application/json", report().model_dump_json().encode())]
+
+        writer.request_close(attachments, partial(self._finished, session, report))
+        for frame in writer.detach_frames():
+            frame.release()
+        for _ in range(100):  # the frame being encoded now, if any (a few ms)
+            if not writer.encoding_frame():
+                break
+            await asyncio.sleep(0.005)
+        self._release_done()
+        if not await asyncio.to_thread(writer.join, FINISH_WAIT):
+            self.ctx.log.info(
+                "%s: %s: the disk is behind, finishing the file in the background",
+                self.ctx.name,
+                writer.path,
+            )
+        self._release_done()
+        self._draining = None
+
+    def _finished(self, session: Path, report_of: Any) -> None:
+        """On the writer thread, the file complete: save and say the per-stream table."""
+        report: RecordingReport = report_of()
+        try:
+            (session / SESSION_FILE).write_text(report.model_dump_json(indent=1))
+        except OSError as e:
+            self.ctx.log.error("%s: %s not saved: %s", self.ctx.name, SESSION_FILE, e)
+        self.reports.append(report)
+        if report.lost or report.error:
+            text = report_text(report) if self.params.log_report else ""
+            self.ctx.log.warning(
+                "%s: recording %s stopped with %d lost\n%s",
+                self.ctx.name,
+                session,
+                report.lost,
+                text,
+            )
+        elif self.params.log_report:
+            self.ctx.log.info("%s: recording stopped\n%s", self.ctx.name, report_text(report))
+
+    def _stats(self) -> Any:
+        try:
+            return self.ctx.stats()
+        except RuntimeError:
+            return None
+
+    # --- the hot path -----------------------------------------------------------------------
+
+    def process(self, **inputs: Any) -> None:
+        now = self.ctx.now()
+        if now >= self._next_command_check:
+            self._next_command_check = now + 0.1
+            self._check_command()
+        writer = self.writer
+        if writer is None:
+            return
+        for topic, value in inputs.items():
+            if value is None:
+                continue
+            if topic not in writer.streams:
+                writer.declare(topic, self._source_of(topic))
+            is_frame = isinstance(value, Frame)
+            if is_frame:
+                t, seq = value.timestamp, value.seq
+                value.acquire()  # the writer's link, given back in _release_done
+            else:
+                stamp = getattr(value, "timestamp", None)
+                t = stamp if isinstance(stamp, float) and stamp > 0 else now
+                s = getattr(value, "seq", None)
+                seq = s if isinstance(s, int) and s >= 0 else self._seq.get(topic, 0)
+                self._seq[topic] = seq + 1
+            if not writer.submit(topic, value, t, seq) and is_frame:
+                value.release()
+        self._watch(writer)
+
+    def _watch(self, writer: RecordingWriter) -> None:
+        """Say at once when something is lost or the disk failed (red in the table)."""
+        if writer.error is not None and not self._said_error:
+            self._said_error = True
+            self.ctx.log.error("%s: recording stopped: %s", self.ctx.name, writer.error)
+            self.ctx.set_error(f"recording stopped: {writer.error}")
+            return
+        lost = sum(s.lost_behind for s in writer.streams.values())
+        if lost > self._said_lost and not self._said_error:
+            self._said_lost = lost
+            worst = max(writer.streams.values(), key=lambda s: s.lost_behind)
+            self.ctx.set_error(f"recorder behind: {lost} lost ({worst.topic}: {worst.lost_behind})")
+
+    def _written(self) -> None:
+        """From the writer thread: give the written frames' links back on the loop."""
+        if not self._loop.is_closed():
+            self._loop.call_soon_threadsafe(self._release_done)
+
+    def _release_done(self) -> None:
+        for writer in (self.writer, self._draining):
+            while writer is not None and writer.done:
+                writer.done.popleft().release()
+
+    def _source_of(self, topic: str) -> str:
+        """The ``node.port`` feeding an input, from the runtime's edge table."""
+        if not self._sources:
+            stats = self._stats()
+            for e in getattr(stats, "edges", []) if stats is not None else []:
+                src, _, dst = e.name.partition("->")
+                node, _, port = dst.partition(".")
+                if node == self.ctx.name:
+                    self._sources[port] = src
+        return self._sources.get(topic, topic)
+
+    # --- control ----------------------------------------------------------------------------
+
+    def _check_command(self) -> None:
+        if not self._rtdb_ok:
+            return
+        try:
+            rec = self.ctx.rtdb.read(COMMAND_RECORD + self.ctx.name)
+        except Exception:
+            self._rtdb_ok = False
+            return
+        if rec is None or rec.seq == self._command_seq:
+            return
+        self._command_seq = rec.seq
+        cmd = rec.value
+        if cmd == "start" and self.writer is None:
+            self._task = self._loop.create_task(self._start_async())
+        elif cmd == "stop" and self.writer is not None:
+            self._task = self._loop.create_task(self._stop_async())
+
+    async def _start_async(self) -> None:
+        try:
+            await asyncio.to_thread(self._open, self._stats())
+        except OSError as e:
+            self.ctx.set_error(f"cannot start recording: {e}")
+            return
+        self.ctx.clear_error()  # a new session: what the previous one lost is in its report
+        self._publish_status(str(self.session))
+
+    async def _stop_async(self) -> None:
+        await self._close()
+        self._publish_status("")
+
+    def _publish_status(self, session: str) -> None:
+        try:
+            self.ctx.rtdb.write(STATUS_RECORD + self.ctx.name, session)
+        except Exception:  # outside a runtime (tests): no RTDB, nothing to publish
+            self._rtdb_ok = False
+
+    async def teardown(self) -> None:
+        writer = getattr(self, "writer", None)
+        if writer is not None:
+            await self._close()

@@ -1,0 +1,210 @@
+"""The ``replay`` source: recorded streams published again with their recorded timing.
+
+    front_cam:
+      kind: replay
+      params: {path: recordings/drive_001, topic: front_cam.frame, rate: 1.0}
+
+A ``replay`` node publishes one recorded stream (or several: ``topics``) on its ``frame``
+output (images) and ``message`` output (everything else). ``flowrt replay --graph`` goes one
+step further: each source of the user's graph that has recorded streams is replaced by a
+replay node *with that source's own output ports* (:meth:`ReplayBase.standing_in_for`), so
+the rest of the graph — trackers, their frame triggers and phases — runs unchanged on
+recorded data.
+
+Frames go into the runtime's frame pool (``ctx.new_frame``), keep their recorded sequence
+number, and tick frame triggers like a camera does; reading and decoding the file runs on a
+thread, only the pixel copy into the pool slot happens on the loop. Messages are released at
+``origin + (log_time - first) / rate`` on the runtime clock, so several replay nodes of one
+recording stay in step. A damaged file is replayed up to the damage, which is logged and
+reported as the node's error state.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from flowrt import Frame, LoopTrigger, Node, Output
+from flowrt.recording import Decoder
+from flowrt.recording.reader import Recording, iter_messages
+from flowrt.recording.session import mcap_files
+
+LEAD = 0.05
+"""Seconds between the start of the runtime and the first replayed message."""
+
+
+class _Item:
+    __slots__ = ("log_time", "port", "seq", "value")
+
+    def __init__(self, port: str, log_time: int, seq: int, value: Any) -> None:
+        self.port, self.log_time, self.seq, self.value = port, log_time, seq, value
+
+
+class ReplayBase(Node):
+    """A replay source without ports of its own: see ``Replay`` and ``standing_in_for``."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        path: str = Field(description="a session folder or an .mcap file")
+        topics: list[str] | None = Field(default=None, description="streams to publish")
+        topic: str | None = Field(default=None, description="one stream (same as topics: [x])")
+        node: str | None = Field(
+            default=None, description="publish the streams recorded from this node, by port"
+        )
+        rate: float = Field(default=1.0, gt=0, description="playback speed (2.0 = twice)")
+        start: float = Field(default=0.0, ge=0, description="seconds into the recording")
+        loop: bool = False
+        on_end: Literal["stop", "idle"] = Field(
+            default="stop", description="at the end: ask the runtime to stop, or stay idle"
+        )
+
+    inline_only = True
+    stands_in_for: str | None = None
+
+    @classmethod
+    def default_trigger(cls, params: Any) -> LoopTrigger:
+        return LoopTrigger()
+
+    @classmethod
+    def standing_in_for(cls, node_cls: type[Node], name: str) -> type[ReplayBase]:
+        """A replay kind with ``node_cls``'s output ports, to take its place in a graph."""
+        ports = {p: Output(o.type, doc=o.doc) for p, o in node_cls.outputs.items()}
+        sub = type(f"ReplayAs{node_cls.__name__}", (ReplayBase,), ports)
+        sub.__module__ = __name__
+        sub.stands_in_for = name
+        return sub
+
+    # --- lifecycle ---------------------------------------------------------------------
+
+    def setup(self) -> None:
+        p = self.params
+        files = mcap_files(p.path)
+        if not files or not files[0].exists():
+            raise FileNotFoundError(f"{p.path}: no MCAP file")
+        self.file = files[0]
+        wanted = set(p.topics or []) | ({p.topic} if p.topic else set())
+        self.wanted = wanted or None
+        self.damage = Recording(self.file)
+        self.origin = _first_log_time(self.file)
+        self.decoder = Decoder()
+        self.cycle = 0.0  # seconds added per completed loop
+        self.last_due = 0.0
+        self.published = 0
+        self.ended = False
+        self._said_damage = False
+        self._it: Iterator[_Item] = self._items()
+        self._next: asyncio.Future[_Item | None] | None = None
+
+    def _port(self, topic: str, source: str, is_image: bool) -> str | None:
+        """The output a message goes to, or None when this node does not publish it."""
+        node, _, port = source.partition(".")
+        if self.params.node is not None:
+            if node != self.params.node:
+                return None
+            return port if port in self.outputs else None
+        if self.wanted is not None and topic not in self.wanted:
+            return None
+        if is_image:
+            return "frame" if "frame" in self.outputs else None
+        return "message" if "message" in self.outputs else None
+
+    def _items(self) -> Iterator[_Item]:
+        """Decoded messages in file order (on the reader thread)."""
+        skip_before = self.origin + round(self.params.start * 1e9)
+        for m in iter_messages(self.file, self.wanted, self.damage):
+            if m.log_time < skip_before:
+                continue
+            name = m.schema.name if m.schema is not None else ""
+            image = self.decoder.is_image(name)
+            port = self._port(m.topic, m.source, image)
+            if port is None:
+                continue
+            value = (
+                self.decoder.image(m.schema, m.data)
+                if image
+                else self.decoder.message(name, m.data)
+            )
+            yield _Item(port, m.log_time, m.sequence, value)
+
+    def _prefetch(self) -> asyncio.Future[_Item | None]:
+        return asyncio.ensure_future(asyncio.to_thread(next, self._it, None))
+
+    async def process(self) -> dict[str, Any] | None:
+        if self.ended:
+            await asyncio.sleep(0.2)
+            return None
+        fut = self._next or self._prefetch()
+        item = await fut
+        if item is None:
+            self._next = None
+            self._report_damage()
+            if self.params.loop and self.published:
+                self.cycle = self.last_due + LEAD
+                self._it = self._items()
+                return None
+            self.ended = True
+            if self.params.on_end == "stop":
+                self.ctx.request_stop()
+            return None
+        self._next = self._prefetch()  # decode the next one while this one waits
+        due = (
+            self.cycle
+            + LEAD
+            + (item.log_time - self.origin - self.params.start * 1e9) / 1e9 / self.params.rate
+        )
+        self.last_due = due
+        wait = due - self.ctx.elapsed()
+        if wait > 0:
+            await asyncio.sleep(wait)
+        self.published += 1
+        return {item.port: self._value(item)}
+
+    def _value(self, item: _Item) -> Any:
+        if not isinstance(item.value, tuple):
+            return item.value
+        px, fmt = item.value
+        frame: Frame = self.ctx.new_frame(px.shape, px.dtype, fmt)
+        np.copyto(frame.data, px)
+        frame.seq = item.seq
+        frame.timestamp = self.ctx.now()
+        return frame
+
+    def _report_damage(self) -> None:
+        if self.damage.damage and not self._said_damage:
+            self._said_damage = True
+            msg = f"{self.file}: replayed up to the damage at byte {self.damage.damage_offset}"
+            self.ctx.log.warning("%s: %s (%s)", self.ctx.name, msg, self.damage.damage)
+            with contextlib.suppress(RuntimeError):
+                self.ctx.set_error(f"{msg}: {self.damage.damage}")
+
+    async def teardown(self) -> None:
+        nxt = getattr(self, "_next", None)
+        if nxt is not None:
+            with contextlib.suppress(Exception):
+                await nxt
+
+
+class Replay(ReplayBase):
+    """The ``replay`` kind: images on ``frame``, every other stream on ``message``."""
+
+    frame = Output(Frame, doc="recorded images, as frames in the runtime's pool")
+    message = Output(object, doc="recorded messages (detections as their dataclass)")
+
+
+def _first_log_time(path: Path) -> int:
+    """Earliest log time near the file's start, ns: the time origin every replay node shares.
+
+    Streams interleave in arrival order, so the earliest of the first few messages is taken.
+    """
+    first: int | None = None
+    for i, m in enumerate(iter_messages(path)):
+        first = m.log_time if first is None else min(first, m.log_time)
+        if i >= 64:
+            break
+    return first or 0
