@@ -204,7 +204,7 @@ async def callsoon_run(
 
 
 def uvloop_factory() -> asyncio.AbstractEventLoop:
-    from flowrt.cli import new_event_loop
+    from flowrt.eventloop import new_event_loop
 
     loop = new_event_loop()
     if type(loop).__module__.split(".")[0] != "uvloop":

@@ -172,7 +172,7 @@ async def _baseline_loop(duration: float, mode: str) -> list[float]:
 
 
 def baseline_child(args: argparse.Namespace) -> int:
-    from flowrt.cli import new_event_loop
+    from flowrt.eventloop import new_event_loop
 
     granted = ""
     if args.realtime:
@@ -421,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from importlib.metadata import version
 
-    from flowrt.cli import new_event_loop
+    from flowrt.eventloop import new_event_loop
 
     loop = new_event_loop()
     loop_name = type(loop).__module__

@@ -84,6 +84,7 @@ class Frame:
     __slots__ = (
         "__weakref__",
         "_gen",
+        "_origin",
         "_refs",
         "_slot",
         "data",
@@ -110,6 +111,9 @@ class Frame:
         self._refs = 1
         self._slot: _Slot | None = None
         self._gen = 0
+        # In a worker: the descriptor of the slot this frame views, and the very array, so
+        # that the frame passed on unchanged goes back as a descriptor too (no pixel copied).
+        self._origin: tuple[tuple[Any, ...], np.ndarray] | None = None
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -151,8 +155,16 @@ class Frame:
 
     def __reduce__(self) -> tuple[Any, ...]:
         slot = self._slot
+        origin = self._origin
+        if slot is None and origin is not None and self.data is origin[1]:
+            # A frame attached in a worker, passed on with its pixels untouched (they are
+            # read-only there): it goes back to the owner as the same descriptor.
+            return (
+                _attach_frame,
+                (*origin[0], self.source, self.seq, self.timestamp, self.pixel_format),
+            )
         if slot is None:
-            # Heap frames (and frames attached in a worker) travel with their pixels.
+            # Heap frames (and new arrays made in a worker) travel with their pixels.
             return (
                 _heap_frame,
                 (self.data, self.source, self.seq, self.timestamp, self.pixel_format),
@@ -222,6 +234,10 @@ class _MappingCache:
 
 _mappings = _MappingCache()
 
+# In the process that owns the pools: the frame that occupies each slot (by segment name), so
+# that a descriptor coming back from a worker resolves to that frame, not to a second view.
+_occupants: weakref.WeakValueDictionary[str, Frame] = weakref.WeakValueDictionary()
+
 
 def _attach_frame(
     name: str,
@@ -234,7 +250,34 @@ def _attach_frame(
     timestamp: float,
     pixel_format: str,
 ) -> Frame:
-    """Rebuild a pooled frame from its descriptor: a read-only view, no pixel copied."""
+    """Rebuild a pooled frame from its descriptor: a read-only view, no pixel copied.
+
+    In the process that owns the slot (a worker's result handing back a frame it received),
+    it is the frame that occupies the slot, the same object: link counted as it always was
+    (the caller takes its own link, see ``NodeRunner._adopt``). If the worker changed its
+    metadata, a heap copy carries the new metadata instead (the original is shared).
+    """
+    owned = _occupants.get(name)
+    if owned is not None and owned._slot is not None and owned._slot.name == name:
+        if owned._gen != generation or owned._refs <= 0:
+            raise StaleFrameError(
+                f"slot {name} holds generation {owned._gen}, expected {generation} "
+                f"({source}#{seq}): the frame was released before its result came back"
+            )
+        if (owned.source, owned.seq, owned.timestamp, owned.pixel_format) == (
+            source,
+            seq,
+            timestamp,
+            pixel_format,
+        ):
+            return owned
+        return Frame(
+            owned.data.copy(),
+            source=source,
+            seq=seq,
+            timestamp=timestamp,
+            pixel_format=pixel_format,
+        )
     m = _mappings.get(name, size)
     header = np.frombuffer(m, dtype=np.uint64, count=1)
     if int(header[0]) != generation:
@@ -246,8 +289,10 @@ def _attach_frame(
     n = int(np.prod(shape, dtype=np.int64)) if shape else 1
     data = np.frombuffer(m, dtype=dt, count=n, offset=_HEADER).reshape(shape)
     # A frame attached in a worker is not link counted there (the main process holds the link);
-    # pickled again (e.g. returned as a result) it travels with its pixels.
-    return Frame(data, source=source, seq=seq, timestamp=timestamp, pixel_format=pixel_format)
+    # returned unchanged it goes back as this descriptor (see Frame.__reduce__).
+    frame = Frame(data, source=source, seq=seq, timestamp=timestamp, pixel_format=pixel_format)
+    frame._origin = ((name, size, generation, shape, dtype), data)
+    return frame
 
 
 # --------------------------------------------------------------------------------------------
@@ -385,6 +430,7 @@ class FramePool:
         )
         frame._slot = slot
         frame._gen = slot.generation
+        _occupants[slot.name] = frame
         return frame
 
     def publish_array(

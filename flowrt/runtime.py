@@ -881,6 +881,13 @@ class _WorkerAdapter(Executor):
     async def call(self, inputs: dict[str, Any]) -> Any:
         return await self._inner.call(inputs)
 
+    @property
+    def pipelined(self) -> bool:  # type: ignore[override]
+        return bool(getattr(self._inner, "pipelined", False))
+
+    def submit(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
+        return self._inner.submit(inputs, window)  # type: ignore[no-any-return]
+
     async def stop(self) -> None:
         await self._inner.stop()
 

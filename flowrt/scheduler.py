@@ -50,6 +50,7 @@ log = logging.getLogger("flowrt.scheduler")
 
 BLOCKING_THRESHOLD = 0.010  # an inline call longer than this is reported as blocking the loop
 SWAP_WAIT = 5.0  # seconds a swap waits for the running activation to end
+PIPELINE_WINDOW = 4  # activations in flight to a worker node fed by queues (spec: pipeline)
 
 
 class Executor:
@@ -57,6 +58,7 @@ class Executor:
 
     sync = False
     granted = ""
+    pipelined = False  # submit() available: calls may overlap (a worker of its own)
 
     async def start(self) -> None: ...
 
@@ -64,6 +66,10 @@ class Executor:
         raise NotImplementedError
 
     async def call(self, inputs: dict[str, Any]) -> Any:
+        raise NotImplementedError
+
+    def submit(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
+        """Start a call now; up to ``window`` run back to back in order (see run_pipelined)."""
         raise NotImplementedError
 
     async def stop(self) -> None: ...
@@ -258,6 +264,16 @@ class NodeRunner:
         self.pending_swap: Callable[[], Executor] | None = None
         self.error_reason: str | None = None  # set_error(): an error state the node reports
         self.error_reports = 0
+        # pipelined calls (a worker node fed by queues): see _pump
+        self.inflight = 0
+        self.aborted = 0  # activations in flight lost with their worker (or its instance)
+        self._acts: dict[int, bool] = {}  # activation in flight -> its deadline was missed
+        self._gen = 0  # bumped at each failure: results of an earlier instance are not used
+        self._pump_soon = False
+        self._pipe_end = 0.0  # when the previous pipelined activation finished
+        self._window_of: tuple[Executor, int] | None = None
+        self._draining = False
+        self._drained: asyncio.Event | None = None
         # counters
         self.activations = 0
         self.completions = 0
@@ -323,6 +339,9 @@ class NodeRunner:
 
     def _catch_up(self) -> None:
         """Run once more for a lossless input's backlog (never skipped: see release)."""
+        if self.executor.pipelined and self.window > 1:
+            self._schedule_pump()  # several activations may take from the backlog at once
+            return
         if (
             not self.busy
             and self.state == "idle"
@@ -388,6 +407,9 @@ class NodeRunner:
             self.task = loop.create_task(self.run_async(t_release))
 
     def input_arrived(self) -> None:
+        if self.executor.pipelined and self.window > 1:  # (inline: one attribute, no more)
+            self._schedule_pump()
+            return
         if self.busy or self.state != "idle" or self.stopping or not self.timing.enabled:
             self.more_input = True
             return
@@ -513,8 +535,171 @@ class NodeRunner:
                 deadline.cancel()
             if watchdog is not None:
                 watchdog.cancel()
+        self._adopt(result)
         _release_all(inputs.values())
         self._complete(result, t_release, start, clock.now())
+
+    def _adopt(self, result: Any) -> None:
+        """Hold pooled frames in a result until they are published (released after).
+
+        A worker that passes on a frame it received returns its descriptor, which resolves
+        to the very frame the activation sent (:func:`flowrt.frames._attach_frame`): without
+        a link of its own it would be recycled when the inputs are released.
+        """
+        values = result.values() if isinstance(result, Mapping) else (result,)
+        for v in values:
+            if isinstance(v, Frame) and v.shared:
+                v.acquire()
+                self.created.append(v)
+
+    # --- pipelined calls ------------------------------------------------------------------
+
+    @property
+    def window(self) -> int:
+        """How many activations may be in flight at once (1: one at a time, as inline).
+
+        More than one only for a node in a worker of its own whose trigger inputs are all
+        queues or lossless edges: every value is to be processed in order, so the next one can
+        be on its way to the worker while it computes the previous one. A ``latest`` input
+        keeps one call at a time, so the worker always gets the newest value when it is free.
+        """
+        ex = self.executor
+        if self._window_of is None or self._window_of[0] is not ex:
+            n = 1
+            if (
+                ex.pipelined
+                and isinstance(self.rnode.trigger, InputTrigger)
+                and self.trigger_inputs
+                and not any(isinstance(self.inputs[p], LatestBuffer) for p in self.trigger_inputs)
+            ):
+                n = self.rnode.spec.pipeline or PIPELINE_WINDOW
+            self._window_of = (ex, n)
+        return self._window_of[1]
+
+    def _schedule_pump(self) -> None:
+        if not self._pump_soon:
+            self._pump_soon = True
+            self.sched.loop.call_soon(self._pump)
+
+    def _pump(self) -> None:
+        """Start activations while inputs wait and the window has room (pipelined nodes).
+
+        Each activation takes its inputs and is written to the worker at once; its result is
+        awaited by its own task (:meth:`_finish`), and results complete in order.
+        """
+        self._pump_soon = False
+        window = self.window
+        loop = self.sched.loop
+        while (
+            self.inflight < window
+            and not self.stopping
+            and self.timing.enabled
+            and self.state in ("idle", "running")
+            and not self.blocked
+            and not self._draining
+            and self.pending_swap is None  # let the calls in flight finish: the swap is next
+            and any(self.inputs[p].pending() for p in self.trigger_inputs)
+        ):
+            t_release = self.sched.clock.now()
+            self.activations += 1
+            self.current += 1
+            act = self.current
+            start, inputs = self._begin()
+            if inputs is None:  # a required input is missing: counted as skipped
+                if self.inflight == 0:
+                    self.state = "idle"
+                break
+            self.busy = True
+            try:
+                fut = self.executor.submit(inputs, window)
+            except Exception as e:
+                _release_all(inputs.values())
+                self._release_created()
+                if self.inflight == 0:
+                    self._gen += 1
+                    self._failed(e)
+                else:
+                    self.aborted += 1  # the worker is gone: the calls in flight report it
+                return
+            self.inflight += 1
+            self._acts[act] = False
+            self.task = loop.create_task(self._finish(act, t_release, start, inputs, fut))
+
+    async def _finish(
+        self,
+        act: int,
+        t_release: float,
+        start: float,
+        inputs: dict[str, Any],
+        fut: asyncio.Future[Any],
+    ) -> None:
+        """One pipelined activation: await its result, then complete it in order."""
+        gen = self._gen
+        clock = self.sched.clock
+        deadline: Handle | None = None
+        if self.timing.deadline is not None:
+            deadline = clock.call_at(
+                t_release + self.timing.deadline, lambda: self._deadline_hit_pipelined(act)
+            )
+        try:
+            result = await fut
+        except asyncio.CancelledError:
+            _release_all(inputs.values())
+            self.inflight -= 1
+            self._acts.pop(act, None)
+            if self.inflight == 0:
+                self._release_created()
+                self._idle()
+            raise
+        except Exception as e:
+            _release_all(inputs.values())
+            self.inflight -= 1
+            self._acts.pop(act, None)
+            if gen != self._gen:
+                self.aborted += 1  # lost with the instance that failed under an earlier call
+                return
+            self._gen += 1
+            self._release_created()
+            self._failed(e)
+            return
+        finally:
+            if deadline is not None:
+                deadline.cancel()
+        self.inflight -= 1
+        missed = self._acts.pop(act, False)
+        if gen != self._gen:  # the node failed under an earlier call: this instance is gone
+            self.aborted += 1
+            _release_all(inputs.values())
+            return
+        if self._draining:  # a lossless reader is full: keep the order of the results
+            if self._drained is None:
+                self._drained = asyncio.Event()
+            await self._drained.wait()
+        self._adopt(result)
+        _release_all(inputs.values())
+        end = clock.now()
+        # The worker ran it from when the previous one finished (or from the send).
+        exec_start = max(start, self._pipe_end)
+        self._pipe_end = end
+        self.missed_current = missed
+        self._complete(result, t_release, exec_start, end)
+
+    def _deadline_hit_pipelined(self, act: int) -> None:
+        if self._acts.get(act) is not False:
+            return  # finished, or already counted
+        self._acts[act] = True
+        self.misses += 1
+        discard = self.rnode.spec.miss_policy is MissPolicy.discard
+        assert self.timing.deadline is not None
+        self.sched.emit(
+            DeadlineMissed(
+                self.sched.rel(self.sched.clock.now()),
+                self.name,
+                self.timing.deadline * 1000,
+                True,
+                discard,
+            )
+        )
 
     def _deadline_hit(self, act: int) -> None:
         if act != self.current or not self.busy or self.missed_current:
@@ -604,7 +789,12 @@ class NodeRunner:
 
     def _idle(self) -> None:
         if self.blocked:
-            self.drain_task = self.sched.loop.create_task(self._drain_then_idle())
+            if not self._draining:
+                self._draining = True
+                self.drain_task = self.sched.loop.create_task(self._drain_then_idle())
+            return
+        if self.inflight > 0:  # pipelined: more activations in flight; take the next input
+            self._schedule_pump()
             return
         self.busy = False
         if self.state == "running":
@@ -631,7 +821,13 @@ class NodeRunner:
             self.sched.loop.call_soon(self._catch_up)
 
     async def _drain_then_idle(self) -> None:
-        await self._drain_blocked()
+        try:
+            await self._drain_blocked()
+        finally:
+            self._draining = False
+            if self._drained is not None:
+                self._drained.set()
+                self._drained = None
         self._idle()
 
     # --- supervision --------------------------------------------------------------------
@@ -823,7 +1019,10 @@ class NodeRunner:
             skipped=self.skipped,
             deadline_misses=self.misses,
             discarded=self.discarded,
-            dropped=self.discarded + sum(b.dropped for b in self.inputs.values()),
+            aborted=self.aborted,
+            dropped=self.discarded
+            + self.aborted
+            + sum(b.dropped for b in self.inputs.values()),
             errors=self.errors,
             restarts=self.restarts,
             last_start=None if self.last_start is None else rel(self.last_start),

@@ -342,6 +342,13 @@ class NodeSpec(_Strict):
         default=None,
         description="its worker busy-polls this long before (and after) each expected activation",
     )
+    pipeline: int | None = Field(
+        default=None,
+        ge=1,
+        le=64,
+        description="activations in flight to its worker when its trigger inputs are queues "
+        "(default 4; 1: one call at a time); latest inputs always have one",
+    )
     wcet: DurationMs | None = Field(
         default=None,
         description="execution-time budget (worst case) for flowrt check and admission control",

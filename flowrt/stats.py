@@ -110,10 +110,15 @@ class NodeStats(_Frozen):
     )
     deadline_misses: int
     discarded: int = Field(description="results dropped by a firm (discard) deadline")
+    aborted: int = Field(
+        default=0,
+        description="activations in flight to a worker lost when it (or the node) failed "
+        "under an earlier one (pipelined calls)",
+    )
     dropped: int = Field(
         default=0,
         description="data lost at this node: dropped values on its input edges + discarded "
-        "results; never unread samples",
+        "and aborted activations; never unread samples",
     )
     errors: int
     restarts: int

@@ -55,6 +55,7 @@ import sys
 import threading
 import time
 import traceback
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -94,9 +95,10 @@ _OP_REMOVE = 2  # (op, node_id) -> None (teardown)
 _OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
 _OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
 
-# Replies (worker -> main).
-_R_OK = 0  # (status, payload, run_seconds)
-_R_ERR = 1  # (status, formatted traceback, run_seconds)
+# Replies (worker -> main), in the order of the requests; ``index`` counts the requests the
+# worker has read (0, 1, 2, ...), so that the main side matches each reply to its call.
+_R_OK = 0  # (status, payload, run_seconds, index)
+_R_ERR = 1  # (status, formatted traceback, run_seconds, index)
 _R_FATAL = 2  # as _R_ERR, from an exception whose ``fatal`` is true: do not restart
 
 _SIGNALS_KILLED = {signal.SIGKILL, signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
@@ -406,13 +408,12 @@ def _set_pdeathsig() -> None:
         pass
 
 
-def _reply(conn: _BlockingConn, status: int, payload: Any, seconds: float) -> None:
+def _reply(conn: _BlockingConn, status: int, payload: Any, seconds: float, index: int) -> None:
     try:
-        data = pickle.dumps((status, payload, seconds), _PICKLE)
+        data = pickle.dumps((status, payload, seconds, index), _PICKLE)
     except Exception:
-        data = pickle.dumps(
-            (_R_ERR, "result could not be pickled:\n" + traceback.format_exc(), seconds), _PICKLE
-        )
+        why = "result could not be pickled:\n" + traceback.format_exc()
+        data = pickle.dumps((_R_ERR, why, seconds, index), _PICKLE)
     conn.send(data)
 
 
@@ -446,7 +447,7 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
         if entry is not None and hasattr(entry[1], "teardown"):
             run(entry[1].teardown())
 
-    while True:
+    for index in itertools.count():
         raw = conn.recv(expected.window(time.monotonic()) if expected.spin else None)
         if raw is None:
             break
@@ -487,15 +488,15 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
                 for nid in list(nodes):
                     with contextlib.suppress(Exception):
                         teardown(nid)
-                _reply(conn, _R_OK, None, time.perf_counter() - t0)
+                _reply(conn, _R_OK, None, time.perf_counter() - t0, index)
                 break
             else:
                 raise ValueError(f"unknown request {op!r}")
         except Exception as e:
             status = _R_FATAL if getattr(e, "fatal", False) is True else _R_ERR
-            _reply(conn, status, traceback.format_exc(), time.perf_counter() - t0)
+            _reply(conn, status, traceback.format_exc(), time.perf_counter() - t0, index)
         else:
-            _reply(conn, _R_OK, result, time.perf_counter() - t0)
+            _reply(conn, _R_OK, result, time.perf_counter() - t0, index)
     if loop is not None:
         loop.close()
     sock.close()
@@ -518,6 +519,8 @@ class _Call:
     future: asyncio.Future[Any] = field(compare=False)
     node: str = field(compare=False)
     watchdog: float | None = field(compare=False)
+    window: int = field(default=1, compare=False)  # >1: may be sent behind calls of its node
+    index: int = field(default=-1, compare=False)  # its place on the wire (see _R_OK)
 
 
 class _Protocol(asyncio.Protocol):
@@ -543,10 +546,18 @@ class _Protocol(asyncio.Protocol):
 
 
 class _Worker:
-    """One worker process seen from the event loop: a request queue with one call in flight.
+    """One worker process seen from the event loop: a request queue and the calls in flight.
 
-    One call at a time, so that the watchdog measures the call itself and not its wait, and so
-    that waiting calls can be dispatched by priority (a pool worker shared by several nodes).
+    Normally one call at a time, so that waiting calls can be dispatched by priority (a pool
+    worker shared by several nodes). A *pipelined* call (``window`` > 1, for a node whose
+    inputs are queues: every value is to be processed, in order) is written behind the calls
+    of the same node still in flight, up to ``window`` of them: the worker finds the next
+    request in its socket when it answers one and runs back to back, while the loop goes on
+    publishing. The worker serves requests in order, so replies come back in the order of the
+    calls (FIFO over one stream socket), each with the sequence number of its call. The
+    watchdog arms for the call at the head of the line only, when it starts running (sent
+    into an idle worker, or when the reply of the call before it arrives): it still measures
+    the call itself, not its wait.
     """
 
     def __init__(self, name: str, *, import_main: bool = False) -> None:
@@ -556,9 +567,10 @@ class _Worker:
         self.pid: int | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._transport: asyncio.Transport | None = None
-        self._inflight: _Call | None = None
+        self._inflight: deque[_Call] = deque()
         self._waiting: list[_Call] = []
         self._seq = itertools.count()
+        self._wire = itertools.count()  # requests written, matched by the replies' index
         self._timer: asyncio.TimerHandle | None = None
         self._hung_node: str | None = None
         self._exited = asyncio.Event()
@@ -604,25 +616,56 @@ class _Worker:
     # -- requests ----------------------------------------------------------------------------
 
     def request(
-        self, msg: tuple[Any, ...], node: str, priority: int, watchdog: float | None
+        self,
+        msg: tuple[Any, ...],
+        node: str,
+        priority: int,
+        watchdog: float | None,
+        window: int = 1,
     ) -> asyncio.Future[Any]:
-        """Queue a request; the future resolves to the reply payload or a WorkerError."""
+        """Queue a request; the future resolves to the reply payload or a WorkerError.
+
+        ``window`` > 1: send it at once behind calls of the same node already in flight, as
+        long as fewer than ``window`` are (see the class docstring).
+        """
         if not self.usable or self._loop is None:
             raise self.death_for(node)
         fut = self._loop.create_future()
         fut.add_done_callback(_retrieved)
-        call = _Call((-priority, next(self._seq)), pickle.dumps(msg, _PICKLE), fut, node, watchdog)
-        if self._inflight is None:
+        seq = next(self._seq)
+        call = _Call((-priority, seq), pickle.dumps(msg, _PICKLE), fut, node, watchdog, window)
+        if not self._inflight or self._may_follow(call):
             self._send(call)
         else:
             heapq.heappush(self._waiting, call)
         return fut
 
+    def _may_follow(self, call: _Call) -> bool:
+        """A pipelined call may go behind the calls in flight: all its node's, window not full."""
+        inflight = self._inflight
+        return (
+            call.window > 1
+            and len(inflight) < call.window
+            and not self._waiting
+            and all(c.node == call.node and c.window > 1 for c in inflight)
+        )
+
+    @property
+    def in_flight(self) -> int:
+        """Calls written to the worker and not answered yet."""
+        return len(self._inflight)
+
     def _send(self, call: _Call) -> None:
         assert self._transport is not None
-        assert self._loop is not None
-        self._inflight = call
+        call.index = next(self._wire)
+        self._inflight.append(call)
         self._transport.write(_HDR.pack(len(call.payload)) + call.payload)
+        if len(self._inflight) == 1:
+            self._arm(call)
+
+    def _arm(self, call: _Call) -> None:
+        """The call at the head of the line starts running now: its watchdog starts too."""
+        assert self._loop is not None
         if call.watchdog is not None:
             self._progress = _progress_of(self.pid, self._loop.time())
             self._call_cpu = 0.0 if self._progress is None else self._progress[1]
@@ -630,24 +673,39 @@ class _Worker:
 
     def _dispatch_next(self) -> None:
         while self._waiting:
-            call = heapq.heappop(self._waiting)
-            if not call.future.done():  # skip calls whose caller gave up
-                self._send(call)
+            call = self._waiting[0]
+            if call.future.done():  # skip calls whose caller gave up
+                heapq.heappop(self._waiting)
+                continue
+            if self._inflight and not self._may_follow(call):
+                return
+            heapq.heappop(self._waiting)
+            self._send(call)
+            if call.window <= 1:
                 return
 
     def _on_reply(self, raw: bytes) -> None:
-        call = self._inflight
-        if call is None:
+        if not self._inflight:
             return
-        self._inflight = None
+        call = self._inflight.popleft()
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
+        if self._inflight:
+            self._arm(self._inflight[0])
         fut = call.future
         try:
-            status, payload, seconds = pickle.loads(raw)
+            status, payload, seconds, index = pickle.loads(raw)
         except Exception:
-            status, payload, seconds = _R_ERR, traceback.format_exc(), 0.0
+            status, payload, seconds, index = _R_ERR, traceback.format_exc(), 0.0, call.index
+        if index != call.index:  # cannot happen on one stream socket; never hand out a
+            # result to the wrong activation: the worker is condemned like a crashed one
+            if not fut.done():
+                fut.set_exception(
+                    WorkerError(call.node, "crashed", f"reply {index} to call {call.index}")
+                )
+            self.kill()
+            return
         self.last_run_time = seconds
         if not fut.done():
             if status == _R_OK:
@@ -661,9 +719,9 @@ class _Worker:
 
     def _on_hung(self) -> None:
         self._timer = None
-        call = self._inflight
-        if call is None or not self.alive:
+        if not self._inflight or not self.alive:
             return
+        call = self._inflight[0]
         assert self._loop is not None
         assert call.watchdog is not None
         if self._reply_waiting():  # answered; the loop was late to read it (uvloop runs
@@ -756,9 +814,8 @@ class _Worker:
         self.death = self._classify(exitcode)
         if self._transport is not None:
             self._transport.abort()
-        calls = [self._inflight] if self._inflight is not None else []
-        calls += self._waiting
-        self._inflight = None
+        calls = [*self._inflight, *self._waiting]
+        self._inflight = deque()
         self._waiting = []
         for call in calls:
             if not call.future.done():
@@ -897,6 +954,8 @@ def _check_priority(priority: int) -> int:
 class _NodeExecutor:
     """What a node's executor does whatever its worker: call, re-prioritise, report."""
 
+    pipelined = False  # may calls be pipelined (submit)? Only a worker of its own
+
     def __init__(
         self,
         name: str,
@@ -973,6 +1032,20 @@ class _NodeExecutor:
             (_OP_CALL, self.nid, inputs), self.name, self.priority, self.watchdog
         )
 
+    def submit(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
+        """Send ``process(**inputs)`` now and return the future of its result (pipelined).
+
+        Up to ``window`` calls of this node are in flight at once (the caller bounds how many
+        it submits); they run in the worker in the order submitted and resolve in that order.
+        The same contract as :meth:`call` otherwise (descriptors, watchdog per call).
+        """
+        w = self._worker
+        if w is None:
+            raise RuntimeError(f"{self.name}: executor not started")
+        return w.request(
+            (_OP_CALL, self.nid, inputs), self.name, self.priority, self.watchdog, window
+        )
+
     def set_priority(self, priority: int) -> None:
         """Change the node's priority at run time (QoS); the worker re-applies its OS priority.
 
@@ -995,6 +1068,9 @@ class _NodeExecutor:
 class ProcessExecutor(_NodeExecutor):
     """Runs one node in its own worker process (``placement: process``).
 
+    Its calls may be pipelined (:meth:`submit`): the worker is the node's alone, so calls in
+    flight never hold up another node.
+
     Args:
         name: the node's name (used in errors and the process title).
         factory: picklable zero-argument callable returning the node object, called in the
@@ -1011,6 +1087,8 @@ class ProcessExecutor(_NodeExecutor):
         spin: seconds the worker busy-polls around the predicted instant of each call of a
             periodic node, so that it is awake when the call arrives (0: it sleeps).
     """
+
+    pipelined = True
 
     def __init__(
         self,

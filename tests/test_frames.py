@@ -135,13 +135,24 @@ def test_larger_frame_reallocates_a_free_slot(store: FrameStore) -> None:
     big.release()
 
 
-def test_pooled_frame_pickles_to_a_descriptor_of_the_same_memory(store: FrameStore) -> None:
+def test_pooled_frame_pickles_to_a_descriptor_of_the_same_memory(
+    store: FrameStore, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import weakref
+
+    import flowrt.frames
+
     pool = store.pool("cam")
     f = pool.reserve((1080, 1920, 3), np.uint8, source="cam", seq=5, pixel_format="BGR")
     assert f is not None
     f.data[:] = 7
     blob = pickle.dumps(f)
     assert len(blob) < 1000  # a 6 MB frame: only the descriptor travels
+    # Back in the owner process the descriptor is the frame itself (a worker's result).
+    assert pickle.loads(blob) is f
+    # As a worker sees it (it owns no slot): a read-only view of the same pages.
+    owner = flowrt.frames._occupants
+    monkeypatch.setattr(flowrt.frames, "_occupants", weakref.WeakValueDictionary())
     g = pickle.loads(blob)
     assert (g.source, g.seq, g.shape, g.pixel_format, g.shared) == (
         "cam",
@@ -153,10 +164,21 @@ def test_pooled_frame_pickles_to_a_descriptor_of_the_same_memory(store: FrameSto
     assert not g.data.flags.writeable  # readers cannot scribble on the producer's frame
     f.data[100, 200] = (1, 2, 3)  # written after the descriptor was made...
     assert tuple(g.data[100, 200]) == (1, 2, 3)  # ...and seen: the same pages, not a copy
-    # An attached frame pickled again travels with its pixels (a worker returning a frame).
-    h = pickle.loads(pickle.dumps(g))
-    assert not np.shares_memory(h.data, g.data)
-    del g, h
+    # Passed on unchanged, an attached frame goes back as its descriptor: in the owner, f.
+    back = pickle.dumps(g)
+    assert len(back) < 1000
+    monkeypatch.setattr(flowrt.frames, "_occupants", owner)
+    assert pickle.loads(back) is f
+    # New pixels travel as pixels (a worker returning an image it made).
+    h = pickle.loads(pickle.dumps(Frame(g.data + 1, source="cam", seq=5)))
+    assert not h.shared
+    assert int(h.data[0, 0, 0]) == 8
+    # Changed metadata on the same pixels: a copy, the shared original is left alone.
+    g.seq = 6
+    k = pickle.loads(pickle.dumps(g))
+    assert k is not f
+    assert (k.seq, f.seq, k.shared) == (6, 5, False)
+    del g, h, k
     f.release()
 
 

@@ -29,7 +29,30 @@ from .common import (
 )
 
 
+def _warm_forkserver(path: str) -> None:
+    """Start the workers' forkserver now if the file places any node in a worker.
+
+    The forkserver imports numpy and OpenCV before it can fork the first worker (~0.5 s,
+    more on a loaded machine); started here, before the graph is validated and its node
+    modules imported, that runs on another CPU while this process does the rest of its
+    start-up, instead of after it. A plain text search: a false positive costs an idle
+    process, a miss only the overlap (the runtime starts it anyway).
+    """
+    import re
+    import threading
+
+    try:
+        text = Path(path).read_text(errors="replace")
+    except OSError:
+        return
+    if re.search(r"placement\s*:\s*[\"']?(process|pool)\b", text):
+        from ..workers import start_forkserver
+
+        threading.Thread(target=start_forkserver, name="forkserver-warm", daemon=True).start()
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    _warm_forkserver(args.file)
     from ..runtime import Runtime
     from ..status import LiveTable, LogLines, render
 

@@ -1,0 +1,86 @@
+"""Frames out of workers: a frame passed on unchanged goes back as its slot's descriptor.
+
+A chain of ``placement: process`` relays must not copy pixels through the main process: the
+sink at the end sees the producer's pooled frame itself (shared, same slot), link counted so
+that the slot is recycled only when the last holder lets go. A frame the worker changed (new
+metadata, or new pixels) still travels as a copy.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import pytest
+from flowrt.nodes.basic import Relay
+
+from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
+
+pytestmark = pytest.mark.timeout(60)
+
+
+class Cam(Node):
+    frame = Output(Frame)
+
+    def setup(self) -> None:
+        self.n = 0
+
+    def process(self) -> Frame:
+        f = self.ctx.new_frame((48, 64, 3))
+        f.data[...] = self.n % 256
+        f.seq = self.n
+        self.n += 1
+        return f
+
+
+class Restamp(Node):
+    """Passes the pixels on but changes the metadata: must arrive as a copy."""
+
+    frame = Input(Frame)
+    output = Output(Frame)
+
+    def process(self, frame: Frame) -> Frame:
+        return Frame(frame.data, source="restamp", seq=frame.seq + 1000)
+
+
+class Check(Node):
+    frame = Input(Frame)
+    result = Output(object)
+
+    def process(self, frame: Frame) -> tuple[int, bool, int]:
+        return frame.seq, frame.shared, int(frame.data[0, 0, 0])
+
+
+def chain(middle: list[type[Node]]) -> Any:
+    g = GraphBuilder("chain")
+    g.add("cam", Cam, trigger={"timer": "20ms"})
+    prev = "cam.frame"
+    for i, cls in enumerate(middle):
+        g.add(
+            f"r{i}", cls, inputs={"input" if cls is Relay else "frame": prev}, placement="process"
+        )
+        prev = f"r{i}.output"
+    g.add("sink", Check, inputs={"frame": prev})
+    return g.build()
+
+
+@pytest.mark.parametrize(
+    ("middle", "shared", "offset"),
+    [([Relay, Relay, Relay], True, 0), ([Relay, Restamp], False, 1000)],
+)
+async def test_worker_relays_hand_the_slot_on(
+    middle: list[type[Node]], shared: bool, offset: int
+) -> None:
+    async with Runtime(chain(middle)) as rt:
+        sub = rt.subscribe("sink.result")
+        await rt.run(0.8)
+        got = sub.drain()
+        s = rt.stats()
+    assert len(got) >= 10
+    for seq, is_shared, pixel in got:
+        assert is_shared is shared
+        assert pixel == (seq - offset) % 256  # the producer's pixels, whichever way
+    assert all(n.errors == 0 for n in s.nodes)
+    pools = rt._frames.stats() if rt._frames is not None else []
+    assert all(p.slots <= p.max_slots for p in pools)
+    assert not [n for n in os.listdir("/dev/shm") if n.startswith(f"flowrt_{os.getpid()}_")]
