@@ -358,8 +358,9 @@ async def test_pacing_realtime_vs_fast() -> None:
     realtime = await run_capture({"fps": 20}, 1.0)
     assert 14 <= len(realtime.rows) <= 23  # 20 expected; generous for a loaded machine
     fast = await run_capture({"fps": 20, "pacing": "fast"}, 0.5)
-    assert len(fast.rows) >= 60  # renders take ~1 ms: hundreds expected
-    assert len(fast.rows) > 4 * len(realtime.rows) / 2
+    # renders take ~1 ms: hundreds expected on a quiet machine; at least 3x the paced rate
+    # on a loaded one
+    assert len(fast.rows) / 0.5 >= 3 * len(realtime.rows) / 1.0, len(fast.rows)
 
 
 # ---------------------------------------------------------------- files and image sequences
