@@ -47,15 +47,12 @@ import asyncio
 import contextlib
 import dataclasses
 import hmac
-import ipaddress
 import json
 import logging
 import math
 import multiprocessing
-import os
 import signal
 import socket
-import struct
 import time
 import urllib.error
 import urllib.request
@@ -66,6 +63,16 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .events import Event, NodeFailed
+from .serving import (
+    Conn,
+    Refuse,
+    Tracked,
+    hostname,
+    is_loopback,
+    lower_priority,
+    pack,
+    unpack,
+)
 from .spec import TimingOverride
 
 if TYPE_CHECKING:
@@ -83,19 +90,7 @@ REQUEST_TIMEOUT = 10.0  # seconds for a request's headers (from accept or the pr
 MAX_BODY = 1 << 20  # bytes of a request body
 READ_MAX_AGE = 0.2  # seconds a read (stats, events, ...) is served from the server's cache
 MAX_EVENTS = 1000  # ?n= of /events, /rtdb/NAME
-NICE = 19  # the server's nice level: it gets the CPU the graph leaves
 START_TIMEOUT = 30.0  # seconds for the server process to start (spawn + imports)
-_FRAME = struct.Struct(">II")  # header length, body length
-
-
-def is_loopback(host: str) -> bool:
-    """True for localhost and loopback addresses; any other name counts as exposed."""
-    if host.lower() in ("localhost", "localhost."):
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
 
 
 @dataclass(frozen=True)
@@ -298,7 +293,7 @@ class ControlServer:
         )
         proc.start()
         if proc.pid is not None:  # before its imports, which would compete with the loop
-            _lower_priority(proc.pid)
+            lower_priority(proc.pid)
         theirs.close()
         self._sock.close()  # the server process holds its own copy
         self._sock = None
@@ -336,10 +331,7 @@ class ControlServer:
         """Answer the server's requests one at a time, each between ticks."""
         try:
             while True:
-                head = await reader.readexactly(_FRAME.size)
-                hlen, blen = _FRAME.unpack(head)
-                header = json.loads(await reader.readexactly(hlen))
-                body = await reader.readexactly(blen) if blen else b""
+                header, body = await unpack(reader)
                 if header.get("op") == "ready":
                     if not ready.done():
                         ready.set_result(None)
@@ -356,7 +348,7 @@ class ControlServer:
                 writer = self._writer
                 if writer is None:
                     return
-                writer.write(_frame({"id": header.get("id"), "status": status}, data))
+                writer.write(pack({"id": header.get("id"), "status": status}, data))
                 await writer.drain()
         except (asyncio.IncompleteReadError, ConnectionError) as e:
             if not ready.done():
@@ -470,38 +462,15 @@ def _dumps(data: Any) -> bytes:
     return json.dumps(data, allow_nan=False).encode()
 
 
-def _frame(header: dict[str, Any], body: bytes = b"") -> bytes:
-    head = json.dumps(header).encode()
-    return _FRAME.pack(len(head), len(body)) + head + body
-
-
 # --- the server's process -----------------------------------------------------------------
-
-
-def _lower_priority(pid: int) -> None:
-    """SCHED_OTHER at nice NICE (0: this process)."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))  # never the loop's FIFO
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, pid, NICE)
 
 
 def _serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]) -> None:
     """The server process: below the runtime's priority, ended by the channel's end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
-    _lower_priority(0)
+    lower_priority(0)
     with contextlib.suppress(KeyboardInterrupt):
         asyncio.run(_Gateway(settings).run(sock, channel))
-
-
-@dataclass
-class _Conn:
-    """A client connection: when it must have sent its next request, and if one is running."""
-
-    transport: asyncio.BaseTransport
-    deadline: float
-    busy: int = 0
-    next_read: float = 0.0  # a read on this connection is answered no sooner than this
 
 
 class _Gateway:
@@ -512,7 +481,7 @@ class _Gateway:
         self.token: str | None = settings["token"]
         self.max_connections: int = settings["max_connections"]
         self.timeout: float = settings["request_timeout"]
-        self.conns: dict[asyncio.BaseTransport, _Conn] = {}
+        self.conns: dict[asyncio.BaseTransport, Conn] = {}
         self.refused = 0
         self.timed_out = 0
         self._next_id = 0
@@ -556,12 +525,12 @@ class _Gateway:
         def factory() -> asyncio.Protocol:
             if len(gateway.conns) >= gateway.max_connections:
                 gateway.refused += 1
-                return _Refuse()
-            return _Tracked(server(), gateway)
+                return Refuse()
+            return Tracked(server(), gateway.conns, gateway.timeout)
 
         listener = await loop.create_server(factory, sock=sock)
         sweeper = loop.create_task(self._sweep())
-        self._writer.write(_frame({"op": "ready"}))
+        self._writer.write(pack({"op": "ready"}))
         try:
             await self._read_answers(reader)
         finally:
@@ -576,9 +545,7 @@ class _Gateway:
         """Hand each answer to the request waiting for it; return when the runtime is gone."""
         try:
             while True:
-                hlen, blen = _FRAME.unpack(await reader.readexactly(_FRAME.size))
-                header = json.loads(await reader.readexactly(hlen))
-                body = await reader.readexactly(blen) if blen else b""
+                header, body = await unpack(reader)
                 fut = self._pending.pop(header["id"], None)
                 if fut is not None and not fut.done():
                     fut.set_result((int(header["status"]), body))
@@ -606,7 +573,7 @@ class _Gateway:
         self._next_id += 1
         fut: asyncio.Future[tuple[int, bytes]] = asyncio.get_running_loop().create_future()
         self._pending[self._next_id] = fut
-        self._writer.write(_frame({"id": self._next_id, "op": op}, _dumps(args)))
+        self._writer.write(pack({"id": self._next_id, "op": op}, _dumps(args)))
         return await fut
 
     async def read(self, op: str, args: dict[str, Any]) -> tuple[int, bytes]:
@@ -660,7 +627,7 @@ class _Gateway:
                             "missing or wrong bearer token",
                             {"WWW-Authenticate": 'Bearer realm="flowrt"'},
                         )
-                elif not is_loopback(_hostname(request.host)):
+                elif not is_loopback(hostname(request.host)):
                     return _error(403, f"Host {request.host!r} is not a loopback name")
                 if request.method == "POST" and request.content_type != "application/json":
                     return _error(415, "send a JSON body with Content-Type: application/json")
@@ -721,45 +688,6 @@ class _Gateway:
         return _reply(*await self.read("rtdb_record", {"name": name, "n": n}))
 
 
-class _Tracked(asyncio.Protocol):
-    """aiohttp's protocol for one connection, registered with the gateway while it is open."""
-
-    def __init__(self, inner: Any, gateway: _Gateway) -> None:
-        self.inner = inner
-        self.gateway = gateway
-        self.transport: asyncio.BaseTransport | None = None
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport
-        deadline = time.monotonic() + self.gateway.timeout
-        self.gateway.conns[transport] = _Conn(transport, deadline)
-        self.inner.connection_made(transport)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        if self.transport is not None:
-            self.gateway.conns.pop(self.transport, None)
-        self.inner.connection_lost(exc)
-
-    def data_received(self, data: bytes) -> None:
-        self.inner.data_received(data)
-
-    def eof_received(self) -> bool | None:
-        return self.inner.eof_received()  # type: ignore[no-any-return]
-
-    def pause_writing(self) -> None:
-        self.inner.pause_writing()
-
-    def resume_writing(self) -> None:
-        self.inner.resume_writing()
-
-
-class _Refuse(asyncio.Protocol):
-    """Over MAX_CONNECTIONS: close at once (the client sees the connection reset)."""
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        transport.close()
-
-
 def _no_constant(name: str) -> Any:
     raise ValueError(f"{name} is not a number here")
 
@@ -770,12 +698,6 @@ def _one_line(e: Exception) -> str:
             f"{'.'.join(str(x) for x in err['loc']) or 'body'}: {err['msg']}" for err in e.errors()
         )
     return str(e).splitlines()[0] if str(e) else type(e).__name__
-
-
-def _hostname(host: str) -> str:
-    if host.startswith("["):
-        return host[1 : host.find("]")] if "]" in host else host
-    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
 
 
 def _int_query(request: web.Request, key: str, default: int) -> int:

@@ -25,7 +25,7 @@ from .clock import Clock, SystemClock
 from .edges import EMPTY, Buffer, make_buffer
 from .eventloop import run as run
 from .events import Event, HealthAlert, ModeChanged, NodeGaveUp, NodeSwapped, RealtimeStatus
-from .frames import Frame
+from .frames import SHM_DIR, Frame, FrameStore
 from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
@@ -338,7 +338,7 @@ class Runtime:
         self._nice_before = None
 
     def _worker_executor(self, runner: NodeRunner, factory: NodeFactory) -> Executor:
-        from . import workers
+        from .workers import PoolExecutor, ProcessExecutor
 
         spec = runner.rnode.spec
         watchdog = None if spec.watchdog is None else spec.watchdog / 1000
@@ -355,10 +355,10 @@ class Runtime:
         }
         if spec.placement is Placement.pool:
             if self._pool is None:
-                self._pool = workers.PoolExecutor(realtime=rt_workers, nice_of=nice_of)
+                self._pool = PoolExecutor(realtime=rt_workers, nice_of=nice_of)
             ex: Any = self._pool.executor_for(runner.name, factory, **options)
         else:
-            ex = workers.ProcessExecutor(
+            ex = ProcessExecutor(
                 runner.name, factory, realtime=rt_workers, nice_of=nice_of, **options
             )
         ex.on_starved = self._worker_starved
@@ -909,20 +909,15 @@ def _freeze_heap() -> None:
     gc.freeze()
 
 
-def _frame_store() -> Any:
-    """The shared-memory frame store, once :mod:`flowrt.frames` provides it."""
-    from . import frames
-
-    store_cls = getattr(frames, "FrameStore", None)
-    if store_cls is None:
-        return None
+def _frame_store() -> FrameStore:
+    """The shared-memory frame store, after reclaiming what a killed runtime left."""
     with contextlib.suppress(Exception):
-        reclaimed = store_cls.reclaim_orphans()
+        reclaimed = FrameStore.reclaim_orphans()
         if reclaimed:
             log.info(
                 "reclaimed %d shared-memory segment%s left in %s by a runtime that was killed",
                 reclaimed,
                 "" if reclaimed == 1 else "s",
-                getattr(frames, "SHM_DIR", "/dev/shm"),
+                SHM_DIR,
             )
-    return store_cls()
+    return FrameStore()

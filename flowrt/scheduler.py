@@ -688,23 +688,16 @@ class NodeRunner:
         if self._acts.get(act) is not False:
             return  # finished, or already counted
         self._acts[act] = True
-        self.misses += 1
-        discard = self.rnode.spec.miss_policy is MissPolicy.discard
-        assert self.timing.deadline is not None
-        self.sched.emit(
-            DeadlineMissed(
-                self.sched.rel(self.sched.clock.now()),
-                self.name,
-                self.timing.deadline * 1000,
-                True,
-                discard,
-            )
-        )
+        self._count_miss()
 
     def _deadline_hit(self, act: int) -> None:
         if act != self.current or not self.busy or self.missed_current:
             return
         self.missed_current = True
+        self._count_miss()
+
+    def _count_miss(self) -> None:
+        """A deadline passed with the activation still running: counted and an event, now."""
         self.misses += 1
         discard = self.rnode.spec.miss_policy is MissPolicy.discard
         assert self.timing.deadline is not None
@@ -1020,9 +1013,7 @@ class NodeRunner:
             deadline_misses=self.misses,
             discarded=self.discarded,
             aborted=self.aborted,
-            dropped=self.discarded
-            + self.aborted
-            + sum(b.dropped for b in self.inputs.values()),
+            dropped=self.discarded + self.aborted + sum(b.dropped for b in self.inputs.values()),
             errors=self.errors,
             restarts=self.restarts,
             last_start=None if self.last_start is None else rel(self.last_start),

@@ -76,7 +76,7 @@ from typing import Annotated, Any
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
 
-from flowrt import Frame, Input, InputTrigger, Node
+from flowrt import Frame, Input, InputTrigger, Node, serving
 
 from . import display_server
 from .display_render import Mark, render
@@ -244,7 +244,7 @@ class Display(Node):
 
         @model_validator(mode="after")
         def _token_beyond_loopback(self) -> Display.Params:
-            if not self.token and not display_server.is_loopback(self.host):
+            if not self.token and not serving.is_loopback(self.host):
                 raise ValueError(
                     f"serving the live view on {self.host} needs a token (params.token, or "
                     "flowrt run --display-token): any machine that reaches it sees the cameras"
@@ -311,7 +311,7 @@ class Display(Node):
         try:
             self._proc.start()
             if self._proc.pid is not None:
-                display_server.lower_priority(self._proc.pid)
+                serving.lower_priority(self._proc.pid)
         finally:
             theirs.close()
             sock.close()  # the server's process holds its own copy
@@ -353,7 +353,7 @@ class Display(Node):
         """Answer the server: a frame it wants, statistics. Bounded whatever its clients do."""
         try:
             while True:
-                header, _ = await display_server.unpack(reader)
+                header, _ = await serving.unpack(reader)
                 op = header.get("op")
                 if op == "ready":
                     ready.set_result(None)
@@ -379,7 +379,7 @@ class Display(Node):
 
     def _send(self, header: dict[str, Any], body: bytes = b"") -> None:
         if self._writer is not None and not self._writer.is_closing():
-            self._writer.write(display_server.pack(header, body))
+            self._writer.write(serving.pack(header, body))
 
     def _send_stats(self) -> None:
         try:

@@ -24,9 +24,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
-import ipaddress
 import json
-import os
 import pickle
 import signal
 import socket
@@ -38,9 +36,19 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
 
+from flowrt.serving import (
+    Conn,
+    Refuse,
+    Tracked,
+    hostname,
+    is_loopback,
+    lower_priority,
+    pack,
+    unpack,
+)
+
 from .display_render import Mark, render
 
-FRAME = struct.Struct(">II")  # header length, body length
 STATS_MAX_AGE = 0.2  # seconds /stats.json is served from this process's cache
 STATS_WAIT = 2.0  # seconds to wait for the node's statistics
 SOURCE_WAIT = 3.0  # seconds a request for a source that has sent no frame yet waits for one
@@ -49,45 +57,7 @@ FIRST_WAIT = 5.0  # seconds a snapshot waits for a source's first encoded frame
 HEADER_TIMEOUT = 10.0  # seconds a connection has to send a request's headers
 CLOSE_TIMEOUT = 1.0  # seconds given to clients to close at the end
 COOKIE = "flowrt_view"  # holds the token once the page was opened with ?token=
-NICE = 19
 JPEG_PART = "Content-Type: image/jpeg\r\nContent-Length: "
-
-
-def pack(header: dict[str, Any], body: bytes = b"") -> bytes:
-    head = json.dumps(header).encode()
-    return FRAME.pack(len(head), len(body)) + head + body
-
-
-async def unpack(reader: asyncio.StreamReader) -> tuple[dict[str, Any], bytes]:
-    hlen, blen = FRAME.unpack(await reader.readexactly(FRAME.size))
-    header = json.loads(await reader.readexactly(hlen))
-    return header, (await reader.readexactly(blen) if blen else b"")
-
-
-def is_loopback(host: str) -> bool:
-    """True for localhost and loopback addresses; any other name counts as exposed."""
-    if host.lower() in ("localhost", "localhost."):
-        return True
-    try:
-        return ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        return False
-
-
-def hostname(host: str) -> str:
-    """The name in a Host header, without its port."""
-    if host.startswith("["):
-        return host[1 : host.find("]")] if "]" in host else host
-    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
-
-
-def lower_priority(pid: int) -> None:
-    """SCHED_OTHER at nice NICE: called by the parent right after the start (the child's own
-    imports would otherwise run at the loop's priority, competing with it for a second)."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))  # never the loop's FIFO
-    with contextlib.suppress(OSError):
-        os.setpriority(os.PRIO_PROCESS, pid, NICE)
 
 
 def serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]) -> None:
@@ -115,15 +85,6 @@ class _Shown:
     encodes: int = 0
 
 
-@dataclass
-class _Conn:
-    """An open connection: when it must have sent its next request, and if one is running."""
-
-    transport: asyncio.BaseTransport
-    deadline: float
-    busy: int = 0
-
-
 class _Client:
     """A websocket client: what it was last sent per source and whether it acked it."""
 
@@ -148,7 +109,7 @@ class ViewServer:
         self.names: set[str] = set()  # inputs that have sent frames, as the node says
         self.clients: set[_Client] = set()
         self.streams = 0
-        self.conns: dict[asyncio.BaseTransport, _Conn] = {}
+        self.conns: dict[asyncio.BaseTransport, Conn] = {}
         self.refused = 0
         self.any_change = asyncio.Event()
         self._asked: dict[str, int] = {}  # source -> the n a ``want`` was sent after
@@ -185,8 +146,8 @@ class ViewServer:
         def factory() -> asyncio.Protocol:
             if len(self.conns) >= self.max_clients:
                 self.refused += 1
-                return _Refuse()
-            return _Tracked(server(), self.conns, self.header_timeout)
+                return Refuse()
+            return Tracked(server(), self.conns, self.header_timeout)
 
         listener = await loop.create_server(factory, sock=sock)
         sweeper = loop.create_task(self._sweep())
@@ -546,44 +507,3 @@ def _render(header: dict[str, Any], frame: bytes) -> tuple[bytes, bytes]:
         for m in header["marks"]
     ]
     return render(data, header["pixel_format"], marks, int(header["quality"]))
-
-
-class _Tracked(asyncio.Protocol):
-    """aiohttp's protocol for one connection, counted while it is open."""
-
-    def __init__(
-        self, inner: Any, conns: dict[asyncio.BaseTransport, _Conn], timeout: float
-    ) -> None:
-        self.inner = inner
-        self.conns = conns
-        self.timeout = timeout
-        self.transport: asyncio.BaseTransport | None = None
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        self.transport = transport
-        self.conns[transport] = _Conn(transport, time.monotonic() + self.timeout)
-        self.inner.connection_made(transport)
-
-    def connection_lost(self, exc: Exception | None) -> None:
-        if self.transport is not None:
-            self.conns.pop(self.transport, None)
-        self.inner.connection_lost(exc)
-
-    def data_received(self, data: bytes) -> None:
-        self.inner.data_received(data)
-
-    def eof_received(self) -> bool | None:
-        return self.inner.eof_received()  # type: ignore[no-any-return]
-
-    def pause_writing(self) -> None:
-        self.inner.pause_writing()
-
-    def resume_writing(self) -> None:
-        self.inner.resume_writing()
-
-
-class _Refuse(asyncio.Protocol):
-    """Over ``max_clients``: closed at once."""
-
-    def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        transport.close()

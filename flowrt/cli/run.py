@@ -251,7 +251,7 @@ def _display_options(graph: Graph, args: argparse.Namespace) -> str | None:
 
 
 def _loopback(host: str) -> bool:
-    from ..control import is_loopback
+    from ..serving import is_loopback
 
     return is_loopback(host)
 
