@@ -124,6 +124,11 @@ class Arbiter(Node):
         self.last_t: float | None = None
         self.acc = [0.0] * len(self.keys)
 
+    def params_changed(self, old: Any) -> None:
+        """A mode's weights arrive between activations; new sources need their slots."""
+        if list(self.params.sources) != self.names:
+            self._size(list(self.params.sources))
+
     def _size(self, names: list[str]) -> None:
         self.names = names
         n = len(names)
@@ -152,8 +157,6 @@ class Arbiter(Node):
         dt = 0.0 if self.last_t is None else max(0.0, now - self.last_t)
         self.last_t = now
         p = self.params
-        if list(p.sources) != self.names:  # a mode changed the sources
-            self._size(list(p.sources))
         locked = False
         for lock in p.locks:
             value = inputs.get(lock)
