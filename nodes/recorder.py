@@ -18,6 +18,10 @@ error state at once (red in the status table, a ``HealthAlert``); a write error 
 stops the recording, keeps the file, says why, and the graph goes on. When a recording stops
 its per-stream table is logged and saved as ``streams.json`` in the session.
 
+With ``split_size`` (``4GiB``) and/or ``split_duration`` (``10m``) a session holds several
+files, ``NAME_NNN_000.mcap``, ``NAME_NNN_001.mcap`` ..., each a complete, standalone MCAP
+(:mod:`flowrt.recording.split`); the per-stream table counts across all of them.
+
 At run time ``flowrt ctl record start|stop`` (RTDB record ``flowrt.record.NODE``) starts a new
 session or closes the current one.
 """
@@ -31,10 +35,18 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from flowrt import Frame, Input, InputTrigger, Node
-from flowrt.recording import RecordingWriter, build_report, new_session, nominal_rates
+from flowrt.recording import (
+    RecordingWriter,
+    SplitPolicy,
+    build_report,
+    new_session,
+    nominal_rates,
+    parse_duration,
+    parse_size,
+)
 from flowrt.recording.report import RecordingReport, report_text
 from flowrt.recording.session import SESSION_FILE, session_metadata, timing_json
 
@@ -47,7 +59,7 @@ STATUS_RECORD = "flowrt.recording."
 
 
 class Recorder(Node):
-    """Records every input into ``path/NAME_NNN/NAME_NNN.mcap``; see the module doc."""
+    """Records every input into ``path/NAME_NNN/NAME_NNN.mcap`` (or its parts); see above."""
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -72,7 +84,23 @@ class Recorder(Node):
         crc: bool = Field(
             default=True, description="chunk CRCs: damage found; off halves the CPU cost"
         )
+        split_size: int | None = Field(
+            default=None, description="start a new file past this size: 4GiB, 500MB, bytes"
+        )
+        split_duration: float | None = Field(
+            default=None, description="start a new file after this long: 10m, 30s, seconds"
+        )
         graph_file: str | None = Field(default=None, description="attached as graph.yaml")
+
+        @field_validator("split_size", mode="before")
+        @classmethod
+        def _size(cls, v: Any) -> Any:
+            return None if v is None else parse_size(str(v))
+
+        @field_validator("split_duration", mode="before")
+        @classmethod
+        def _duration(cls, v: Any) -> Any:
+            return None if v is None else parse_duration(str(v))
         log_report: bool = Field(default=True, description="log the table when a recording stops")
 
     any_inputs = Input(object, required=False, doc="any stream, under its topic name")
@@ -130,6 +158,7 @@ class Recorder(Node):
             crc=p.crc,
             direct_io=p.direct_io,
             on_written=self._written,
+            split=SplitPolicy(p.split_size, p.split_duration),
         )
         attachments = [("timing.json", "application/json", timing_json(stats))]
         if p.graph_file:

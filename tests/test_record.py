@@ -407,7 +407,8 @@ def test_record_then_info_and_replay_from_the_cli(graph_file: Path, tmp_path: Pa
     assert {s["topic"] for s in table["streams"]} == {"cam.frame", "cam.truth"}
     r = flowrt_cli("info", str(session), "--json")
     assert r.returncode == 0, r.stderr
-    (info,) = json.loads(r.stdout)
+    info = json.loads(r.stdout)  # the session as one recording, its one file in "files"
+    assert [Path(f["path"]).name for f in info["files"]] == ["drive_001.mcap"]
     assert info["closed_cleanly"] is True
     assert {s["topic"]: s["schema_name"] for s in info["streams"]} == {
         "cam.frame": "foxglove.CompressedImage",

@@ -16,7 +16,6 @@ import argparse
 import asyncio
 import datetime as dt
 import fnmatch
-import json
 import signal
 from collections.abc import Callable
 from pathlib import Path
@@ -92,6 +91,21 @@ def _image_formats(text: str | None, topics: list[str]) -> dict[str, str] | str:
     return out
 
 
+def _split_policy(args: argparse.Namespace) -> Any:
+    """The ``--split-size`` / ``--split-duration`` policy, or the one-line reason it is bad."""
+    from ..recording.split import SplitPolicy, parse_duration, parse_size
+
+    try:
+        size = None if args.split_size is None else parse_size(args.split_size)
+    except ValueError as e:
+        return f"--split-size {e}"
+    try:
+        duration = None if args.split_duration is None else parse_duration(args.split_duration)
+    except ValueError as e:
+        return f"--split-duration {e}"
+    return SplitPolicy(size, duration)
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     from ..graph import resolve
     from ..recording import check_writable, new_session
@@ -114,6 +128,10 @@ def cmd_record(args: argparse.Namespace) -> int:
             markup=False,
         )
         return EXIT_BAD_GRAPH
+    split = _split_policy(args)
+    if isinstance(split, str):
+        err.print(f"flowrt record: {split}", markup=False)
+        return EXIT_BAD_GRAPH
     images = _image_formats(args.images, topics)
     if isinstance(images, str):
         err.print(f"flowrt record: {images}", markup=False)
@@ -131,6 +149,8 @@ def cmd_record(args: argparse.Namespace) -> int:
         "images": images,
         "compression": args.compression,
         "crc": not args.no_crc,
+        "split_size": split.size,
+        "split_duration": split.duration,
         "log_report": False,  # printed below, once
     }
     try:
@@ -228,28 +248,30 @@ def _hz(x: float | None) -> str:
     return "-" if x is None else f"{x:.2f}"
 
 
-def print_info(console: Console, info: Any) -> None:
+def print_info(console: Console, info: Any, streams_only: bool = False) -> None:
+    """One file: whether it is whole, its streams, metadata, attachments and graph."""
     from rich.table import Table
 
     from ..recording.report import human_bytes
 
-    console.print(f"[bold]{info.path}[/bold]  {human_bytes(info.size)}", highlight=False)
-    if info.closed_cleanly:
-        console.print("closed cleanly: yes (summary and index read)", highlight=False)
-    else:
-        why = info.damage or "no summary"
+    if not streams_only:
+        console.print(f"[bold]{info.path}[/bold]  {human_bytes(info.size)}", highlight=False)
+        if info.closed_cleanly:
+            console.print("closed cleanly: yes (summary and index read)", highlight=False)
+        else:
+            why = info.damage or "no summary"
+            console.print(
+                f"[bold red]NOT closed cleanly[/bold red]: {why}"
+                + (f" at byte {info.damage_offset}" if info.damage_offset is not None else "")
+                + f"; recovered {info.messages} messages in {info.chunks} chunks "
+                f"(flowrt info --repair rewrites the summary)",
+                highlight=False,
+            )
         console.print(
-            f"[bold red]NOT closed cleanly[/bold red]: {why}"
-            + (f" at byte {info.damage_offset}" if info.damage_offset is not None else "")
-            + f"; recovered {info.messages} messages in {info.chunks} chunks "
-            f"(flowrt info --repair rewrites the summary)",
+            f"start {_when(info.start)}  end {_when(info.end)}  duration {info.duration:.3f} s"
+            f"  messages {info.messages}  chunks {info.chunks}",
             highlight=False,
         )
-    console.print(
-        f"start {_when(info.start)}  end {_when(info.end)}  duration {info.duration:.3f} s  "
-        f"messages {info.messages}  chunks {info.chunks}",
-        highlight=False,
-    )
     t = Table(title_justify="left")
     for col in ("stream", "schema", "count", "Hz mean", "Hz min", "Hz max", "gaps", "size"):
         t.add_column(col, justify="left" if col in ("stream", "schema") else "right")
@@ -280,6 +302,46 @@ def print_info(console: Console, info: Any) -> None:
     if info.graph:
         console.print("recorded graph:", style="bold")
         console.print(info.graph.rstrip(), markup=False, highlight=False)
+
+
+def print_session(console: Console, session: Any) -> None:
+    """A session of several parts: its files, then the streams over all of them."""
+    from rich.table import Table
+
+    from ..recording.report import human_bytes
+
+    if len(session.files) == 1:
+        print_info(console, session.files[0])
+        return
+    console.print(
+        f"[bold]{session.path}[/bold]  {len(session.files)} files  {human_bytes(session.size)}",
+        highlight=False,
+    )
+    files = Table(title_justify="left")
+    for col in ("file", "size", "start", "duration", "messages", "closed cleanly"):
+        files.add_column(col, justify="left" if col in ("file", "start") else "right")
+    for f in session.files:
+        ok = "yes" if f.closed_cleanly else f"[bold red]NO[/bold red]: {f.damage or 'no summary'}"
+        files.add_row(
+            Path(f.path).name,
+            human_bytes(f.size),
+            _when(f.start),
+            f"{f.duration:.3f} s",
+            str(f.messages),
+            ok,
+        )
+    console.print(files)
+    console.print(
+        f"start {_when(session.start)}  end {_when(session.end)}  "
+        f"duration {session.duration:.3f} s  messages {session.messages}",
+        highlight=False,
+    )
+    first = session.files[0]
+    print_info(
+        console,
+        first.model_copy(update={"streams": session.streams}),
+        streams_only=True,
+    )
 
 
 def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
@@ -315,44 +377,40 @@ def _print_session_report(console: Console, path: Path) -> None:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from ..recording.reader import repair, scan
+    from ..recording.reader import repair, scan, scan_session
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     console = stdout_console()
     files = _files(args.path, err, "info")
     if files is None:
         return EXIT_BAD_GRAPH
-    status = EXIT_OK
-    out = []
     for f in files:
         if _not_mcap(f):
             err.print(f"flowrt info: {f}: not an MCAP file", markup=False)
             return EXIT_BAD_GRAPH
-        info = scan(f)
-        if args.repair and not info.closed_cleanly:
-            fixed, kept = repair(f)
-            err.print(
-                f"flowrt info: {fixed}: rewritten with {kept} messages and a summary; "
-                f"the original is kept as {fixed.stem}.damaged.mcap",
-                markup=False,
-            )
-            info = scan(fixed)
-        if not info.closed_cleanly:
-            status = EXIT_FAILED
-        out.append(info)
+    if args.repair:
+        for f in files:
+            if not scan(f).closed_cleanly:
+                fixed, kept = repair(f)
+                err.print(
+                    f"flowrt info: {fixed}: rewritten with {kept} messages and a summary; "
+                    f"the original is kept as {fixed.stem}.damaged.mcap",
+                    markup=False,
+                )
+    session = scan_session(args.path)
     if args.json:
-        print(json.dumps([i.model_dump(mode="json") for i in out], indent=1))
+        print(session.model_dump_json(indent=1))
     else:
-        for info in out:
-            print_info(console, info)
+        print_session(console, session)
         _print_session_report(console, Path(args.path))
-    if status != EXIT_OK:
+    if not session.closed_cleanly:
         err.print(
-            f"flowrt info: {', '.join(i.path for i in out if not i.closed_cleanly)} "
+            f"flowrt info: {', '.join(i.path for i in session.files if not i.closed_cleanly)} "
             "not closed cleanly (damaged or the recorder was killed)",
             markup=False,
         )
-    return status
+        return EXIT_FAILED
+    return EXIT_OK
 
 
 # --- replay ------------------------------------------------------------------------------
@@ -371,7 +429,7 @@ def _seconds(text: str) -> float:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from ..graph import Graph, resolve
-    from ..recording.reader import scan
+    from ..recording.reader import scan_session
     from ..registry import resolve_kind
     from ..spec import NodeSpec
 
@@ -383,19 +441,20 @@ def cmd_replay(args: argparse.Namespace) -> int:
     files = _files(args.path, err, "replay")
     if files is None:
         return EXIT_BAD_GRAPH
-    path = files[0]
-    if _not_mcap(path):
-        err.print(f"flowrt replay: {path}: not an MCAP file", markup=False)
-        return EXIT_BAD_GRAPH
-    info = scan(path)
+    for f in files:
+        if _not_mcap(f):
+            err.print(f"flowrt replay: {f}: not an MCAP file", markup=False)
+            return EXIT_BAD_GRAPH
+    path = Path(args.path)
+    info = scan_session(path)
     if not info.messages:
         why = info.damage or "no messages"
         err.print(f"flowrt replay: {path}: nothing to replay ({why})", markup=False)
         return EXIT_BAD_GRAPH
     if not info.closed_cleanly:
         err.print(
-            f"flowrt replay: {path} was not closed cleanly ({info.damage or 'no summary'}): "
-            f"replaying the {info.messages} messages before the damage",
+            f"flowrt replay: {path} was not closed cleanly ({info.damage}): "
+            f"replaying the messages before the damage",
             markup=False,
         )
     if args.start >= info.duration and info.duration > 0:
@@ -468,8 +527,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         err.print(f"flowrt replay: {e}", markup=False)
         return EXIT_BAD_GRAPH
     total = max(0.0, info.duration - args.start) / args.rate
+    parts = f", {len(files)} files" if len(files) > 1 else ""
     console.print(
-        f"replaying {path} ({len(streams)} stream(s), {info.duration:.1f} s) "
+        f"replaying {path} ({len(streams)} stream(s), {info.duration:.1f} s{parts}) "
         f"at x{args.rate:g} into {', '.join(sorted(by_node))}",
         highlight=False,
     )
@@ -534,6 +594,16 @@ def add_parsers(sub: Any) -> None:
         "--no-crc",
         action="store_true",
         help="no chunk CRCs: half the writer's CPU, but damage inside a chunk goes unseen",
+    )
+    rec.add_argument(
+        "--split-size",
+        metavar="SIZE",
+        help="start a new file past this size: 4GiB, 500MB, 1.5G",
+    )
+    rec.add_argument(
+        "--split-duration",
+        metavar="T",
+        help="start a new file after this long: 10m, 30s, 1h",
     )
     rec.add_argument("--no-ui", action="store_true", help="log lines instead of the live table")
     rec.add_argument("--stats-json", metavar="PATH", help="write the run's final statistics")

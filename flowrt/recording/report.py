@@ -124,7 +124,7 @@ def build_report(
     window = max(lasts) - min(firsts) if firsts else None
     return RecordingReport(
         session=session,
-        files=[str(writer.path)],
+        files=[str(f) for f in writer.files] or [str(writer.path)],
         start_time=start_time,
         duration=duration,
         error=writer.error,
