@@ -101,6 +101,7 @@ class Recorder(Node):
         @classmethod
         def _duration(cls, v: Any) -> Any:
             return None if v is None else parse_duration(str(v))
+
         log_report: bool = Field(default=True, description="log the table when a recording stops")
 
     any_inputs = Input(object, required=False, doc="any stream, under its topic name")

@@ -359,8 +359,11 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
 
 
 def _not_mcap(path: Path) -> bool:
+    """True for a file that is not MCAP; one cut inside its magic (killed at creation) is."""
+    magic = b"\x89MCAP0\r\n"
     with open(path, "rb") as f:
-        return f.read(8) != b"\x89MCAP0\r\n"
+        head = f.read(8)
+    return not magic.startswith(head) or (not head and path.suffix != ".mcap")
 
 
 def _print_session_report(console: Console, path: Path) -> None:
@@ -452,9 +455,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         err.print(f"flowrt replay: {path}: nothing to replay ({why})", markup=False)
         return EXIT_BAD_GRAPH
     if not info.closed_cleanly:
+        before = 0  # the replay stops at the first damage, in whichever file
+        for part in info.files:
+            before += part.messages
+            if not part.closed_cleanly:
+                break
         err.print(
             f"flowrt replay: {path} was not closed cleanly ({info.damage}): "
-            f"replaying the messages before the damage",
+            f"replaying the {before} messages before the damage",
             markup=False,
         )
     if args.start >= info.duration and info.duration > 0:
