@@ -18,6 +18,12 @@ error state at once (red in the status table, a ``HealthAlert``); a write error 
 stops the recording, keeps the file, says why, and the graph goes on. When a recording stops
 its per-stream table is logged and saved as ``streams.json`` in the session.
 
+A detection stream (a tracker's output: centroid, bbox and the ``source``/``timestamp`` of
+its frame) whose camera is recorded too is also written as ``foxglove.ImageAnnotations`` on
+``CAMERA/annotations/DETECTIONS`` (``cam.frame/annotations/ball.detection``), stamped with
+its frame's time, so Foxglove's image panel draws the detections on the frames
+(``annotations: false`` turns it off).
+
 With ``split_size`` (``4GiB``) and/or ``split_duration`` (``10m``) a session holds several
 files, ``NAME_NNN_000.mcap``, ``NAME_NNN_001.mcap`` ..., each a complete, standalone MCAP
 (:mod:`flowrt.recording.split`); the per-stream table counts across all of them.
@@ -47,6 +53,7 @@ from flowrt.recording import (
     parse_duration,
     parse_size,
 )
+from flowrt.recording.encoding import Overlay, annotations_topic, is_detection
 from flowrt.recording.report import RecordingReport, report_text
 from flowrt.recording.session import SESSION_FILE, session_metadata, timing_json
 
@@ -90,6 +97,9 @@ class Recorder(Node):
         split_duration: float | None = Field(
             default=None, description="start a new file after this long: 10m, 30s, seconds"
         )
+        annotations: bool = Field(
+            default=True, description="detections also as ImageAnnotations on their camera"
+        )
         graph_file: str | None = Field(default=None, description="attached as graph.yaml")
 
         @field_validator("split_size", mode="before")
@@ -121,6 +131,7 @@ class Recorder(Node):
         self._started_wall = 0.0
         self._seq: dict[str, int] = {}
         self._sources: dict[str, str] = {}
+        self._cameras: dict[str, str] = {}  # frame source node -> its recorded topic
         self._said_lost = 0
         self._said_error = False
         self._next_command_check = 0.0
@@ -274,7 +285,24 @@ class Recorder(Node):
                 self._seq[topic] = seq + 1
             if not writer.submit(topic, value, t, seq) and is_frame:
                 value.release()
+            if is_frame:
+                self._cameras.setdefault(value.source, topic)
+        if self.params.annotations:
+            for topic, value in inputs.items():
+                if value is not None and not isinstance(value, Frame) and is_detection(value):
+                    self._overlay(writer, topic, value)
         self._watch(writer)
+
+    def _overlay(self, writer: RecordingWriter, topic: str, det: Any) -> None:
+        """The detection again, as annotations on its camera's image (when that is recorded)."""
+        camera = self._cameras.get(det.source)
+        if camera is None:
+            return
+        name = annotations_topic(camera, topic)
+        if name not in writer.streams:
+            writer.declare(name, self._source_of(topic), annotates=camera)
+        seq = det.seq if isinstance(getattr(det, "seq", None), int) and det.seq >= 0 else 0
+        writer.submit(name, Overlay(det), det.timestamp, seq)
 
     def _watch(self, writer: RecordingWriter) -> None:
         """Say at once when something is lost or the disk failed (red in the table)."""

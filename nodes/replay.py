@@ -34,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from flowrt import Frame, LoopTrigger, Node, Output
 from flowrt.recording import Decoder
+from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.reader import Recording, iter_messages, iter_session
 from flowrt.recording.session import mcap_files
 
@@ -125,6 +126,8 @@ class ReplayBase(Node):
             if m.log_time < skip_before:
                 continue
             name = m.schema.name if m.schema is not None else ""
+            if name == ANNOTATIONS_SCHEMA:
+                continue  # drawn from the detections, which are replayed themselves
             image = self.decoder.is_image(name)
             port = self._port(m.topic, m.source, image)
             if port is None:

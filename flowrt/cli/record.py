@@ -471,7 +471,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
             markup=False,
         )
         return EXIT_BAD_GRAPH
-    streams = info.streams
+    from ..recording.encoding import ANNOTATIONS_SCHEMA
+
+    # annotations are drawn from the detections, which are replayed themselves
+    streams = [s for s in info.streams if s.schema_name != ANNOTATIONS_SCHEMA]
     patterns = split_patterns(args.topics)
     if patterns:
         names = [s.topic for s in streams]

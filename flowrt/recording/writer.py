@@ -39,7 +39,15 @@ import numpy as np
 from ..frames import Frame
 from ..stats import Running
 from .directio import open_direct
-from .encoding import Encoded, StreamSchema, encode_frame, encode_json, schema_for
+from .encoding import (
+    Encoded,
+    Overlay,
+    StreamSchema,
+    encode_annotations,
+    encode_frame,
+    encode_json,
+    schema_for,
+)
 from .split import SplitPolicy, part_path
 
 __all__ = ["RecordingWriter", "StreamCounters"]
@@ -471,6 +479,8 @@ class RecordingWriter:
             return encode_frame(
                 v, v.timestamp + self.epoch_offset, self.image_formats.get(item.topic, "raw")
             )
+        if isinstance(v, Overlay):  # stamped like the frame: the same float, the same offset
+            return encode_annotations(v.detection, v.detection.timestamp + self.epoch_offset)
         cached = self._json_schemas
         key = (item.topic, type(v))
         schema = cached.get(key)
