@@ -149,6 +149,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         "images": images,
         "compression": args.compression,
         "crc": not args.no_crc,
+        "annotations": not args.no_annotations,
         "split_size": split.size,
         "split_duration": split.duration,
         "log_report": False,  # printed below, once
@@ -615,6 +616,11 @@ def add_parsers(sub: Any) -> None:
         "--split-duration",
         metavar="T",
         help="start a new file after this long: 10m, 30s, 1h",
+    )
+    rec.add_argument(
+        "--no-annotations",
+        action="store_true",
+        help="do not also draw detections as foxglove.ImageAnnotations on their camera",
     )
     rec.add_argument("--no-ui", action="store_true", help="log lines instead of the live table")
     rec.add_argument("--stats-json", metavar="PATH", help="write the run's final statistics")
