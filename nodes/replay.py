@@ -194,8 +194,9 @@ class ReplayBase(Node):
     async def teardown(self) -> None:
         nxt = getattr(self, "_next", None)
         if nxt is not None:
-            with contextlib.suppress(Exception):
-                await nxt
+            # The read in flight ends on its own (its thread cannot be cancelled); wait() does
+            # not raise when the read was cancelled with the process call that awaited it.
+            await asyncio.wait([nxt])
 
 
 class Replay(ReplayBase):

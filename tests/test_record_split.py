@@ -19,7 +19,15 @@ import pytest
 from mcap.reader import SeekingReader, make_reader
 from test_record import flowrt_cli
 from test_record_crash import start_recording
-from test_record_replay import CAPTURE, TRACKERS, build, comparable, recorded, replay
+from test_record_replay import (
+    CAPTURE,
+    TRACKERS,
+    build,
+    comparable,
+    recorded,
+    replay,
+    stand_in,
+)
 
 import flowrt
 from flowrt.cli.record import wait_for_writers
@@ -226,6 +234,25 @@ def test_replay_from_an_offset_skips_the_parts_before(split_session: tuple[Path,
     _, stats = asyncio.run(replay(session, start=1.0, rate=4.0))
     edge = next(e for e in stats.edges if e.name == "cam.frame->sink.input")
     assert edge.published == expected
+
+
+def test_replay_loops_over_every_part(split_session: tuple[Path, Any]) -> None:
+    session, _ = split_session
+    seqs = []
+    for f in mcap_files(session):
+        with open(f, "rb") as fh:
+            seqs += [m.sequence for _, _, m in make_reader(fh).iter_messages(topics=["cam.frame"])]
+
+    async def main() -> list[int]:
+        g = build(stand_in(session, rate=8.0, loop=True), None)
+        async with flowrt.Runtime(g.build()) as rt:
+            sub = rt.subscribe("cam.frame", size=4096)
+            await rt.run(0.8)  # a pass takes 0.25 s at x8
+            return [f.seq for f in sub.drain()]
+
+    got = asyncio.run(main())
+    assert len(got) > 2 * len(seqs)
+    assert got[: 2 * len(seqs)] == seqs + seqs  # every part, in order, then again
 
 
 def test_cli_replay_of_a_split_session(split_session: tuple[Path, Any]) -> None:
