@@ -167,7 +167,8 @@ class FoxgloveLive:
         for topic, sub in self._subs.items():
             ch = self._channels.get(topic)
             drawn = self._annotations.get(topic)
-            if ch is not None and not ch.has_sinks() and not (drawn and drawn.has_sinks()):
+            watched = drawn is not None and drawn.has_sinks()
+            if ch is not None and not ch.has_sinks() and not watched:
                 continue  # nobody watches: the latest buffer just keeps the newest value
             value = sub.take_held()
             if value is EMPTY:
