@@ -158,7 +158,7 @@ async def test_live_detections_are_drawn_on_their_camera() -> None:
     live = FoxgloveLive(port=0, image_format="raw")
     async with flowrt.Runtime(graph(), monitors=[live]) as rt:
         viewer = await asyncio.to_thread(Client, live.port)
-        run = asyncio.ensure_future(rt.run(3.0))
+        run = asyncio.ensure_future(rt.run(30.0))  # stopped as soon as a message came
         topic = "cam.frame/annotations/ball.detection"
         await asyncio.to_thread(viewer.subscribe, topic)
         payload = await asyncio.to_thread(viewer.next_message)
