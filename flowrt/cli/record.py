@@ -31,9 +31,11 @@ from .common import (
     EXIT_OK,
     load,
     plain_handler,
+    seconds_arg,
     setup_logging,
     stdout_console,
 )
+from .run import add_run_options, run_graph
 
 RECORDER = "recorder"
 
@@ -95,7 +97,6 @@ def _image_formats(text: str | None, topics: list[str]) -> dict[str, str] | str:
 def cmd_record(args: argparse.Namespace) -> int:
     from ..graph import resolve
     from ..recording import check_writable, new_session
-    from ..recording.session import SESSION_FILE
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     problem = check_writable(args.output)
@@ -142,16 +143,28 @@ def cmd_record(args: argparse.Namespace) -> int:
     rgraph.file = graph.file
     console = stdout_console()
     console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
-    rt = _run(rgraph, args, console)
-    wait_for_writers()
-    if args.stats_json:
-        Path(args.stats_json).write_text(rt.stats().model_dump_json(indent=2))
+
+    def report(rt: Any) -> int:
+        return _report(console, err, session)
+
+    try:
+        return run_graph(
+            rgraph, args, err, prog="flowrt record", settle=wait_for_writers, after=report
+        )
+    finally:  # stopped before it began (a taken port, a bad option): no empty session left
+        if session.is_dir() and not any(session.iterdir()):
+            session.rmdir()
+
+
+def _report(console: Console, err: Console, session: Path) -> int:
+    """The per-stream table once the files are finished; exit 1 on any loss."""
+    from ..recording import RecordingReport, report_table
+    from ..recording.session import SESSION_FILE
+
     report_path = session / SESSION_FILE
     if not report_path.exists():
         err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
         return EXIT_FAILED
-    from ..recording import RecordingReport, report_table
-
     report = RecordingReport.model_validate_json(report_path.read_text())
     console.print(report_table(report))
     if report.error:
@@ -358,15 +371,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 # --- replay ------------------------------------------------------------------------------
 
 
-def _seconds(text: str) -> float:
-    from ..spec import parse_duration_ms
-
-    t = text.strip()
-    try:
-        # a bare number is seconds here (``--start 10``), unlike graph files' milliseconds
-        return float(t) if t.replace(".", "", 1).isdigit() else parse_duration_ms(t) / 1000
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
+_seconds = seconds_arg  # a bare number is seconds here (``--start 10``), unlike graph files
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -523,7 +528,6 @@ def add_parsers(sub: Any) -> None:
         metavar="PATTERNS",
         help="outputs to record, comma-separated node.port patterns (default: every output)",
     )
-    rec.add_argument("--duration", type=_seconds, default=None, metavar="S", help="stop after")
     rec.add_argument(
         "--images",
         metavar="FORMATS",
@@ -535,8 +539,7 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="no chunk CRCs: half the writer's CPU, but damage inside a chunk goes unseen",
     )
-    rec.add_argument("--no-ui", action="store_true", help="log lines instead of the live table")
-    rec.add_argument("--stats-json", metavar="PATH", help="write the run's final statistics")
+    add_run_options(rec)  # --duration, --realtime, --control ...: a recording is a run
     rec.set_defaults(func=cmd_record)
 
     info = sub.add_parser("info", help="what a recording holds (session folder or .mcap)")
