@@ -57,3 +57,46 @@ def test_bad_duration_is_exit_2(graph_file: Path, tmp_path: Path, bad: str) -> N
         assert r.returncode == 2, (cmd, r.stderr)
         assert "--duration" in r.stderr
         assert "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize(
+    ("width", "headers", "gone"),
+    [
+        (200, ["expected", "Hz mean", "Hz min", "Hz max", "bytes"], []),
+        (80, ["expected", "received", "written", "lost", "missing"], ["Hz min", "Hz max"]),
+        (64, ["received", "written", "lost"], ["expected", "bytes", "Hz mean"]),
+    ],
+)
+def test_report_table_fits_the_terminal_and_never_cuts_a_name(
+    width: int, headers: list[str], gone: list[str]
+) -> None:
+    import io
+
+    from rich.console import Console
+
+    from flowrt.recording import RecordingReport, report_table
+
+    topic = "front_camera_with_a_long_name.frame"
+    report = RecordingReport.model_validate(
+        {
+            "session": "rec_001", "files": ["rec_001.mcap"], "start_time": "now",
+            "duration": 10.0, "error": None,
+            "streams": [
+                {
+                    "topic": topic, "source": "cam.frame", "nominal_hz": 20.0, "expected": 200,
+                    "received": 199, "written": 197, "lost": 2, "lost_behind": 2,
+                    "lost_error": 0, "missing": 1, "rate_mean": 19.9, "rate_min": 18.1,
+                    "rate_max": 21.7, "bytes": 123456789,
+                }
+            ],
+        }
+    )  # fmt: skip
+    console = Console(width=width, file=io.StringIO(), color_system=None)
+    console.print(report_table(report, width))
+    text = console.file.getvalue()  # type: ignore[attr-defined]
+    assert topic in text
+    assert all(len(line) <= width for line in text.splitlines())
+    for h in headers:
+        assert h in text
+    for h in gone:
+        assert h not in text

@@ -166,7 +166,7 @@ def _report(console: Console, err: Console, session: Path) -> int:
         err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
         return EXIT_FAILED
     report = RecordingReport.model_validate_json(report_path.read_text())
-    console.print(report_table(report))
+    console.print(report_table(report, console.width))
     if report.error:
         err.print(f"flowrt record: recording stopped early: {report.error}", markup=False)
         return EXIT_FAILED
@@ -322,7 +322,9 @@ def _print_session_report(console: Console, path: Path) -> None:
     report = path / SESSION_FILE
     if path.is_dir() and report.exists():
         try:
-            console.print(report_table(RecordingReport.model_validate_json(report.read_text())))
+            console.print(
+                report_table(RecordingReport.model_validate_json(report.read_text()), console.width)
+            )
         except ValueError:
             console.print(f"{report}: unreadable", style="red", markup=False)
 
