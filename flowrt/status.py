@@ -43,6 +43,7 @@ def _ms(x: float) -> str:
 # Node columns, dropped first to last: resp p99, place, trigger, prio, exec, interval,
 # period, done, rst. Edge columns: age, policy, unread, deliv, pub.
 
+
 def _count(n: int, style: str) -> Text:
     return Text(str(n), style=style if n else "")
 
