@@ -33,7 +33,11 @@ class Column(Generic[S]):
 
 
 def fit_table(
-    cols: Sequence[Column[S]], rows: Sequence[S], width: int | None, title: str | None = None
+    cols: Sequence[Column[S]],
+    rows: Sequence[S],
+    width: int | None,
+    title: str | None = None,
+    row_style: Callable[[S], str | None] | None = None,
 ) -> Table:
     """The rows under the widest set of columns that fits ``width`` (dropping by rank).
 
@@ -70,6 +74,7 @@ def fit_table(
             no_wrap=True,
             min_width=None if c.right else natural[c.header],  # names are never cut first
         )
-    for i in range(len(rows)):
-        table.add_row(*(cells[c.header][i] for c in shown))
+    for i, row in enumerate(rows):
+        style = row_style(row) if row_style is not None else None
+        table.add_row(*(cells[c.header][i] for c in shown), style=style)
     return table
