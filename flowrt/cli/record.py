@@ -99,12 +99,12 @@ def cmd_record(args: argparse.Namespace) -> int:
     from ..recording import check_writable, new_session
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
+    graph = load(args.file, err)
+    if graph is None:  # before the folder is made: a wrong path leaves nothing behind
+        return EXIT_BAD_GRAPH
     problem = check_writable(args.output)
     if problem is not None:
         err.print(f"flowrt record: {problem}", markup=False)
-        return EXIT_BAD_GRAPH
-    graph = load(args.file, err)
-    if graph is None:
         return EXIT_BAD_GRAPH
     outputs = graph_outputs(graph)
     topics, unmatched = select_outputs(outputs, split_patterns(args.topics))
