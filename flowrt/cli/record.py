@@ -30,9 +30,11 @@ from .common import (
     EXIT_OK,
     load,
     plain_handler,
+    seconds_arg,
     setup_logging,
     stdout_console,
 )
+from .run import add_run_options, run_graph
 
 RECORDER = "recorder"
 
@@ -109,15 +111,14 @@ def _split_policy(args: argparse.Namespace) -> Any:
 def cmd_record(args: argparse.Namespace) -> int:
     from ..graph import resolve
     from ..recording import check_writable, new_session
-    from ..recording.session import SESSION_FILE
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
+    graph = load(args.file, err)
+    if graph is None:  # before the folder is made: a wrong path leaves nothing behind
+        return EXIT_BAD_GRAPH
     problem = check_writable(args.output)
     if problem is not None:
         err.print(f"flowrt record: {problem}", markup=False)
-        return EXIT_BAD_GRAPH
-    graph = load(args.file, err)
-    if graph is None:
         return EXIT_BAD_GRAPH
     outputs = graph_outputs(graph)
     topics, unmatched = select_outputs(outputs, split_patterns(args.topics))
@@ -163,18 +164,30 @@ def cmd_record(args: argparse.Namespace) -> int:
     rgraph.file = graph.file
     console = stdout_console()
     console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
-    rt = _run(rgraph, args, console)
-    wait_for_writers()
-    if args.stats_json:
-        Path(args.stats_json).write_text(rt.stats().model_dump_json(indent=2))
+
+    def report(rt: Any) -> int:
+        return _report(console, err, session)
+
+    try:
+        return run_graph(
+            rgraph, args, err, prog="flowrt record", settle=wait_for_writers, after=report
+        )
+    finally:  # stopped before it began (a taken port, a bad option): no empty session left
+        if session.is_dir() and not any(session.iterdir()):
+            session.rmdir()
+
+
+def _report(console: Console, err: Console, session: Path) -> int:
+    """The per-stream table once the files are finished; exit 1 on any loss."""
+    from ..recording import RecordingReport, report_table
+    from ..recording.session import SESSION_FILE
+
     report_path = session / SESSION_FILE
     if not report_path.exists():
         err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
         return EXIT_FAILED
-    from ..recording import RecordingReport, report_table
-
     report = RecordingReport.model_validate_json(report_path.read_text())
-    console.print(report_table(report))
+    console.print(report_table(report, console.width))
     if report.error:
         err.print(f"flowrt record: recording stopped early: {report.error}", markup=False)
         return EXIT_FAILED
@@ -375,7 +388,9 @@ def _print_session_report(console: Console, path: Path) -> None:
     report = path / SESSION_FILE
     if path.is_dir() and report.exists():
         try:
-            console.print(report_table(RecordingReport.model_validate_json(report.read_text())))
+            console.print(
+                report_table(RecordingReport.model_validate_json(report.read_text()), console.width)
+            )
         except ValueError:
             console.print(f"{report}: unreadable", style="red", markup=False)
 
@@ -420,15 +435,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 # --- replay ------------------------------------------------------------------------------
 
 
-def _seconds(text: str) -> float:
-    from ..spec import parse_duration_ms
-
-    t = text.strip()
-    try:
-        # a bare number is seconds here (``--start 10``), unlike graph files' milliseconds
-        return float(t) if t.replace(".", "", 1).isdigit() else parse_duration_ms(t) / 1000
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
+_seconds = seconds_arg  # a bare number is seconds here (``--start 10``), unlike graph files
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -595,7 +602,6 @@ def add_parsers(sub: Any) -> None:
         metavar="PATTERNS",
         help="outputs to record, comma-separated node.port patterns (default: every output)",
     )
-    rec.add_argument("--duration", type=_seconds, default=None, metavar="S", help="stop after")
     rec.add_argument(
         "--images",
         metavar="FORMATS",
@@ -622,8 +628,7 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="do not also draw detections as foxglove.ImageAnnotations on their camera",
     )
-    rec.add_argument("--no-ui", action="store_true", help="log lines instead of the live table")
-    rec.add_argument("--stats-json", metavar="PATH", help="write the run's final statistics")
+    add_run_options(rec)  # --duration, --realtime, --control ...: a recording is a run
     rec.set_defaults(func=cmd_record)
 
     info = sub.add_parser("info", help="what a recording holds (session folder or .mcap)")
