@@ -264,8 +264,9 @@ def _hz(x: float | None) -> str:
 
 def print_info(console: Console, info: Any, streams_only: bool = False) -> None:
     """One file: whether it is whole, its streams, metadata, attachments and graph."""
-    from rich.table import Table
+    from rich.text import Text
 
+    from ..columns import Column, fit_table
     from ..recording.report import human_bytes
 
     if not streams_only:
@@ -286,24 +287,24 @@ def print_info(console: Console, info: Any, streams_only: bool = False) -> None:
             f"  messages {info.messages}  chunks {info.chunks}",
             highlight=False,
         )
-    t = Table(title_justify="left")
-    for col in ("stream", "schema", "count", "Hz mean", "Hz min", "Hz max", "gaps", "size"):
-        t.add_column(col, justify="left" if col in ("stream", "schema") else "right")
-    for s in info.streams:
-        gaps = "0"
-        if s.gaps:
-            longest = max(g.length for g in s.gaps)
-            gaps = f"[red]{len(s.gaps)}[/red] (longest {longest * 1000:.0f} ms)"
-        t.add_row(
-            s.topic,
-            s.schema_name,
-            str(s.count),
-            _hz(s.rate_mean),
-            _hz(s.rate_min),
-            _hz(s.rate_max),
-            gaps,
-            human_bytes(s.bytes),
-        )
+
+    def gaps(s: Any) -> Text:
+        if not s.gaps:
+            return Text("0")
+        longest = max(g.length for g in s.gaps)
+        return Text(f"{len(s.gaps)} (longest {longest * 1000:.0f} ms)", style="red")
+
+    cols: tuple[Column[Any], ...] = (
+        Column("stream", lambda s: s.topic, right=False),
+        Column("schema", lambda s: s.schema_name, drop=3, right=False),
+        Column("count", lambda s: str(s.count)),
+        Column("Hz mean", lambda s: _hz(s.rate_mean), drop=4),
+        Column("Hz min", lambda s: _hz(s.rate_min), drop=1),
+        Column("Hz max", lambda s: _hz(s.rate_max), drop=2),
+        Column("gaps", gaps),
+        Column("size", lambda s: human_bytes(s.bytes), drop=5),
+    )
+    t = fit_table(cols, info.streams, console.width)
     console.print(t)
     for name, meta in info.metadata.items():
         console.print(
@@ -315,13 +316,14 @@ def print_info(console: Console, info: Any, streams_only: bool = False) -> None:
         console.print("attachments: " + ", ".join(info.attachments), markup=False)
     if info.graph:
         console.print("recorded graph:", style="bold")
-        console.print(info.graph.rstrip(), markup=False, highlight=False)
+        console.print(info.graph.rstrip(), markup=False, highlight=False, soft_wrap=True)
 
 
 def print_session(console: Console, session: Any) -> None:
     """A session of several parts: its files, then the streams over all of them."""
-    from rich.table import Table
+    from rich.text import Text
 
+    from ..columns import Column, fit_table
     from ..recording.report import human_bytes
 
     if len(session.files) == 1:
@@ -331,19 +333,21 @@ def print_session(console: Console, session: Any) -> None:
         f"[bold]{session.path}[/bold]  {len(session.files)} files  {human_bytes(session.size)}",
         highlight=False,
     )
-    files = Table(title_justify="left")
-    for col in ("file", "size", "start", "duration", "messages", "closed cleanly"):
-        files.add_column(col, justify="left" if col in ("file", "start") else "right")
-    for f in session.files:
-        ok = "yes" if f.closed_cleanly else f"[bold red]NO[/bold red]: {f.damage or 'no summary'}"
-        files.add_row(
-            Path(f.path).name,
-            human_bytes(f.size),
-            _when(f.start),
-            f"{f.duration:.3f} s",
-            str(f.messages),
-            ok,
-        )
+
+    def clean(f: Any) -> Text:
+        if f.closed_cleanly:
+            return Text("yes")
+        return Text(f"NO: {f.damage or 'no summary'}", style="bold red")
+
+    file_cols: tuple[Column[Any], ...] = (
+        Column("file", lambda f: Path(f.path).name, right=False),
+        Column("size", lambda f: human_bytes(f.size), drop=3),
+        Column("start", lambda f: _when(f.start), drop=1, right=False),
+        Column("duration", lambda f: f"{f.duration:.3f} s", drop=2),
+        Column("messages", lambda f: str(f.messages)),
+        Column("closed cleanly", clean, right=False),
+    )
+    files = fit_table(file_cols, session.files, console.width)
     console.print(files)
     console.print(
         f"start {_when(session.start)}  end {_when(session.end)}  "
