@@ -124,10 +124,15 @@ class NodeContext:
     def new_frame(
         self, shape: tuple[int, ...], dtype: Any = np.uint8, pixel_format: str = "BGR"
     ) -> Frame:
-        """A writable frame to fill and return; in shared memory when the runtime provides it."""
-        from .frames import Frame
+        """A writable frame to fill and return; in shared memory when the runtime provides it.
 
-        return Frame(np.empty(shape, dtype=dtype), source=self.name, pixel_format=pixel_format)
+        In a worker process it is a slot the main process lent for this call (see
+        :mod:`flowrt.grants`): returned, only its descriptor crosses the socket. Valid for the
+        call that made it: once returned it is read-only, and one not returned is reused.
+        """
+        from .frames import worker_frame
+
+        return worker_frame(shape, dtype, self.name, pixel_format)
 
     def publish(self, port: str, value: Any) -> None:
         """Publish outside the return path (streaming nodes); only on the event loop."""
