@@ -381,8 +381,11 @@ class Runtime:
             return None
         # One per executor (a swap's new instance has its own; the old one's stop takes its
         # own grants back), counted together per node.
+        # Two slots to start (one lent, one held by a reader), not four: each is a frame of
+        # shared memory per worker node; the pool grows if readers hold more.
         per_call = len(runner.rnode.cls.frame_ports())
-        grants = OutputGrants(runner.name, self._frames.pool(runner.name), per_call)
+        pool = self._frames.pool(runner.name, initial_slots=2)
+        grants = OutputGrants(runner.name, pool, per_call)
         self._grants.setdefault(runner.name, []).append(grants)
         return grants
 

@@ -212,7 +212,7 @@ async def test_worker_killed_holding_slots_has_them_reclaimed() -> None:
     assert all(shared and pixel == _expected(seq, 1)[1] for seq, shared, pixel, *_ in got)
     # what the pool holds: the one lent now and the one the sink's latest input keeps
     assert pools["w0"].slots_in_use <= w.outstanding + 1
-    assert pools["w0"].slots <= 4
+    assert pools["w0"].slots <= 4  # no slot lost to the dead worker
 
 
 async def test_no_slot_leaks_after_many_frames() -> None:
@@ -233,6 +233,6 @@ async def test_no_slot_leaks_after_many_frames() -> None:
     for node in ("w0", "w1"):
         assert pools[node].slots_in_use == frames[node].outstanding
         assert frames[node].in_slots >= len(got) - 2
-        assert pools[node].grown == 0
+        assert pools[node].slots <= 8  # bounded: lent (window 4) + queued downstream
         assert pools[node].dropped == 0
         assert frames[node].by_socket == {}

@@ -24,8 +24,10 @@ Rows (ratios are dora / flowrt for times and flowrt / dora for rates: > 1 means 
   drops is reported).
 - ``pipe``: source -> 8 relays -> sink, 640x480x3 at 30 Hz: end-to-end latency, total PSS of
   every process, start-up (launch to the first frame at the sink) and exit (SIGINT to the
-  runner's exit). flowrt runs it inline and with the 8 relays at ``placement: process``; dora
-  has one form (every node is a process).
+  runner's exit). flowrt runs it inline and with the 8 relays at ``placement: process``,
+  passing the frame on (``workers``) or making a new one, a copy, as dora's relays do
+  (``workers new``; ``workers new spin``: each relay busy-polls 0.5 ms either side of the
+  call it expects); dora has one form (every node is a process).
 """
 
 from __future__ import annotations
@@ -64,7 +66,7 @@ SIZES = {"8 B": 8, "640x480x3": 640 * 480 * 3, "1920x1080x3": 1920 * 1080 * 3, "
 RATES = (250, 500, 1000)
 BASELINE = " (baseline)"
 TIMER_WARMUP = 10
-BASELINED = {"flowrt", "flowrt inline", "flowrt workers"}  # sides also run from --baseline
+BASELINED = {"flowrt", "flowrt inline", "flowrt workers", "flowrt workers new"}  # + --baseline
 
 
 # --- running one side --------------------------------------------------------------------------
@@ -427,7 +429,8 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
 
 def pipe(b: Bench, count: int) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
-    for side in b.sides("flowrt inline", "flowrt workers", "dora"):
+    sides = ("flowrt inline", "flowrt workers", "flowrt workers new", "flowrt workers new spin")
+    for side in b.sides(*sides, "dora"):
         res = b.path("pipe.json")
         if side.startswith("flowrt"):
             nodes: dict[str, Any] = {
@@ -440,9 +443,14 @@ def pipe(b: Bench, count: int) -> dict[str, Sample]:
             }
             prev = "src.frame"
             for i in range(8):
-                node: dict[str, Any] = {"kind": "relay", "priority": 40, "inputs": {"input": prev}}
+                # "new": each relay makes a new frame (a copy), as dora's relays do; else the
+                # built-in relay passes the frame it got on.
+                kind = f"{FN}:NewFrameRelay" if "new" in side else "relay"
+                node: dict[str, Any] = {"kind": kind, "priority": 40, "inputs": {"input": prev}}
                 if side.startswith("flowrt workers"):
                     node["placement"] = "process"
+                if side.endswith("spin"):  # each relay busy-polls 0.5 ms around its call
+                    node["spin"] = "0.5ms"
                 nodes[f"r{i}"] = node
                 prev = f"r{i}.output"
             nodes["sink"] = {
