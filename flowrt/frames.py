@@ -18,7 +18,8 @@ process holds a link (an activation holds one for the duration of a worker call)
 
 Each slot is its own ``/dev/shm`` file named ``flowrt_{pid}_...`` so that segments left by a
 SIGKILLed runtime are recognisable and reclaimed by :meth:`FrameStore.reclaim_orphans` at the
-next start. Segments are created and unlinked only by the main process; workers just map them.
+next start. Segments are created and unlinked only by the main process; workers just map them
+(read-only, except the slots lent to a worker for the frames it makes: :mod:`flowrt.grants`).
 
 Threading: link counting happens on the event-loop thread of the main process (edges and
 activations call ``acquire``/``release``). ``reserve`` and slot recycling take a lock, so a

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import pickle
 import signal
 from typing import Any
 
@@ -21,6 +22,8 @@ from pydantic import BaseModel, ConfigDict
 
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
 from flowrt import workers as workers_mod
+from flowrt.frames import FrameStore
+from flowrt.grants import OutputGrants, WorkerSlots, lazy_report
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -236,3 +239,62 @@ async def test_no_slot_leaks_after_many_frames() -> None:
         assert pools[node].slots <= 8  # bounded: lent (window 4) + queued downstream
         assert pools[node].dropped == 0
         assert frames[node].by_socket == {}
+
+
+# --- the two halves of the protocol, in one process ---------------------------------------
+
+
+def _lend(store: FrameStore, nbytes: int, n: int, max_slots: int = 16) -> OutputGrants:
+    grants = OutputGrants("node", store.pool("node", max_slots=max_slots), per_call=1)
+    if n:  # one call with n in flight: n slots (the size of its input frame)
+        grants.grant({"x": Frame(np.zeros(nbytes, np.uint8))}, window=n)
+    return grants
+
+
+@pytest.mark.parametrize(
+    ("lent", "made", "reason"),
+    [
+        (0, [1000], "not-granted"),  # nothing lent yet
+        (1, [1000, 1000], "no-free-slot"),  # two frames, one slot
+        (1, [4000], "too-large"),  # larger than the slot
+    ],
+)
+def test_what_cannot_take_a_slot_is_counted_by_reason(
+    lent: int, made: list[int], reason: str
+) -> None:
+    with FrameStore() as store:
+        main = _lend(store, 1000, lent)
+        sent = tuple(
+            (n, f._slot.size, f._gen, f._slot.capacity)  # type: ignore[union-attr]
+            for n, f in main.outstanding.items()
+        )
+        worker = WorkerSlots()
+        worker.begin(sent)
+        result = {f"p{i}": Frame(np.full(n, i + 1, np.uint8)) for i, n in enumerate(made)}
+        worker.reply(result)
+        blob = pickle.dumps((result, lazy_report(worker)))
+        worker.end()
+        back, report = pickle.loads(blob)
+        main.replied(report)
+        s = main.stats()
+        assert s.by_socket == {reason: 1}
+        assert s.in_slots == len(made) - 1
+        shared = [f for f in back.values() if f.shared]
+        assert len(shared) == len(made) - 1
+        for f in shared:
+            f.take_link()
+            assert f.data[0] == int(f.data[-1])  # its own pixels, copied once
+            f.release()
+        if reason == "too-large":  # the small slot came back; later ones fit the frame
+            assert main.outstanding == {}
+            assert main.capacity == 4000
+
+
+def test_a_pool_that_cannot_lend_counts_the_refusal() -> None:
+    with FrameStore() as store:
+        grants = _lend(store, 1000, 2, max_slots=1)
+        assert len(grants.outstanding) == 1
+        assert grants.refused == 1
+        assert store.pool("node").stats().dropped == 0  # not a frame dropped
+        assert grants.reclaim() == 1
+        assert store.pool("node").stats().slots_in_use == 0

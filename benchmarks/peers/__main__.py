@@ -16,7 +16,8 @@ Rows (ratios are dora / flowrt for times and flowrt / dora for rates: > 1 means 
 - ``lat``: a 10 ms timer source sends 8 B, 640x480x3, 1920x1080x3 and 40 MiB; an echo node in
   another process (flowrt: ``placement: process``; dora: every node is a process) takes a
   zero-copy view, measures one-way latency and answers 16 bytes; the source's process
-  measures the round trip.
+  measures the round trip. ``flowrt spin``: the echo busy-polls 0.5 ms either side of the
+  call it expects; ``flowrt pinned``: the loop on CPU 0 (``taskset``), the echo on CPU 1.
 - ``timer``: a 20 Hz timer node records its activation instants; std of the intervals, idle and
   with two ``while True: pass`` burners.
 - ``fps``: 640x480x3 frames into a receiver in another process that computes their mean,
@@ -194,11 +195,12 @@ class Bench:
         before: list[str],
         after: list[str] = (),  # type: ignore[assignment]
         args: list[str] = (),  # type: ignore[assignment]
+        prefix: list[str] = (),  # type: ignore[assignment]
         **kw: Any,
     ) -> Run:
         g = self.path("graph.yaml")
         Path(g).write_text(yaml.safe_dump({"name": "peers", "nodes": nodes}, sort_keys=False))
-        cmd = [self.flowrt, "run", g, "--no-ui", "--log-every", "3600", *args]
+        cmd = [*prefix, self.flowrt, "run", g, "--no-ui", "--log-every", "3600", *args]
         env, cwd = self.env, REPO
         if side.endswith(BASELINE):  # cwd too: the forkserver's sys.path starts with it
             assert self.baseline_env is not None
@@ -237,7 +239,8 @@ def _us(xs: list[float]) -> tuple[float, float]:
 
 def lat(b: Bench, label: str, nbytes: int, count: int) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
-    for side in b.sides("flowrt", "flowrt spin", "dora"):
+    pinned = (os.cpu_count() or 1) >= 2 and shutil.which("taskset") is not None
+    for side in b.sides("flowrt", "flowrt spin", *(["flowrt pinned"] if pinned else []), "dora"):
         res = b.path("lat.json")
         if side.startswith("flowrt"):
             nodes = {
@@ -255,6 +258,9 @@ def lat(b: Bench, label: str, nbytes: int, count: int) -> dict[str, Sample]:
                     # The remedy for the worker's wake-up: it busy-polls 0.5 ms either side
                     # of the call it expects (the calls come every 10 ms).
                     **({"spin": "0.5ms"} if "spin" in side else {}),
+                    # Another remedy: the worker on a CPU of its own, the loop on the other
+                    # (taskset below), so that neither wakes up queued behind the other.
+                    **({"cpus": [1]} if "pinned" in side else {}),
                 },
                 "sink": {
                     "kind": f"{FN}:LatSink",
@@ -263,7 +269,8 @@ def lat(b: Bench, label: str, nbytes: int, count: int) -> dict[str, Sample]:
                     "inputs": {"back": "echo.back"},
                 },
             }
-            r = b.flowrt_run(side, nodes, [res], timeout=60)
+            prefix = ["taskset", "-c", "0"] if "pinned" in side else []
+            r = b.flowrt_run(side, nodes, [res], timeout=60, prefix=prefix)
         else:
             dnodes = [
                 {
