@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import math
 import mmap
 import os
 import re
@@ -381,7 +382,7 @@ def _attach_frame(
             f"({source}#{seq}): the sender released the frame before it was read"
         )
     dt = np.dtype(dtype)
-    n = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    n = math.prod(shape) if shape else 1
     data = np.frombuffer(m, dtype=dt, count=n, offset=_HEADER).reshape(shape)
     # A frame attached in a worker is not link counted there (the main process holds the link);
     # returned unchanged it goes back as this descriptor (see Frame.__reduce__).
@@ -421,7 +422,7 @@ class _Slot:
         np.frombuffer(self.mm, dtype=np.uint8)[:] = 0
 
     def view(self, shape: tuple[int, ...], dtype: np.dtype[Any]) -> np.ndarray:
-        n = int(np.prod(shape, dtype=np.int64)) if shape else 1
+        n = math.prod(shape) if shape else 1
         return np.frombuffer(self.mm, dtype=dtype, count=n, offset=_HEADER).reshape(shape)
 
     def stamp(self) -> None:
@@ -509,7 +510,7 @@ class FramePool:
         """
         dt = np.dtype(dtype)
         shape = tuple(int(s) for s in shape)
-        nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize if shape else dt.itemsize
+        nbytes = math.prod(shape) * dt.itemsize if shape else dt.itemsize
         with self._lock:
             if self._closed:
                 raise RuntimeError(f"frame pool {self.owner!r} is closed")

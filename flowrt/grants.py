@@ -35,6 +35,7 @@ takes their links back (``reclaimed``), the slots return to the pool.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -134,7 +135,7 @@ class OutputGrants:
         self.outstanding.pop(slot.name, None)
         frame._grant = None
         dt = np.dtype(dtype)
-        n = int(np.prod(shape, dtype=np.int64)) * dt.itemsize if shape else dt.itemsize
+        n = math.prod(shape) * dt.itemsize if shape else dt.itemsize
         if n > slot.capacity:
             frame.release()
             raise ValueError(f"{self.node}: a {n}-byte frame in a {slot.capacity}-byte slot")
@@ -272,7 +273,7 @@ class WorkerSlots:
     ) -> Frame | None:
         if self.replying:
             return None
-        n = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize if shape else dtype.itemsize
+        n = math.prod(shape) * dtype.itemsize if shape else dtype.itemsize
         grant = self._pop(n)
         if grant is None:
             return None
@@ -333,7 +334,7 @@ class WorkerSlots:
 def _view(grant: Grant, shape: tuple[int, ...], dtype: np.dtype[Any]) -> np.ndarray:
     name, size, _, _ = grant
     m = _writable.get(name, size)
-    n = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    n = math.prod(shape) if shape else 1
     return np.frombuffer(m, dtype=dtype, count=n, offset=_HEADER).reshape(shape)
 
 
