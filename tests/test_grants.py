@@ -109,12 +109,13 @@ def _graph(middle: list[dict[str, Any]], policy: str = "latest", source: Any = C
     g.add("cam", source, trigger={"timer": "15ms"}, placement="inline")
     prev = f"cam.{'frame' if source is Cam else 'out'}"
     for i, params in enumerate(middle):
+        params = dict(params)
         g.add(
             f"w{i}",
             Invert,
+            placement=params.pop("placement", "process"),
             params=params,
             inputs={"frame": {"from": prev, "policy": policy, "size": 8}},
-            placement="process",
         )
         prev = f"w{i}.output"
     g.add("sink", Check, inputs={"frame": {"from": prev, "policy": policy, "size": 8}})
@@ -194,6 +195,28 @@ async def test_a_worker_source_learns_that_it_makes_frames() -> None:
     assert [r[1] for r in got[:1]] == [False]  # the first, a heap frame
     assert all(shared for _, shared, *_ in got[1:])
     assert all(pixel == seq % 251 for seq, _, pixel, *_ in got)
+
+
+async def test_a_swapped_pool_node_goes_on_making_frames_in_slots() -> None:
+    """In a worker pool, swapped for a new instance that returns frames of its own: the new
+    instance is lent its own slots, every frame still takes one, nothing counted as lost."""
+    async with Runtime(_graph([{"placement": "pool"}])) as rt:
+        sub = rt.subscribe("sink.result")
+        await rt.run(0.5)
+        await rt.swap("w0", Invert, {"own": True})
+        sub.drain()
+        await rt.run(0.6)
+        got = sub.drain()
+        s = rt.stats()
+        pools = {p.owner: p for p in s.frames}
+    assert len(got) >= 10
+    assert all(shared and source == "inv" for _, shared, _, source, *_ in got[1:])
+    (w,) = s.worker_frames
+    assert w.by_socket == {}
+    assert w.reclaimed == 0
+    # lent now to the new instance, and the frame the sink's latest input keeps: no more
+    assert pools["w0"].slots_in_use <= w.outstanding + 1
+    assert pools["w0"].slots <= 4
 
 
 async def test_worker_killed_holding_slots_has_them_reclaimed() -> None:
