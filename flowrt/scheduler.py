@@ -735,7 +735,10 @@ class NodeRunner:
                 )
         if discard:
             self.discarded += 1
-            _release_all([result] if not isinstance(result, Mapping) else result.values())
+            values = [result] if not isinstance(result, Mapping) else result.values()
+            # A frame the activation holds (made by new_frame, or adopted from a worker's
+            # result) is released once, with the others it holds, just below.
+            _release_all([v for v in values if not any(v is c for c in self.created)])
         elif result is not None:
             self._publish_result(result, end)
         self._release_created()

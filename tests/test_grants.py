@@ -14,6 +14,7 @@ import asyncio
 import os
 import pickle
 import signal
+import time
 from typing import Any
 
 import numpy as np
@@ -321,3 +322,38 @@ def test_a_pool_that_cannot_lend_counts_the_refusal() -> None:
         assert store.pool("node").stats().dropped == 0  # not a frame dropped
         assert grants.reclaim() == 1
         assert store.pool("node").stats().slots_in_use == 0
+
+
+class SlowInvert(Invert):
+    """Makes its frame, then overruns its deadline: the result is discarded (firm deadline)."""
+
+    def process(self, frame: Frame) -> Frame:
+        out = super().process(frame)
+        time.sleep(0.004)
+        return out
+
+
+async def test_a_discarded_result_returns_its_slot() -> None:
+    g = GraphBuilder("firm")
+    g.add("cam", Cam, trigger={"timer": "15ms"})
+    g.add(
+        "w0",
+        SlowInvert,
+        inputs={"frame": "cam.frame"},
+        placement="process",
+        deadline="1ms",
+        miss_policy="discard",
+    )
+    g.add("sink", Check, inputs={"frame": "w0.output"})
+    async with Runtime(g.build()) as rt:
+        sub = rt.subscribe("sink.result")
+        await rt.run(0.8)
+        s = rt.stats()
+        pools = {p.owner: p for p in s.frames}
+    assert sub.drain() == []
+    w0 = s.node("w0")
+    assert w0.discarded >= 10
+    assert w0.errors == 0
+    (w,) = s.worker_frames
+    assert w.in_slots >= 10
+    assert pools["w0"].slots_in_use == w.outstanding  # every discarded frame's slot is back
