@@ -267,8 +267,8 @@ def worker_frame(shape: tuple[int, ...], dtype: Any, source: str, pixel_format: 
     """A new writable frame for a node: in a granted shared-memory slot inside a worker's call
     (zero copy to the main process), else on the heap."""
     out = _worker_out
-    dt = np.dtype(dtype)
-    shape = tuple(int(s) for s in shape)
+    dt = dtype if isinstance(dtype, np.dtype) else np.dtype(dtype)
+    shape = tuple(map(int, shape))
     if out is not None:
         frame = out.take(shape, dt, source, pixel_format)
         if frame is not None:

@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from .frames import worker_frame
+
 if TYPE_CHECKING:
     from .frames import Frame
     from .rtdb import RTDB, RtdbHandle
@@ -130,8 +132,6 @@ class NodeContext:
         :mod:`flowrt.grants`): returned, only its descriptor crosses the socket. Valid for the
         call that made it: once returned it is read-only, and one not returned is reused.
         """
-        from .frames import worker_frame
-
         return worker_frame(shape, dtype, self.name, pixel_format)
 
     def publish(self, port: str, value: Any) -> None:
