@@ -18,7 +18,8 @@ process holds a link (an activation holds one for the duration of a worker call)
 
 Each slot is its own ``/dev/shm`` file named ``flowrt_{pid}_...`` so that segments left by a
 SIGKILLed runtime are recognisable and reclaimed by :meth:`FrameStore.reclaim_orphans` at the
-next start. Segments are created and unlinked only by the main process; workers just map them.
+next start. Segments are created and unlinked only by the main process; workers just map them
+(read-only, except the slots lent to a worker for the frames it makes: :mod:`flowrt.grants`).
 
 Threading: link counting happens on the event-loop thread of the main process (edges and
 activations call ``acquire``/``release``). ``reserve`` and slot recycling take a lock, so a
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import math
 import mmap
 import os
 import re
@@ -37,7 +39,7 @@ import weakref
 from collections import OrderedDict
 from dataclasses import dataclass
 from itertools import count
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -49,6 +51,7 @@ __all__ = [
     "FramePoolStats",
     "FrameStore",
     "StaleFrameError",
+    "WorkerOutputs",
 ]
 
 SHM_DIR = "/dev/shm"
@@ -84,6 +87,8 @@ class Frame:
     __slots__ = (
         "__weakref__",
         "_gen",
+        "_grant",
+        "_handoff",
         "_origin",
         "_refs",
         "_slot",
@@ -114,6 +119,11 @@ class Frame:
         # In a worker: the descriptor of the slot this frame views, and the very array, so
         # that the frame passed on unchanged goes back as a descriptor too (no pixel copied).
         self._origin: tuple[tuple[Any, ...], np.ndarray] | None = None
+        # In the main process: the grant holder while this slot is lent to a worker to write
+        # a frame into (see flowrt.grants), and whether this frame, just back from a worker,
+        # carries that grant's link for whoever takes the result (``take_link``).
+        self._grant: _GrantHolder | None = None
+        self._handoff = False
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -141,6 +151,18 @@ class Frame:
         """Take one more link; the slot cannot be recycled until it is released."""
         self._refs += 1
 
+    def take_link(self) -> None:
+        """Hold this frame: take the link it carries, if any, else a new one.
+
+        A frame that a worker wrote into a granted slot comes back carrying the grant's link
+        (nobody else holds it yet); the first holder takes that one instead of adding its own,
+        so the slot returns to its pool when the last reader lets go.
+        """
+        if self._handoff:
+            self._handoff = False
+        else:
+            self.acquire()
+
     def release(self) -> None:
         """Drop one link; the last release returns a pooled slot to its pool."""
         slot = self._slot
@@ -156,6 +178,13 @@ class Frame:
     def __reduce__(self) -> tuple[Any, ...]:
         slot = self._slot
         origin = self._origin
+        out = _worker_out
+        if slot is None and out is not None:
+            # A worker's result: a frame it made goes into a writable slot granted by the
+            # main process (written in place, or copied once), not through the socket.
+            desc = out.place(self)
+            if desc is not None:
+                return (_attach_frame, desc)
         if slot is None and origin is not None and self.data is origin[1]:
             # A frame attached in a worker, passed on with its pixels untouched (they are
             # read-only there): it goes back to the owner as the same descriptor.
@@ -191,6 +220,62 @@ class Frame:
         return f"Frame({self.source}#{self.seq} {self.shape} {self.pixel_format} {kind})"
 
 
+def release_handoffs(result: Any) -> None:
+    """Drop the links carried by frames of a worker's result that nobody will take (the result
+    is discarded: its caller gave up, or the node instance that made it has failed)."""
+    from collections.abc import Mapping
+
+    values = result.values() if isinstance(result, Mapping) else (result,)
+    for v in values:
+        if isinstance(v, Frame) and v._handoff:
+            v._handoff = False
+            v.release()
+
+
+class WorkerOutputs(Protocol):
+    """In a worker process, during a node's call and the pickling of its result: where the
+    frames the node makes go (:mod:`flowrt.grants` implements it; this module only calls)."""
+
+    def take(
+        self, shape: tuple[int, ...], dtype: np.dtype[Any], source: str, pixel_format: str
+    ) -> Frame | None:
+        """A writable frame in a granted slot, or None (no slot fits)."""
+
+    def place(self, frame: Frame) -> tuple[Any, ...] | None:
+        """The slot descriptor ``frame`` goes back as (its pixels in a granted slot), or None."""
+
+
+class _GrantHolder(Protocol):
+    """In the main process: who lent a slot to a worker (takes it back with a frame in it)."""
+
+    def returned(
+        self,
+        frame: Frame,
+        shape: tuple[int, ...],
+        dtype: str,
+        source: str,
+        seq: int,
+        timestamp: float,
+        pixel_format: str,
+    ) -> Frame: ...
+
+
+_worker_out: WorkerOutputs | None = None  # set by a worker process around each call
+
+
+def worker_frame(shape: tuple[int, ...], dtype: Any, source: str, pixel_format: str) -> Frame:
+    """A new writable frame for a node: in a granted shared-memory slot inside a worker's call
+    (zero copy to the main process), else on the heap."""
+    out = _worker_out
+    dt = dtype if isinstance(dtype, np.dtype) else np.dtype(dtype)
+    shape = tuple(map(int, shape))
+    if out is not None:
+        frame = out.take(shape, dt, source, pixel_format)
+        if frame is not None:
+            return frame
+    return Frame(np.empty(shape, dtype=dt), source=source, pixel_format=pixel_format)
+
+
 def _heap_frame(
     data: np.ndarray, source: str, seq: int, timestamp: float, pixel_format: str
 ) -> Frame:
@@ -202,15 +287,19 @@ def _heap_frame(
 
 
 class _MappingCache:
-    """Per-process cache of read-only segment mappings, so each slot is mapped once per worker.
+    """Per-process cache of segment mappings, so each slot is mapped once per worker.
+
+    Read-only for the frames a worker receives; writable (``writable=True``) for the slots
+    granted to it to write its own frames into (:mod:`flowrt.grants`).
 
     Bounded (LRU): a slot reallocated with a larger size gets a new segment name, and the old
     mapping must not pin unlinked memory forever. Dropping an entry does not unmap memory a
     live array still views: the array keeps the mmap alive through its base.
     """
 
-    def __init__(self, capacity: int = 256) -> None:
+    def __init__(self, capacity: int = 256, *, writable: bool = False) -> None:
         self.capacity = capacity
+        self.writable = writable
         self._maps: OrderedDict[str, mmap.mmap] = OrderedDict()
 
     def get(self, name: str, size: int) -> mmap.mmap:
@@ -218,15 +307,20 @@ class _MappingCache:
         if m is not None and len(m) == size:
             self._maps.move_to_end(name)
             return m
-        fd = os.open(os.path.join(SHM_DIR, name), os.O_RDONLY)
+        w = self.writable
+        fd = os.open(os.path.join(SHM_DIR, name), os.O_RDWR if w else os.O_RDONLY)
         try:
-            m = mmap.mmap(fd, size, mmap.MAP_SHARED, mmap.PROT_READ)
+            prot = mmap.PROT_READ | (mmap.PROT_WRITE if w else 0)
+            m = mmap.mmap(fd, size, mmap.MAP_SHARED, prot)
         finally:
             os.close(fd)
         self._maps[name] = m
         while len(self._maps) > self.capacity:
             self._maps.popitem(last=False)
         return m
+
+    def forget(self, name: str) -> None:
+        self._maps.pop(name, None)
 
     def clear(self) -> None:
         self._maps.clear()
@@ -264,6 +358,8 @@ def _attach_frame(
                 f"slot {name} holds generation {owned._gen}, expected {generation} "
                 f"({source}#{seq}): the frame was released before its result came back"
             )
+        if owned._grant is not None:  # a slot lent to a worker, back with its new frame
+            return owned._grant.returned(owned, shape, dtype, source, seq, timestamp, pixel_format)
         if (owned.source, owned.seq, owned.timestamp, owned.pixel_format) == (
             source,
             seq,
@@ -286,7 +382,7 @@ def _attach_frame(
             f"({source}#{seq}): the sender released the frame before it was read"
         )
     dt = np.dtype(dtype)
-    n = int(np.prod(shape, dtype=np.int64)) if shape else 1
+    n = math.prod(shape) if shape else 1
     data = np.frombuffer(m, dtype=dt, count=n, offset=_HEADER).reshape(shape)
     # A frame attached in a worker is not link counted there (the main process holds the link);
     # returned unchanged it goes back as this descriptor (see Frame.__reduce__).
@@ -326,7 +422,7 @@ class _Slot:
         np.frombuffer(self.mm, dtype=np.uint8)[:] = 0
 
     def view(self, shape: tuple[int, ...], dtype: np.dtype[Any]) -> np.ndarray:
-        n = int(np.prod(shape, dtype=np.int64)) if shape else 1
+        n = math.prod(shape) if shape else 1
         return np.frombuffer(self.mm, dtype=dtype, count=n, offset=_HEADER).reshape(shape)
 
     def stamp(self) -> None:
@@ -402,22 +498,26 @@ class FramePool:
         seq: int = 0,
         timestamp: float = 0.0,
         pixel_format: str = "BGR",
+        count_drop: bool = True,
     ) -> Frame | None:
         """Return a writable frame in a free slot with link count 1 (the producer's), or None.
 
         None means every slot is held and the pool is at ``max_slots``: the frame is dropped
         and counted, because the producer (a camera) must never wait for a slow reader. The
         producer fills ``frame.data``, publishes, then releases its own link.
+        ``count_drop=False``: the caller counts the refusal itself (a slot to lend to a
+        worker is not a frame dropped: the worker's frame takes the socket instead).
         """
         dt = np.dtype(dtype)
         shape = tuple(int(s) for s in shape)
-        nbytes = int(np.prod(shape, dtype=np.int64)) * dt.itemsize if shape else dt.itemsize
+        nbytes = math.prod(shape) * dt.itemsize if shape else dt.itemsize
         with self._lock:
             if self._closed:
                 raise RuntimeError(f"frame pool {self.owner!r} is closed")
             slot = self._take(nbytes)
             if slot is None:
-                self._dropped += 1
+                if count_drop:
+                    self._dropped += 1
                 return None
             slot.stamp()
             self._reserved += 1

@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from .frames import worker_frame
+
 if TYPE_CHECKING:
     from .frames import Frame
     from .rtdb import RTDB, RtdbHandle
@@ -124,10 +126,13 @@ class NodeContext:
     def new_frame(
         self, shape: tuple[int, ...], dtype: Any = np.uint8, pixel_format: str = "BGR"
     ) -> Frame:
-        """A writable frame to fill and return; in shared memory when the runtime provides it."""
-        from .frames import Frame
+        """A writable frame to fill and return; in shared memory when the runtime provides it.
 
-        return Frame(np.empty(shape, dtype=dtype), source=self.name, pixel_format=pixel_format)
+        In a worker process it is a slot the main process lent for this call (see
+        :mod:`flowrt.grants`): returned, only its descriptor crosses the socket. Valid for the
+        call that made it: once returned it is read-only, and one not returned is reused.
+        """
+        return worker_frame(shape, dtype, self.name, pixel_format)
 
     def publish(self, port: str, value: Any) -> None:
         """Publish outside the return path (streaming nodes); only on the event loop."""

@@ -30,7 +30,14 @@ from .graph import Graph, resolve
 from .node import Node, NodeFactory
 from .scheduler import Executor, NodeRunner, Scheduler
 from .spec import EdgePolicy, GraphSpec, ModeSpec, Placement, TimingOverride
-from .stats import FramePoolStats, LoopStats, NodeStats, Running, RuntimeStats
+from .stats import (
+    FramePoolStats,
+    LoopStats,
+    NodeStats,
+    Running,
+    RuntimeStats,
+    WorkerFrameStats,
+)
 
 if TYPE_CHECKING:
     from .oscheduling import FairShare
@@ -147,6 +154,7 @@ class Runtime:
         self._lag_handle: asyncio.TimerHandle | None = None
         self._frames: Any = None
         self._pool: Any = None
+        self._grants: dict[str, list[Any]] = {}  # node -> its executors' output slots
         self._last_frame_stats: list[FramePoolStats] = []
         self._gap_cache: tuple[tuple[tuple[float, float], ...], tuple[float, float]] | None = None
         self._rtdb: RTDB | None = None
@@ -352,6 +360,7 @@ class Runtime:
             "watchdog": watchdog,
             "cpus": None if spec.cpus is None else tuple(spec.cpus),
             "spin": 0.0 if spec.spin is None else spec.spin / 1000,
+            "outputs": self._output_grants(runner),
         }
         if spec.placement is Placement.pool:
             if self._pool is None:
@@ -363,6 +372,39 @@ class Runtime:
             )
         ex.on_starved = self._worker_starved
         return _WorkerAdapter(ex)
+
+    def _output_grants(self, runner: NodeRunner) -> Any:
+        """The slots lent to a worker node for the frames it makes (None: no frame store)."""
+        from .grants import OutputGrants
+
+        if self._frames is None or self._frames.closed:
+            return None
+        # One per executor (a swap's new instance has its own; the old one's stop takes its
+        # own grants back), counted together per node.
+        # Two slots to start (one lent, one held by a reader), not four: each is a frame of
+        # shared memory per worker node; the pool grows if readers hold more.
+        per_call = len(runner.rnode.cls.frame_ports())
+        pool = self._frames.pool(runner.name, initial_slots=2)
+        grants = OutputGrants(runner.name, pool, per_call)
+        self._grants.setdefault(runner.name, []).append(grants)
+        return grants
+
+    @staticmethod
+    def _worker_frame_stats(node: str, grants: list[Any]) -> WorkerFrameStats:
+        parts = [g.stats() for g in grants]
+        by_socket: dict[str, int] = {}
+        for p in parts:
+            for reason, n in p.by_socket.items():
+                by_socket[reason] = by_socket.get(reason, 0) + n
+        return WorkerFrameStats(
+            node=node,
+            in_slots=sum(p.in_slots for p in parts),
+            by_socket=by_socket,
+            granted=sum(p.granted for p in parts),
+            outstanding=sum(p.outstanding for p in parts),
+            refused=sum(p.refused for p in parts),
+            reclaimed=sum(p.reclaimed for p in parts),
+        )
 
     def _worker_starved(self, node: str, detail: str) -> None:
         """A watchdog spared a starved worker: counted each time, one alert per episode.
@@ -531,6 +573,7 @@ class Runtime:
                 starvation_events=self.starvation_events,
             ),
             frames=self._frame_stats(),
+            worker_frames=[self._worker_frame_stats(n, gs) for n, gs in self._grants.items()],
             events=self.event_count,
             reports=self._reports(),
         )

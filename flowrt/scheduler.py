@@ -39,7 +39,7 @@ from .events import (
     NodeRestarted,
     TimingChanged,
 )
-from .frames import Frame
+from .frames import Frame, release_handoffs
 from .graph import Graph, ResolvedNode, checked_type
 from .node import Node, NodeContext, NodeFactory, make_node
 from .spec import FrameTrigger, InputTrigger, LoopTrigger, MissPolicy, Placement, TimerTrigger
@@ -544,12 +544,13 @@ class NodeRunner:
 
         A worker that passes on a frame it received returns its descriptor, which resolves
         to the very frame the activation sent (:func:`flowrt.frames._attach_frame`): without
-        a link of its own it would be recycled when the inputs are released.
+        a link of its own it would be recycled when the inputs are released. A frame the
+        worker made in a slot lent to it (:mod:`flowrt.grants`) carries its link: taken over.
         """
         values = result.values() if isinstance(result, Mapping) else (result,)
         for v in values:
             if isinstance(v, Frame) and v.shared:
-                v.acquire()
+                v.take_link()
                 self.created.append(v)
 
     # --- pipelined calls ------------------------------------------------------------------
@@ -670,6 +671,7 @@ class NodeRunner:
         if gen != self._gen:  # the node failed under an earlier call: this instance is gone
             self.aborted += 1
             _release_all(inputs.values())
+            release_handoffs(result)
             return
         if self._draining:  # a lossless reader is full: keep the order of the results
             if self._drained is None:
@@ -733,7 +735,10 @@ class NodeRunner:
                 )
         if discard:
             self.discarded += 1
-            _release_all([result] if not isinstance(result, Mapping) else result.values())
+            values = [result] if not isinstance(result, Mapping) else result.values()
+            # A frame the activation holds (made by new_frame, or adopted from a worker's
+            # result) is released once, with the others it holds, just below.
+            _release_all([v for v in values if not any(v is c for c in self.created)])
         elif result is not None:
             self._publish_result(result, end)
         self._release_created()

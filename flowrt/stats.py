@@ -182,6 +182,22 @@ class FramePoolStats(_Frozen):
     dropped: int
 
 
+class WorkerFrameStats(_Frozen):
+    """Frames a worker node made and how they reached the main process (flowrt.grants)."""
+
+    node: str
+    in_slots: int = Field(description="frames written into a slot lent to the worker: zero copy")
+    by_socket: dict[str, int] = Field(
+        default_factory=dict,
+        description="frames whose pixels crossed the worker's socket, by reason (not-granted, "
+        "no-free-slot, too-large, nested)",
+    )
+    granted: int = Field(description="slots lent to the worker so far")
+    outstanding: int = Field(description="slots lent now")
+    refused: int = Field(description="grants the pool could not serve (every slot held)")
+    reclaimed: int = Field(description="slots taken back from a worker that died or restarted")
+
+
 class RuntimeStats(_Frozen):
     """Everything ``rt.stats()`` and ``--stats-json`` report."""
 
@@ -197,6 +213,10 @@ class RuntimeStats(_Frozen):
     loop: LoopStats
     frames: list[FramePoolStats] = Field(
         default_factory=list, description="shared-memory frame pools: slots, growth, drops"
+    )
+    worker_frames: list[WorkerFrameStats] = Field(
+        default_factory=list,
+        description="frames made in worker processes: in shared-memory slots or by the socket",
     )
     events: int = Field(description="events published so far (misses, errors, restarts, changes)")
     reports: dict[str, Any] = Field(

@@ -14,8 +14,10 @@ Transport: one AF_UNIX stream socketpair per worker, length-prefixed pickles. Th
 an asyncio protocol (works unchanged on asyncio and uvloop and never blocks the loop); the
 worker side is a plain blocking socket. Frames from a :class:`~flowrt.frames.FramePool` pickle
 to a descriptor of their shared-memory slot, so a 1080p frame costs the same as an integer.
-Results are pickled back; a Frame or array returned by a node travels with its pixels (results
-are expected to be small: detections, poses).
+Results are pickled back. A frame the node received and passes on goes back as its descriptor;
+a frame it makes is written into a shared-memory slot the main process lent it with the call
+(:mod:`flowrt.grants`) and goes back as a descriptor too. Anything else (detections, poses, a
+bare array) travels pickled.
 
 Death detection: the process sentinel becomes readable when the worker exits for any reason
 (exception escaping, segfault, abort, SIGKILL); EOF on the socket is seen as well. The in-flight
@@ -60,6 +62,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+from flowrt.frames import release_handoffs
+from flowrt.grants import Grant, OutputGrants, WorkerSlots, lazy_report
 from flowrt.oscheduling import WorkerScheduling, apply_scheduling, nice_for
 
 __all__ = [
@@ -79,6 +83,7 @@ PRELOAD_MODULES = [
     "numpy",
     "cv2",
     "flowrt.frames",
+    "flowrt.grants",
     "flowrt.oscheduling",
     "flowrt.workers",
     "flowrt._forkserver_signals",  # SIGTERM/SIGHUP ignored, inherited by every worker
@@ -90,14 +95,15 @@ _PICKLE = pickle.HIGHEST_PROTOCOL
 
 # Requests (main -> worker); every request gets exactly one reply.
 _OP_ADD = 0  # (op, node_id, node_name, factory, WorkerScheduling) -> granted: str
-_OP_CALL = 1  # (op, node_id, inputs) -> result
+_OP_CALL = 1  # (op, node_id, inputs, grants) -> result (grants: slots lent, flowrt.grants)
 _OP_REMOVE = 2  # (op, node_id) -> None (teardown)
 _OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
 _OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
 
 # Replies (worker -> main), in the order of the requests; ``index`` counts the requests the
-# worker has read (0, 1, 2, ...), so that the main side matches each reply to its call.
-_R_OK = 0  # (status, payload, run_seconds, index)
+# worker has read (0, 1, 2, ...), so that the main side matches each reply to its call;
+# ``report`` says what a call did with its output slots (flowrt.grants), else None.
+_R_OK = 0  # (status, payload, run_seconds, index, report)
 _R_ERR = 1  # (status, formatted traceback, run_seconds, index)
 _R_FATAL = 2  # as _R_ERR, from an exception whose ``fatal`` is true: do not restart
 
@@ -408,12 +414,26 @@ def _set_pdeathsig() -> None:
         pass
 
 
-def _reply(conn: _BlockingConn, status: int, payload: Any, seconds: float, index: int) -> None:
+def _reply(
+    conn: _BlockingConn,
+    status: int,
+    payload: Any,
+    seconds: float,
+    index: int,
+    slots: WorkerSlots | None = None,
+) -> None:
     try:
-        data = pickle.dumps((status, payload, seconds, index), _PICKLE)
+        if slots is not None:  # a call's result: the frames it made may take their slots
+            slots.reply(payload)
+            report: Any = lazy_report(slots)  # pickled after the payload: knows what it did
+        else:
+            report = None
+        data = pickle.dumps((status, payload, seconds, index, report), _PICKLE)
     except Exception:
+        if slots is not None:
+            slots.abort()
         why = "result could not be pickled:\n" + traceback.format_exc()
-        data = pickle.dumps((_R_ERR, why, seconds, index), _PICKLE)
+        data = pickle.dumps((_R_ERR, why, seconds, index, None), _PICKLE)
     conn.send(data)
 
 
@@ -429,6 +449,7 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
     conn = _BlockingConn(sock)
     nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
+    outputs: dict[int, WorkerSlots] = {}  # each node's output slots (flowrt.grants)
     current: WorkerScheduling | None = None
     expected = _Anticipation()
     loop: asyncio.AbstractEventLoop | None = None
@@ -443,6 +464,7 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
 
     def teardown(nid: int) -> None:
         entry = nodes.pop(nid, None)
+        outputs.pop(nid, None)  # the main side takes its grants back (OutputGrants.reclaim)
         expected.configure(nid, 0.0)
         if entry is not None and hasattr(entry[1], "teardown"):
             run(entry[1].teardown())
@@ -452,16 +474,21 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
         if raw is None:
             break
         t0 = time.perf_counter()
+        slots: WorkerSlots | None = None
         try:
             msg = pickle.loads(raw)
             op = msg[0]
             if op == _OP_CALL:
-                _, nid, inputs = msg
+                _, nid, inputs, grants = msg
                 expected.called(nid, time.monotonic())
                 _, node, sched = nodes[nid]
                 if current != sched:
                     apply_scheduling(sched)
                     current = sched
+                slots = outputs.get(nid)
+                if slots is None:
+                    slots = outputs[nid] = WorkerSlots()
+                slots.begin(grants)
                 result = run(node.process(**inputs))
             elif op == _OP_ADD:
                 _, nid, node_name, factory, sched = msg
@@ -496,7 +523,9 @@ def _worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
             status = _R_FATAL if getattr(e, "fatal", False) is True else _R_ERR
             _reply(conn, status, traceback.format_exc(), time.perf_counter() - t0, index)
         else:
-            _reply(conn, _R_OK, result, time.perf_counter() - t0, index)
+            _reply(conn, _R_OK, result, time.perf_counter() - t0, index, slots)
+        if slots is not None:
+            slots.end()
     if loop is not None:
         loop.close()
     sock.close()
@@ -521,6 +550,8 @@ class _Call:
     watchdog: float | None = field(compare=False)
     window: int = field(default=1, compare=False)  # >1: may be sent behind calls of its node
     index: int = field(default=-1, compare=False)  # its place on the wire (see _R_OK)
+    # The node's output slots and the grants this call carries (flowrt.grants).
+    outputs: tuple[OutputGrants, tuple[Grant, ...]] | None = field(default=None, compare=False)
 
 
 class _Protocol(asyncio.Protocol):
@@ -622,18 +653,22 @@ class _Worker:
         priority: int,
         watchdog: float | None,
         window: int = 1,
+        outputs: tuple[OutputGrants, tuple[Grant, ...]] | None = None,
     ) -> asyncio.Future[Any]:
         """Queue a request; the future resolves to the reply payload or a WorkerError.
 
         ``window`` > 1: send it at once behind calls of the same node already in flight, as
-        long as fewer than ``window`` are (see the class docstring).
+        long as fewer than ``window`` are (see the class docstring). ``outputs``: the node's
+        output slots and the grants ``msg`` carries (told of the reply, or taken back).
         """
         if not self.usable or self._loop is None:
             raise self.death_for(node)
         fut = self._loop.create_future()
         fut.add_done_callback(_retrieved)
         seq = next(self._seq)
-        call = _Call((-priority, seq), pickle.dumps(msg, _PICKLE), fut, node, watchdog, window)
+        call = _Call(
+            (-priority, seq), pickle.dumps(msg, _PICKLE), fut, node, watchdog, window, -1, outputs
+        )
         if not self._inflight or self._may_follow(call):
             self._send(call)
         else:
@@ -676,6 +711,8 @@ class _Worker:
             call = self._waiting[0]
             if call.future.done():  # skip calls whose caller gave up
                 heapq.heappop(self._waiting)
+                if call.outputs is not None:
+                    call.outputs[0].unsent(call.outputs[1])
                 continue
             if self._inflight and not self._may_follow(call):
                 return
@@ -694,10 +731,15 @@ class _Worker:
         if self._inflight:
             self._arm(self._inflight[0])
         fut = call.future
+        report = None
         try:
-            status, payload, seconds, index = pickle.loads(raw)
+            status, payload, seconds, index, report = pickle.loads(raw)
         except Exception:
             status, payload, seconds, index = _R_ERR, traceback.format_exc(), 0.0, call.index
+        if call.outputs is not None:
+            call.outputs[0].replied(report)
+        if fut.done() and status == _R_OK:
+            release_handoffs(payload)  # nobody will take the frames it made
         if index != call.index:  # cannot happen on one stream socket; never hand out a
             # result to the wrong activation: the worker is condemned like a crashed one
             if not fut.done():
@@ -817,6 +859,8 @@ class _Worker:
         calls = [*self._inflight, *self._waiting]
         self._inflight = deque()
         self._waiting = []
+        for grants in {id(c.outputs[0]): c.outputs[0] for c in calls if c.outputs}.values():
+            grants.reclaim()  # the slots lent to the dead worker return to their pool
         for call in calls:
             if not call.future.done():
                 call.future.set_exception(self.death_for(call.node))
@@ -968,9 +1012,13 @@ class _NodeExecutor:
         nice_of: Callable[[int], int] | None = None,
         cpus: tuple[int, ...] | None = None,
         spin: float = 0.0,
+        outputs: OutputGrants | None = None,
     ) -> None:
         self.name = name
         self.factory = factory
+        # The slots lent to the worker for the frames this node makes (None: no frame store,
+        # its frames travel by the socket).
+        self.outputs = outputs
         self.nid = nid
         self.priority = _check_priority(priority)
         self.watchdog = watchdog
@@ -1012,6 +1060,8 @@ class _NodeExecutor:
         )
 
     async def _add_to(self, worker: _Worker) -> None:
+        if self.outputs is not None:  # a new instance, or a new worker: start with no grant
+            self.outputs.reclaim()
         self._worker = worker
         if self.on_starved is not None:
             worker.on_starved = self.on_starved
@@ -1025,12 +1075,7 @@ class _NodeExecutor:
         returns). Cancelling the awaiting task abandons the result, not the running call: the
         worker finishes it (or the watchdog kills it).
         """
-        w = self._worker
-        if w is None:
-            raise RuntimeError(f"{self.name}: executor not started")
-        return await w.request(
-            (_OP_CALL, self.nid, inputs), self.name, self.priority, self.watchdog
-        )
+        return await self._request(inputs, 1)
 
     def submit(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
         """Send ``process(**inputs)`` now and return the future of its result (pipelined).
@@ -1039,12 +1084,30 @@ class _NodeExecutor:
         it submits); they run in the worker in the order submitted and resolve in that order.
         The same contract as :meth:`call` otherwise (descriptors, watchdog per call).
         """
+        return self._request(inputs, window)
+
+    def _request(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
         w = self._worker
         if w is None:
             raise RuntimeError(f"{self.name}: executor not started")
-        return w.request(
-            (_OP_CALL, self.nid, inputs), self.name, self.priority, self.watchdog, window
-        )
+        out = self.outputs
+        if out is None:
+            return w.request(
+                (_OP_CALL, self.nid, inputs, ()), self.name, self.priority, self.watchdog, window
+            )
+        grants = out.grant(inputs, window) if w.usable else ()
+        try:
+            return w.request(
+                (_OP_CALL, self.nid, inputs, grants),
+                self.name,
+                self.priority,
+                self.watchdog,
+                window,
+                (out, grants),
+            )
+        except BaseException:
+            out.unsent(grants)
+            raise
 
     def set_priority(self, priority: int) -> None:
         """Change the node's priority at run time (QoS); the worker re-applies its OS priority.
@@ -1102,9 +1165,20 @@ class ProcessExecutor(_NodeExecutor):
         nice_of: Callable[[int], int] | None = None,
         cpus: tuple[int, ...] | None = None,
         spin: float = 0.0,
+        outputs: OutputGrants | None = None,
     ) -> None:
         super().__init__(
-            name, factory, 0, priority, watchdog, realtime, setup_timeout, nice_of, cpus, spin
+            name,
+            factory,
+            0,
+            priority,
+            watchdog,
+            realtime,
+            setup_timeout,
+            nice_of,
+            cpus,
+            spin,
+            outputs,
         )
 
     async def start(self) -> None:
@@ -1126,6 +1200,8 @@ class ProcessExecutor(_NodeExecutor):
         w, self._worker = self._worker, None
         if w is not None:
             await w.stop(grace)
+        if self.outputs is not None:
+            self.outputs.reclaim(count=False)
 
 
 class PoolExecutor:
@@ -1167,6 +1243,7 @@ class PoolExecutor:
         setup_timeout: float | None = 60.0,
         cpus: tuple[int, ...] | None = None,
         spin: float = 0.0,
+        outputs: OutputGrants | None = None,
     ) -> PoolNodeExecutor:
         """The executor of node ``name``, pinned to the next worker in round-robin order.
 
@@ -1174,7 +1251,7 @@ class PoolExecutor:
         """
         nid = next(self._next_node)
         return PoolNodeExecutor(
-            self, nid, name, factory, priority, watchdog, setup_timeout, cpus, spin
+            self, nid, name, factory, priority, watchdog, setup_timeout, cpus, spin, outputs
         )
 
     async def _worker(self, index: int, *, import_main: bool = False) -> _Worker:
@@ -1212,6 +1289,7 @@ class PoolNodeExecutor(_NodeExecutor):
         setup_timeout: float | None,
         cpus: tuple[int, ...] | None = None,
         spin: float = 0.0,
+        outputs: OutputGrants | None = None,
     ) -> None:
         super().__init__(
             name,
@@ -1224,6 +1302,7 @@ class PoolNodeExecutor(_NodeExecutor):
             pool.nice_of,
             cpus,
             spin,
+            outputs,
         )
         self.pool = pool
         self.index = nid % pool.size
@@ -1241,3 +1320,5 @@ class PoolNodeExecutor(_NodeExecutor):
                 await asyncio.wait_for(
                     w.request((_OP_REMOVE, self.nid), self.name, self.priority, grace), grace
                 )
+        if self.outputs is not None:
+            self.outputs.reclaim(count=False)

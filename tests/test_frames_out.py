@@ -76,7 +76,7 @@ def chain(middle: list[type[Node]]) -> Any:
 
 @pytest.mark.parametrize(
     ("middle", "shared", "offset"),
-    [([Relay, Relay, Relay], True, 0), ([Relay, Restamp], False, 1000)],
+    [([Relay, Relay, Relay], True, 0), ([Relay, Restamp], True, 1000)],
 )
 async def test_worker_relays_hand_the_slot_on(
     middle: list[type[Node]], shared: bool, offset: int

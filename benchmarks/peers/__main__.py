@@ -16,7 +16,8 @@ Rows (ratios are dora / flowrt for times and flowrt / dora for rates: > 1 means 
 - ``lat``: a 10 ms timer source sends 8 B, 640x480x3, 1920x1080x3 and 40 MiB; an echo node in
   another process (flowrt: ``placement: process``; dora: every node is a process) takes a
   zero-copy view, measures one-way latency and answers 16 bytes; the source's process
-  measures the round trip.
+  measures the round trip. ``flowrt spin``: the echo busy-polls 0.5 ms either side of the
+  call it expects; ``flowrt pinned``: the loop on CPU 0 (``taskset``), the echo on CPU 1.
 - ``timer``: a 20 Hz timer node records its activation instants; std of the intervals, idle and
   with two ``while True: pass`` burners.
 - ``fps``: 640x480x3 frames into a receiver in another process that computes their mean,
@@ -24,8 +25,10 @@ Rows (ratios are dora / flowrt for times and flowrt / dora for rates: > 1 means 
   drops is reported).
 - ``pipe``: source -> 8 relays -> sink, 640x480x3 at 30 Hz: end-to-end latency, total PSS of
   every process, start-up (launch to the first frame at the sink) and exit (SIGINT to the
-  runner's exit). flowrt runs it inline and with the 8 relays at ``placement: process``; dora
-  has one form (every node is a process).
+  runner's exit). flowrt runs it inline and with the 8 relays at ``placement: process``,
+  passing the frame on (``workers``) or making a new one, a copy, as dora's relays do
+  (``workers new``; ``workers new spin``: each relay busy-polls 0.5 ms either side of the
+  call it expects); dora has one form (every node is a process).
 """
 
 from __future__ import annotations
@@ -64,7 +67,7 @@ SIZES = {"8 B": 8, "640x480x3": 640 * 480 * 3, "1920x1080x3": 1920 * 1080 * 3, "
 RATES = (250, 500, 1000)
 BASELINE = " (baseline)"
 TIMER_WARMUP = 10
-BASELINED = {"flowrt", "flowrt inline", "flowrt workers"}  # sides also run from --baseline
+BASELINED = {"flowrt", "flowrt inline", "flowrt workers", "flowrt workers new"}  # + --baseline
 
 
 # --- running one side --------------------------------------------------------------------------
@@ -192,11 +195,12 @@ class Bench:
         before: list[str],
         after: list[str] = (),  # type: ignore[assignment]
         args: list[str] = (),  # type: ignore[assignment]
+        prefix: list[str] = (),  # type: ignore[assignment]
         **kw: Any,
     ) -> Run:
         g = self.path("graph.yaml")
         Path(g).write_text(yaml.safe_dump({"name": "peers", "nodes": nodes}, sort_keys=False))
-        cmd = [self.flowrt, "run", g, "--no-ui", "--log-every", "3600", *args]
+        cmd = [*prefix, self.flowrt, "run", g, "--no-ui", "--log-every", "3600", *args]
         env, cwd = self.env, REPO
         if side.endswith(BASELINE):  # cwd too: the forkserver's sys.path starts with it
             assert self.baseline_env is not None
@@ -235,7 +239,8 @@ def _us(xs: list[float]) -> tuple[float, float]:
 
 def lat(b: Bench, label: str, nbytes: int, count: int) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
-    for side in b.sides("flowrt", "flowrt spin", "dora"):
+    pinned = (os.cpu_count() or 1) >= 2 and shutil.which("taskset") is not None
+    for side in b.sides("flowrt", "flowrt spin", *(["flowrt pinned"] if pinned else []), "dora"):
         res = b.path("lat.json")
         if side.startswith("flowrt"):
             nodes = {
@@ -253,6 +258,9 @@ def lat(b: Bench, label: str, nbytes: int, count: int) -> dict[str, Sample]:
                     # The remedy for the worker's wake-up: it busy-polls 0.5 ms either side
                     # of the call it expects (the calls come every 10 ms).
                     **({"spin": "0.5ms"} if "spin" in side else {}),
+                    # Another remedy: the worker on a CPU of its own, the loop on the other
+                    # (taskset below), so that neither wakes up queued behind the other.
+                    **({"cpus": [1]} if "pinned" in side else {}),
                 },
                 "sink": {
                     "kind": f"{FN}:LatSink",
@@ -261,7 +269,8 @@ def lat(b: Bench, label: str, nbytes: int, count: int) -> dict[str, Sample]:
                     "inputs": {"back": "echo.back"},
                 },
             }
-            r = b.flowrt_run(side, nodes, [res], timeout=60)
+            prefix = ["taskset", "-c", "0"] if "pinned" in side else []
+            r = b.flowrt_run(side, nodes, [res], timeout=60, prefix=prefix)
         else:
             dnodes = [
                 {
@@ -427,7 +436,8 @@ def fps(b: Bench, rate: int | None, seconds: float) -> dict[str, Sample]:
 
 def pipe(b: Bench, count: int) -> dict[str, Sample]:
     out: dict[str, Sample] = {}
-    for side in b.sides("flowrt inline", "flowrt workers", "dora"):
+    sides = ("flowrt inline", "flowrt workers", "flowrt workers new", "flowrt workers new spin")
+    for side in b.sides(*sides, "dora"):
         res = b.path("pipe.json")
         if side.startswith("flowrt"):
             nodes: dict[str, Any] = {
@@ -440,9 +450,14 @@ def pipe(b: Bench, count: int) -> dict[str, Sample]:
             }
             prev = "src.frame"
             for i in range(8):
-                node: dict[str, Any] = {"kind": "relay", "priority": 40, "inputs": {"input": prev}}
+                # "new": each relay makes a new frame (a copy), as dora's relays do; else the
+                # built-in relay passes the frame it got on.
+                kind = f"{FN}:NewFrameRelay" if "new" in side else "relay"
+                node: dict[str, Any] = {"kind": kind, "priority": 40, "inputs": {"input": prev}}
                 if side.startswith("flowrt workers"):
                     node["placement"] = "process"
+                if side.endswith("spin"):  # each relay busy-polls 0.5 ms around its call
+                    node["spin"] = "0.5ms"
                 nodes[f"r{i}"] = node
                 prev = f"r{i}.output"
             nodes["sink"] = {

@@ -211,6 +211,21 @@ class Count(Node):
         )
 
 
+class NewFrameRelay(Node):
+    """A hop that makes a new frame, as dora's relay does (``send_output`` copies the value
+    into a new message): a copy of its input in ``ctx.new_frame`` (in a worker, a slot lent
+    by the main process: only its descriptor goes back)."""
+
+    input = Input(Frame)
+    output = Output(Frame)
+
+    def process(self, input: Frame) -> Frame:
+        out = self.ctx.new_frame(input.shape, input.dtype, input.pixel_format)
+        np.copyto(out.data, input.data)
+        out.seq, out.timestamp = input.seq, input.timestamp
+        return out
+
+
 class PipeSink(Node):
     """End of the 10-node pipeline: end-to-end latency from the stamp in the frame."""
 
