@@ -492,6 +492,12 @@ class ZenohBridge:
                     f"zenoh: cannot listen on {', '.join(where)}: address already in use "
                     "(change zenoh.listen in the graph file, or stop the other process)"
                 ) from None
+            if "Unable to connect" in text:
+                raise RemoteError(
+                    f"zenoh: cannot connect to {', '.join(self.zspec.connect) or 'any endpoint'}"
+                    " (in client mode a router or peer must answer at start; peer mode keeps"
+                    " trying)"
+                ) from None
             raise RemoteError(f"zenoh: {text}") from None
         self.zid = str(self.session.info.zid())
         self._queryable = self.session.declare_queryable(

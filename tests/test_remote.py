@@ -90,6 +90,10 @@ nodes:
         (("input: rball", "input: nothing"), "expected node.port"),
         (("nodes:", "export: {r1/x: sink.out}\nnodes:"), "has no output 'out'"),
         (("nodes:", "export: {r1/x: ghost.out}\nnodes:"), "unknown node 'ghost'"),
+        (("nodes:", "export: {r1/**: sink.out}\nnodes:"), "name one key, no * or **"),
+        (("nodes:", "export: {r1/$x: sink.out}\nnodes:"), "are reserved"),
+        (("connect:", "control: a//b, connect:"), "empty chunk"),
+        (("listen: []", "listen: [tcp/127.0.0.1]"), "expected host:port"),
     ],
 )
 def test_bad_remote_configuration_is_located(
@@ -221,3 +225,21 @@ def test_port_in_use_is_one_line_and_exit_1(tmp_path: Path) -> None:
     assert len(lines) == 1, r.stderr
     assert f"tcp/127.0.0.1:{port}" in lines[0]
     assert "already in use" in lines[0]
+
+
+def test_client_mode_without_a_router_is_one_line_and_exit_1(tmp_path: Path) -> None:
+    port = free_port()  # nothing listens there
+    path = tmp_path / "base.yaml"
+    text = BASE.replace("listen: []", "mode: client, listen: []").replace("7447", str(port))
+    path.write_text(text)
+    r = subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", "run", str(path), "--no-ui", "--duration", "5"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 1
+    assert r.stderr.strip() == (
+        f"flowrt run: zenoh: cannot connect to tcp/127.0.0.1:{port} (in client mode a router "
+        "or peer must answer at start; peer mode keeps trying)"
+    )
