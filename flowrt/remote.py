@@ -324,6 +324,12 @@ class _Import:
         self.stale = False
         self.decode_errors = 0
         self.ctx: Any = None
+        # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
+        # keeps one pool frame of the last shape ready (``spare``); frames replaced before
+        # delivery go back to the pool from the loop (``discard``).
+        self.spare: Frame | None = None
+        self.spare_key: tuple[Any, ...] | None = None
+        self.discard: list[Frame] = []
 
     # Zenoh's thread ---------------------------------------------------------------------
 
@@ -336,6 +342,7 @@ class _Import:
             payload = sample.payload.to_bytes()
             if header.kind == "frame":
                 value: Any = decode_frame(header.frame, payload)
+                value = self._into_spare(header.frame, value)
             else:
                 value = from_wire(json.loads(payload))
         except Exception as e:
@@ -355,10 +362,13 @@ class _Import:
             self.last_seq = max(self.last_seq, header.seq)
             self.link.published += 1
             if header.kind == "frame" and self.pending:  # frames: the newest only
+                self.discard.extend(v for _, v in self.pending if isinstance(v, Frame))
                 self.pending.clear()
                 self.link.dropped += 1
             elif len(self.pending) >= self.size:
-                self.pending.popleft()
+                _, old = self.pending.popleft()
+                if isinstance(old, Frame):
+                    self.discard.append(old)
                 self.link.dropped += 1
             self.pending.append((header, value))
             if self.scheduled:
@@ -367,6 +377,18 @@ class _Import:
         with contextlib.suppress(RuntimeError):  # the loop is closing
             self.bridge.host.loop.call_soon_threadsafe(self.deliver)
 
+    def _into_spare(self, meta: dict[str, Any], arr: np.ndarray) -> Any:
+        """The pixels in the pool frame the loop has ready, when its shape fits; else as is."""
+        key = _frame_key(meta, arr)
+        with self.lock:
+            spare = self.spare if self.spare_key == key else None
+            if spare is not None:
+                self.spare = None
+        if spare is None:
+            return arr
+        np.copyto(spare.data, arr)  # numpy lets go of the GIL for the copy
+        return spare
+
     # the loop ---------------------------------------------------------------------------
 
     def deliver(self) -> None:
@@ -374,8 +396,12 @@ class _Import:
             items = list(self.pending)
             self.pending.clear()
             self.scheduled = False
+            discard, self.discard = self.discard, []
+        for old in discard:
+            old.release()
         host = self.bridge.host
         records: list[Any] = []
+        key: tuple[Any, ...] | None = None
         for header, value in items:
             now = host.now_mono()
             offset = self.bridge.offset(header.zid)
@@ -388,12 +414,14 @@ class _Import:
             self.last_arrival = now
             captured_mono = now - max(0.0, wall_now - (header.captured - offset))
             if header.kind == "frame":
-                arr = value
-                pf = str(header.frame.get("pf", "BGR"))
-                if header.frame.get("enc", "raw") != "raw" and arr.ndim == 3:
-                    pf = "BGR"
-                frame = host.new_frame(self.name, tuple(arr.shape), arr.dtype, pf)
-                np.copyto(frame.data, arr)
+                if isinstance(value, Frame):  # copied into the pool on Zenoh's thread
+                    frame = value
+                    key = _frame_key(header.frame, frame.data)
+                else:
+                    arr = value
+                    key = _frame_key(header.frame, arr)
+                    frame = host.new_frame(self.name, tuple(arr.shape), arr.dtype, key[2])
+                    np.copyto(frame.data, arr)
                 frame.seq = int(header.frame.get("seq", header.seq))
                 frame.timestamp = captured_mono
                 host.publish(self.name, "output", frame)
@@ -401,10 +429,35 @@ class _Import:
             else:
                 host.publish(self.name, "output", value)
                 records.append(value)
-        if records:  # after the readers' activations: an RTDB write is ~0.1 ms (a lock)
-            host.loop.call_soon(self._record, records)
         if self.stale and items:
             self._resumed()
+        if records:  # after the readers' activations: an RTDB write is ~0.1 ms (a lock)
+            host.loop.call_soon(self._record, records)
+        if key is not None:  # after the readers' activations too
+            host.loop.call_soon(self._ready_spare, key)
+
+    def _ready_spare(self, key: tuple[Any, ...]) -> None:
+        """On the loop: a pool frame of the last shape, for the next arrival to fill."""
+        with self.lock:
+            if self.spare is not None and self.spare_key == key:
+                return
+            old, self.spare, self.spare_key = self.spare, None, None
+        if old is not None:
+            old.release()
+        frame = self.bridge.host.new_frame(self.name, key[0], np.dtype(key[1]), key[2])
+        with self.lock:
+            self.spare, self.spare_key = frame, key
+
+    def close(self) -> None:
+        """On the loop, at the end: frames still held go back to the pool."""
+        with self.lock:
+            held = [v for _, v in self.pending if isinstance(v, Frame)] + self.discard
+            if self.spare is not None:
+                held.append(self.spare)
+            self.pending.clear()
+            self.discard, self.spare, self.spare_key = [], None, None
+        for frame in held:
+            frame.release()
 
     def _record(self, values: list[Any]) -> None:
         validity = self._validity_ms()
@@ -544,6 +597,8 @@ class ZenohBridge:
             with contextlib.suppress(Exception):
                 s.undeclare()
         self._subs.clear()
+        for imp in self.imports.values():
+            imp.close()
         if self._sender is not None:
             self._jobs.put(None)
             await asyncio.to_thread(self._sender.join, 2.0)
@@ -640,6 +695,14 @@ class ZenohBridge:
 
     def clocks(self) -> dict[str, tuple[float, float]]:
         return dict(self._offsets)
+
+
+def _frame_key(meta: dict[str, Any], arr: np.ndarray) -> tuple[Any, ...]:
+    """(shape, dtype, pixel format) of a received frame: what a spare pool frame must match."""
+    pf = str(meta.get("pf", "BGR"))
+    if meta.get("enc", "raw") != "raw" and arr.ndim == 3:
+        pf = "BGR"  # decoded by OpenCV
+    return (tuple(arr.shape), str(arr.dtype), pf)
 
 
 def _answer_clock(query: Any) -> None:
