@@ -330,7 +330,7 @@ def sustained(seconds: float, tmp: Path) -> dict[str, Any]:
     return {
         "seconds": seconds,
         "export_edge": {k: export[k] for k in ("published", "delivered", "dropped")},
-        "remote_link": {k: link[k] for k in ("published", "delivered", "dropped")},
+        "remote_link": {k: link[k] for k in ("published", "delivered", "dropped", "drop_reasons")},
         "latency": _summ(json.loads((tmp / "s.json").read_text())),
         "mem_exporter": e["mem"],
         "mem_importer": i["mem"],

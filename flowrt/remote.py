@@ -10,10 +10,11 @@ outside the real-time router, no network I/O runs on the event loop:
   for messages, counted like any edge) hands one value at a time to a sender thread that
   encodes and publishes it; when that send is done the next value is taken. A slow network
   therefore drops at the edge, where it is counted, and never slows the producer.
-- Import: Zenoh's callback thread decodes (JPEG too) and parks the value in a hand-over slot
-  (frames: the newest only) or a bounded queue; one ``call_soon_threadsafe`` wakes the loop,
-  which copies frames into its own frame pool (local trackers read them zero-copy) and
-  publishes on the import node's ``output``.
+- Import: Zenoh's callback thread decodes (JPEG too), copies a frame's pixels into a frame of
+  the local pool that the loop keeps ready (local trackers read them zero-copy; the loop
+  copies only when no such frame fits), and parks the value in a bounded hand-over queue
+  (frames: ``FRAME_BACKLOG``; overruns counted); one ``call_soon_threadsafe`` wakes the loop, which
+  publishes on the import node's ``output`` (and writes the RTDB record after the readers).
 
 Every message carries its stream id, sequence number, send time and capture time: the
 importing side counts sequence gaps as drops of the remote link (an edge named
@@ -56,6 +57,7 @@ from .stats import EdgeStats, Running
 log = logging.getLogger("flowrt.remote")
 
 WIRE_VERSION = 1
+FRAME_BACKLOG = 3  # received frames waiting for the loop, at most (each holds a pool slot)
 CLOCK_PREFIX = "_flowrt/clock"
 
 
@@ -259,13 +261,19 @@ class RemoteFrameSource(RemoteSource):
 
 class RemoteLinkStats(Buffer):
     """The network hop of an import, shown as an edge: published = what the exporter sent
-    (by sequence number), delivered = received, dropped = sequence gaps and hand-over
-    overruns; age = one-way, on the exporter's clock corrected by the measured offset."""
+    (by sequence number), delivered = received, dropped = sequence gaps, hand-over overruns
+    and undecodable messages (each its own ``drop_reasons`` entry); age = one-way, on the
+    exporter's clock corrected by the measured offset."""
 
     policy = "remote"
 
     def __init__(self, name: str) -> None:
         super().__init__(name, 1)
+
+    def lost(self, reason: str, n: int = 1) -> None:
+        """``n`` messages lost on this hop, counted with ``reason``."""
+        self.dropped += n
+        self.drop_reasons[reason] = self.drop_reasons.get(reason, 0) + n
 
     def stats(self) -> EdgeStats:
         return super().stats()
@@ -348,7 +356,7 @@ class _Import:
         except Exception as e:
             with self.lock:
                 self.decode_errors += 1
-                self.link.dropped += 1
+                self.link.lost("undecodable")
             log.warning("import %s: undecodable message on %s: %s", self.name, self.key, e)
             return
         self.bridge.clock_probe(header.zid)
@@ -356,20 +364,19 @@ class _Import:
             if header.stream != self.stream:
                 self.stream, self.last_seq = header.stream, header.seq - 1
             gap = header.seq - self.last_seq - 1
-            if gap > 0:
+            if gap > 0:  # never received: lost on the way (or dropped by Zenoh's congestion)
                 self.link.published += gap
-                self.link.dropped += gap
+                self.link.lost("sequence gap", gap)
             self.last_seq = max(self.last_seq, header.seq)
             self.link.published += 1
-            if header.kind == "frame" and self.pending:  # frames: the newest only
-                self.discard.extend(v for _, v in self.pending if isinstance(v, Frame))
-                self.pending.clear()
-                self.link.dropped += 1
-            elif len(self.pending) >= self.size:
+            # Frames hold pool slots: a short backlog (two arriving back to back after an
+            # exporter's stall must both get through); messages: the import's ``size``.
+            limit = FRAME_BACKLOG if header.kind == "frame" else self.size
+            while len(self.pending) >= limit:  # the loop has not taken them in time
                 _, old = self.pending.popleft()
                 if isinstance(old, Frame):
                     self.discard.append(old)
-                self.link.dropped += 1
+                self.link.lost("hand-over overrun")
             self.pending.append((header, value))
             if self.scheduled:
                 return

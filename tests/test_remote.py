@@ -12,6 +12,7 @@ import socket
 import subprocess
 import sys
 import textwrap
+import types
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,15 @@ import pytest
 
 from flowrt import Frame, Graph, GraphBuilder, GraphError, Node, Output, Runtime
 from flowrt.edges import EMPTY
-from flowrt.remote import Header, decode_frame, encode_frame, from_wire, to_wire
+from flowrt.remote import (
+    FRAME_BACKLOG,
+    Header,
+    _Import,
+    decode_frame,
+    encode_frame,
+    from_wire,
+    to_wire,
+)
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -294,3 +303,42 @@ async def test_frames_arrive_intact_in_the_pool_and_go_back_to_it() -> None:
         del rx_side
     pools = {p.owner: p for p in rt.stats().frames}
     assert pools["rx"].slots_in_use == 0
+
+
+class _Bytes:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Sample:
+    def __init__(self, header: Header, payload: bytes) -> None:
+        self.attachment = _Bytes(header.encode())
+        self.payload = _Bytes(payload)
+
+
+def test_link_counts_each_loss_with_its_reason() -> None:
+    """Sequence gaps, hand-over overruns (the loop not taking frames in time) and
+    undecodable messages are each counted on the remote link, with their reason."""
+    woken: list[Any] = []
+    host = types.SimpleNamespace(
+        loop=types.SimpleNamespace(call_soon_threadsafe=woken.append), now_mono=lambda: 0.0
+    )
+    bridge = types.SimpleNamespace(host=host, clock_probe=lambda zid: None)
+    imp = _Import(bridge, "rx", "k", None, 5.0, 16)  # type: ignore[arg-type]
+    meta, pixels = encode_frame(Frame(np.zeros((4, 4, 3), np.uint8)), "raw", 90)
+    for seq in (0, 1, 3, 4, 5, 6):  # 2 never arrives; the loop takes none of them
+        imp.on_sample(_Sample(Header("s", "z", seq, 0.0, 0.0, "frame", meta), pixels))
+    imp.on_sample(_Sample(Header("s", "z", 7, 0.0, 0.0, "frame", meta), b"short"))
+    assert len(woken) == 1  # one wake-up for the whole burst
+    assert len(imp.pending) == FRAME_BACKLOG
+    overruns = 6 - FRAME_BACKLOG
+    assert imp.link.drop_reasons == {
+        "sequence gap": 1,
+        "hand-over overrun": overruns,
+        "undecodable": 1,
+    }
+    assert imp.link.dropped == 1 + overruns + 1
+    assert imp.link.published == 7  # 0..6 by sequence number; the undecodable one unknown
