@@ -1,7 +1,7 @@
 """Recording: throughput at the acquisition paper's resolution, timing disturbance, rate fidelity.
 
     python benchmarks/bench_record.py throughput --seconds 15   # 2 (and 3) x 1936x1216 @ 20 fps
-    python benchmarks/bench_record.py cambada --seconds 15      # critical-task std with/without
+    python benchmarks/bench_record.py cambada --seconds 15 --rounds 3 --realtime  # with/without
     python benchmarks/bench_record.py fidelity --seconds 5      # reduced Table 5 + PNG plot
     python benchmarks/bench_record.py all                       # the three, as in RESULTS.md
 
@@ -226,46 +226,70 @@ def _stats_row(label: str, stats: dict[str, Any]) -> list[str]:
 
 
 def cambada(args: argparse.Namespace) -> None:
-    print(f"### Timing with and without recording: cambada graph ({args.seconds:g} s each)\n")
+    """Interleaved rounds (run, record, run, record ...): the machine's drift hits both alike.
+
+    Per task the median over the rounds of each run's std is the figure; every row is listed.
+    """
+    extra = ["--realtime"] if args.realtime else []
+    print(
+        f"### Timing with and without recording: cambada graph ({args.seconds:g} s each, "
+        f"{args.rounds} interleaved rounds{', --realtime' if args.realtime else ''})\n"
+    )
     print(machine() + "\n")
     rows = []
+    stds: dict[tuple[str, str], list[float]] = {}
+    written = lost = streams = 0
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
-        for label, cmd in (
-            ("run (no recording)", ["run", "graphs/cambada.yaml"]),
-            ("record (every output)", ["record", "graphs/cambada.yaml", "-o", tmp]),
-            ("run (no recording), again", ["run", "graphs/cambada.yaml"]),
-        ):
-            out = Path(tmp) / "stats.json"
-            subprocess.run(
-                [
-                    sys.executable,
-                    "-m",
-                    "flowrt.cli",
-                    *cmd,
-                    "--no-ui",
-                    "--duration",
-                    str(args.seconds),
-                    "--stats-json",
-                    str(out),
-                ],
-                cwd=REPO,
-                capture_output=True,
-                check=False,
-            )
-            rows += _stats_row(label, json.loads(out.read_text()))
-        sessions = sorted(Path(tmp).glob("rec_*"))
-        report = json.loads((sessions[0] / "streams.json").read_text()) if sessions else {}
+        for r in range(args.rounds):
+            for label, cmd in (
+                ("run (no recording)", ["run", "graphs/cambada.yaml"]),
+                ("record (every output)", ["record", "graphs/cambada.yaml", "-o", tmp]),
+            ):
+                out = Path(tmp) / "stats.json"
+                out.unlink(missing_ok=True)
+                subprocess.run(
+                    [
+                        sys.executable,
+                        "-m",
+                        "flowrt.cli",
+                        *cmd,
+                        *extra,
+                        "--no-ui",
+                        "--duration",
+                        str(args.seconds),
+                        "--stats-json",
+                        str(out),
+                    ],
+                    cwd=REPO,
+                    capture_output=True,
+                    check=False,
+                )
+                if not out.exists():
+                    print(f"round {r + 1} {label}: no statistics (the run failed)")
+                    continue
+                stats = json.loads(out.read_text())
+                rows += _stats_row(f"{r + 1}: {label}", stats)
+                for n in stats["nodes"]:
+                    if n["name"] in ("avoid_fr", "avoid_om"):
+                        stds.setdefault((label, n["name"]), []).append(n["interval"]["std"])
+                for rep in stats.get("reports", {}).get("recorder", None) or []:
+                    streams = len(rep["streams"])
+                    written += sum(s["written"] for s in rep["streams"])
+                    lost += sum(s["lost"] for s in rep["streams"])
     print(
-        "| run | task | n | mean ms | std ms | min | max | skipped | misses | edge drops | "
+        "| round: run | task | n | mean ms | std ms | min | max | skipped | misses | edge drops | "
         "pool drops |"
     )
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     print("\n".join(rows))
-    lost = sum(s["lost"] for s in report.get("streams", []))
-    n = sum(s["written"] for s in report.get("streams", []))
+    print("\n| run | task | median std ms | stds ms |\n|---|---|---:|---|")
+    for (label, task), v in sorted(stds.items(), key=lambda kv: (kv[0][1], kv[0][0])):
+        print(
+            f"| {label} | {task} | {float(np.median(v)):.3f} | {', '.join(f'{x:.2f}' for x in v)} |"
+        )
     print(
-        f"\nThe recording: {len(report.get('streams', []))} streams, {n} messages written, "
-        f"{lost} lost.\n"
+        f"\nThe recordings: {streams} streams each, {written} messages written in all, "
+        f"{lost} lost. Load average at the end: {os.getloadavg()[0]:.2f}.\n"
     )
 
 
@@ -331,6 +355,8 @@ def main() -> None:
     p.add_argument("what", choices=("throughput", "cambada", "fidelity", "all"))
     p.add_argument("--seconds", type=float, default=None)
     p.add_argument("--streams", type=int, nargs="+", default=[2, 3])
+    p.add_argument("--rounds", type=int, default=3, help="cambada: interleaved rounds")
+    p.add_argument("--realtime", action="store_true", help="cambada: runs with --realtime")
     p.add_argument("--dir", default=str(REPO / "benchmarks" / "results" / "rec_tmp"))
     args = p.parse_args()
     Path(args.dir).mkdir(parents=True, exist_ok=True)

@@ -14,17 +14,14 @@ import sys
 import threading
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from typing import Generic, TypeVar
+from typing import TypeVar
 
-from rich import box
-from rich.cells import cell_len
 from rich.console import Console, Group, RenderableType
 from rich.live import Live
-from rich.table import Table
 from rich.text import Text
 
+from .columns import Column, fit_table
 from .events import DeadlineMissed, Event, HealthAlert, LoopBlocked, NodeFailed
 from .qos import QosStatus
 from .runtime import Runtime
@@ -46,16 +43,6 @@ def _ms(x: float) -> str:
 # Node columns, dropped first to last: resp p99, place, trigger, prio, exec, interval,
 # period, done, rst. Edge columns: age, policy, unread, deliv, pub.
 
-Cell = str | Text
-
-
-@dataclass(frozen=True)
-class _Col(Generic[S]):
-    header: str
-    cell: Callable[[S], Cell]
-    drop: int = 0  # 0: essential; else dropped in ascending order when space is short
-    right: bool = True
-
 
 def _count(n: int, style: str) -> Text:
     return Text(str(n), style=style if n else "")
@@ -73,23 +60,23 @@ STATE_STYLE = {
     "disabled": "dim",
 }
 
-NODE_COLUMNS: tuple[_Col[NodeStats], ...] = (
-    _Col("node", lambda n: n.name, right=False),
-    _Col("state", _state, right=False),
-    _Col("act", lambda n: str(n.activations)),
-    _Col("done", lambda n: str(n.completions), drop=8),
-    _Col("skip", lambda n: _count(n.skipped, "yellow")),
-    _Col("miss", lambda n: _count(n.deadline_misses, "bold red")),
-    _Col("drop", lambda n: _count(n.dropped, "bold red")),
-    _Col("err", lambda n: _count(n.errors, "bold red")),
-    _Col("rst", lambda n: _count(n.restarts, "yellow"), drop=9),
-    _Col("period", lambda n: n.period, drop=7),
-    _Col(
+NODE_COLUMNS: tuple[Column[NodeStats], ...] = (
+    Column("node", lambda n: n.name, right=False),
+    Column("state", _state, right=False),
+    Column("act", lambda n: str(n.activations)),
+    Column("done", lambda n: str(n.completions), drop=8),
+    Column("skip", lambda n: _count(n.skipped, "yellow")),
+    Column("miss", lambda n: _count(n.deadline_misses, "bold red")),
+    Column("drop", lambda n: _count(n.dropped, "bold red")),
+    Column("err", lambda n: _count(n.errors, "bold red")),
+    Column("rst", lambda n: _count(n.restarts, "yellow"), drop=9),
+    Column("period", lambda n: n.period, drop=7),
+    Column(
         "interval ms",
         lambda n: f"{_ms(n.interval.mean)}±{_ms(n.interval.std)}" if n.interval.count else "-",
         drop=6,
     ),
-    _Col(
+    Column(
         "exec ms p50/p99/max",
         lambda n: (
             f"{_ms(n.execution.p50)}/{_ms(n.execution.p99)}/{_ms(n.execution.max)}"
@@ -98,60 +85,25 @@ NODE_COLUMNS: tuple[_Col[NodeStats], ...] = (
         ),
         drop=5,
     ),
-    _Col("resp ms p99", lambda n: _ms(n.response.p99) if n.response.count else "-", drop=1),
-    _Col("place", lambda n: _placement(n.placement, n.granted), drop=2, right=False),
-    _Col("trigger", lambda n: n.trigger.replace("frame ", "⟳ "), drop=3, right=False),
-    _Col("prio", lambda n: str(n.priority), drop=4),
+    Column("resp ms p99", lambda n: _ms(n.response.p99) if n.response.count else "-", drop=1),
+    Column("place", lambda n: _placement(n.placement, n.granted), drop=2, right=False),
+    Column("trigger", lambda n: n.trigger.replace("frame ", "⟳ "), drop=3, right=False),
+    Column("prio", lambda n: str(n.priority), drop=4),
 )
 
-EDGE_COLUMNS: tuple[_Col[EdgeStats], ...] = (
-    _Col("edge", lambda e: e.name, right=False),
-    _Col("policy", lambda e: e.policy, drop=2, right=False),
-    _Col("pub", lambda e: str(e.published), drop=5),
-    _Col("deliv", lambda e: str(e.delivered), drop=4),
-    _Col("drop", lambda e: _count(e.dropped, "bold red")),
-    _Col("unread", lambda e: Text(str(e.unread), style="dim"), drop=3),
-    _Col(
+EDGE_COLUMNS: tuple[Column[EdgeStats], ...] = (
+    Column("edge", lambda e: e.name, right=False),
+    Column("policy", lambda e: e.policy, drop=2, right=False),
+    Column("pub", lambda e: str(e.published), drop=5),
+    Column("deliv", lambda e: str(e.delivered), drop=4),
+    Column("drop", lambda e: _count(e.dropped, "bold red")),
+    Column("unread", lambda e: Text(str(e.unread), style="dim"), drop=3),
+    Column(
         "age ms mean/max",
         lambda e: f"{_ms(e.age.mean)}/{_ms(e.age.max)}" if e.age.count else "-",
         drop=1,
     ),
 )
-
-
-def _table(cols: Sequence[_Col[S]], rows: Sequence[S], width: int | None) -> Table:
-    """The rows under the widest set of columns that fits ``width`` (dropping by rank).
-
-    Widths are computed here rather than measured by rich (which renders every cell once per
-    try: ~40 ms for the cambada table at 80 columns, against ~4 ms for this).
-    """
-    cells: dict[str, list[Cell]] = {}
-    natural: dict[str, int] = {}
-    for col in cols:
-        cells[col.header] = [col.cell(r) for r in rows]
-        widths = [cell_len(str(x)) for x in cells[col.header]]
-        natural[col.header] = max([cell_len(col.header), *widths])
-    ranks: list[int] = sorted({c.drop for c in cols if c.drop})
-    shown = list(cols)
-    for limit in [0, *ranks]:  # drop the columns ranked up to ``limit``
-        shown = [c for c in cols if not c.drop or c.drop > limit]
-        # each column: one space of padding on its right (none after the last), then the
-        # box's blank divider
-        if width is None or sum(natural[c.header] + 2 for c in shown) - 2 <= width:
-            break
-    table = Table(
-        box=box.SIMPLE_HEAD, show_edge=False, pad_edge=False, padding=(0, 1, 0, 0), expand=False
-    )
-    for c in shown:
-        table.add_column(
-            c.header,
-            justify="right" if c.right else "left",
-            no_wrap=True,
-            min_width=None if c.right else natural[c.header],  # names are never cut first
-        )
-    for i in range(len(rows)):
-        table.add_row(*(cells[c.header][i] for c in shown))
-    return table
 
 
 def _node_rank(n: NodeStats) -> int:
@@ -228,7 +180,7 @@ def render(
         _line(f"  {n.name} {n.state}: {n.reason}", "bold red") for n in shown if _has_reason(n)
     ]
     room -= len(shown) + len(reasons)
-    parts: list[RenderableType] = [_line(title, "bold"), _table(NODE_COLUMNS, shown, width)]
+    parts: list[RenderableType] = [_line(title, "bold"), fit_table(NODE_COLUMNS, shown, width)]
     if len(shown) < len(nodes):
         parts.append(_hidden(nodes, shown, _node_rank, "nodes"))
         room -= 1
@@ -240,7 +192,7 @@ def render(
     if edges and room >= 3:
         fit = room - 2
         shown_e = edges if fit >= len(edges) else _pick(edges, _edge_rank, int(fit) - 1)
-        parts.append(_table(EDGE_COLUMNS, shown_e, width))
+        parts.append(fit_table(EDGE_COLUMNS, shown_e, width))
         room -= 2 + len(shown_e)
         if len(shown_e) < len(edges):
             parts.append(_hidden(edges, shown_e, _edge_rank, "edges"))

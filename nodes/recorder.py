@@ -18,6 +18,16 @@ error state at once (red in the status table, a ``HealthAlert``); a write error 
 stops the recording, keeps the file, says why, and the graph goes on. When a recording stops
 its per-stream table is logged and saved as ``streams.json`` in the session.
 
+A detection stream (a tracker's output: centroid, bbox and the ``source``/``timestamp`` of
+its frame) whose camera is recorded too is also written as ``foxglove.ImageAnnotations`` on
+``CAMERA/annotations/DETECTIONS`` (``cam.frame/annotations/ball.detection``), stamped with
+its frame's time, so Foxglove's image panel draws the detections on the frames
+(``annotations: false`` turns it off).
+
+With ``split_size`` (``4GiB``) and/or ``split_duration`` (``10m``) a session holds several
+files, ``NAME_NNN_000.mcap``, ``NAME_NNN_001.mcap`` ..., each a complete, standalone MCAP
+(:mod:`flowrt.recording.split`); the per-stream table counts across all of them.
+
 At run time ``flowrt ctl record start|stop`` (RTDB record ``flowrt.record.NODE``) starts a new
 session or closes the current one.
 """
@@ -31,10 +41,19 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from flowrt import Frame, Input, InputTrigger, Node
-from flowrt.recording import RecordingWriter, build_report, new_session, nominal_rates
+from flowrt.recording import (
+    RecordingWriter,
+    SplitPolicy,
+    build_report,
+    new_session,
+    nominal_rates,
+    parse_duration,
+    parse_size,
+)
+from flowrt.recording.encoding import Overlay, annotations_topic, is_detection
 from flowrt.recording.report import RecordingReport, report_text
 from flowrt.recording.session import SESSION_FILE, session_metadata, timing_json
 
@@ -47,7 +66,7 @@ STATUS_RECORD = "flowrt.recording."
 
 
 class Recorder(Node):
-    """Records every input into ``path/NAME_NNN/NAME_NNN.mcap``; see the module doc."""
+    """Records every input into ``path/NAME_NNN/NAME_NNN.mcap`` (or its parts); see above."""
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -72,7 +91,27 @@ class Recorder(Node):
         crc: bool = Field(
             default=True, description="chunk CRCs: damage found; off halves the CPU cost"
         )
+        split_size: int | None = Field(
+            default=None, description="start a new file past this size: 4GiB, 500MB, bytes"
+        )
+        split_duration: float | None = Field(
+            default=None, description="start a new file after this long: 10m, 30s, seconds"
+        )
+        annotations: bool = Field(
+            default=True, description="detections also as ImageAnnotations on their camera"
+        )
         graph_file: str | None = Field(default=None, description="attached as graph.yaml")
+
+        @field_validator("split_size", mode="before")
+        @classmethod
+        def _size(cls, v: Any) -> Any:
+            return None if v is None else parse_size(str(v))
+
+        @field_validator("split_duration", mode="before")
+        @classmethod
+        def _duration(cls, v: Any) -> Any:
+            return None if v is None else parse_duration(str(v))
+
         log_report: bool = Field(default=True, description="log the table when a recording stops")
 
     any_inputs = Input(object, required=False, doc="any stream, under its topic name")
@@ -92,6 +131,7 @@ class Recorder(Node):
         self._started_wall = 0.0
         self._seq: dict[str, int] = {}
         self._sources: dict[str, str] = {}
+        self._cameras: dict[str, str] = {}  # frame source node -> its recorded topic
         self._said_lost = 0
         self._said_error = False
         self._next_command_check = 0.0
@@ -130,6 +170,7 @@ class Recorder(Node):
             crc=p.crc,
             direct_io=p.direct_io,
             on_written=self._written,
+            split=SplitPolicy(p.split_size, p.split_duration),
         )
         attachments = [("timing.json", "application/json", timing_json(stats))]
         if p.graph_file:
@@ -244,7 +285,24 @@ class Recorder(Node):
                 self._seq[topic] = seq + 1
             if not writer.submit(topic, value, t, seq) and is_frame:
                 value.release()
+            if is_frame:
+                self._cameras.setdefault(value.source, topic)
+        if self.params.annotations:
+            for topic, value in inputs.items():
+                if value is not None and not isinstance(value, Frame) and is_detection(value):
+                    self._overlay(writer, topic, value)
         self._watch(writer)
+
+    def _overlay(self, writer: RecordingWriter, topic: str, det: Any) -> None:
+        """The detection again, as annotations on its camera's image (when that is recorded)."""
+        camera = self._cameras.get(det.source)
+        if camera is None:
+            return
+        name = annotations_topic(camera, topic)
+        if name not in writer.streams:
+            writer.declare(name, self._source_of(topic), annotates=camera)
+        seq = det.seq if isinstance(getattr(det, "seq", None), int) and det.seq >= 0 else 0
+        writer.submit(name, Overlay(det), det.timestamp, seq)
 
     def _watch(self, writer: RecordingWriter) -> None:
         """Say at once when something is lost or the disk failed (red in the table)."""

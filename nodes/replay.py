@@ -15,8 +15,10 @@ Frames go into the runtime's frame pool (``ctx.new_frame``), keep their recorded
 number, and tick frame triggers like a camera does; reading and decoding the file runs on a
 thread, only the pixel copy into the pool slot happens on the loop. Messages are released at
 ``origin + (log_time - first) / rate`` on the runtime clock, so several replay nodes of one
-recording stay in step. A damaged file is replayed up to the damage, which is logged and
-reported as the node's error state.
+recording stay in step. A session split into several files is replayed as one recording, the
+parts one after the other in their order (a part that ends before ``start`` is skipped
+unread). A damaged file is replayed up to the damage, which is logged and reported as the
+node's error state.
 """
 
 from __future__ import annotations
@@ -32,7 +34,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from flowrt import Frame, LoopTrigger, Node, Output
 from flowrt.recording import Decoder
-from flowrt.recording.reader import Recording, iter_messages
+from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
+from flowrt.recording.reader import Recording, iter_messages, iter_session
 from flowrt.recording.session import mcap_files
 
 LEAD = 0.05
@@ -87,10 +90,11 @@ class ReplayBase(Node):
         files = mcap_files(p.path)
         if not files or not files[0].exists():
             raise FileNotFoundError(f"{p.path}: no MCAP file")
+        self.files = files
         self.file = files[0]
         wanted = set(p.topics or []) | ({p.topic} if p.topic else set())
         self.wanted = wanted or None
-        self.damage = Recording(self.file)
+        self.read: list[Recording] = []  # every part read (the last one read says any damage)
         self.origin = _first_log_time(self.file)
         self.decoder = Decoder()
         self.cycle = 0.0  # seconds added per completed loop
@@ -117,10 +121,13 @@ class ReplayBase(Node):
     def _items(self) -> Iterator[_Item]:
         """Decoded messages in file order (on the reader thread)."""
         skip_before = self.origin + round(self.params.start * 1e9)
-        for m in iter_messages(self.file, self.wanted, self.damage):
+        self.read = []
+        for m in iter_session(self.files, self.wanted, self.read, skip_before):
             if m.log_time < skip_before:
                 continue
             name = m.schema.name if m.schema is not None else ""
+            if name == ANNOTATIONS_SCHEMA:
+                continue  # drawn from the detections, which are replayed themselves
             image = self.decoder.is_image(name)
             port = self._port(m.topic, m.source, image)
             if port is None:
@@ -176,18 +183,20 @@ class ReplayBase(Node):
         return frame
 
     def _report_damage(self) -> None:
-        if self.damage.damage and not self._said_damage:
+        damaged = next((r for r in self.read if r.damage), None)
+        if damaged is not None and not self._said_damage:
             self._said_damage = True
-            msg = f"{self.file}: replayed up to the damage at byte {self.damage.damage_offset}"
-            self.ctx.log.warning("%s: %s (%s)", self.ctx.name, msg, self.damage.damage)
+            msg = f"{damaged.path}: replayed up to the damage at byte {damaged.damage_offset}"
+            self.ctx.log.warning("%s: %s (%s)", self.ctx.name, msg, damaged.damage)
             with contextlib.suppress(RuntimeError):
-                self.ctx.set_error(f"{msg}: {self.damage.damage}")
+                self.ctx.set_error(f"{msg}: {damaged.damage}")
 
     async def teardown(self) -> None:
         nxt = getattr(self, "_next", None)
         if nxt is not None:
-            with contextlib.suppress(Exception):
-                await nxt
+            # The read in flight ends on its own (its thread cannot be cancelled); wait() does
+            # not raise when the read was cancelled with the process call that awaited it.
+            await asyncio.wait([nxt])
 
 
 class Replay(ReplayBase):

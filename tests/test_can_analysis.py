@@ -233,3 +233,24 @@ def test_stats_unreadable_trace_exit_2(tmp_path: Path, capsys: pytest.CaptureFix
     bad.write_text("hello")
     assert cli.main(["can", "stats", str(bad)]) == 2
     assert "cannot read the trace" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("width", [80, 200])
+def test_analyse_table_fits_the_terminal(monkeypatch: pytest.MonkeyPatch, width: int) -> None:
+    import io
+
+    from rich.console import Console
+
+    import flowrt.cli.can as can_cli
+    from flowrt.cli import main
+
+    out = io.StringIO()
+    monkeypatch.setattr(can_cli, "stdout_console", lambda: Console(width=width, file=out))
+    assert main(["can", "analyse", "nodes/robot.dbc", "--bitrate", "250000"]) == 0
+    lines = out.getvalue().splitlines()
+    assert all(len(line) <= width for line in lines), lines
+    table = "\n".join(lines)
+    for name in ("MotorSetpoints", "WheelSpeeds", "Battery"):
+        assert name in table  # names whole
+    assert ("busy ms" in table) == (width > 100)  # derived terms go first at 80 columns
+    assert "WCRT ms" in table

@@ -235,3 +235,24 @@ def test_a_mode_is_analysed_with_its_overrides(
     assert code == 2
     assert "unknown mode 'bsuy'" in err
     assert "busy" in err
+
+
+@pytest.mark.parametrize("width", [80, 120])
+def test_graph_table_fits_the_terminal_and_says_each_note_once(
+    monkeypatch: pytest.MonkeyPatch, width: int
+) -> None:
+    import io
+
+    from rich.console import Console
+
+    import flowrt.cli.check as check
+
+    out = io.StringIO()
+    monkeypatch.setattr(check, "stdout_console", lambda: Console(width=width, file=out))
+    assert main(["check", "graphs/cambada.yaml"]) in (0, 1)
+    text = out.getvalue()
+    table = text.split("load per tick")[0].splitlines()
+    assert all(len(line) <= width for line in table), table
+    for name in ("front_cam", "avoid_fr", "ball_om", "display"):
+        assert any(line.startswith(name + " ") for line in table), name
+    assert text.count("no budget") == 1  # once, with the nodes it concerns

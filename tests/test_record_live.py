@@ -149,6 +149,32 @@ async def test_live_frames_reach_a_viewer_and_a_stuck_viewer_slows_nothing() -> 
     assert ball.completions > 0
 
 
+async def test_live_detections_are_drawn_on_their_camera() -> None:
+    from mcap.records import Schema
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from flowrt.recording.encoding import annotations_schema
+
+    live = FoxgloveLive(port=0, image_format="raw")
+    async with flowrt.Runtime(graph(), monitors=[live]) as rt:
+        viewer = await asyncio.to_thread(Client, live.port)
+        run = asyncio.ensure_future(rt.run(30.0))  # stopped as soon as a message came
+        topic = "cam.frame/annotations/ball.detection"
+        await asyncio.to_thread(viewer.subscribe, topic)
+        payload = await asyncio.to_thread(viewer.next_message)
+        rt.request_stop()
+        await run
+    viewer.sock.close()
+    assert viewer.channels[topic]["schemaName"] == "foxglove.ImageAnnotations"
+    s = annotations_schema()
+    decode = DecoderFactory().decoder_for(
+        "protobuf", Schema(id=1, name=s.name, encoding=s.encoding, data=s.data)
+    )
+    assert decode is not None
+    ann = decode(payload)
+    assert ann.timestamp.seconds > 1_600_000_000  # the frame's time, as Unix time
+
+
 def test_run_foxglove_port_taken_is_one_line() -> None:
     import subprocess
     import sys

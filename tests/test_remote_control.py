@@ -162,16 +162,16 @@ def test_control_token_rules_for_zenoh(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("FLOWRT_TOKEN", raising=False)
     quiet = Console(file=open(os.devnull, "w"))  # noqa: SIM115
     # no zenoh.control: no endpoint unless asked
-    assert _control_config(run_args(), quiet, ZenohSpec()) is None
+    assert _control_config(run_args(), quiet, zenoh=ZenohSpec()) is None
     # loopback session: an endpoint on a free loopback port, no token (as HTTP on loopback)
-    local = _control_config(run_args(), quiet, ZenohSpec(control=KEY))
+    local = _control_config(run_args(), quiet, zenoh=ZenohSpec(control=KEY))
     assert (local.host, local.port, local.token, local.needs_token) == ("127.0.0.1", 0, None, False)
     # reachable beyond loopback: the token is required on loopback too, one is generated
     wide = ZenohSpec(listen=["tcp/0.0.0.0:7447"], control=KEY)
-    cfg = _control_config(run_args(), quiet, wide)
+    cfg = _control_config(run_args(), quiet, zenoh=wide)
     assert cfg.token_required
     assert cfg.token
-    given = _control_config(run_args(token="mine", control="8770"), quiet, wide)
+    given = _control_config(run_args(token="mine", control="8770"), quiet, zenoh=wide)
     assert (given.port, given.token, given.token_required) == (8770, "mine", True)
 
 

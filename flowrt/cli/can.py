@@ -18,8 +18,8 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
-from rich.table import Table
 
+from ..columns import Column, fit_table
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, stdout_console
 
 
@@ -75,47 +75,13 @@ def cmd_analyse(args: argparse.Namespace) -> int:
         print(json.dumps(result.to_json(), indent=2))
     else:
         console = stdout_console()
-        t = Table(
-            title=f"{args.dbc}: {len(result.messages)} messages at {args.bitrate} bit/s "
+        console.print(
+            f"{args.dbc}: {len(result.messages)} messages at {args.bitrate} bit/s "
             "(worst-case stuffing, 3-bit interframe space; Davis et al. 2007)",
-            title_justify="left",
+            style="italic",
+            highlight=False,
         )
-        for col in (
-            "message",
-            "id",
-            "dlc",
-            "period ms",
-            "bits",
-            "C ms",
-            "B ms",
-            "J ms",
-            "busy ms",
-            "Q",
-            "WCRT ms",
-            "deadline ms",
-            "ok",
-        ):
-            t.add_column(col, justify="left" if col in ("message", "ok") else "right")
-        for m in result.messages:
-            tm = m.timing
-            ident = f"0x{tm.id:08X}x" if tm.extended else f"0x{tm.id:03X}"
-            ok = "-" if m.schedulable is None else ("yes" if m.schedulable else "NO")
-            t.add_row(
-                m.name,
-                ident,
-                str(tm.dlc),
-                _ms(tm.period_ms),
-                str(m.frame_bits),
-                f"{m.c_ms:.3f}",
-                f"{m.blocking_ms:.3f}",
-                f"{tm.jitter_ms:g}",
-                _ms(m.busy_period_ms),
-                "-" if m.instances is None else str(m.instances),
-                _ms(m.wcrt_ms) if m.wcrt_ms is not None or tm.period_ms is None else "unbounded",
-                _ms(m.deadline_ms),
-                ok,
-                style=None if m.schedulable is not False else "red",
-            )
+        t = _message_table(result.messages, console.width)
         console.print(t)
         console.print(
             f"bus: {result.bits_per_s:,.0f} bit/s of {args.bitrate:,} = "
@@ -129,6 +95,49 @@ def cmd_analyse(args: argparse.Namespace) -> int:
                 style="yellow",
             )
     return EXIT_OK if result.schedulable else EXIT_FAILED
+
+
+def _ident(r: dict[str, Any]) -> str:
+    return f"0x{r['id']:08X}x" if r["extended"] else f"0x{r['id']:03X}"
+
+
+def _message_table(messages: Any, width: int) -> Any:
+    """The analysis per message; at 80 columns the derived terms (B, J, busy, Q) go first."""
+
+    def ident(m: Any) -> str:
+        tm = m.timing
+        return f"0x{tm.id:08X}x" if tm.extended else f"0x{tm.id:03X}"
+
+    def wcrt(m: Any) -> str:
+        ok = m.wcrt_ms is not None or m.timing.period_ms is None
+        return _ms(m.wcrt_ms) if ok else "unbounded"
+
+    cols: tuple[Column[Any], ...] = (
+        Column("message", lambda m: m.name, right=False),
+        Column("id", ident, right=False),
+        Column("dlc", lambda m: str(m.timing.dlc), drop=5),
+        Column("period ms", lambda m: _ms(m.timing.period_ms)),
+        Column("bits", lambda m: str(m.frame_bits), drop=6),
+        Column("C ms", lambda m: f"{m.c_ms:.3f}"),
+        Column("B ms", lambda m: f"{m.blocking_ms:.3f}", drop=3),
+        Column("J ms", lambda m: f"{m.timing.jitter_ms:g}", drop=4),
+        Column("busy ms", lambda m: _ms(m.busy_period_ms), drop=1),
+        Column("Q", lambda m: "-" if m.instances is None else str(m.instances), drop=2),
+        Column("WCRT ms", wcrt),
+        Column("deadline ms", lambda m: _ms(m.deadline_ms)),
+        Column(
+            "ok",
+            lambda m: "-" if m.schedulable is None else ("yes" if m.schedulable else "NO"),
+            right=False,
+        ),
+    )
+    return fit_table(
+        cols, messages, width, row_style=lambda m: "red" if m.schedulable is False else None
+    )
+
+
+def _ms_of(key: str) -> Any:
+    return lambda r: _ms(r[key])
 
 
 def _ms(x: float | None) -> str:
@@ -226,21 +235,28 @@ def cmd_stats(args: argparse.Namespace) -> int:
         print(json.dumps(doc, indent=2))
         return EXIT_OK
     console = stdout_console()
-    t = Table(
-        title=f"{args.trace}: {doc['frames']} frames over {doc['duration_s']:.3f} s"
+    console.print(
+        f"{args.trace}: {doc['frames']} frames over {doc['duration_s']:.3f} s"
         + (f", {doc['error_frames']} error frames" if doc["error_frames"] else ""),
-        title_justify="left",
+        style="italic",
+        highlight=False,
     )
-    for col in ("id", "name", "dlc", "frames", "period ms", "std ms", "min ms", "max ms"):
-        t.add_column(col, justify="left" if col in ("id", "name") else "right")
-    for r in doc["ids"]:
-        t.add_row(
-            f"0x{r['id']:08X}x" if r["extended"] else f"0x{r['id']:03X}",
-            r["name"] or "",
-            str(r["dlc"]),
-            str(r["count"]),
-            *[_ms(r[k]) for k in ("period_ms", "std_ms", "min_ms", "max_ms")],
-        )
+    cols: tuple[Column[Any], ...] = (
+        Column("id", _ident, right=False),
+        Column("name", lambda r: r["name"] or "", drop=2, right=False),
+        Column("dlc", lambda r: str(r["dlc"]), drop=1),
+        Column("frames", lambda r: str(r["count"])),
+        *(
+            Column(h, _ms_of(k))
+            for h, k in (
+                ("period ms", "period_ms"),
+                ("std ms", "std_ms"),
+                ("min ms", "min_ms"),
+                ("max ms", "max_ms"),
+            )
+        ),
+    )
+    t = fit_table(cols, doc["ids"], console.width)
     console.print(t)
     if doc["load"]:
         peak = max(b["load"] for b in doc["load"])

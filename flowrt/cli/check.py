@@ -306,42 +306,13 @@ def _graph_json(verdict: Any, tables: Any, advice: Any, paste: str) -> dict[str,
 def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, paste: str) -> None:
     console = stdout_console()
     console.print(f"{file}: worst-case response times on {cpus} CPUs (from release, ms)")
-    t = Table()
-    for col in (
-        "node",
-        "where",
-        "prio",
-        "budget",
-        "from",
-        "period",
-        "deadline",
-        "jitter",
-        "block",
-        "response",
-        "",
-    ):
-        t.add_column(col, justify="left" if col in ("node", "where", "from", "") else "right")
-    for v in verdict.nodes:
-        if v.schedulable is None:
-            mark = f"[yellow]?[/] {v.note}"
-        elif v.schedulable:
-            mark = "[green]ok[/]"
-        else:
-            mark = "[red]MISS[/]" + (f" {v.note}" if v.note else "")
-        t.add_row(
-            v.name,
-            v.resource,
-            str(v.priority),
-            _ms(v.budget.ms) if v.budget else "-",
-            v.budget.source if v.budget else "-",
-            _ms(v.period_ms),
-            _ms(v.deadline_ms) + ("" if v.has_deadline else " (T)"),
-            _ms(v.jitter_ms),
-            _ms(v.blocking_ms),
-            _ms(v.response_ms),
-            mark,
-        )
-    console.print(t)
+    console.print(_verdict_table(verdict.nodes, console.width))
+    notes: dict[str, list[str]] = {}  # said once per note, not once per node: at 80 columns
+    for v in verdict.nodes:  # a note in every row squeezes the names out
+        if v.note and not v.note.startswith("no budget"):  # those: in the verdict line
+            notes.setdefault(v.note, []).append(v.name)
+    for note, names in notes.items():
+        console.print(f"  {note}: {', '.join(names)}", markup=False)
     for tab in tables:
         cpu_cols = sorted({c for k in tab.ticks for c in k.per_cpu_ms})
         frame = f"{tab.frame_ms:g} ms" if tab.frame_ms else "unknown interval"
@@ -355,10 +326,10 @@ def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, p
         heavy = tab.heaviest
         for k in tab.ticks:
             share = f"{k.total_ms / tab.frame_ms:.0%}" if tab.frame_ms else "-"
-            names = ", ".join(n + ("?" if n in k.unbudgeted else "") for n in k.nodes)
+            listed = ", ".join(n + ("?" if n in k.unbudgeted else "") for n in k.nodes)
             lt.add_row(
                 str(k.tick),
-                names,
+                listed,
                 _ms(k.loop_ms),
                 _ms(k.workers_ms),
                 _ms(k.pool_ms),
@@ -390,6 +361,33 @@ def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, p
     misses = [v.name for v in verdict.nodes if v.schedulable is False]
     unknown = [v.name for v in verdict.nodes if v.schedulable is None]
     console.print(_verdict_line(verdict.schedulable, verdict.utilisation, misses, unknown))
+
+
+def _verdict_table(nodes: Any, width: int) -> Any:
+    """One row per node; at a narrow width the less telling columns go first."""
+    from rich.text import Text
+
+    from ..columns import Column, fit_table
+
+    def mark(v: Any) -> Text:
+        if v.schedulable is None:
+            return Text("?", style="yellow")
+        return Text("ok", style="green") if v.schedulable else Text("MISS", style="red")
+
+    cols: tuple[Column[Any], ...] = (
+        Column("node", lambda v: v.name, right=False),
+        Column("where", lambda v: v.resource, drop=4, right=False),
+        Column("prio", lambda v: str(v.priority), drop=5),
+        Column("budget", lambda v: _ms(v.budget.ms) if v.budget else "-"),
+        Column("from", lambda v: v.budget.source if v.budget else "-", drop=1, right=False),
+        Column("period", lambda v: _ms(v.period_ms), drop=6),
+        Column("deadline", lambda v: _ms(v.deadline_ms) + ("" if v.has_deadline else " (T)")),
+        Column("jitter", lambda v: _ms(v.jitter_ms), drop=2),
+        Column("block", lambda v: _ms(v.blocking_ms), drop=3),
+        Column("response", lambda v: _ms(v.response_ms)),
+        Column("", mark, right=False),
+    )
+    return fit_table(cols, nodes, width)
 
 
 def _plot(tables: Any, path: str) -> str | None:

@@ -6,6 +6,7 @@ the timing does not hold), 2 a bad graph file or bad arguments, 130 interrupted 
 
 from __future__ import annotations
 
+import argparse
 import logging
 import sys
 
@@ -51,3 +52,18 @@ def plain_handler() -> logging.Handler:
 
 def setup_logging(handler: logging.Handler) -> None:
     logging.basicConfig(level=logging.INFO, handlers=[handler], force=True)
+
+
+def seconds_arg(text: str) -> float:
+    """A command-line duration: a bare number is seconds (``--duration 60``), or ``90s``,
+    ``2m``, ``500ms`` (graph files' bare numbers are milliseconds; a flag's are not)."""
+    from ..spec import parse_duration_ms
+
+    t = text.strip()
+    try:
+        s = float(t) if t.replace(".", "", 1).isdigit() else parse_duration_ms(t) / 1000
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    if s < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {text!r}")
+    return s

@@ -16,7 +16,6 @@ import argparse
 import asyncio
 import datetime as dt
 import fnmatch
-import json
 import signal
 from collections.abc import Callable
 from pathlib import Path
@@ -31,9 +30,11 @@ from .common import (
     EXIT_OK,
     load,
     plain_handler,
+    seconds_arg,
     setup_logging,
     stdout_console,
 )
+from .run import add_run_options, run_graph
 
 RECORDER = "recorder"
 
@@ -92,18 +93,32 @@ def _image_formats(text: str | None, topics: list[str]) -> dict[str, str] | str:
     return out
 
 
+def _split_policy(args: argparse.Namespace) -> Any:
+    """The ``--split-size`` / ``--split-duration`` policy, or the one-line reason it is bad."""
+    from ..recording.split import SplitPolicy, parse_duration, parse_size
+
+    try:
+        size = None if args.split_size is None else parse_size(args.split_size)
+    except ValueError as e:
+        return f"--split-size {e}"
+    try:
+        duration = None if args.split_duration is None else parse_duration(args.split_duration)
+    except ValueError as e:
+        return f"--split-duration {e}"
+    return SplitPolicy(size, duration)
+
+
 def cmd_record(args: argparse.Namespace) -> int:
     from ..graph import resolve
     from ..recording import check_writable, new_session
-    from ..recording.session import SESSION_FILE
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
+    graph = load(args.file, err)
+    if graph is None:  # before the folder is made: a wrong path leaves nothing behind
+        return EXIT_BAD_GRAPH
     problem = check_writable(args.output)
     if problem is not None:
         err.print(f"flowrt record: {problem}", markup=False)
-        return EXIT_BAD_GRAPH
-    graph = load(args.file, err)
-    if graph is None:
         return EXIT_BAD_GRAPH
     outputs = graph_outputs(graph)
     topics, unmatched = select_outputs(outputs, split_patterns(args.topics))
@@ -113,6 +128,10 @@ def cmd_record(args: argparse.Namespace) -> int:
             f"of {args.file} (outputs: {', '.join(outputs)})",
             markup=False,
         )
+        return EXIT_BAD_GRAPH
+    split = _split_policy(args)
+    if isinstance(split, str):
+        err.print(f"flowrt record: {split}", markup=False)
         return EXIT_BAD_GRAPH
     images = _image_formats(args.images, topics)
     if isinstance(images, str):
@@ -131,6 +150,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         "images": images,
         "compression": args.compression,
         "crc": not args.no_crc,
+        "annotations": not args.no_annotations,
+        "split_size": split.size,
+        "split_duration": split.duration,
         "log_report": False,  # printed below, once
     }
     try:
@@ -142,18 +164,30 @@ def cmd_record(args: argparse.Namespace) -> int:
     rgraph.file = graph.file
     console = stdout_console()
     console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
-    rt = _run(rgraph, args, console)
-    wait_for_writers()
-    if args.stats_json:
-        Path(args.stats_json).write_text(rt.stats().model_dump_json(indent=2))
+
+    def report(rt: Any) -> int:
+        return _report(console, err, session)
+
+    try:
+        return run_graph(
+            rgraph, args, err, prog="flowrt record", settle=wait_for_writers, after=report
+        )
+    finally:  # stopped before it began (a taken port, a bad option): no empty session left
+        if session.is_dir() and not any(session.iterdir()):
+            session.rmdir()
+
+
+def _report(console: Console, err: Console, session: Path) -> int:
+    """The per-stream table once the files are finished; exit 1 on any loss."""
+    from ..recording import RecordingReport, report_table
+    from ..recording.session import SESSION_FILE
+
     report_path = session / SESSION_FILE
     if not report_path.exists():
         err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
         return EXIT_FAILED
-    from ..recording import RecordingReport, report_table
-
     report = RecordingReport.model_validate_json(report_path.read_text())
-    console.print(report_table(report))
+    console.print(report_table(report, console.width))
     if report.error:
         err.print(f"flowrt record: recording stopped early: {report.error}", markup=False)
         return EXIT_FAILED
@@ -228,46 +262,49 @@ def _hz(x: float | None) -> str:
     return "-" if x is None else f"{x:.2f}"
 
 
-def print_info(console: Console, info: Any) -> None:
-    from rich.table import Table
+def print_info(console: Console, info: Any, streams_only: bool = False) -> None:
+    """One file: whether it is whole, its streams, metadata, attachments and graph."""
+    from rich.text import Text
 
+    from ..columns import Column, fit_table
     from ..recording.report import human_bytes
 
-    console.print(f"[bold]{info.path}[/bold]  {human_bytes(info.size)}", highlight=False)
-    if info.closed_cleanly:
-        console.print("closed cleanly: yes (summary and index read)", highlight=False)
-    else:
-        why = info.damage or "no summary"
+    if not streams_only:
+        console.print(f"[bold]{info.path}[/bold]  {human_bytes(info.size)}", highlight=False)
+        if info.closed_cleanly:
+            console.print("closed cleanly: yes (summary and index read)", highlight=False)
+        else:
+            why = info.damage or "no summary"
+            console.print(
+                f"[bold red]NOT closed cleanly[/bold red]: {why}"
+                + (f" at byte {info.damage_offset}" if info.damage_offset is not None else "")
+                + f"; recovered {info.messages} messages in {info.chunks} chunks "
+                f"(flowrt info --repair rewrites the summary)",
+                highlight=False,
+            )
         console.print(
-            f"[bold red]NOT closed cleanly[/bold red]: {why}"
-            + (f" at byte {info.damage_offset}" if info.damage_offset is not None else "")
-            + f"; recovered {info.messages} messages in {info.chunks} chunks "
-            f"(flowrt info --repair rewrites the summary)",
+            f"start {_when(info.start)}  end {_when(info.end)}  duration {info.duration:.3f} s"
+            f"  messages {info.messages}  chunks {info.chunks}",
             highlight=False,
         )
-    console.print(
-        f"start {_when(info.start)}  end {_when(info.end)}  duration {info.duration:.3f} s  "
-        f"messages {info.messages}  chunks {info.chunks}",
-        highlight=False,
+
+    def gaps(s: Any) -> Text:
+        if not s.gaps:
+            return Text("0")
+        longest = max(g.length for g in s.gaps)
+        return Text(f"{len(s.gaps)} (longest {longest * 1000:.0f} ms)", style="red")
+
+    cols: tuple[Column[Any], ...] = (
+        Column("stream", lambda s: s.topic, right=False),
+        Column("schema", lambda s: s.schema_name, drop=3, right=False),
+        Column("count", lambda s: str(s.count)),
+        Column("Hz mean", lambda s: _hz(s.rate_mean), drop=4),
+        Column("Hz min", lambda s: _hz(s.rate_min), drop=1),
+        Column("Hz max", lambda s: _hz(s.rate_max), drop=2),
+        Column("gaps", gaps),
+        Column("size", lambda s: human_bytes(s.bytes), drop=5),
     )
-    t = Table(title_justify="left")
-    for col in ("stream", "schema", "count", "Hz mean", "Hz min", "Hz max", "gaps", "size"):
-        t.add_column(col, justify="left" if col in ("stream", "schema") else "right")
-    for s in info.streams:
-        gaps = "0"
-        if s.gaps:
-            longest = max(g.length for g in s.gaps)
-            gaps = f"[red]{len(s.gaps)}[/red] (longest {longest * 1000:.0f} ms)"
-        t.add_row(
-            s.topic,
-            s.schema_name,
-            str(s.count),
-            _hz(s.rate_mean),
-            _hz(s.rate_min),
-            _hz(s.rate_max),
-            gaps,
-            human_bytes(s.bytes),
-        )
+    t = fit_table(cols, info.streams, console.width)
     console.print(t)
     for name, meta in info.metadata.items():
         console.print(
@@ -279,7 +316,50 @@ def print_info(console: Console, info: Any) -> None:
         console.print("attachments: " + ", ".join(info.attachments), markup=False)
     if info.graph:
         console.print("recorded graph:", style="bold")
-        console.print(info.graph.rstrip(), markup=False, highlight=False)
+        console.print(info.graph.rstrip(), markup=False, highlight=False, soft_wrap=True)
+
+
+def print_session(console: Console, session: Any) -> None:
+    """A session of several parts: its files, then the streams over all of them."""
+    from rich.text import Text
+
+    from ..columns import Column, fit_table
+    from ..recording.report import human_bytes
+
+    if len(session.files) == 1:
+        print_info(console, session.files[0])
+        return
+    console.print(
+        f"[bold]{session.path}[/bold]  {len(session.files)} files  {human_bytes(session.size)}",
+        highlight=False,
+    )
+
+    def clean(f: Any) -> Text:
+        if f.closed_cleanly:
+            return Text("yes")
+        return Text(f"NO: {f.damage or 'no summary'}", style="bold red")
+
+    file_cols: tuple[Column[Any], ...] = (
+        Column("file", lambda f: Path(f.path).name, right=False),
+        Column("size", lambda f: human_bytes(f.size), drop=3),
+        Column("start", lambda f: _when(f.start), drop=1, right=False),
+        Column("duration", lambda f: f"{f.duration:.3f} s", drop=2),
+        Column("messages", lambda f: str(f.messages)),
+        Column("closed cleanly", clean, right=False),
+    )
+    files = fit_table(file_cols, session.files, console.width)
+    console.print(files)
+    console.print(
+        f"start {_when(session.start)}  end {_when(session.end)}  "
+        f"duration {session.duration:.3f} s  messages {session.messages}",
+        highlight=False,
+    )
+    first = session.files[0]
+    print_info(
+        console,
+        first.model_copy(update={"streams": session.streams}),
+        streams_only=True,
+    )
 
 
 def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
@@ -297,8 +377,11 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
 
 
 def _not_mcap(path: Path) -> bool:
+    """True for a file that is not MCAP; one cut inside its magic (killed at creation) is."""
+    magic = b"\x89MCAP0\r\n"
     with open(path, "rb") as f:
-        return f.read(8) != b"\x89MCAP0\r\n"
+        head = f.read(8)
+    return not magic.startswith(head) or (not head and path.suffix != ".mcap")
 
 
 def _print_session_report(console: Console, path: Path) -> None:
@@ -309,69 +392,59 @@ def _print_session_report(console: Console, path: Path) -> None:
     report = path / SESSION_FILE
     if path.is_dir() and report.exists():
         try:
-            console.print(report_table(RecordingReport.model_validate_json(report.read_text())))
+            console.print(
+                report_table(RecordingReport.model_validate_json(report.read_text()), console.width)
+            )
         except ValueError:
             console.print(f"{report}: unreadable", style="red", markup=False)
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from ..recording.reader import repair, scan
+    from ..recording.reader import repair, scan, scan_session
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     console = stdout_console()
     files = _files(args.path, err, "info")
     if files is None:
         return EXIT_BAD_GRAPH
-    status = EXIT_OK
-    out = []
     for f in files:
         if _not_mcap(f):
             err.print(f"flowrt info: {f}: not an MCAP file", markup=False)
             return EXIT_BAD_GRAPH
-        info = scan(f)
-        if args.repair and not info.closed_cleanly:
-            fixed, kept = repair(f)
-            err.print(
-                f"flowrt info: {fixed}: rewritten with {kept} messages and a summary; "
-                f"the original is kept as {fixed.stem}.damaged.mcap",
-                markup=False,
-            )
-            info = scan(fixed)
-        if not info.closed_cleanly:
-            status = EXIT_FAILED
-        out.append(info)
+    if args.repair:
+        for f in files:
+            if not scan(f).closed_cleanly:
+                fixed, kept = repair(f)
+                err.print(
+                    f"flowrt info: {fixed}: rewritten with {kept} messages and a summary; "
+                    f"the original is kept as {fixed.stem}.damaged.mcap",
+                    markup=False,
+                )
+    session = scan_session(args.path)
     if args.json:
-        print(json.dumps([i.model_dump(mode="json") for i in out], indent=1))
+        print(session.model_dump_json(indent=1))
     else:
-        for info in out:
-            print_info(console, info)
+        print_session(console, session)
         _print_session_report(console, Path(args.path))
-    if status != EXIT_OK:
+    if not session.closed_cleanly:
         err.print(
-            f"flowrt info: {', '.join(i.path for i in out if not i.closed_cleanly)} "
+            f"flowrt info: {', '.join(i.path for i in session.files if not i.closed_cleanly)} "
             "not closed cleanly (damaged or the recorder was killed)",
             markup=False,
         )
-    return status
+        return EXIT_FAILED
+    return EXIT_OK
 
 
 # --- replay ------------------------------------------------------------------------------
 
 
-def _seconds(text: str) -> float:
-    from ..spec import parse_duration_ms
-
-    t = text.strip()
-    try:
-        # a bare number is seconds here (``--start 10``), unlike graph files' milliseconds
-        return float(t) if t.replace(".", "", 1).isdigit() else parse_duration_ms(t) / 1000
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
+_seconds = seconds_arg  # a bare number is seconds here (``--start 10``), unlike graph files
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from ..graph import Graph, resolve
-    from ..recording.reader import scan
+    from ..recording.reader import scan_session
     from ..registry import resolve_kind
     from ..spec import NodeSpec
 
@@ -383,19 +456,25 @@ def cmd_replay(args: argparse.Namespace) -> int:
     files = _files(args.path, err, "replay")
     if files is None:
         return EXIT_BAD_GRAPH
-    path = files[0]
-    if _not_mcap(path):
-        err.print(f"flowrt replay: {path}: not an MCAP file", markup=False)
-        return EXIT_BAD_GRAPH
-    info = scan(path)
+    for f in files:
+        if _not_mcap(f):
+            err.print(f"flowrt replay: {f}: not an MCAP file", markup=False)
+            return EXIT_BAD_GRAPH
+    path = Path(args.path)
+    info = scan_session(path)
     if not info.messages:
         why = info.damage or "no messages"
         err.print(f"flowrt replay: {path}: nothing to replay ({why})", markup=False)
         return EXIT_BAD_GRAPH
     if not info.closed_cleanly:
+        before = 0  # the replay stops at the first damage, in whichever file
+        for part in info.files:
+            before += part.messages
+            if not part.closed_cleanly:
+                break
         err.print(
-            f"flowrt replay: {path} was not closed cleanly ({info.damage or 'no summary'}): "
-            f"replaying the {info.messages} messages before the damage",
+            f"flowrt replay: {path} was not closed cleanly ({info.damage}): "
+            f"replaying the {before} messages before the damage",
             markup=False,
         )
     if args.start >= info.duration and info.duration > 0:
@@ -404,7 +483,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
             markup=False,
         )
         return EXIT_BAD_GRAPH
-    streams = info.streams
+    from ..recording.encoding import ANNOTATIONS_SCHEMA
+
+    # annotations are drawn from the detections, which are replayed themselves
+    streams = [s for s in info.streams if s.schema_name != ANNOTATIONS_SCHEMA]
     patterns = split_patterns(args.topics)
     if patterns:
         names = [s.topic for s in streams]
@@ -468,8 +550,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         err.print(f"flowrt replay: {e}", markup=False)
         return EXIT_BAD_GRAPH
     total = max(0.0, info.duration - args.start) / args.rate
+    parts = f", {len(files)} files" if len(files) > 1 else ""
     console.print(
-        f"replaying {path} ({len(streams)} stream(s), {info.duration:.1f} s) "
+        f"replaying {path} ({len(streams)} stream(s), {info.duration:.1f} s{parts}) "
         f"at x{args.rate:g} into {', '.join(sorted(by_node))}",
         highlight=False,
     )
@@ -523,7 +606,6 @@ def add_parsers(sub: Any) -> None:
         metavar="PATTERNS",
         help="outputs to record, comma-separated node.port patterns (default: every output)",
     )
-    rec.add_argument("--duration", type=_seconds, default=None, metavar="S", help="stop after")
     rec.add_argument(
         "--images",
         metavar="FORMATS",
@@ -535,8 +617,22 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="no chunk CRCs: half the writer's CPU, but damage inside a chunk goes unseen",
     )
-    rec.add_argument("--no-ui", action="store_true", help="log lines instead of the live table")
-    rec.add_argument("--stats-json", metavar="PATH", help="write the run's final statistics")
+    rec.add_argument(
+        "--split-size",
+        metavar="SIZE",
+        help="start a new file past this size: 4GiB, 500MB, 1.5G",
+    )
+    rec.add_argument(
+        "--split-duration",
+        metavar="T",
+        help="start a new file after this long: 10m, 30s, 1h",
+    )
+    rec.add_argument(
+        "--no-annotations",
+        action="store_true",
+        help="do not also draw detections as foxglove.ImageAnnotations on their camera",
+    )
+    add_run_options(rec)  # --duration, --realtime, --control ...: a recording is a run
     rec.set_defaults(func=cmd_record)
 
     info = sub.add_parser("info", help="what a recording holds (session folder or .mcap)")

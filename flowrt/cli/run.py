@@ -24,6 +24,7 @@ from .common import (
     EXIT_OK,
     load,
     plain_handler,
+    seconds_arg,
     setup_logging,
     stdout_console,
 )
@@ -53,33 +54,53 @@ def _warm_forkserver(path: str) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     _warm_forkserver(args.file)
-    from ..runtime import Runtime
-    from ..status import LiveTable, LogLines, render
-
-    console = stdout_console()
     err = Console(stderr=True)
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
+    return run_graph(graph, args, err)
+
+
+def run_graph(
+    graph: Graph,
+    args: argparse.Namespace,
+    err: Console,
+    *,
+    prog: str = "flowrt run",
+    settle: Callable[[], None] | None = None,
+    after: Callable[[Any], int] | None = None,
+) -> int:
+    """Run a loaded graph with every option of ``flowrt run`` (see :func:`add_run_options`).
+
+    ``flowrt record`` is this with a recorder added to the graph, so a recording runs with
+    the same real-time, control, display and failure options as a run. ``after`` is called
+    with the runtime once it has stopped and the final table is printed; its exit code
+    counts when it is worse than the run's own. ``settle`` runs first, before the final
+    statistics are taken (a recorder's files finished, so its report is in them).
+    """
+    from ..runtime import Runtime
+    from ..status import LiveTable, LogLines, render
+
+    console = stdout_console()
     from .check import startup_check
 
     timing_ok, timing_lines = startup_check(graph)
     if not timing_ok:
         word = "refusing to start" if args.check else "warning"
-        err.print(f"flowrt run: {word}: the timing may not hold (flowrt check)", markup=False)
+        err.print(f"{prog}: {word}: the timing may not hold (flowrt check)", markup=False)
         for line in timing_lines:
             err.print(f"  {line}", markup=False)
         if args.check:
             return EXIT_FAILED
     problem = _display_options(graph, args)
     if problem:
-        err.print(f"flowrt run: {problem}", markup=False, soft_wrap=True)
+        err.print(f"{prog}: {problem}", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
-    control = _control_config(args, err, graph.spec.zenoh)
+    control = _control_config(args, err, prog, graph.spec.zenoh)
     # Every address is checked before anything starts: a taken port is one line and exit 1.
     problem = _check_addresses(graph)
     if problem:
-        err.print(f"flowrt run: {problem}", markup=False, soft_wrap=True)
+        err.print(f"{prog}: {problem}", markup=False, soft_wrap=True)
         return EXIT_FAILED
     rt = Runtime(
         graph,
@@ -97,8 +118,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             server.bind()  # held from now on: nothing can take it before the runtime starts
         except OSError as e:
             err.print(
-                f"flowrt run: control endpoint: {e.strerror or e} "
-                "(choose another with --control PORT)",
+                f"{prog}: control endpoint: {e.strerror or e} (choose another with --control PORT)",
                 markup=False,
                 soft_wrap=True,
             )
@@ -118,7 +138,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         try:
             live.open()
         except OSError as e:
-            err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
+            err.print(f"{prog}: {e}", markup=False, soft_wrap=True)
             return EXIT_FAILED
         logging.getLogger("flowrt").info("foxglove: open %s in the Foxglove app", live.url)
         rt.monitors.append(live)
@@ -152,23 +172,26 @@ def cmd_run(args: argparse.Namespace) -> int:
         try:
             runner.run(main())
         except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
-            err.print(f"flowrt run: {e}", markup=False, soft_wrap=True)
+            err.print(f"{prog}: {e}", markup=False, soft_wrap=True)
             return 1
+    if settle is not None:
+        settle()
     stats = rt.stats()
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
         console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
-    return _verdict(rt.failures(), err)
+    code = _verdict(rt.failures(), err, prog)
+    return code if after is None else max(code, after(rt))
 
 
-def _verdict(failures: list[Any], err: Console) -> int:
+def _verdict(failures: list[Any], err: Console, prog: str = "flowrt run") -> int:
     """Exit 1 when the run ends with a node failed or in error, one line per node."""
     for n in failures:
         what = "failed" if n.state == "failed" else "in error"
         err.print(
-            f"flowrt run: node {n.name} {what}: {n.reason}",
+            f"{prog}: node {n.name} {what}: {n.reason}",
             markup=False,
             style="red",
             soft_wrap=True,
@@ -313,7 +336,9 @@ def _check_addresses(graph: Graph) -> str | None:
     return None
 
 
-def _control_config(args: argparse.Namespace, err: Console, zenoh: Any = None) -> Any:
+def _control_config(
+    args: argparse.Namespace, err: Console, prog: str = "flowrt run", zenoh: Any = None
+) -> Any:
     """``--control [HOST:]PORT``: a token is generated (and printed) if one is needed.
 
     A graph with ``zenoh: {control: KEY}`` gets a control endpoint (on a free loopback port
@@ -323,7 +348,7 @@ def _control_config(args: argparse.Namespace, err: Console, zenoh: Any = None) -
     via_zenoh = zenoh is not None and zenoh.control is not None
     if args.control is None and not via_zenoh:
         if args.control_token_required:
-            err.print("flowrt run: --control-token-required needs --control", markup=False)
+            err.print(f"{prog}: --control-token-required needs --control", markup=False)
             raise SystemExit(EXIT_BAD_GRAPH)
         return None
     import secrets
@@ -338,7 +363,7 @@ def _control_config(args: argparse.Namespace, err: Console, zenoh: Any = None) -
             token_required=required,
         )
     except ValueError as e:
-        err.print(f"flowrt run: {e}", markup=False)
+        err.print(f"{prog}: {e}", markup=False)
         raise SystemExit(EXIT_BAD_GRAPH) from None
     if config.needs_token and not config.token:
         config = dataclasses.replace(config, token=secrets.token_urlsafe(24))
@@ -371,9 +396,15 @@ def _drain_s(text: str) -> float:
 def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file")
+    add_run_options(run)
+    run.set_defaults(func=cmd_run)
+
+
+def add_run_options(run: argparse.ArgumentParser) -> None:
+    """The options of a run, shared by ``flowrt run`` and ``flowrt record``."""
     run.add_argument(
         "--duration",
-        type=float,
+        type=seconds_arg,
         default=None,
         metavar="S",
         help="stop after S seconds of running, counted once every node is set up "
@@ -459,4 +490,3 @@ def add_parsers(sub: Any) -> None:
         help="keep the rest of the graph running when a node fails for good (default: stop at"
         " once); the exit code is 1 either way",
     )
-    run.set_defaults(func=cmd_run)

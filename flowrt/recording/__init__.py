@@ -2,6 +2,7 @@
 
 - :mod:`.encoding`: values to messages and back (foxglove RawImage/CompressedImage, JSON)
 - :mod:`.writer`: the writer thread and its per-stream counters
+- :mod:`.split`: when a recording starts a new file (``--split-size``, ``--split-duration``)
 - :mod:`.session`: session folders and the metadata a recording carries
 - :mod:`.report`: the per-stream table after a recording
 - :mod:`.reader`: ``info``, damage-tolerant reading, repair, and the replay message stream
@@ -17,6 +18,9 @@ from .report import nominal_rates as nominal_rates
 from .report import report_table as report_table
 from .session import check_writable as check_writable
 from .session import new_session as new_session
+from .split import SplitPolicy as SplitPolicy
+from .split import parse_duration as parse_duration
+from .split import parse_size as parse_size
 from .writer import RecordingWriter as RecordingWriter
 from .writer import StreamCounters as StreamCounters
 
@@ -24,11 +28,14 @@ __all__ = [
     "Decoder",
     "RecordingReport",
     "RecordingWriter",
+    "SplitPolicy",
     "StreamCounters",
     "StreamReport",
     "build_report",
     "check_writable",
     "new_session",
     "nominal_rates",
+    "parse_duration",
+    "parse_size",
     "report_table",
 ]

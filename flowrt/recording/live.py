@@ -3,8 +3,10 @@
 ``flowrt run g.yaml --foxglove [PORT]`` starts foxglove-sdk's WebSocket server (loopback by
 default) and serves every output with the schemas a recording uses: frames as
 ``foxglove.CompressedImage`` (JPEG: a live view over a socket, not an archive), every other
-output as JSON, the statistics table once a second on ``/flowrt/stats`` and events on
-``/flowrt/events``. The Foxglove app shows a running graph as it shows a recording.
+output as JSON (a detection also as ``foxglove.ImageAnnotations`` on its camera's
+``CAMERA/annotations/DETECTIONS``, stamped with its frame's time), the statistics table
+once a second on ``/flowrt/stats`` and events on ``/flowrt/events``. The Foxglove app shows
+a running graph as it shows a recording.
 
 A viewer never slows the graph: the monitor reads each output through its own ``latest``
 buffer (the graph never waits on it), takes values off the loop only when some client is
@@ -28,9 +30,13 @@ from typing import TYPE_CHECKING, Any
 from ..frames import Frame
 from .encoding import (
     StreamSchema,
+    annotations_schema,
+    annotations_topic,
+    encode_annotations,
     encode_frame,
     encode_json,
     image_schema,
+    is_detection,
     schema_for,
     to_jsonable,
 )
@@ -68,6 +74,8 @@ class FoxgloveLive:
         self._channels: dict[str, Any] = {}
         self._schemas: dict[str, StreamSchema] = {}
         self._frame_topics: set[str] = set()
+        self._cameras: dict[str, str] = {}  # node -> its first frame output's topic
+        self._annotations: dict[str, Any] = {}  # detection topic -> its annotations channel
         self._pending: dict[str, tuple[Any, float]] = {}
         self._cond = threading.Condition()
         self._done: deque[Frame] = deque()
@@ -115,6 +123,7 @@ class FoxgloveLive:
                 self._subs[topic] = rt.subscribe(topic, policy="latest", size=1)
                 if port in frames:
                     self._frame_topics.add(topic)
+                    self._cameras.setdefault(name, topic)
                     schema = image_schema(self.image_format != "raw")
                     self._channels[topic] = self._channel(topic, schema)
         self._stats_channel = self._channel("/flowrt/stats", _json_schema("flowrt.RuntimeStats"))
@@ -157,7 +166,9 @@ class FoxgloveLive:
         self._release_done()
         for topic, sub in self._subs.items():
             ch = self._channels.get(topic)
-            if ch is not None and not ch.has_sinks():
+            drawn = self._annotations.get(topic)
+            watched = drawn is not None and drawn.has_sinks()
+            if ch is not None and not ch.has_sinks() and not watched:
                 continue  # nobody watches: the latest buffer just keeps the newest value
             value = sub.take_held()
             if value is EMPTY:
@@ -221,7 +232,22 @@ class FoxgloveLive:
                 self._schemas[topic] = schema_for(value)
                 ch = self._channels[topic] = self._channel(topic, self._schemas[topic])
             ch.log(encode_json(value, self._schemas[topic]).data, log_time=ns)
+            if is_detection(value):
+                self._draw(topic, value)
         self.sent += 1
+
+    def _draw(self, topic: str, det: Any) -> None:
+        """A detection as annotations on its camera's image, at its frame's time."""
+        ch = self._annotations.get(topic)
+        if ch is None:
+            camera = self._cameras.get(det.source)
+            if camera is None:
+                return
+            ch = self._annotations[topic] = self._channel(
+                annotations_topic(camera, topic), annotations_schema()
+            )
+        epoch = det.timestamp + self._epoch
+        ch.log(encode_annotations(det, epoch).data, log_time=round(epoch * 1e9))
 
     def _channel(self, topic: str, schema: StreamSchema) -> Any:
         import foxglove

@@ -10,6 +10,10 @@ was recovered into a complete, indexed file.
 Per-message times and sizes come from the message index records that follow each chunk, so
 ``info`` does not decompress or copy image data; a chunk whose index was lost in a crash is
 opened instead.
+
+A session split into parts (:mod:`.split`) is read as one recording: :func:`scan_session`
+describes each file and the streams over all of them (rates and gaps across the file
+boundaries), and :func:`iter_session` gives the messages of every part in order.
 """
 
 from __future__ import annotations
@@ -29,10 +33,13 @@ __all__ = [
     "FileInfo",
     "RecordedMessage",
     "Recording",
+    "SessionInfo",
     "StreamInfo",
     "iter_messages",
+    "iter_session",
     "repair",
     "scan",
+    "scan_session",
 ]
 
 
@@ -80,6 +87,32 @@ class FileInfo(BaseModel):
     summary_ok: bool = Field(
         default=False, description="the summary/index section reads with the mcap reader"
     )
+
+
+class SessionInfo(BaseModel):
+    """A session (or one file) as one recording: its files, and streams over all of them."""
+
+    path: str
+    files: list[FileInfo]
+    closed_cleanly: bool = Field(description="every file was closed cleanly")
+    size: int
+    start: float | None
+    end: float | None
+    duration: float
+    messages: int
+    streams: list[StreamInfo] = Field(description="over every file, in time order")
+    metadata: dict[str, dict[str, str]] = Field(
+        default_factory=dict, description="the first file's"
+    )
+    graph: str | None = Field(default=None, description="the recorded graph file's text")
+
+    @property
+    def damage(self) -> str | None:
+        """The first damage found, with its file."""
+        for f in self.files:
+            if not f.closed_cleanly:
+                return f"{Path(f.path).name}: {f.damage or 'no summary'}"
+        return None
 
 
 @dataclass
@@ -141,6 +174,11 @@ def _records(path: Path, rec: Recording, emit_chunks: bool) -> Iterator[Any]:
 
 def scan(path: str | Path) -> FileInfo:
     """Read a whole file (without decoding images) and describe it; never raises on damage."""
+    return _scan(path)[0]
+
+
+def _scan(path: str | Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
+    """:func:`scan`, and each channel's times and bytes with its schema name (for sessions)."""
     from mcap.records import (
         Attachment,
         Channel,
@@ -214,10 +252,12 @@ def scan(path: str | Path) -> FileInfo:
 
     streams = []
     starts, ends = [], []
+    named: list[tuple[_Chan, str]] = []
     for c in chans.values():
         c.times.sort()
         schema = rec.schemas.get(c.schema_id)
-        streams.append(_stream_info(c, schema.name if schema is not None else "?"))
+        named.append((c, schema.name if schema is not None else "?"))
+        streams.append(_stream_info(c, named[-1][1]))
         if c.times:
             starts.append(c.times[0])
             ends.append(c.times[-1])
@@ -232,7 +272,7 @@ def scan(path: str | Path) -> FileInfo:
         attachments.append(f"{a.name} ({a.media_type}, {len(a.data)} bytes)")
         if a.name == "graph.yaml":
             graph = a.data.decode("utf-8", "replace")
-    return FileInfo(
+    info = FileInfo(
         path=str(p),
         size=p.stat().st_size,
         closed_cleanly=rec.closed_cleanly and rec.damage is None,
@@ -248,6 +288,55 @@ def scan(path: str | Path) -> FileInfo:
         attachments=attachments,
         graph=graph,
         summary_ok=_summary_ok(p),
+    )
+    return info, named
+
+
+def scan_session(path: str | Path) -> SessionInfo:
+    """Describe a session folder (every part) or one file as one recording.
+
+    Streams are merged by topic across the files, so a rate or gap is computed over the
+    whole recording: the boundary between two parts is not a gap (no message is lost
+    there), and a gap that spans one is found.
+    """
+    from .session import mcap_files
+
+    files: list[FileInfo] = []
+    merged: dict[str, tuple[_Chan, str]] = {}
+    for f in mcap_files(path):
+        info, named = _scan(f)
+        files.append(info)
+        for c, schema in named:
+            m = merged.get(c.topic)
+            if m is None:
+                merged[c.topic] = (_Chan(c.topic, 0, c.encoding, c.metadata), schema)
+                m = merged[c.topic]
+            m[0].times.extend(c.times)
+            m[0].bytes += c.bytes
+    streams = []
+    for c, schema in merged.values():
+        c.times.sort()
+        streams.append(_stream_info(c, schema))
+    starts = [f.start for f in files if f.start is not None]
+    ends = [f.end for f in files if f.end is not None]
+    start = min(starts) if starts else None
+    end = max(ends) if ends else None
+    for s in streams:
+        for g in s.gaps:
+            g.at = g.at - (start or 0.0)
+    first = files[0] if files else None
+    return SessionInfo(
+        path=str(path),
+        files=files,
+        closed_cleanly=all(f.closed_cleanly for f in files),
+        size=sum(f.size for f in files),
+        start=start,
+        end=end,
+        duration=(end - start) if start is not None and end is not None else 0.0,
+        messages=sum(s.count for s in streams),
+        streams=streams,
+        metadata=first.metadata if first is not None else {},
+        graph=next((f.graph for f in files if f.graph), None),
     )
 
 
@@ -361,6 +450,42 @@ def iter_messages(
                 r.data,
                 ch.metadata.get("source", ch.topic),
             )
+
+
+def iter_session(
+    files: list[Path],
+    topics: set[str] | None = None,
+    damage: list[Recording] | None = None,
+    after: int = 0,
+) -> Iterator[RecordedMessage]:
+    """Messages of every part in order, as one recording; stops at the first damage.
+
+    A part whose summary says it ends before ``after`` (log time, ns) is skipped unread, so
+    a replay from an offset does not read the parts before it. Each part read appends its
+    :class:`Recording` to ``damage``.
+    """
+    for f in files:
+        if after and _ends_before(f, after):
+            continue
+        rec = Recording(f)
+        if damage is not None:
+            damage.append(rec)
+        yield from iter_messages(f, topics, rec)
+        if rec.damage is not None:
+            return
+
+
+def _ends_before(path: Path, t: int) -> bool:
+    """True when the file's summary says its last message is logged before ``t`` (ns)."""
+    from mcap.reader import SeekingReader
+
+    try:
+        with open(path, "rb") as f:
+            summary = SeekingReader(f).get_summary()
+    except Exception:
+        return False
+    stats = summary.statistics if summary is not None else None
+    return stats is not None and stats.message_count > 0 and stats.message_end_time < t
 
 
 def repair(path: str | Path) -> tuple[Path, int]:

@@ -124,7 +124,7 @@ def build_report(
     window = max(lasts) - min(firsts) if firsts else None
     return RecordingReport(
         session=session,
-        files=[str(writer.path)],
+        files=[str(f) for f in writer.files] or [str(writer.path)],
         start_time=start_time,
         duration=duration,
         error=writer.error,
@@ -147,34 +147,34 @@ def _hz(x: float | None) -> str:
     return "-" if x is None else f"{x:.2f}"
 
 
-def report_table(report: RecordingReport) -> Any:
-    """A rich Table of the report; lost (and missing) in red."""
-    from rich.table import Table
+def report_table(report: RecordingReport, width: int | None = None) -> Any:
+    """A rich Table of the report; lost (and missing) in red.
+
+    At a narrow ``width`` (an 80-column terminal) the rate columns go first, then the bytes
+    and the expected count; the stream and what was received, written and lost never go.
+    """
+    from rich.text import Text
+
+    from ..columns import Column, fit_table
 
     title = f"recording {report.session}: {report.duration:.1f} s"
     if report.error:
-        title += f" [red](stopped: {report.error})[/red]"
-    t = Table(title=title, title_justify="left")
-    for col in ("stream", "expected", "received", "written", "lost", "missing"):
-        t.add_column(col, justify="left" if col == "stream" else "right")
-    for col in ("Hz mean", "Hz min", "Hz max", "bytes"):
-        t.add_column(col, justify="right")
-    for s in report.streams:
-        lost = f"[bold red]{s.lost}[/bold red]" if s.lost else "0"
-        missing = f"[red]{s.missing}[/red]" if s.missing > 1 else str(s.missing)
-        t.add_row(
-            s.topic,
-            "-" if s.expected is None else str(s.expected),
-            str(s.received),
-            str(s.written),
-            lost,
-            missing,
-            _hz(s.rate_mean),
-            _hz(s.rate_min),
-            _hz(s.rate_max),
-            human_bytes(s.bytes),
-        )
-    return t
+        title += f" (stopped: {report.error})"
+    cols: tuple[Column[StreamReport], ...] = (
+        Column("stream", lambda s: s.topic, right=False),
+        Column("expected", lambda s: "-" if s.expected is None else str(s.expected), drop=5),
+        Column("received", lambda s: str(s.received)),
+        Column("written", lambda s: str(s.written)),
+        Column("lost", lambda s: Text(str(s.lost), style="bold red" if s.lost else "")),
+        Column(
+            "missing", lambda s: Text(str(s.missing), style="red" if s.missing > 1 else ""), drop=6
+        ),
+        Column("Hz mean", lambda s: _hz(s.rate_mean), drop=3),
+        Column("Hz min", lambda s: _hz(s.rate_min), drop=1),
+        Column("Hz max", lambda s: _hz(s.rate_max), drop=2),
+        Column("bytes", lambda s: human_bytes(s.bytes), drop=4),
+    )
+    return fit_table(cols, report.streams, width, title=title)
 
 
 def report_text(report: RecordingReport) -> str:
@@ -184,6 +184,6 @@ def report_text(report: RecordingReport) -> str:
     from rich.console import Console
 
     console = Console(width=120, color_system=None, file=io.StringIO())
-    console.print(report_table(report))
+    console.print(report_table(report, console.width))
     out: str = console.file.getvalue()  # type: ignore[attr-defined]
     return out

@@ -1,10 +1,11 @@
 """Sessions: ``recordings/drive_001/`` (next free number), and what a recording says about itself.
 
-A session folder holds the MCAP file and ``streams.json`` (the per-stream report): nothing a
-user could lose by copying the folder. The file itself says how it was made: metadata
-``flowrt`` (version, host, start time, graph name, Python), attachments ``graph.yaml`` (the
-graph file's text, when known) and ``timing.json`` (every node's trigger, period, deadline,
-priority and placement at the start), and at a clean stop ``streams.json`` again.
+A session folder holds the MCAP file (or its parts, :mod:`.split`) and ``streams.json`` (the
+per-stream report): nothing a user could lose by copying the folder. Each file says how it
+was made: metadata ``flowrt`` (version, host, start time, graph name, Python), attachments
+``graph.yaml`` (the graph file's text, when known) and ``timing.json`` (every node's trigger,
+period, deadline, priority and placement at the start), and at a clean stop (in the last
+file) ``streams.json`` again.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ __all__ = ["SESSION_FILE", "check_writable", "mcap_files", "new_session", "sessi
 
 SESSION_FILE = "streams.json"
 _NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
+_PART = re.compile(r"^(.*)_(\d+)\.mcap$")
 
 
 def check_writable(root: str | Path) -> str | None:
@@ -62,11 +64,23 @@ def new_session(root: str | Path, name: str = "rec") -> Path:
 
 
 def mcap_files(path: str | Path) -> list[Path]:
-    """The MCAP file(s) of a session folder, or the file itself."""
+    """The MCAP file(s) of a session folder in part order, or the file itself.
+
+    Parts sort by their number (``_999`` before ``_1000``); the originals that ``info
+    --repair`` kept (``*.damaged.mcap``) and its unfinished output are not parts.
+    """
     p = Path(path)
-    if p.is_dir():
-        return sorted(p.glob("*.mcap"))
-    return [p]
+    if not p.is_dir():
+        return [p]
+    files = [
+        f for f in p.glob("*.mcap") if not f.name.endswith((".damaged.mcap", ".repairing.mcap"))
+    ]
+    return sorted(files, key=_part_key)
+
+
+def _part_key(path: Path) -> tuple[str, int]:
+    m = _PART.match(path.name)
+    return (m.group(1), int(m.group(2))) if m else (path.stem, -1)
 
 
 def session_metadata(

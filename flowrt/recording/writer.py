@@ -10,6 +10,11 @@ holds memory, not the camera's pool slots. The disk thread finishes a chunk at l
 ``flush_interval`` seconds: after a ``kill -9`` the file is readable up to the last finished
 chunk, so at most ``flush_interval`` (1 s by default) or one chunk is lost.
 
+With a :class:`~.split.SplitPolicy` the disk thread also starts a new file, a *part*, when
+the current one reaches the size or duration: it finishes the part (summary, indexes: a
+complete file) and opens the next with the same metadata and attachments, between two
+messages, so no message is dropped or held by the loop; every part is a standalone MCAP.
+
 Nothing is lost silently. A full queue (the disk or the encoder cannot keep up) refuses the
 message and counts it against its stream (``lost_behind``); a write error (disk full, file
 too large) stops writing, keeps what is in the file, records the error and counts every
@@ -34,11 +39,22 @@ import numpy as np
 from ..frames import Frame
 from ..stats import Running
 from .directio import open_direct
-from .encoding import Encoded, StreamSchema, encode_frame, encode_json, schema_for
+from .encoding import (
+    Encoded,
+    Overlay,
+    StreamSchema,
+    encode_annotations,
+    encode_frame,
+    encode_json,
+    schema_for,
+)
+from .split import SplitPolicy, part_path
 
 __all__ = ["RecordingWriter", "StreamCounters"]
 
 PROFILE = "flowrt"
+MESSAGE_OVERHEAD = 31 + 16
+"""Bytes a message takes in a file besides its data: its record header and index entry."""
 THREAD_PREFIX = "mcap writer "
 """Writer threads are not daemons: a process that ends waits for its files to be finished."""
 
@@ -79,10 +95,12 @@ class _Item:
 
 
 class RecordingWriter:
-    """One MCAP file written by a thread. Create, :meth:`open`, :meth:`submit`, :meth:`close`.
+    """MCAP file(s) written by a thread. Create, :meth:`open`, :meth:`submit`, :meth:`close`.
 
     Args:
-        path: the ``.mcap`` file to create (its directory must exist).
+        path: the ``.mcap`` file to create (its directory must exist); with ``split``, the
+            parts are named after it: ``NAME_000.mcap``, ``NAME_001.mcap`` ...
+        split: when to start a new part (size, duration); None or inactive: one file.
         image_formats: per topic ``raw`` (default), ``jpeg`` or ``png``.
         epoch_offset: added to the runtime clock's seconds to get Unix time (log times are
             nanoseconds since the epoch, as Foxglove expects).
@@ -115,8 +133,13 @@ class RecordingWriter:
         crc: bool = True,
         direct_io: bool = False,
         on_written: Callable[[], None] | None = None,
+        split: SplitPolicy | None = None,
     ) -> None:
-        self.path = Path(path)
+        self.split = split if split is not None and split.active else None
+        self.base = Path(path)
+        self.path = self.base.with_name(part_path(self.base.name, 0)) if self.split else self.base
+        self.files: list[Path] = []  # every part, in order (one file when not split)
+        self.part_messages: list[int] = []  # messages written into each part
         self.image_formats = image_formats or {}
         self.epoch_offset = epoch_offset
         self.chunk_size = chunk_size
@@ -147,6 +170,10 @@ class RecordingWriter:
         self._schemas: dict[StreamSchema, int] = {}
         self._channels: dict[str, int] = {}
         self._channel_meta: dict[str, dict[str, str]] = {}
+        self._metadata: dict[str, dict[str, str]] = {}
+        self._attachments: list[tuple[str, str, bytes]] = []
+        self._part_bytes = 0
+        self._part_start: float | None = None  # runtime-clock time of the part's first message
         self._end_attachments: Callable[[], list[tuple[str, str, bytes]]] = list
         self._on_finished: Callable[[], None] | None = None
         self._inflight: Frame | None = None
@@ -161,32 +188,13 @@ class RecordingWriter:
         metadata: dict[str, dict[str, str]],
         attachments: list[tuple[str, str, bytes]] = (),  # type: ignore[assignment]
     ) -> None:
-        """Create the file and write header, metadata and attachments; raise OSError if not."""
-        from mcap.writer import CompressionType, Writer
+        """Create the file and write header, metadata and attachments; raise OSError if not.
 
-        comp = {
-            "none": CompressionType.NONE,
-            "lz4": CompressionType.LZ4,
-            "zstd": CompressionType.ZSTD,
-        }[self.compression]
-        self._file = open_direct(self.path) if self.direct_io else None
-        if self._file is None:
-            self._file = open(self.path, "xb")  # noqa: SIM115 - closed by the writer thread
-        try:
-            w = Writer(
-                self._file, chunk_size=self.chunk_size, compression=comp, enable_crcs=self.crc
-            )
-            w.start(profile=PROFILE, library=_library())
-            now = time.time_ns()
-            for name, data in metadata.items():
-                w.add_metadata(name, data)
-            for name, media, blob in attachments:
-                w.add_attachment(now, now, name, media, blob)
-            self._file.flush()
-        except BaseException:
-            self._file.close()
-            raise
-        self._writer = w
+        Every part of a split recording starts with the same metadata and attachments.
+        """
+        self._metadata = dict(metadata)
+        self._attachments = list(attachments)
+        self._start_file(self.path)
         self._encoder = threading.Thread(
             target=self._encode_loop, name=f"{THREAD_PREFIX}{self.path.name} encoder"
         )
@@ -296,6 +304,51 @@ class RecordingWriter:
         """True while the thread reads a frame's pixels (they are copied into the message)."""
         return self._inflight is not None
 
+    def _start_file(self, path: Path) -> None:
+        """Create ``path`` and write its header, metadata and attachments (raises OSError)."""
+        from mcap.writer import CompressionType, Writer
+
+        comp = {
+            "none": CompressionType.NONE,
+            "lz4": CompressionType.LZ4,
+            "zstd": CompressionType.ZSTD,
+        }[self.compression]
+        file: Any = open_direct(path) if self.direct_io else None
+        if file is None:
+            file = open(path, "xb")  # noqa: SIM115 - closed by the writer thread
+        try:
+            w = Writer(file, chunk_size=self.chunk_size, compression=comp, enable_crcs=self.crc)
+            w.start(profile=PROFILE, library=_library())
+            now = time.time_ns()
+            for name, data in self._metadata.items():
+                w.add_metadata(name, data)
+            if self.split is not None:
+                w.add_metadata("flowrt.part", self._part_record(len(self.files)))
+            for name, media, blob in self._attachments:
+                w.add_attachment(now, now, name, media, blob)
+            file.flush()
+        except BaseException:
+            file.close()
+            raise
+        self._file, self._writer, self.path = file, w, path
+        self.files.append(path)
+        self.part_messages.append(0)
+        self._schemas, self._channels = {}, {}  # each part declares its own
+        self._part_bytes, self._part_start = file.tell(), None
+
+    def _part_record(self, index: int) -> dict[str, str]:
+        """The ``flowrt.part`` metadata: which part of which session, and the policy."""
+        split = self.split
+        assert split is not None
+        out = {"index": str(index), "first": part_path(self.base.name, 0)}
+        if index:
+            out["previous"] = self.files[-1].name
+        if split.size is not None:
+            out["split_size"] = str(split.size)
+        if split.duration is not None:
+            out["split_duration"] = f"{split.duration:g}"
+        return out
+
     # --- on the writer thread ---------------------------------------------------------------
 
     def _encode_loop(self) -> None:
@@ -369,6 +422,13 @@ class RecordingWriter:
         if enc is None or self.error is not None:
             s.unwritten += 1
             return
+        if self.split is not None and self.split.due(
+            self._part_bytes, self._part_start, len(enc.data) + MESSAGE_OVERHEAD, item.t
+        ):
+            self._next_part()
+            if self.error is not None:
+                s.unwritten += 1
+                return
         cid = self._channel(item.topic, enc.schema)
         ns = round((item.t + self.epoch_offset) * 1e9)
         if not self._guard(
@@ -378,11 +438,33 @@ class RecordingWriter:
             return
         s.written += 1
         s.bytes += len(enc.data)
+        self.part_messages[-1] += 1
+        self._part_bytes += len(enc.data) + MESSAGE_OVERHEAD
+        if self._part_start is None:
+            self._part_start = item.t
         if s.last_time is not None:
             s.intervals.add(item.t - s.last_time)
         else:
             s.first_time = item.t
         s.last_time = item.t
+
+    def _next_part(self) -> None:
+        """Finish the current part (a complete file) and open the next, on the disk thread.
+
+        The part is closed before the next is created: a ``kill -9`` in between leaves every
+        earlier part complete, and the one being written recoverable as any killed file.
+        """
+        if not self._guard(self._writer.finish):
+            return
+        if not self._guard(self._file.flush):
+            return
+        try:
+            self._file.close()
+        except OSError as e:
+            self._fail(e)
+            return
+        self.path = self.base.with_name(part_path(self.base.name, len(self.files)))
+        self._guard(partial(self._start_file, self.path))
 
     def _frame_done(self, item: _Item) -> None:
         with self._cond:
@@ -397,6 +479,8 @@ class RecordingWriter:
             return encode_frame(
                 v, v.timestamp + self.epoch_offset, self.image_formats.get(item.topic, "raw")
             )
+        if isinstance(v, Overlay):  # stamped like the frame: the same float, the same offset
+            return encode_annotations(v.detection, v.detection.timestamp + self.epoch_offset)
         cached = self._json_schemas
         key = (item.topic, type(v))
         schema = cached.get(key)
@@ -427,8 +511,11 @@ class RecordingWriter:
             fn()
             return True
         except OSError as e:
-            self.error = f"{self.path}: {os.strerror(e.errno) if e.errno else e}"
+            self._fail(e)
             return False
+
+    def _fail(self, e: OSError) -> None:
+        self.error = f"{self.path}: {os.strerror(e.errno) if e.errno else e}"
 
     def _finish(self) -> None:
         if self.error is None:
