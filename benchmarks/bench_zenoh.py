@@ -1,25 +1,31 @@
 """Remote edges over Zenoh on loopback: latency, sustained rate, memory, and the timing of a
 critical node while frames are exported.
 
-    python -m benchmarks.bench_zenoh [--duration 10] [--out benchmarks/results/zenoh.json]
+    python -m benchmarks.bench_zenoh [--duration 10] [--sustained 60] [--out FILE.json]
 
 Rows, each measured in the same run:
 
 - latency from publication (the source's clock) to the activation of the remote sink, for a
   small message (8 B of payload in a JSON mapping), 640x480x3 and 1920x1080x3 frames at 20 Hz:
   flowrt local edge (one process), flowrt over Zenoh (two processes), and Zenoh's own Python
-  publisher/subscriber sending the same bytes (two processes, no flowrt);
+  publisher/subscriber sending the same bytes (two processes, no flowrt), its callback on
+  Zenoh's thread (the criterion) and that callback handing each sample to a uvloop loop
+  (informative: what a user's own asyncio program pays);
 - sustained 640x480x3 at 30 fps for ``--duration`` seconds: published, received, lost;
 - memory (RSS, PSS) of the exporting and importing processes;
 - a critical 20 Hz timer node's inter-activation std on the exporting side, with and without
   the 640x480 @ 30 fps export.
 
-Both processes run on this machine, so their clocks agree: latency is one-way.
+Both processes run on this machine, so their clocks agree: latency is one-way, from the
+sender's wall-clock stamp (in the JSON, in the frame's last 8 bytes, or in the attachment for
+raw Zenoh) to the receiver's clock at the sink's activation; flowrt's clock-offset estimate
+(error <= rtt/2) is not used here.
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import os
 import socket
@@ -36,6 +42,15 @@ import flowrt
 from flowrt import Frame, Input, Node, Output, TimerTrigger
 
 SIZES = {"8B": None, "640x480": (480, 640, 3), "1920x1080": (1080, 1920, 3)}
+
+
+def stamp(pixels: np.ndarray, t: float) -> None:
+    """Write ``t`` into the last 8 bytes of a frame (as a float64)."""
+    pixels.reshape(-1)[-8:] = np.frombuffer(np.float64(t).tobytes(), np.uint8)
+
+
+def stamped(pixels: np.ndarray) -> float:
+    return float(np.frombuffer(pixels.reshape(-1)[-8:].tobytes(), np.float64)[0])
 
 
 class PayloadSource(Node):
@@ -61,6 +76,7 @@ class PayloadSource(Node):
         f = self.ctx.new_frame(shape)
         f.data[0, 0, 0] = self.n % 256
         f.timestamp = self.ctx.now()
+        stamp(f.data, time.time())
         return {"frame": f}
 
 
@@ -74,8 +90,8 @@ class LatencySink(Node):
         self.lat: list[float] = []
 
     def process(self, value: Any) -> None:
-        if isinstance(value, Frame):
-            self.lat.append(self.ctx.now() - value.timestamp)
+        if isinstance(value, Frame):  # the source's wall clock, in the pixels: one host, one
+            self.lat.append(time.time() - stamped(value.data))  # clock, no offset estimate
         elif isinstance(value, dict):
             self.lat.append(time.time() - value["t"])
 
@@ -161,27 +177,53 @@ def raw_pub(args: argparse.Namespace) -> None:
     s = _zenoh([f"tcp/127.0.0.1:{args.port}"], [])
     pub = s.declare_publisher("bench/raw")
     shape = SIZES[args.payload]
-    data = b"12345678" if shape is None else np.zeros(shape, np.uint8).tobytes()
+    frame = None if shape is None else np.zeros(shape, np.uint8)
     end = time.monotonic() + args.seconds
     period = 1 / args.rate
     nxt = time.monotonic() + 1.0
+    n = 0
     while time.monotonic() < end:
         time.sleep(max(0.0, nxt - time.monotonic()))
-        pub.put(data, attachment=repr(time.time()).encode())
+        sent = time.time()
+        if frame is None:
+            data = b"12345678"
+        else:  # a program publishing its numpy frames pays this copy too (ZBytes takes bytes)
+            n += 1
+            frame[0, 0, 0] = n % 256
+            data = frame.tobytes()
+        pub.put(data, attachment=repr(sent).encode())
         nxt += period
     s.close()
 
 
 def raw_sub(args: argparse.Namespace) -> None:
+    """Zenoh's subscriber callback (on Zenoh's thread), or, with ``--asyncio``, that callback
+    handing each sample to a uvloop loop (``call_soon_threadsafe``): what a user's own asyncio
+    program pays to get a sample onto its loop."""
     lat: list[float] = []
     s = _zenoh([], [f"tcp/127.0.0.1:{args.port}"])
+    if not args.asyncio:
 
-    def on(sample: Any) -> None:
-        sample.payload.to_bytes()
-        lat.append(time.time() - float(sample.attachment.to_bytes()))
+        def on(sample: Any) -> None:
+            np.frombuffer(sample.payload.to_bytes(), np.uint8)  # the bytes, as an array
+            lat.append(time.time() - float(sample.attachment.to_bytes()))
 
-    sub = s.declare_subscriber("bench/raw", on)
-    time.sleep(args.seconds)
+        sub = s.declare_subscriber("bench/raw", on)
+        time.sleep(args.seconds)
+    else:
+        from flowrt.eventloop import new_event_loop
+
+        loop = new_event_loop()
+
+        def arrived(payload: np.ndarray, sent: float) -> None:
+            lat.append(time.time() - sent)
+
+        def on_thread(sample: Any) -> None:
+            payload = np.frombuffer(sample.payload.to_bytes(), np.uint8)
+            loop.call_soon_threadsafe(arrived, payload, float(sample.attachment.to_bytes()))
+
+        sub = s.declare_subscriber("bench/raw", on_thread)
+        loop.run_until_complete(asyncio.sleep(args.seconds))
     sub.undeclare()
     s.close()
     Path(args.lat).write_text(json.dumps(lat))
@@ -248,6 +290,22 @@ def latency_row(payload: str, seconds: float, tmp: Path) -> dict[str, Any]:
     sub.wait()
     pub.wait()
     row["raw_zenoh"] = _summ(json.loads((tmp / "raw.json").read_text()))
+    # raw Zenoh handing each sample to an asyncio (uvloop) loop: informative
+    p = _port()
+    pub = _spawn("raw_pub", payload=payload, rate=20, port=p, seconds=seconds + 1)
+    time.sleep(0.5)
+    sub = _spawn(
+        "raw_sub",
+        payload=payload,
+        rate=20,
+        port=p,
+        seconds=seconds,
+        lat=tmp / "raw_aio.json",
+        asyncio=True,
+    )
+    sub.wait()
+    pub.wait()
+    row["raw_zenoh_asyncio"] = _summ(json.loads((tmp / "raw_aio.json").read_text()))
     return row
 
 
@@ -285,7 +343,7 @@ def sustained(seconds: float, tmp: Path) -> dict[str, Any]:
     return {
         "seconds": seconds,
         "export_edge": {k: export[k] for k in ("published", "delivered", "dropped")},
-        "remote_link": {k: link[k] for k in ("published", "delivered", "dropped")},
+        "remote_link": {k: link[k] for k in ("published", "delivered", "dropped", "drop_reasons")},
         "latency": _summ(json.loads((tmp / "s.json").read_text())),
         "mem_exporter": e["mem"],
         "mem_importer": i["mem"],
@@ -296,15 +354,19 @@ def sustained(seconds: float, tmp: Path) -> dict[str, Any]:
 
 def report(res: dict[str, Any]) -> str:
     lines = [
-        "| payload | local p50/p99 ms | flowrt over Zenoh p50/p99 ms | raw Zenoh p50/p99 ms |",
-        "|---|---|---|---|",
+        f"load average {res['loadavg_start']} at the start, {res['loadavg_end']} at the end",
+        "",
+        "| payload | local p50/p99 ms | flowrt over Zenoh p50/p99 ms | raw Zenoh p50/p99 ms "
+        "| raw Zenoh -> asyncio p50/p99 ms | flowrt / raw (p50) |",
+        "|---|---|---|---|---|---|",
     ]
     for r in res["latency"]:
         cells = [
             f"{r[k]['p50_ms']:.2f} / {r[k]['p99_ms']:.2f}"
-            for k in ("local", "flowrt_zenoh", "raw_zenoh")
+            for k in ("local", "flowrt_zenoh", "raw_zenoh", "raw_zenoh_asyncio")
         ]
-        lines.append(f"| {r['payload']} | " + " | ".join(cells) + " |")
+        ratio = r["flowrt_zenoh"]["p50_ms"] / r["raw_zenoh"]["p50_ms"]
+        lines.append(f"| {r['payload']} | " + " | ".join(cells) + f" | {ratio:.2f} |")
     s = res["sustained"]
     lines.append("")
     lines.append(
@@ -330,15 +392,20 @@ def main() -> None:
     ap.add_argument("--result")
     ap.add_argument("--lat", default="")
     ap.add_argument("--critical", action="store_true")
+    ap.add_argument("--asyncio", action="store_true")
+    ap.add_argument("--sustained", type=float, help="seconds of the 30 fps run (default 3x)")
     args = ap.parse_args()
     if args.role:
         role_main(args)
         return
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"bench_zenoh_{os.getpid()}"
     tmp.mkdir(exist_ok=True)
+    start_load = os.getloadavg()
     res = {
         "latency": [latency_row(p, args.duration, tmp) for p in SIZES],
-        "sustained": sustained(args.duration * 3, tmp),
+        "sustained": sustained(args.sustained or args.duration * 3, tmp),
+        "loadavg_start": start_load,
+        "loadavg_end": os.getloadavg(),
     }
     print(report(res))
     if args.out:

@@ -10,10 +10,11 @@ outside the real-time router, no network I/O runs on the event loop:
   for messages, counted like any edge) hands one value at a time to a sender thread that
   encodes and publishes it; when that send is done the next value is taken. A slow network
   therefore drops at the edge, where it is counted, and never slows the producer.
-- Import: Zenoh's callback thread decodes (JPEG too) and parks the value in a hand-over slot
-  (frames: the newest only) or a bounded queue; one ``call_soon_threadsafe`` wakes the loop,
-  which copies frames into its own frame pool (local trackers read them zero-copy) and
-  publishes on the import node's ``output``.
+- Import: Zenoh's callback thread decodes (JPEG too), copies a frame's pixels into a frame of
+  the local pool that the loop keeps ready (local trackers read them zero-copy; the loop
+  copies only when no such frame fits), and parks the value in a bounded hand-over queue
+  (frames: ``FRAME_BACKLOG``; overruns counted); one ``call_soon_threadsafe`` wakes the loop, which
+  publishes on the import node's ``output`` (and writes the RTDB record after the readers).
 
 Every message carries its stream id, sequence number, send time and capture time: the
 importing side counts sequence gaps as drops of the remote link (an edge named
@@ -56,6 +57,7 @@ from .stats import EdgeStats, Running
 log = logging.getLogger("flowrt.remote")
 
 WIRE_VERSION = 1
+FRAME_BACKLOG = 3  # received frames waiting for the loop, at most (each holds a pool slot)
 CLOCK_PREFIX = "_flowrt/clock"
 
 
@@ -259,13 +261,19 @@ class RemoteFrameSource(RemoteSource):
 
 class RemoteLinkStats(Buffer):
     """The network hop of an import, shown as an edge: published = what the exporter sent
-    (by sequence number), delivered = received, dropped = sequence gaps and hand-over
-    overruns; age = one-way, on the exporter's clock corrected by the measured offset."""
+    (by sequence number), delivered = received, dropped = sequence gaps, hand-over overruns
+    and undecodable messages (each its own ``drop_reasons`` entry); age = one-way, on the
+    exporter's clock corrected by the measured offset."""
 
     policy = "remote"
 
     def __init__(self, name: str) -> None:
         super().__init__(name, 1)
+
+    def lost(self, reason: str, n: int = 1) -> None:
+        """``n`` messages lost on this hop, counted with ``reason``."""
+        self.dropped += n
+        self.drop_reasons[reason] = self.drop_reasons.get(reason, 0) + n
 
     def stats(self) -> EdgeStats:
         return super().stats()
@@ -324,6 +332,12 @@ class _Import:
         self.stale = False
         self.decode_errors = 0
         self.ctx: Any = None
+        # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
+        # keeps one pool frame of the last shape ready (``spare``); frames replaced before
+        # delivery go back to the pool from the loop (``discard``).
+        self.spare: Frame | None = None
+        self.spare_key: tuple[Any, ...] | None = None
+        self.discard: list[Frame] = []
 
     # Zenoh's thread ---------------------------------------------------------------------
 
@@ -336,12 +350,13 @@ class _Import:
             payload = sample.payload.to_bytes()
             if header.kind == "frame":
                 value: Any = decode_frame(header.frame, payload)
+                value = self._into_spare(header.frame, value)
             else:
                 value = from_wire(json.loads(payload))
         except Exception as e:
             with self.lock:
                 self.decode_errors += 1
-                self.link.dropped += 1
+                self.link.lost("undecodable")
             log.warning("import %s: undecodable message on %s: %s", self.name, self.key, e)
             return
         self.bridge.clock_probe(header.zid)
@@ -349,23 +364,37 @@ class _Import:
             if header.stream != self.stream:
                 self.stream, self.last_seq = header.stream, header.seq - 1
             gap = header.seq - self.last_seq - 1
-            if gap > 0:
+            if gap > 0:  # never received: lost on the way (or dropped by Zenoh's congestion)
                 self.link.published += gap
-                self.link.dropped += gap
+                self.link.lost("sequence gap", gap)
             self.last_seq = max(self.last_seq, header.seq)
             self.link.published += 1
-            if header.kind == "frame" and self.pending:  # frames: the newest only
-                self.pending.clear()
-                self.link.dropped += 1
-            elif len(self.pending) >= self.size:
-                self.pending.popleft()
-                self.link.dropped += 1
+            # Frames hold pool slots: a short backlog (two arriving back to back after an
+            # exporter's stall must both get through); messages: the import's ``size``.
+            limit = FRAME_BACKLOG if header.kind == "frame" else self.size
+            while len(self.pending) >= limit:  # the loop has not taken them in time
+                _, old = self.pending.popleft()
+                if isinstance(old, Frame):
+                    self.discard.append(old)
+                self.link.lost("hand-over overrun")
             self.pending.append((header, value))
             if self.scheduled:
                 return
             self.scheduled = True
         with contextlib.suppress(RuntimeError):  # the loop is closing
             self.bridge.host.loop.call_soon_threadsafe(self.deliver)
+
+    def _into_spare(self, meta: dict[str, Any], arr: np.ndarray) -> Any:
+        """The pixels in the pool frame the loop has ready, when its shape fits; else as is."""
+        key = _frame_key(meta, arr)
+        with self.lock:
+            spare = self.spare if self.spare_key == key else None
+            if spare is not None:
+                self.spare = None
+        if spare is None:
+            return arr
+        np.copyto(spare.data, arr)  # numpy lets go of the GIL for the copy
+        return spare
 
     # the loop ---------------------------------------------------------------------------
 
@@ -374,7 +403,12 @@ class _Import:
             items = list(self.pending)
             self.pending.clear()
             self.scheduled = False
+            discard, self.discard = self.discard, []
+        for old in discard:
+            old.release()
         host = self.bridge.host
+        records: list[Any] = []
+        key: tuple[Any, ...] | None = None
         for header, value in items:
             now = host.now_mono()
             offset = self.bridge.offset(header.zid)
@@ -387,21 +421,55 @@ class _Import:
             self.last_arrival = now
             captured_mono = now - max(0.0, wall_now - (header.captured - offset))
             if header.kind == "frame":
-                arr = value
-                pf = str(header.frame.get("pf", "BGR"))
-                if header.frame.get("enc", "raw") != "raw" and arr.ndim == 3:
-                    pf = "BGR"
-                frame = host.new_frame(self.name, tuple(arr.shape), arr.dtype, pf)
-                np.copyto(frame.data, arr)
+                if isinstance(value, Frame):  # copied into the pool on Zenoh's thread
+                    frame = value
+                    key = _frame_key(header.frame, frame.data)
+                else:
+                    arr = value
+                    key = _frame_key(header.frame, arr)
+                    frame = host.new_frame(self.name, tuple(arr.shape), arr.dtype, key[2])
+                    np.copyto(frame.data, arr)
                 frame.seq = int(header.frame.get("seq", header.seq))
                 frame.timestamp = captured_mono
                 host.publish(self.name, "output", frame)
                 frame.release()
             else:
                 host.publish(self.name, "output", value)
-                host.record(self.name, value, self._validity_ms())
+                records.append(value)
         if self.stale and items:
             self._resumed()
+        if records:  # after the readers' activations: an RTDB write is ~0.1 ms (a lock)
+            host.loop.call_soon(self._record, records)
+        if key is not None:  # after the readers' activations too
+            host.loop.call_soon(self._ready_spare, key)
+
+    def _ready_spare(self, key: tuple[Any, ...]) -> None:
+        """On the loop: a pool frame of the last shape, for the next arrival to fill."""
+        with self.lock:
+            if self.spare is not None and self.spare_key == key:
+                return
+            old, self.spare, self.spare_key = self.spare, None, None
+        if old is not None:
+            old.release()
+        frame = self.bridge.host.new_frame(self.name, key[0], np.dtype(key[1]), key[2])
+        with self.lock:
+            self.spare, self.spare_key = frame, key
+
+    def close(self) -> None:
+        """On the loop, at the end: frames still held go back to the pool."""
+        with self.lock:
+            held = [v for _, v in self.pending if isinstance(v, Frame)] + self.discard
+            if self.spare is not None:
+                held.append(self.spare)
+            self.pending.clear()
+            self.discard, self.spare, self.spare_key = [], None, None
+        for frame in held:
+            frame.release()
+
+    def _record(self, values: list[Any]) -> None:
+        validity = self._validity_ms()
+        for value in values:
+            self.bridge.host.record(self.name, value, validity)
 
     def _period(self) -> float | None:
         if self.period is not None:
@@ -484,6 +552,12 @@ class ZenohBridge:
                     f"zenoh: cannot listen on {', '.join(where)}: address already in use "
                     "(change zenoh.listen in the graph file, or stop the other process)"
                 ) from None
+            if "Unable to connect" in text:
+                raise RemoteError(
+                    f"zenoh: cannot connect to {', '.join(self.zspec.connect) or 'any endpoint'}"
+                    " (in client mode a router or peer must answer at start; peer mode keeps"
+                    " trying)"
+                ) from None
             raise RemoteError(f"zenoh: {text}") from None
         self.zid = str(self.session.info.zid())
         self._queryable = self.session.declare_queryable(
@@ -530,6 +604,8 @@ class ZenohBridge:
             with contextlib.suppress(Exception):
                 s.undeclare()
         self._subs.clear()
+        for imp in self.imports.values():
+            imp.close()
         if self._sender is not None:
             self._jobs.put(None)
             await asyncio.to_thread(self._sender.join, 2.0)
@@ -626,6 +702,14 @@ class ZenohBridge:
 
     def clocks(self) -> dict[str, tuple[float, float]]:
         return dict(self._offsets)
+
+
+def _frame_key(meta: dict[str, Any], arr: np.ndarray) -> tuple[Any, ...]:
+    """(shape, dtype, pixel format) of a received frame: what a spare pool frame must match."""
+    pf = str(meta.get("pf", "BGR"))
+    if meta.get("enc", "raw") != "raw" and arr.ndim == 3:
+        pf = "BGR"  # decoded by OpenCV
+    return (tuple(arr.shape), str(arr.dtype), pf)
 
 
 def _answer_clock(query: Any) -> None:

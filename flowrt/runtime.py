@@ -166,6 +166,12 @@ class Runtime:
         self.starvation_events = 0  # worker calls spared by the watchdog: starved, not hung
         self._starved_alert_at = -math.inf
 
+    @property
+    def remote_session(self) -> Any:
+        """The graph's Zenoh session (``zenoh.Session``) while running, else None: for users
+        of the runtime that talk through it (e.g. :class:`flowrt.remote_control.ZenohControl`)."""
+        return None if self._bridge is None else self._bridge.session
+
     @classmethod
     def from_file(cls, path: str | Path, **kwargs: Any) -> Runtime:
         """Load and validate a graph file (raises GraphError listing every problem)."""

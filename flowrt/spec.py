@@ -7,6 +7,7 @@ sources) live in :mod:`flowrt.graph`.
 
 from __future__ import annotations
 
+import ipaddress
 import math
 import re
 from enum import StrEnum
@@ -510,6 +511,15 @@ def _endpoint(v: str) -> str:
     return v
 
 
+def _loopback_host(host: str) -> bool:
+    if host.lower() in ("localhost", "localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
 def check_key_expr(v: str, *, wildcards: bool) -> str:
     """A Zenoh key expression: ``/``-separated non-empty chunks, no ``#`` or ``?``; ``*`` and
     ``**`` (whole chunks) only where a set of keys is meant (imports), not for exports."""
@@ -549,6 +559,25 @@ class ZenohSpec(_Strict):
     scouting: bool = Field(default=False, description="multicast and gossip scouting")
     config: dict[str, Any] = Field(default_factory=dict, description="more Zenoh config keys")
     config_file: str | None = None
+    control: Annotated[str, AfterValidator(_export_key)] | None = Field(
+        default=None, description="key of a queryable forwarding `flowrt ctl` (see README)"
+    )
+
+    def beyond_loopback(self) -> bool:
+        """Whether peers other than this host's may reach the session: a listen or connect
+        endpoint that is not loopback, scouting, or configuration flowrt does not read."""
+        if self.scouting or self.config or self.config_file:
+            return True
+        for endpoint in (*self.listen, *self.connect):
+            m = _ENDPOINT.match(endpoint)
+            if m is None or m.group("proto") == "serial":
+                return True
+            if m.group("proto") in ("unixsock-stream", "unixpipe"):
+                continue  # a local socket or pipe
+            hp = _HOST_PORT.match(m.group("addr"))
+            if hp is None or not _loopback_host(hp.group("host")):
+                return True
+        return False
 
 
 class ExportSpec(_Strict):

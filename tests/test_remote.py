@@ -12,14 +12,24 @@ import socket
 import subprocess
 import sys
 import textwrap
+import types
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 
-from flowrt import Frame, Graph, GraphError, Runtime
-from flowrt.remote import Header, decode_frame, encode_frame, from_wire, to_wire
+from flowrt import Frame, Graph, GraphBuilder, GraphError, Node, Output, Runtime
+from flowrt.edges import EMPTY
+from flowrt.remote import (
+    FRAME_BACKLOG,
+    Header,
+    _Import,
+    decode_frame,
+    encode_frame,
+    from_wire,
+    to_wire,
+)
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -90,6 +100,10 @@ nodes:
         (("input: rball", "input: nothing"), "expected node.port"),
         (("nodes:", "export: {r1/x: sink.out}\nnodes:"), "has no output 'out'"),
         (("nodes:", "export: {r1/x: ghost.out}\nnodes:"), "unknown node 'ghost'"),
+        (("nodes:", "export: {r1/**: sink.out}\nnodes:"), "name one key, no * or **"),
+        (("nodes:", "export: {r1/$x: sink.out}\nnodes:"), "are reserved"),
+        (("connect:", "control: a//b, connect:"), "empty chunk"),
+        (("listen: []", "listen: [tcp/127.0.0.1]"), "expected host:port"),
     ],
 )
 def test_bad_remote_configuration_is_located(
@@ -177,7 +191,7 @@ async def test_two_processes_kill_and_restart(tmp_path: Path) -> None:
             links = {e.name: e for e in rt.stats().edges if e.policy == "remote"}
             assert set(links) == {"zenoh:t/ball->rball", "zenoh:t/frame->rframe"}
             assert all(e.delivered > 0 for e in links.values())
-            assert node("rball").state != "error"
+            assert node("rball").state != "error", node("rball").reason
 
             os.killpg(proc.pid, signal.SIGKILL)  # the robot's process dies
             proc.wait(10)
@@ -221,3 +235,110 @@ def test_port_in_use_is_one_line_and_exit_1(tmp_path: Path) -> None:
     assert len(lines) == 1, r.stderr
     assert f"tcp/127.0.0.1:{port}" in lines[0]
     assert "already in use" in lines[0]
+
+
+def test_client_mode_without_a_router_is_one_line_and_exit_1(tmp_path: Path) -> None:
+    port = free_port()  # nothing listens there
+    path = tmp_path / "base.yaml"
+    text = BASE.replace("listen: []", "mode: client, listen: []").replace("7447", str(port))
+    path.write_text(text)
+    r = subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", "run", str(path), "--no-ui", "--duration", "5"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 1
+    assert r.stderr.strip() == (
+        f"flowrt run: zenoh: cannot connect to tcp/127.0.0.1:{port} (in client mode a router "
+        "or peer must answer at start; peer mode keeps trying)"
+    )
+
+
+class Pattern(Node):
+    """Frames whose every pixel is the frame's number (mod 256): a copy error shows."""
+
+    frame = Output(Frame)
+
+    def setup(self) -> None:
+        self.n = 0
+
+    def process(self) -> Any:
+        self.n += 1
+        f = self.ctx.new_frame((48, 64, 3))
+        f.data[...] = self.n % 256
+        return f
+
+
+async def test_frames_arrive_intact_in_the_pool_and_go_back_to_it() -> None:
+    """Frames are copied into the importer's pool on Zenoh's thread (a spare frame the loop
+    keeps ready): every pixel arrives, every pool slot is returned at the end."""
+    port = free_port()
+    ex = GraphBuilder("ex").add("src", Pattern, trigger={"timer": "20ms"})
+    ex.zenoh(listen=[f"tcp/127.0.0.1:{port}"]).export("p/frame", "src.frame")
+    im = GraphBuilder("im").zenoh(listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    im.import_("rx", {"key": "p/frame", "frames": True, "period": "20ms"})
+    im.add("sink", "sink", inputs={"input": "rx.output"})
+    async with Runtime(ex.build()) as rx_side, Runtime(im.build()) as rt:
+        sub = rt.subscribe("rx.output", size=1024)
+        seen = pooled = 0
+        last = -1
+        loop = asyncio.get_running_loop()
+        end = loop.time() + 20
+        while seen < 40 and loop.time() < end:
+            await asyncio.sleep(0.05)
+            while (f := sub.take_held()) is not EMPTY:  # held: the slot is not reused meanwhile
+                assert f.shape == (48, 64, 3)
+                values = np.unique(f.data)
+                assert len(values) == 1, values  # one frame's pixels, not a mix of two
+                assert values[0] != last  # a new frame's pixels, not a slot's old ones
+                last = int(values[0])
+                pooled += f._slot is not None  # in the local pool, readable zero-copy
+                seen += 1
+                f.release()
+        assert seen >= 40
+        assert pooled == seen
+        imp = rt._bridge.imports["rx"]
+        assert imp.spare is not None  # the next frame's slot is ready off the loop
+        del rx_side
+    pools = {p.owner: p for p in rt.stats().frames}
+    assert pools["rx"].slots_in_use == 0
+
+
+class _Bytes:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Sample:
+    def __init__(self, header: Header, payload: bytes) -> None:
+        self.attachment = _Bytes(header.encode())
+        self.payload = _Bytes(payload)
+
+
+def test_link_counts_each_loss_with_its_reason() -> None:
+    """Sequence gaps, hand-over overruns (the loop not taking frames in time) and
+    undecodable messages are each counted on the remote link, with their reason."""
+    woken: list[Any] = []
+    host = types.SimpleNamespace(
+        loop=types.SimpleNamespace(call_soon_threadsafe=woken.append), now_mono=lambda: 0.0
+    )
+    bridge = types.SimpleNamespace(host=host, clock_probe=lambda zid: None)
+    imp = _Import(bridge, "rx", "k", None, 5.0, 16)  # type: ignore[arg-type]
+    meta, pixels = encode_frame(Frame(np.zeros((4, 4, 3), np.uint8)), "raw", 90)
+    for seq in (0, 1, 3, 4, 5, 6):  # 2 never arrives; the loop takes none of them
+        imp.on_sample(_Sample(Header("s", "z", seq, 0.0, 0.0, "frame", meta), pixels))
+    imp.on_sample(_Sample(Header("s", "z", 7, 0.0, 0.0, "frame", meta), b"short"))
+    assert len(woken) == 1  # one wake-up for the whole burst
+    assert len(imp.pending) == FRAME_BACKLOG
+    overruns = 6 - FRAME_BACKLOG
+    assert imp.link.drop_reasons == {
+        "sequence gap": 1,
+        "hand-over overrun": overruns,
+        "undecodable": 1,
+    }
+    assert imp.link.dropped == 1 + overruns + 1
+    assert imp.link.published == 7  # 0..6 by sequence number; the undecodable one unknown

@@ -25,6 +25,18 @@ def add_parsers(sub: Any) -> None:
         default=os.environ.get("FLOWRT_TOKEN"),
         help="bearer token (default $FLOWRT_TOKEN)",
     )
+    ctl.add_argument(
+        "--zenoh",
+        metavar="ENDPOINT",
+        action="append",
+        help="reach the runtime through Zenoh at ENDPOINT (e.g. tcp/10.0.0.2:7447; repeat "
+        "for more), on the key of its graph's zenoh.control (--key)",
+    )
+    ctl.add_argument(
+        "--key",
+        default=os.environ.get("FLOWRT_CONTROL_KEY"),
+        help="with --zenoh: the graph's zenoh.control key (default $FLOWRT_CONTROL_KEY)",
+    )
     what = ctl.add_subparsers(dest="ctl_command", required=True)
     st = what.add_parser("stats", help="the status table of the running graph")
     st.add_argument("--json", action="store_true", help="raw RuntimeStats JSON")
@@ -71,15 +83,44 @@ def add_parsers(sub: Any) -> None:
 
 def ctl_main(args: argparse.Namespace) -> int:
     """``flowrt ctl``: exit 0 on success, 1 when the runtime is unreachable or refuses."""
-    client = ControlClient(args.url, args.token)
+    if args.zenoh:
+        from ..spec import _endpoint, check_key_expr
+
+        try:
+            for endpoint in args.zenoh:
+                _endpoint(endpoint)
+            if not args.key:
+                raise ValueError("--zenoh needs --key (the graph's zenoh.control key)")
+            check_key_expr(args.key, wildcards=False)
+        except ValueError as e:
+            print(f"flowrt ctl: {e}", file=sys.stderr)
+            return 2
+    client = _client(args)
     try:
         return _ctl(client, args)
     except ControlError as e:
         print(f"flowrt ctl: {e}", file=sys.stderr)
         return 1
+    finally:
+        _close(client)
 
 
-def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
+def _client(args: argparse.Namespace, timeout: float = 5.0) -> Any:
+    """HTTP (``--url``), or Zenoh queries (``--zenoh ENDPOINT --key KEY``): the same API."""
+    if args.zenoh:
+        from ..remote_control import ZenohControlClient
+
+        return ZenohControlClient(args.zenoh, args.key, args.token, timeout=timeout)
+    return ControlClient(args.url, args.token, timeout=timeout)
+
+
+def _close(client: Any) -> None:
+    close = getattr(client, "close", None)
+    if close is not None:
+        close()
+
+
+def _ctl(client: Any, args: argparse.Namespace) -> int:
     cmd = args.ctl_command
     if cmd == "stats":
         data = client.get("/stats")
@@ -131,13 +172,16 @@ def _ctl(client: ControlClient, args: argparse.Namespace) -> int:
     elif cmd == "record":
         return _record(client, args)
     elif cmd in ("swap", "reload"):
-        return _swap(args)
+        slow = _client(args, timeout=60.0)
+        try:
+            return _swap(slow, args)
+        finally:
+            _close(slow)
     return 0
 
 
-def _swap(args: argparse.Namespace) -> int:
+def _swap(client: Any, args: argparse.Namespace) -> int:
     """Swap or reload: setting up the new instance (a worker process) may take seconds."""
-    client = ControlClient(args.url, args.token, timeout=60.0)
     body: dict[str, Any] = {"node": args.node}
     if args.ctl_command == "swap":
         body["kind"] = args.kind
@@ -156,7 +200,7 @@ def _swap(args: argparse.Namespace) -> int:
     return 0
 
 
-def _record(client: ControlClient, args: argparse.Namespace) -> int:
+def _record(client: Any, args: argparse.Namespace) -> int:
     """Ask, then wait (up to 5 s) for each recorder to say where it records, or that it stopped."""
     import time
 

@@ -96,7 +96,7 @@ def run_graph(
     if problem:
         err.print(f"{prog}: {problem}", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
-    control = _control_config(args, err, prog)
+    control = _control_config(args, err, prog, graph.spec.zenoh)
     # Every address is checked before anything starts: a taken port is one line and exit 1.
     problem = _check_addresses(graph)
     if problem:
@@ -152,7 +152,19 @@ def run_graph(
             async with rt, server or contextlib.nullcontext():
                 if server is not None:
                     logging.getLogger("flowrt").info("control endpoint %s", server.url)
-                await rt.run(args.duration)
+                zenoh = graph.spec.zenoh
+                if server is not None and zenoh is not None and zenoh.control is not None:
+                    from ..remote_control import ZenohControl
+
+                    forwarder = ZenohControl(rt.remote_session, zenoh.control, server.url)
+                    forwarder.start()
+                    logging.getLogger("flowrt").info("control through zenoh: %s", zenoh.control)
+                    try:
+                        await rt.run(args.duration)
+                    finally:
+                        await asyncio.to_thread(forwarder.stop)
+                else:
+                    await rt.run(args.duration)
         finally:
             stop_signals.loop = None
 
@@ -324,9 +336,17 @@ def _check_addresses(graph: Graph) -> str | None:
     return None
 
 
-def _control_config(args: argparse.Namespace, err: Console, prog: str = "flowrt run") -> Any:
-    """``--control [HOST:]PORT``: a token is generated (and printed) if one is needed."""
-    if args.control is None:
+def _control_config(
+    args: argparse.Namespace, err: Console, prog: str = "flowrt run", zenoh: Any = None
+) -> Any:
+    """``--control [HOST:]PORT``: a token is generated (and printed) if one is needed.
+
+    A graph with ``zenoh: {control: KEY}`` gets a control endpoint (on a free loopback port
+    unless ``--control`` says where) for its queryable to forward to; when its Zenoh session
+    is reachable beyond loopback, the token is required on loopback too.
+    """
+    via_zenoh = zenoh is not None and zenoh.control is not None
+    if args.control is None and not via_zenoh:
         if args.control_token_required:
             err.print(f"{prog}: --control-token-required needs --control", markup=False)
             raise SystemExit(EXIT_BAD_GRAPH)
@@ -335,11 +355,12 @@ def _control_config(args: argparse.Namespace, err: Console, prog: str = "flowrt 
 
     from ..control import ControlConfig
 
+    required = args.control_token_required or (via_zenoh and zenoh.beyond_loopback())
     try:
         config = ControlConfig.parse(
-            args.control,
+            args.control or "127.0.0.1:0",
             args.token or os.environ.get("FLOWRT_TOKEN"),
-            token_required=args.control_token_required,
+            token_required=required,
         )
     except ValueError as e:
         err.print(f"{prog}: {e}", markup=False)
