@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import threading
 import time
 from collections import deque
@@ -50,6 +51,9 @@ __all__ = ["FoxgloveLive"]
 PUMP_INTERVAL = 0.01  # s: how often the loop looks for new values (a few microseconds each)
 BACKLOG = 32  # messages queued per client before the oldest is dropped (foxglove-sdk's queue)
 STOP_WAIT = 1.0  # s: at stop, how long to wait for the server to say goodbye to its clients
+
+
+log = logging.getLogger("flowrt.foxglove")
 
 
 class FoxgloveLive:
@@ -160,7 +164,22 @@ class FoxgloveLive:
     # --- on the loop ---------------------------------------------------------------------
 
     def _pump(self) -> None:
-        """Take the newest value of each output that some client wants; never waits."""
+        """Take the newest value of each output that some client wants; never waits.
+
+        Rescheduled whatever happens: one value that fails must not end the live view for
+        the rest of the run (counted in ``failed``, logged once).
+        """
+        try:
+            self._pump_once()
+        except Exception:
+            self.failed += 1
+            if self.failed == 1:
+                log.exception("foxglove: a live value could not be offered")
+        finally:
+            if self._loop is not None and not self._stopping:
+                self._handle = self._loop.call_later(PUMP_INTERVAL, self._pump)
+
+    def _pump_once(self) -> None:
         from ..edges import EMPTY
 
         self._release_done()
@@ -181,8 +200,6 @@ class FoxgloveLive:
             self._next_stats = now + 1.0
             if self._stats_channel.has_sinks():
                 self._offer("/flowrt/stats", rt.stats(), time.time())
-        if self._loop is not None and not self._stopping:
-            self._handle = self._loop.call_later(PUMP_INTERVAL, self._pump)
 
     def _offer(self, topic: str, value: Any, epoch_time: float) -> None:
         with self._cond:
