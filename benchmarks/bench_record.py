@@ -27,8 +27,10 @@ What runs:
    while cambada-like traffic (2 x 640x480 BGR frames at 20 Hz, 11 detection streams) is fed
    to a RecordingWriter or not: no writer; the writer with mcap's own buffers (the old way);
    the writer with its GIL-free copies (flowrt.recording.gilfree); the two writers again with
-   sys.setswitchinterval(0.5 ms). Conditions interleaved, rounds repeated; p50/p99/p99.9/max
-   lateness, and the on-loop cost of submit and of giving written frames' links back.
+   sys.setswitchinterval(0.5 ms); and the same writer and traffic in a forked process (the
+   CPU contention without the shared GIL) beside this one's timer. Conditions interleaved,
+   rounds repeated; p50/p99/p99.9/max lateness, and the on-loop cost of submit and of giving
+   written frames' links back.
 
 The machine is shared (2 cores, other engineers' test runs): every comparison is made within
 one run, and RESULTS.md says when it was noisy.
@@ -39,6 +41,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import multiprocessing
 import os
 import platform
 import re
@@ -467,6 +470,17 @@ async def _lateness_once(
     return out
 
 
+def _writer_elsewhere(seconds: float, folder: Path, shape: tuple[int, ...]) -> None:
+    """The writer condition's work in another process: tells CPU contention from the GIL."""
+    from flowrt.eventloop import new_event_loop
+
+    loop = new_event_loop()
+    try:
+        loop.run_until_complete(_lateness_once("gil-free", seconds, folder, shape))
+    finally:
+        loop.close()
+
+
 def lateness(args: argparse.Namespace) -> None:
     """Interleaved conditions in one process: no writer, mcap's buffers, GIL-free; intervals."""
     from flowrt.eventloop import new_event_loop
@@ -478,6 +492,7 @@ def lateness(args: argparse.Namespace) -> None:
         ("writer, GIL-free copies", "gil-free", 0.005),
         ("writer, mcap's own buffers, switch 0.5 ms", "mcap", 0.0005),
         ("writer, GIL-free copies, switch 0.5 ms", "gil-free", 0.0005),
+        ("writer in another process (same work, no GIL shared)", "process", 0.005),
     ]
     print(
         f"### Event-loop lateness with and without the writer ({args.seconds:g} s per "
@@ -492,6 +507,13 @@ def lateness(args: argparse.Namespace) -> None:
         for _ in range(args.rounds):
             for label, kind, switch in conditions:
                 sys.setswitchinterval(switch)
+                other = None
+                if kind == "process":  # the same traffic and writer, in a forked process
+                    other = multiprocessing.get_context("fork").Process(
+                        target=_writer_elsewhere, args=(args.seconds + 0.5, Path(tmp), shape)
+                    )
+                    other.start()
+                    kind = "none"
                 loop = new_event_loop()
                 try:
                     got[label].append(
@@ -502,6 +524,8 @@ def lateness(args: argparse.Namespace) -> None:
                 finally:
                     loop.close()
                     sys.setswitchinterval(default_switch)
+                    if other is not None:
+                        other.join()
                 for f in Path(tmp).iterdir():
                     f.unlink()
     print(
