@@ -81,6 +81,10 @@ class PartsBuilder(RecordBuilder):
         buf[offset + 1 : offset + 9] = struct.pack("<Q", self._count - start - 9)
 
     def write(self, data: Any) -> None:
+        if type(data) is bytes and len(data) < BIG:  # most writes: a record's header fields
+            self._small += data
+            self._count += len(data)
+            return
         view = memoryview(data).cast("B")  # (a bytearray += ndarray would broadcast)
         n = view.nbytes
         if n >= BIG:
