@@ -3,6 +3,7 @@
     python benchmarks/bench_record.py throughput --seconds 15   # 2 (and 3) x 1936x1216 @ 20 fps
     python benchmarks/bench_record.py cambada --seconds 15 --rounds 3 --realtime  # with/without
     python benchmarks/bench_record.py fidelity --seconds 5      # reduced Table 5 + PNG plot
+    python benchmarks/bench_record.py lateness --seconds 5 --rounds 3  # event-loop lateness
     python benchmarks/bench_record.py all                       # the three, as in RESULTS.md
 
 What runs:
@@ -22,6 +23,14 @@ What runs:
 3. fidelity: 640x480, 1280x720, 1936x1216 at 5, 10, 20, 30 fps, 1 and 2 streams: recorded fps
    (written-1 over the span of their log times, read back from the file) vs requested, lost.
    Writes benchmarks/results/record_fidelity.png.
+4. lateness: in one process, a 1 kHz uvloop timer measuring its own lateness (due -> callback)
+   while cambada-like traffic (2 x 640x480 BGR frames at 20 Hz, 11 detection streams) is fed
+   to a RecordingWriter or not: no writer; the writer with mcap's own buffers (the old way);
+   the writer with its GIL-free copies (flowrt.recording.gilfree); the two writers again with
+   sys.setswitchinterval(0.5 ms); and the same writer and traffic in a forked process (the
+   CPU contention without the shared GIL) beside this one's timer. Conditions interleaved,
+   rounds repeated; p50/p99/p99.9/max lateness, and the on-loop cost of submit and of giving
+   written frames' links back.
 
 The machine is shared (2 cores, other engineers' test runs): every comparison is made within
 one run, and RESULTS.md says when it was noisy.
@@ -32,6 +41,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import multiprocessing
 import os
 import platform
 import re
@@ -40,6 +50,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -350,22 +361,219 @@ def report_fidelity(results: list[Any]) -> None:
         print("\n(matplotlib not installed: no plot)\n")
 
 
+# --- lateness: does the writer delay the event loop? ------------------------------------------
+
+
+@dataclass
+class _Det:
+    """A tracker's detection, as the cambada graph's trackers send them (JSON in the file)."""
+
+    found: bool
+    centroid: tuple[float, float]
+    bbox: tuple[int, int, int, int]
+    area: int
+    confidence: float
+    cost: int
+    object: str = "ball"
+    timestamp: float = 0.0
+    seq: int = 0
+
+
+async def _lateness_once(
+    writer_kind: str, seconds: float, folder: Path, shape: tuple[int, ...]
+) -> dict[str, Any]:
+    """One condition: a 1 kHz timer measuring its own lateness while cambada-like traffic runs.
+
+    The traffic (2 cameras at 20 Hz, half a period apart, 11 detection streams: 6 at 20 Hz, 5
+    at 5 Hz) is made in every condition, frames copied into fresh arrays as a camera would;
+    only whether it is handed to a RecordingWriter (and which one) changes.
+    """
+    from flowrt.recording import RecordingWriter
+
+    loop = asyncio.get_running_loop()
+    late: list[float] = []
+    submit_ns: list[int] = []
+    release_ns: list[int] = []
+    writer: Any = None
+    stop = time.monotonic() + seconds
+
+    def release_done() -> None:
+        t0 = time.perf_counter_ns()
+        while writer.done:
+            writer.done.popleft().release()
+        release_ns.append(time.perf_counter_ns() - t0)
+
+    if writer_kind != "none":
+        writer = RecordingWriter(
+            folder / f"late_{time.monotonic_ns()}.mcap",
+            direct_io=True,
+            gil_free=writer_kind == "gil-free",
+            on_written=lambda: loop.call_soon_threadsafe(release_done),
+        )
+        writer.open({"bench": {"what": "lateness"}}, [])
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 255, shape, np.uint8) for _ in range(2)]
+
+    async def camera(i: int, phase: float) -> None:
+        await asyncio.sleep(phase)
+        seq, due = 0, time.monotonic()
+        while time.monotonic() < stop:
+            f = Frame(images[i].copy(), source=f"cam{i}", seq=seq, timestamp=time.monotonic())
+            t0 = time.perf_counter_ns()
+            if writer is not None:
+                f.acquire()
+                if not writer.submit(f"cam{i}.frame", f, f.timestamp, seq):
+                    f.release()
+                submit_ns.append(time.perf_counter_ns() - t0)
+            f.release()
+            seq, due = seq + 1, due + 0.05
+            await asyncio.sleep(max(0.0, due - time.monotonic()))
+
+    async def detections(k: int, rate: float) -> None:
+        seq, due = 0, time.monotonic()
+        while time.monotonic() < stop:
+            d = _Det(True, (1.5, 2.5), (1, 2, 3, 4), 12, 0.9, 1000, "ball", time.monotonic(), seq)
+            t0 = time.perf_counter_ns()
+            if writer is not None:
+                writer.submit(f"t{k}.detection", d, d.timestamp, seq)
+                submit_ns.append(time.perf_counter_ns() - t0)
+            seq, due = seq + 1, due + 1 / rate
+            await asyncio.sleep(max(0.0, due - time.monotonic()))
+
+    tasks = [loop.create_task(camera(0, 0.0)), loop.create_task(camera(1, 0.025))]
+    tasks += [loop.create_task(detections(k, 20.0 if k < 6 else 5.0)) for k in range(11)]
+    period = 0.001
+    due = time.monotonic() + period
+    finished = loop.create_future()
+
+    def tick() -> None:
+        nonlocal due
+        now = time.monotonic()
+        late.append(now - due)
+        if now >= stop:
+            finished.set_result(None)
+            return
+        due = max(due + period, now + period / 2)
+        loop.call_later(due - time.monotonic(), tick)
+
+    loop.call_later(period, tick)
+    await finished
+    await asyncio.gather(*tasks)
+    out: dict[str, Any] = {"late_ms": np.array(late) * 1e3}
+    if writer is not None:
+        await asyncio.to_thread(writer.close)
+        release_done()
+        out["written"] = sum(s.written for s in writer.streams.values())
+        out["lost"] = sum(s.lost for s in writer.streams.values())
+        out["submit_us"] = np.array(submit_ns) / 1e3
+        out["release_us"] = np.array(release_ns) / 1e3
+    return out
+
+
+def _writer_elsewhere(seconds: float, folder: Path, shape: tuple[int, ...]) -> None:
+    """The writer condition's work in another process: tells CPU contention from the GIL."""
+    from flowrt.eventloop import new_event_loop
+
+    loop = new_event_loop()
+    try:
+        loop.run_until_complete(_lateness_once("gil-free", seconds, folder, shape))
+    finally:
+        loop.close()
+
+
+def lateness(args: argparse.Namespace) -> None:
+    """Interleaved conditions in one process: no writer, mcap's buffers, GIL-free; intervals."""
+    from flowrt.eventloop import new_event_loop
+
+    shape = (args.height, args.width, 3)
+    conditions = [
+        ("no recording", "none", 0.005),
+        ("writer, mcap's own buffers", "mcap", 0.005),
+        ("writer, GIL-free copies", "gil-free", 0.005),
+        ("writer, mcap's own buffers, switch 0.5 ms", "mcap", 0.0005),
+        ("writer, GIL-free copies, switch 0.5 ms", "gil-free", 0.0005),
+        ("writer in another process (same work, no GIL shared)", "process", 0.005),
+    ]
+    print(
+        f"### Event-loop lateness with and without the writer ({args.seconds:g} s per "
+        f"condition, {args.rounds} interleaved rounds, frames {args.width}x{args.height} BGR)\n"
+    )
+    print(machine() + "\n")
+    default_switch = sys.getswitchinterval()
+    got: dict[str, list[dict[str, Any]]] = {c[0]: [] for c in conditions}
+    base = Path(args.dir)
+    base.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=base) as tmp:
+        for _ in range(args.rounds):
+            for label, kind, switch in conditions:
+                sys.setswitchinterval(switch)
+                other = None
+                if kind == "process":  # the same traffic and writer, in a forked process
+                    other = multiprocessing.get_context("fork").Process(
+                        target=_writer_elsewhere, args=(args.seconds + 0.5, Path(tmp), shape)
+                    )
+                    other.start()
+                    kind = "none"
+                loop = new_event_loop()
+                try:
+                    got[label].append(
+                        loop.run_until_complete(
+                            _lateness_once(kind, args.seconds, Path(tmp), shape)
+                        )
+                    )
+                finally:
+                    loop.close()
+                    sys.setswitchinterval(default_switch)
+                    if other is not None:
+                        other.join()
+                for f in Path(tmp).iterdir():
+                    f.unlink()
+    print(
+        "| condition | ticks | p50 ms | p99 ms | p99.9 ms | max ms (median of rounds) | "
+        "> 2 ms | written | lost | submit us p50/p99 | link release us p50 |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for label, runs in got.items():
+        late = np.concatenate([r["late_ms"] for r in runs])
+        p = np.percentile(late, [50, 99, 99.9])
+        worst = float(np.median([r["late_ms"].max() for r in runs]))
+        row = (
+            f"| {label} | {late.size} | {p[0]:.3f} | {p[1]:.3f} | {p[2]:.3f} | {worst:.2f} | "
+            f"{int(np.sum(late > 2))} |"
+        )
+        if "written" in runs[0]:
+            sub = np.concatenate([r["submit_us"] for r in runs])
+            rel = np.concatenate([r["release_us"] for r in runs])
+            row += (
+                f" {sum(r['written'] for r in runs)} | {sum(r['lost'] for r in runs)} | "
+                f"{np.median(sub):.1f} / {np.percentile(sub, 99):.1f} | {np.median(rel):.1f} |"
+            )
+        else:
+            row += " - | - | - | - |"
+        print(row)
+    print(f"\nLoad average at the end: {os.getloadavg()[0]:.2f}.\n")
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("throughput", "cambada", "fidelity", "all"))
+    p.add_argument("what", choices=("throughput", "cambada", "fidelity", "lateness", "all"))
     p.add_argument("--seconds", type=float, default=None)
     p.add_argument("--streams", type=int, nargs="+", default=[2, 3])
     p.add_argument("--rounds", type=int, default=3, help="cambada: interleaved rounds")
     p.add_argument("--realtime", action="store_true", help="cambada: runs with --realtime")
+    p.add_argument("--width", type=int, default=640, help="lateness: frame width")
+    p.add_argument("--height", type=int, default=480, help="lateness: frame height")
     p.add_argument("--dir", default=str(REPO / "benchmarks" / "results" / "rec_tmp"))
     args = p.parse_args()
     Path(args.dir).mkdir(parents=True, exist_ok=True)
     todo = ("throughput", "cambada", "fidelity") if args.what == "all" else (args.what,)
-    default = {"throughput": 15.0, "cambada": 15.0, "fidelity": 5.0}
+    default = {"throughput": 15.0, "cambada": 15.0, "fidelity": 5.0, "lateness": 5.0}
     given = args.seconds
     for what in todo:
         args.seconds = given or default[what]
-        {"throughput": throughput, "cambada": cambada, "fidelity": fidelity}[what](args)
+        run = {"throughput": throughput, "cambada": cambada, "fidelity": fidelity}
+        run["lateness"] = lateness
+        run[what](args)
     shutil.rmtree(args.dir, ignore_errors=True)
 
 

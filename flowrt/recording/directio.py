@@ -19,6 +19,8 @@ import mmap
 import os
 from typing import Any
 
+from .gilfree import copy_into
+
 __all__ = ["DirectFile", "open_direct"]
 
 BLOCK = 4096
@@ -42,7 +44,7 @@ class DirectFile:
         total = len(mv)
         while mv:
             n = min(len(mv), self._cap - self._fill)
-            self._buf[self._fill : self._fill + n] = mv[:n]
+            copy_into(self._buf, self._fill, mv[:n])  # the GIL released: see .gilfree
             self._fill += n
             mv = mv[n:]
             if self._fill == self._cap:

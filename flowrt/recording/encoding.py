@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from ..frames import Frame
+from .gilfree import join
 
 __all__ = [
     "ANNOTATIONS_SCHEMA",
@@ -84,11 +85,15 @@ def image_schema(compressed: bool) -> StreamSchema:
     return StreamSchema(s.name, s.encoding, bytes(s.data), "protobuf")
 
 
-def encode_frame(frame: Frame, epoch_time: float, image_format: str = "raw") -> Encoded:
+def encode_frame(
+    frame: Frame, epoch_time: float, image_format: str = "raw", *, gil_free: bool = False
+) -> Encoded:
     """A frame as a foxglove RawImage (``raw``) or CompressedImage (``jpeg``/``png``).
 
     Reads the pixels where they are (a shared-memory slot): call it from the writer thread
-    while a link on the frame is held.
+    while a link on the frame is held. ``gil_free``: the RawImage's bytes are a uint8 array
+    copied with the GIL released (:mod:`.gilfree`), so the event loop runs meanwhile; else
+    ``bytes``.
     """
     from foxglove.messages import CompressedImage
 
@@ -124,6 +129,8 @@ def encode_frame(frame: Frame, epoch_time: float, image_format: str = "raw") -> 
         sec, nsec, frame.source, w, h, encoding, int(data.strides[0]), data.nbytes
     )
     pixels = memoryview(data.reshape(-1).view(np.uint8))  # type: ignore[arg-type]
+    if gil_free:
+        return Encoded(image_schema(False), join(head, pixels))  # type: ignore[arg-type]
     return Encoded(image_schema(False), b"".join((head, pixels)))
 
 

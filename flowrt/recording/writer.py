@@ -48,6 +48,7 @@ from .encoding import (
     encode_json,
     schema_for,
 )
+from .gilfree import install
 from .split import SplitPolicy, part_path
 
 __all__ = ["RecordingWriter", "StreamCounters"]
@@ -116,6 +117,8 @@ class RecordingWriter:
             on the loaded dev VM), so a high-rate recording may turn them off.
         on_written: called from the writer thread after a frame was written, so the owner can
             give its link back on the event loop.
+        gil_free: the large copies of the writing with the GIL released (:mod:`.gilfree`);
+            False only to measure against ``mcap``'s own buffers (the benchmark's baseline).
     """
 
     def __init__(
@@ -134,7 +137,9 @@ class RecordingWriter:
         direct_io: bool = False,
         on_written: Callable[[], None] | None = None,
         split: SplitPolicy | None = None,
+        gil_free: bool = True,
     ) -> None:
+        self.gil_free = gil_free
         self.split = split if split is not None and split.active else None
         self.base = Path(path)
         self.path = self.base.with_name(part_path(self.base.name, 0)) if self.split else self.base
@@ -318,6 +323,8 @@ class RecordingWriter:
             file = open(path, "xb")  # noqa: SIM115 - closed by the writer thread
         try:
             w = Writer(file, chunk_size=self.chunk_size, compression=comp, enable_crcs=self.crc)
+            if self.gil_free:
+                install(w)  # large copies with the GIL released: the loop runs meanwhile
             w.start(profile=PROFILE, library=_library())
             now = time.time_ns()
             for name, data in self._metadata.items():
@@ -477,7 +484,10 @@ class RecordingWriter:
         v = item.value
         if isinstance(v, Frame):
             return encode_frame(
-                v, v.timestamp + self.epoch_offset, self.image_formats.get(item.topic, "raw")
+                v,
+                v.timestamp + self.epoch_offset,
+                self.image_formats.get(item.topic, "raw"),
+                gil_free=self.gil_free,
             )
         if isinstance(v, Overlay):  # stamped like the frame: the same float, the same offset
             return encode_annotations(v.detection, v.detection.timestamp + self.epoch_offset)
