@@ -1072,6 +1072,7 @@ class NodeRunner:
             deadline_misses=self.misses,
             discarded=self.discarded,
             aborted=self.aborted,
+            paced_lead_max=self.lead_max,
             dropped=self.discarded + self.aborted + sum(b.dropped for b in self.inputs.values()),
             errors=self.errors,
             restarts=self.restarts,
