@@ -1199,8 +1199,10 @@ class Scheduler:
         such reader instead of outrunning it). "Ready" means the reader has taken the previous
         frame: it may still run on it, and the new frame's tick then waits for it to finish
         (deferred, not skipped), so that the source prepares frame k+1 while the worker
-        processes frame k. Readers with a longer period sample by design and are not waited
-        for; nor are failed, disabled or stopping ones.
+        processes frame k. A reader in a worker of its own is pipelined instead: it is
+        ready while fewer than its window of frames are in flight (see
+        :meth:`NodeRunner.paced_reader`). Readers with a longer period sample by design
+        and are not waited for; nor are failed, disabled or stopping ones.
         """
         self.paced.update(runner.tick_ports.values())
         while not runner.stopping:
