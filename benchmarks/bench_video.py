@@ -9,7 +9,7 @@ Time is from the runtime's start (workers up) to the source's end of stream; eve
 the file must be tracked in both placements.
 
 Run from the repository root:
-python benchmarks/bench_video.py [--reps 3] [--video PATH] [--realtime]
+python benchmarks/bench_video.py [--reps 3] [--video PATH] [--realtime] [--unpipelined]
 """
 
 from __future__ import annotations
@@ -33,6 +33,9 @@ CANDIDATES = (
 )
 
 
+UNPIPELINED = "process-1"  # --unpipelined: the tracker in a worker with pipeline: 1
+
+
 def frames_in(path: Path) -> int:
     cap = cv2.VideoCapture(str(path))
     n = 0
@@ -46,7 +49,9 @@ def spec_for(video: Path, placement: str) -> GraphSpec:
     data: dict[str, Any] = yaml.safe_load((REPO / "graphs/video.yaml").read_text())
     cam = data["nodes"]["cam"]["params"]
     cam.update(source=f"file:{video}", pacing="fast", on_eof="exit")
-    data["nodes"]["lamp"]["placement"] = placement
+    data["nodes"]["lamp"]["placement"] = "process" if placement.startswith("process") else placement
+    if placement == UNPIPELINED:  # one call at a time: the worker as before it was pipelined
+        data["nodes"]["lamp"]["pipeline"] = 1
     data["nodes"]["view"]["params"]["port"] = 0  # a free port: nothing else is disturbed
     return GraphSpec.model_validate(data)
 
@@ -81,12 +86,20 @@ def main() -> None:
         help="as flowrt run --realtime: SCHED_FIFO loop and workers (wake-ups not delayed by "
         "other processes' load)",
     )
+    ap.add_argument(
+        "--unpipelined",
+        action="store_true",
+        help="also run the worker with pipeline: 1 (one call at a time, the source one frame "
+        "ahead: the behaviour before paced readers were pipelined), alternating with the others",
+    )
     args = ap.parse_args()
     video = args.video or next((p for p in CANDIDATES if p.exists()), None)
     if video is None:
         raise SystemExit("sample video not found in ../shared/data; pass --video PATH")
     total = frames_in(video)
     runs: dict[str, list[dict[str, Any]]] = {"inline": [], "process": []}
+    if args.unpipelined:
+        runs[UNPIPELINED] = []
     for placement in runs:  # warm-up, not counted: the forkserver, OpenCV's first decode
         flowrt.run(one_run(video, placement, args.realtime))
     for rep in range(args.reps):
@@ -94,7 +107,7 @@ def main() -> None:
             r = flowrt.run(one_run(video, placement, args.realtime))
             runs[placement].append(r)
             print(
-                f"{placement:8s} tracked {r['tracked']}/{total} (published {r['published']}, "
+                f"{placement:9s} tracked {r['tracked']}/{total} (published {r['published']}, "
                 f"skipped {r['skipped']}) in {r['seconds']:.2f} s = "
                 f"{r['tracked'] / r['seconds']:.1f} frames/s; tracker call p50 "
                 f"{r['exec_p50']:.2f} ms, capture activation p50 {r['cam_p50']:.2f} ms",
@@ -120,6 +133,8 @@ def main() -> None:
             f"{min(rates):.1f}-{max(rates):.1f} | {call:.2f} | {cam:.2f} |"
         )
     print(f"\nprocess / inline throughput: {fps['process'] / fps['inline']:.2f}")
+    if args.unpipelined:
+        print(f"process pipeline: 1 / inline: {fps[UNPIPELINED] / fps['inline']:.2f}")
 
 
 if __name__ == "__main__":

@@ -51,6 +51,7 @@ log = logging.getLogger("flowrt.scheduler")
 BLOCKING_THRESHOLD = 0.010  # an inline call longer than this is reported as blocking the loop
 SWAP_WAIT = 5.0  # seconds a swap waits for the running activation to end
 PIPELINE_WINDOW = 4  # activations in flight to a worker node fed by queues (spec: pipeline)
+PACED_WINDOW = 2  # frames of a pacing: fast source in flight to a worker reader (spec: pipeline)
 
 
 class Executor:
@@ -249,6 +250,8 @@ class NodeRunner:
         self.lossless: list[LosslessBuffer] = []  # inputs that must deliver every value
         self.drain_task: asyncio.Task[None] | None = None
         self.deferred: float | None = None  # a paced source's tick that came while busy
+        self.frame_key: str | None = None  # the frame clock this node is triggered by
+        self.lead_max = 0  # most frames of a paced source published and not yet processed
         self.untaken = False  # released, inputs not yet taken (the run is scheduled)
         self.more_input = False
         self.stopping = False
@@ -271,7 +274,7 @@ class NodeRunner:
         self._gen = 0  # bumped at each failure: results of an earlier instance are not used
         self._pump_soon = False
         self._pipe_end = 0.0  # when the previous pipelined activation finished
-        self._window_of: tuple[Executor, int] | None = None
+        self._window_of: tuple[Executor, bool, int] | None = None
         self._draining = False
         self._drained: asyncio.Event | None = None
         # counters
@@ -311,13 +314,17 @@ class NodeRunner:
         """True when this node has taken the previous frame of a paced source (or never will).
 
         It may still be running on it: the next tick is then deferred (see Scheduler.tick),
-        so that the source prepares frame k+1 while a worker processes frame k.
+        so that the source prepares frame k+1 while a worker processes frame k; a pipelined
+        reader in a worker of its own has up to ``window`` frames in flight instead.
         """
         if not self.timing.enabled or self.state == "failed" or self.stopping:
             return True
-        return (
-            self.deferred is None and not self.untaken and self.state not in ("starting", "backoff")
-        )
+        if self.state in ("starting", "backoff") or self.deferred is not None or self.untaken:
+            return False
+        # A pipelined reader (see paced_reader) takes the next frame while its window has
+        # room: the source runs ahead of the worker by at most ``window`` frames.
+        window = self.window
+        return window == 1 or self.inflight < window
 
     async def wait_ready(self) -> None:
         fut = self.sched.loop.create_future()
@@ -565,17 +572,57 @@ class NodeRunner:
         keeps one call at a time, so the worker always gets the newest value when it is free.
         """
         ex = self.executor
-        if self._window_of is None or self._window_of[0] is not ex:
+        paced = self.paced_reader()
+        if self._window_of is None or self._window_of[0] is not ex or self._window_of[1] != paced:
             n = 1
-            if (
+            if ex.pipelined and paced:
+                n = self.rnode.spec.pipeline or PACED_WINDOW
+            elif (
                 ex.pipelined
                 and isinstance(self.rnode.trigger, InputTrigger)
                 and self.trigger_inputs
                 and not any(isinstance(self.inputs[p], LatestBuffer) for p in self.trigger_inputs)
             ):
                 n = self.rnode.spec.pipeline or PIPELINE_WINDOW
-            self._window_of = (ex, n)
-        return self._window_of[1]
+            self._window_of = (ex, paced, n)
+        return self._window_of[2]
+
+    def paced_reader(self) -> bool:
+        """A period-1 frame reader of a ``pacing: fast`` source: it takes every frame.
+
+        Such a source publishes a frame only when its period-1 readers have taken the
+        previous one (:meth:`Scheduler.wait_readers`), so a ``latest`` input never loses a
+        value there, and a reader in a worker of its own may have the next frame on its way
+        to the worker while it computes the current one (``window`` > 1): the source then
+        runs ahead of the worker by at most ``window`` frames (``lead_max`` counts it).
+        """
+        return (
+            self.frame_key is not None
+            and self.timing.period == 1
+            and self.frame_key in self.sched.paced
+        )
+
+    def release_paced(self, t_release: float) -> None:
+        """A paced source's frame for a pipelined reader: sent to the worker at once while
+        the window has room, else deferred (the source waits until it is taken)."""
+        if self.deferred is None and self._may_pipe():
+            self._start_pipelined(t_release)
+        elif self.deferred is None and self.busy and self.timing.enabled and not self.stopping:
+            self.deferred = t_release
+        else:
+            self.release(t_release)  # down, disabled or stopping: counted as release() does
+        self.lead_max = max(self.lead_max, self.inflight + (self.deferred is not None))
+
+    def _may_pipe(self) -> bool:
+        return (
+            self.inflight < self.window
+            and not self.stopping
+            and self.timing.enabled
+            and self.state in ("idle", "running")
+            and not self.blocked
+            and not self._draining
+            and self.pending_swap is None  # let the calls in flight finish: the swap is next
+        )
 
     def _schedule_pump(self) -> None:
         if not self._pump_soon:
@@ -589,42 +636,44 @@ class NodeRunner:
         awaited by its own task (:meth:`_finish`), and results complete in order.
         """
         self._pump_soon = False
+        while self._may_pipe():
+            if self.deferred is not None:  # a paced source's frame waits for room
+                t_release, self.deferred = self.deferred, None
+            elif any(self.inputs[p].pending() for p in self.trigger_inputs):
+                t_release = self.sched.clock.now()
+            else:
+                break
+            if not self._start_pipelined(t_release):
+                break
+
+    def _start_pipelined(self, t_release: float) -> bool:
+        """Take the inputs and submit one activation to the worker; False: stop pumping."""
         window = self.window
         loop = self.sched.loop
-        while (
-            self.inflight < window
-            and not self.stopping
-            and self.timing.enabled
-            and self.state in ("idle", "running")
-            and not self.blocked
-            and not self._draining
-            and self.pending_swap is None  # let the calls in flight finish: the swap is next
-            and any(self.inputs[p].pending() for p in self.trigger_inputs)
-        ):
-            t_release = self.sched.clock.now()
-            self.activations += 1
-            self.current += 1
-            act = self.current
-            start, inputs = self._begin()
-            if inputs is None:  # a required input is missing: counted as skipped
-                if self.inflight == 0:
-                    self.state = "idle"
-                break
-            self.busy = True
-            try:
-                fut = self.executor.submit(inputs, window)
-            except Exception as e:
-                _release_all(inputs.values())
-                self._release_created()
-                if self.inflight == 0:
-                    self._gen += 1
-                    self._failed(e)
-                else:
-                    self.aborted += 1  # the worker is gone: the calls in flight report it
-                return
-            self.inflight += 1
-            self._acts[act] = False
-            self.task = loop.create_task(self._finish(act, t_release, start, inputs, fut))
+        self.activations += 1
+        self.current += 1
+        act = self.current
+        start, inputs = self._begin()
+        if inputs is None:  # a required input is missing: counted as skipped
+            if self.inflight == 0:
+                self.state = "idle"
+            return False
+        self.busy = True
+        try:
+            fut = self.executor.submit(inputs, window)
+        except Exception as e:
+            _release_all(inputs.values())
+            self._release_created()
+            if self.inflight == 0:
+                self._gen += 1
+                self._failed(e)
+            else:
+                self.aborted += 1  # the worker is gone: the calls in flight report it
+            return False
+        self.inflight += 1
+        self._acts[act] = False
+        self.task = loop.create_task(self._finish(act, t_release, start, inputs, fut))
+        return True
 
     async def _finish(
         self,
@@ -667,6 +716,8 @@ class NodeRunner:
             if deadline is not None:
                 deadline.cancel()
         self.inflight -= 1
+        if self._idle_waiters:
+            self.notify()  # the window has room: a paced source may publish its next frame
         missed = self._acts.pop(act, False)
         if gen != self._gen:  # the node failed under an earlier call: this instance is gone
             self.aborted += 1
@@ -806,7 +857,10 @@ class NodeRunner:
             return
         if self.deferred is not None:  # a paced source's frame waits: run on it now
             t, self.deferred = self.deferred, None
-            self.release(t)
+            if self.window > 1:
+                self.release_paced(t)
+            else:
+                self.release(t)
         if isinstance(self.rnode.trigger, LoopTrigger):
             self.sched.loop.call_soon(self.release, self.sched.clock.now())
         elif self.trigger_inputs:
@@ -1018,6 +1072,7 @@ class NodeRunner:
             deadline_misses=self.misses,
             discarded=self.discarded,
             aborted=self.aborted,
+            paced_lead_max=self.lead_max,
             dropped=self.discarded + self.aborted + sum(b.dropped for b in self.inputs.values()),
             errors=self.errors,
             restarts=self.restarts,
@@ -1087,6 +1142,7 @@ class Scheduler:
             src = r.rnode.frame_source
             if src is not None:
                 key = graph.frame_port(src)
+                r.frame_key = key
                 self.readers.setdefault(key, []).append(r)
                 self.ticks.setdefault(key, 0)
         self.resort()
@@ -1125,10 +1181,15 @@ class Scheduler:
         for r in self.readers[key]:
             tm = r.timing
             if k % tm.period == tm.phase:
-                if paced and tm.period == 1 and r.busy and r.deferred is None:
+                if paced and tm.period == 1 and r.window > 1:
+                    r.release_paced(t)  # a worker's call may follow the one in flight
+                elif paced and tm.period == 1 and r.busy and r.deferred is None:
                     r.deferred = t  # not an overrun: the source waited for this reader
+                    r.lead_max = max(r.lead_max, 2)  # one running, this one waiting
                 else:
                     r.release(t)
+                    if paced and tm.period == 1:
+                        r.lead_max = max(r.lead_max, int(r.busy))
 
     async def wait_readers(self, runner: NodeRunner) -> None:
         """Wait until every period-1 frame-triggered reader of ``runner``'s frames is ready.
@@ -1138,8 +1199,10 @@ class Scheduler:
         such reader instead of outrunning it). "Ready" means the reader has taken the previous
         frame: it may still run on it, and the new frame's tick then waits for it to finish
         (deferred, not skipped), so that the source prepares frame k+1 while the worker
-        processes frame k. Readers with a longer period sample by design and are not waited
-        for; nor are failed, disabled or stopping ones.
+        processes frame k. A reader in a worker of its own is pipelined instead: it is
+        ready while fewer than its window of frames are in flight (see
+        :meth:`NodeRunner.paced_reader`). Readers with a longer period sample by design
+        and are not waited for; nor are failed, disabled or stopping ones.
         """
         self.paced.update(runner.tick_ports.values())
         while not runner.stopping:

@@ -348,7 +348,8 @@ class NodeSpec(_Strict):
         ge=1,
         le=64,
         description="activations in flight to its worker when its trigger inputs are queues "
-        "(default 4; 1: one call at a time); latest inputs always have one",
+        "(default 4; 1: one call at a time), or when it is a period-1 frame reader of a "
+        "pacing: fast source (default 2); other latest inputs always have one",
     )
     wcet: DurationMs | None = Field(
         default=None,

@@ -120,6 +120,12 @@ class NodeStats(_Frozen):
         description="data lost at this node: dropped values on its input edges + discarded "
         "and aborted activations; never unread samples",
     )
+    paced_lead_max: int = Field(
+        default=0,
+        description="a period-1 frame reader of a pacing: fast source: the most frames the "
+        "source had published that this node had not finished (1: lock-step; a worker node "
+        "of its own takes up to its pipeline window, 2 by default)",
+    )
     errors: int
     restarts: int
     last_start: float | None = Field(description="runtime clock, seconds since start")
