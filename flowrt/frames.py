@@ -263,6 +263,12 @@ class _GrantHolder(Protocol):
 _worker_out: WorkerOutputs | None = None  # set by a worker process around each call
 
 
+def set_worker_outputs(out: WorkerOutputs | None) -> None:
+    """Install (or clear, ``None``) the lent slots of the worker's current call."""
+    global _worker_out
+    _worker_out = out
+
+
 def worker_frame(shape: tuple[int, ...], dtype: Any, source: str, pixel_format: str) -> Frame:
     """A new writable frame for a node: in a granted shared-memory slot inside a worker's call
     (zero copy to the main process), else on the heap."""

@@ -43,8 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from . import frames as _frames
-from .frames import _HEADER, Frame, FramePool, _MappingCache
+from .frames import _HEADER, Frame, FramePool, _MappingCache, set_worker_outputs
 
 __all__ = ["OutputGrants", "OutputStats", "WorkerSlots", "lazy_report"]
 
@@ -203,8 +202,8 @@ _writable = _MappingCache(writable=True)
 class WorkerSlots:
     """The slots one node holds in a worker, and what its current call did with them.
 
-    Installed as :data:`flowrt.frames._worker_out` for the node's call and the pickling of its
-    reply (``begin``/``reply``/``end``); implements :class:`flowrt.frames.WorkerOutputs`.
+    Installed with :func:`flowrt.frames.set_worker_outputs` for the node's call and the pickling
+    of its reply (``begin``/``reply``/``end``); implements :class:`flowrt.frames.WorkerOutputs`.
     """
 
     def __init__(self) -> None:
@@ -222,7 +221,7 @@ class WorkerSlots:
         if grants:
             self.free.extend(grants)
             self.ever = True
-        _frames._worker_out = self
+        set_worker_outputs(self)
 
     def reply(self, result: Any) -> None:
         """The result is about to be pickled: its output values may take slots."""
@@ -246,7 +245,7 @@ class WorkerSlots:
 
     def end(self) -> None:
         """The call is over: handed-back frames read-only, slots taken but not returned free."""
-        _frames._worker_out = None
+        set_worker_outputs(None)
         for _, data in self.handed:
             data.flags.writeable = False
         self.handed.clear()
