@@ -71,6 +71,7 @@ from .serving import (
     is_loopback,
     lower_priority,
     pack,
+    stop_server,
     unpack,
 )
 from .spec import TimingOverride
@@ -312,20 +313,9 @@ class ControlServer:
         if self._sock is not None:
             self._sock.close()
             self._sock = None
-        if self._writer is not None:
-            self._writer.close()
-            self._writer = None
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._task
-            self._task = None
-        proc, self._proc = self._proc, None
-        if proc is not None:
-            await asyncio.to_thread(proc.join, 2.0)
-            if proc.is_alive():
-                proc.kill()
-                await asyncio.to_thread(proc.join, 1.0)
+        writer, task, proc = self._writer, self._task, self._proc
+        self._writer = self._task = self._proc = None
+        await stop_server(writer, task, proc, grace=2.0)
 
     async def _answer_all(self, reader: asyncio.StreamReader, ready: asyncio.Future[None]) -> None:
         """Answer the server's requests one at a time, each between ticks."""

@@ -62,6 +62,27 @@ def lower_priority(pid: int) -> None:
         os.setpriority(os.PRIO_PROCESS, pid, NICE)
 
 
+async def stop_server(
+    writer: asyncio.StreamWriter | None,
+    task: asyncio.Task[Any] | None,
+    proc: Any,
+    grace: float,
+) -> None:
+    """End a server process: close its channel (it closes its clients and exits), stop the
+    task answering it, give the process ``grace`` seconds, then kill it."""
+    if writer is not None:
+        writer.close()
+    if task is not None:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await task
+    if proc is not None:
+        await asyncio.to_thread(proc.join, grace)
+        if proc.is_alive():
+            proc.kill()
+            await asyncio.to_thread(proc.join, 1.0)
+
+
 @dataclass
 class Conn:
     """An open connection: when it must have sent its next request, and if one is running."""

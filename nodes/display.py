@@ -327,20 +327,9 @@ class Display(Node):
         print(f"display: {self.url}", flush=True)
 
     async def teardown(self) -> None:
-        if self._writer is not None:
-            self._writer.close()  # the server's process closes its clients and ends
-            self._writer = None
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await self._task
-            self._task = None
-        proc, self._proc = self._proc, None
-        if proc is not None:
-            await asyncio.to_thread(proc.join, 3.0)
-            if proc.is_alive():
-                proc.kill()
-                await asyncio.to_thread(proc.join, 1.0)
+        writer, task, proc = self._writer, self._task, self._proc
+        self._writer = self._task = self._proc = None
+        await serving.stop_server(writer, task, proc, grace=3.0)
         for src in self.sources.values():
             if src.lent is not None:
                 src.lent.release()
