@@ -28,6 +28,36 @@ _DURATION = re.compile(r"^\s*(?P<num>[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(?P<
 _UNIT_MS = {"us": 0.001, "ms": 1.0, "s": 1000.0, None: 1.0}
 
 
+_SECONDS = re.compile(r"^\s*(?P<num>[0-9]*\.?[0-9]+)\s*(?P<unit>[A-Za-z]*)\s*$")
+_UNIT_S = {
+    "": 1.0,
+    "s": 1.0,
+    "sec": 1.0,
+    "ms": 1e-3,
+    "us": 1e-6,
+    "m": 60.0,
+    "min": 60.0,
+    "h": 3600.0,
+}
+
+
+def parse_seconds(text: str) -> float:
+    """Read ``90``, ``30s``, ``500ms``, ``10m``, ``1.5min``, ``1h`` as seconds.
+
+    For lengths of time a person types (``--duration``, ``--start``, a recording's
+    ``split_duration``): a bare number is seconds here, where in a graph's timing it is
+    milliseconds (:func:`parse_duration_ms`), and minutes and hours are allowed.
+    """
+    m = _SECONDS.match(text)
+    unit = m.group("unit").lower() if m else ""
+    if m is None or unit not in _UNIT_S:
+        raise ValueError(f"{text!r} is not a duration (e.g. 90, 30s, 10m, 1h)")
+    s = float(m.group("num")) * _UNIT_S[unit]
+    if not math.isfinite(s):
+        raise ValueError(f"{text!r} is not a finite duration")
+    return s
+
+
 def parse_duration_ms(value: Any) -> float:
     """Read ``10ms``, ``1.5s``, ``200us`` or a bare number (milliseconds) as milliseconds.
 

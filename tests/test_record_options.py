@@ -100,3 +100,13 @@ def test_report_table_fits_the_terminal_and_never_cuts_a_name(
         assert h in text
     for h in gone:
         assert h not in text
+
+
+@pytest.mark.parametrize(
+    ("text", "seconds"),
+    [("60", 60.0), ("90s", 90.0), ("2m", 120.0), ("500ms", 0.5), ("1.5min", 90.0), ("1h", 3600.0)],
+)
+def test_command_line_durations(text: str, seconds: float) -> None:
+    from flowrt.cli.common import seconds_arg
+
+    assert seconds_arg(text) == pytest.approx(seconds)

@@ -55,15 +55,10 @@ def setup_logging(handler: logging.Handler) -> None:
 
 
 def seconds_arg(text: str) -> float:
-    """A command-line duration: a bare number is seconds (``--duration 60``), or ``90s``,
-    ``2m``, ``500ms`` (graph files' bare numbers are milliseconds; a flag's are not)."""
-    from ..spec import parse_duration_ms
+    """A command-line duration: ``60``, ``90s``, ``2m``, ``500ms`` (:func:`parse_seconds`)."""
+    from ..spec import parse_seconds
 
-    t = text.strip()
     try:
-        s = float(t) if t.replace(".", "", 1).isdigit() else parse_duration_ms(t) / 1000
+        return parse_seconds(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
-    if s < 0:
-        raise argparse.ArgumentTypeError(f"must not be negative, got {text!r}")
-    return s

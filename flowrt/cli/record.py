@@ -439,9 +439,6 @@ def cmd_info(args: argparse.Namespace) -> int:
 # --- replay ------------------------------------------------------------------------------
 
 
-_seconds = seconds_arg  # a bare number is seconds here (``--start 10``), unlike graph files
-
-
 def cmd_replay(args: argparse.Namespace) -> int:
     from ..graph import Graph, resolve
     from ..recording.reader import scan_session
@@ -648,8 +645,8 @@ def add_parsers(sub: Any) -> None:
     rep.add_argument("--graph", help="run this graph, recorded streams replacing its sources")
     rep.add_argument("--rate", type=float, default=1.0, help="playback speed (default 1.0)")
     rep.add_argument("--loop", action="store_true", help="start over at the end")
-    rep.add_argument("--start", type=_seconds, default=0.0, metavar="T", help="e.g. 10s")
+    rep.add_argument("--start", type=seconds_arg, default=0.0, metavar="T", help="e.g. 10s")
     rep.add_argument("--topics", metavar="PATTERNS", help="streams to replay (default all)")
-    rep.add_argument("--duration", type=_seconds, default=None, metavar="S", help="stop after")
+    rep.add_argument("--duration", type=seconds_arg, default=None, metavar="S", help="stop after")
     rep.add_argument("--no-ui", action="store_true", help="no progress bar")
     rep.set_defaults(func=cmd_replay)

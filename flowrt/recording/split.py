@@ -19,6 +19,8 @@ import math
 import re
 from dataclasses import dataclass
 
+from ..spec import parse_seconds
+
 __all__ = ["MIN_SPLIT_SIZE", "SplitPolicy", "parse_duration", "parse_size", "part_path"]
 
 MIN_SPLIT_SIZE = 64 << 10
@@ -41,15 +43,6 @@ _SIZE_UNITS = {
     "tib": 1 << 40,
     "tb": 10**12,
 }
-_DURATION_UNITS = {
-    "": 1.0,
-    "s": 1.0,
-    "sec": 1.0,
-    "ms": 1e-3,
-    "m": 60.0,
-    "min": 60.0,
-    "h": 3600.0,
-}
 
 
 def parse_size(text: str) -> int:
@@ -66,12 +59,8 @@ def parse_size(text: str) -> int:
 
 def parse_duration(text: str) -> float:
     """Seconds of ``10m``, ``30s``, ``1h``, ``500ms``, ``90``; ValueError with the reason."""
-    m = _SIZE.match(text)
-    unit = m.group("unit").lower() if m else ""
-    if m is None or unit not in _DURATION_UNITS:
-        raise ValueError(f"{text!r} is not a duration (e.g. 10m, 30s, 1h)")
-    s = float(m.group("num")) * _DURATION_UNITS[unit]
-    if not math.isfinite(s) or s <= 0:
+    s = parse_seconds(text)
+    if s <= 0:
         raise ValueError(f"{text!r}: a part must last more than 0 s")
     return s
 
