@@ -97,13 +97,20 @@ async def test_on_screen_joystick_drives_teleop() -> None:
 
             # drag the pad's knob to the top: full forward speed (scale 0.5); measured now, as
             # the tables above it may have grown since
-            px, py, size = await page.eval(
-                "(() => { const p = document.querySelector('#pad');"
-                " p.scrollIntoView({block: 'center'}); const r = p.getBoundingClientRect();"
-                " return [r.x, r.y, r.width]; })()"
-            )
-            centre = (px + size / 2, py + size / 2)
-            await mouse("mousePressed", *centre)
+            # the status tables above the pad grow as statistics arrive: a press measured
+            # before such a reflow can land beside the pad, so it is measured again until the
+            # page has taken the press (a drag, once started, is captured by the pad)
+            for _ in range(5):
+                px, py, size = await page.eval(
+                    "(() => { const p = document.querySelector('#pad');"
+                    " p.scrollIntoView({block: 'center'}); const r = p.getBoundingClientRect();"
+                    " return [r.x, r.y, r.width]; })()"
+                )
+                centre = (px + size / 2, py + size / 2)
+                await mouse("mousePressed", *centre)
+                if await page.eval("joy.pointer"):
+                    break
+                await mouse("mouseReleased", *centre)
             await mouse("mouseMoved", centre[0], py + 2)
             await until(lambda: _cmd(cmd, lambda c: c["vx"] > 0.45), 5, "forward command")
             await mouse("mouseReleased", centre[0], py + 2)
