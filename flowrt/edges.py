@@ -62,6 +62,9 @@ class Buffer:
         self.on_put: Callable[[], None] | None = None
         self.drop_reasons: dict[str, int] = {}  # drops counted at stop/drain, by reason
         self._last_seq = -1
+        # Runtime-clock time at which the value last returned by take() was published here:
+        # what freshness is judged on (NodeContext.input_time), never the value's identity.
+        self.taken_t: float | None = None
 
     def put(self, value: Any, t: float) -> bool:
         """Store a value published at time ``t``; False when a lossless buffer is full."""
@@ -162,6 +165,7 @@ class LatestBuffer(Buffer):
             self._read = True
             self._delivered(self._seq, self._t)
         hold(self._value)
+        self.taken_t = self._t
         return self._value
 
     def reader_skipped(self) -> None:
@@ -207,6 +211,7 @@ class QueueBuffer(Buffer):
             return EMPTY
         seq, t, value = self._q.popleft()
         self._delivered(seq, t)
+        self.taken_t = t
         return value
 
     def take_new(self) -> Any:

@@ -184,6 +184,23 @@ class NodeContext:
         timeout of "three periods" that follows run-time timing changes."""
         return None
 
+    def input_time(self, name: str) -> float | None:
+        """When the value input ``name`` holds for this activation was published on its edge
+        (runtime clock, seconds, comparable with :meth:`now`); None when it holds no value.
+
+        This is what freshness is judged on (see :mod:`flowrt.freshness`): never the value's
+        identity. Known on the event loop (inline nodes); None in a worker process.
+        """
+        return None
+
+    def input_age(self, name: str, value: Any = None) -> float | None:
+        """Seconds since the value of input ``name`` was published; with ``value`` given, the
+        older of that and the value's own ``timestamp`` when it is in this clock (a stamp in
+        the future is another machine's and is ignored). None when nothing was received."""
+        from .freshness import age_of
+
+        return age_of(self.now(), self.input_time(name), value)
+
     def set_error(self, reason: str) -> None:
         """Mark the node in an error state (a source that cannot open, a bus gone).
 

@@ -190,6 +190,9 @@ class RunnerContext(NodeContext):
     def period(self) -> float | None:
         return self._runner.timing.timer
 
+    def input_time(self, name: str) -> float | None:
+        return self._runner.input_times.get(name)
+
     def set_error(self, reason: str) -> None:
         runner = self._runner
         if runner.error_reason == reason:
@@ -231,6 +234,9 @@ class NodeRunner:
             enabled=spec.enabled,
         )
         self.inputs: dict[str, Buffer] = {}
+        # Publication time (runtime clock) of the value each input held at the last take:
+        # NodeContext.input_time/input_age. Invariant: a port is absent when it held no value.
+        self.input_times: dict[str, float] = {}
         self.ports = list(rnode.cls.inputs)  # declared inputs, then any-named ones connected
         self.outputs: dict[str, list[Buffer]] = {
             p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
@@ -430,6 +436,10 @@ class NodeRunner:
                 values[port] = None
                 continue
             value = buf.take_new() if port in self.trigger_inputs else buf.take()  # type: ignore[attr-defined]
+            if value is EMPTY or buf.taken_t is None:
+                self.input_times.pop(port, None)
+            else:
+                self.input_times[port] = buf.taken_t
             if value is EMPTY:
                 if port in self.required:
                     _release_all(values.values())

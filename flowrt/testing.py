@@ -18,6 +18,8 @@ from .events import Event
 from .frames import Frame
 from .node import Node, NodeContext, make_node
 
+_NOTHING = object()
+
 
 class HarnessContext(NodeContext):
     """Records what the node publishes and emits; time is set by the test."""
@@ -29,6 +31,9 @@ class HarnessContext(NodeContext):
         self.events: list[Event] = []
         self.error: str | None = None  # what set_error() said, until clear_error()
         self.timer_period: float | None = None  # what ``period`` answers (seconds)
+        # Publication time of each input's value, as an edge would stamp it: set by
+        # NodeHarness.process (a new object = published now) or by the test directly.
+        self.input_times: dict[str, float] = {}
 
     def now(self) -> float:
         return self.time
@@ -39,6 +44,9 @@ class HarnessContext(NodeContext):
     @property
     def period(self) -> float | None:
         return self.timer_period
+
+    def input_time(self, name: str) -> float | None:
+        return self.input_times.get(name)
 
     def set_error(self, reason: str) -> None:
         self.error = reason
@@ -68,14 +76,32 @@ class NodeHarness:
         name: str = "node",
     ) -> None:
         self.ctx = HarnessContext(name)
+        self._held: dict[str, Any] = {}  # the value each input was last given (see process)
         self.node = make_node(cls, params, self.ctx)
         self._run(self.node.setup())
 
     def process(self, **inputs: Any) -> Any:
-        """Call ``process`` once; unconnected optional inputs are passed as None."""
+        """Call ``process`` once; unconnected optional inputs are passed as None.
+
+        Publication times follow a ``latest`` edge: a value passed again (the same object) keeps
+        the time it was first passed at; any other value is published at ``ctx.time``. To
+        publish the same object anew (a source re-sending a constant), call :meth:`publish`.
+        """
         for port in type(self.node).inputs:
             inputs.setdefault(port, None)
+        for port, value in inputs.items():
+            if value is None:
+                self.ctx.input_times.pop(port, None)
+                self._held.pop(port, None)
+            elif self._held.get(port, _NOTHING) is not value or port not in self.ctx.input_times:
+                self.ctx.input_times[port] = self.ctx.time
+                self._held[port] = value
         return self._run(self.node.process(**inputs))
+
+    def publish(self, port: str, value: Any, t: float | None = None) -> None:
+        """Mark ``value`` as newly published on input ``port`` at ``t`` (default now)."""
+        self._held[port] = value
+        self.ctx.input_times[port] = self.ctx.time if t is None else t
 
     def teardown(self) -> None:
         self._run(self.node.teardown())

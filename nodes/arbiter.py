@@ -2,8 +2,8 @@
 
 The arbitration of the agent-based control system (several behaviours propose a command, a
 weighted combination drives the motors) and twist_mux's priority rule, without their known
-failure: with no fresh source, or a lock active, the output is the zero command on every
-activation, never the last command repeated.
+failures: with no fresh source, or a lock engaged, the output is the zero command on every
+activation, never the last command repeated; a stop published once stays a stop.
 
 ::
 
@@ -14,17 +14,31 @@ activation, never the last command repeated.
         mode: priority                 # or: blend
         timeout: 200ms                 # older than this = not fresh
         sources: {joystick: {priority: 100}, planner: {priority: 10, weight: 1.0}}
-        locks: [estop]                 # while fresh and true: zero command
+        locks: {estop: {heartbeat: 300ms}}   # or the list form: locks: [estop]
         zero: {vx: 0.0, vy: 0.0, w: 0.0}
       inputs: {joystick: joy.command, planner: plan.command, estop: stop.output}
 
-A source is *fresh* while its newest value is younger than ``timeout``: its age comes from the
-value's own ``timestamp`` (an attribute or mapping key) when it has one, else from when the
-arbiter first saw that value (inputs default to ``latest`` edges, so a value read again is the
-same object). ``priority``: the fresh source with the highest priority wins. ``blend``: the
-weighted sum of the fresh sources, weights renormalised over the fresh ones, each source
-through its optional filters (``low_pass`` time constant, ``max_rate`` per second). Values are
-mappings of the ``zero`` command's keys (missing keys count as 0; other keys are ignored).
+Safety rules (proven by property tests on virtual time, tests/test_safety_arbiter.py):
+
+- **Fresh** means published on the arbiter's input edge less than ``timeout`` ago, by the
+  runtime clock (:meth:`flowrt.NodeContext.input_age`); a value's own ``timestamp`` can only
+  make it older (one from another machine's clock, in the future, is ignored). Never the
+  value's identity: a source publishing the same object every tick stays fresh.
+- **Locks latch**: a lock holds its last value until a new one arrives (``True`` published once
+  keeps the zero command until ``False`` is published). A lock never heard yet is engaged
+  (zero) until its first false value, unless its spec says ``initial: released``.
+- **Heartbeat locks** (``locks: {estop: {heartbeat: 300ms}}``): the lock also engages when its
+  source has published nothing for longer than ``heartbeat`` (a dead e-stop node stops the
+  robot), and releases when it publishes a false value again.
+- **Invalid commands are refused**: a command with NaN/inf or a key of the wrong type is not a
+  fresh command; the arbiter falls back to the next source (or zero), counts it per source
+  (``invalid`` in :meth:`Arbiter.report`, so in the statistics' ``reports``) and raises one
+  ``HealthAlert`` (kind ``arbiter-invalid``) per burst, not per tick.
+
+``priority``: the fresh source with the highest priority wins. ``blend``: the weighted sum of
+the fresh sources, weights renormalised over the fresh ones, each source through its optional
+filters (``low_pass`` time constant, ``max_rate`` per second). Values are mappings of the
+``zero`` command's keys (missing keys count as 0; other keys are ignored).
 
 Outputs on every activation: ``command`` (a mapping like ``zero``) and ``selected`` (the
 winning source, ``"blend"``, or ``None``). A change of selected source is counted
@@ -47,12 +61,15 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from flowrt import HealthAlert, Input, Node, Output, parse_duration_ms
 
-__all__ = ["Arbiter", "SourceSpec"]
+__all__ = ["Arbiter", "LockSpec", "SourceSpec", "valid_command"]
 
 
 def _duration_s(v: Any) -> float:
-    ms = parse_duration_ms(v) if isinstance(v, str) else float(v)
-    if not math.isfinite(ms) or ms <= 0 or ms > 3_600_000:
+    """A duration param (``200ms``, ``1.5s``, a bare number of ms) in seconds, (0, 1 h].
+
+    ``parse_duration_ms`` turns null, lists, mappings and 10**400 into a located error."""
+    ms = parse_duration_ms(v)
+    if ms <= 0 or ms > 3_600_000:
         raise ValueError("must be a duration between 0 and 1 h, e.g. 200ms")
     return ms / 1000
 
@@ -74,18 +91,53 @@ class SourceSpec(BaseModel):
         return None if v is None else _duration_s(v)
 
 
+class LockSpec(BaseModel):
+    """One lock: engaged while its last value is true (latched), before its first value
+    unless ``initial: released``, and when silent for longer than ``heartbeat``."""
+
+    model_config = ConfigDict(extra="forbid")
+    heartbeat: float | None = Field(
+        default=None,
+        description="engage when the lock's source published nothing for this long (duration)",
+    )
+    initial: Literal["engaged", "released"] = Field(
+        default="engaged", description="the lock's state before its first value"
+    )
+
+    @field_validator("heartbeat", mode="before")
+    @classmethod
+    def _heartbeat(cls, v: Any) -> Any:
+        return None if v is None else _duration_s(v)
+
+
 class ArbiterParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     mode: Literal["priority", "blend"] = "priority"
     timeout: float = Field(default=0.2, description="freshness window (duration, e.g. 200ms)")
     sources: dict[str, SourceSpec] = Field(min_length=1)
-    locks: list[str] = Field(default_factory=list)
+    locks: dict[str, LockSpec] = Field(
+        default_factory=dict,
+        description="inputs that force the zero command: a list of names, or a mapping of "
+        "name -> {heartbeat, initial}",
+    )
     zero: dict[str, float] = Field(min_length=1)
 
     @field_validator("timeout", mode="before")
     @classmethod
     def _timeout(cls, v: Any) -> Any:
         return _duration_s(v)
+
+    @field_validator("locks", mode="before")
+    @classmethod
+    def _lock_list(cls, v: Any) -> Any:
+        """The list form (``locks: [estop]``) is a mapping of default lock specs."""
+        if isinstance(v, list | tuple):
+            if not all(isinstance(name, str) for name in v):
+                raise ValueError("locks: a list of input names, or a mapping name -> options")
+            return {name: {} for name in v}
+        if isinstance(v, Mapping):
+            return {k: ({} if spec is None else spec) for k, spec in v.items()}
+        return v
 
     @field_validator("zero")
     @classmethod
@@ -102,9 +154,35 @@ class ArbiterParams(BaseModel):
         return self
 
 
-def _stamp(value: Any) -> float | None:
-    t = value.get("timestamp") if isinstance(value, Mapping) else getattr(value, "timestamp", None)
-    return float(t) if isinstance(t, int | float) and math.isfinite(t) else None
+def valid_command(value: Any, keys: list[str]) -> bool:
+    """A command the actuator may get: a mapping whose ``keys`` (when present) are finite
+    numbers. NaN, inf, a string or a bool where a speed belongs make the whole value invalid."""
+    if not isinstance(value, Mapping):
+        return False
+    for key in keys:
+        if key not in value:
+            continue
+        x = value[key]
+        if isinstance(x, bool) or not isinstance(x, int | float):
+            return False
+        try:
+            if not math.isfinite(x):
+                return False
+        except OverflowError:  # an int beyond a float's range
+            return False
+    return True
+
+
+class _SourceState:
+    """What the arbiter keeps per source: counters and the burst of invalid values."""
+
+    __slots__ = ("counted_t", "in_burst", "invalid", "stale")
+
+    def __init__(self) -> None:
+        self.invalid = 0  # publications refused (NaN/inf, wrong type); each counted once
+        self.stale = 0  # activations where the source held a value older than timeout
+        self.counted_t: float | None = None  # publication time of the last counted invalid
+        self.in_burst = False  # an alert was raised and no valid value came since
 
 
 class Arbiter(Node):
@@ -122,7 +200,12 @@ class Arbiter(Node):
         self.current: str | None = None
         self.switches = 0
         self.last_t: float | None = None
+        self.started: float | None = None  # first activation: a silent lock's age from here
         self.acc = [0.0] * len(self.keys)
+        # Invariant: a lock name is present once a value was received on it; its value is
+        # the truth of the last value received (latched until a new one arrives).
+        self.latched: dict[str, bool] = {}
+        self.engaged: dict[str, bool] = {}
 
     def params_changed(self, old: Any) -> None:
         """A mode's weights arrive between activations; new sources need their slots."""
@@ -132,41 +215,71 @@ class Arbiter(Node):
     def _size(self, names: list[str]) -> None:
         self.names = names
         n = len(names)
-        self.seen: dict[str, tuple[int, float]] = {}  # source -> (id of value, first seen)
         self.filtered = [[z for z in self.zero_values] for _ in range(n)]
         self.fresh = [False] * n
+        old = getattr(self, "sources", {})
+        self.sources: dict[str, _SourceState] = {k: old.get(k, _SourceState()) for k in names}
 
-    def _age_start(self, name: str, value: Any, now: float) -> float:
-        stamp = _stamp(value)
-        if stamp is not None:
-            return stamp
-        key = id(value)
-        seen = self.seen.get(name)
-        if seen is None or seen[0] != key:
-            self.seen[name] = (key, now)
-            return now
-        return seen[1]
+    # --- locks ----------------------------------------------------------------------------
 
-    def _is_fresh(self, name: str, value: Any, now: float) -> bool:
+    def _lock_engaged(self, name: str, spec: LockSpec, value: Any, now: float) -> bool:
+        if value is not None:
+            self.latched[name] = _truthy(value)
+        engaged = self.latched.get(name, spec.initial == "engaged")
+        if spec.heartbeat is not None and not engaged:
+            age = self.ctx.input_age(name)
+            if age is None:  # never heard: silent since the first activation
+                age = now - (self.started if self.started is not None else now)
+            engaged = age > spec.heartbeat
+        self.engaged[name] = engaged
+        return engaged
+
+    # --- sources --------------------------------------------------------------------------
+
+    def _fresh_valid(self, i: int, name: str, value: Any, now: float) -> bool:
         if value is None:
             return False
-        return now - self._age_start(name, value, now) <= self.params.timeout
+        age = self.ctx.input_age(name, value)
+        state = self.sources[name]
+        if age is None or age > self.params.timeout:
+            state.stale += 1
+            return False
+        if valid_command(value, self.keys):
+            state.in_burst = False
+            return True
+        published = self.ctx.input_time(name)
+        if published is None or published != state.counted_t:
+            state.invalid += 1
+            state.counted_t = published
+        if not state.in_burst:
+            state.in_burst = True
+            self.ctx.emit(
+                HealthAlert(
+                    self.ctx.elapsed(),
+                    self.ctx.name,
+                    "arbiter-invalid",
+                    f"source {name}: a command with a non-finite or wrong-type value refused",
+                    "warning",
+                )
+            )
+        return False
 
     def process(self, **inputs: Any) -> dict[str, Any]:
         now = self.ctx.now()
+        if self.started is None:
+            self.started = now
         dt = 0.0 if self.last_t is None else max(0.0, now - self.last_t)
         self.last_t = now
         p = self.params
         locked = False
-        for lock in p.locks:
-            value = inputs.get(lock)
-            if self._is_fresh(lock, value, now) and _truthy(value):
+        for lock, spec in p.locks.items():  # every lock is evaluated: each one latches
+            if self._lock_engaged(lock, spec, inputs.get(lock), now):
                 locked = True
         winner: str | None = None
         if not locked:
             for i, name in enumerate(self.names):
                 value = inputs.get(name)
-                self.fresh[i] = self._is_fresh(name, value, now) and isinstance(value, Mapping)
+                self.fresh[i] = self._fresh_valid(i, name, value, now)
                 if self.fresh[i]:
                     self._filter(i, p.sources[name], value, dt)
                 else:  # a source coming back starts from zero, not from its old filter state
@@ -182,11 +295,23 @@ class Arbiter(Node):
         i = self.names.index(winner)
         return {"command": dict(zip(self.keys, self.filtered[i], strict=True)), "selected": winner}
 
+    def report(self) -> dict[str, Any]:
+        """What the statistics show of the arbiter (``reports``: table, --stats-json)."""
+        return {
+            "selected": self.current,
+            "switches": self.switches,
+            "locks": dict(self.engaged),
+            "sources": {
+                name: {"invalid": st.invalid, "stale": st.stale}
+                for name, st in self.sources.items()
+            },
+            "invalid": sum(st.invalid for st in self.sources.values()),
+        }
+
     def _filter(self, i: int, spec: SourceSpec, value: Mapping[str, Any], dt: float) -> None:
         out = self.filtered[i]
         for j, key in enumerate(self.keys):
-            raw = value.get(key, 0.0)
-            x = float(raw) if isinstance(raw, int | float) and math.isfinite(raw) else 0.0
+            x = float(value.get(key, 0.0))  # valid_command: a finite number or absent
             if spec.low_pass is not None:
                 a = dt / (spec.low_pass + dt)
                 x = out[j] + a * (x - out[j])

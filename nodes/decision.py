@@ -60,12 +60,15 @@ class Store(Node):
         for port, value in values.items():
             if value is None:
                 continue
-            stamp = getattr(value, "timestamp", None)
+            # when the value was true: its publication time, or its own timestamp when that
+            # is older and in this clock (flowrt.freshness: a foreign stamp never keeps a
+            # record valid)
+            age = self.ctx.input_age(port, value)
             db.write(
                 self.params.records.get(port, port),
                 value,
                 validity_ms=self.params.validity_ms,
-                timestamp=stamp if isinstance(stamp, float) and stamp > 0 else None,
+                timestamp=None if age is None else self.ctx.now() - age,
             )
 
 

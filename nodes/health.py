@@ -72,6 +72,9 @@ class StreamState:
     received: int
     expected: int
     lost: int
+    # age of the newest frame at this report: since its publication, or since its capture
+    # when that is older (flowrt.freshness); None when unknown (no frame, or in a worker)
+    age_ms: float | None = None
 
 
 @dataclass(frozen=True)
@@ -283,6 +286,7 @@ class Health(Node):
             received=total,
             expected=round(st.expected),
             lost=max(0, round(st.expected) - total),
+            age_ms=None if (age := self.ctx.input_age(port, frame)) is None else age * 1000,
         )
 
     @staticmethod

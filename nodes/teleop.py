@@ -128,6 +128,13 @@ def shape(
     return x * a.scale
 
 
+def _finite(v: float) -> bool:
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an int beyond a float's range
+        return False
+
+
 def _field(value: Any, key: str) -> Any:
     if isinstance(value, Mapping):
         return value.get(key)
@@ -156,9 +163,10 @@ class Teleop(Node):
         self.status = p.initial_state
         self.last_t: float | None = None
         self.pressed: dict[str, bool] = {}
-        self.last_joy: Any = None
-        self.joy_seen_at = -math.inf
         self.transitions = 0
+        self.invalid = 0  # joystick publications refused (NaN/inf or wrong-type axis)
+        self.invalid_t: float | None = None  # publication time of the last one counted
+        self.in_burst = False  # an alert was raised and no valid input came since
 
     # --- helpers ------------------------------------------------------------------------
 
@@ -208,13 +216,14 @@ class Teleop(Node):
         dt = 0.0 if self.last_t is None else max(0.0, now - self.last_t)
         self.last_t = now
         p = self.params
-        if joy is not None and joy is not self.last_joy:
-            self.last_joy = joy
-            stamp = _field(joy, "timestamp")
-            self.joy_seen_at = float(stamp) if isinstance(stamp, int | float) else now
-        fresh = joy is not None and now - self.joy_seen_at <= self._timeout()
+        age = self.ctx.input_age("joy", joy) if joy is not None else None
+        fresh = age is not None and age <= self._timeout()
         axes: Mapping[str, Any] = (_field(joy, "axes") or {}) if fresh else {}
         buttons: Mapping[str, Any] = (_field(joy, "buttons") or {}) if fresh else {}
+        if fresh and not self._valid(axes, buttons):
+            fresh, axes, buttons = False, {}, {}  # refused like a stale input: zero
+            if self.status == "run":
+                self._go("initialization", "invalid joystick value (NaN, inf or wrong type)")
 
         if fresh:
             start = self._clicked(buttons, p.buttons.start)
@@ -242,6 +251,40 @@ class Teleop(Node):
         if self.status != "run":
             return {"command": self._zero(), "mode": self.status}
         return {"command": self._shaped(axes, state, dt), "mode": self.status}
+
+    def _valid(self, axes: Any, buttons: Any) -> bool:
+        """Axes that are finite numbers and mappings where mappings belong; else one counted
+        refusal per publication and one alert per burst (see the arbiter's rule)."""
+        ok = isinstance(axes, Mapping) and isinstance(buttons, Mapping)
+        if ok:
+            for a in self.shaping:
+                v = axes.get(a.input, 0.0)
+                if isinstance(v, bool) or not isinstance(v, int | float) or not _finite(v):
+                    ok = False
+                    break
+        if ok:
+            self.in_burst = False
+            return True
+        published = self.ctx.input_time("joy")
+        if published is None or published != self.invalid_t:
+            self.invalid += 1
+            self.invalid_t = published
+        if not self.in_burst:
+            self.in_burst = True
+            self.ctx.emit(
+                HealthAlert(
+                    self.ctx.elapsed(),
+                    self.ctx.name,
+                    "teleop-invalid",
+                    "joystick value refused: an axis is NaN, inf or not a number",
+                    "warning",
+                )
+            )
+        return False
+
+    def report(self) -> dict[str, Any]:
+        """What the statistics show of teleop (``reports``: table, --stats-json)."""
+        return {"state": self.status, "transitions": self.transitions, "invalid": self.invalid}
 
     def _begin_calibration(self, axes: Mapping[str, Any]) -> None:
         for i, a in enumerate(self.shaping):

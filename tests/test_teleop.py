@@ -314,8 +314,14 @@ def arbiter(**params: object) -> NodeHarness:
 
 
 def arb(h: NodeHarness, t: float, **inputs: object) -> dict[str, object]:
+    """One activation at ``t``; the lock ``estop`` released unless given (it latches)."""
     h.ctx.time = t
-    return h.node.process(**inputs)
+    if "estop" in h.node.params.locks:
+        inputs.setdefault("estop", RELEASED)
+    return h.process(**inputs)
+
+
+RELEASED = False
 
 
 def test_priority_highest_fresh_source_wins() -> None:
@@ -344,11 +350,12 @@ def test_lock_forces_zero() -> None:
     assert arb(h, 0.01, joy={"vx": 1.0, "w": 0.1}, estop=False)["command"] == j
 
 
-def test_stale_lock_does_not_hold() -> None:
+def test_a_lock_latches_until_a_false_value() -> None:
     h = arbiter()
     stop = {"active": True}
     assert arb(h, 0.0, joy={"vx": 1.0, "w": 0.0}, estop=stop)["selected"] is None
-    assert arb(h, 0.2, joy={"vx": 1.0, "w": 0.0}, estop=stop)["selected"] == "joy"
+    assert arb(h, 5.0, joy={"vx": 1.0, "w": 0.0}, estop=stop)["selected"] is None
+    assert arb(h, 5.1, joy={"vx": 1.0, "w": 0.0}, estop={"active": False})["selected"] == "joy"
 
 
 def test_blend_renormalises_over_fresh_sources() -> None:
