@@ -39,6 +39,18 @@ def load(path: str, console: Console, *, import_kinds: bool = True) -> Graph | N
     return graph
 
 
+_CONTROL = {c: f"\\x{c:02x}" for c in (*range(0x00, 0x20), 0x7F, *range(0x80, 0xA0)) if c != 0x0A}
+
+
+def printable(text: str) -> str:
+    """``text`` from data (a recording's topic names, metadata, a file name) made safe to
+    print: control characters (terminal escape sequences among them) shown as ``\\xNN``.
+
+    Print it with ``markup=False`` too, so ``[/bold]`` in a name is text, not rich markup.
+    """
+    return text.translate(_CONTROL)
+
+
 def stdout_console() -> Console:
     """A terminal's own width, or a wide console when the output goes to a file or pipe."""
     return Console() if sys.stdout.isatty() else Console(width=200)

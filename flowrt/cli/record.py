@@ -13,25 +13,21 @@ The recorder and replay node classes are found through the node registry, like a
 from __future__ import annotations
 
 import argparse
-import asyncio
 import datetime as dt
 import fnmatch
-import signal
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.text import Text
 
-from ..eventloop import new_event_loop
 from .common import (
     EXIT_BAD_GRAPH,
     EXIT_FAILED,
     EXIT_OK,
     load,
-    plain_handler,
+    printable,
     seconds_arg,
-    setup_logging,
     stdout_console,
 )
 from .run import add_run_options, run_graph
@@ -208,47 +204,6 @@ def wait_for_writers() -> None:
             t.join()
 
 
-def _run(
-    graph: Any,
-    args: argparse.Namespace,
-    console: Console,
-    kinds: dict[str, Any] | None = None,
-    progress: Callable[[Any], Any] | None = None,
-) -> Any:
-    """Run ``graph`` until ``--duration``, Ctrl-C/SIGTERM or a node asks to stop."""
-    from ..runtime import Runtime
-    from ..status import LiveTable, LogLines
-
-    monitors: list[Any] = []
-    if args.no_ui or progress is not None:
-        if args.no_ui:
-            monitors.append(LogLines(getattr(args, "log_every", 2.0)))
-        setup_logging(plain_handler())
-    else:
-        table = LiveTable(console, hz=4.0)
-        monitors.append(table)
-        setup_logging(table.log_handler())
-    rt = Runtime(graph, monitors=monitors, kinds=kinds)
-
-    async def main() -> None:
-        loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, rt.request_stop)
-        try:
-            async with rt:
-                if progress is not None and not args.no_ui:
-                    await progress(rt)
-                else:
-                    await rt.run(args.duration)
-        finally:
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.remove_signal_handler(sig)
-
-    with asyncio.Runner(loop_factory=new_event_loop) as runner:
-        runner.run(main())
-    return rt
-
-
 # --- info --------------------------------------------------------------------------------
 
 
@@ -262,24 +217,29 @@ def _hz(x: float | None) -> str:
     return "-" if x is None else f"{x:.2f}"
 
 
-def print_info(console: Console, info: Any, streams_only: bool = False) -> None:
+def print_info(
+    console: Console, info: Any, streams_only: bool = False, show_graph: bool = False
+) -> None:
     """One file: whether it is whole, its streams, metadata, attachments and graph."""
-    from rich.text import Text
 
     from ..columns import Column, fit_table
     from ..recording.report import human_bytes
 
     if not streams_only:
-        console.print(f"[bold]{info.path}[/bold]  {human_bytes(info.size)}", highlight=False)
+        console.print(
+            Text(printable(str(info.path)), style="bold") + f"  {human_bytes(info.size)}",
+            highlight=False,
+        )
         if info.closed_cleanly:
             console.print("closed cleanly: yes (summary and index read)", highlight=False)
         else:
             why = info.damage or "no summary"
             console.print(
-                f"[bold red]NOT closed cleanly[/bold red]: {why}"
+                Text("NOT closed cleanly", style="bold red")
+                + f": {printable(why)}"
                 + (f" at byte {info.damage_offset}" if info.damage_offset is not None else "")
                 + f"; recovered {info.messages} messages in {info.chunks} chunks "
-                f"(flowrt info --repair rewrites the summary)",
+                "(flowrt info --repair rewrites the summary)",
                 highlight=False,
             )
         console.print(
@@ -295,8 +255,8 @@ def print_info(console: Console, info: Any, streams_only: bool = False) -> None:
         return Text(f"{len(s.gaps)} (longest {longest * 1000:.0f} ms)", style="red")
 
     cols: tuple[Column[Any], ...] = (
-        Column("stream", lambda s: s.topic, right=False),
-        Column("schema", lambda s: s.schema_name, drop=3, right=False),
+        Column("stream", lambda s: Text(printable(s.topic)), right=False),
+        Column("schema", lambda s: Text(printable(s.schema_name)), drop=3, right=False),
         Column("count", lambda s: str(s.count)),
         Column("Hz mean", lambda s: _hz(s.rate_mean), drop=4),
         Column("Hz min", lambda s: _hz(s.rate_min), drop=1),
@@ -308,39 +268,44 @@ def print_info(console: Console, info: Any, streams_only: bool = False) -> None:
     console.print(t)
     for name, meta in info.metadata.items():
         console.print(
-            f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in meta.items()),
+            printable(f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in meta.items())),
             highlight=False,
             markup=False,
         )
     if info.attachments:
-        console.print("attachments: " + ", ".join(info.attachments), markup=False)
-    if info.graph:
+        console.print(printable("attachments: " + ", ".join(info.attachments)), markup=False)
+    if info.graph and show_graph:
         console.print("recorded graph:", style="bold")
-        console.print(info.graph.rstrip(), markup=False, highlight=False, soft_wrap=True)
+        console.print(printable(info.graph.rstrip()), markup=False, highlight=False, soft_wrap=True)
+    elif info.graph:
+        lines = len(info.graph.strip().splitlines())
+        console.print(
+            f"recorded graph: {lines} lines (flowrt info --graph prints it)", highlight=False
+        )
 
 
-def print_session(console: Console, session: Any) -> None:
+def print_session(console: Console, session: Any, show_graph: bool = False) -> None:
     """A session of several parts: its files, then the streams over all of them."""
-    from rich.text import Text
 
     from ..columns import Column, fit_table
     from ..recording.report import human_bytes
 
     if len(session.files) == 1:
-        print_info(console, session.files[0])
+        print_info(console, session.files[0], show_graph=show_graph)
         return
     console.print(
-        f"[bold]{session.path}[/bold]  {len(session.files)} files  {human_bytes(session.size)}",
+        Text(printable(str(session.path)), style="bold")
+        + f"  {len(session.files)} files  {human_bytes(session.size)}",
         highlight=False,
     )
 
     def clean(f: Any) -> Text:
         if f.closed_cleanly:
             return Text("yes")
-        return Text(f"NO: {f.damage or 'no summary'}", style="bold red")
+        return Text(printable(f"NO: {f.damage or 'no summary'}"), style="bold red")
 
     file_cols: tuple[Column[Any], ...] = (
-        Column("file", lambda f: Path(f.path).name, right=False),
+        Column("file", lambda f: Text(printable(Path(f.path).name)), right=False),
         Column("size", lambda f: human_bytes(f.size), drop=3),
         Column("start", lambda f: _when(f.start), drop=1, right=False),
         Column("duration", lambda f: f"{f.duration:.3f} s", drop=2),
@@ -359,6 +324,7 @@ def print_session(console: Console, session: Any) -> None:
         console,
         first.model_copy(update={"streams": session.streams}),
         streams_only=True,
+        show_graph=show_graph,
     )
 
 
@@ -414,17 +380,25 @@ def cmd_info(args: argparse.Namespace) -> int:
     if args.repair:
         for f in files:
             if not scan(f).closed_cleanly:
-                fixed, kept = repair(f)
+                try:
+                    fixed, kept, original = repair(f)
+                except OSError as e:  # read-only folder, full disk: the original untouched
+                    err.print(
+                        f"flowrt info: {printable(str(f))}: cannot repair: "
+                        f"{e.strerror or e} (the original is untouched)",
+                        markup=False,
+                    )
+                    return EXIT_FAILED
                 err.print(
-                    f"flowrt info: {fixed}: rewritten with {kept} messages and a summary; "
-                    f"the original is kept as {fixed.stem}.damaged.mcap",
+                    f"flowrt info: {printable(str(fixed))}: rewritten with {kept} messages and "
+                    f"a summary; the original is kept as {printable(original.name)}",
                     markup=False,
                 )
     session = scan_session(args.path)
     if args.json:
         print(session.model_dump_json(indent=1))
     else:
-        print_session(console, session)
+        print_session(console, session, show_graph=args.graph)
         _print_session_report(console, Path(args.path))
     if not session.closed_cleanly:
         err.print(
@@ -440,7 +414,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from ..graph import Graph, resolve
+    from ..graph import resolve
     from ..recording.reader import scan_session
     from ..registry import resolve_kind
     from ..spec import NodeSpec
@@ -503,15 +477,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     replay_cls: Any = resolve_kind("replay")
     common = {"path": str(path), "rate": args.rate, "start": args.start, "loop": args.loop}
     kinds: dict[str, Any] = {}
-    if args.graph or info.graph:
-        if args.graph:
-            graph = load(args.graph, err)
-            if graph is None:
-                return EXIT_BAD_GRAPH
-            graph_name = args.graph
-        else:
-            graph = Graph.from_text(info.graph or "", f"{path} (recorded graph)")
-            graph_name = "the recorded graph"
+    graph = _replay_target(args, info, path, err)
+    if graph is _REFUSED:
+        return EXIT_BAD_GRAPH
+    if graph is not None:
+        graph_name = args.graph or "the recorded graph"
         nodes = dict(graph.spec.nodes)
         for name, nspec in graph.spec.nodes.items():
             if nspec.kind == RECORDER or nspec.inputs or name not in by_node:
@@ -531,66 +501,77 @@ def cmd_replay(args: argparse.Namespace) -> int:
             )
             return EXIT_BAD_GRAPH
         spec: Any = graph.spec.model_copy(update={"nodes": nodes})
+        replaced = sorted(k.removeprefix("replay-as-") for k in kinds)
+        into = f"{graph_name}, replacing its source node(s) {', '.join(replaced)}"
     else:
         from ..spec import GraphSpec
 
+        # Only the recorded streams: node names and topics from the file are plain strings
+        # here; nothing the recording names is imported, served or sent to.
         spec = GraphSpec(
             name="replay",
             nodes={
-                name: NodeSpec(kind="replay", params={**common, "topics": topics})
+                _safe_node_name(name): NodeSpec(kind="replay", params={**common, "topics": topics})
                 for name, topics in by_node.items()
             },
         )
+        into = "replay nodes publishing the recorded streams"
+        if info.graph:
+            err.print(
+                "flowrt replay: the recording holds a graph; it is not run (a recording is "
+                "data): give --graph FILE, or --trust-graph to run the recorded one",
+                markup=False,
+            )
     try:
         rgraph = resolve(spec, kinds=kinds)
     except Exception as e:
         err.print(f"flowrt replay: {e}", markup=False)
         return EXIT_BAD_GRAPH
-    total = max(0.0, info.duration - args.start) / args.rate
     parts = f", {len(files)} files" if len(files) > 1 else ""
     console.print(
-        f"replaying {path} ({len(streams)} stream(s), {info.duration:.1f} s{parts}) "
-        f"at x{args.rate:g} into {', '.join(sorted(by_node))}",
+        f"replaying {printable(str(path))} ({len(streams)} stream(s), "
+        f"{info.duration:.1f} s{parts}) at x{args.rate:g} into {printable(into)}",
         highlight=False,
+        markup=False,
     )
-
-    async def progress(rt: Any) -> None:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
-
-        with Progress(
-            TextColumn("replay"),
-            BarColumn(),
-            TextColumn("{task.fields[pos]}"),
-            TimeRemainingColumn(),
-            console=console,
-            transient=False,
-        ) as bar:
-            task = bar.add_task("replay", total=max(total, 1e-6), pos="")
-            run = asyncio.ensure_future(rt.run(args.duration))
-            while not run.done():
-                t = rt.now()
-                pos = args.start + (
-                    t * args.rate
-                    if not args.loop
-                    else (t * args.rate) % max(info.duration - args.start, 1e-6)
-                )
-                bar.update(
-                    task,
-                    completed=min(t, total) if not args.loop else (pos - args.start) / args.rate,
-                    pos=f"{min(pos, info.duration):.1f}/{info.duration:.1f} s",
-                )
-                await asyncio.wait([run], timeout=0.25)
-            await run
-
-    rt = _run(rgraph, args, console, kinds=kinds, progress=progress)
-    failed = [n.name for n in rt.stats().nodes if n.state in ("failed", "error")]
-    if failed:
-        for n in rt.stats().nodes:
-            if n.name in failed:
-                err.print(f"flowrt replay: {n.name}: {n.state} {n.reason}", markup=False)
+    code = run_graph(rgraph, args, err, prog="flowrt replay", kinds=kinds)
     if not info.closed_cleanly:
-        return EXIT_FAILED
-    return EXIT_FAILED if failed else EXIT_OK
+        return max(code, EXIT_FAILED)
+    return code
+
+
+_REFUSED: Any = object()
+
+
+def _replay_target(args: argparse.Namespace, info: Any, path: Path, err: Console) -> Any:
+    """The graph a replay runs: ``--graph``, the recorded one with ``--trust-graph``, or None
+    (the recorded streams alone). ``_REFUSED`` after one line on ``err``."""
+    from ..graph import Graph
+
+    if args.graph:
+        graph = load(args.graph, err)
+        return _REFUSED if graph is None else graph
+    if not args.trust_graph:
+        return None
+    if not info.graph:
+        err.print(f"flowrt replay: {path}: --trust-graph: no graph is recorded", markup=False)
+        return _REFUSED
+    try:
+        return Graph.from_text(info.graph, f"{path} (recorded graph)")
+    except Exception as e:  # a malformed stored graph: one line
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        err.print(
+            f"flowrt replay: the recorded graph is not valid: {printable(first)}", markup=False
+        )
+        return _REFUSED
+
+
+def _safe_node_name(name: str) -> str:
+    """A node name from a recording, made a valid identifier-like name (data, not code)."""
+    import re
+
+    clean = re.sub(r"[^A-Za-z0-9_]", "_", name)[:64] or "stream"
+    return clean if not clean[0].isdigit() else f"n{clean}"
 
 
 def add_parsers(sub: Any) -> None:
@@ -635,6 +616,7 @@ def add_parsers(sub: Any) -> None:
     info = sub.add_parser("info", help="what a recording holds (session folder or .mcap)")
     info.add_argument("path")
     info.add_argument("--json", action="store_true", help="machine-readable")
+    info.add_argument("--graph", action="store_true", help="also print the recorded graph file")
     info.add_argument(
         "--repair", action="store_true", help="rewrite a file that was not closed cleanly"
     )
@@ -647,6 +629,11 @@ def add_parsers(sub: Any) -> None:
     rep.add_argument("--loop", action="store_true", help="start over at the end")
     rep.add_argument("--start", type=seconds_arg, default=0.0, metavar="T", help="e.g. 10s")
     rep.add_argument("--topics", metavar="PATTERNS", help="streams to replay (default all)")
-    rep.add_argument("--duration", type=seconds_arg, default=None, metavar="S", help="stop after")
-    rep.add_argument("--no-ui", action="store_true", help="no progress bar")
+    rep.add_argument(
+        "--trust-graph",
+        action="store_true",
+        help="run the graph stored in the recording (it imports the modules it names: only "
+        "for recordings you trust); default: the recorded streams alone, or --graph",
+    )
+    add_run_options(rep)  # --duration, --no-ui, --stats-json, --control, --display-port ...
     rep.set_defaults(func=cmd_replay)

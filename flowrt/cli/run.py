@@ -69,6 +69,7 @@ def run_graph(
     prog: str = "flowrt run",
     settle: Callable[[], None] | None = None,
     after: Callable[[Any], int] | None = None,
+    kinds: dict[str, Any] | None = None,
 ) -> int:
     """Run a loaded graph with every option of ``flowrt run`` (see :func:`add_run_options`).
 
@@ -108,6 +109,7 @@ def run_graph(
         spin=args.spin / 1000,
         drain_timeout=args.drain_timeout,
         stop_on_failure=not args.keep_going,
+        kinds=kinds,
     )
     server = None
     if control is not None:

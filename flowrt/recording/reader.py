@@ -18,6 +18,7 @@ boundaries), and :func:`iter_session` gives the messages of every part in order.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
@@ -488,23 +489,51 @@ def _ends_before(path: Path, t: int) -> bool:
     return stats is not None and stats.message_count > 0 and stats.message_end_time < t
 
 
-def repair(path: str | Path) -> tuple[Path, int]:
+def repair(path: str | Path) -> tuple[Path, int, Path]:
     """Rewrite what can be read of ``path`` as a complete file; keep the original.
 
-    The original is renamed ``NAME.damaged.mcap``; the repaired file takes its name. Returns
-    (the repaired file, messages kept).
+    The original is renamed ``NAME.damaged.mcap`` (``NAME.damaged-2.mcap``... when that is
+    taken: an original is never overwritten); the repaired file takes its name. Returns (the
+    repaired file, messages kept, where the original is kept). An ``OSError`` (a read-only
+    folder, a full disk) leaves the original untouched and no partial file behind.
     """
-    from mcap.records import Attachment, Channel, Message, Metadata, Schema
-    from mcap.writer import CompressionType, Writer
-
     p = Path(path)
     rec = Recording(p)
     tmp = p.with_name(p.stem + ".repairing.mcap")
+    try:
+        kept = _write_repaired(p, rec, tmp, "flowrt")
+        damaged = _free_name(p.with_name(p.stem + ".damaged.mcap"))
+        os.rename(p, damaged)  # a free name: the original is kept, never overwritten
+        try:
+            os.replace(tmp, p)
+        except OSError:
+            os.rename(damaged, p)
+            raise
+    except OSError:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    return p, kept, damaged
+
+
+def _free_name(path: Path) -> Path:
+    """``path``, or ``STEM-2.mcap``, ``STEM-3.mcap``...: the first that does not exist."""
+    n = 2
+    candidate = path
+    while candidate.exists():
+        candidate = path.with_name(f"{path.stem}-{n}{path.suffix}")
+        n += 1
+    return candidate
+
+
+def _write_repaired(p: Path, rec: Any, tmp: Path, header_profile: str) -> int:
+    from mcap.records import Attachment, Channel, Message, Metadata, Schema
+    from mcap.writer import CompressionType, Writer
+
     kept = 0
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
     schemas: dict[int, Any] = {}
-    header_profile = "flowrt"
     with open(tmp, "wb") as f:
         w = Writer(f, compression=CompressionType.NONE)
         w.start(profile=header_profile, library="flowrt repair")
@@ -532,10 +561,9 @@ def repair(path: str | Path) -> tuple[Path, int]:
             {"damage": rec.damage or "not closed cleanly", "messages_kept": str(kept)},
         )
         w.finish()  # type: ignore[no-untyped-call]
-    damaged = p.with_name(p.stem + ".damaged.mcap")
-    os.replace(p, damaged)
-    os.replace(tmp, p)
-    return p, kept
+        f.flush()
+        os.fsync(f.fileno())
+    return kept
 
 
 def info_json(info: FileInfo) -> str:

@@ -73,7 +73,9 @@ def mcap_files(path: str | Path) -> list[Path]:
     if not p.is_dir():
         return [p]
     files = [
-        f for f in p.glob("*.mcap") if not f.name.endswith((".damaged.mcap", ".repairing.mcap"))
+        f
+        for f in p.glob("*.mcap")
+        if not f.name.endswith(".repairing.mcap") and ".damaged" not in f.name
     ]
     return sorted(files, key=_part_key)
 
