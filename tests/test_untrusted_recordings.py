@@ -22,7 +22,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
 
 REPO = Path(__file__).resolve().parents[1]
 
-EVIL_MODULE = '''
+EVIL_MODULE = """
 import os
 from pathlib import Path
 
@@ -38,7 +38,7 @@ class Evil(Node):
 
     def process(self):
         return {"n": 1}
-'''
+"""
 
 GRAPH = """\
 name: evil
