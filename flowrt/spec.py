@@ -686,3 +686,8 @@ class GraphSpec(_Strict):
         default_factory=dict, alias="export"
     )
     imports: dict[NodeName, ImportSpec] = Field(default_factory=dict, alias="import")
+    control_allow_kinds: list[str] = Field(
+        default_factory=list,
+        description="node kinds the control endpoint may swap a node to, besides the kinds "
+        "the graph already uses (see README: the control endpoint)",
+    )
