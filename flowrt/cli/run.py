@@ -42,8 +42,11 @@ def _warm_forkserver(path: str) -> None:
     import re
     import threading
 
-    try:
-        text = Path(path).read_text(errors="replace")
+    from ..files import read_bytes
+    from ..loading import MAX_FILE_BYTES
+
+    try:  # the same limits as the graph file's reading: a device, a FIFO, 1 GiB: not read
+        text = read_bytes(path, MAX_FILE_BYTES).decode(errors="replace")
     except OSError:
         return
     if re.search(r"placement\s*:\s*[\"']?(process|pool)\b", text):
