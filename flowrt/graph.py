@@ -281,7 +281,12 @@ def resolve(
                 at((*path, "from"), f"expected node.port, got {ins.source!r}")
                 continue
             if cls is not None and port not in own_ins and cls.any_inputs is None:
-                at(path, f"{ns.kind} has no input {port!r}" + did_you_mean(port, own_ins))
+                have = ", ".join(own_ins) or "none"
+                at(
+                    path,
+                    f"{ns.kind} has no input {port!r} (its inputs: {have})"
+                    + did_you_mean(port, own_ins),
+                )
                 misspelt.add(closest(port, cls.inputs))
                 continue
             if ins.node not in spec.nodes:
@@ -297,6 +302,7 @@ def resolve(
                 at(
                     path,
                     f"node {ins.node!r} ({spec.nodes[ins.node].kind}) has no output {ins.port!r}"
+                    f" (its outputs: {', '.join(src_outs) or 'none'})"
                     + did_you_mean(ins.port, src_outs),
                 )
                 continue

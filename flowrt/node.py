@@ -248,7 +248,7 @@ class Node:
         outs: dict[str, Output[Any]] = {}
         for base in reversed(cls.__mro__):
             for key, value in vars(base).items():
-                if isinstance(value, Input):
+                if isinstance(value, Input) and key != "any_inputs":  # not a port of its own
                     ins[key] = value
                 elif isinstance(value, Output):
                     outs[key] = value

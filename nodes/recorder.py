@@ -114,7 +114,9 @@ class Recorder(Node):
 
         log_report: bool = Field(default=True, description="log the table when a recording stops")
 
-    any_inputs = Input(object, required=False, doc="any stream, under its topic name")
+    any_inputs = Input(
+        object, required=False, policy="lossless", doc="any stream, under its topic name"
+    )
     inline_only = True
 
     @classmethod

@@ -9,9 +9,11 @@ a bad file or bad arguments. The analyses are in :mod:`flowrt.analysis`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
+import sys
 from typing import Any
 
 from rich.console import Console
@@ -155,6 +157,9 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
             return EXIT_BAD_GRAPH
         budgets = got
     elif args.measure is not None:
+        if args.plot and _plot_unavailable():  # said before a measuring run, not after it
+            err.print(f"flowrt check: --plot: {_plot_unavailable()}", markup=False)
+            return EXIT_BAD_GRAPH
         try:
             budgets = _measure(graph, args.measure, args.wcet_stat, err)
         except Exception as e:  # a node that cannot start, a port taken: one line, exit 1
@@ -220,6 +225,15 @@ def _stats_budgets(args: argparse.Namespace, err: Console) -> dict[str, Any] | N
     return budgets_from_stats(stats.nodes, args.wcet_stat, "stats")
 
 
+def _plot_unavailable() -> str | None:
+    """Why ``--plot`` cannot work here (matplotlib missing), or None."""
+    import importlib.util
+
+    if importlib.util.find_spec("matplotlib") is None:
+        return "needs matplotlib (pip install matplotlib, or flowrt[dev])"
+    return None
+
+
 def _measure(graph: Any, seconds: float, stat: Any, err: Console) -> dict[str, Any]:
     """Run the graph headless for ``seconds`` and take each node's execution-time ``stat``."""
     import asyncio
@@ -235,8 +249,10 @@ def _measure(graph: Any, seconds: float, stat: Any, err: Console) -> dict[str, A
         async with rt:
             await rt.run(seconds)
 
-    with asyncio.Runner(loop_factory=new_event_loop) as runner:
-        runner.run(main())
+    # What the graph's nodes print (a display's address) is not the check's output: a script
+    # reading --json gets one JSON document on stdout and nothing else.
+    with contextlib.redirect_stdout(sys.stderr), asyncio.Runner(loop_factory=new_event_loop) as r:
+        r.run(main())
     return budgets_from_stats(rt.stats().nodes, stat, "measured")
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 
 from rich.console import Console
@@ -53,7 +54,10 @@ def printable(text: str) -> str:
 
 def stdout_console() -> Console:
     """A terminal's own width, or a wide console when the output goes to a file or pipe."""
-    return Console() if sys.stdout.isatty() else Console(width=200)
+    if sys.stdout.isatty():
+        return Console()
+    columns = os.environ.get("COLUMNS", "")  # what a script piping the output asks for
+    return Console(width=int(columns) if columns.isdigit() and int(columns) >= 40 else 200)
 
 
 def plain_handler() -> logging.Handler:
