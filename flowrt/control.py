@@ -102,6 +102,9 @@ class ControlConfig:
     port: int = DEFAULT_PORT  # 0: any free port (see ``ControlServer.url``)
     token: str | None = None
     token_required: bool = False  # require the token on loopback too (a shared computer)
+    # kinds POST /swap may name besides those the graph uses (--control-allow-kinds and the
+    # graph's control_allow_kinds): a caller never makes the runtime import anything else
+    allow_kinds: tuple[str, ...] = ()
 
     @classmethod
     def parse(
@@ -163,6 +166,37 @@ class SwapRequest(BaseModel):
     node: str = Field(max_length=256)
     kind: str = Field(max_length=1024)
     params: dict[str, Any] | None = None
+
+
+# Param names that say where data goes or comes from: an address, a path, a token. A caller
+# of the endpoint may change an algorithm's params, never these (README: who can do what).
+_WHERE_KEYS = frozenset(
+    {"host", "port", "address", "addr", "url", "endpoint", "endpoints", "connect", "listen",
+     "path", "paths", "dir", "directory", "folder", "output", "file", "files", "token",
+     "dbc", "script", "source", "interface", "channel", "device", "key", "keys"}
+)  # fmt: skip
+_WHERE_SUFFIXES = ("_host", "_port", "_url", "_path", "_dir", "_file", "_token", "_address")
+
+
+def where_keys(params: Any, prefix: str = "") -> list[str]:
+    """The keys of ``params`` (nested) that name an address, a path or a token."""
+    found: list[str] = []
+    if isinstance(params, dict):
+        for k, v in params.items():
+            name = str(k).lower()
+            dotted = f"{prefix}{k}"
+            if name in _WHERE_KEYS or name.endswith(_WHERE_SUFFIXES):
+                found.append(dotted)
+            else:
+                found += where_keys(v, dotted + ".")
+    elif isinstance(params, list):
+        for i, v in enumerate(params):
+            found += where_keys(v, f"{prefix}{i}.")
+    return found
+
+
+class SwapRefused(Exception):
+    """A swap the endpoint does not allow (403): a kind not allowed, a param that moves data."""
 
 
 class ReloadRequest(BaseModel):
@@ -359,6 +393,56 @@ class ControlServer:
             log.exception("control endpoint: %s failed", op)
             return 500, _dumps({"error": f"{type(e).__name__}: {e}"})
 
+    def allowed_kinds(self) -> set[str]:
+        """What ``POST /swap`` may name: the graph's kinds, the graph's and the config's list."""
+        spec = self.rt.graph.spec
+        return {
+            *(n.kind for n in spec.nodes.values()),
+            *spec.control_allow_kinds,
+            *self.config.allow_kinds,
+        }
+
+    async def _checked_swap(self, req: SwapRequest) -> None:
+        """The endpoint's rules, then ``Runtime.swap`` with the class imported off the loop.
+
+        An import may run anything at module level (``unittest.__main__`` calls
+        ``sys.exit``): it happens in a thread, and a ``BaseException`` from it is an error for
+        the caller, never the end of the runtime.
+        """
+        from .registry import resolve_kind
+        from .runtime import SwapError
+
+        allowed = self.allowed_kinds()
+        if req.kind not in allowed:
+            raise SwapRefused(
+                f"kind {req.kind!r} is not allowed over the control endpoint (allowed: "
+                f"{', '.join(sorted(allowed))}; more with --control-allow-kinds or the graph's "
+                "control_allow_kinds)"
+            )
+        runner = self.rt.scheduler.runners.get(req.node)
+        if runner is None:
+            raise KeyError(f"unknown node {req.node!r}")
+        if req.params is not None:
+            current = runner.rnode.params.model_dump(mode="json")
+            moved = [
+                k
+                for k in where_keys(req.params)
+                if _lookup(req.params, k) != _lookup(current, k)
+                or req.kind != runner.rnode.spec.kind
+            ]
+            if moved:
+                raise SwapRefused(
+                    f"params {', '.join(moved)} change where data goes (an address, a path or a "
+                    "token): not over the control endpoint; edit the graph file instead"
+                )
+        try:
+            cls = await asyncio.to_thread(resolve_kind, req.kind, None)
+        except asyncio.CancelledError:
+            raise
+        except BaseException as e:  # SystemExit from an import is contained
+            raise SwapError(f"{req.node}: kind {req.kind!r}: import failed: {e!r}") from None
+        await self.rt.swap(req.node, req.kind, req.params, origin="control", resolved=cls)
+
     async def answer_swap(self, op: str, body: bytes) -> tuple[int, bytes]:
         """``swap`` and ``reload``: the new instance is set up while the graph runs."""
         from .runtime import SwapError
@@ -367,7 +451,7 @@ class ControlServer:
             args = json.loads(body) if body else {}
             if op == "swap":
                 req = SwapRequest.model_validate(args)
-                await self.rt.swap(req.node, req.kind, req.params, origin="control")
+                await self._checked_swap(req)
                 kind = req.kind
             else:
                 node = ReloadRequest.model_validate(args).node
@@ -378,6 +462,8 @@ class ControlServer:
             return 200, _dumps({"node": name, "kind": kind, "op": op})
         except KeyError as e:
             return 404, _dumps({"error": str(e.args[0] if e.args else e)})
+        except SwapRefused as e:
+            return 403, _dumps({"error": str(e)})
         except (SwapError, ValueError, ValidationError) as e:
             return 409 if isinstance(e, SwapError) else 400, _dumps({"error": str(e)})
         except Exception as e:
@@ -676,6 +762,18 @@ class _Gateway:
         n = _int_query(request, "n", 1)
         name = request.match_info["name"]
         return _reply(*await self.read("rtdb_record", {"name": name, "n": n}))
+
+
+def _lookup(tree: Any, dotted: str) -> Any:
+    """``tree["a"]["b"]`` for ``"a.b"`` (list indexes as numbers); None when absent."""
+    for part in dotted.split("."):
+        if isinstance(tree, dict):
+            tree = tree.get(part)
+        elif isinstance(tree, list) and part.isdigit() and int(part) < len(tree):
+            tree = tree[int(part)]
+        else:
+            return None
+    return tree
 
 
 def _no_constant(name: str) -> Any:

@@ -192,6 +192,20 @@ def _type_name(t: Any) -> str:
     return getattr(t, "__name__", str(t))
 
 
+def importable(folder: Path) -> None:
+    """Put a graph file's folder on the import path, so its ``module:Class`` kinds import
+    without ``PYTHONPATH=.`` (as ``python script.py`` finds modules beside the script).
+
+    Appended, not prepended: a file beside the graph never shadows flowrt, numpy or the
+    standard library. Worker processes start with the main process's ``sys.path``.
+    """
+    import sys
+
+    entry = str(folder)
+    if entry not in sys.path:
+        sys.path.append(entry)
+
+
 def resolve(
     spec: GraphSpec,
     locs: Locations | None = None,
@@ -219,6 +233,8 @@ def resolve(
         err(locs.diag(path, msg, sev))
 
     spec = _with_imports(spec, at)
+    if base_dir is not None and import_kinds:
+        importable(base_dir)
     classes: dict[str, type[Node]] = {}
     params: dict[str, BaseModel] = {}
     not_imported: dict[str, str] = {}
@@ -229,7 +245,11 @@ def resolve(
             not_imported[name] = ns.kind
             continue
         except KindError as e:
-            at(("nodes", name, "kind"), str(e))
+            looked = ""
+            if ":" in ns.kind and "cannot import" in str(e):
+                beside = f"beside the graph file ({base_dir}), " if base_dir is not None else ""
+                looked = f"; looked {beside}on PYTHONPATH and in the installed packages"
+            at(("nodes", name, "kind"), f"{e}{looked}")
             continue
         except Exception as e:  # the kind's own module raised while imported: say so, in place
             at(("nodes", name, "kind"), f"node kind {ns.kind!r}: import failed: {e!r}")

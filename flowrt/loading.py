@@ -535,12 +535,18 @@ def load_text(text: str, file: str = "<graph>") -> tuple[GraphSpec, Locations]:
 
 def read_graph_file(path: str | Path) -> str:
     """A graph file's text; a missing or unreadable file is a GraphError, not a traceback."""
+    from .files import NotARegularFile, read_text
+
     p = Path(path)
     try:
         size = p.stat().st_size
         if size > MAX_FILE_BYTES:  # refused before reading: no time or memory spent on it
             raise GraphError([too_large(size, str(p))])
-        return p.read_text(encoding="utf-8")
+        return read_text(p, MAX_FILE_BYTES)  # a device or a FIFO: refused, never read
+    except NotARegularFile as e:
+        raise GraphError(
+            [Diagnostic(Severity.error, f"cannot read graph file: {e.strerror}", file=str(p))]
+        ) from None
     except OSError as e:
         raise GraphError(
             [Diagnostic(Severity.error, f"cannot read graph file: {e.strerror}", file=str(p))]

@@ -34,14 +34,12 @@ import asyncio
 import contextlib
 import json
 import logging
-import math
 import queue
 import threading
 import time
-import types
 import uuid
 from collections import deque
-from dataclasses import dataclass, field, fields, is_dataclass
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -53,10 +51,21 @@ from .frames import Frame
 from .node import Node, Output
 from .spec import EdgePolicy, GraphSpec, TimerTrigger, ZenohSpec
 from .stats import EdgeStats, Running
+from .zenoh_wire import (
+    MAX_HEADER_BYTES,
+    MAX_SEQ_JUMP,
+    WARN_EVERY,
+    Header,
+    Refused,
+    check_frame,
+    decode_frame,
+    encode_frame,
+    from_wire,
+    to_wire,
+)
 
 log = logging.getLogger("flowrt.remote")
 
-WIRE_VERSION = 1
 FRAME_BACKLOG = 3  # received frames waiting for the loop, at most (each holds a pool slot)
 CLOCK_PREFIX = "_flowrt/clock"
 
@@ -91,130 +100,6 @@ class BridgeHost(Protocol):
 
 
 # --- encoding ----------------------------------------------------------------------------
-
-
-def to_wire(value: Any) -> Any:
-    """JSON-ready data: dataclasses and pydantic models become marked mappings, numpy plain.
-
-    Never pickle: a graph's network peers must not be able to run code in it.
-    """
-    if value is None or isinstance(value, bool | int | str):
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, BaseModel):
-        return {"__type__": type(value).__name__, **to_wire(value.model_dump())}
-    if is_dataclass(value) and not isinstance(value, type):
-        out = {"__type__": type(value).__name__}
-        out.update({f.name: to_wire(getattr(value, f.name)) for f in fields(value)})
-        return out
-    if isinstance(value, dict):
-        return {str(k): to_wire(v) for k, v in value.items()}
-    if isinstance(value, list | tuple | set | frozenset):
-        return [to_wire(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return to_wire(value.tolist())
-    item = getattr(value, "item", None)  # numpy scalars
-    if callable(item) and getattr(value, "shape", None) == ():
-        return to_wire(item())
-    return repr(value)
-
-
-def from_wire(data: Any) -> Any:
-    """Marked mappings come back as attribute objects (``det.found``), the rest as JSON gives."""
-    if isinstance(data, dict):
-        if "__type__" in data:
-            ns = types.SimpleNamespace(
-                **{k: from_wire(v) for k, v in data.items() if k != "__type__"}
-            )
-            ns.__dict__["_type"] = data["__type__"]
-            return ns
-        return {k: from_wire(v) for k, v in data.items()}
-    if isinstance(data, list):
-        return [from_wire(v) for v in data]
-    return data
-
-
-@dataclass
-class Header:
-    """What travels beside every payload (as the Zenoh attachment)."""
-
-    stream: str  # new at every start of the exporter: a restart is not a gap
-    zid: str  # the exporter's Zenoh session: whom to ask for its clock
-    seq: int
-    sent: float  # exporter's wall clock, seconds
-    captured: float  # exporter's wall clock at capture (frames) or publication
-    kind: str  # "json" or "frame"
-    frame: dict[str, Any] = field(default_factory=dict)
-
-    def encode(self) -> bytes:
-        d = {
-            "v": WIRE_VERSION,
-            "s": self.stream,
-            "z": self.zid,
-            "n": self.seq,
-            "t": self.sent,
-            "c": self.captured,
-            "k": self.kind,
-        }
-        if self.frame:
-            d["f"] = self.frame
-        return json.dumps(d, separators=(",", ":")).encode()
-
-    @classmethod
-    def decode(cls, raw: bytes) -> Header:
-        d = json.loads(raw)
-        if d.get("v") != WIRE_VERSION:
-            raise ValueError(f"wire version {d.get('v')!r}, expected {WIRE_VERSION}")
-        return cls(
-            str(d["s"]),
-            str(d["z"]),
-            int(d["n"]),
-            float(d["t"]),
-            float(d["c"]),
-            str(d["k"]),
-            dict(d.get("f") or {}),
-        )
-
-
-def encode_frame(frame: Frame, encoding: str, quality: int) -> tuple[dict[str, Any], bytes]:
-    """Header fields and payload of a frame: raw pixels, or JPEG/PNG when the export asks."""
-    meta = {
-        "shape": list(frame.shape),
-        "dtype": str(frame.dtype),
-        "pf": frame.pixel_format,
-        "seq": frame.seq,
-        "enc": encoding,
-    }
-    if encoding == "raw":
-        return meta, frame.data.tobytes()
-    import cv2
-
-    img = frame.data
-    if frame.pixel_format == "RGB":
-        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-        meta["pf"] = "BGR"
-    params = [cv2.IMWRITE_JPEG_QUALITY, quality] if encoding == "jpeg" else []
-    ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
-    if not ok:
-        raise ValueError(f"cannot encode a {frame.shape} frame as {encoding}")
-    return meta, buf.tobytes()
-
-
-def decode_frame(meta: dict[str, Any], payload: bytes) -> np.ndarray:
-    shape = tuple(int(x) for x in meta["shape"])
-    if meta.get("enc", "raw") == "raw":
-        arr = np.frombuffer(payload, dtype=np.dtype(meta["dtype"]))
-        if arr.size != math.prod(shape):
-            raise ValueError(f"frame payload of {arr.size} values for shape {shape}")
-        return arr.reshape(shape)
-    import cv2
-
-    flag = cv2.IMREAD_UNCHANGED
-    img = cv2.imdecode(np.frombuffer(payload, dtype=np.uint8), flag)
-    if img is None:
-        raise ValueError("undecodable compressed frame")
-    return img
 
 
 # --- the import node ---------------------------------------------------------------------
@@ -331,6 +216,10 @@ class _Import:
         self.started = bridge.host.now_mono()
         self.stale = False
         self.decode_errors = 0
+        self.restarts = 0  # sequence jumps taken as a restart of the exporter (counted)
+        self.max_bytes = 1 << 20  # set from the ImportSpec: larger messages are refused
+        self.max_pixels = 8192 * 8192
+        self.warned: dict[str, float] = {}  # reason -> last warning (rate-limited)
         self.ctx: Any = None
         # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
         # keeps one pool frame of the last shape ready (``spare``); frames replaced before
@@ -345,24 +234,38 @@ class _Import:
         try:
             raw_att = sample.attachment
             if raw_att is None:
-                raise ValueError("no flowrt header (not published by flowrt?)")
+                raise Refused("undecodable", "no flowrt header (not published by flowrt?)")
+            if len(raw_att) > MAX_HEADER_BYTES:
+                raise Refused("too large", f"a header of {len(raw_att)} bytes")
             header = Header.decode(raw_att.to_bytes())
+            if len(sample.payload) > self.max_bytes:  # refused before it is copied or parsed
+                raise Refused(
+                    "too large", f"{len(sample.payload)} bytes, the limit is {self.max_bytes}"
+                )
             payload = sample.payload.to_bytes()
             if header.kind == "frame":
+                check_frame(header.frame, payload, self.max_pixels)
                 value: Any = decode_frame(header.frame, payload)
                 value = self._into_spare(header.frame, value)
             else:
                 value = from_wire(json.loads(payload))
         except Exception as e:
+            reason = e.reason if isinstance(e, Refused) else "undecodable"
             with self.lock:
                 self.decode_errors += 1
-                self.link.lost("undecodable")
-            log.warning("import %s: undecodable message on %s: %s", self.name, self.key, e)
+                self.link.published += 1  # it arrived: published, and dropped with its reason
+                self.link.lost(reason)
+            self._warn(reason, f"import {self.name}: {reason} message on {self.key}: {e}")
             return
         self.bridge.clock_probe(header.zid)
         with self.lock:
             if header.stream != self.stream:
                 self.stream, self.last_seq = header.stream, header.seq - 1
+            elif not 0 <= header.seq - self.last_seq <= MAX_SEQ_JUMP:
+                # a forged or reset sequence: a restart of the stream, counted, not a gap of
+                # 2**70 messages (nor a negative one)
+                self.restarts += 1
+                self.last_seq = header.seq - 1
             gap = header.seq - self.last_seq - 1
             if gap > 0:  # never received: lost on the way (or dropped by Zenoh's congestion)
                 self.link.published += gap
@@ -383,6 +286,14 @@ class _Import:
             self.scheduled = True
         with contextlib.suppress(RuntimeError):  # the loop is closing
             self.bridge.host.loop.call_soon_threadsafe(self.deliver)
+
+    def _warn(self, reason: str, text: str) -> None:
+        """One warning per reason every WARN_EVERY seconds: a flood is counted, not logged."""
+        now = time.monotonic()
+        last = self.warned.get(reason)
+        if last is None or now - last >= WARN_EVERY:
+            self.warned[reason] = now
+            log.warning("%s (further ones counted, logged at most every %g s)", text, WARN_EVERY)
 
     def _into_spare(self, meta: dict[str, Any], arr: np.ndarray) -> Any:
         """The pixels in the pool frame the loop has ready, when its shape fits; else as is."""
@@ -592,6 +503,7 @@ class ZenohBridge:
         """Subscribers for the imports, bound to their nodes (once the nodes are set up)."""
         for name, im in self.spec.imports.items():
             imp = _Import(self, name, im.key, im.period, im.stale_after, im.size)
+            imp.max_bytes, imp.max_pixels = im.byte_limit, im.max_pixels
             node = self.host.import_node(name)
             if node is not None:
                 node.link = imp

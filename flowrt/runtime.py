@@ -733,6 +733,7 @@ class Runtime:
         params: Mapping[str, Any] | None = None,
         *,
         origin: str = "api",
+        resolved: type[Node] | None = None,
     ) -> None:
         """Swap ``node``'s algorithm while running: a new instance of ``kind`` takes over.
 
@@ -741,7 +742,8 @@ class Runtime:
         nodes see nothing. ``params`` default to the node's current ones when the kind is
         unchanged, else to the new kind's defaults. Raises ``SwapError`` with the reason (an
         unknown kind, an import error, bad params, a failing ``setup``): the old instance
-        keeps running.
+        keeps running. ``resolved`` is ``kind``'s class when the caller imported it already
+        (the control endpoint does, off the loop).
         """
         from pydantic import ValidationError
 
@@ -751,7 +753,7 @@ class Runtime:
         old_kind = runner.rnode.spec.kind
         label = kind if isinstance(kind, str) else f"{kind.__module__}:{kind.__qualname__}"
         try:
-            cls = resolve_kind(kind, None)
+            cls = resolved if resolved is not None else resolve_kind(kind, None)
         except KindError as e:
             raise SwapError(f"{node}: {e}") from None
         except Exception as e:
@@ -792,10 +794,12 @@ class Runtime:
 
         runner = self._runner(node)
         cls = runner.rnode.cls
-        try:
-            module = importlib.reload(sys.modules[cls.__module__])
+        try:  # off the loop, and whatever the module does at import is contained
+            module = await asyncio.to_thread(importlib.reload, sys.modules[cls.__module__])
             new_cls = getattr(module, cls.__qualname__)
-        except Exception as e:
+        except asyncio.CancelledError:
+            raise
+        except BaseException as e:
             raise SwapError(f"{node}: reloading {cls.__module__} failed: {e!r}") from None
         kind = runner.rnode.spec.kind
         await self._swap_to(runner, new_cls, runner.rnode.params, kind, origin, reload=True)

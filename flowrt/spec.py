@@ -658,11 +658,32 @@ class ImportSpec(_Strict):
     frames: bool = Field(
         default=False, description="the stream carries frames: a frame source (ticks)"
     )
+    max_bytes: int | None = Field(
+        default=None,
+        ge=1,
+        le=1 << 30,
+        description="largest message accepted (payload bytes); default 64 MiB for frames, "
+        "1 MiB for messages: a larger one is dropped, counted, never decoded",
+    )
+    max_pixels: int = Field(
+        default=8192 * 8192,
+        ge=1,
+        le=1 << 30,
+        description="largest frame accepted (width x height), checked from the image "
+        "header before any decoding",
+    )
 
     @model_validator(mode="before")
     @classmethod
     def _short_form(cls, data: Any) -> Any:
         return {"key": data} if isinstance(data, str) else data
+
+    @property
+    def byte_limit(self) -> int:
+        """The byte limit in force: ``max_bytes``, or the default for the stream's kind."""
+        if self.max_bytes is not None:
+            return self.max_bytes
+        return (64 << 20) if self.frames else (1 << 20)
 
     @field_validator("key")
     @classmethod
@@ -686,3 +707,8 @@ class GraphSpec(_Strict):
         default_factory=dict, alias="export"
     )
     imports: dict[NodeName, ImportSpec] = Field(default_factory=dict, alias="import")
+    control_allow_kinds: list[str] = Field(
+        default_factory=list,
+        description="node kinds the control endpoint may swap a node to, besides the kinds "
+        "the graph already uses (see README: the control endpoint)",
+    )

@@ -287,7 +287,21 @@ def start_forkserver() -> None:
 
     _exit_if_importing_main()
     _context()
-    forkserver.ensure_running()
+    # Python 3.11's forkserver runs ``python -c`` and ignores the sys.path it is given, so the
+    # working directory comes first on its path: in the folder that holds a clone named
+    # ``flowrt/``, the preloaded ``flowrt`` was that folder (a namespace package), and every
+    # worker failed ("cannot import name 'Frame' from 'flowrt'"). PYTHONSAFEPATH (3.11+)
+    # leaves the working directory out; workers get the main process's sys.path when they
+    # start (multiprocessing's prepare), so user modules the main process can import work.
+    before = os.environ.get("PYTHONSAFEPATH")
+    os.environ["PYTHONSAFEPATH"] = "1"
+    try:
+        forkserver.ensure_running()
+    finally:
+        if before is None:
+            os.environ.pop("PYTHONSAFEPATH", None)
+        else:
+            os.environ["PYTHONSAFEPATH"] = before
 
 
 # --------------------------------------------------------------------------------------------

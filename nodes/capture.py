@@ -99,6 +99,7 @@ from flowrt import (
     TimerTrigger,
     resolve_path,
 )
+from flowrt.files import check_regular_file
 
 from .scene import SceneTruth
 
@@ -313,6 +314,10 @@ class CaptureParams(BaseModel):
                 raise ValueError(
                     f"{path} is a directory, not a video file (for images use images:GLOB)"
                 )
+            try:  # a device or a FIFO would block or never end: only regular files
+                check_regular_file(path)
+            except OSError as e:
+                raise ValueError(f"video file: {e.strerror or e}") from None
         return f"{kind}:{path}"
 
     @field_validator("size")

@@ -26,6 +26,7 @@ import contextlib
 import hmac
 import json
 import pickle
+import secrets
 import signal
 import socket
 import struct
@@ -56,6 +57,9 @@ SNAPSHOT_WAIT = 0.5  # seconds a snapshot waits for a newer frame than the one c
 FIRST_WAIT = 5.0  # seconds a snapshot waits for a source's first encoded frame
 HEADER_TIMEOUT = 10.0  # seconds a connection has to send a request's headers
 CLOSE_TIMEOUT = 1.0  # seconds given to clients to close at the end
+STALL = 3.0  # seconds a streaming client may take nothing before it is dropped (counted)
+STREAM_SNDBUF = 256 << 10  # bytes buffered per MJPEG client: a few frames, then it must read
+MAX_SESSIONS = 1024  # page sessions remembered (each page load makes one)
 COOKIE = "flowrt_view"  # holds the token once the page was opened with ?token=
 JPEG_PART = "Content-Type: image/jpeg\r\nContent-Length: "
 
@@ -111,6 +115,9 @@ class ViewServer:
         self.streams = 0
         self.conns: dict[asyncio.BaseTransport, Conn] = {}
         self.refused = 0
+        self.stalled = 0  # streaming clients dropped: their socket took nothing for STALL s
+        self.refused_control = 0  # control messages from a WebSocket without a page session
+        self.sessions: dict[str, None] = {}  # secrets of the pages served (oldest first)
         self.any_change = asyncio.Event()
         self._asked: dict[str, int] = {}  # source -> the n a ``want`` was sent after
         self._writer: asyncio.StreamWriter | None = None
@@ -182,6 +189,8 @@ class ViewServer:
                         "clients": len(self.clients),
                         "streams": self.streams,
                         "refused": self.refused,
+                        "stalled": self.stalled,
+                        "refused_control": self.refused_control,
                     }
                     data = b'{"runtime":' + body + b',"display":' + json.dumps(display).encode()
                     data += b"}"
@@ -334,7 +343,20 @@ class ViewServer:
     # --- HTTP -------------------------------------------------------------------------------
 
     async def _index(self, request: web.Request) -> web.Response:
-        return web.Response(body=self.page, content_type="text/html", charset="utf-8")
+        """The page, with a session secret of its own: only a WebSocket opened with it may send
+        control messages (the joystick), so a local program that merely connects cannot
+        drive the robot; with a token, the token is needed to get the page at all."""
+        session = secrets.token_urlsafe(18)
+        self.sessions[session] = None
+        while len(self.sessions) > MAX_SESSIONS:  # the oldest pages forgotten first
+            del self.sessions[next(iter(self.sessions))]
+        body = self.page.replace(b"__FLOWRT_SESSION__", session.encode())
+        return web.Response(
+            body=body,
+            content_type="text/html",
+            charset="utf-8",
+            headers={"Cache-Control": "no-store"},
+        )
 
     async def _stats_json(self, request: web.Request) -> web.Response:
         cached = self._stats
@@ -398,6 +420,10 @@ class ViewServer:
                 "Cache-Control": "no-store",
             }
         )
+        sock = request.transport.get_extra_info("socket") if request.transport else None
+        if sock is not None:  # a small send buffer: a client that stops reading shows at once
+            with contextlib.suppress(OSError):
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, STREAM_SNDBUF)
         await resp.prepare(request)
         self.streams += 1
         sent = 0
@@ -412,8 +438,16 @@ class ViewServer:
                 jpeg = src.raw if kind == "raw" else src.processed
                 head = f"--flowrtframe\r\n{JPEG_PART}{len(jpeg)}\r\n\r\n"
                 # write() waits for the socket to drain once its buffer is full: a slow reader
-                # holds this loop, and when it continues it gets the newest frame.
-                await resp.write(head.encode() + jpeg + b"\r\n")
+                # holds this loop, and when it continues it gets the newest frame. A client
+                # that takes nothing for STALL seconds is dropped (counted): streaming
+                # connections must not hold the client slots for good.
+                try:
+                    await asyncio.wait_for(resp.write(head.encode() + jpeg + b"\r\n"), STALL)
+                except TimeoutError:
+                    self.stalled += 1
+                    if request.transport is not None:
+                        request.transport.abort()
+                    break
         except (ConnectionError, asyncio.CancelledError):
             pass
         finally:
@@ -424,6 +458,7 @@ class ViewServer:
         ws = web.WebSocketResponse(
             heartbeat=10.0, compress=False, timeout=CLOSE_TIMEOUT, max_msg_size=1 << 16
         )
+        may_control = request.query.get("session", "") in self.sessions
         await ws.prepare(request)
         client = _Client(ws)
         self.clients.add(client)
@@ -438,7 +473,9 @@ class ViewServer:
                 except (ValueError, AttributeError):
                     continue
                 joy = _joystick(data.get("joy"))
-                if joy is not None:
+                if joy is not None and not may_control:
+                    self.refused_control += 1  # a connection, not a page of this view
+                elif joy is not None:
                     self._send({"op": "joy", "value": joy})  # the node writes the RTDB
                 if isinstance(ack, str):
                     client.waiting_ack.discard(ack)

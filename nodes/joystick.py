@@ -17,7 +17,7 @@ the device disappears, nothing is published (so the consumer times out to zero),
 in an error state with the reason, and it is reopened with backoff (attempts counted in the
 node's log and events).
 
-``script:FILE`` (relative to the current directory, or absolute): a CSV with a header row;
+``script:FILE`` (relative to the graph file's folder, or absolute): a CSV with a header row;
 column ``time`` (seconds from the start) first, then one column per axis (``x`` or
 ``axis:x``) and per button (``button:a``). At each activation the newest row whose time has
 come is published; after the last row ``end`` says what happens: ``hold`` (keep publishing
@@ -36,14 +36,18 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import io
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from flowrt import HealthAlert, Node, Output, TimerTrigger
+from flowrt import HealthAlert, Node, Output, TimerTrigger, resolve_path
+from flowrt.files import check_regular_file, read_text
+
+MAX_SCRIPT_BYTES = 16 << 20  # a scripted drive of hours at 1 kHz is a few MB
 
 __all__ = ["JoyState", "Joystick", "load_script"]
 
@@ -73,19 +77,31 @@ class JoystickParams(BaseModel):
 
     @field_validator("source")
     @classmethod
-    def _known(cls, v: str) -> str:
+    def _known(cls, v: str, info: ValidationInfo) -> str:
+        """``script:FILE`` resolves against the graph file's folder and must be a regular
+        file of at most MAX_SCRIPT_BYTES (``script:/dev/zero`` is refused here, located)."""
         kind, _, rest = v.partition(":")
         if kind == "web" and not rest:
             return v
-        if kind in ("evdev", "script") and rest:
+        if kind == "evdev" and rest:
             return v
+        if kind == "script" and rest:
+            path = resolve_path(rest, info)
+            try:
+                check_regular_file(path, MAX_SCRIPT_BYTES)
+            except FileNotFoundError:
+                raise ValueError(f"joystick script not found: {path}") from None
+            except OSError as e:
+                raise ValueError(f"joystick script: {e.strerror or e}") from None
+            return f"script:{path}"
         raise ValueError("source must be evdev:PATH, evdev:NAME, web or script:FILE")
 
 
 def load_script(path: str | Path) -> list[tuple[float, dict[str, float], dict[str, bool]]]:
     """Rows of a scripted joystick CSV, sorted by time (see the module docstring)."""
     rows: list[tuple[float, dict[str, float], dict[str, bool]]] = []
-    with open(path, newline="") as f:
+    text = read_text(path, MAX_SCRIPT_BYTES)  # a regular file of bounded size, or OSError
+    with io.StringIO(text, newline="") as f:
         reader = csv.reader(f)
         header = [h.strip() for h in next(reader)]
         if not header or header[0] != "time":

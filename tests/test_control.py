@@ -48,7 +48,11 @@ async def rt() -> AsyncIterator[Runtime]:
 
 @pytest.fixture
 async def rt_token() -> AsyncIterator[Runtime]:
-    config = ControlConfig("127.0.0.1", 0, token=TOKEN)  # a token given on loopback is required
+    # a token given on loopback is required; relay and a module that exits at import may be
+    # named by POST /swap besides the graph's own kinds
+    config = ControlConfig(
+        "127.0.0.1", 0, token=TOKEN, allow_kinds=("relay", "unittest.__main__:X")
+    )
     async for r in served(config):
         yield r
 
@@ -431,7 +435,7 @@ async def test_ctl_swap_and_reload(rt_token: Runtime) -> None:
     assert rt_token.scheduler.runners["slow"].rnode.params.ms == 0.2  # type: ignore[attr-defined]
     code, out, err = await ctl(*base, "swap", "slow", "no_such_kind", token=TOKEN)
     assert code == 1
-    assert "unknown node kind" in err
+    assert "not allowed over the control endpoint" in err
     assert "Traceback" not in err
     code, out, err = await ctl(*base, "swap", "slow", "burn", "--params", "[1]", token=TOKEN)
     assert code == 2
@@ -439,3 +443,64 @@ async def test_ctl_swap_and_reload(rt_token: Runtime) -> None:
     assert (code, out.strip()) == (0, "slow: now burn (reload)"), err
     kinds = [e.node_kind for e in rt_token.events if isinstance(e, flowrt.NodeSwapped)]
     assert kinds == ["burn", "burn"]
+
+
+# --- what a local caller may not do (issue 32 item 2) ------------------------------------
+
+
+async def test_swap_to_a_kind_the_graph_does_not_allow_is_refused_and_nothing_imported(
+    rt_token: Runtime,
+) -> None:
+    import sys
+
+    before = set(sys.modules)
+    status, body = await call(
+        "POST",
+        url(rt_token, "/swap"),
+        {"node": "slow", "kind": "xml.dom.minidom:Node"},
+        headers={"Authorization": f"Bearer {TOKEN}"},
+    )
+    assert status == 403
+    assert "not allowed" in body["error"]
+    assert "xml.dom.minidom" not in set(sys.modules) - before
+    assert rt_token.started
+
+
+async def test_a_module_that_exits_at_import_does_not_end_the_runtime(rt_token: Runtime) -> None:
+    status, body = await call(
+        "POST",
+        url(rt_token, "/swap"),
+        {"node": "slow", "kind": "unittest.__main__:X"},  # allowed, and calls sys.exit
+        headers={"Authorization": f"Bearer {TOKEN}"},
+    )
+    assert status == 409
+    assert "SystemExit" in body["error"]
+    assert rt_token.started
+    status, _ = await call(
+        "GET", url(rt_token, "/stats"), headers={"Authorization": f"Bearer {TOKEN}"}
+    )
+    assert status == 200
+    assert rt_token.stats().node("slow").kind == "burn"
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"ms": 0.2, "path": "../../elsewhere"},
+        {"ms": 0.2, "host": "0.0.0.0"},
+        {"ms": 0.2, "token": "chosen"},
+        {"ms": 0.2, "nested": {"output_dir": "/tmp/x"}},
+    ],
+)
+async def test_params_that_move_data_are_refused_over_the_endpoint(
+    rt_token: Runtime, params: dict[str, Any]
+) -> None:
+    status, body = await call(
+        "POST",
+        url(rt_token, "/swap"),
+        {"node": "slow", "kind": "burn", "params": params},
+        headers={"Authorization": f"Bearer {TOKEN}"},
+    )
+    assert status == 403, body
+    assert "where data goes" in body["error"]
+    assert rt_token.stats().node("slow").kind == "burn"

@@ -9,6 +9,7 @@ import json
 import os
 import re
 import shutil
+import socket
 import tempfile
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
@@ -678,3 +679,70 @@ async def test_a_dead_view_server_is_an_error_state(capsys: pytest.CaptureFixtur
         assert st.state == "error"
         assert "server process ended" in st.reason
         assert rt.stats().node("cam").errors == 0
+
+
+# --- lock-outs and driving from another process (issue 32 item 7) --------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+async def test_stream_clients_that_never_read_do_not_keep_a_new_client_out(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """40 MJPEG clients that never read (the cap is 32): their writes stall, they are
+    dropped (counted) within seconds, and a new client gets the page."""
+    async with running(capsys) as (_, url):
+        host, port = url.removeprefix("http://").split(":")
+        socks: list[socket.socket] = []
+        for _ in range(40):
+            s = socket.socket()
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # never read from
+            s.setblocking(False)
+            with contextlib.suppress(BlockingIOError):
+                s.connect((host, int(port)))
+            socks.append(s)
+        await asyncio.sleep(0.3)
+        for s in socks:
+            with contextlib.suppress(OSError):
+                s.send(f"GET /stream/cam.mjpg HTTP/1.1\r\nHost: {host}:{port}\r\n\r\n".encode())
+        async with aiohttp.ClientSession() as http:
+
+            async def page_served() -> bool:
+                try:
+                    async with http.get(url + "/", timeout=aiohttp.ClientTimeout(total=2)) as r:
+                        return r.status == 200
+                except (aiohttp.ClientError, TimeoutError):
+                    return False
+
+            await wait_for(page_served, 20, "a new client served past 40 stalled streams")
+            stats = await get_json(http, url + "/stats.json")
+        assert stats["display"]["stalled"] >= 1
+        for s in socks:
+            s.close()
+
+
+async def test_a_websocket_without_the_page_session_cannot_drive(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A local program that connects to /ws (no token, no Origin) sends joystick messages:
+    none reaches the runtime; the page's own session does."""
+    async with running(capsys) as (rt, url), aiohttp.ClientSession() as http:
+        joy = {"joy": {"axes": {"x": 0.0, "y": 0.9}, "buttons": {"deadman": True}}}
+        async with http.ws_connect(url + "/ws") as ws:
+            for _ in range(20):
+                await ws.send_json(joy)
+            await asyncio.sleep(0.5)
+        assert rt.rtdb.read("joystick.web") is None
+        stats = await get_json(http, url + "/stats.json")
+        assert stats["display"]["refused_control"] == 20
+        async with http.get(url + "/") as r:
+            html = await r.text()
+        session = re.search(r'const SESSION = "([^"]+)"', html)
+        assert session, "the page carries its session"
+        async with http.ws_connect(url + f"/ws?session={session.group(1)}") as ws:
+            await ws.send_json(joy)
+
+            async def arrived() -> bool:
+                return rt.rtdb.read("joystick.web") is not None
+
+            await wait_for(arrived, 5, "the page's joystick message")

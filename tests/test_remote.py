@@ -21,15 +21,8 @@ import pytest
 
 from flowrt import Frame, Graph, GraphBuilder, GraphError, Node, Output, Runtime
 from flowrt.edges import EMPTY
-from flowrt.remote import (
-    FRAME_BACKLOG,
-    Header,
-    _Import,
-    decode_frame,
-    encode_frame,
-    from_wire,
-    to_wire,
-)
+from flowrt.remote import FRAME_BACKLOG, _Import
+from flowrt.zenoh_wire import Header, decode_frame, encode_frame, from_wire, to_wire
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -312,6 +305,9 @@ class _Bytes:
     def to_bytes(self) -> bytes:
         return self.data
 
+    def __len__(self) -> int:
+        return len(self.data)
+
 
 class _Sample:
     def __init__(self, header: Header, payload: bytes) -> None:
@@ -341,4 +337,81 @@ def test_link_counts_each_loss_with_its_reason() -> None:
         "undecodable": 1,
     }
     assert imp.link.dropped == 1 + overruns + 1
-    assert imp.link.published == 7  # 0..6 by sequence number; the undecodable one unknown
+    # 0..6 by sequence number, and the undecodable one: it arrived (published) and was dropped
+    assert imp.link.published == 8
+
+
+def _imp() -> Any:
+    host = types.SimpleNamespace(
+        loop=types.SimpleNamespace(call_soon_threadsafe=lambda f: None), now_mono=lambda: 0.0
+    )
+    bridge = types.SimpleNamespace(host=host, clock_probe=lambda zid: None)
+    imp = _Import(bridge, "rx", "k", None, 5.0, 16)  # type: ignore[arg-type]
+    imp.max_bytes, imp.max_pixels = 1 << 20, 4096 * 4096
+    return imp
+
+
+def _png_header(w: int, h: int) -> bytes:
+    import struct
+    import zlib
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    chunk = b"IHDR" + ihdr
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + struct.pack(">I", len(ihdr))
+        + chunk
+        + struct.pack(">I", zlib.crc32(chunk))
+        + b"\x00" * 64
+    )
+
+
+@pytest.mark.parametrize(
+    ("meta", "payload", "reason"),
+    [
+        ({"shape": [], "dtype": "uint8", "enc": "raw"}, b"", "bad frame"),
+        ({"shape": [2, 2, 3, 1], "dtype": "uint8", "enc": "raw"}, bytes(12), "bad frame"),
+        ({"shape": [2, 2, 3], "dtype": "object", "enc": "raw"}, bytes(12), "bad frame"),
+        (
+            {"shape": [12000, 12000, 3], "dtype": "uint8", "enc": "png"},
+            _png_header(12000, 12000),
+            "bad frame",
+        ),
+        (
+            {"shape": [4, 4, 3], "dtype": "uint8", "enc": "png"},
+            _png_header(12000, 12000),
+            "bad frame",
+        ),
+        ({"shape": [4, 4, 3], "dtype": "uint8", "enc": "raw"}, bytes(2 << 20), "too large"),
+    ],
+    ids=["0-dim", "4-dim", "dtype", "huge-declared", "png-header-huge", "over-byte-limit"],
+)
+def test_an_import_refuses_what_is_not_an_image_before_decoding(
+    meta: dict[str, Any], payload: bytes, reason: str
+) -> None:
+    """Issue 32 item 3: shapes, dtypes and encoded sizes are checked before decoding."""
+    imp = _imp()
+    imp.on_sample(_Sample(Header("s", "z", 0, 0.0, 0.0, "frame", meta), payload))
+    assert imp.link.drop_reasons == {reason: 1}
+    assert imp.link.published == 1
+    assert not imp.pending
+
+
+def test_a_forged_sequence_jump_is_a_restart_not_a_gap_of_2_to_the_70() -> None:
+    imp = _imp()
+    meta, pixels = encode_frame(Frame(np.zeros((4, 4, 3), np.uint8)), "raw", 90)
+    for seq in (0, 1, 2**70, 2**70 + 1, 5):
+        imp.on_sample(_Sample(Header("s", "z", seq, 0.0, 0.0, "frame", meta), pixels))
+    assert imp.restarts == 2  # forward by 2**70, then back to 5
+    assert imp.link.published == 5
+    assert imp.link.drop_reasons.get("sequence gap", 0) == 0
+
+
+def test_a_large_json_message_is_refused_without_parsing(caplog: pytest.LogCaptureFixture) -> None:
+    imp = _imp()
+    big = b"[" + b"1," * (1 << 20) + b"1]"
+    for seq in range(50):
+        imp.on_sample(_Sample(Header("s", "z", seq, 0.0, 0.0, "json"), big))
+    assert imp.link.drop_reasons == {"too large": 50}
+    warnings = [r for r in caplog.records if "too large" in r.getMessage()]
+    assert len(warnings) == 1  # rate-limited: a flood is counted, logged once

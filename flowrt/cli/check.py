@@ -12,7 +12,6 @@ import argparse
 import json
 import math
 import os
-from pathlib import Path
 from typing import Any
 
 from rich.console import Console
@@ -194,14 +193,18 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
     return EXIT_OK if verdict.schedulable else EXIT_FAILED
 
 
+MAX_STATS_BYTES = 64 << 20  # a --stats-json of thousands of nodes is a few MB
+
+
 def _stats_budgets(args: argparse.Namespace, err: Console) -> dict[str, Any] | None:
     from pydantic import ValidationError
 
     from ..analysis.budgets import budgets_from_stats
+    from ..files import read_bytes
     from ..stats import RuntimeStats
 
     try:
-        stats = RuntimeStats.model_validate_json(Path(args.wcet_from).read_text())
+        stats = RuntimeStats.model_validate_json(read_bytes(args.wcet_from, MAX_STATS_BYTES))
     except OSError as e:
         err.print(f"flowrt check: cannot read {args.wcet_from}: {e.strerror}", markup=False)
         return None

@@ -42,8 +42,11 @@ def _warm_forkserver(path: str) -> None:
     import re
     import threading
 
-    try:
-        text = Path(path).read_text(errors="replace")
+    from ..files import read_bytes
+    from ..loading import MAX_FILE_BYTES
+
+    try:  # the same limits as the graph file's reading: a device, a FIFO, 1 GiB: not read
+        text = read_bytes(path, MAX_FILE_BYTES).decode(errors="replace")
     except OSError:
         return
     if re.search(r"placement\s*:\s*[\"']?(process|pool)\b", text):
@@ -367,6 +370,9 @@ def _control_config(
     except ValueError as e:
         err.print(f"{prog}: {e}", markup=False)
         raise SystemExit(EXIT_BAD_GRAPH) from None
+    allow = getattr(args, "control_allow_kinds", "") or ""
+    kinds = tuple(k.strip() for k in allow.split(",") if k.strip())
+    config = dataclasses.replace(config, allow_kinds=kinds)
     if config.needs_token and not config.token:
         config = dataclasses.replace(config, token=secrets.token_urlsafe(24))
         err.print(f"control token (give it to flowrt ctl --token): {config.token}", markup=False)
@@ -448,6 +454,12 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
         help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
+    run.add_argument(
+        "--control-allow-kinds",
+        metavar="KINDS",
+        default="",
+        help="comma-separated node kinds POST /swap may name besides those the graph uses",
+    )
     run.add_argument(
         "--foxglove",
         nargs="?",

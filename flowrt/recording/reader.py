@@ -19,6 +19,7 @@ boundaries), and :func:`iter_session` gives the messages of every part in order.
 from __future__ import annotations
 
 import contextlib
+import io
 import itertools
 import json
 import os
@@ -150,18 +151,103 @@ def _describe(e: BaseException) -> str:
     return f"{name}: {e}" if str(e) else name
 
 
+# A recording is data from anywhere: a chunk is decompressed only up to the size it declares,
+# and never past this cap, so a 33 KB file cannot ask for gigabytes (a "chunk bomb").
+MAX_CHUNK_BYTES = int(os.environ.get("FLOWRT_MAX_CHUNK_BYTES", 512 * 1024 * 1024))
+
+
+class ChunkTooLarge(ValueError):
+    """A chunk that declares, or decompresses to, more than a reader will hold."""
+
+
+def chunk_data(chunk: Any, validate_crc: bool = True) -> bytes:
+    """The uncompressed records of ``chunk``, in memory bounded by its declared size.
+
+    ``mcap``'s own reader trusts the compressed frame's content size (zstd) or decompresses
+    without a limit (lz4); here the output stops one byte past ``uncompressed_size`` (and
+    :data:`MAX_CHUNK_BYTES`), which is refused.
+    """
+    import zlib
+
+    declared = int(chunk.uncompressed_size)
+    if declared > MAX_CHUNK_BYTES:
+        raise ChunkTooLarge(
+            f"a chunk declares {declared} bytes, more than the {MAX_CHUNK_BYTES} a reader "
+            "holds (FLOWRT_MAX_CHUNK_BYTES)"
+        )
+    if chunk.compression == "zstd":
+        data = _bounded_zstd(chunk.data, declared)
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        d = lz4.frame.LZ4FrameDecompressor()
+        data = d.decompress(chunk.data, max_length=declared + 1)
+    elif chunk.compression == "":
+        data = chunk.data
+    else:
+        raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
+    if len(data) != declared:
+        raise ChunkTooLarge(
+            f"a chunk decompresses to {'more' if len(data) > declared else 'less'} than "
+            f"the {declared} bytes it declares"
+        )
+    if validate_crc and chunk.uncompressed_crc != 0 and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise ValueError("chunk CRC mismatch: the chunk is damaged")
+    return bytes(data)
+
+
+def _bounded_zstd(data: bytes, declared: int) -> bytes:
+    """At most ``declared + 1`` bytes out of a zstd stream, whatever its frames claim."""
+    import zstandard
+
+    reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data))
+    out = reader.read(declared + 1)
+    while len(out) <= declared:
+        more = reader.read(declared + 1 - len(out))
+        if not more:
+            break
+        out += more
+    return out
+
+
+def chunk_records(chunk: Any, validate_crc: bool = True) -> list[Any]:
+    """The schema, channel and message records of ``chunk`` (:func:`chunk_data`, bounded)."""
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Channel, Message, Schema
+
+    data = chunk_data(chunk, validate_crc)
+    stream = ReadDataStream(io.BytesIO(data))
+    out: list[Any] = []
+    while stream.count < len(data):
+        opcode = stream.read1()
+        n = stream.read8()
+        if opcode == 0x04:
+            out.append(Channel.read(stream))
+        elif opcode == 0x05:
+            out.append(Message.read(stream, n))
+        elif opcode == 0x03:
+            out.append(Schema.read(stream))
+        else:
+            stream.read(n)
+    return out
+
+
 def _records(path: Path, rec: Recording, emit_chunks: bool) -> Iterator[Any]:
-    """Records of the file in order; stops quietly at damage, noting it in ``rec``."""
-    from mcap.records import Footer
+    """Records of the file in order; stops quietly at damage, noting it in ``rec``.
+
+    Chunks are broken up here, through :func:`chunk_records` (bounded), not by ``mcap``.
+    """
+    from mcap.records import Chunk, Footer
     from mcap.stream_reader import StreamReader
 
     with open(path, "rb") as f:
-        reader = StreamReader(f, emit_chunks=emit_chunks, validate_crcs=True)
+        reader = StreamReader(f, emit_chunks=True, validate_crcs=True)
         it = reader.records
         while True:
             pos = f.tell()
             try:
                 r = next(it)
+                inner = chunk_records(r) if isinstance(r, Chunk) and not emit_chunks else None
             except StopIteration:
                 break
             except Exception as e:  # any damage: keep what came before, say where and why
@@ -170,7 +256,10 @@ def _records(path: Path, rec: Recording, emit_chunks: bool) -> Iterator[Any]:
             if isinstance(r, Footer):
                 rec.closed_cleanly = True
             rec.last_offset = pos
-            yield r
+            if inner is not None:
+                yield from inner
+            else:
+                yield r
 
 
 def scan(path: str | Path) -> FileInfo:
@@ -189,7 +278,6 @@ def _scan(path: str | Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
         Metadata,
         Schema,
     )
-    from mcap.stream_reader import breakup_chunk
 
     p = Path(path)
     rec = Recording(p)
@@ -215,7 +303,7 @@ def _scan(path: str | Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
         nonlocal pending
         if pending is not None and not indexed:
             try:
-                for inner in breakup_chunk(pending, validate_crc=True):
+                for inner in chunk_records(pending):
                     take(inner)
             except Exception as e:
                 rec.damage = rec.damage or f"chunk: {_describe(e)}"
@@ -357,12 +445,13 @@ def _chunk_definitions(chunk: Any) -> tuple[list[Any], dict[int, int]]:
 
     Checks the chunk's CRC, then walks the record headers only (message data is skipped).
     """
+    from mcap.data_stream import ReadDataStream
     from mcap.records import Channel, Schema
-    from mcap.stream_reader import get_chunk_data_stream
 
     out: list[Any] = []
     sizes: dict[int, int] = {}
-    stream, length = get_chunk_data_stream(chunk, validate_crc=True)  # raises when damaged
+    data = chunk_data(chunk)  # raises when damaged or a bomb
+    stream, length = ReadDataStream(io.BytesIO(data)), len(data)
     while stream.count < length:
         offset = stream.count
         opcode = stream.read1()

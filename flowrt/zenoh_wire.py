@@ -1,0 +1,223 @@
+"""flowrt's wire format over Zenoh: the header beside every payload, and the payloads.
+
+A plain Zenoh program can read what a flowrt graph exports and publish what it imports with
+this file alone (docs in the README, "Several machines"): the attachment is a small JSON
+header (:class:`Header`), the payload JSON (messages) or pixels (frames: raw, JPEG or PNG).
+Never pickle: a graph's network peers must not be able to run code in it. What an import
+accepts is checked here before anything is decoded (:func:`check_frame`): sizes come from
+headers, not from trust.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import types
+from dataclasses import dataclass, field, fields, is_dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel
+
+from .frames import Frame
+
+WIRE_VERSION = 1
+
+
+def to_wire(value: Any) -> Any:
+    """JSON-ready data: dataclasses and pydantic models become marked mappings, numpy plain.
+
+    Never pickle: a graph's network peers must not be able to run code in it.
+    """
+    if value is None or isinstance(value, bool | int | str):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, BaseModel):
+        return {"__type__": type(value).__name__, **to_wire(value.model_dump())}
+    if is_dataclass(value) and not isinstance(value, type):
+        out = {"__type__": type(value).__name__}
+        out.update({f.name: to_wire(getattr(value, f.name)) for f in fields(value)})
+        return out
+    if isinstance(value, dict):
+        return {str(k): to_wire(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [to_wire(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return to_wire(value.tolist())
+    item = getattr(value, "item", None)  # numpy scalars
+    if callable(item) and getattr(value, "shape", None) == ():
+        return to_wire(item())
+    return repr(value)
+
+
+def from_wire(data: Any) -> Any:
+    """Marked mappings come back as attribute objects (``det.found``), the rest as JSON gives."""
+    if isinstance(data, dict):
+        if "__type__" in data:
+            ns = types.SimpleNamespace(
+                **{k: from_wire(v) for k, v in data.items() if k != "__type__"}
+            )
+            ns.__dict__["_type"] = data["__type__"]
+            return ns
+        return {k: from_wire(v) for k, v in data.items()}
+    if isinstance(data, list):
+        return [from_wire(v) for v in data]
+    return data
+
+
+@dataclass
+class Header:
+    """What travels beside every payload (as the Zenoh attachment)."""
+
+    stream: str  # new at every start of the exporter: a restart is not a gap
+    zid: str  # the exporter's Zenoh session: whom to ask for its clock
+    seq: int
+    sent: float  # exporter's wall clock, seconds
+    captured: float  # exporter's wall clock at capture (frames) or publication
+    kind: str  # "json" or "frame"
+    frame: dict[str, Any] = field(default_factory=dict)
+
+    def encode(self) -> bytes:
+        d = {
+            "v": WIRE_VERSION,
+            "s": self.stream,
+            "z": self.zid,
+            "n": self.seq,
+            "t": self.sent,
+            "c": self.captured,
+            "k": self.kind,
+        }
+        if self.frame:
+            d["f"] = self.frame
+        return json.dumps(d, separators=(",", ":")).encode()
+
+    @classmethod
+    def decode(cls, raw: bytes) -> Header:
+        d = json.loads(raw)
+        if d.get("v") != WIRE_VERSION:
+            raise ValueError(f"wire version {d.get('v')!r}, expected {WIRE_VERSION}")
+        return cls(
+            str(d["s"]),
+            str(d["z"]),
+            int(d["n"]),
+            float(d["t"]),
+            float(d["c"]),
+            str(d["k"]),
+            dict(d.get("f") or {}),
+        )
+
+
+def encode_frame(frame: Frame, encoding: str, quality: int) -> tuple[dict[str, Any], bytes]:
+    """Header fields and payload of a frame: raw pixels, or JPEG/PNG when the export asks."""
+    meta = {
+        "shape": list(frame.shape),
+        "dtype": str(frame.dtype),
+        "pf": frame.pixel_format,
+        "seq": frame.seq,
+        "enc": encoding,
+    }
+    if encoding == "raw":
+        return meta, frame.data.tobytes()
+    import cv2
+
+    img = frame.data
+    if frame.pixel_format == "RGB":
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+        meta["pf"] = "BGR"
+    params = [cv2.IMWRITE_JPEG_QUALITY, quality] if encoding == "jpeg" else []
+    ok, buf = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", img, params)
+    if not ok:
+        raise ValueError(f"cannot encode a {frame.shape} frame as {encoding}")
+    return meta, buf.tobytes()
+
+
+MAX_HEADER_BYTES = 4096  # a flowrt header is ~150 bytes
+MAX_SEQ_JUMP = 1 << 32  # a larger forward jump (or any backward one) is a restart
+WARN_EVERY = 10.0  # seconds between two warnings of the same reason, per import
+FRAME_DTYPES = frozenset({"uint8", "uint16", "int16", "float32"})
+
+
+class Refused(ValueError):
+    """A message an import does not take; ``reason`` is the drop reason counted."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(detail)
+        self.reason = reason
+
+
+_JPEG_SOF = frozenset(
+    {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+)
+
+
+def image_size(payload: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG's IHDR or a JPEG's SOF marker, without decoding; None when
+    the header says neither (a decoder will refuse it anyway)."""
+    if payload[:8] == b"\x89PNG\r\n\x1a\n" and len(payload) >= 24:
+        return int.from_bytes(payload[16:20], "big"), int.from_bytes(payload[20:24], "big")
+    if payload[:2] == b"\xff\xd8":
+        i = 2
+        while i + 9 < len(payload):
+            if payload[i] != 0xFF:
+                return None
+            marker = payload[i + 1]
+            length = int.from_bytes(payload[i + 2 : i + 4], "big")
+            if marker in (
+                0xC0,
+                0xC1,
+                0xC2,
+                0xC3,
+                0xC5,
+                0xC6,
+                0xC7,
+                0xC9,
+                0xCA,
+                0xCB,
+                0xCD,
+                0xCE,
+                0xCF,
+            ):
+                h = int.from_bytes(payload[i + 5 : i + 7], "big")
+                w = int.from_bytes(payload[i + 7 : i + 9], "big")
+                return w, h
+            i += 2 + length
+    return None
+
+
+def check_frame(meta: dict[str, Any], payload: bytes, max_pixels: int) -> None:
+    """Refuse, before decoding, a frame whose declared or encoded size is not an image's:
+    zero or four dimensions, an unknown dtype, a PNG declaring 12000 x 12000."""
+    try:
+        shape = tuple(int(x) for x in meta["shape"])
+    except (KeyError, TypeError, ValueError):
+        raise Refused("bad frame", "no shape") from None
+    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in (1, 3, 4)):
+        raise Refused("bad frame", f"shape {shape} is not an image (H, W[, 1|3|4])")
+    if min(shape) < 1 or shape[0] * shape[1] > max_pixels:
+        raise Refused("bad frame", f"shape {shape}: more than {max_pixels} pixels or empty")
+    if meta.get("enc", "raw") == "raw":
+        if str(meta.get("dtype")) not in FRAME_DTYPES:
+            raise Refused("bad frame", f"dtype {meta.get('dtype')!r}")
+        return
+    size = image_size(payload)
+    if size is None:
+        raise Refused("undecodable", "not a PNG or JPEG image")
+    if size[0] * size[1] > max_pixels or size[0] < 1 or size[1] < 1:
+        raise Refused("bad frame", f"a {size[0]} x {size[1]} image: more than {max_pixels}")
+
+
+def decode_frame(meta: dict[str, Any], payload: bytes) -> np.ndarray:
+    shape = tuple(int(x) for x in meta["shape"])
+    if meta.get("enc", "raw") == "raw":
+        arr = np.frombuffer(payload, dtype=np.dtype(meta["dtype"]))
+        if arr.size != math.prod(shape):
+            raise ValueError(f"frame payload of {arr.size} values for shape {shape}")
+        return arr.reshape(shape)
+    import cv2
+
+    flag = cv2.IMREAD_UNCHANGED
+    img = cv2.imdecode(np.frombuffer(payload, dtype=np.uint8), flag)
+    if img is None:
+        raise ValueError("undecodable compressed frame")
+    return img

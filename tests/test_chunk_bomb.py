@@ -1,0 +1,81 @@
+"""A compressed-chunk bomb (issue 32 item 4): a tiny MCAP whose chunk inflates to a GiB is
+refused by ``flowrt info`` and ``flowrt replay`` in bounded memory, damage reported."""
+
+from __future__ import annotations
+
+import os
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.slow, pytest.mark.subprocess]
+
+REPO = Path(__file__).resolve().parents[1]
+GIB = 1 << 30
+
+
+def bomb(path: Path, inflated: int, declared: int, compression: str) -> None:
+    """An MCAP: header, one chunk of ``inflated`` zero bytes declaring ``declared``, end."""
+    from mcap.data_stream import RecordBuilder
+    from mcap.opcode import Opcode
+    from mcap.records import Chunk, DataEnd, Footer, Header
+
+    piece = bytes(16 << 20)
+    if compression == "zstd":
+        import zstandard
+
+        c = zstandard.ZstdCompressor(level=3).compressobj()
+        data = b"".join(c.compress(piece) for _ in range(inflated // len(piece))) + c.flush()
+    else:
+        import lz4.frame
+
+        c = lz4.frame.LZ4FrameCompressor()
+        data = c.begin() + b"".join(c.compress(piece) for _ in range(inflated // len(piece)))
+        data += c.flush()
+    b = RecordBuilder()
+    Header(profile="flowrt", library="bomb").write(b)
+    Chunk(
+        compression=compression,
+        data=data,
+        message_start_time=0,
+        message_end_time=0,
+        uncompressed_crc=0,
+        uncompressed_size=declared,
+    ).write(b)
+    DataEnd(data_section_crc=0).write(b)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(b)
+    path.write_bytes(b"\x89MCAP0\r\n" + b.end() + b"\x89MCAP0\r\n")
+    assert Opcode.CHUNK  # the record kinds exist in this mcap version
+
+
+@pytest.mark.parametrize(
+    ("compression", "declared"),
+    [("zstd", 1000), ("lz4", 1000), ("zstd", 8 * GIB)],
+    ids=["zstd-lies", "lz4-lies", "declares-8GiB"],
+)
+@pytest.mark.parametrize("command", ["info", "replay"])
+def test_a_chunk_bomb_is_refused_in_bounded_memory(
+    tmp_path: Path, compression: str, declared: int, command: str
+) -> None:
+    path = tmp_path / "bomb.mcap"
+    bomb(path, GIB, declared, compression)
+    assert path.stat().st_size < 8 << 20  # a small file...
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    args = [command, str(path)] + (["--no-ui", "--no-display"] if command == "replay" else [])
+    r = subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", *args],
+        cwd=REPO,
+        env=dict(os.environ, COLUMNS="200"),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    assert r.returncode in (1, 2), r.stdout + r.stderr
+    assert "Traceback" not in r.stderr
+    assert "chunk" in (r.stdout + r.stderr)
+    # ...never inflated: the child stayed far below the GiB it asks for
+    assert max(peak_kib, before) < 600 * 1024, f"child peak RSS {peak_kib} KiB"
