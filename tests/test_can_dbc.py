@@ -195,3 +195,33 @@ def test_sporadic_from_the_dbc_attribute(tmp_path: Path) -> None:
     by = {m["name"]: m for m in json.loads(out)["messages"]}
     assert by["Event"]["sporadic"] is True
     assert by["Event"]["period_ms"] == 5.0
+
+
+@pytest.mark.parametrize("command", ["analyse", "stats"])
+def test_special_files_end_at_once(tmp_path: Path, command: str) -> None:
+    import os
+
+    fifo = tmp_path / "pipe.dbc"
+    os.mkfifo(fifo)
+    for path, kind in ((str(fifo), "a FIFO (named pipe)"), ("/dev/zero", "a device")):
+        rc, _, err = _run("can", command, path)
+        assert rc == 2
+        assert err.strip() == f"{path} is {kind}, not a regular file"
+
+
+def test_the_node_loads_what_cantools_loads_and_strict_refuses(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from flowrt import GraphBuilder, GraphError
+
+    path = write(tmp_path, OVERLAP_DBC, "node.dbc")
+    g = GraphBuilder()
+    g.add("bus", "can", params={"interface": "virtual", "channel": "x", "dbc": path})
+    g.build()  # loads: the overlapping message does not stop the others
+    assert caplog.text.count("Over.B: overlaps signal A") == 1
+    g.build()
+    assert caplog.text.count("Over.B: overlaps signal A") == 1  # once, not per load
+    g = GraphBuilder()
+    g.add("bus", "can", params={"interface": "virtual", "dbc": path, "strict": True})
+    with pytest.raises(GraphError, match=r"refused by strict loading: Over\.B: overlaps signal A"):
+        g.build()
