@@ -13,6 +13,7 @@ import asyncio
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -286,7 +287,7 @@ class CanLink:
                 self._send_failed(self.gen, exc)
                 return False
         if self.trace is not None:
-            self.trace.put(copy_frame(msg, channel=msg.channel, timestamp=_now(), is_rx=False))
+            self.trace.put(copy_frame(msg, channel=msg.channel, timestamp=time.time(), is_rx=False))
         return True
 
     def _send_failed(self, gen: int, exc: BaseException) -> None:
@@ -331,9 +332,3 @@ class CanLink:
                     self.loop.call_soon_threadsafe(self._send_failed, gen, exc)
                 except RuntimeError:
                     return
-
-
-def _now() -> float:
-    import time
-
-    return time.time()

@@ -15,6 +15,8 @@ from pathlib import Path
 import cantools
 import pytest
 from _can_dbcs import FD_DBC, OVERLAP_DBC, write
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from flowrt import cli
 from flowrt.analysis.can_database import CanDatabaseError, load_database
@@ -225,3 +227,26 @@ def test_the_node_loads_what_cantools_loads_and_strict_refuses(
     g.add("bus", "can", params={"interface": "virtual", "dbc": path, "strict": True})
     with pytest.raises(GraphError, match=r"refused by strict loading: Over\.B: overlaps signal A"):
         g.build()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    flag=st.sampled_from(["--jitter", "--period", "--deadline", "--sporadic"]),
+    value=st.one_of(
+        st.floats(allow_nan=True, allow_infinity=True).map(repr),
+        st.integers(-(10**20), 10**20).map(str),
+        st.text(max_size=8),
+    ),
+)
+def test_any_typed_value_is_an_answer_or_one_line(flag: str, value: str) -> None:
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        name = "Event" if flag == "--sporadic" else "Classic"
+        rc, out, err = _run("can", "analyse", write(Path(tmp), FD_DBC), flag, f"{name}={value}")
+    assert "Traceback" not in err
+    if rc == 2:
+        assert len(err.strip().splitlines()) == 1
+    else:
+        assert rc in (0, 1)
+        assert out
