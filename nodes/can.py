@@ -407,6 +407,7 @@ class Can(Node):
         self.bus_off = self.decode_errors = 0
         self.channels: dict[str, int] = {}  # channel -> frames received
         self.unknown_by_channel: dict[str, int] = {}
+        self.id_counts: dict[tuple[str, int, bool], int] = {}
         self.encode_causes: dict[tuple[str, str], int] = {}
         self.last_status = 0.0
         self.keep_status = p.status_record
@@ -475,6 +476,8 @@ class Can(Node):
         chan = None if frame.channel is None else str(frame.channel)
         self.channels[chan or ""] = self.channels.get(chan or "", 0) + 1
         key = (int(frame.arbitration_id), bool(frame.is_extended_id))
+        per = (chan or "", *key)
+        self.id_counts[per] = self.id_counts.get(per, 0) + 1
         st = self.by_id.get(key)
         data = b"" if frame.is_remote_frame else bytes(frame.data)
         fd, brs = bool(frame.is_fd), bool(frame.bitrate_switch)
@@ -738,6 +741,7 @@ class Can(Node):
             tuple(sorted(self.channels)), tuple(sorted(self.unknown_by_channel.items())),
             trace.written if trace else 0, trace.dropped if trace else 0,
             tuple((m, c, n) for (m, c), n in sorted(self.encode_causes.items())),
+            tuple((c, i, e, n) for (c, i, e), n in sorted(self.id_counts.items())),
         )  # fmt: skip
 
 

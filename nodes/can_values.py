@@ -88,3 +88,5 @@ class CanBusStatus:
     trace_frames: int = 0  # frames written to the trace file
     trace_dropped: int = 0  # frames the trace writer could not keep up with (counted, not kept)
     encode_errors: tuple[tuple[str, str, int], ...] = ()  # (message, cause, count)
+    #: frames received per (channel, id, extended): the same id on two channels is two streams
+    ids_by_channel: tuple[tuple[str, int, bool, int], ...] = ()

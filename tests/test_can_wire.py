@@ -234,3 +234,19 @@ async def test_value_out_of_range_is_one_event_per_cause_not_per_tick(
     assert len(alerts) == 1
     assert "Temp" in alerts[0].detail
     assert caplog.text.count("Mux not sent") == 1
+
+
+async def test_node_statistics_keep_ids_per_channel(channel: str, dbc: str) -> None:
+    """One interface delivering two channels (as multi-channel adapters do): the node's
+    status counts the same id on each channel apart."""
+    g = GraphBuilder()
+    g.add("bus", "can", params={"interface": "virtual", "channel": channel, "dbc": dbc})
+    async with Runtime(g.build()) as rt:
+        n = await opened(rt)
+        for ch in ("left", "right", "right"):
+            n._on_frame(
+                can.Message(arbitration_id=0x300, data=bytes(8), is_extended_id=False, channel=ch)
+            )
+        status = n.snapshot()
+    assert status.ids_by_channel == (("left", 0x300, False, 1), ("right", 0x300, False, 2))
+    assert status.channels == ("left", "right")
