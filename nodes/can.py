@@ -187,7 +187,7 @@ class CanParams(BaseModel):
     unknown_output: bool = Field(default=False, description="publish unknown ids on 'unknown'")
     tick_ms: float | None = Field(default=None, gt=0, description="default: gcd of the cycles")
     reopen_ms: float = Field(default=100.0, gt=0, description="first reopen backoff")
-    reopen_max_ms: float = Field(default=5000.0, gt=0)
+    reopen_max_ms: float = Field(default=5000.0, gt=0, description="longest reopen backoff")
     status_ms: float = Field(default=1000.0, gt=0, description="status output period")
     status_record: bool = Field(
         default=True, description="also keep the status in the RTDB record '<node>.can'"
@@ -196,7 +196,7 @@ class CanParams(BaseModel):
         default=None, description="write frames from a thread (default: serial interfaces)"
     )
     replay: str | None = Field(default=None, description="a trace to send at its timing")
-    replay_loop: bool = False
+    replay_loop: bool = Field(default=False, description="replay the trace over and over")
     trace: str | None = Field(
         default=None, description="log the bus to this file: .log (candump), .asc, .blf, .csv"
     )
