@@ -9,7 +9,7 @@ Built on python-can (every interface it has: ``virtual``, ``socketcan``, ``slcan
         interface: virtual          # any python-can interface
         channel: robot
         bitrate: 250000
-        dbc: robot.dbc              # looked up in the working directory, then in flowrt.nodes
+        dbc: robot.dbc              # beside the graph file, then shipped with flowrt.nodes
         messages:                   # per-message options, all optional
           WheelSpeeds: {counter: Counter, checksum: Checksum, checksum_kind: xor}
           MotorSetpoints: {cycle_ms: 20, phase_ms: 5}
@@ -105,9 +105,16 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
-from flowrt import HealthAlert, Input, Node, Output, TimerTrigger
+from flowrt import HealthAlert, Input, Node, Output, TimerTrigger, resolve_path
 from flowrt.analysis.can_frames import fd_payload_length
 
 from .can_bus import SERIAL_INTERFACES, CanLink, TraceLog, TraceReplay
@@ -169,7 +176,9 @@ class CanParams(BaseModel):
     data_bitrate: int | None = Field(
         default=None, gt=0, description="CAN FD data-phase bit/s, passed to the interface"
     )
-    dbc: str = Field(description="CAN database: .dbc, .kcd, .arxml (cwd, then flowrt.nodes)")
+    dbc: str = Field(
+        description="CAN database: .dbc, .kcd, .arxml (beside the graph file, then flowrt.nodes)"
+    )
     strict: bool = Field(
         default=False, description="refuse a DBC that cantools' strict loading refuses"
     )
@@ -217,9 +226,20 @@ class CanParams(BaseModel):
 
     @field_validator("dbc")
     @classmethod
-    def _parses(cls, v: str) -> str:
+    def _parses(cls, v: str, info: ValidationInfo) -> str:
+        """Beside the graph file (or the working directory), else shipped with flowrt.nodes."""
+        near = resolve_path(v, info)
+        if Path(near).is_file():
+            v = near
+        elif Path(v).is_absolute() or not (Path(__file__).resolve().parent / v).is_file():
+            raise ValueError(f"{v}: no such file (looked for {near} and in flowrt.nodes)")
         load_dbc(v)
         return v
+
+    @field_validator("trace", "replay")
+    @classmethod
+    def _beside_the_graph(cls, v: str | None, info: ValidationInfo) -> str | None:
+        return None if v is None else resolve_path(v, info)
 
     @field_validator("trace")
     @classmethod

@@ -250,3 +250,30 @@ def test_any_typed_value_is_an_answer_or_one_line(flag: str, value: str) -> None
     else:
         assert rc in (0, 1)
         assert out
+
+
+def test_paths_resolve_beside_the_graph_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from flowrt import Graph
+
+    robot = tmp_path / "robot"
+    robot.mkdir()
+    write(robot, FD_DBC, "mine.dbc")
+    (robot / "g.yaml").write_text(
+        "name: g\nnodes:\n  bus:\n    kind: can\n    params:\n      interface: virtual\n"
+        "      dbc: mine.dbc\n      trace: logs/bus.blf\n"
+        "  ship:\n    kind: can\n    params: {interface: virtual, dbc: robot.dbc}\n"
+    )
+    monkeypatch.chdir(tmp_path)  # not the graph's directory
+    graph = Graph.from_file(robot / "g.yaml")
+    params = graph.nodes["bus"].params
+    assert params.dbc == str(robot / "mine.dbc")
+    assert params.trace == str(robot / "logs" / "bus.blf")
+    assert graph.nodes["ship"].params.dbc == "robot.dbc"  # shipped with flowrt.nodes
+    (robot / "bad.yaml").write_text(
+        "name: g\nnodes:\n  bus:\n    kind: can\n    params: {dbc: nope.dbc}\n"
+    )
+    rc, _, err = _run("validate", str(robot / "bad.yaml"))
+    assert rc == 2
+    assert f"nope.dbc: no such file (looked for {robot / 'nope.dbc'} and in flowrt.nodes)" in err
