@@ -87,7 +87,9 @@ DEFAULT_PORT = 8765
 DEFAULT_URL = f"http://127.0.0.1:{DEFAULT_PORT}"
 
 MAX_CONNECTIONS = 256  # open connections at once; more are closed as they arrive
-REQUEST_TIMEOUT = 10.0  # seconds for a request's headers (from accept or the previous one)
+REQUEST_TIMEOUT = 10.0  # seconds for a request's headers (from the previous one)
+FIRST_REQUEST_TIMEOUT = 2.0  # seconds a new connection has for its first request
+RESERVED = 8  # connections over the cap, kept for requests that carry the token
 MAX_BODY = 1 << 20  # bytes of a request body
 READ_MAX_AGE = 0.2  # seconds a read (stats, events, ...) is served from the server's cache
 MAX_EVENTS = 1000  # ?n= of /events, /rtdb/NAME
@@ -560,6 +562,7 @@ class _Gateway:
         self.conns: dict[asyncio.BaseTransport, Conn] = {}
         self.refused = 0
         self.timed_out = 0
+        self.evicted = 0  # connections closed at the cap before their first request
         self._next_id = 0
         self._pending: dict[int, asyncio.Future[tuple[int, bytes]]] = {}
         self._cache: dict[str, tuple[float, int, bytes]] = {}
@@ -597,12 +600,26 @@ class _Gateway:
         server = runner.server
         assert server is not None
         gateway = self
+        first = min(FIRST_REQUEST_TIMEOUT, self.timeout)
 
         def factory() -> asyncio.Protocol:
+            """A slot for every new connection while there are some; at the cap, the oldest
+            connection that has not sent a request yet makes room (slow clients cannot hold
+            the slots: they have FIRST_REQUEST_TIMEOUT, and are first to go); else one of
+            RESERVED more, which only a request carrying the token keeps."""
             if len(gateway.conns) >= gateway.max_connections:
-                gateway.refused += 1
-                return Refuse()
-            return Tracked(server(), gateway.conns, gateway.timeout)
+                idle = [c for c in gateway.conns.values() if not c.requests and not c.busy]
+                if idle:
+                    oldest = min(idle, key=lambda c: c.deadline)
+                    gateway.conns.pop(oldest.transport, None)
+                    oldest.transport.close()
+                    gateway.evicted += 1
+                elif gateway.token and len(gateway.conns) < gateway.max_connections + RESERVED:
+                    return Tracked(server(), gateway.conns, first, reserve=True)
+                else:
+                    gateway.refused += 1
+                    return Refuse()
+            return Tracked(server(), gateway.conns, first)
 
         listener = await loop.create_server(factory, sock=sock)
         sweeper = loop.create_task(self._sweep())
@@ -693,11 +710,15 @@ class _Gateway:
             if conn is not None:
                 conn.busy += 1
             try:
+                if conn is not None:
+                    conn.requests += 1
                 if token:
                     scheme, _, given = request.headers.get("Authorization", "").partition(" ")
                     if scheme.lower() != "bearer" or not hmac.compare_digest(
                         given.strip().encode(), token.encode()
                     ):
+                        if conn is not None and conn.reserve:  # the token holder's slot
+                            conn.transport.close()
                         return _error(
                             401,
                             "missing or wrong bearer token",

@@ -91,23 +91,33 @@ class Conn:
     deadline: float
     busy: int = 0
     next_read: float = 0.0  # for servers that pace reads: none answered before this
+    requests: int = 0  # requests answered on it: 0 = it has not earned its slot yet
+    reserve: bool = False  # taken over the cap: only a request with the token may keep it
 
 
 class Tracked(asyncio.Protocol):
     """Wraps aiohttp's protocol for one connection, registered in ``conns`` while it is open
     (a sweeper closes the ones past their deadline; a cap counts them)."""
 
-    def __init__(self, inner: Any, conns: dict[asyncio.BaseTransport, Conn], timeout: float):
+    def __init__(
+        self,
+        inner: Any,
+        conns: dict[asyncio.BaseTransport, Conn],
+        timeout: float,
+        reserve: bool = False,
+    ):
         self.inner = inner
         self.conns = conns
         self.timeout = timeout
+        self.reserve = reserve
         self.transport: asyncio.BaseTransport | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         import time
 
         self.transport = transport
-        self.conns[transport] = Conn(transport, time.monotonic() + self.timeout)
+        conn = Conn(transport, time.monotonic() + self.timeout, reserve=self.reserve)
+        self.conns[transport] = conn
         self.inner.connection_made(transport)
 
     def connection_lost(self, exc: Exception | None) -> None:

@@ -331,18 +331,40 @@ async def test_slow_clients_are_timed_out_and_connections_capped() -> None:
         await writer.drain()
         assert await asyncio.wait_for(reader.read(), 5) == b""  # closed by the server
         writer.close()
-        # three idle connections fill the cap: the fourth is closed at once
+        # three idle connections fill the cap: a fourth takes the slot of the oldest one
+        # that has sent no request yet (slow clients never lock others out)
         idle = [await asyncio.open_connection("127.0.0.1", server.port) for _ in range(3)]
         await asyncio.sleep(0.1)
-        extra_r, extra_w = await asyncio.open_connection("127.0.0.1", server.port)
-        assert await asyncio.wait_for(extra_r.read(), 0.4) == b""  # before any timeout
-        extra_w.close()
-        for _, w in idle:
-            w.close()
-        await asyncio.sleep(0.2)
-        status, stats = await call("GET", server.url + "/stats")  # served again
+        status, stats = await call("GET", server.url + "/stats")  # served at once
         assert status == 200
         assert stats["graph"] == "ctl"
+        assert await asyncio.wait_for(idle[0][0].read(), 0.4) == b""  # the oldest, evicted
+        for _, w in idle:
+            w.close()
+
+
+async def test_many_slow_clients_do_not_lock_out_a_new_one_nor_the_token_holder() -> None:
+    """Issue 32 item 8: 40 clients that send half a request hold no slot for long (cap 20):
+    a new client is served at once, and the token holder has a slot kept even when every
+    slot is in a request."""
+    config = ControlConfig("127.0.0.1", 0, token=TOKEN)
+    async with (
+        Runtime(graph(), clock=VirtualClock()) as rt,
+        ControlServer(rt, config, max_connections=20, request_timeout=10.0) as server,
+    ):
+        slow = []
+        for _ in range(40):
+            r, w = await asyncio.open_connection("127.0.0.1", server.port)
+            w.write(b"GET /stats HTTP/1.1\r\nHo")  # never finished
+            slow.append((r, w))
+        await asyncio.sleep(0.2)
+        auth = {"Authorization": f"Bearer {TOKEN}"}
+        t0 = asyncio.get_running_loop().time()
+        status, _ = await call("GET", server.url + "/stats", headers=auth)
+        assert status == 200
+        assert asyncio.get_running_loop().time() - t0 < 2.0
+        for _, w in slow:
+            w.close()
 
 
 async def test_token_required_on_loopback() -> None:

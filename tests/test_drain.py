@@ -19,17 +19,7 @@ from pydantic import BaseModel
 from flowrt import Frame, GraphBuilder, HealthAlert, Input, LoopTrigger, Node, Output, Runtime
 
 REPO = Path(__file__).resolve().parents[1]
-VIDEO = next(
-    (
-        p
-        for p in (
-            REPO.parent / "shared/data/sample_720x528.avi",  # a clone with shared/ beside it
-            Path("/work/shared/data/sample_720x528.avi"),  # a worktree of the dev machine
-        )
-        if p.exists()
-    ),
-    None,
-)
+VIDEO: Path | None = REPO / "graphs" / "sample.avi"  # the repository's own clip
 PLACEMENTS = ["inline", "process", "pool"]
 
 
@@ -218,7 +208,7 @@ def frames_in(path: Path) -> int:
     return n
 
 
-@pytest.mark.skipif(VIDEO is None, reason="the sample video (../shared/data) is not available")
+@pytest.mark.skipif(VIDEO is None, reason="graphs/sample.avi is missing")
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize(
     ("placement", "policy"),
@@ -255,7 +245,7 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
     )
 
 
-@pytest.mark.skipif(VIDEO is None, reason="the sample video (../shared/data) is not available")
+@pytest.mark.skipif(VIDEO is None, reason="graphs/sample.avi is missing")
 @pytest.mark.timeout(90)
 def test_cli_run_to_the_end_of_a_file_through_a_lossless_edge_into_a_worker(
     tmp_path: Path,

@@ -397,3 +397,33 @@ def graphs_with_a_bad_value(draw: st.DrawFn) -> str:
 @given(graphs_with_a_bad_value())
 def test_graphs_with_a_bad_value_never_crash(text: str) -> None:
     assert_graph_or_located_error(text)
+
+
+# --- every built-in kind's params (issue 32 item 6) ---------------------------------------
+
+_BAD_PARAM_VALUES = [None, [1, 2], {"a": 1}, 10**400, "x", -1, 1e308, float("nan"), True, ""]
+
+
+def _kind_fields() -> list[tuple[str, str]]:
+    from flowrt.registry import available_kinds, resolve_kind
+
+    out = []
+    for kind in available_kinds():
+        cls = resolve_kind(kind)
+        for name in getattr(cls.Params, "model_fields", {}):
+            out.append((kind, name))
+    return out
+
+
+@pytest.mark.parametrize(("kind", "field"), _kind_fields())
+def test_every_built_in_kind_refuses_bad_params_with_a_location(kind: str, field: str) -> None:
+    """Each param of each built-in kind, given each odd value: a Graph or a located error,
+    never a traceback (arbiter's timeout given as null, a list, a mapping or 10**400 was)."""
+    import math
+
+    for bad in _BAD_PARAM_VALUES:
+        value = ".nan" if isinstance(bad, float) and math.isnan(bad) else bad
+        text = yaml.safe_dump({"nodes": {"n": {"kind": kind, "params": {field: value}}}})
+        if value == ".nan":
+            text = text.replace("'.nan'", ".nan")
+        assert_graph_or_located_error(text)
