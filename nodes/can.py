@@ -103,10 +103,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     ValidationInfo,
@@ -115,7 +116,7 @@ from pydantic import (
 )
 
 from flowrt import HealthAlert, Input, Node, Output, TimerTrigger, resolve_path
-from flowrt.analysis.can_frames import fd_payload_length
+from flowrt.analysis.can_frames import bit_rate, fd_payload_length
 
 from .can_bus import SERIAL_INTERFACES, CanLink, TraceLog, TraceReplay
 from .can_dbc import (
@@ -144,6 +145,9 @@ __all__ = [
     "load_dbc",
 ]
 
+#: A bit rate in a graph file: 250000, 500k, 1e6, 2M (whole bit/s, 1k..20M).
+BitRate = Annotated[int, BeforeValidator(bit_rate)]
+
 CAN_ERR_BUSOFF = 0x40  # SocketCAN error class bit in an error frame's id (linux/can/error.h)
 
 
@@ -168,13 +172,15 @@ class CanParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     interface: str = Field(default="virtual", description="a python-can interface name")
     channel: str | None = Field(default=None, description="bus channel, e.g. can0, /dev/ttyACM0")
-    bitrate: int | None = Field(default=None, gt=0, description="bit/s, passed to the interface")
+    bitrate: BitRate | None = Field(
+        default=None, description="bit/s (250000, 500k, 1M), passed to the interface"
+    )
     fd: bool = Field(default=False, description="open the bus for CAN FD and send FD messages so")
     bitrate_switch: bool = Field(
         default=True, description="FD frames with bit-rate switch (unless the DBC's CANFD_BRS=0)"
     )
-    data_bitrate: int | None = Field(
-        default=None, gt=0, description="CAN FD data-phase bit/s, passed to the interface"
+    data_bitrate: BitRate | None = Field(
+        default=None, description="CAN FD data-phase bit/s (2M), passed to the interface"
     )
     dbc: str = Field(
         description="CAN database: .dbc, .kcd, .arxml (beside the graph file, then flowrt.nodes)"

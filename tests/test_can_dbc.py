@@ -11,6 +11,7 @@ import contextlib
 import io
 import json
 from pathlib import Path
+from typing import Any
 
 import cantools
 import pytest
@@ -277,3 +278,30 @@ def test_paths_resolve_beside_the_graph_file(
     rc, _, err = _run("validate", str(robot / "bad.yaml"))
     assert rc == 2
     assert f"nope.dbc: no such file (looked for {robot / 'nope.dbc'} and in flowrt.nodes)" in err
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [
+        ("250k", 250_000),
+        ("1e6", 1_000_000),
+        (500000, 500_000),
+        ("2M", 2_000_000),
+        ("inf", None),
+        (0, None),
+        ("1.5", None),
+        (True, None),
+    ],
+)
+def test_node_bit_rates_take_units(value: Any, expected: int | None) -> None:
+    from flowrt import GraphBuilder, GraphError
+
+    g = GraphBuilder()
+    g.add("bus", "can", params={"dbc": "robot.dbc", "bitrate": value, "data_bitrate": "2M"})
+    if expected is None:
+        with pytest.raises(GraphError, match="bitrate"):
+            g.build()
+    else:
+        params = g.build().nodes["bus"].params
+        assert params.bitrate == expected
+        assert params.data_bitrate == 2_000_000

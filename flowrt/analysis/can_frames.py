@@ -34,12 +34,46 @@ Without BRS every bit goes at the nominal rate. Worked examples (base format):
 
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass
+from typing import Any
 
-__all__ = ["FD_LENGTHS", "FdFrameBits", "fd_frame_bits", "fd_payload_length", "frame_bits"]
+__all__ = [
+    "FD_LENGTHS",
+    "FdFrameBits",
+    "bit_rate",
+    "fd_frame_bits",
+    "fd_payload_length",
+    "frame_bits",
+]
 
 #: The payload lengths a CAN FD DLC can express (ISO 11898-1:2015, table 5).
 FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
+
+
+#: Bit rates a CAN controller runs at: 1 kbit/s up to CAN FD data phases of 20 Mbit/s.
+MIN_BITRATE, MAX_BITRATE = 1_000, 20_000_000
+_RATE = re.compile(
+    r"^\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*([kKmM]?)\s*(?:bit/s|bps|b/s)?\s*$"
+)
+
+
+def bit_rate(value: Any) -> int:
+    """A bit rate as people write it: ``500000``, ``500k``, ``1e6``, ``1M``, ``2Mbit/s``;
+    a whole number of bit/s from 1k to 20M (ValueError otherwise)."""
+    if isinstance(value, bool):
+        raise ValueError("expected bit/s such as 500000, 500k, 1e6 or 2M")
+    m = _RATE.match(str(value))
+    if m is None:
+        raise ValueError("expected bit/s such as 500000, 500k, 1e6 or 2M")
+    scale = {"": 1, "k": 1_000, "m": 1_000_000}[m.group(2).lower()]
+    rate = float(m.group(1)) * scale
+    if not math.isfinite(rate) or not MIN_BITRATE <= rate <= MAX_BITRATE:
+        raise ValueError("must be between 1k and 20M bit/s")
+    if rate != int(rate):
+        raise ValueError("not a whole number of bit/s")
+    return int(rate)
 
 
 def frame_bits(dlc: int, extended: bool = False) -> int:

@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
-import re
 from typing import Any
 
 from rich.console import Console
 
 from ..analysis.can_database import CanDatabaseError
 from ..analysis.can_database import load_database as _load
+from ..analysis.can_frames import bit_rate
 from ..analysis.can_trace import TraceError, trace_stats
 from ..columns import Column, fit_table
 from ..spec import parse_duration_ms
@@ -29,15 +28,9 @@ from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, stdout_console
 
 __all__ = ["CanDatabaseError", "load_database", "parse_bitrate", "trace_stats"]
 
-#: Bit rates a CAN controller runs at: 1 kbit/s up to CAN FD data phases of 20 Mbit/s.
-MIN_BITRATE, MAX_BITRATE = 1_000, 20_000_000
 #: Longest period, deadline, jitter or inter-arrival time taken (an hour): past it a busy
 #: period is not worth computing (``--jitter X=1e9`` took hours).
 MAX_MS = 3_600_000.0
-
-_RATE = re.compile(
-    r"^\s*([0-9]*\.?[0-9]+(?:[eE][+-]?[0-9]+)?)\s*([kKmM]?)\s*(?:bit/s|bps|b/s)?\s*$"
-)
 
 
 def load_database(path: str, strict: bool = False) -> Any:
@@ -47,16 +40,10 @@ def load_database(path: str, strict: bool = False) -> Any:
 
 def parse_bitrate(text: str, flag: str = "--bitrate") -> int:
     """``500000``, ``500k``, ``1e6``, ``1M``, ``2Mbit/s`` as bit/s, range-checked."""
-    m = _RATE.match(str(text))
-    if m is None:
-        raise CanDatabaseError(f"{flag} {text!r}: expected bit/s such as 500000, 500k, 1e6 or 2M")
-    scale = {"": 1, "k": 1_000, "m": 1_000_000}[m.group(2).lower()]
-    value = float(m.group(1)) * scale
-    if not math.isfinite(value) or not MIN_BITRATE <= value <= MAX_BITRATE:
-        raise CanDatabaseError(f"{flag} {text!r}: must be between 1k and 20M bit/s")
-    if value != int(value):
-        raise CanDatabaseError(f"{flag} {text!r}: not a whole number of bit/s")
-    return int(value)
+    try:
+        return bit_rate(text)
+    except ValueError as e:
+        raise CanDatabaseError(f"{flag} {text!r}: {e}") from None
 
 
 def _pairs(items: list[str] | None, flag: str, zero_ok: bool = False) -> dict[str, float]:
