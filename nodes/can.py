@@ -118,7 +118,7 @@ from pydantic import (
 from flowrt import HealthAlert, Input, Node, Output, TimerTrigger, resolve_path
 from flowrt.analysis.can_frames import bit_rate, fd_payload_length
 
-from .can_bus import SERIAL_INTERFACES, CanLink, TraceLog, TraceReplay
+from .can_bus import SERIAL_INTERFACES, CanLink, TraceLog, TraceReplay, one_line
 from .can_dbc import (
     EncodeProblem,
     acceptance_filters,
@@ -438,9 +438,14 @@ class Can(Node):
         self.last_status = 0.0
         self.keep_status = p.status_record
         self.replay: TraceReplay | None = None
+        self.trace_error = ""
         trace = None
         if p.trace is not None:
-            trace = await asyncio.to_thread(TraceLog, p.trace, p.trace_max_bytes)
+            try:
+                trace = await asyncio.to_thread(TraceLog, p.trace, p.trace_max_bytes)
+            except (OSError, ValueError) as e:  # a folder it cannot write: the bus runs anyway
+                self.trace_error = f"CAN trace {p.trace} cannot open: {one_line(e)}"
+                self.ctx.log.error("%s: %s", self.ctx.name, self.trace_error)
         self.link = CanLink(
             self.loop,
             self.ctx.name,
@@ -484,7 +489,10 @@ class Can(Node):
     def _on_open(self, reopened: bool) -> None:
         if reopened:
             self.ctx.log.info("%s: CAN interface reopened", self.ctx.name)
-        self.ctx.clear_error()
+        if self.trace_error:  # the bus is fine, the trace is not: stay red for it
+            self.ctx.set_error(self.trace_error)
+        else:
+            self.ctx.clear_error()
 
     # --- receive -----------------------------------------------------------------------------
 

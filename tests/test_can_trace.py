@@ -296,3 +296,27 @@ async def test_replay_keeps_fd_brs_remote_and_error_frames(
     assert [m.is_error_frame for m in got] == [False, False, False, False, True]
     # a remote frame keeps its requested length where the format does (candump's drops it)
     assert got[3].dlc == expected[3].dlc == (3 if suffix == ".blf" else 0)
+
+
+async def test_a_trace_that_cannot_open_leaves_the_bus_running_in_error(
+    channel: str, peer: can.BusABC, tmp_path: Path
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    params = {
+        "interface": "virtual",
+        "channel": channel,
+        "dbc": write(tmp_path, FD_DBC),
+        "trace": str(blocker / "bus.log"),
+    }
+    g = GraphBuilder()
+    g.add("bus", "can", params=params)
+    async with Runtime(g.build()) as rt:
+        n = await _opened(rt)
+        runner = rt.scheduler.runners["bus"]
+        peer.send(can.Message(arbitration_id=0x300, data=bytes(8), is_extended_id=False))
+        await _until(lambda: n.received == 1)
+        assert runner.error_reason is not None
+        assert "CAN trace" in runner.error_reason
+        assert "cannot open" in runner.error_reason
+        assert runner.errors == 0  # nothing raised out of the node
