@@ -250,3 +250,9 @@ async def test_node_statistics_keep_ids_per_channel(channel: str, dbc: str) -> N
         status = n.snapshot()
     assert status.ids_by_channel == (("left", 0x300, False, 1), ("right", 0x300, False, 2))
     assert status.channels == ("left", "right")
+
+
+def test_params_know_the_node_outputs() -> None:
+    from flowrt.nodes.can_params import NODE_OUTPUTS
+
+    assert set(Can.outputs) == NODE_OUTPUTS  # no DBC message may shadow them
