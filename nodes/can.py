@@ -91,8 +91,8 @@ it is also kept in the RTDB record ``<node>.can`` (``flowrt ctl rtdb chassis.can
 the graph runs with ``--control``).
 The DBC is loaded when the graph is validated: a file that does not parse is one error line;
 what cantools' strict loading would refuse is a named warning, once (``strict: true``
-refuses). The wire is :mod:`flowrt.nodes.can_bus`, the DBC handling
-:mod:`flowrt.nodes.can_dbc`, the port values :mod:`flowrt.nodes.can_values`.
+refuses). The wire is :mod:`flowrt.nodes.can_bus`, the params :mod:`flowrt.nodes.can_params`,
+the DBC handling :mod:`flowrt.nodes.can_dbc`, the port values :mod:`flowrt.nodes.can_values`.
 """
 
 from __future__ import annotations
