@@ -15,10 +15,14 @@ import cantools
 import pytest
 from _can_dbcs import FD_DBC, write
 from flowrt.nodes.can import Can, CanMessage
+from flowrt.nodes.can_dbc import EncodeProblem, encode_signals
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from flowrt import GraphBuilder, HealthAlert, Runtime, VirtualClock
 
 pytestmark = pytest.mark.timeout(30)
+_FD_DB = cantools.database.load_string(FD_DBC, strict=False)
 _channels = itertools.count()
 
 
@@ -256,3 +260,38 @@ def test_params_know_the_node_outputs() -> None:
     from flowrt.nodes.can_params import NODE_OUTPUTS
 
     assert set(Can.outputs) == NODE_OUTPUTS  # no DBC message may shadow them
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    page=st.sampled_from([0, 1]),
+    speed=st.integers(0, 1000).map(lambda x: x / 10),
+    temp=st.integers(-40, 150),
+    flags=st.integers(0, 255),
+)
+def test_multiplexed_roundtrip_keeps_only_the_selected_branch(
+    page: int, speed: float, temp: int, flags: int
+) -> None:
+    mux = _FD_DB.get_message_by_name("Mux")
+    every = {"Page": page, "Speed": speed, "Temp": temp, "Flags": flags}
+    decoded = mux.decode(encode_signals(mux, every))
+    branch = (
+        {"Page": page, "Speed": speed} if page == 0 else {"Page": 1, "Temp": temp, "Flags": flags}
+    )
+    assert decoded == pytest.approx(branch)
+
+
+@pytest.mark.parametrize(
+    ("values", "cause"),
+    [
+        ({"Page": 3, "Speed": 1}, 'multiplexer selector signal "Page"'),  # no branch for 3
+        ({"Page": 1, "Temp": 900, "Flags": 1}, "Temp"),
+        ({"Page": 1, "Temp": 901.5, "Flags": 1}, "Temp"),
+    ],
+)
+def test_encode_causes_leave_the_numbers_out(values: dict[str, float], cause: str) -> None:
+    mux = _FD_DB.get_message_by_name("Mux")
+    with pytest.raises(EncodeProblem) as e:
+        encode_signals(mux, values)
+    assert not any(ch.isdigit() for ch in e.value.cause.replace("#", ""))
+    assert cause in e.value.cause
