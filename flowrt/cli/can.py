@@ -76,8 +76,9 @@ def cmd_analyse(args: argparse.Namespace) -> int:
             parse_bitrate(args.data_bitrate, "--data-bitrate") if args.data_bitrate else None
         )
         db, warnings = _load(args.dbc, args.strict)
+        source = "--data-bitrate"
         if data_rate is None:
-            data_rate = data_bitrate_of(db)
+            data_rate, source = data_bitrate_of(db), "the DBC's BaudrateCANFD"
         timings = timings_from_dbc(
             db,
             periods=_pairs(args.period, "--period"),
@@ -86,7 +87,7 @@ def cmd_analyse(args: argparse.Namespace) -> int:
             sporadic=_pairs(args.sporadic, "--sporadic"),
         )
         if data_rate is not None and data_rate < bitrate:
-            raise CanDatabaseError(f"--data-bitrate {data_rate} is below --bitrate {bitrate}")
+            raise CanDatabaseError(f"{source} {data_rate} is below --bitrate {bitrate}")
         result = analyse_bus(timings, bitrate, data_rate)
     except (CanDatabaseError, KeyError, ValueError) as e:
         err.print(str(e).strip("'\""), style="red", markup=False, soft_wrap=True)
