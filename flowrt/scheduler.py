@@ -237,6 +237,7 @@ class NodeRunner:
         # Publication time (runtime clock) of the value each input held at the last take:
         # NodeContext.input_time/input_age. Invariant: a port is absent when it held no value.
         self.input_times: dict[str, float] = {}
+        self.frame_seqs: dict[str, int] = {}  # next sequence of unstamped frames, per port
         self.ports = list(rnode.cls.inputs)  # declared inputs, then any-named ones connected
         self.outputs: dict[str, list[Buffer]] = {
             p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
@@ -823,6 +824,8 @@ class NodeRunner:
 
     def publish(self, port: str, value: Any, t: float) -> None:
         """Fan a value out to every reader of ``port``; a frame port also ticks its frame clock."""
+        if isinstance(value, Frame) and value.timestamp == 0.0:
+            self._stamp(port, value, t)
         for buf in self.outputs[port]:
             if not buf.put(value, t):
                 assert isinstance(buf, LosslessBuffer)
@@ -831,6 +834,16 @@ class NodeRunner:
         key = self.tick_ports.get(port)
         if key is not None:
             self.sched.tick(key, t)
+
+    def _stamp(self, port: str, frame: Frame, t: float) -> None:
+        """A ``Frame(array)`` made without a timestamp: the activation's time, and the node's
+        own sequence on that port when its seq was left at 0 too (recordings, health and
+        freshness need both; a 4 s recording showed 'duration 1336 s, missing 19987')."""
+        frame.timestamp = self.last_start if self.last_start is not None else t
+        n = self.frame_seqs.get(port, 0)
+        if frame.seq == 0:
+            frame.seq = n
+        self.frame_seqs[port] = max(n, frame.seq) + 1
 
     async def _drain_blocked(self) -> None:
         """Lossless readers are full: the producer waits (stays busy) until they take."""
@@ -894,7 +907,7 @@ class NodeRunner:
 
     # --- supervision --------------------------------------------------------------------
 
-    def _failed(self, exc: BaseException) -> None:
+    def _failed(self, exc: BaseException, starting: bool = False) -> None:
         """Count, log (rate-limited), then restart after a back-off or give up: the one
         supervision rule of :mod:`flowrt.supervision`."""
         self.errors += 1
@@ -914,7 +927,8 @@ class NodeRunner:
         policy = self.rnode.spec.restart
         # Out of descriptors/processes/memory: the machine's failure, retried without a bound.
         counted = 0 if out_of_resources(exc) else self.consecutive_failures
-        why = give_up_reason(policy, counted, self.restarts, fatal)
+        never_started = starting and self.completions == 0
+        why = give_up_reason(policy, counted, self.restarts, fatal, never_started)
         if why is not None:
             self.state = "failed"
             last = failure_kind(error)
@@ -948,7 +962,7 @@ class NodeRunner:
         try:
             await self.executor.start()
         except Exception as e:
-            self._failed(e)
+            self._failed(e, starting=True)
             return
         self.state = "idle"
         self._idle()
@@ -1250,7 +1264,7 @@ class Scheduler:
                 r.state = "idle"
             except Exception as e:
                 r.state = "idle"
-                r._failed(e)
+                r._failed(e, starting=True)
 
         inline = [r for r in self.runners.values() if r.rnode.spec.placement is Placement.inline]
         others = [

@@ -350,6 +350,14 @@ class RestartPolicy(_Strict):
         description="consecutive failures without a completed activation in between (a crash "
         "loop) after which the node is given up and marked failed; null: never give up",
     )
+    max_start_failures: int | None = Field(
+        default=3,
+        ge=1,
+        le=1_000_000_000,
+        description="consecutive failures of a node that has never completed an activation "
+        "(a module a worker cannot import, a file that is not there) after which it is given "
+        "up and marked failed (within about a second); null: only max_failures applies",
+    )
 
 
 class NodeSpec(_Strict):

@@ -51,9 +51,17 @@ def backoff_s(policy: RestartPolicy, consecutive: int) -> float:
 
 
 def give_up_reason(
-    policy: RestartPolicy, consecutive: int, restarts: int, fatal: bool
+    policy: RestartPolicy,
+    consecutive: int,
+    restarts: int,
+    fatal: bool,
+    never_started: bool = False,
 ) -> str | None:
-    """Why the node must not be restarted again, or None to restart it."""
+    """Why the node must not be restarted again, or None to restart it.
+
+    ``never_started``: the failure was at start-up (set-up, a worker importing the node's
+    module) and the node has never completed an activation.
+    """
     if fatal:
         return "restarting cannot help"
     if policy.policy == "never":
@@ -62,6 +70,9 @@ def give_up_reason(
         return f"{consecutive} consecutive failures without a completed activation"
     if policy.max_restarts is not None and restarts >= policy.max_restarts:
         return f"max_restarts {policy.max_restarts} reached"
+    limit = policy.max_start_failures
+    if never_started and limit is not None and consecutive >= limit:
+        return f"{consecutive} consecutive failures at start-up: it never started"
     return None
 
 

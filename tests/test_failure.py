@@ -556,3 +556,25 @@ async def test_out_of_descriptors_is_retried_until_it_recovers() -> None:
     assert dev.errors == 6
     assert dev.state != "failed"
     assert dev.completions > 100
+
+
+@pytest.mark.parametrize("placement", ["inline", "process"])
+async def test_a_node_that_never_starts_is_given_up_after_three_start_failures(
+    placement: str,
+) -> None:
+    """Issue 24: a node that cannot start (its set-up raises, a worker cannot import its
+    module) ends ``failed`` within about a second by default, listed by ``rt.failures()``;
+    it used to restart with back-off for ever and the run exited 0."""
+    g = flowrt.GraphBuilder("never")
+    g.add("bad", SetupFails, trigger={"timer": 10}, placement=placement)
+    rt = flowrt.Runtime(g.build(), stop_on_failure=False)
+    async with rt:
+        for _ in range(100):
+            await asyncio.sleep(0.1)
+            if rt.failures():
+                break
+        (failed,) = rt.failures()
+    assert failed.name == "bad"
+    assert failed.state == "failed"
+    assert "it never started" in failed.reason
+    assert failed.errors == 3

@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from typing import Any
 
+import numpy as np
 import pytest
 
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
@@ -94,3 +95,34 @@ async def test_worker_relays_hand_the_slot_on(
     pools = rt._frames.stats() if rt._frames is not None else []
     assert all(p.slots <= p.max_slots for p in pools)
     assert not [n for n in os.listdir("/dev/shm") if n.startswith(f"flowrt_{os.getpid()}_")]
+
+
+class Unstamped(Node):
+    """Makes frames the simplest way, ``Frame(array)``: no timestamp, no sequence."""
+
+    frame = Output(Frame)
+
+    def process(self) -> Frame:
+        return Frame(np.zeros((4, 4, 3), np.uint8))
+
+
+async def test_a_frame_made_without_a_timestamp_gets_the_activation_time_and_a_sequence() -> None:
+    """Issue 24: such frames were recorded at time 0 with sequence 0 ("duration 1336 s,
+    missing 19987"); they default to the activation's time and the node's own sequence."""
+    from flowrt import GraphBuilder, Runtime, VirtualClock
+
+    g = GraphBuilder("unstamped")
+    g.add("cam", Unstamped, trigger={"timer": 50})
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        sub = rt.subscribe("cam.frame", size=100)
+        await clock.advance(0.5)
+        frames = sub.drain()
+        got = [(f.seq, f.timestamp) for f in frames]
+        for f in frames:
+            f.release()
+    assert len(got) >= 9
+    assert [s for s, _ in got] == list(range(len(got)))
+    times = [t for _, t in got]
+    assert times == sorted(times)
+    assert times[-1] - times[0] == pytest.approx(0.05 * (len(got) - 1), abs=1e-6)
