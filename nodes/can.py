@@ -9,7 +9,7 @@ Built on python-can (every interface it has: ``virtual``, ``socketcan``, ``slcan
         interface: virtual          # any python-can interface
         channel: robot
         bitrate: 250000
-        dbc: robot.dbc              # looked up in the working directory, then in flowrt.nodes
+        dbc: robot.dbc              # beside the graph file, then shipped with flowrt.nodes
         messages:                   # per-message options, all optional
           WheelSpeeds: {counter: Counter, checksum: Checksum, checksum_kind: xor}
           MotorSetpoints: {cycle_ms: 20, phase_ms: 5}
@@ -58,35 +58,68 @@ Supervision (as opendbc does for cars)
       table, a HealthAlert) and reopens it with exponential backoff (``reopen_ms`` up to
       ``reopen_max_ms``), in a thread: opening an adapter may take seconds. Nothing raises.
 
+CAN FD
+    With ``fd: true`` the interface is opened for CAN FD (python-can's ``fd`` option; give
+    ``data_bitrate`` for a real adapter) and the DBC's FD messages (``VFrameFormat``, or more
+    than 8 bytes) go out as FD frames, with bit-rate switch unless ``bitrate_switch: false``
+    or the DBC's ``CANFD_BRS`` is 0, padded to the next FD length. Received FD frames decode
+    alike. An FD message on a node without ``fd: true`` is an encode error (not sent).
+
+Multiplexed messages
+    Only the multiplexer and the signals of the branch its value selects are encoded (the
+    others keep their values for when their branch is selected again); receiving decodes
+    the branch the frame carries. A signal set that cannot be encoded (a value out of range,
+    a multiplexer value with no branch) is not sent: counted per message
+    (``encode_errors``) and per cause, and reported once per cause (a warning and a
+    ``can-encode`` HealthAlert), not once per tick.
+
+Trace
+    ``trace: run.blf`` logs every frame of the bus (received and sent) with python-can's
+    writers, by suffix: candump ``.log``, ``.asc``, ``.blf``, ``.csv``; ``trace_max_bytes``
+    rotates it by size (python-can's ``SizedRotatingLogger``). A thread writes it; frames it
+    could not keep up with are counted (``trace_dropped``). ``flowrt can stats run.blf``
+    reads it back.
+
 Replay
     ``replay: trace.asc`` (any format python-can reads) sends the frames of a trace onto the
-    bus at their recorded timing (to the resolution of the tick), once or ``replay_loop``.
+    bus at their recorded timing (to the resolution of the tick), once or ``replay_loop``,
+    as they were: FD, bit-rate switch, remote and error frames kept.
 
 Every ``status_ms`` the node publishes a :class:`CanBusStatus` on ``status``: per message
 received/sent, rate, age, timeouts, bad counters/checksums/lengths, late sends, validity;
 it is also kept in the RTDB record ``<node>.can`` (``flowrt ctl rtdb chassis.can`` while
 the graph runs with ``--control``).
-The DBC is loaded when the graph is validated: a file that does not parse is one error line.
+The DBC is loaded when the graph is validated: a file that does not parse is one error line;
+what cantools' strict loading would refuse is a named warning, once (``strict: true``
+refuses). The wire is :mod:`flowrt.nodes.can_bus`, the params :mod:`flowrt.nodes.can_params`,
+the DBC handling :mod:`flowrt.nodes.can_dbc`, the port values :mod:`flowrt.nodes.can_values`.
 """
 
 from __future__ import annotations
 
 import asyncio
-import functools
-import logging
 import math
-import os
-import queue
-import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from fractions import Fraction
-from pathlib import Path
-from typing import Any, Literal
-
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from typing import Any
 
 from flowrt import HealthAlert, Input, Node, Output, TimerTrigger
+from flowrt.analysis.can_frames import fd_payload_length
+
+from .can_bus import SERIAL_INTERFACES, CanLink, TraceLog, TraceReplay, one_line
+from .can_dbc import (
+    EncodeProblem,
+    acceptance_filters,
+    checksum,
+    encode_signals,
+    load_dbc,
+    message_brs,
+    message_is_fd,
+)
+from .can_params import CanParams, MessageParams
+from .can_signals import SignalSource, Wave
+from .can_values import CanBusStatus, CanFrame, CanMessage, MessageStatus
 
 __all__ = [
     "Can",
@@ -96,203 +129,12 @@ __all__ = [
     "CanParams",
     "MessageStatus",
     "SignalSource",
+    "Wave",
+    "checksum",
+    "load_dbc",
 ]
 
-log = logging.getLogger(__name__)
-
 CAN_ERR_BUSOFF = 0x40  # SocketCAN error class bit in an error frame's id (linux/can/error.h)
-_SERIAL_INTERFACES = {"slcan", "serial", "robotell", "seeedstudio", "cantact", "gs_usb"}
-
-
-# --- values on the ports -------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class CanMessage:
-    """A decoded message: physical signal values plus the raw frame and its validity."""
-
-    name: str
-    id: int
-    signals: dict[str, Any]
-    data: bytes
-    timestamp: float  # runtime clock (s) when the frame reached the loop: RTDB-comparable
-    valid: bool = True
-    reason: str = ""  # why not valid: timeout, counter, checksum
-    bus_timestamp: float = 0.0  # the interface's own timestamp
-
-    def __getitem__(self, signal: str) -> Any:
-        return self.signals[signal]
-
-
-@dataclass(frozen=True)
-class CanFrame:
-    """A raw frame (an id the DBC does not know)."""
-
-    id: int
-    data: bytes
-    extended: bool
-    timestamp: float
-    bus_timestamp: float = 0.0
-
-
-@dataclass(frozen=True)
-class MessageStatus:
-    name: str
-    id: int
-    received: int
-    sent: int
-    rate_hz: float  # over the last status interval (received + sent)
-    age_ms: float | None  # since the last frame received
-    timeouts: int
-    bad_counter: int
-    bad_checksum: int
-    bad_length: int
-    late: int
-    bad_inputs: int  # input values that did not fit the message (not sent)
-    valid: bool
-
-
-@dataclass(frozen=True)
-class CanBusStatus:
-    t: float  # seconds since the runtime started
-    interface: str
-    channel: str | None
-    open: bool
-    received: int
-    sent: int
-    unknown: int
-    error_frames: int
-    bus_off: int
-    interface_lost: int
-    reopens: int
-    send_errors: int
-    decode_errors: int
-    messages: tuple[MessageStatus, ...]
-
-
-# --- params ----------------------------------------------------------------------------------
-
-
-def _dbc_path(path: str) -> Path:
-    p = Path(path)
-    if p.is_file():
-        return p
-    shipped = Path(__file__).resolve().parent / path
-    if not p.is_absolute() and shipped.is_file():
-        return shipped
-    raise ValueError(f"{path}: no such file (looked in {os.getcwd()} and the flowrt.nodes package)")
-
-
-@functools.lru_cache(maxsize=16)
-def _load(path: str, mtime_ns: int) -> Any:
-    import cantools
-
-    try:
-        return cantools.database.load_file(path, strict=True)
-    except Exception as e:  # cantools raises parser, value and key errors of several kinds
-        text = " ".join(str(e).split()) or type(e).__name__
-        raise ValueError(f"{path}: not a valid CAN database: {text}") from None
-
-
-def load_dbc(path: str) -> Any:
-    """The cantools database of ``path`` (cached while the file is unchanged)."""
-    p = _dbc_path(path)
-    return _load(str(p), p.stat().st_mtime_ns)
-
-
-class MessageParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    cycle_ms: float | None = Field(
-        default=None, ge=0, description="period; overrides GenMsgCycleTime (0: event-driven)"
-    )
-    phase_ms: float | None = Field(default=None, ge=0, description="transmit offset in the cycle")
-    timeout_ms: float | None = Field(
-        default=None, gt=0, description="receive timeout (default timeout_factor x cycle)"
-    )
-    counter: str | None = Field(default=None, description="rolling counter signal")
-    checksum: str | None = Field(default=None, description="checksum signal (one byte)")
-    checksum_kind: Literal["xor", "sum", "crc8"] = "xor"
-
-
-class CanParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    interface: str = Field(default="virtual", description="a python-can interface name")
-    channel: str | None = Field(default=None, description="bus channel, e.g. can0, /dev/ttyACM0")
-    bitrate: int | None = Field(default=None, gt=0, description="bit/s, passed to the interface")
-    dbc: str = Field(description="CAN database: .dbc, .kcd, .arxml (cwd, then flowrt.nodes)")
-    options: dict[str, Any] = Field(
-        default_factory=dict, description="more keyword arguments for can.Bus"
-    )
-    messages: dict[str, MessageParams] = Field(default_factory=dict)
-    receive: list[str] | None = Field(
-        default=None,
-        description="the messages to receive, supervise and let through the interface's "
-        "filters (default: all, supervising those it does not send)",
-    )
-    timeout_factor: float = Field(default=10.0, gt=0, description="timeout in cycles")
-    max_bad: int = Field(default=5, ge=1, description="bad frames before a message is invalid")
-    unknown_output: bool = Field(default=False, description="publish unknown ids on 'unknown'")
-    tick_ms: float | None = Field(default=None, gt=0, description="default: gcd of the cycles")
-    reopen_ms: float = Field(default=100.0, gt=0, description="first reopen backoff")
-    reopen_max_ms: float = Field(default=5000.0, gt=0)
-    status_ms: float = Field(default=1000.0, gt=0, description="status output period")
-    status_record: bool = Field(
-        default=True, description="also keep the status in the RTDB record '<node>.can'"
-    )
-    send_thread: bool | None = Field(
-        default=None, description="write frames from a thread (default: serial interfaces)"
-    )
-    replay: str | None = Field(default=None, description="a trace to send at its timing")
-    replay_loop: bool = False
-
-    @field_validator("interface")
-    @classmethod
-    def _known_interface(cls, v: str) -> str:
-        from can.interfaces import BACKENDS
-
-        if v not in BACKENDS:
-            raise ValueError(
-                f"unknown python-can interface {v!r} (known: {', '.join(sorted(BACKENDS))})"
-            )
-        return v
-
-    @field_validator("dbc")
-    @classmethod
-    def _parses(cls, v: str) -> str:
-        load_dbc(v)
-        return v
-
-    @model_validator(mode="after")
-    def _names(self) -> CanParams:
-        db = load_dbc(self.dbc)
-        names = {m.name for m in db.messages}
-        for name in [*self.messages, *(self.receive or [])]:
-            if name not in names:
-                raise ValueError(f"{name!r} is not a message of {self.dbc}")
-        clash = names & set(Can.outputs)
-        if clash:
-            raise ValueError(f"message names clash with the node's outputs: {sorted(clash)}")
-        for name, opts in self.messages.items():
-            msg = db.get_message_by_name(name)
-            sigs = {s.name: s for s in msg.signals}
-            for what in ("counter", "checksum"):
-                sig = getattr(opts, what)
-                if sig is not None and sig not in sigs:
-                    raise ValueError(f"{name}: {what} signal {sig!r} is not in the message")
-            if opts.checksum is not None:
-                s = sigs[opts.checksum]
-                aligned = s.start % 8 == (0 if s.byte_order == "little_endian" else 7)
-                if s.length != 8 or not aligned:
-                    raise ValueError(f"{name}: checksum {s.name!r} must be one whole byte")
-        if self.replay is not None and not Path(self.replay).is_file():
-            raise ValueError(f"replay: {self.replay}: no such file")
-        return self
-
-    def cycle_ms(self, msg: Any) -> float | None:
-        opts = self.messages.get(msg.name)
-        if opts is not None and opts.cycle_ms is not None:
-            return opts.cycle_ms or None
-        return float(msg.cycle_time) if msg.cycle_time else None
 
 
 def _gcd_ms(values: list[float]) -> float:
@@ -311,31 +153,6 @@ def _gcd_ms(values: list[float]) -> float:
     return max(float(g), 1.0) if g else 100.0
 
 
-# --- checksums (what the vehicles use; python-can and cantools compute none) -----------------
-
-
-def _crc8_j1850(data: bytes) -> int:
-    crc = 0xFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
-    return crc ^ 0xFF
-
-
-def checksum(kind: str, data: bytes, skip: int) -> int:
-    """Checksum of ``data`` without its byte ``skip`` (where the checksum itself goes)."""
-    rest = bytes(b for i, b in enumerate(data) if i != skip)
-    if kind == "xor":
-        x = 0
-        for b in rest:
-            x ^= b
-        return x
-    if kind == "sum":
-        return sum(rest) & 0xFF
-    return _crc8_j1850(rest)
-
-
 # --- per-message state -----------------------------------------------------------------------
 
 
@@ -345,6 +162,8 @@ class _Msg:
     cycle: float | None  # ms
     opts: MessageParams
     timeout: float | None = None  # s
+    fd: bool = False
+    brs: bool = False
     # receive
     received: int = 0
     last_rx: float | None = None
@@ -366,6 +185,7 @@ class _Msg:
     sent: int = 0
     late: int = 0
     bad_inputs: int = 0
+    encode_errors: int = 0
     window: int = 0  # frames since the last status
 
     @property
@@ -373,6 +193,28 @@ class _Msg:
         if self.opts.checksum is None:
             return None
         return int(self.dbc.get_signal_by_name(self.opts.checksum).start // 8)
+
+    def integrity(self, signals: Mapping[str, Any], data: bytes) -> str:
+        """Check the counter and checksum of a received frame: the reason it is bad, or ""."""
+        reason = ""
+        opts = self.opts
+        if opts.counter is not None and opts.counter in signals:
+            sig = self.dbc.get_signal_by_name(opts.counter)
+            raw = round((signals[opts.counter] - sig.offset) / sig.scale)
+            if self.last_counter is not None and raw != (self.last_counter + 1) % (1 << sig.length):
+                self.bad_counter += 1
+                reason = "counter"
+            self.last_counter = raw
+        idx = self.checksum_byte
+        if idx is not None and checksum(opts.checksum_kind, data, idx) != data[idx]:
+            self.bad_checksum += 1
+            reason = "checksum"
+        return reason
+
+    def fits(self, data: bytes) -> bool:
+        """The DBC's length, or (FD) that length padded to the next FD length."""
+        n = int(self.dbc.length)
+        return len(data) == n or (self.fd and n <= 64 and len(data) == fd_payload_length(n))
 
 
 # --- the node ---------------------------------------------------------------------------------
@@ -422,7 +264,8 @@ class Can(Node):
         self.by_id: dict[tuple[int, bool], _Msg] = {}
         for m in self.db.messages:
             opts = p.messages.get(m.name, MessageParams())
-            st = _Msg(m, p.cycle_ms(m), opts)
+            fd = message_is_fd(m)
+            st = _Msg(m, p.cycle_ms(m), opts, fd=fd, brs=fd and p.bitrate_switch and message_brs(m))
             if opts.timeout_ms is not None:
                 st.timeout = opts.timeout_ms / 1000
             elif st.cycle:
@@ -432,211 +275,101 @@ class Can(Node):
         self.tick = self.default_trigger(p).timer / 1000
         self.started = False  # the first tick decides what this node sends
         self.received = self.sent = self.unknown_count = self.error_frames = 0
-        self.bus_off = self.lost = self.reopens = self.send_errors = self.decode_errors = 0
-        self.bus: Any = None
-        self.gen = 0  # bumped at every close: a reader of an old bus stops
-        self.opens = 0
-        self.closed = False
-        self.opening: asyncio.Future[Any] | None = None
-        self.backoff = p.reopen_ms / 1000
-        self.reopen_at = 0.0
-        self.threads: list[threading.Thread] = []
-        self.txq: queue.SimpleQueue[Any] | None = None
+        self.bus_off = self.decode_errors = 0
+        self.channels: dict[str, int] = {}  # channel -> frames received
+        self.unknown_by_channel: dict[str, int] = {}
+        self.id_counts: dict[tuple[str, int, bool], int] = {}
+        self.encode_causes: dict[tuple[str, str], int] = {}
         self.last_status = 0.0
         self.keep_status = p.status_record
-        self.replay_iter: Iterator[Any] | None = None
-        self.replay_t0 = 0.0
-        self.replay_next: Any = None
-        self.use_send_thread = (
-            p.send_thread if p.send_thread is not None else p.interface in _SERIAL_INTERFACES
+        self.replay: TraceReplay | None = None
+        self.trace_error = ""
+        trace = None
+        if p.trace is not None:
+            try:
+                trace = await asyncio.to_thread(TraceLog, p.trace, p.trace_max_bytes)
+            except (OSError, ValueError) as e:  # a folder it cannot write: the bus runs anyway
+                self.trace_error = f"CAN trace {p.trace} cannot open: {one_line(e)}"
+                self.ctx.log.error("%s: %s", self.ctx.name, self.trace_error)
+        self.link = CanLink(
+            self.loop,
+            self.ctx.name,
+            p.interface,
+            _bus_kwargs(p, self.db),
+            send_thread=(
+                p.send_thread if p.send_thread is not None else p.interface in SERIAL_INTERFACES
+            ),
+            reopen_s=p.reopen_ms / 1000,
+            reopen_max_s=p.reopen_max_ms / 1000,
+            on_frame=self._on_frame,
+            on_error=self.ctx.set_error,
+            on_open=self._on_open,
+            trace=trace,
         )
-        self._open()
+        self.link.open()
 
     async def teardown(self) -> None:
-        self.closed = True
-        self._close()
-        threads, self.threads = self.threads, []
-        for t in threads:
-            await asyncio.to_thread(t.join, 2.0)
+        await self.link.shutdown()
 
-    # --- the bus -----------------------------------------------------------------------------
+    @property
+    def bus(self) -> Any:
+        """The open python-can bus, None while it is (re)opening."""
+        return self.link.bus
 
-    def _open(self) -> None:
-        """Open the interface in a thread (an adapter may take seconds); never raises."""
-        if self.opening is not None or self.bus is not None:
-            return
-        p: CanParams = self.params
-        kwargs: dict[str, Any] = dict(p.options)
-        if p.channel is not None:
-            kwargs["channel"] = p.channel
-        if p.bitrate is not None:
-            kwargs["bitrate"] = p.bitrate
-        if p.receive is not None and "can_filters" not in kwargs:
-            kwargs["can_filters"] = self._filters(p.receive)
-
-        def open_bus() -> Any:
-            import can
-
-            return can.Bus(interface=p.interface, **kwargs)
-
-        self.opening = self.loop.run_in_executor(None, open_bus)
-        self.opening.add_done_callback(self._opened)
-
-    def _opened(self, fut: asyncio.Future[Any]) -> None:
-        self.opening = None
-        if fut.cancelled():
-            return
-        exc = fut.exception()
-        if exc is not None:
-            self._failed_open(exc)
-            return
-        bus = fut.result()
-        if self.closed:
-            bus.shutdown()
-            return
-        self.bus = bus
-        self.gen += 1
-        gen = self.gen
-        if self.opens:
-            self.reopens += 1
+    def _on_open(self, reopened: bool) -> None:
+        if reopened:
             self.ctx.log.info("%s: CAN interface reopened", self.ctx.name)
-        self.opens += 1
-        self.backoff = self.params.reopen_ms / 1000
-        self.ctx.clear_error()
-        reader = threading.Thread(
-            target=self._reader, args=(bus, gen), name=f"can-rx {self.ctx.name}", daemon=True
-        )
-        self.threads = [t for t in self.threads if t.is_alive()]
-        self.threads.append(reader)
-        reader.start()
-        if self.use_send_thread:
-            self.txq = queue.SimpleQueue()
-            writer = threading.Thread(
-                target=self._writer,
-                args=(bus, gen, self.txq),
-                name=f"can-tx {self.ctx.name}",
-                daemon=True,
-            )
-            self.threads.append(writer)
-            writer.start()
-
-    def _filters(self, names: list[str]) -> list[dict[str, Any]]:
-        """Acceptance filters for the messages this node receives (in the adapter where it
-        has them, else in python-can before the frame reaches this node)."""
-        out = []
-        for name in names:
-            m = self.db.get_message_by_name(name)
-            ext = bool(m.is_extended_frame)
-            out.append(
-                {"can_id": m.frame_id, "can_mask": 0x1FFFFFFF if ext else 0x7FF, "extended": ext}
-            )
-        # none at all: a filter no frame matches (an empty list would accept everything)
-        return out or [{"can_id": 0, "can_mask": 0x1FFFFFFF, "extended": True}]
-
-    def _failed_open(self, exc: BaseException) -> None:
-        p: CanParams = self.params
-        where = f"{p.interface}:{p.channel}" if p.channel else p.interface
-        self.ctx.set_error(f"CAN interface {where} cannot open: {_one_line(exc)}")
-        self.reopen_at = self.loop.time() + self.backoff
-        self.backoff = min(self.backoff * 2, p.reopen_max_ms / 1000)
-
-    def _close(self) -> None:
-        """Let go of the bus: its threads see the generation change and shut it down."""
-        self.gen += 1
-        self.bus = None
-        if self.txq is not None:
-            self.txq.put(None)
-            self.txq = None
-
-    def _reader(self, bus: Any, gen: int) -> None:
-        call = self.loop.call_soon_threadsafe
-        try:
-            while self.gen == gen:
-                try:
-                    msg = bus.recv(0.05)
-                except Exception as exc:
-                    if self.gen == gen:
-                        call(self._lost, gen, exc)
-                    return
-                if msg is not None and self.gen == gen:
-                    call(self._on_frame, msg)
-        except RuntimeError:  # the loop closed under us at shutdown
-            return
-        finally:
-            try:
-                bus.shutdown()
-            except Exception as exc:  # an adapter already gone
-                log.debug("CAN bus shutdown: %s", exc)
-
-    def _writer(self, bus: Any, gen: int, q: queue.SimpleQueue[Any]) -> None:
-        while True:
-            msg = q.get()
-            if msg is None or self.gen != gen:
-                return
-            try:
-                bus.send(msg)
-            except Exception as exc:
-                try:
-                    self.loop.call_soon_threadsafe(self._send_failed, gen, exc)
-                except RuntimeError:
-                    return
-
-    def _lost(self, gen: int, exc: BaseException) -> None:
-        if gen != self.gen or self.bus is None:
-            return
-        p: CanParams = self.params
-        self.lost += 1
-        where = f"{p.interface}:{p.channel}" if p.channel else p.interface
-        self.ctx.set_error(f"CAN interface {where} lost: {_one_line(exc)}")
-        self._close()
-        self.reopen_at = self.loop.time() + self.backoff
-        self.backoff = min(self.backoff * 2, p.reopen_max_ms / 1000)
-
-    def _send_failed(self, gen: int, exc: BaseException) -> None:
-        self.send_errors += 1
-        if isinstance(exc, OSError) or "serial" in type(exc).__module__:
-            self._lost(gen, exc)
-        elif self.send_errors == 1 or self.send_errors % 1000 == 0:
-            self.ctx.log.warning(
-                "%s: CAN send failed (%d): %s", self.ctx.name, self.send_errors, _one_line(exc)
-            )
+        if self.trace_error:  # the bus is fine, the trace is not: stay red for it
+            self.ctx.set_error(self.trace_error)
+        else:
+            self.ctx.clear_error()
 
     # --- receive -----------------------------------------------------------------------------
 
     def _on_frame(self, frame: Any) -> None:
-        if self.bus is None:
+        if self.link.bus is None:
             return
         now = self.ctx.now()
         if frame.is_error_frame:
             self.error_frames += 1
             if frame.arbitration_id & CAN_ERR_BUSOFF:
                 self.bus_off += 1
-                self._lost(self.gen, OSError("bus-off"))
+                self.link.lost(self.link.gen, OSError("bus-off"))
             return
         self.received += 1
+        chan = None if frame.channel is None else str(frame.channel)
+        self.channels[chan or ""] = self.channels.get(chan or "", 0) + 1
         key = (int(frame.arbitration_id), bool(frame.is_extended_id))
+        per = (chan or "", *key)
+        self.id_counts[per] = self.id_counts.get(per, 0) + 1
         st = self.by_id.get(key)
-        data = bytes(frame.data)
+        data = b"" if frame.is_remote_frame else bytes(frame.data)
+        fd, brs = bool(frame.is_fd), bool(frame.bitrate_switch)
         if st is None:
             self.unknown_count += 1
+            self.unknown_by_channel[chan or ""] = self.unknown_by_channel.get(chan or "", 0) + 1
             if self.params.unknown_output:
-                self.ctx.publish(
-                    "unknown", CanFrame(key[0], data, key[1], now, float(frame.timestamp))
-                )
+                out = CanFrame(
+                    key[0], data, key[1], now, float(frame.timestamp), chan, fd, brs,
+                    bool(frame.is_remote_frame),
+                )  # fmt: skip
+                self.ctx.publish("unknown", out)
             return
         st.received += 1
         st.window += 1
-        if len(data) != st.dbc.length:
+        if frame.is_remote_frame:  # a request for the message: nothing to decode
+            return
+        if not st.fits(data):
             st.bad_length += 1
             self._bad(st)
             return
         try:
-            signals = st.dbc.decode(data, decode_choices=False)
+            signals = st.dbc.decode(data[: st.dbc.length], decode_choices=False)
         except Exception:
             self.decode_errors += 1
             self._bad(st)
             return
-        reason = self._integrity(st, signals, data)
+        reason = st.integrity(signals, data)
         if reason:
             self._bad(st)
         else:
@@ -645,36 +378,14 @@ class Can(Node):
         st.timed_out = False
         valid = st.fail < self.params.max_bad
         out = CanMessage(
-            st.dbc.name,
-            key[0],
-            dict(signals),
-            data,
-            now,
-            valid,
-            "" if valid else reason,
-            float(frame.timestamp),
-        )
+            st.dbc.name, key[0], dict(signals), data, now, valid, "" if valid else reason,
+            float(frame.timestamp), chan, fd, brs,
+        )  # fmt: skip
         st.last = out
         self.ctx.publish(st.dbc.name, out)
 
     def _bad(self, st: _Msg) -> None:
         st.fail = min(st.fail + 1, self.params.max_bad)
-
-    def _integrity(self, st: _Msg, signals: Mapping[str, Any], data: bytes) -> str:
-        reason = ""
-        opts = st.opts
-        if opts.counter is not None:
-            sig = st.dbc.get_signal_by_name(opts.counter)
-            raw = round((signals[opts.counter] - sig.offset) / sig.scale)
-            if st.last_counter is not None and raw != (st.last_counter + 1) % (1 << sig.length):
-                st.bad_counter += 1
-                reason = "counter"
-            st.last_counter = raw
-        idx = st.checksum_byte
-        if idx is not None and checksum(opts.checksum_kind, data, idx) != data[idx]:
-            st.bad_checksum += 1
-            reason = "checksum"
-        return reason
 
     # --- the tick: transmit, supervise, reopen, report --------------------------------------
 
@@ -686,28 +397,12 @@ class Can(Node):
         for name, value in inputs.items():
             if value is not None:
                 self._take(self.msgs[name], value)
-        if self.bus is not None:
-            half = min(self.tick / 2, 0.0005)  # timer releases are never early
-            for st in self.txs:
-                if not st.have_value:  # nothing to send yet: keep to the cycle's grid
-                    while st.cycle and st.due <= t + half:
-                        st.due += st.cycle / 1000
-                    continue
-                if st.cycle:
-                    if t + half < st.due:
-                        continue
-                    self._send(st)
-                    st.due += st.cycle / 1000
-                    while st.due <= t - half:  # cycles that could not go out: say so
-                        st.due += st.cycle / 1000
-                        st.late += 1
-                elif st.fresh:
-                    self._send(st)
-                    st.fresh = False
-            if self.replay_iter is not None:
+        if self.link.bus is not None:
+            self._transmit(t)
+            if self.replay is not None:
                 self._replay(t)
-        elif self.opening is None and self.loop.time() >= self.reopen_at:
-            self._open()
+        elif self.link.reopen_due():
+            self.link.open()
         self._supervise(now)
         if t - self.last_status >= self.params.status_ms / 1000:
             self.last_status = t
@@ -715,6 +410,33 @@ class Can(Node):
             self.ctx.publish("status", status)
             if self.keep_status:
                 self._record_status(status)
+
+    def _transmit(self, t: float) -> None:
+        half = min(self.tick / 2, 0.0005)  # timer releases are never early
+        for st in self.txs:
+            if not st.have_value:  # nothing to send yet: keep to the cycle's grid
+                while st.cycle and st.due <= t + half:
+                    st.due += st.cycle / 1000
+                continue
+            if st.cycle:
+                if t + half < st.due:
+                    continue
+                self._send(st)
+                st.due += st.cycle / 1000
+                while st.due <= t - half:  # cycles that could not go out: say so
+                    st.due += st.cycle / 1000
+                    st.late += 1
+            elif st.fresh:
+                self._send(st)
+                st.fresh = False
+
+    def _replay(self, t: float) -> None:
+        assert self.replay is not None
+        for frame in self.replay.due(t, self.tick / 2):
+            if self.link.put(frame):
+                self.sent += 1
+        if self.replay.done:
+            self.replay = None
 
     def _record_status(self, status: CanBusStatus) -> None:
         """Keep the status in the RTDB (``<node>.can``): ``flowrt ctl rtdb chassis.can``
@@ -748,7 +470,7 @@ class Can(Node):
         ]
         self.supervise_from = self.ctx.now()
         if p.replay is not None:
-            self._open_replay()
+            self.replay = TraceReplay(p.replay, p.replay_loop, p.channel, self.ctx.elapsed())
 
     def _take(self, st: _Msg, value: Any) -> None:
         """Keep an input value for sending; a value that does not fit the message is counted
@@ -791,32 +513,44 @@ class Can(Node):
         if opts.checksum is not None:
             values = {**values, opts.checksum: 0}
         try:
-            data = bytearray(st.dbc.encode(values, strict=True))
-        except Exception as e:
-            self.send_errors += 1
-            self.ctx.log.warning("%s: cannot encode %s: %s", self.ctx.name, st.dbc.name, e)
+            if st.fd and not self.params.fd:
+                raise EncodeProblem(
+                    "a CAN FD message on a node without fd: true",
+                    f"{st.dbc.length}-byte CAN FD message; set fd: true to send it",
+                )
+            data = bytearray(encode_signals(st.dbc, values))
+        except EncodeProblem as e:
+            self._encode_failed(st, e)
             return
         idx = st.checksum_byte
         if idx is not None:
             data[idx] = checksum(opts.checksum_kind, bytes(data), idx)
+        if st.fd:
+            data += bytes(fd_payload_length(len(data)) - len(data))
         msg = can.Message(
-            arbitration_id=st.dbc.frame_id, data=data, is_extended_id=st.dbc.is_extended_frame
+            arbitration_id=st.dbc.frame_id,
+            data=data,
+            is_extended_id=st.dbc.is_extended_frame,
+            is_fd=st.fd,
+            bitrate_switch=st.brs,
+            channel=self.params.channel,
         )
-        if self._put(msg):
+        if self.link.put(msg):
+            self.sent += 1
             st.sent += 1
             st.window += 1
 
-    def _put(self, msg: Any) -> bool:
-        if self.txq is not None:
-            self.txq.put(msg)
-        else:
-            try:
-                self.bus.send(msg)
-            except Exception as exc:
-                self._send_failed(self.gen, exc)
-                return False
-        self.sent += 1
-        return True
+    def _encode_failed(self, st: _Msg, e: EncodeProblem) -> None:
+        """Counted per message and per cause; said once per cause (a value out of range every
+        tick is one warning and one alert, not one per tick)."""
+        st.encode_errors += 1
+        key = (st.dbc.name, e.cause)
+        n = self.encode_causes.get(key, 0)
+        self.encode_causes[key] = n + 1
+        if n == 0:
+            detail = f"{st.dbc.name} not sent: {e}"
+            self.ctx.log.warning("%s: %s", self.ctx.name, detail)
+            self.ctx.emit(HealthAlert(self.ctx.elapsed(), self.ctx.name, "can-encode", detail))
 
     def _supervise(self, now: float) -> None:
         for st in self.rxs:
@@ -844,41 +578,11 @@ class Can(Node):
                     False,
                     "timeout",
                     last.bus_timestamp if last else 0.0,
+                    last.channel if last else None,
+                    st.fd,
+                    st.brs,
                 ),
             )
-
-    # --- replay ------------------------------------------------------------------------------
-
-    def _open_replay(self) -> None:
-        import can
-
-        self.replay_iter = iter(can.LogReader(self.params.replay))
-        self.replay_t0 = self.ctx.elapsed()
-        self.replay_first: float | None = None
-        self.replay_next = next(self.replay_iter, None)
-
-    def _replay(self, t: float) -> None:
-        while self.replay_next is not None:
-            msg = self.replay_next
-            if self.replay_first is None:
-                self.replay_first = float(msg.timestamp)
-            if float(msg.timestamp) - self.replay_first > t - self.replay_t0 + self.tick / 2:
-                return
-            if not msg.is_error_frame:
-                import can
-
-                self._put(
-                    can.Message(
-                        arbitration_id=msg.arbitration_id,
-                        data=msg.data,
-                        is_extended_id=msg.is_extended_id,
-                    )
-                )
-            self.replay_next = next(self.replay_iter, None)
-        if self.params.replay_loop:
-            self._open_replay()
-        else:
-            self.replay_iter = None
 
     # --- statistics --------------------------------------------------------------------------
 
@@ -888,96 +592,45 @@ class Can(Node):
         t = self.ctx.elapsed()
         span = max(t - getattr(self, "last_snapshot", 0.0), 1e-9)
         self.last_snapshot = t
-        rows = []
-        for st in self.msgs.values():
-            rows.append(
-                MessageStatus(
-                    st.dbc.name,
-                    int(st.dbc.frame_id),
-                    st.received,
-                    st.sent,
-                    st.window / span,
-                    None if st.last_rx is None else (now - st.last_rx) * 1000,
-                    st.timeouts,
-                    st.bad_counter,
-                    st.bad_checksum,
-                    st.bad_length,
-                    st.late,
-                    st.bad_inputs,
-                    not st.timed_out and st.fail < self.params.max_bad,
-                )
-            )
-            st.window = 0
-        p: CanParams = self.params
-        return CanBusStatus(
-            t,
-            p.interface,
-            p.channel,
-            self.bus is not None,
-            self.received,
-            self.sent,
-            self.unknown_count,
-            self.error_frames,
-            self.bus_off,
-            self.lost,
-            self.reopens,
-            self.send_errors,
-            self.decode_errors,
-            tuple(rows),
+        rows = tuple(
+            _message_status(st, now, span, self.params.max_bad) for st in self.msgs.values()
         )
+        p: CanParams = self.params
+        link = self.link
+        trace = link.trace
+        return CanBusStatus(
+            t, p.interface, p.channel, link.bus is not None, self.received, self.sent,
+            self.unknown_count, self.error_frames, self.bus_off, link.lost_count, link.reopens,
+            link.send_errors, self.decode_errors, rows,
+            tuple(sorted(self.channels)), tuple(sorted(self.unknown_by_channel.items())),
+            trace.written if trace else 0, trace.dropped if trace else 0,
+            tuple((m, c, n) for (m, c), n in sorted(self.encode_causes.items())),
+            tuple((c, i, e, n) for (c, i, e), n in sorted(self.id_counts.items())),
+        )  # fmt: skip
 
 
-def _one_line(exc: BaseException) -> str:
-    return " ".join(str(exc).split()) or type(exc).__name__
+def _bus_kwargs(p: CanParams, db: Any) -> dict[str, Any]:
+    """The keyword arguments of ``can.Bus``: the params' options, channel, rates, FD, filters."""
+    kwargs: dict[str, Any] = dict(p.options)
+    if p.channel is not None:
+        kwargs["channel"] = p.channel
+    if p.bitrate is not None:
+        kwargs["bitrate"] = p.bitrate
+    if p.fd:
+        kwargs.setdefault("fd", True)
+        if p.data_bitrate is not None:
+            kwargs.setdefault("data_bitrate", p.data_bitrate)
+    if p.receive is not None and "can_filters" not in kwargs:
+        kwargs["can_filters"] = acceptance_filters(db, p.receive)
+    return kwargs
 
 
-# --- a signal source, for examples, tests and benchmarks ----------------------------------
-
-
-class Wave(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    wave: Literal["const", "sine", "ramp", "count"] = "const"
-    value: float = Field(default=0.0, description="const value, or the offset of the others")
-    amplitude: float = 1.0
-    period_s: float = Field(default=1.0, gt=0)
-    modulo: int = Field(default=256, ge=1, description="count wraps here")
-
-
-class SignalSourceParams(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    signals: dict[str, Wave] = Field(description="signal name -> waveform")
-    rate_ms: float = Field(default=100.0, gt=0, description="default timer trigger")
-
-
-class SignalSource(Node):
-    """Signal values for a ``can`` node input, from simple waveforms (a simulated sensor).
-
-    Outputs a mapping ``{signal: value}`` per activation (default trigger: ``rate_ms``):
-    ``const`` value, ``sine``/``ramp`` of ``amplitude`` and ``period_s`` around ``value``, or
-    ``count`` (0, 1, 2, ... modulo ``modulo``), with the runtime clock as time base.
-    """
-
-    Params = SignalSourceParams
-    values = Output(dict, doc="signal name -> value")
-
-    @classmethod
-    def default_trigger(cls, params: Any) -> TimerTrigger:
-        return TimerTrigger(timer=params.rate_ms)
-
-    def setup(self) -> None:
-        self.n = 0
-
-    def process(self) -> dict[str, float]:
-        t = self.ctx.elapsed()
-        out: dict[str, float] = {}
-        for name, w in self.params.signals.items():
-            if w.wave == "const":
-                out[name] = w.value
-            elif w.wave == "sine":
-                out[name] = w.value + w.amplitude * math.sin(2 * math.pi * t / w.period_s)
-            elif w.wave == "ramp":
-                out[name] = w.value + w.amplitude * ((t / w.period_s) % 1.0)
-            else:
-                out[name] = float(self.n % w.modulo)
-        self.n += 1
-        return out
+def _message_status(st: _Msg, now: float, span: float, max_bad: int) -> MessageStatus:
+    """One message's row of the status (and the start of its next rate window)."""
+    window, st.window = st.window, 0
+    return MessageStatus(
+        st.dbc.name, int(st.dbc.frame_id), st.received, st.sent, window / span,
+        None if st.last_rx is None else (now - st.last_rx) * 1000,
+        st.timeouts, st.bad_counter, st.bad_checksum, st.bad_length, st.late,
+        st.bad_inputs, not st.timed_out and st.fail < max_bad, st.encode_errors, st.fd,
+    )  # fmt: skip

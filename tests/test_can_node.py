@@ -199,8 +199,8 @@ async def test_error_frames_and_bus_off_are_counted_and_survived(
         assert n.bus_off == 0
         peer.send(can.Message(arbitration_id=0x040, is_error_frame=True, data=[0] * 8))
         await until(lambda: n.bus_off == 1)
-        assert n.lost == 1
-        await until(lambda: n.reopens == 1 and n.bus is not None)  # reopened, clean state
+        assert n.link.lost_count == 1
+        await until(lambda: n.link.reopens == 1 and n.bus is not None)  # reopened, clean state
         assert rt.scheduler.runners["chassis"].error_reason is None
         peer.send(frame("Infrared", Front=10))
         await until(lambda: n.msgs["Infrared"].received == 1)
@@ -251,7 +251,7 @@ async def test_interface_gone_and_back(
         peer.send(frame("Infrared", Front=1))
         await until(lambda: n.msgs["Infrared"].received == 1)
         flaky.plugged = False
-        await until(lambda: n.lost == 1)
+        await until(lambda: n.link.lost_count == 1)
         assert runner.error_reason is not None
         assert "lost" in runner.error_reason
         assert "unplugged" in runner.error_reason
@@ -262,7 +262,7 @@ async def test_interface_gone_and_back(
         flaky.plugged = True
         await until(lambda: n.bus is not None)
         await until(lambda: runner.error_reason is None)
-        assert n.reopens == 1
+        assert n.link.reopens == 1
         peer.send(frame("Infrared", Front=2))
         await until(lambda: n.msgs["Infrared"].received == 2)
         kinds = [e.alert for e in rt.events if isinstance(e, HealthAlert)]

@@ -24,8 +24,15 @@ the analysis said 3 ms, the bus gives 3.5 ms, past a 3.25 ms deadline). So, per 
 ``J`` is the queuing jitter (the variation of the instant a message is queued relative to
 its period, e.g. from the task that queues it). Error recovery overhead is not modelled
 (an error-free bus). Messages without a period (event-driven) block lower-priority
-messages but cannot be analysed themselves nor bound the interference they cause: they are
-reported as not analysed.
+messages (they are in ``B``) but cannot be analysed themselves nor bound the interference
+they cause to lower-priority messages: they are reported as not analysed, with the messages
+they can delay without bound. Given a minimum inter-arrival time (``sporadic``), such a
+message is analysed as Davis et al.'s sporadic message: ``T`` is that minimum time.
+
+CAN FD messages (ISO 11898-1:2015) take their frame length from
+:mod:`flowrt.analysis.can_frames` and ``C = arbitration bits / nominal rate + data bits /
+data rate``; an FD message with bit-rate switch and no data bit rate is not analysed (its
+no-BRS length, an upper bound, still counts as interference and blocking).
 
 Pure functions over :class:`CanMessageTiming`; the DBC reading is :func:`timings_from_dbc`,
 which takes a loaded cantools database (no runtime imports).
@@ -38,6 +45,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from .can_frames import fd_frame_bits, frame_bits
+
 __all__ = [
     "BusAnalysis",
     "CanMessageTiming",
@@ -49,17 +58,10 @@ __all__ = [
 ]
 
 _MAX_ITER = 100_000
-
-
-def frame_bits(dlc: int, extended: bool = False) -> int:
-    """Worst-case length in bits of a data frame with ``dlc`` data bytes (0..8), stuff bits
-    and the 3-bit interframe space included (Davis et al. 2007, eq. 2)."""
-    if not 0 <= dlc <= 8:
-        raise ValueError(f"a classic CAN frame carries 0..8 data bytes, not {dlc}")
-    n8 = 8 * dlc
-    if extended:
-        return 67 + n8 + (54 + n8 - 1) // 4
-    return 47 + n8 + (34 + n8 - 1) // 4
+#: Most instances of a message in its busy period that are examined (eq. 13): a queuing jitter
+#: of days against a period of milliseconds would otherwise take hours; past it the message
+#: is reported unbounded.
+MAX_INSTANCES = 10_000
 
 
 @dataclass(frozen=True)
@@ -78,6 +80,9 @@ class CanMessageTiming:
     extended: bool = False
     deadline_ms: float | None = None  # None: the period
     jitter_ms: float = 0.0
+    fd: bool = False  # CAN FD (ISO 11898-1:2015)
+    brs: bool = False  # FD with bit-rate switch: the data phase at the data bit rate
+    sporadic: bool = False  # period_ms is a minimum inter-arrival time, not a cycle
 
     def priority_key(self) -> tuple[int, int, int]:
         """Arbitration order (smaller wins): base id, then RTR/IDE (standard first), then the
@@ -98,6 +103,10 @@ class MessageResult:
     wcrt_ms: float | None  # None: not analysed (no period) or unbounded (busy period diverges)
     deadline_ms: float | None
     schedulable: bool | None  # None: not analysed
+    arbitration_bits: int = 0  # FD: bits at the nominal rate (classic: all of them)
+    data_bits: int = 0  # FD: bits at the data rate with BRS
+    note: str = ""  # why not analysed
+    delays: tuple[str, ...] = ()  # not analysed: lower-priority messages it can delay unboundedly
 
     @property
     def name(self) -> str:
@@ -108,8 +117,13 @@ class MessageResult:
 class BusAnalysis:
     bitrate: int
     bits_per_s: float  # worst-case bits per second of the periodic messages
-    utilisation: float  # bits_per_s / bitrate
+    utilisation: float  # sum of C/T: the share of the bus' time (bits_per_s / bitrate if classic)
     messages: list[MessageResult]  # in priority order, highest first
+    data_bitrate: int | None = None
+
+    @property
+    def not_analysed(self) -> list[MessageResult]:
+        return [m for m in self.messages if m.schedulable is None]
 
     @property
     def schedulable(self) -> bool:
@@ -120,6 +134,7 @@ class BusAnalysis:
         """The ``flowrt can analyse --json`` document: ids integers, times ms floats."""
         return {
             "bitrate": self.bitrate,
+            "data_bitrate": self.data_bitrate,
             "utilisation": self.utilisation,
             "bits_per_s": self.bits_per_s,
             "schedulable": self.schedulable,
@@ -139,8 +154,17 @@ class BusAnalysis:
                     "wcrt_ms": m.wcrt_ms,
                     "deadline_ms": _f(m.deadline_ms),
                     "schedulable": m.schedulable,
+                    "fd": m.timing.fd,
+                    "brs": m.timing.brs,
+                    "sporadic": m.timing.sporadic,
+                    "arbitration_bits": m.arbitration_bits,
+                    "data_bits": m.data_bits,
                 }
                 for m in self.messages
+            ],
+            "not_analysed": [
+                {"name": m.name, "reason": m.note, "c_ms": m.c_ms, "delays": list(m.delays)}
+                for m in self.not_analysed
             ],
         }
 
@@ -175,6 +199,8 @@ def response_time(
     else:
         return None, None, None
     q_count = max(1, math.ceil((busy + j) / t - 1e-12))
+    if q_count > MAX_INSTANCES:
+        return None, None, None
     worst = 0.0
     w = blocking
     for q in range(q_count):
@@ -194,22 +220,55 @@ def response_time(
     return worst, busy, q_count
 
 
-def analyse_bus(messages: Iterable[CanMessageTiming], bitrate: int) -> BusAnalysis:
+def _frame(m: CanMessageTiming, tau_ms: float, data_bitrate: int | None) -> tuple[int, int, float]:
+    """(arbitration bits, data bits, C in ms) of one message; FD with BRS needs the data rate
+    (None: the no-BRS length, an upper bound)."""
+    if not m.fd:
+        bits = frame_bits(m.dlc, m.extended)
+        return bits, 0, bits * tau_ms
+    fd = fd_frame_bits(m.dlc, m.extended, m.brs)
+    if m.brs and data_bitrate is not None:
+        return fd.arbitration, fd.data, fd.arbitration * tau_ms + fd.data * 1000.0 / data_bitrate
+    return fd.arbitration, fd.data, fd.total * tau_ms
+
+
+def analyse_bus(
+    messages: Iterable[CanMessageTiming], bitrate: int, data_bitrate: int | None = None
+) -> BusAnalysis:
     """Frame lengths, utilisation and worst-case response times of a message set."""
     if bitrate <= 0:
         raise ValueError(f"bitrate must be positive, got {bitrate}")
+    if data_bitrate is not None and data_bitrate < bitrate:
+        raise ValueError(f"the data bit rate {data_bitrate} is below the nominal {bitrate}")
     msgs = sorted(messages, key=CanMessageTiming.priority_key)
     tau_ms = 1000.0 / bitrate
-    bits = [frame_bits(m.dlc, m.extended) for m in msgs]
-    cs = [b * tau_ms for b in bits]
-    bps = sum(b * 1000.0 / m.period_ms for b, m in zip(bits, msgs, strict=True) if m.period_ms)
+    frames = [_frame(m, tau_ms, data_bitrate) for m in msgs]
+    bits = [a + d for a, d, _ in frames]
+    cs = [c for _, _, c in frames]
+    periodic = [(b, c, m) for b, c, m in zip(bits, cs, msgs, strict=True) if m.period_ms]
+    bps = sum(b * 1000.0 / float(m.period_ms or 1) for b, _, m in periodic)
+    util = sum(c / float(m.period_ms or 1) for _, c, m in periodic)
     results: list[MessageResult] = []
     for i, m in enumerate(msgs):
         blocking = max(cs[i + 1 :], default=0.0)
         deadline = m.deadline_ms if m.deadline_ms is not None else m.period_ms
+        arb, data = frames[i][0], frames[i][1]
         if m.period_ms is None:
+            lower = tuple(h.name for h in msgs[i + 1 :] if h.period_ms is not None)
+            note = "no cycle time"
             results.append(
-                MessageResult(m, bits[i], cs[i], blocking, None, None, None, deadline, None)
+                MessageResult(
+                    m, bits[i], cs[i], blocking, None, None, None, deadline, None,
+                    arb, data, note, lower,
+                )
+            )  # fmt: skip
+            continue
+        if m.fd and m.brs and data_bitrate is None:
+            note = "CAN FD with bit-rate switch: no data bit rate"
+            results.append(
+                MessageResult(
+                    m, bits[i], cs[i], blocking, None, None, None, deadline, None, arb, data, note
+                )
             )
             continue
         higher = [
@@ -221,8 +280,10 @@ def analyse_bus(messages: Iterable[CanMessageTiming], bitrate: int) -> BusAnalys
             cs[i], float(m.period_ms), float(m.jitter_ms), blocking, higher, tau_ms
         )
         ok = r is not None and deadline is not None and r <= deadline + 1e-9
-        results.append(MessageResult(m, bits[i], cs[i], blocking, busy, q, r, deadline, ok))
-    return BusAnalysis(bitrate, bps, bps / bitrate, results)
+        results.append(
+            MessageResult(m, bits[i], cs[i], blocking, busy, q, r, deadline, ok, arb, data)
+        )
+    return BusAnalysis(bitrate, bps, util, results, data_bitrate)
 
 
 def timings_from_dbc(
@@ -231,20 +292,38 @@ def timings_from_dbc(
     periods: Mapping[str, float] | None = None,
     deadlines: Mapping[str, float] | None = None,
     jitters: Mapping[str, float] | None = None,
+    sporadic: Mapping[str, float] | None = None,
 ) -> list[CanMessageTiming]:
     """The messages of a loaded cantools database, their period from ``GenMsgCycleTime``
-    (``cycle_time``) unless ``periods`` overrides it by message name."""
+    (``cycle_time``) unless ``periods`` overrides it by message name. A message without a
+    cycle time is sporadic with the minimum inter-arrival time ``sporadic`` gives (else the
+    DBC's ``GenMsgDelayTime``), and event-driven (not analysed) without one. FD-ness comes
+    from the DBC (``VFrameFormat``, or more than 8 bytes) and BRS from ``CANFD_BRS``."""
+    from .can_database import message_attribute, message_brs, message_is_fd
+
     periods = periods or {}
     deadlines = deadlines or {}
     jitters = jitters or {}
+    sporadic = sporadic or {}
     names = {m.name for m in db.messages}
-    for what, table in (("period", periods), ("deadline", deadlines), ("jitter", jitters)):
+    for what, table in (
+        ("period", periods),
+        ("deadline", deadlines),
+        ("jitter", jitters),
+        ("sporadic", sporadic),
+    ):
         for name in table:
             if name not in names:
                 raise KeyError(f"{what} given for {name!r}, which is not a message of the DBC")
     out: list[CanMessageTiming] = []
     for m in db.messages:
         period = periods.get(m.name, m.cycle_time or None)
+        is_sporadic = False
+        if not period:
+            gap = sporadic.get(m.name, _positive(message_attribute(m, "GenMsgDelayTime")))
+            if gap:
+                period, is_sporadic = gap, True
+        fd = message_is_fd(m)
         out.append(
             CanMessageTiming(
                 name=m.name,
@@ -254,6 +333,17 @@ def timings_from_dbc(
                 extended=bool(m.is_extended_frame),
                 deadline_ms=deadlines.get(m.name),
                 jitter_ms=float(jitters.get(m.name, 0.0)),
+                fd=fd,
+                brs=fd and message_brs(m),
+                sporadic=is_sporadic,
             )
         )
     return out
+
+
+def _positive(value: Any) -> float | None:
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) and x > 0 else None

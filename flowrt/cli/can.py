@@ -1,100 +1,162 @@
 """``flowrt can analyse`` and ``flowrt can stats``: a CAN bus on paper and in a trace.
 
-``analyse`` reads a CAN database (DBC, KDC, ARXML: whatever cantools reads) and prints the
-analysis of :mod:`flowrt.analysis.can` (worst-case frame lengths, utilisation, worst-case
-response times after Davis et al. 2007); exit 1 when a message can miss its deadline, 2
-when the database does not load. ``stats`` reads a trace in any format python-can reads
-(.asc, .blf, .log, .trc, .csv, .mf4, ...) and prints per identifier the count, mean period
-and inter-arrival spread, and the bus load per second.
+``analyse`` reads a CAN database (DBC, KCD, ARXML, SYM: whatever cantools reads, loaded
+non-strictly: :mod:`flowrt.analysis.can_database`) and prints the analysis of
+:mod:`flowrt.analysis.can` (worst-case frame lengths, classic and FD, utilisation,
+worst-case response times after Davis et al. 2007); exit 1 when a message can miss its
+deadline, 2 when the database does not load or an argument is out of range. ``stats`` reads
+a trace in any format python-can reads (.asc, .blf, .log, .trc, .csv, .mf4, ...) and prints
+per channel and identifier the count, mean period and inter-arrival spread, and the bus
+load per second (:mod:`flowrt.analysis.can_trace`).
 """
 
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
-import statistics
-from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
+from ..analysis.can_database import CanDatabaseError
+from ..analysis.can_database import load_database as _load
+from ..analysis.can_frames import bit_rate
+from ..analysis.can_trace import TraceError, trace_stats
 from ..columns import Column, fit_table
+from ..spec import parse_duration_ms
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, stdout_console
 
+__all__ = ["CanDatabaseError", "load_database", "parse_bitrate", "trace_stats"]
 
-class CanDatabaseError(Exception):
-    """A CAN database that does not load; the message is one line naming the file."""
+#: Longest period, deadline, jitter or inter-arrival time taken (an hour): past it a busy
+#: period is not worth computing (``--jitter X=1e9`` took hours).
+MAX_MS = 3_600_000.0
 
 
-def load_database(path: str) -> Any:
-    """A cantools database, or CanDatabaseError with one clear line (never a traceback)."""
-    import cantools
+def load_database(path: str, strict: bool = False) -> Any:
+    """A cantools database (non-strict unless ``strict``), or a one-line CanDatabaseError."""
+    return _load(path, strict)[0]
 
-    if not Path(path).is_file():
-        raise CanDatabaseError(f"{path}: no such file")
+
+def parse_bitrate(text: str, flag: str = "--bitrate") -> int:
+    """``500000``, ``500k``, ``1e6``, ``1M``, ``2Mbit/s`` as bit/s, range-checked."""
     try:
-        return cantools.database.load_file(path, strict=True)
-    except Exception as e:  # cantools raises parser, value and key errors of several kinds
-        text = " ".join(str(e).split()) or type(e).__name__
-        raise CanDatabaseError(f"{path}: not a valid CAN database: {text}") from None
+        return bit_rate(text)
+    except ValueError as e:
+        raise CanDatabaseError(f"{flag} {text!r}: {e}") from None
 
 
-def _pairs(items: list[str] | None, flag: str) -> dict[str, float]:
+def _pairs(items: list[str] | None, flag: str, zero_ok: bool = False) -> dict[str, float]:
+    """``NAME=10ms`` (a bare number is ms) items, finite and within 0..an hour."""
     out: dict[str, float] = {}
     for item in items or []:
-        name, sep, value = item.partition("=")
+        name, sep, value = item.rpartition("=")
         try:
-            if not sep:
+            if not sep or not name:
                 raise ValueError
-            out[name] = float(value.removesuffix("ms"))
+            ms = parse_duration_ms(value.strip())
         except ValueError:
-            raise CanDatabaseError(f"{flag} {item!r}: expected NAME=MS") from None
+            raise CanDatabaseError(f"{flag} {item!r}: expected NAME=MS, e.g. Foo=20ms") from None
+        low_ok = ms >= 0 if zero_ok else ms > 0
+        if not low_ok or ms > MAX_MS:
+            least = "0" if zero_ok else "more than 0"
+            raise CanDatabaseError(f"{flag} {item!r}: must be {least} and at most 1 h")
+        out[name] = ms
     return out
 
 
 def cmd_analyse(args: argparse.Namespace) -> int:
     from ..analysis.can import analyse_bus, timings_from_dbc
+    from ..analysis.can_database import data_bitrate_of
 
     err = Console(stderr=True, highlight=False)
     try:
-        db = load_database(args.dbc)
+        bitrate = parse_bitrate(args.bitrate)
+        data_rate = (
+            parse_bitrate(args.data_bitrate, "--data-bitrate") if args.data_bitrate else None
+        )
+        db, warnings = _load(args.dbc, args.strict)
+        source = "--data-bitrate"
+        if data_rate is None:
+            data_rate, source = data_bitrate_of(db), "the DBC's BaudrateCANFD"
         timings = timings_from_dbc(
             db,
             periods=_pairs(args.period, "--period"),
             deadlines=_pairs(args.deadline, "--deadline"),
-            jitters=_pairs(args.jitter, "--jitter"),
+            jitters=_pairs(args.jitter, "--jitter", zero_ok=True),
+            sporadic=_pairs(args.sporadic, "--sporadic"),
         )
-        if args.bitrate <= 0:
-            raise CanDatabaseError(f"--bitrate must be positive, got {args.bitrate}")
-        result = analyse_bus(timings, args.bitrate)
+        if data_rate is not None and data_rate < bitrate:
+            raise CanDatabaseError(f"{source} {data_rate} is below --bitrate {bitrate}")
+        result = analyse_bus(timings, bitrate, data_rate)
     except (CanDatabaseError, KeyError, ValueError) as e:
         err.print(str(e).strip("'\""), style="red", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
     if args.json:
-        print(json.dumps(result.to_json(), indent=2))
-    else:
-        console = stdout_console()
-        console.print(
-            f"{args.dbc}: {len(result.messages)} messages at {args.bitrate} bit/s "
-            "(worst-case stuffing, 3-bit interframe space; Davis et al. 2007)",
-            style="italic",
-            highlight=False,
-        )
-        t = _message_table(result.messages, console.width)
-        console.print(t)
-        console.print(
-            f"bus: {result.bits_per_s:,.0f} bit/s of {args.bitrate:,} = "
-            f"utilisation {100 * result.utilisation:.2f} %; schedulable: "
-            f"{'yes' if result.schedulable else 'NO'}"
-        )
-        event = [m.name for m in result.messages if m.timing.period_ms is None]
-        if event:
-            console.print(
-                f"not analysed (no GenMsgCycleTime; give --period NAME=MS): {', '.join(event)}",
-                style="yellow",
-            )
+        doc = result.to_json()
+        doc["warnings"] = [
+            {"message": w.message, "signal": w.signal, "reason": w.reason} for w in warnings
+        ]
+        print(json.dumps(doc, indent=2))
+        return EXIT_OK if result.schedulable else EXIT_FAILED
+    for w in warnings:  # once each, on stderr: the analysis itself is on stdout
+        err.print(f"warning: {args.dbc}: {w}", style="yellow", markup=False, soft_wrap=True)
+    _print_analysis(args.dbc, result)
     return EXIT_OK if result.schedulable else EXIT_FAILED
+
+
+def _print_analysis(path: str, result: Any) -> None:
+    console = stdout_console()
+    rates = f"{result.bitrate} bit/s"
+    if result.data_bitrate is not None:
+        rates += f", FD data phase {result.data_bitrate} bit/s"
+    console.print(
+        f"{path}: {len(result.messages)} messages at {rates} "
+        "(worst-case stuffing, 3-bit interframe space; Davis et al. 2007, FD after "
+        "ISO 11898-1:2015)",
+        style="italic",
+        highlight=False,
+        markup=False,
+    )
+    console.print(_message_table(result.messages, console.width))
+    console.print(
+        f"bus: {result.bits_per_s:,.0f} bit/s, utilisation {100 * result.utilisation:.2f} %; "
+        f"schedulable: {'yes' if result.schedulable else 'NO'}",
+        markup=False,
+    )
+    left = result.not_analysed
+    event = [m for m in left if m.timing.period_ms is None]
+    fd = [m for m in left if m.timing.period_ms is not None]
+    if fd:
+        console.print(
+            "not analysed (CAN FD with bit-rate switch, no data bit rate; give --data-bitrate "
+            f"or the DBC's BaudrateCANFD): {', '.join(m.name for m in fd)}; their no-BRS "
+            "length counts as interference and blocking for the others",
+            style="yellow",
+            markup=False,
+        )
+    if event:
+        console.print(
+            "not analysed (no cycle time; give --period NAME=MS, or --sporadic NAME=MS for a "
+            f"minimum inter-arrival time): {', '.join(m.name for m in event)}",
+            style="yellow",
+            markup=False,
+        )
+        below = {d for m in event for d in m.delays}
+        worst = max(m.c_ms for m in event)
+        console.print(
+            f"  each can still delay others: it blocks higher-priority messages by at most "
+            f"its frame time (<= {worst:.3f} ms, included in their B), and it delays "
+            f"lower-priority messages without bound: {len(below)} analysed message"
+            f"{'s are' if len(below) != 1 else ' is'} below at least one of them (their "
+            "WCRT assumes these stay silent)",
+            markup=False,
+        )
+        if len(event) <= 10:
+            for m in event:
+                if m.delays:
+                    shown = ", ".join(m.delays[:5]) + (", ..." if len(m.delays) > 5 else "")
+                    console.print(f"  {m.name} is above {shown}", markup=False)
 
 
 def _ident(r: dict[str, Any]) -> str:
@@ -115,7 +177,7 @@ def _message_table(messages: Any, width: int) -> Any:
     cols: tuple[Column[Any], ...] = (
         Column("message", lambda m: m.name, right=False),
         Column("id", ident, right=False),
-        Column("dlc", lambda m: str(m.timing.dlc), drop=5),
+        Column("dlc", lambda m: str(m.timing.dlc) + (" FD" if m.timing.fd else ""), drop=5),
         Column("period ms", lambda m: _ms(m.timing.period_ms)),
         Column("bits", lambda m: str(m.frame_bits), drop=6),
         Column("C ms", lambda m: f"{m.c_ms:.3f}"),
@@ -144,92 +206,17 @@ def _ms(x: float | None) -> str:
     return "-" if x is None else f"{x:.3f}"
 
 
-def trace_stats(path: str, bitrate: int, db: Any = None) -> dict[str, Any]:
-    """Per identifier count, mean period and inter-arrival spread; bus load per second.
-
-    The load counts each frame at its worst-case stuffed length (the analysis' figure), so
-    it is an upper bound of the load on the wire and comparable with ``can analyse``.
-    """
-    import can
-
-    from ..analysis.can import frame_bits
-
-    arrivals: dict[tuple[int, bool], list[float]] = {}
-    dlcs: dict[tuple[int, bool], int] = {}
-    bins: dict[int, int] = {}
-    errors = 0
-    first = last = None
-    with can.LogReader(path) as reader:
-        for msg in reader:
-            t = float(msg.timestamp)
-            first = t if first is None else min(first, t)
-            last = t if last is None else max(last, t)
-            if msg.is_error_frame:
-                errors += 1
-                continue
-            key = (int(msg.arbitration_id), bool(msg.is_extended_id))
-            arrivals.setdefault(key, []).append(t)
-            dlc = min(int(msg.dlc), 8)
-            dlcs[key] = dlc
-            bins.setdefault(int(t), 0)
-            bins[int(t)] += frame_bits(dlc, key[1])
-    names: dict[tuple[int, bool], str] = {}
-    if db is not None:
-        for m in db.messages:
-            names[(int(m.frame_id), bool(m.is_extended_frame))] = m.name
-    ids: list[dict[str, Any]] = []
-    for key in sorted(arrivals):
-        ts = sorted(arrivals[key])
-        gaps = [(b - a) * 1000.0 for a, b in itertools.pairwise(ts)]
-        ids.append(
-            {
-                "id": key[0],
-                "extended": key[1],
-                "name": names.get(key),
-                "dlc": dlcs[key],
-                "count": len(ts),
-                "period_ms": statistics.fmean(gaps) if gaps else None,
-                "std_ms": statistics.pstdev(gaps) if len(gaps) > 1 else (0.0 if gaps else None),
-                "min_ms": min(gaps) if gaps else None,
-                "max_ms": max(gaps) if gaps else None,
-            }
-        )
-    duration = (last - first) if first is not None and last is not None else 0.0
-    start = int(first) if first is not None else 0
-    load = [
-        {"t_s": float(sec - start), "bits": bins[sec], "load": bins[sec] / bitrate}
-        for sec in sorted(bins)
-    ]
-    total_bits = sum(bins.values())
-    return {
-        "file": path,
-        "bitrate": bitrate,
-        "duration_s": duration,
-        "frames": sum(len(v) for v in arrivals.values()),
-        "error_frames": errors,
-        "mean_load": (total_bits / duration / bitrate) if duration > 0 else None,
-        "ids": ids,
-        "load": load,
-    }
-
-
 def cmd_stats(args: argparse.Namespace) -> int:
     err = Console(stderr=True, highlight=False)
-    if not Path(args.trace).is_file():
-        err.print(f"{args.trace}: no such file", style="red", markup=False, soft_wrap=True)
-        return EXIT_BAD_GRAPH
     try:
-        db = load_database(args.dbc) if args.dbc else None
-        if args.bitrate <= 0:
-            raise CanDatabaseError(f"--bitrate must be positive, got {args.bitrate}")
-        doc = trace_stats(args.trace, args.bitrate, db)
-    except CanDatabaseError as e:
-        err.print(str(e), style="red", markup=False, soft_wrap=True)
-        return EXIT_BAD_GRAPH
-    except Exception as e:  # python-can's readers raise many kinds on unknown/bad files
-        err.print(
-            f"{args.trace}: cannot read the trace: {e}", style="red", markup=False, soft_wrap=True
+        bitrate = parse_bitrate(args.bitrate)
+        data_rate = (
+            parse_bitrate(args.data_bitrate, "--data-bitrate") if args.data_bitrate else None
         )
+        db = load_database(args.dbc) if args.dbc else None
+        doc = trace_stats(args.trace, bitrate, db, data_rate)
+    except (CanDatabaseError, TraceError, OSError) as e:
+        err.print(str(e), style="red", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
     if args.json:
         print(json.dumps(doc, indent=2))
@@ -237,14 +224,30 @@ def cmd_stats(args: argparse.Namespace) -> int:
     console = stdout_console()
     console.print(
         f"{args.trace}: {doc['frames']} frames over {doc['duration_s']:.3f} s"
-        + (f", {doc['error_frames']} error frames" if doc["error_frames"] else ""),
+        + (f", {doc['error_frames']} error frames" if doc["error_frames"] else "")
+        + (f", {len(doc['channels'])} channels" if len(doc["channels"]) > 1 else ""),
         style="italic",
         highlight=False,
+        markup=False,
     )
+    for ch in doc["channels"]:
+        _print_channel(console, ch, bitrate, len(doc["channels"]) > 1)
+    if doc["brs_at_nominal_rate"]:
+        console.print(
+            f"{doc['brs_at_nominal_rate']} FD frames with bit-rate switch counted at the "
+            "nominal rate (give --data-bitrate)",
+            style="yellow",
+        )
+    return EXIT_OK
+
+
+def _print_channel(console: Console, ch: dict[str, Any], bitrate: int, head: bool) -> None:
+    if head:
+        console.print(f"channel {ch['channel'] or '-'}", style="bold", markup=False)
     cols: tuple[Column[Any], ...] = (
         Column("id", _ident, right=False),
         Column("name", lambda r: r["name"] or "", drop=2, right=False),
-        Column("dlc", lambda r: str(r["dlc"]), drop=1),
+        Column("dlc", lambda r: str(r["dlc"]) + (" FD" if r["fd"] else ""), drop=1),
         Column("frames", lambda r: str(r["count"])),
         *(
             Column(h, _ms_of(k))
@@ -256,17 +259,15 @@ def cmd_stats(args: argparse.Namespace) -> int:
             )
         ),
     )
-    t = fit_table(cols, doc["ids"], console.width)
-    console.print(t)
-    if doc["load"]:
-        peak = max(b["load"] for b in doc["load"])
-        mean = doc["mean_load"]
-        head = f"mean {100 * mean:.2f} %, " if mean is not None else ""
+    console.print(fit_table(cols, ch["ids"], console.width))
+    if ch["load"]:
+        peak = max(b["load"] for b in ch["load"])
+        mean = ch["mean_load"]
+        lead = f"mean {100 * mean:.2f} %, " if mean is not None else ""
         console.print(
-            f"bus load at {args.bitrate:,} bit/s (worst-case stuffing): {head}"
-            f"busiest second {100 * peak:.2f} % ({len(doc['load'])} s)"
+            f"bus load at {bitrate:,} bit/s (worst-case stuffing): {lead}"
+            f"busiest second {100 * peak:.2f} % ({len(ch['load'])} s)"
         )
-    return EXIT_OK
 
 
 def add_parsers(sub: Any) -> None:
@@ -278,12 +279,19 @@ def add_parsers(sub: Any) -> None:
         help="worst-case frame lengths, utilisation and response times of a DBC's messages",
     )
     an.add_argument("dbc", help="CAN database (.dbc, .kcd, .arxml, .sym)")
-    an.add_argument("--bitrate", type=int, default=500000, help="bit/s (default 500000)")
+    an.add_argument(
+        "--bitrate", default="500k", help="nominal bit/s: 500000, 500k, 1e6, 1M (default 500k)"
+    )
+    an.add_argument(
+        "--data-bitrate",
+        help="CAN FD data-phase bit/s, e.g. 2M (default: the DBC's BaudrateCANFD; without "
+        "either, FD messages with bit-rate switch are not analysed)",
+    )
     an.add_argument(
         "--period",
         action="append",
         metavar="NAME=MS",
-        help="period of a message (overrides GenMsgCycleTime); repeatable",
+        help="period of a message (overrides GenMsgCycleTime), e.g. Foo=20ms; repeatable",
     )
     an.add_argument(
         "--deadline",
@@ -295,13 +303,28 @@ def add_parsers(sub: Any) -> None:
         "--jitter",
         action="append",
         metavar="NAME=MS",
-        help="queuing jitter of a message (default 0); repeatable",
+        help="queuing jitter of a message (default 0, at most 1 h); repeatable",
+    )
+    an.add_argument(
+        "--sporadic",
+        action="append",
+        metavar="NAME=MS",
+        help="minimum inter-arrival time of a message without a cycle time (default: the "
+        "DBC's GenMsgDelayTime): analysed as sporadic interference; repeatable",
+    )
+    an.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse the database where cantools' strict loading would (overlapping signals...)",
     )
     an.add_argument("--json", action="store_true", help="print JSON for scripts")
     an.set_defaults(func=cmd_analyse)
-    st = can_sub.add_parser("stats", help="per-identifier timing and bus load of a CAN trace")
+    st = can_sub.add_parser(
+        "stats", help="per-channel, per-identifier timing and bus load of a CAN trace"
+    )
     st.add_argument("trace", help="a trace python-can reads: .asc .blf .log .trc .csv .mf4 ...")
     st.add_argument("--dbc", help="name the identifiers from this database")
-    st.add_argument("--bitrate", type=int, default=500000, help="for the load (default 500000)")
+    st.add_argument("--bitrate", default="500k", help="nominal bit/s for the load (default 500k)")
+    st.add_argument("--data-bitrate", help="CAN FD data-phase bit/s for BRS frames, e.g. 2M")
     st.add_argument("--json", action="store_true", help="print JSON for scripts")
     st.set_defaults(func=cmd_stats)

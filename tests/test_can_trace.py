@@ -1,0 +1,322 @@
+"""Traces: the ``can`` node logs its bus in python-can's formats (rotated by size), python-can
+and ``flowrt can stats`` read them back identically; stats keep channels apart and time FD
+frames at their real length; replay sends FD, BRS, remote and error frames as recorded."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import itertools
+import json
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from _can_dbcs import FD_DBC, write
+from flowrt.nodes.can import Can
+
+from flowrt import GraphBuilder, Runtime, VirtualClock, cli
+from flowrt.analysis.can_frames import fd_frame_bits, frame_bits
+
+pytestmark = pytest.mark.timeout(30)
+_channels = itertools.count()
+
+
+@pytest.fixture
+def channel() -> str:
+    return f"test-can-trace-{time.monotonic_ns()}-{next(_channels)}"
+
+
+@pytest.fixture
+def peer(channel: str) -> Iterator[can.BusABC]:
+    bus = can.Bus(interface="virtual", channel=channel)
+    yield bus
+    bus.shutdown()
+
+
+def _run(*argv: str) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = cli.main(list(argv))
+    return rc, out.getvalue(), err.getvalue()
+
+
+async def _opened(rt: Runtime) -> Can:
+    end = time.monotonic() + 5
+    while True:
+        n = rt.scheduler.runners["bus"].executor.node  # type: ignore[attr-defined]
+        if n is not None and n.bus is not None:
+            assert isinstance(n, Can)
+            return n
+        assert time.monotonic() < end, "bus did not open"
+        await asyncio.sleep(0.005)
+
+
+async def _until(cond: Callable[[], bool], within: float = 5.0) -> None:
+    """Wait in real time for frames to cross the reader thread (not a timing assertion)."""
+    end = time.monotonic() + within
+    while not cond():
+        assert time.monotonic() < end, "condition not reached"
+        await asyncio.sleep(0.005)
+
+
+def _frames() -> list[can.Message]:
+    """What the peer sends: classic, extended, FD with and without BRS, a remote frame."""
+    return [
+        can.Message(arbitration_id=0x10 + k % 3, data=bytes([k, 1, 2]), is_extended_id=False)
+        for k in range(20)
+    ] + [
+        can.Message(arbitration_id=0x1ABCDE, data=bytes(8), is_extended_id=True),
+        can.Message(
+            arbitration_id=257,
+            data=bytes(range(12)),
+            is_fd=True,
+            bitrate_switch=True,
+            is_extended_id=False,
+        ),
+        can.Message(
+            arbitration_id=256,
+            data=bytes(range(64)),
+            is_fd=True,
+            bitrate_switch=False,
+            is_extended_id=False,
+        ),
+        can.Message(arbitration_id=0x55, is_remote_frame=True, dlc=4, is_extended_id=False),
+    ]
+
+
+def _key(m: can.Message) -> tuple[Any, ...]:
+    data = b"" if m.is_remote_frame else bytes(m.data)
+    return (m.arbitration_id, m.is_extended_id, m.is_fd, m.bitrate_switch, m.is_remote_frame, data)
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
+async def test_the_trace_reads_back_identically(
+    channel: str, peer: can.BusABC, tmp_path: Path, suffix: str
+) -> None:
+    trace = tmp_path / f"bus{suffix}"
+    g = GraphBuilder()
+    g.add("kick", "can-signals", params={"rate_ms": 20, "signals": {"C": {"value": 7}}})
+    params = {
+        "interface": "virtual",
+        "channel": channel,
+        "dbc": write(tmp_path, FD_DBC),
+        "fd": True,
+        "trace": str(trace),
+    }
+    g.add("bus", "can", params=params, inputs={"Classic": "kick.values"})
+    sent = _frames()
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        n = await _opened(rt)
+        for m in sent:
+            peer.send(m)
+        await _until(lambda: n.received >= len(sent))
+        await clock.advance(0.1)  # Classic every 10 ms from the DBC
+        await asyncio.sleep(0.05)
+        ours = n.msgs["Classic"].sent
+    assert ours >= 5
+    with can.LogReader(str(trace)) as reader:
+        back = list(reader)
+    received = [m for m in back if m.is_rx]
+    transmitted = [m for m in back if not m.is_rx]
+    assert [_key(m) for m in received] == [_key(m) for m in sent]
+    assert len(transmitted) == ours
+    assert all(m.arbitration_id == 768 and m.data[0] == 7 for m in transmitted)
+    rc, out, err = _run("can", "stats", str(trace), "--json")
+    assert rc == 0, err
+    doc = json.loads(out)
+    assert doc["frames"] == len(back)
+    ids = {(r["id"], r["extended"]): r for r in doc["ids"]}
+    assert ids[(256, False)]["dlc"] == 64
+    assert ids[(256, False)]["fd"]
+    assert ids[(0x55, False)]["remote"] == 1
+
+
+async def test_the_trace_rotates_by_size(channel: str, peer: can.BusABC, tmp_path: Path) -> None:
+    trace = tmp_path / "rot.log"
+    params = {
+        "interface": "virtual",
+        "channel": channel,
+        "dbc": write(tmp_path, FD_DBC),
+        "trace": str(trace),
+        "trace_max_bytes": 2000,
+    }
+    g = GraphBuilder()
+    g.add("bus", "can", params=params)
+    async with Runtime(g.build()) as rt:
+        n = await _opened(rt)
+        for k in range(300):
+            peer.send(
+                can.Message(arbitration_id=0x20, data=k.to_bytes(2, "big"), is_extended_id=False)
+            )
+        await _until(lambda: n.received >= 300)
+    files = sorted(tmp_path.glob("rot*.log"))  # noqa: ASYNC240 (a test, after the run)
+    assert len(files) >= 3  # rolled over: ~40 bytes a line, 2000 bytes a file
+    back: list[can.Message] = []
+    for f in sorted(files, key=lambda f: f.stat().st_mtime_ns):
+        with can.LogReader(str(f)) as reader:
+            back.extend(reader)
+    assert sorted(int.from_bytes(m.data, "big") for m in back) == list(range(300))
+    assert all(f.stat().st_size < 2000 + 200 for f in files)
+
+
+def test_a_two_channel_trace_gives_two_tables(tmp_path: Path) -> None:
+    trace = tmp_path / "two.asc"
+    with can.ASCWriter(str(trace)) as w:
+        for k in range(100):
+            for ch, offset in ((1, 0.0), (2, 0.002)):
+                w.on_message_received(
+                    can.Message(
+                        timestamp=10 + k * 0.01 + offset,
+                        arbitration_id=0x100,
+                        data=bytes(8),
+                        is_extended_id=False,
+                        channel=ch,
+                    )
+                )
+    rc, out, _ = _run("can", "stats", str(trace), "--bitrate", "500k", "--json")
+    assert rc == 0
+    doc = json.loads(out)
+    chans = {c["channel"]: c for c in doc["channels"]}
+    assert len(chans) == 2
+    for c in chans.values():
+        (row,) = c["ids"]
+        assert row["count"] == 100
+        assert row["period_ms"] == pytest.approx(10.0, abs=1e-3)  # not 5 ms: not merged
+        assert c["mean_load"] == pytest.approx(100 * 135 / 500_000 / c["duration_s"], rel=1e-6)
+    rc, out, _ = _run("can", "stats", str(trace))
+    assert out.count("bus load at") == 2
+    assert "channel 1" in out
+    assert "channel 2" in out
+
+
+def test_stats_times_fd_frames_at_their_length(tmp_path: Path) -> None:
+    trace = tmp_path / "fd.log"
+    with can.CanutilsLogWriter(str(trace), channel="can0") as w:
+        for k in range(50):
+            w.on_message_received(
+                can.Message(
+                    timestamp=100 + k * 0.01,
+                    arbitration_id=0x200,
+                    data=bytes(64),
+                    is_fd=True,
+                    bitrate_switch=True,
+                    is_extended_id=False,
+                )
+            )
+    rc, out, _ = _run("can", "stats", str(trace), "--data-bitrate", "2M", "--json")
+    assert rc == 0
+    doc = json.loads(out)
+    (row,) = doc["ids"]
+    assert row["dlc"] == 64  # not 8
+    assert row["fd"]
+    assert row["brs"]
+    per_frame = 34 / 500_000 + 678 / 2_000_000
+    assert doc["load"][0]["load"] == pytest.approx(50 * per_frame)
+    assert doc["load"][0]["bits"] == 50 * fd_frame_bits(64).total
+    assert doc["brs_at_nominal_rate"] == 0
+    rc, out, _ = _run("can", "stats", str(trace), "--json")  # no data rate: nominal, said so
+    doc = json.loads(out)
+    assert doc["brs_at_nominal_rate"] == 50
+    assert doc["load"][0]["load"] == pytest.approx(50 * 712 / 500_000)
+    assert frame_bits(8) < 712
+
+
+@pytest.mark.parametrize(
+    ("name", "content"),
+    [("notes.log", "hello\nthis is not a trace\n"), ("notes.txt", "hello"), ("empty.asc", "")],
+)
+def test_stats_on_a_file_that_is_not_a_trace(tmp_path: Path, name: str, content: str) -> None:
+    path = tmp_path / name
+    path.write_text(content)
+    rc, out, err = _run("can", "stats", str(path))
+    assert rc == 2
+    assert out == ""
+    assert len(err.strip().splitlines()) == 1
+    assert str(path) in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("suffix", [".blf", ".log"])
+async def test_replay_keeps_fd_brs_remote_and_error_frames(
+    channel: str, peer: can.BusABC, tmp_path: Path, suffix: str
+) -> None:
+    trace = tmp_path / f"mixed{suffix}"
+    recorded = [
+        can.Message(arbitration_id=0x10, data=bytes(8), is_extended_id=False),
+        can.Message(
+            arbitration_id=0x11,
+            data=bytes(range(64)),
+            is_fd=True,
+            bitrate_switch=True,
+            is_extended_id=False,
+        ),
+        can.Message(
+            arbitration_id=0x12,
+            data=bytes(range(12)),
+            is_fd=True,
+            bitrate_switch=False,
+            is_extended_id=False,
+        ),
+        can.Message(arbitration_id=0x13, is_remote_frame=True, dlc=3, is_extended_id=False),
+        can.Message(arbitration_id=0x4, is_error_frame=True, data=bytes(8), is_extended_id=False),
+    ]
+    with can.Logger(str(trace)) as w:
+        for k, m in enumerate(recorded):
+            m.timestamp = 5 + 0.01 * k
+            w.on_message_received(m)
+    params = {
+        "interface": "virtual",
+        "channel": channel,
+        "dbc": write(tmp_path, FD_DBC),
+        "fd": True,
+        "replay": str(trace),
+        "tick_ms": 10,
+    }
+    g = GraphBuilder()
+    g.add("bus", "can", params=params)
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        await _opened(rt)
+        await clock.advance(0.1)
+        await asyncio.sleep(0.1)
+        got = []
+        while (m := peer.recv(0)) is not None:
+            got.append(m)
+    with can.LogReader(str(trace)) as reader:
+        expected = list(reader)  # the frames as python-can reads them from the trace
+    assert [(m.is_error_frame, *_key(m)) for m in got] == [
+        (m.is_error_frame, *_key(m)) for m in expected
+    ]
+    assert [m.is_error_frame for m in got] == [False, False, False, False, True]
+    # a remote frame keeps its requested length where the format does (candump's drops it)
+    assert got[3].dlc == expected[3].dlc == (3 if suffix == ".blf" else 0)
+
+
+async def test_a_trace_that_cannot_open_leaves_the_bus_running_in_error(
+    channel: str, peer: can.BusABC, tmp_path: Path
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    params = {
+        "interface": "virtual",
+        "channel": channel,
+        "dbc": write(tmp_path, FD_DBC),
+        "trace": str(blocker / "bus.log"),
+    }
+    g = GraphBuilder()
+    g.add("bus", "can", params=params)
+    async with Runtime(g.build()) as rt:
+        n = await _opened(rt)
+        runner = rt.scheduler.runners["bus"]
+        peer.send(can.Message(arbitration_id=0x300, data=bytes(8), is_extended_id=False))
+        await _until(lambda: n.received == 1)
+        assert runner.error_reason is not None
+        assert "CAN trace" in runner.error_reason
+        assert "cannot open" in runner.error_reason
+        assert runner.errors == 0  # nothing raised out of the node
