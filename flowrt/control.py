@@ -1,6 +1,6 @@
 """The control endpoint: a local HTTP API of a running runtime, and ``flowrt ctl``, its client.
 
-    flowrt run graph.yaml --control 8765          # serve on 127.0.0.1:8765
+    flowrt run graph.yaml --control 8766          # serve on 127.0.0.1:8766
     flowrt ctl stats                              # the status table of the running graph
     flowrt ctl timing ball_fr --period 2          # applied between ticks
     flowrt ctl mode defend
@@ -8,7 +8,7 @@
 From Python, the endpoint is a user of a started runtime (the runtime does not know it)::
 
     async with flowrt.Runtime.from_file("graph.yaml") as rt:
-        async with flowrt.ControlServer(rt, "127.0.0.1:8765"):
+        async with flowrt.ControlServer(rt, "127.0.0.1:8766"):
             await rt.run()
 
 Endpoints (JSON in and out): ``GET /stats`` (``RuntimeStats``), ``GET /events?n=50``,
@@ -83,7 +83,7 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("flowrt.control")
 
-DEFAULT_PORT = 8765
+DEFAULT_PORT = 8766  # not 8765: that is the Foxglove apps' default (flowrt run --foxglove)
 DEFAULT_URL = f"http://127.0.0.1:{DEFAULT_PORT}"
 
 MAX_CONNECTIONS = 256  # open connections at once; more are closed as they arrive
@@ -303,7 +303,7 @@ class ControlServer:
         return f"http://{host}:{self.port}"
 
     def bind(self) -> None:
-        """Take the address now (OSError: e.g. ``cannot listen on 127.0.0.1:8765: ...``)."""
+        """Take the address now (OSError: e.g. ``cannot listen on 127.0.0.1:8766: ...``)."""
         if self._sock is None:
             self._sock = listen(self.config.host, self.config.port)
             self.port = int(self._sock.getsockname()[1])

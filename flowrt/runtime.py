@@ -864,13 +864,20 @@ class Runtime:
         else:
             raise KeyError(f"{target} is an input that nothing feeds; connect it in the graph")
 
-    def subscribe(self, target: str, policy: str = "queue", size: int = 64) -> Subscription:
-        """Receive what ``node.output`` publishes, through a buffer of its own (counted)."""
+    def subscribe(
+        self, target: str, policy: str = "queue", size: int = 64, *, sampled: bool = False
+    ) -> Subscription:
+        """Receive what ``node.output`` publishes, through a buffer of its own (counted).
+
+        ``sampled``: the reader takes the newest value only when it wants one (a viewer with
+        nobody watching): values replaced before it took them are ``unread``, not dropped.
+        """
         runner, port = self._runner_port(target)
         if port not in runner.outputs:
             raise KeyError(f"{target} is not an output")
         EdgePolicy(policy)
         buf = make_buffer(policy, f"{target}->host", size, self.clock.now)
+        buf.sampled = sampled
         runner.outputs[port].append(buf)
         self.scheduler.buffers.append(buf)
         return Subscription(buf)

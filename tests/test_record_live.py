@@ -207,3 +207,30 @@ def test_run_foxglove_port_taken_is_one_line() -> None:
     assert "foxglove server" in r.stderr
     assert "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+async def test_a_viewer_nobody_watches_shows_no_drops() -> None:
+    """Issue 24: with --foxglove and no app connected, the live server's buffers showed red
+    drops; values nobody asked for are ``unread`` (sampled), not lost."""
+    import flowrt
+    from flowrt.recording.live import FoxgloveLive
+
+    live = FoxgloveLive(port=0)
+    g = flowrt.GraphBuilder("fox")
+    g.add("tick", "counter", trigger={"timer": 10})
+    async with flowrt.Runtime(g.build(), monitors=[live]) as rt:
+        await rt.run(0.5)
+        stats = rt.stats()
+    host = [e for e in stats.edges if e.name.endswith("->host")]
+    assert host
+    assert all(e.dropped == 0 for e in host), host
+    assert sum(e.unread for e in host) > 10
+
+
+def test_ctl_durations_take_units() -> None:
+    from flowrt.cli.ctl import duration_ms_arg
+
+    assert duration_ms_arg("80ms") == 80
+    assert duration_ms_arg("0.1s") == 100
+    assert duration_ms_arg("500us") == 0.5
+    assert duration_ms_arg("5") == 5

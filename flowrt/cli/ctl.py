@@ -12,6 +12,25 @@ from ..control import DEFAULT_URL, ControlClient, ControlError
 from .common import stdout_console
 
 
+def duration_ms_arg(text: str) -> float:
+    """``--timer 80ms`` / ``--deadline 0.02s`` as milliseconds (a bare number is ms, as in a
+    graph file's timing)."""
+    from ..spec import parse_duration_ms
+
+    try:
+        return parse_duration_ms(text if not _is_number(text) else float(text))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def add_parsers(sub: Any) -> None:
     """Register ``flowrt ctl`` on the CLI's subcommands."""
     ctl = sub.add_parser("ctl", help="talk to a running runtime's control endpoint")
@@ -45,10 +64,18 @@ def add_parsers(sub: Any) -> None:
     tm.add_argument("--period", type=int, help="frames (frame-triggered nodes)")
     tm.add_argument("--phase", type=int, help="frames (frame-triggered nodes)")
     tm.add_argument(
-        "--timer", type=float, metavar="MS", help="period of a timer-triggered node, ms"
+        "--timer",
+        type=duration_ms_arg,
+        metavar="T",
+        help="period of a timer-triggered node: 80ms, 0.1s, 500us (a bare number is ms)",
     )
-    tm.add_argument("--deadline", type=float, metavar="MS")
-    tm.add_argument("--priority", type=int)
+    tm.add_argument(
+        "--deadline",
+        type=duration_ms_arg,
+        metavar="T",
+        help="relative deadline: 5ms, 0.02s (a bare number is ms)",
+    )
+    tm.add_argument("--priority", type=int, help="1 to 99, higher runs first")
     on = tm.add_mutually_exclusive_group()
     on.add_argument("--enable", dest="enabled", action="store_const", const=True)
     on.add_argument("--disable", dest="enabled", action="store_const", const=False)

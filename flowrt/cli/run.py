@@ -143,7 +143,9 @@ def run_graph(
         try:
             live.open()
         except OSError as e:
-            err.print(f"{prog}: {e}", markup=False, soft_wrap=True)
+            err.print(
+                f"{prog}: {e} (choose another with --foxglove PORT)", markup=False, soft_wrap=True
+            )
             return EXIT_FAILED
         logging.getLogger("flowrt").info("foxglove: open %s in the Foxglove app", live.url)
         rt.monitors.append(live)
@@ -449,9 +451,9 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
     run.add_argument(
         "--control",
         nargs="?",
-        const="127.0.0.1:8765",
+        const="127.0.0.1:8766",
         metavar="[HOST:]PORT",
-        help="serve the control endpoint (default 127.0.0.1:8765); see flowrt ctl",
+        help="serve the control endpoint (default 127.0.0.1:8766); see flowrt ctl",
     )
     run.add_argument("--token", help="bearer token of the control endpoint (default $FLOWRT_TOKEN)")
     run.add_argument(

@@ -124,7 +124,8 @@ class FoxgloveLive:
             frames = set(node.cls.frame_ports())
             for port in node.cls.outputs:
                 topic = f"{name}.{port}"
-                self._subs[topic] = rt.subscribe(topic, policy="latest", size=1)
+                # sampled: values nobody asked for are unread, not red drops in the table
+                self._subs[topic] = rt.subscribe(topic, policy="latest", size=1, sampled=True)
                 if port in frames:
                     self._frame_topics.add(topic)
                     self._cameras.setdefault(name, topic)
