@@ -1,0 +1,87 @@
+"""What the tests share: the repository's paths, a ``flowrt`` command runner, and the tiers.
+
+Tiers (markers registered in pyproject.toml): a test that drives headless Chromium
+(``browser``), starts flowrt or another program as a process (``subprocess``), measures real
+time (``realtime``) or runs Node.js (``node``) is also ``slow``, so that::
+
+    python -m pytest -q -m "not slow"     # the inner loop: seconds, no processes, no browser
+    python -m pytest -q                   # everything (CI)
+
+A test file is marked as a whole by ``pytestmark``; the files below, whose every test starts
+processes, are marked here so that a new test in them is tiered too.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+TIERS = ("browser", "subprocess", "realtime", "node")
+
+# Files whose tests start flowrt (or workers, or Chromium) for real: measured as the slow part
+# of the suite. A file here does not need its own pytestmark.
+SLOW_FILES = {
+    "test_chunk_bomb.py": ("subprocess",),
+    "test_cli.py": ("subprocess",),
+    "test_cli_json.py": ("subprocess",),
+    "test_cli_status.py": ("subprocess",),
+    "test_display.py": ("browser", "realtime"),
+    "test_drain.py": ("subprocess",),
+    "test_readme.py": ("subprocess",),
+    "test_record.py": ("subprocess",),
+    "test_record_crash.py": ("subprocess",),
+    "test_record_split.py": ("subprocess", "realtime"),
+    "test_remote.py": ("realtime",),
+    "test_remote_control.py": ("realtime",),
+    "test_signals.py": ("subprocess",),
+    "test_special_files.py": ("subprocess",),
+    "test_untrusted_recordings.py": ("subprocess",),
+    "test_user_files.py": ("subprocess",),
+    "test_watchdog.py": ("realtime",),
+    "test_web_joystick.py": ("browser",),
+    "test_workers.py": ("subprocess",),
+}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        for tier in SLOW_FILES.get(item.path.name, ()):
+            item.add_marker(getattr(pytest.mark, tier))
+        if any(item.get_closest_marker(t) is not None for t in TIERS):
+            item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture
+def repo() -> Path:
+    """The repository's root (graphs/, nodes/, ...)."""
+    return REPO
+
+
+FlowrtCli = Callable[..., "subprocess.CompletedProcess[str]"]
+
+
+@pytest.fixture
+def flowrt_cli() -> FlowrtCli:
+    """``flowrt_cli("validate", path, cwd=..., timeout=...)``: the command as a user runs it
+    (``python -m flowrt.cli`` of this interpreter), from the repository root by default, with
+    a wide terminal so lines are not wrapped."""
+
+    def run(
+        *args: str, cwd: Path | None = None, timeout: float = 120, env: dict[str, str] | None = None
+    ) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "flowrt.cli", *args],
+            cwd=cwd or REPO,
+            env={**os.environ, "COLUMNS": "200", **(env or {})},
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+        )
+
+    return run
