@@ -38,11 +38,16 @@ def _env() -> dict[str, str]:
     return env
 
 
-def flowrt(*args: str, timeout: float = 30) -> subprocess.CompletedProcess[str]:
+def flowrt(
+    *args: str, timeout: float = 30, env_columns: str | None = None
+) -> subprocess.CompletedProcess[str]:
+    env = _env()
+    if env_columns is not None:
+        env["COLUMNS"] = env_columns
     return subprocess.run(
         [sys.executable, "-m", "flowrt.cli", *args],
         cwd=REPO,
-        env=_env(),
+        env=env,
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -142,18 +147,29 @@ def test_graph_prints_topology_and_hyperperiod_activation_table() -> None:
     proc = flowrt("graph", str(GRAPHS / "valid-frames.yaml"))
     assert proc.returncode == 0, proc.stderr
     out = proc.stdout
-    assert "graph frames: nodes" in out
-    assert "frame <- cam.frame" in out
+    assert "graph frames:" in out
+    assert any(line.split() == ["cam.frame", "every.frame", "latest"] for line in out.splitlines())
     assert "hyperperiod of cam.frame (8 ticks of frame (10 ms))" in _flat(out)
     table = out[out.index("activations over one hyperperiod of cam.frame") :]
     table = table[: table.index("activations over", 1)]  # the timers' table follows
+    rows = {c[0]: c[1:] for line in table.splitlines() if (c := line.split())}
     # Readers of cam at (period, phase) = (1, 0), (4, 1), (8, 3), in priority order.
-    assert _table_row(table, "every") == ["X"] * 8
-    assert _table_row(table, "fourth") == [".", "X", ".", ".", ".", "X", ".", "."]
-    assert _table_row(table, "eighth") == [".", ".", ".", "X", ".", ".", ".", "."]
-    assert _table_row(table, "load") == ["1", "2", "1", "2", "1", "2", "1", "1"]
-    assert table.index("│ every ") < table.index("│ fourth ") < table.index("│ eighth ")
-    assert "│ cam " not in table  # the source is not its own reader
+    assert rows["every"][1:] == ["X"] * 8
+    assert rows["fourth"][1:] == [".", "X", ".", ".", ".", "X", ".", "."]
+    assert rows["eighth"][1:] == [".", ".", ".", "X", ".", ".", ".", "."]
+    assert rows["load"] == ["1", "2", "1", "2", "1", "2", "1", "1"]
+    order = [c[0] for line in table.splitlines() if (c := line.split())]
+    assert order.index("every") < order.index("fourth") < order.index("eighth")
+    assert "cam" not in order  # the source is not its own reader
+
+
+def test_graph_reads_at_80_columns_and_piped() -> None:
+    """Issue 24: 'flowrt graph' was truncated at 80 columns (a…) and 600 columns wide piped."""
+    for columns in ("80", "200"):
+        proc = flowrt("graph", str(REPO / "graphs" / "cambada.yaml"), env_columns=columns)
+        assert proc.returncode == 0
+        assert "…" not in proc.stdout
+        assert max(len(line) for line in proc.stdout.splitlines()) <= int(columns)
 
 
 def test_activation_table_of_timers_uses_their_common_tick() -> None:

@@ -30,22 +30,34 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_graph(args: argparse.Namespace) -> int:
+    """The nodes (one line each), the edges (one line each), then which node runs on which
+    tick of one hyperperiod: compact, so that it reads at 80 columns and pipes well."""
     from ..analysis import activation_tables
 
     console = stdout_console()
     graph = load(args.file, Console(stderr=True))
     if graph is None:
         return EXIT_BAD_GRAPH
-    topo = Table(title=f"graph {graph.spec.name}: nodes", title_justify="left")
-    for col in ("node", "kind", "trigger", "prio", "deadline", "placement", "inputs"):
-        topo.add_column(col)
+    topo = Table(
+        title=f"graph {graph.spec.name}: {len(graph.nodes)} nodes",
+        title_justify="left",
+        box=None,
+        header_style="bold",
+        pad_edge=False,
+    )
+    for col, right in (
+        ("node", False),
+        ("kind", False),
+        ("trigger", False),
+        ("prio", True),
+        ("deadline", True),
+        ("placement", False),
+    ):
+        topo.add_column(col, justify="right" if right else "left", overflow="fold")
     for name, n in graph.nodes.items():
-        ins = ", ".join(
-            f"{e.dst_port} <- {e.src}.{e.src_port} \\[{e.policy.value}]"
-            for e in graph.edges
-            if e.dst == name
-        )
-        dl = f"{n.spec.deadline:g} ms {n.spec.miss_policy.value}" if n.spec.deadline else "-"
+        dl = f"{n.spec.deadline:g}ms" if n.spec.deadline else "-"
+        if n.spec.deadline and n.spec.miss_policy.value != "continue":
+            dl += f" {n.spec.miss_policy.value}"
         topo.add_row(
             name,
             n.spec.kind,
@@ -53,33 +65,70 @@ def cmd_graph(args: argparse.Namespace) -> int:
             str(n.spec.priority),
             dl,
             n.spec.placement.value,
-            ins,
         )
     console.print(topo)
-    for tab in activation_tables(graph):
-        t = Table(
-            title=f"activations over one hyperperiod of {tab.clock} "
-            f"({tab.ticks} ticks of {tab.unit})",
+    if graph.edges:
+        console.print()
+        edges = Table(
+            title=f"edges: {len(graph.edges)}",
             title_justify="left",
+            box=None,
+            header_style="bold",
+            pad_edge=False,
         )
-        t.add_column("node")
-        t.add_column("prio", justify="right")
-        for k in range(tab.ticks):
-            t.add_column(str(k), justify="center")
-        for name, prio, active in tab.rows:
-            t.add_row(name, str(prio), *["X" if a else "." for a in active])
-        t.add_row("load", "", *[str(x) for x in tab.load()], style="bold")
-        console.print(t)
+        edges.add_column("from", overflow="fold")
+        edges.add_column("to", overflow="fold")
+        edges.add_column("policy")
+        for e in graph.edges:
+            edges.add_row(f"{e.src}.{e.src_port}", f"{e.dst}.{e.dst_port}", e.policy.value)
+        console.print(edges)
+    for tab in activation_tables(graph):
+        _print_ticks(console, tab)
     return 0
+
+
+def _print_ticks(console: Console, tab: Any) -> None:
+    """One hyperperiod's activations, in pages of ticks that fit the console's width."""
+    name_w = max([4, *(len(name) for name, _, _ in tab.rows)])
+    per_page = max(8, (console.width - name_w - 6) // 3)
+    for first in range(0, tab.ticks, per_page):
+        last = min(tab.ticks, first + per_page)
+        part = f", ticks {first}-{last - 1}" if tab.ticks > per_page else ""
+        console.print()
+        console.print(
+            f"activations over one hyperperiod of {tab.clock} ({tab.ticks} ticks of "
+            f"{tab.unit}{part})",
+            markup=False,
+            highlight=False,
+            style="bold",
+        )
+        t = Table(
+            box=None,
+            header_style="bold",
+            pad_edge=False,
+            collapse_padding=True,
+        )
+        t.add_column("node", no_wrap=True)
+        t.add_column("prio", justify="right")
+        for k in range(first, last):
+            t.add_column(str(k), justify="center", no_wrap=True)
+        for name, prio, active in tab.rows:
+            t.add_row(name, str(prio), *["X" if a else "." for a in active[first:last]])
+        loads = [str(x) for x in tab.load()]
+        t.add_row("load", "", *loads[first:last], style="bold")
+        console.print(t)
 
 
 def _trigger_text(trig: Any) -> str:
     from ..spec import FrameTrigger, InputTrigger, TimerTrigger
 
     if isinstance(trig, FrameTrigger):
-        return f"frame {trig.frame} every {trig.period} phase {trig.phase}"
+        phase = f" +{trig.phase}" if trig.phase else ""
+        every = f"1/{trig.period}" if trig.period != 1 else "each"
+        return f"{every} {trig.frame}{phase}"
     if isinstance(trig, TimerTrigger):
-        return f"timer {trig.timer:g} ms phase {trig.phase:g} ms"
+        phase = f" +{trig.phase:g}ms" if trig.phase else ""
+        return f"{trig.timer:g}ms{phase}"
     if isinstance(trig, InputTrigger):
         return f"input {trig.input}"
     return "loop"
