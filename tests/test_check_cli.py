@@ -256,3 +256,34 @@ def test_graph_table_fits_the_terminal_and_says_each_note_once(
     for name in ("front_cam", "avoid_fr", "ball_om", "display"):
         assert any(line.startswith(name + " ") for line in table), name
     assert text.count("no budget") == 1  # once, with the nodes it concerns
+
+
+MISSING = """\
+nodes:
+  cam: {kind: capture, params: {source: "synthetic:soccer", fps: 20}}
+  hi: {kind: tracker, params: {object: ball}, trigger: {frame: cam}, priority: 40,
+       placement: process, wcet: 30ms, cpus: [0], inputs: {frame: cam.frame}}
+  lo: {kind: tracker, params: {object: ball}, trigger: {frame: cam}, priority: 30,
+       placement: process, wcet: 10ms, deadline: 20ms, cpus: [0], inputs: {frame: cam.frame}}
+"""
+
+
+def test_a_miss_says_why_and_the_blocking_column_is_explained(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out, _ = _run(capsys, _write(tmp_path, "g.yaml", MISSING))
+    assert code == 1
+    flat = " ".join(out.split())
+    assert "lo: MISS: response 40 > deadline 20 ms = own budget 10 + blocking 0 + " in flat
+    assert "interference of higher priorities 30" in flat
+    assert "block: the longest lower-priority call that cannot be preempted" in flat
+
+
+def test_plot_of_a_task_set_says_why_not(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, _, err = _run(
+        capsys, _write(tmp_path, "t.yaml", TASKS), "--plot", str(tmp_path / "p.png")
+    )
+    assert code == 2
+    assert "a task set has no frame ticks" in " ".join(err.split())

@@ -177,6 +177,13 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
             j = max(jit.get((n, k), 0.0) for k in range(len(streams[n])))
             ok = math.isfinite(r) and dl is not None and r <= dl + 1e-6
             note = "" if math.isfinite(r) else "no fixed point: overloaded"
+            if math.isfinite(r) and dl is not None and not ok:
+                own, bl = budget[n], blocking.get(n, 0.0)
+                note = (
+                    f"MISS: response {r:.4g} > deadline {dl:g} ms = own budget {own:.4g} + "
+                    f"blocking {bl:.4g} + interference of higher priorities "
+                    f"{max(0.0, r - own - bl):.4g}"
+                )
             v = replace(
                 v,
                 jitter_ms=j,

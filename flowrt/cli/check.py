@@ -59,6 +59,13 @@ def _check_tasks(args: argparse.Namespace, text: str, err: Console) -> int:
     if args.wcet_from or args.measure:
         err.print("flowrt check: --wcet-from and --measure apply to graphs, not task sets")
         return EXIT_BAD_GRAPH
+    if args.plot:
+        err.print(
+            "flowrt check: --plot draws a graph's load per frame tick; a task set has no "
+            "frame ticks (its response times are in the table)",
+            markup=False,
+        )
+        return EXIT_BAD_GRAPH
     try:
         tasks, preemptive = parse_task_set(text, args.file)
     except GraphError as e:
@@ -331,7 +338,17 @@ def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, p
         if v.note and not v.note.startswith("no budget"):  # those: in the verdict line
             notes.setdefault(v.note, []).append(v.name)
     for note, names in notes.items():
-        console.print(f"  {note}: {', '.join(names)}", markup=False)
+        if note.startswith("MISS"):  # one line per node: the figures are its own
+            console.print(f"  {names[0]}: {note}", markup=False, style="red")
+        else:
+            console.print(f"  {note}: {', '.join(names)}", markup=False)
+    console.print(
+        "  block: the longest lower-priority call that cannot be preempted (an inline call "
+        "holding the loop) when the node is released; response includes it, and jitter "
+        "(release delay) comes on top",
+        markup=False,
+        style="dim",
+    )
     for tab in tables:
         cpu_cols = sorted({c for k in tab.ticks for c in k.per_cpu_ms})
         frame = f"{tab.frame_ms:g} ms" if tab.frame_ms else "unknown interval"
@@ -339,9 +356,11 @@ def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, p
             f"load per tick of {tab.source} (frame {frame}; summed budgets, ms)"
             + (" - first ticks only" if tab.truncated else "")
         )
-        lt = Table()
+        lt = Table(box=None, header_style="bold", pad_edge=False)
         for col in ("tick", "nodes", "loop", "workers", "pool", *cpu_cols, "total", "of frame"):
-            lt.add_column(col, justify="left" if col == "nodes" else "right")
+            lt.add_column(
+                col, justify="left" if col == "nodes" else "right", overflow="fold", no_wrap=False
+            )
         heavy = tab.heaviest
         for k in tab.ticks:
             share = f"{k.total_ms / tab.frame_ms:.0%}" if tab.frame_ms else "-"
