@@ -88,6 +88,16 @@ def to_bgr8(data: np.ndarray, pixel_format: str) -> np.ndarray:
     return img
 
 
+def label_origin(x: int, y: int, tw: int, th: int, base: int, w: int, h: int) -> tuple[int, int]:
+    """Where a label of ``tw`` x ``th`` (+``base``) goes for a box at (x, y): above the box,
+    below it when there is no room, and always inside the ``w`` x ``h`` image (near the right
+    or bottom edge it moves in; it is never cut off)."""
+    ty = y - 3 if y - th - base - 3 >= 0 else y + th + 3
+    x = min(max(0, x), max(0, w - tw - 2))
+    ty = min(max(th + 1, ty), max(th + 1, h - base))
+    return x, ty
+
+
 def draw(img: np.ndarray, marks: Iterable[Mark]) -> np.ndarray:
     """A BGR copy of ``img`` with every found mark drawn (box, centroid, label)."""
     canvas = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
@@ -110,7 +120,7 @@ def draw(img: np.ndarray, marks: Iterable[Mark]) -> np.ndarray:
             if m.bbox is None:
                 x, y = cx + 4, cy - 4
         (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font, 1)
-        ty = y - 3 if y - th - base - 3 >= 0 else y + th + 3
+        x, ty = label_origin(x, y, tw, th, base, w, h)
         cv2.rectangle(canvas, (x, ty - th - 1), (x + tw + 1, ty + base - 1), (0, 0, 0), cv2.FILLED)
         cv2.putText(
             canvas, text, (x + 1, ty - 1), cv2.FONT_HERSHEY_SIMPLEX, font, colour, 1, cv2.LINE_AA

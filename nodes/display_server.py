@@ -351,6 +351,10 @@ class ViewServer:
         while len(self.sessions) > MAX_SESSIONS:  # the oldest pages forgotten first
             del self.sessions[next(iter(self.sessions))]
         body = self.page.replace(b"__FLOWRT_SESSION__", session.encode())
+        # the newest statistics inline, so the first tables render from this response; "</"
+        # escaped so no value can close the script element
+        stats = self._stats[1] if self._stats is not None else b"null"
+        body = body.replace(b"__FLOWRT_STATS__", stats.replace(b"</", b"<\\/"))
         return web.Response(
             body=body,
             content_type="text/html",

@@ -746,3 +746,40 @@ async def test_a_websocket_without_the_page_session_cannot_drive(
                 return rt.rtdb.read("joystick.web") is not None
 
             await wait_for(arrived, 5, "the page's joystick message")
+
+
+@pytest.mark.parametrize(
+    ("x", "y"), [(150, 100), (0, 0), (155, 115), (-3, 118), (80, 60), (159, 119)]
+)
+def test_labels_stay_inside_the_image(x: int, y: int) -> None:
+    """Issue 24: a label near an edge was drawn past it, cut off."""
+    from flowrt.nodes.display_render import label_origin
+
+    w, h, tw, th, base = 160, 120, 70, 9, 3
+    lx, ty = label_origin(x, y, tw, th, base, w, h)
+    # the label's box as draw() fills it: (lx, ty - th - 1) to (lx + tw + 1, ty + base - 1)
+    assert lx >= 0
+    assert lx + tw + 1 < w
+    assert ty - th - 1 >= 0
+    assert ty + base - 1 < h
+
+
+async def test_the_page_carries_its_first_statistics_and_no_joystick_without_one(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """Issue 24: the first table renders from the HTML response itself (no round trip), and
+    the joystick panel is hidden when no joystick reads the page (source: web)."""
+    async with running(capsys) as (_, url), aiohttp.ClientSession() as http:
+
+        async def stats_ready() -> bool:
+            return bool((await get_json(http, url + "/stats.json")).get("runtime"))
+
+        await wait_for(stats_ready, 10, "statistics")
+        async with http.get(url + "/") as r:
+            html = await r.text()
+    m = re.search(r"const INITIAL_STATS = (.*);\n", html)
+    assert m, "the page carries its statistics"
+    initial = json.loads(m.group(1))
+    assert {n["name"] for n in initial["runtime"]["nodes"]} >= {"cam", "finder", "view"}
+    assert '<section class="panel" id="joypanel" hidden>' in html
+    assert not any(r.get("source") == "web" for r in initial["runtime"]["reports"].values())

@@ -55,6 +55,12 @@ async def test_on_screen_joystick_drives_teleop() -> None:
 
         async with browser(url + "/") as page:
             await until(lambda: page.eval("!!document.querySelector('#pad')"), 20, "the page")
+            # the panel shows once the statistics name a joystick with source: web
+            await until(
+                lambda: page.eval("!document.querySelector('#joypanel').hidden"),
+                20,
+                "the joystick panel",
+            )
             await page.eval(
                 "document.querySelector('#joyon').scrollIntoView({block: 'center'}); true"
             )
@@ -94,6 +100,14 @@ async def test_on_screen_joystick_drives_teleop() -> None:
             await asyncio.sleep(0.15)
             await key("keyUp", "Enter", "Enter", 13)
             await until(lambda: _value(mode, "run"), 5, "teleop in run")
+            # the page shows the teleop state and the arbiter's choice from the reports
+            await until(
+                lambda: page.eval(
+                    "document.querySelector('#drivestate').textContent.includes(': run')"
+                ),
+                10,
+                "the page showing teleop in run",
+            )
 
             # drag the pad's knob to the top: full forward speed (scale 0.5); measured now, as
             # the tables above it may have grown since
