@@ -41,9 +41,9 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from flowrt import Frame, Input, InputTrigger, Node
+from flowrt import Frame, Input, InputTrigger, Node, resolve_path
 from flowrt.recording import (
     RecordingWriter,
     SplitPolicy,
@@ -70,12 +70,23 @@ class Recorder(Node):
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
-        path: str = Field(default="recordings", description="folder of the sessions")
+        path: str = Field(
+            default="recordings",
+            description="folder of the sessions (relative: beside the graph file)",
+        )
         name: str = Field(default="rec", description="session prefix: NAME_001, NAME_002 ...")
         session: str | None = Field(
             default=None, description="an existing empty folder to record into (the CLI's)"
         )
         start: bool = Field(default=True, description="record from the start (else: ctl)")
+
+        @field_validator("path", "session", mode="after")
+        @classmethod
+        def _beside_the_graph(cls, v: str | None, info: ValidationInfo) -> str | None:
+            """Relative folders resolve against the graph file's folder, as every path of a
+            graph does: the recording lands in the same place from any working directory."""
+            return None if v is None else resolve_path(v, info)
+
         images: dict[str, Literal["raw", "jpeg", "png"]] = Field(
             default_factory=dict, description="per topic: raw (RawImage), jpeg or png"
         )

@@ -30,9 +30,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from flowrt import Frame, LoopTrigger, Node, Output
+from flowrt import Frame, LoopTrigger, Node, Output, resolve_path
 from flowrt.recording import Decoder
 from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.reader import Recording, iter_messages, iter_session
@@ -54,7 +54,15 @@ class ReplayBase(Node):
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
-        path: str = Field(description="a session folder or an .mcap file")
+        path: str = Field(
+            description="a session folder or an .mcap file (relative: beside the graph file)"
+        )
+
+        @field_validator("path", mode="after")
+        @classmethod
+        def _beside_the_graph(cls, v: str, info: ValidationInfo) -> str:
+            return resolve_path(v, info)
+
         topics: list[str] | None = Field(default=None, description="streams to publish")
         topic: str | None = Field(default=None, description="one stream (same as topics: [x])")
         node: str | None = Field(

@@ -93,3 +93,19 @@ def test_an_import_that_fails_says_where_it_looked(project: Path) -> None:
     assert r.returncode == 2
     assert "nomodule" in r.stdout + r.stderr
     assert f"beside the graph file ({project})" in r.stdout + r.stderr
+
+
+def test_a_recorder_path_resolves_beside_the_graph(tmp_path: Path) -> None:
+    d = tmp_path / "robot"
+    d.mkdir()
+    (d / "rec.yaml").write_text(
+        "nodes:\n"
+        "  tick: {kind: counter, trigger: {timer: 50ms}}\n"
+        "  rec: {kind: recorder, params: {path: recs, name: run}, inputs: {tick: tick.value}}\n"
+    )
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    r = flowrt("run", str(d / "rec.yaml"), "--duration", "0.5", "--no-ui", cwd=elsewhere)
+    assert r.returncode == 0, r.stderr
+    assert list((d / "recs").glob("run_*/*.mcap"))
+    assert not (elsewhere / "recs").exists()
