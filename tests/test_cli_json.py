@@ -97,3 +97,23 @@ def test_kinds_describes_ports_and_params() -> None:
     r = cli("kinds", "nosuchkind")
     assert r.returncode == 2
     assert r.stderr.count("\n") == 1
+
+
+def test_every_argument_has_help() -> None:
+    """Issue 24: help text on every argument of every command."""
+    import argparse
+
+    from flowrt.cli import build_parser
+
+    missing: list[str] = []
+
+    def walk(parser: argparse.ArgumentParser, prefix: str) -> None:
+        for a in parser._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sub in a.choices.items():
+                    walk(sub, f"{prefix} {name}".strip())
+            elif not isinstance(a, argparse._HelpAction | argparse._VersionAction) and not a.help:
+                missing.append(f"{prefix}: {a.option_strings or a.dest}")
+
+    walk(build_parser(), "")
+    assert not missing, missing

@@ -60,7 +60,7 @@ def add_parsers(sub: Any) -> None:
     st = what.add_parser("stats", help="the status table of the running graph")
     st.add_argument("--json", action="store_true", help="raw RuntimeStats JSON")
     tm = what.add_parser("timing", help="change a node's timing between ticks")
-    tm.add_argument("node")
+    tm.add_argument("node", help="the node whose timing changes")
     tm.add_argument("--period", type=int, help="frames (frame-triggered nodes)")
     tm.add_argument("--phase", type=int, help="frames (frame-triggered nodes)")
     tm.add_argument(
@@ -77,34 +77,42 @@ def add_parsers(sub: Any) -> None:
     )
     tm.add_argument("--priority", type=int, help="1 to 99, higher runs first")
     on = tm.add_mutually_exclusive_group()
-    on.add_argument("--enable", dest="enabled", action="store_const", const=True)
-    on.add_argument("--disable", dest="enabled", action="store_const", const=False)
+    on.add_argument(
+        "--enable", dest="enabled", action="store_const", const=True, help="run it again"
+    )
+    on.add_argument(
+        "--disable",
+        dest="enabled",
+        action="store_const",
+        const=False,
+        help="stop activating it (its state kept)",
+    )
     tm.add_argument(
         "--force", action="store_true", help="apply even if admission control refuses it"
     )
     md = what.add_parser("mode", help="switch to a mode of the graph file")
-    md.add_argument("name")
+    md.add_argument("name", help="a mode of the graph file (flowrt ctl modes lists them)")
     md.add_argument(
         "--force", action="store_true", help="apply even if admission control refuses it"
     )
     what.add_parser("modes", help="list the graph's modes and the current one")
     ev = what.add_parser("events", help="recent events")
-    ev.add_argument("-n", type=int, default=20)
+    ev.add_argument("-n", type=int, default=20, help="how many of the newest events")
     what.add_parser("qos", help="mode, overload state and shed nodes")
     db = what.add_parser("rtdb", help="RTDB records (all, or the history of one)")
-    db.add_argument("name", nargs="?")
+    db.add_argument("name", nargs="?", help="one record: its history (default: every record)")
     db.add_argument("-n", type=int, default=8, help="history length for one record")
     rc = what.add_parser("record", help="start or stop the graph's recorder node(s)")
-    rc.add_argument("action", choices=("start", "stop"))
+    rc.add_argument("action", choices=("start", "stop"), help="start or stop recording")
     rc.add_argument("--node", help="one recorder (default: every recorder of the graph)")
     sw = what.add_parser(
         "swap", help="replace a node's algorithm while running (set up beside, then take over)"
     )
-    sw.add_argument("node")
+    sw.add_argument("node", help="the node to give a new instance")
     sw.add_argument("kind", help="a node kind: an entry-point name or package.module:Class")
     sw.add_argument("--params", metavar="JSON", help="the new instance's params (a JSON object)")
     rl = what.add_parser("reload", help="re-import a node's module from disk and swap to it")
-    rl.add_argument("node")
+    rl.add_argument("node", help="the node whose module is re-imported")
     ctl.set_defaults(func=ctl_main)
 
 

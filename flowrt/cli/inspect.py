@@ -147,7 +147,7 @@ def cmd_schema(args: argparse.Namespace) -> int:
 
 def add_parsers(sub: Any) -> None:
     val = sub.add_parser("validate", help="check a graph file; exit 2 listing every error")
-    val.add_argument("file")
+    val.add_argument("file", help="graph file")
     val.add_argument(
         "--no-import",
         action="store_true",
@@ -156,8 +156,8 @@ def add_parsers(sub: Any) -> None:
     )
     val.set_defaults(func=cmd_validate)
     gr = sub.add_parser("graph", help="print the topology and one hyperperiod of activations")
-    gr.add_argument("file")
+    gr.add_argument("file", help="graph file")
     gr.set_defaults(func=cmd_graph)
     sc = sub.add_parser("schema", help="print the JSON schema of graph files or statistics")
-    sc.add_argument("what", choices=["graph", "stats"])
+    sc.add_argument("what", choices=["graph", "stats"], help="graph files, or --stats-json output")
     sc.set_defaults(func=cmd_schema)

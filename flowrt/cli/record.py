@@ -589,7 +589,12 @@ def add_parsers(sub: Any) -> None:
         metavar="FORMATS",
         help="jpeg|png|raw for every image stream, or TOPIC=jpeg,... (default raw RawImage)",
     )
-    rec.add_argument("--compression", choices=("none", "lz4", "zstd"), default="none")
+    rec.add_argument(
+        "--compression",
+        choices=("none", "lz4", "zstd"),
+        default="none",
+        help="chunk compression (default none: images are already compressed or raw)",
+    )
     rec.add_argument(
         "--no-crc",
         action="store_true",
@@ -614,7 +619,7 @@ def add_parsers(sub: Any) -> None:
     rec.set_defaults(func=cmd_record)
 
     info = sub.add_parser("info", help="what a recording holds (session folder or .mcap)")
-    info.add_argument("path")
+    info.add_argument("path", help="a session folder or an .mcap file")
     info.add_argument("--json", action="store_true", help="machine-readable")
     info.add_argument("--graph", action="store_true", help="also print the recorded graph file")
     info.add_argument(

@@ -405,7 +405,7 @@ def _drain_s(text: str) -> float:
 
 def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
-    run.add_argument("file")
+    run.add_argument("file", help="graph file")
     add_run_options(run)
     run.set_defaults(func=cmd_run)
 
