@@ -58,13 +58,14 @@ def nominal_timing(node: ResolvedNode) -> TimingOverride:
         period=trig.period if isinstance(trig, FrameTrigger) else None,
         phase=trig.phase if isinstance(trig, FrameTrigger) else None,
         timer=trig.timer if isinstance(trig, TimerTrigger) else None,
+        timer_phase=trig.phase if isinstance(trig, TimerTrigger) else None,
         deadline=node.spec.deadline,
         priority=node.spec.priority,
         enabled=node.spec.enabled,
     )
 
 
-_FIELDS = ("period", "phase", "timer", "deadline", "priority", "enabled")
+_FIELDS = ("period", "phase", "timer", "timer_phase", "deadline", "priority", "enabled")
 
 
 def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[str, TimingOverride]:
@@ -172,6 +173,15 @@ def check_plan(runners: Mapping[str, NodeRunner], plan: Mapping[str, TimingOverr
             problems.append(f"{name}: period/phase in frames apply to frame-triggered nodes")
         if o.timer is not None and r.timing.timer is None:
             problems.append(f"{name}: timer applies to timer-triggered nodes")
+        if o.timer_phase is not None:
+            timer_ms = o.timer if o.timer is not None else (r.timing.timer or 0) * 1000
+            if r.timing.timer is None:
+                problems.append(f"{name}: timer_phase applies to timer-triggered nodes")
+            elif not 0 <= o.timer_phase < timer_ms:
+                problems.append(
+                    f"{name}: timer_phase must be in 0..{timer_ms:g} ms (its timer), "
+                    f"got {o.timer_phase:g}"
+                )
         period = r.timing.period if o.period is None else o.period
         phase = r.timing.phase if o.phase is None else o.phase
         if is_frame and (period <= 0 or not 0 <= phase < period):

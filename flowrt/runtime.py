@@ -639,6 +639,7 @@ class Runtime:
         enabled: bool | None = None,
         origin: str = "api",
         force: bool = False,
+        timer_phase: float | None = None,
     ) -> str:
         """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
 
@@ -657,6 +658,7 @@ class Runtime:
             period=period,
             phase=phase,
             timer=timer,
+            timer_phase=timer_phase,
             deadline=deadline,
             priority=priority,
             enabled=enabled,
@@ -676,6 +678,7 @@ class Runtime:
             period=period,
             phase=phase,
             timer=None if timer is None else timer / 1000,
+            timer_phase=None if timer_phase is None else timer_phase / 1000,
             deadline=None if deadline is None else deadline / 1000,
             priority=priority,
             enabled=enabled,
@@ -708,6 +711,7 @@ class Runtime:
                 period=o.period,
                 phase=o.phase,
                 timer=o.timer,
+                timer_phase=o.timer_phase,
                 deadline=o.deadline,
                 priority=o.priority,
                 enabled=o.enabled,

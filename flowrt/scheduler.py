@@ -1428,6 +1428,7 @@ class Scheduler:
         priority: int | None = None,
         enabled: bool | None = None,
         origin: str = "api",
+        timer_phase: float | None = None,
     ) -> str:
         """Apply a timing change now (between ticks: the loop runs one callback at a time)."""
         r = self.runners.get(node)
@@ -1473,6 +1474,11 @@ class Scheduler:
             None if tm.deadline is None else tm.deadline * 1000,
             None if deadline is None else deadline * 1000,
         )
+        note(
+            "timer_phase_ms",
+            None if tm.timer is None else tm.timer_phase * 1000,
+            None if timer_phase is None else timer_phase * 1000,
+        )
         note("priority", tm.priority, priority)
         note("enabled", tm.enabled, enabled)
         tm.period, tm.phase = new_period, new_phase
@@ -1489,12 +1495,16 @@ class Scheduler:
             tm.enabled = enabled
             if enabled and not was and isinstance(r.rnode.trigger, LoopTrigger) and not r.busy:
                 self.loop.call_soon(r.release, self.clock.now())
-        if timer is not None and r.timer is not None:
-            tm.timer = timer
-            r.timer.reset(timer, min(tm.timer_phase, timer * 0.999))
+        if timer_phase is not None and tm.timer is not None:
+            tm.timer_phase = timer_phase
+        if (timer is not None or timer_phase is not None) and r.timer is not None:
+            tm.timer = tm.timer if timer is None else timer
+            assert tm.timer is not None
+            r.timer.reset(tm.timer, min(tm.timer_phase, tm.timer * 0.999))
         elif timer is not None:
             tm.timer = timer
-        if any(c.split()[0] in ("period", "phase", "timer_ms", "enabled") for c in changes):
+        restart = ("period", "phase", "timer_ms", "timer_phase_ms", "enabled")
+        if any(c.split()[0] in restart for c in changes):
             # the interval statistics describe the new timing, not a mean of old and new
             r.interval = Running()
             r.interval_from = None

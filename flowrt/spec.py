@@ -446,6 +446,9 @@ class TimingOverride(_Strict):
     period: FramePeriod | None = None
     phase: FramePhase | None = None
     timer: TimerMs | None = None
+    timer_phase: PhaseMs | None = Field(
+        default=None, description="phase of a timer-triggered node, ms (below its timer)"
+    )
     deadline: DeadlineMs | None = None
     priority: Priority | None = None
     enabled: bool | None = None

@@ -488,3 +488,31 @@ async def test_decision_table_node_switches_modes_from_recorded_tracker_output()
         assert [m.mode for m in modes] == ["attack", "defend", "search"]
         assert {m.origin for m in modes} == {"node decide"}
         assert chosen.drain() == ["attack", "defend", "search"]
+
+
+async def test_a_timers_phase_changes_at_run_time() -> None:
+    """Issue 24: a timer's phase is changeable at run time (API, ctl --timer-phase, modes),
+    checked like the rest: below its timer, timer-triggered nodes only."""
+    from flowrt import GraphBuilder, Node, Output, Runtime, VirtualClock
+
+    class Stamp(Node):
+        out = Output(float)
+
+        def process(self) -> float:
+            return self.ctx.now()
+
+    g = GraphBuilder("phase")
+    g.add("t", Stamp, trigger={"timer": 100})
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        sub = rt.subscribe("t.out", size=100)
+        await clock.advance(0.35)
+        before = [round(x * 1000) % 100 for x in sub.drain()]
+        text = rt.set_timing("t", timer_phase=30)
+        assert "timer_phase_ms 0.0 -> 30.0" in text
+        await clock.advance(0.5)
+        after = [round(x * 1000) % 100 for x in sub.drain()]
+        with pytest.raises(ValueError, match=r"timer_phase must be in 0\.\.100"):
+            rt.set_timing("t", timer_phase=150)
+    assert set(before) == {0}
+    assert set(after[1:]) == {30}

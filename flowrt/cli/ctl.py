@@ -70,6 +70,12 @@ def add_parsers(sub: Any) -> None:
         help="period of a timer-triggered node: 80ms, 0.1s, 500us (a bare number is ms)",
     )
     tm.add_argument(
+        "--timer-phase",
+        type=duration_ms_arg,
+        metavar="T",
+        help="phase of a timer-triggered node within its period: 5ms (a bare number is ms)",
+    )
+    tm.add_argument(
         "--deadline",
         type=duration_ms_arg,
         metavar="T",
@@ -170,7 +176,7 @@ def _ctl(client: Any, args: argparse.Namespace) -> int:
         console.print(client.get("/qos")["summary"], markup=False, highlight=False)
     elif cmd == "timing":
         body = {"node": args.node}
-        for key in ("period", "phase", "timer", "deadline", "priority", "enabled"):
+        for key in ("period", "phase", "timer", "timer_phase", "deadline", "priority", "enabled"):
             if getattr(args, key) is not None:
                 body[key] = getattr(args, key)
         if args.force:
