@@ -139,8 +139,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         err.print(f"flowrt record: {e}", markup=False)
         return EXIT_BAD_GRAPH
     params = {
-        "session": str(session),
-        "path": str(args.output),  # where a session started later (flowrt ctl) goes
+        # absolute: -o is relative to where the command runs, not to the graph file
+        "session": str(Path(session).resolve()),
+        "path": str(Path(args.output).resolve()),  # where a session started later goes
         "name": args.name,
         "graph_file": str(Path(args.file).resolve()),
         "images": images,
@@ -152,7 +153,9 @@ def cmd_record(args: argparse.Namespace) -> int:
         "log_report": False,  # printed below, once
     }
     try:
-        rgraph = resolve(with_recorder(graph.spec, topics, params))
+        # relative paths of the graph resolve beside its file, as when it was loaded
+        base_dir = Path(args.file).resolve().parent
+        rgraph = resolve(with_recorder(graph.spec, topics, params), base_dir=base_dir)
     except Exception as e:  # a recorder the graph cannot take: say so, leave no empty session
         session.rmdir()
         err.print(f"flowrt record: {e}", markup=False)
@@ -523,7 +526,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 markup=False,
             )
     try:
-        rgraph = resolve(spec, kinds=kinds)
+        base = Path(args.graph).resolve().parent if args.graph else None
+        rgraph = resolve(spec, kinds=kinds, base_dir=base)
     except Exception as e:
         err.print(f"flowrt replay: {e}", markup=False)
         return EXIT_BAD_GRAPH

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..frames import Frame
 from .gilfree import join
+from .jsonschema import app_schema
 
 __all__ = [
     "ANNOTATIONS_SCHEMA",
@@ -363,13 +364,36 @@ def schema_for(value: Any) -> StreamSchema:
 
             schema = TypeAdapter(type(value)).json_schema()
         except Exception:  # a type pydantic cannot describe: still a valid, permissive schema
-            schema = {"type": "object"}
+            schema = {"type": "object", "properties": {}}
     elif isinstance(value, dict):
-        schema = {"type": "object"}
+        schema = {
+            "type": "object",
+            "properties": {str(k): _value_schema(v) for k, v in value.items()},
+        }
     else:
-        schema = {"type": "object", "properties": {"value": {}}}
+        schema = {"type": "object", "properties": {"value": _value_schema(value)}}
+    schema = app_schema(schema)  # what the Foxglove/Lichtblick apps can read (jsonschema.py)
     schema.setdefault("title", name)
     return StreamSchema(name, "jsonschema", json.dumps(schema).encode(), "json")
+
+
+def _value_schema(value: Any) -> dict[str, Any]:
+    """The schema of one value of a plain mapping (its type, as the apps need it)."""
+    if isinstance(value, bool):
+        return {"type": "boolean"}
+    if isinstance(value, int | np.integer):
+        return {"type": "integer"}
+    if isinstance(value, float | np.floating):
+        return {"type": "number"}
+    if isinstance(value, dict):
+        return {
+            "type": "object",
+            "properties": {str(k): _value_schema(v) for k, v in value.items()},
+        }
+    if isinstance(value, list | tuple | np.ndarray):
+        first = value[0] if len(value) else ""
+        return {"type": "array", "items": _value_schema(first)}
+    return {"type": "string"}
 
 
 def encode_json(value: Any, schema: StreamSchema) -> Encoded:

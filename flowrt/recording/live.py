@@ -284,7 +284,23 @@ def _stop_server(server: Any) -> None:
 
 
 def _json_schema(name: str) -> StreamSchema:
-    return StreamSchema(name, "jsonschema", b'{"type": "object"}', "json")
+    """The statistics' schema from their model, events as an object of their common fields;
+    both in the subset the apps read (flowrt.recording.jsonschema)."""
+    import json
+
+    from ..stats import RuntimeStats
+    from .jsonschema import app_schema
+
+    if name == "flowrt.RuntimeStats":
+        schema = app_schema(RuntimeStats.model_json_schema())
+    else:
+        fields = {"t": "number", "node": "string", "kind": "string"}  # every event has them
+        schema = {
+            "type": "object",
+            "properties": {k: {"type": t} for k, t in fields.items()},
+        }
+    schema["title"] = name
+    return StreamSchema(name, "jsonschema", json.dumps(schema).encode(), "json")
 
 
 def _release(value: Any) -> None:

@@ -1,0 +1,110 @@
+"""Every JSON channel can be read by the Foxglove and Lichtblick apps (issue 26).
+
+Their ``parseJsonSchema`` drops a topic whose schema has a field without a ``type``, an array
+without ``items``, an object without ``properties``, or ``anyOf``/``$ref``: no detection,
+statistic or CAN signal could be plotted. Recordings of each example graph, and the live
+server's own channels, are walked channel by channel.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from flowrt.recording.jsonschema import app_schema, schema_problems
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.parametrize("graph", ["cambada", "agent", "can", "video"])
+def test_every_json_channel_of_a_recording_passes_the_apps_rules(
+    graph: str, tmp_path: Path
+) -> None:
+    from mcap.reader import make_reader
+
+    r = subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", "record", f"graphs/{graph}.yaml", "-o",
+         str(tmp_path), "--duration", "1", "--no-ui", "--no-display"],
+        cwd=REPO, env=dict(os.environ, COLUMNS="200"), capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    (path,) = tmp_path.glob("*/*.mcap")
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    json_channels = 0
+    for ch in summary.channels.values():
+        schema = summary.schemas.get(ch.schema_id)
+        if schema is None or schema.encoding != "jsonschema":
+            continue
+        json_channels += 1
+        assert schema_problems(json.loads(schema.data)) == [], (ch.topic, schema.name)
+    assert json_channels >= 1
+
+
+def test_the_live_servers_own_channels_pass_too() -> None:
+    from flowrt.recording.live import _json_schema
+
+    for name in ("flowrt.RuntimeStats", "flowrt.Event"):
+        assert schema_problems(json.loads(_json_schema(name).data)) == [], name
+
+
+@pytest.mark.parametrize(
+    ("schema", "expected"),
+    [
+        (
+            {
+                "type": "object",
+                "properties": {"a": {"anyOf": [{"type": "number"}, {"type": "null"}]}},
+            },
+            {"type": "object", "properties": {"a": {"type": "number"}}},
+        ),
+        (
+            {
+                "type": "object",
+                "properties": {
+                    "p": {"type": "array", "prefixItems": [{"type": "number"}, {"type": "number"}]}
+                },
+            },
+            {"type": "object", "properties": {"p": {"type": "array", "items": {"type": "number"}}}},
+        ),
+        (
+            {
+                "type": "object",
+                "properties": {"m": {"$ref": "#/$defs/M"}},
+                "$defs": {"M": {"type": "object", "properties": {"x": {"type": "integer"}}}},
+            },
+            {
+                "type": "object",
+                "properties": {"m": {"type": "object", "properties": {"x": {"type": "integer"}}}},
+            },
+        ),
+        (
+            {
+                "type": "object",
+                "properties": {"d": {"type": "object", "additionalProperties": {"type": "number"}}},
+            },
+            {"type": "object", "properties": {"d": {"type": "object", "properties": {}}}},
+        ),
+        (
+            {"type": "object", "properties": {"any": {}}},
+            {"type": "object", "properties": {"any": {"type": "string"}}},
+        ),
+        ({"type": "number"}, {"type": "object", "properties": {"value": {"type": "number"}}}),
+    ],
+    ids=["optional", "tuple", "ref", "mapping", "any", "plain-value"],
+)
+def test_app_schema_rewrites_what_the_apps_refuse(
+    schema: dict[str, object], expected: dict[str, object]
+) -> None:
+    assert schema_problems(schema) != [] or schema.get("type") != "object"
+    assert app_schema(schema) == expected
+    assert schema_problems(app_schema(schema)) == []
