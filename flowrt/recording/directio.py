@@ -5,8 +5,8 @@ same disk takes 900+ MB/s with ``O_DIRECT`` (``dd``, measured in the same run; s
 benchmarks/RESULTS.md), and two 1936x1216 cameras at 20 fps need 282 MB/s. ``mcap``'s
 writer only needs ``write``, ``tell`` and ``flush`` from its stream, so this class gives it
 those over an ``O_DIRECT`` descriptor: bytes are gathered in a page-aligned buffer and
-written in whole blocks. ``flush`` writes the partial last block padded with zeros (it is
-written again, complete, later); ``close`` cuts the file to its length. A killed writer
+written in whole blocks. ``flush`` writes the partial last block padded with zeros (zeroed
+explicitly: the buffer is reused; it is written again, complete, later); ``close`` cuts the file to its length. A killed writer
 leaves at most one block of zero padding after the last record, which readers report as the
 end of a truncated file.
 """
@@ -59,7 +59,12 @@ class DirectFile:
     def flush(self) -> None:
         """Put what is buffered on disk (the last block padded); the buffer keeps it."""
         if self._fill:
-            self._pwrite(-(-self._fill // BLOCK) * BLOCK)
+            end = -(-self._fill // BLOCK) * BLOCK
+            # The buffer is reused: past the data it holds bytes of an earlier buffer. They
+            # are zeroed, so a writer killed now leaves zeros after its last record, never
+            # stale records a stream reader would try to parse ("record length too large").
+            self._buf[self._fill : end] = bytes(end - self._fill)
+            self._pwrite(end)
 
     def fileno(self) -> int:
         return self._fd
