@@ -6,7 +6,8 @@ benchmarks/RESULTS.md), and two 1936x1216 cameras at 20 fps need 282 MB/s. ``mca
 writer only needs ``write``, ``tell`` and ``flush`` from its stream, so this class gives it
 those over an ``O_DIRECT`` descriptor: bytes are gathered in a page-aligned buffer and
 written in whole blocks. ``flush`` writes the partial last block padded with zeros (zeroed
-explicitly: the buffer is reused; it is written again, complete, later); ``close`` cuts the file to its length. A killed writer
+explicitly: the buffer is reused; it is written again, complete, later); ``close`` cuts the
+file to its length. A killed writer
 leaves at most one block of zero padding after the last record, which readers report as the
 end of a truncated file.
 """

@@ -73,6 +73,7 @@ class FoxgloveLive:
         self.replaced = 0  # values superseded before the sender thread took them (by design)
         self.failed = 0  # values that could not be encoded
         self._server: Any = None
+        self._bridge: Any = None  # wsbridge.SubprotocolBridge: the port users connect to
         self._ctx: Any = None
         self._subs: dict[str, Subscription] = {}
         self._channels: dict[str, Any] = {}
@@ -99,18 +100,33 @@ class FoxgloveLive:
         """Start the server; raises OSError with the reason (e.g. the port is taken)."""
         import foxglove
 
+        from .wsbridge import SubprotocolBridge
+
+        # The user's port is the bridge's, which speaks both subprotocols (foxglove.sdk.v1
+        # and foxglove.websocket.v1: Lichtblick, Studio 1.x, @foxglove/ws-protocol); the
+        # SDK's server listens on a private loopback port behind it.
+        try:
+            bridge = SubprotocolBridge(self.host, self.port, 0)
+        except OSError as e:
+            raise OSError(
+                f"foxglove server on {self.host}:{self.port}: {e.strerror or e}"
+            ) from None
         self._ctx = foxglove.Context()
         try:
             self._server = foxglove.start_server(
                 name="flowrt",
-                host=self.host,
-                port=self.port,
+                host="127.0.0.1",
+                port=0,
                 context=self._ctx,
                 message_backlog_size=BACKLOG,
             )
         except RuntimeError as e:
+            bridge.close()
             raise OSError(f"foxglove server on {self.host}:{self.port}: {e}") from None
-        self.port = int(self._server.port)
+        bridge.upstream = int(self._server.port)
+        bridge.start()
+        self._bridge = bridge
+        self.port = bridge.port
 
     # --- Monitor -------------------------------------------------------------------------
 
@@ -154,6 +170,9 @@ class FoxgloveLive:
             _release(value)
         self._pending.clear()
         self._release_done()
+        if self._bridge is not None:
+            bridge, self._bridge = self._bridge, None
+            bridge.close()
         if self._server is not None:
             # The server's stop waits for its clients to go; a viewer that never reads would
             # hold the runtime's stop forever. Stop on a thread, wait a bounded time.

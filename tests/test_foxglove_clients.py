@@ -1,0 +1,61 @@
+"""The live Foxglove server with the clients users have (issue 26): both WebSocket
+subprotocols, and @foxglove/ws-protocol's FoxgloveClient receiving frames at the source rate."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+from pathlib import Path
+
+import aiohttp
+import pytest
+
+import flowrt
+from flowrt.recording.live import FoxgloveLive
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def ticker() -> flowrt.Graph:
+    g = flowrt.GraphBuilder("fox")
+    g.add("tick", "counter", trigger={"timer": 50})
+    return g.build()
+
+
+@pytest.mark.parametrize("subprotocol", ["foxglove.sdk.v1", "foxglove.websocket.v1"])
+async def test_both_subprotocols_are_served(subprotocol: str) -> None:
+    """foxglove.websocket.v1 (Lichtblick, Studio 1.x, ws-protocol) got HTTP 400."""
+    live = FoxgloveLive(port=0)
+    async with flowrt.Runtime(ticker(), monitors=[live]), aiohttp.ClientSession() as s:
+        url = f"ws://127.0.0.1:{live.port}/"
+        async with s.ws_connect(url, protocols=[subprotocol]) as ws:
+            assert ws.protocol == subprotocol
+            info = json.loads((await ws.receive(timeout=5)).data)
+            assert info["op"] == "serverInfo"
+
+
+@pytest.mark.slow
+@pytest.mark.node
+async def test_foxglove_ws_protocol_client_receives_frames_at_the_source_rate(
+    tmp_path: Path,
+) -> None:
+    modules = os.environ.get("FLOWRT_NODE_MODULES")
+    node = shutil.which("node")
+    if not modules or node is None:
+        pytest.skip("needs Node.js and FLOWRT_NODE_MODULES with @foxglove/ws-protocol and ws")
+    script = Path(modules).parent / "ws_client.mjs"  # ES modules resolve beside node_modules
+    shutil.copyfile(REPO / "tests" / "js" / "ws_client.mjs", script)
+    live = FoxgloveLive(port=0)
+    async with flowrt.Runtime.from_file(REPO / "graphs" / "cambada.yaml", monitors=[live]):
+        proc = await asyncio.create_subprocess_exec(
+            node, str(script), f"ws://127.0.0.1:{live.port}", "front_cam.frame", "3",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        out, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode == 0, err.decode()
+    got = json.loads(out)
+    assert got["subprotocol"] == "foxglove.websocket.v1"  # the client's default
+    assert "front_cam.frame" in got["channels"]
+    assert got["messages"] >= 0.75 * 20 * got["seconds"]  # the camera's 20 fps
