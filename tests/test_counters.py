@@ -184,10 +184,9 @@ def web_view(stats: RuntimeStats) -> dict[str, Any]:
     """The page's tables as the page's own script renders them from ``/stats.json``."""
     html = (ROOT / "nodes" / "display.html").read_text()
     script = html[html.index("<script>") + len("<script>") : html.index("</script>")]
-    script = script.replace("__REFRESH_MS__", "500")
-    script = re.sub(
-        r"^(setupJoystick\(\);\s*)?connect\(\);\s*poll\(\);\s*$", "", script, flags=re.M
-    )
+    script = script.replace("__REFRESH_MS__", "500").replace("__FLOWRT_STATS__", "null")
+    # the page's start-up (joystick, first statistics, WebSocket, polling) is not run here
+    script = re.sub(r"^setupJoystick\(\);.*?^poll\(\);\s*$", "", script, flags=re.M | re.S)
     program = DOM_STUB + script + f"\nconst STATS = {stats.model_dump_json()};\n" + DUMP
     node = shutil.which("node") or shutil.which("nodejs")
     assert node is not None
