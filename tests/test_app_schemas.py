@@ -108,3 +108,32 @@ def test_app_schema_rewrites_what_the_apps_refuse(
     assert schema_problems(schema) != [] or schema.get("type") != "object"
     assert app_schema(schema) == expected
     assert schema_problems(app_schema(schema)) == []
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_can_signals_are_recorded_as_plottable_json(tmp_path: Path) -> None:
+    """Issue 26: `--topics chassis.WheelSpeeds` matched nothing (a CAN node's messages are
+    outputs of its params) and raw data was a Python repr; now each message is a channel with
+    its signals as schema fields and the frame's data as base64 bytes."""
+    import base64
+
+    from mcap.reader import make_reader
+
+    r = subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", "record", "graphs/can.yaml", "-o", str(tmp_path),
+         "--duration", "1", "--no-ui", "--topics", "chassis.WheelSpeeds"],
+        cwd=REPO, env=dict(os.environ, COLUMNS="200"), capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    (path,) = tmp_path.glob("*/*.mcap")
+    with open(path, "rb") as f:
+        got = list(make_reader(f).iter_messages(topics=["chassis.WheelSpeeds"]))
+    assert len(got) >= 50
+    schema, _, message = got[0]
+    signals = json.loads(schema.data)["properties"]["signals"]["properties"]
+    assert {"LeftSpeed", "RightSpeed", "Heading"} <= set(signals)
+    assert signals["LeftSpeed"] == {"type": "number"}
+    body = json.loads(message.data)
+    assert len(base64.b64decode(body["data"])) == 8

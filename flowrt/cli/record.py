@@ -52,7 +52,12 @@ def select_outputs(outputs: list[str], patterns: list[str]) -> tuple[list[str], 
 
 
 def graph_outputs(graph: Any) -> list[str]:
-    return [f"{name}.{port}" for name, n in graph.nodes.items() for port in n.cls.outputs]
+    """Every output, those a node declares from its params too (a CAN node's messages)."""
+    return [
+        f"{name}.{port}"
+        for name, n in graph.nodes.items()
+        for port in {**n.cls.outputs, **n.cls.params_outputs(n.params)}
+    ]
 
 
 def with_recorder(spec: Any, topics: list[str], params: dict[str, Any], size: int = 16) -> Any:

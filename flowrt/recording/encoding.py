@@ -340,6 +340,11 @@ def to_jsonable(value: Any) -> Any:
         return None
     if value is None or isinstance(value, bool | int | float | str):
         return value
+    if isinstance(value, bytes | bytearray | memoryview):
+        # bytes as base64, as Foxglove's JSON encoding has them (raw CAN data, payloads)
+        import base64
+
+        return base64.b64encode(bytes(value)).decode("ascii")
     return repr(value)
 
 
@@ -373,8 +378,26 @@ def schema_for(value: Any) -> StreamSchema:
     else:
         schema = {"type": "object", "properties": {"value": _value_schema(value)}}
     schema = app_schema(schema)  # what the Foxglove/Lichtblick apps can read (jsonschema.py)
+    _fill_mappings(schema, to_jsonable(value))
     schema.setdefault("title", name)
     return StreamSchema(name, "jsonschema", json.dumps(schema).encode(), "json")
+
+
+def _fill_mappings(schema: dict[str, Any], sample: Any) -> None:
+    """Free-form mappings of a typed value (a CAN message's ``signals``) get their fields from
+    the first value recorded, so each one can be plotted (the type alone says only 'dict')."""
+    props = schema.get("properties")
+    if not isinstance(props, dict) or not isinstance(sample, dict):
+        return
+    for key, sub in props.items():
+        if not isinstance(sub, dict) or key not in sample:
+            continue
+        if sub.get("type") == "object" and not sub.get("properties") and isinstance(
+            sample[key], dict
+        ):
+            sub["properties"] = _value_schema(sample[key])["properties"]
+        elif sub.get("type") == "object":
+            _fill_mappings(sub, sample[key])
 
 
 def _value_schema(value: Any) -> dict[str, Any]:
