@@ -56,11 +56,13 @@ from .zenoh_wire import (
     MAX_SEQ_JUMP,
     WARN_EVERY,
     Header,
+    PlainFormat,
     Refused,
     check_frame,
     decode_frame,
     encode_frame,
     from_wire,
+    payload_encoding,
     to_wire,
 )
 
@@ -220,6 +222,8 @@ class _Import:
         self.max_bytes = 1 << 20  # set from the ImportSpec: larger messages are refused
         self.max_pixels = 8192 * 8192
         self.warned: dict[str, float] = {}  # reason -> last warning (rate-limited)
+        self.plain: PlainFormat | None = None  # header-less payloads of a plain program
+        self.plain_seq = 0
         self.ctx: Any = None
         # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
         # keeps one pool frame of the last shape ready (``spare``); frames replaced before
@@ -233,11 +237,19 @@ class _Import:
     def on_sample(self, sample: Any) -> None:
         try:
             raw_att = sample.attachment
-            if raw_att is None:
-                raise Refused("undecodable", "no flowrt header (not published by flowrt?)")
-            if len(raw_att) > MAX_HEADER_BYTES:
+            if self.plain is not None:  # a plain program's payload: the header is made here
+                header = self.plain.header(self.key, self.plain_seq)
+                self.plain_seq += 1
+            elif raw_att is None:
+                raise Refused(
+                    "undecodable",
+                    "no flowrt header: from a plain program? declare the import's format "
+                    "(json, bytes, jpeg, png, raw): docs/zenoh.md",
+                )
+            elif len(raw_att) > MAX_HEADER_BYTES:
                 raise Refused("too large", f"a header of {len(raw_att)} bytes")
-            header = Header.decode(raw_att.to_bytes())
+            else:
+                header = Header.decode(raw_att.to_bytes())
             if len(sample.payload) > self.max_bytes:  # refused before it is copied or parsed
                 raise Refused(
                     "too large", f"{len(sample.payload)} bytes, the limit is {self.max_bytes}"
@@ -247,6 +259,8 @@ class _Import:
                 check_frame(header.frame, payload, self.max_pixels)
                 value: Any = decode_frame(header.frame, payload)
                 value = self._into_spare(header.frame, value)
+            elif header.kind == "bytes":
+                value = payload
             else:
                 value = from_wire(json.loads(payload))
         except Exception as e:
@@ -504,6 +518,9 @@ class ZenohBridge:
         for name, im in self.spec.imports.items():
             imp = _Import(self, name, im.key, im.period, im.stale_after, im.size)
             imp.max_bytes, imp.max_pixels = im.byte_limit, im.max_pixels
+            imp.plain = (
+                PlainFormat(im.format, im.shape, im.dtype) if im.format != "flowrt" else None
+            )
             node = self.host.import_node(name)
             if node is not None:
                 node.link = imp
@@ -565,7 +582,9 @@ class ZenohBridge:
                     payload = json.dumps(to_wire(value), separators=(",", ":")).encode()
                     header = Header(self.stream, self.zid, exp.seq, now_wall, now_wall, "json")
                 exp.seq += 1
-                exp.publisher.put(payload, attachment=header.encode())
+                exp.publisher.put(
+                    payload, attachment=header.encode(), encoding=payload_encoding(header)
+                )
             except Exception as e:
                 exp.errors += 1
                 log.warning("export %s: %s", exp.key, e)

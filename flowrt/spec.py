@@ -676,6 +676,18 @@ class ImportSpec(_Strict):
         description="largest message accepted (payload bytes); default 64 MiB for frames, "
         "1 MiB for messages: a larger one is dropped, counted, never decoded",
     )
+    format: Literal["flowrt", "json", "bytes", "jpeg", "png", "raw"] = Field(
+        default="flowrt",
+        description="what a publisher sends: flowrt (a flowrt export, with its header), or "
+        "the payload alone from a plain Zenoh program: json, bytes, jpeg, png, or raw pixels "
+        "(with shape and dtype); see docs/zenoh.md",
+    )
+    shape: tuple[int, ...] | None = Field(
+        default=None, description="format raw: the frame's shape, e.g. [480, 640, 3]"
+    )
+    dtype: Literal["uint8", "uint16", "int16", "float32"] = Field(
+        default="uint8", description="format raw: the pixels' type"
+    )
     max_pixels: int = Field(
         default=8192 * 8192,
         ge=1,
@@ -688,6 +700,17 @@ class ImportSpec(_Strict):
     @classmethod
     def _short_form(cls, data: Any) -> Any:
         return {"key": data} if isinstance(data, str) else data
+
+    @model_validator(mode="after")
+    def _format(self) -> ImportSpec:
+        """Images from a plain program are frames; raw pixels need their shape."""
+        if self.format in ("jpeg", "png", "raw") and not self.frames:
+            object.__setattr__(self, "frames", True)
+        if self.format == "raw" and (self.shape is None or len(self.shape) not in (2, 3)):
+            raise ValueError("format raw needs shape: [height, width] or [height, width, channels]")
+        if self.format in ("json", "bytes") and self.frames:
+            raise ValueError(f"format {self.format} carries messages, not frames")
+        return self
 
     @property
     def byte_limit(self) -> int:

@@ -108,6 +108,49 @@ class Header:
         )
 
 
+class PlainFormat:
+    """How an import reads payloads a plain Zenoh program publishes without flowrt's header
+    (``import: {name: {key: K, format: json|bytes|jpeg|png|raw}}``): the header is made on
+    arrival, the stream's sequence counted locally (a plain publisher has none)."""
+
+    def __init__(self, fmt: str, shape: tuple[int, ...] | None, dtype: str) -> None:
+        self.fmt = fmt
+        self.shape = shape
+        self.dtype = dtype
+        self.stream = f"plain-{id(self):x}"
+
+    def header(self, key: str, seq: int) -> Header:
+        import time
+
+        now = time.time()
+        if self.fmt in ("jpeg", "png", "raw"):
+            meta: dict[str, Any] = {"enc": self.fmt, "seq": seq, "pf": "BGR"}
+            if self.fmt == "raw":
+                assert self.shape is not None  # the import's spec requires it
+                meta.update(shape=list(self.shape), dtype=self.dtype)
+                if len(self.shape) == 2 or self.shape[2] == 1:
+                    meta["pf"] = "GRAY"
+            else:
+                meta.update(shape=[1, 1, 3], dtype="uint8")  # checked from the image's header
+            return Header(self.stream, "", seq, now, now, "frame", meta)
+        return Header(self.stream, "", seq, now, now, "bytes" if self.fmt == "bytes" else "json")
+
+
+def payload_encoding(header: Header) -> Any:
+    """The Zenoh encoding of a payload flowrt publishes, so plain programs know it without
+    reading the header: JSON, JPEG, PNG, or octet-stream for raw pixels."""
+    import zenoh
+
+    if header.kind == "json":
+        return zenoh.Encoding.APPLICATION_JSON
+    enc = header.frame.get("enc", "raw")
+    if enc == "jpeg":
+        return zenoh.Encoding.IMAGE_JPEG
+    if enc == "png":
+        return zenoh.Encoding.IMAGE_PNG
+    return zenoh.Encoding.APPLICATION_OCTET_STREAM
+
+
 def encode_frame(frame: Frame, encoding: str, quality: int) -> tuple[dict[str, Any], bytes]:
     """Header fields and payload of a frame: raw pixels, or JPEG/PNG when the export asks."""
     meta = {

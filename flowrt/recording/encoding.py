@@ -392,8 +392,10 @@ def _fill_mappings(schema: dict[str, Any], sample: Any) -> None:
     for key, sub in props.items():
         if not isinstance(sub, dict) or key not in sample:
             continue
-        if sub.get("type") == "object" and not sub.get("properties") and isinstance(
-            sample[key], dict
+        if (
+            sub.get("type") == "object"
+            and not sub.get("properties")
+            and isinstance(sample[key], dict)
         ):
             sub["properties"] = _value_schema(sample[key])["properties"]
         elif sub.get("type") == "object":

@@ -1,0 +1,33 @@
+"""A plain Zenoh subscriber (eclipse-zenoh only, no flowrt) reading what a flowrt graph
+exports: the payload is the value (JSON here), the attachment flowrt's header.
+
+    python docs/examples/zenoh_plain_sub.py tcp/127.0.0.1:7460 demo/count 5
+"""
+
+import json
+import sys
+import threading
+
+import zenoh
+
+endpoint, key, wanted = sys.argv[1], sys.argv[2], int(sys.argv[3])
+conf = zenoh.Config()
+conf.insert_json5("mode", '"client"')
+conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+conf.insert_json5("scouting/multicast/enabled", "false")
+got: list[dict] = []
+done = threading.Event()
+
+
+def on_sample(sample: zenoh.Sample) -> None:
+    header = json.loads(sample.attachment.to_bytes())  # flowrt's header (docs/zenoh.md)
+    value = json.loads(sample.payload.to_bytes())  # the value itself
+    got.append({"encoding": str(sample.encoding), "seq": header["n"], "value": value})
+    if len(got) >= wanted:
+        done.set()
+
+
+with zenoh.open(conf) as session:
+    sub = session.declare_subscriber(key, on_sample)
+    done.wait(20)
+print(json.dumps(got[:wanted]))
