@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Literal
@@ -182,13 +183,31 @@ class ReplayBase(Node):
 
     def _value(self, item: _Item) -> Any:
         if not isinstance(item.value, tuple):
-            return item.value
+            return self._restamped(item)
         px, fmt = item.value
         frame: Frame = self.ctx.new_frame(px.shape, px.dtype, fmt)
         np.copyto(frame.data, px)
         frame.seq = item.seq
         frame.timestamp = self.ctx.now()
         return frame
+
+    def _restamped(self, item: _Item) -> Any:
+        """A recorded ``timestamp`` is epoch nanoseconds (the recording's time base): mapped
+        to this run's clock, as old relative to its publication as it was when recorded."""
+        value = item.value
+        ts = (
+            value.get("timestamp") if isinstance(value, dict) else getattr(value, "timestamp", None)
+        )
+        if not isinstance(ts, int) or isinstance(ts, bool) or ts < 10**17:  # not epoch ns
+            return value
+        mapped = self.ctx.now() - max(0, item.log_time - ts) / 1e9 / self.params.rate
+        if isinstance(value, dict):
+            return {**value, "timestamp": mapped}
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            return dataclasses.replace(value, timestamp=mapped)
+        with contextlib.suppress(AttributeError, TypeError):
+            value.timestamp = mapped
+        return value
 
     def _report_damage(self) -> None:
         damaged = next((r for r in self.read if r.damage), None)

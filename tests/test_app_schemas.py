@@ -137,3 +137,29 @@ def test_can_signals_are_recorded_as_plottable_json(tmp_path: Path) -> None:
     assert signals["LeftSpeed"] == {"type": "number"}
     body = json.loads(message.data)
     assert len(base64.b64decode(body["data"])) == 8
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_one_time_base_values_are_stamped_in_epoch_nanoseconds(tmp_path: Path) -> None:
+    """Issue 26: a detection's own timestamp was the run's monotonic seconds beside epoch log
+    times; now it is epoch nanoseconds too, the frame's time: at or before its log time."""
+    from mcap.reader import make_reader
+
+    r = subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", "record", "graphs/cambada.yaml", "-o",
+         str(tmp_path), "--duration", "1", "--no-ui", "--no-display",
+         "--topics", "ball_fr.detection"],
+        cwd=REPO, env=dict(os.environ, COLUMNS="200"), capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    (path,) = tmp_path.glob("*/*.mcap")
+    with open(path, "rb") as f:
+        got = list(make_reader(f).iter_messages(topics=["ball_fr.detection"]))
+    assert got
+    for _schema, _, message in got:
+        ts = json.loads(message.data)["timestamp"]
+        assert isinstance(ts, int)
+        assert 0 <= message.log_time - ts < 1_000_000_000  # the frame's time, <1 s before
+    assert json.loads(got[0][0].data)["properties"]["timestamp"]["type"] == "integer"

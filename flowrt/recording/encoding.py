@@ -378,7 +378,14 @@ def schema_for(value: Any) -> StreamSchema:
     else:
         schema = {"type": "object", "properties": {"value": _value_schema(value)}}
     schema = app_schema(schema)  # what the Foxglove/Lichtblick apps can read (jsonschema.py)
-    _fill_mappings(schema, to_jsonable(value))
+    sample = to_jsonable(value)
+    _fill_mappings(schema, sample)
+    props = schema.get("properties", {})
+    if isinstance(sample, dict) and isinstance(sample.get("timestamp"), float):
+        props["timestamp"] = {  # written as epoch nanoseconds by encode_json
+            "type": "integer",
+            "description": "nanoseconds since the Unix epoch (the recording's time base)",
+        }
     schema.setdefault("title", name)
     return StreamSchema(name, "jsonschema", json.dumps(schema).encode(), "json")
 
@@ -421,11 +428,20 @@ def _value_schema(value: Any) -> dict[str, Any]:
     return {"type": "string"}
 
 
-def encode_json(value: Any, schema: StreamSchema) -> Encoded:
-    """A message value as JSON under ``schema`` (from :func:`schema_for` of the stream)."""
+def encode_json(value: Any, schema: StreamSchema, epoch_offset: float | None = None) -> Encoded:
+    """A message value as JSON under ``schema`` (from :func:`schema_for` of the stream).
+
+    ``epoch_offset`` (added to the runtime clock for Unix time): a value's own ``timestamp``
+    (runtime clock, seconds) is written as nanoseconds since the Unix epoch, the time base of
+    every time in a recording (log times, image stamps); replay maps it back.
+    """
     obj = to_jsonable(value)
     if not isinstance(obj, dict):
         obj = {"value": obj}
+    elif epoch_offset is not None:
+        ts = obj.get("timestamp")
+        if isinstance(ts, float) and math.isfinite(ts):
+            obj["timestamp"] = round((ts + epoch_offset) * 1e9)
     return Encoded(schema, json.dumps(obj, separators=(",", ":")).encode())
 
 

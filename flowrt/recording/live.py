@@ -268,7 +268,9 @@ class FoxgloveLive:
             if ch is None:  # a message channel is advertised with its first value's schema
                 self._schemas[topic] = schema_for(value)
                 ch = self._channels[topic] = self._channel(topic, self._schemas[topic])
-            ch.log(encode_json(value, self._schemas[topic]).data, log_time=ns)
+            # values' own timestamps as epoch ns too: one time base with the log times
+            data = encode_json(value, self._schemas[topic], self._epoch).data
+            ch.log(data, log_time=ns)
             if is_detection(value):
                 self._draw(topic, value)
         self.sent += 1

@@ -496,7 +496,7 @@ class RecordingWriter:
         schema = cached.get(key)
         if schema is None:
             schema = cached[key] = schema_for(v)
-        return encode_json(v, schema)
+        return encode_json(v, schema, self.epoch_offset)
 
     def _channel(self, topic: str, schema: StreamSchema) -> int:
         cid = self._channels.get(topic)
