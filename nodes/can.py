@@ -227,6 +227,7 @@ class Can(Node):
     inline_only = True  # its reader thread hands frames to the event loop
 
     unknown = Output(CanFrame, doc="frames with ids the DBC does not know (unknown_output)")
+    frames = Output(CanFrame, doc="every received frame, raw (raw_output)")
     status = Output(CanBusStatus, doc="per-message and bus counters every status_ms")
 
     @classmethod
@@ -345,6 +346,12 @@ class Can(Node):
         st = self.by_id.get(key)
         data = b"" if frame.is_remote_frame else bytes(frame.data)
         fd, brs = bool(frame.is_fd), bool(frame.bitrate_switch)
+        if self.params.raw_output:
+            raw = CanFrame(
+                key[0], data, key[1], now, float(frame.timestamp), chan, fd, brs,
+                bool(frame.is_remote_frame), int(frame.dlc),
+            )  # fmt: skip
+            self.ctx.publish("frames", raw)
         if st is None:
             self.unknown_count += 1
             self.unknown_by_channel[chan or ""] = self.unknown_by_channel.get(chan or "", 0) + 1

@@ -25,7 +25,7 @@ from .can_dbc import dbc_warnings, load_dbc
 __all__ = ["BitRate", "CanParams", "MessageParams"]
 
 #: The node's own outputs, which no DBC message may be named after.
-NODE_OUTPUTS = frozenset({"unknown", "status"})
+NODE_OUTPUTS = frozenset({"unknown", "status", "frames"})
 
 #: A bit rate in a graph file: 250000, 500k, 1e6, 2M (whole bit/s, 1k..20M).
 BitRate = Annotated[int, BeforeValidator(bit_rate)]
@@ -77,6 +77,11 @@ class CanParams(BaseModel):
     timeout_factor: float = Field(default=10.0, gt=0, description="timeout in cycles")
     max_bad: int = Field(default=5, ge=1, description="bad frames before a message is invalid")
     unknown_output: bool = Field(default=False, description="publish unknown ids on 'unknown'")
+    raw_output: bool = Field(
+        default=False,
+        description="publish every received frame on 'frames' (id, extended, fd, remote, dlc, "
+        "data): a recording's raw CAN channel",
+    )
     tick_ms: float | None = Field(default=None, gt=0, description="default: gcd of the cycles")
     reopen_ms: float = Field(default=100.0, gt=0, description="first reopen backoff")
     reopen_max_ms: float = Field(default=5000.0, gt=0, description="longest reopen backoff")

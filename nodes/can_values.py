@@ -46,6 +46,7 @@ class CanFrame:
     fd: bool = False
     brs: bool = False
     remote: bool = False
+    dlc: int = 0  # the frame's data length code (a remote frame's too)
 
 
 @dataclass(frozen=True)

@@ -163,3 +163,39 @@ def test_one_time_base_values_are_stamped_in_epoch_nanoseconds(tmp_path: Path) -
         assert isinstance(ts, int)
         assert 0 <= message.log_time - ts < 1_000_000_000  # the frame's time, <1 s before
     assert json.loads(got[0][0].data)["properties"]["timestamp"]["type"] == "integer"
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_raw_can_frames_are_a_channel_of_their_own(tmp_path: Path) -> None:
+    """Issue 26: raw frames as their own channel (id, extended, fd, remote, dlc, data)."""
+    import base64
+
+    from mcap.reader import make_reader
+
+    text = (REPO / "graphs" / "can.yaml").read_text()
+    text = text.replace(
+        "      bitrate: 250000\n", "      bitrate: 250000\n      raw_output: true\n"
+    )
+    graph = REPO / "graphs" / f"_raw_{os.getpid()}.yaml"  # beside robot.dbc's folder
+    graph.write_text(text)
+    try:
+        r = subprocess.run(
+            [sys.executable, "-m", "flowrt.cli", "record", str(graph), "-o", str(tmp_path),
+             "--duration", "1", "--no-ui", "--topics", "chassis.frames"],
+            cwd=REPO, env=dict(os.environ, COLUMNS="200"), capture_output=True, text=True,
+            timeout=120,
+        )  # fmt: skip
+    finally:
+        graph.unlink()
+    assert r.returncode == 0, r.stderr
+    (path,) = tmp_path.glob("*/*.mcap")
+    with open(path, "rb") as f:
+        got = list(make_reader(f).iter_messages(topics=["chassis.frames"]))
+    assert len(got) >= 100
+    schema, _, message = got[0]
+    props = json.loads(schema.data)["properties"]
+    assert {"id", "extended", "fd", "remote", "dlc", "data"} <= set(props)
+    assert schema_problems(json.loads(schema.data)) == []
+    body = json.loads(message.data)
+    assert len(base64.b64decode(body["data"])) == body["dlc"]
