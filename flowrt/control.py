@@ -54,14 +54,16 @@ import multiprocessing
 import signal
 import socket
 import time
-import urllib.error
-import urllib.request
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from .control_client import DEFAULT_PORT as DEFAULT_PORT  # the client's, re-exported
+from .control_client import DEFAULT_URL as DEFAULT_URL
+from .control_client import ControlClient as ControlClient
+from .control_client import ControlError as ControlError
 from .events import Event, NodeFailed
 from .serving import (
     Conn,
@@ -75,6 +77,7 @@ from .serving import (
     unpack,
 )
 from .spec import TimingOverride
+from .swap_policy import SwapRefused, lookup, where_keys
 
 if TYPE_CHECKING:
     from aiohttp import web
@@ -83,8 +86,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("flowrt.control")
 
-DEFAULT_PORT = 8766  # not 8765: that is the Foxglove apps' default (flowrt run --foxglove)
-DEFAULT_URL = f"http://127.0.0.1:{DEFAULT_PORT}"
 
 MAX_CONNECTIONS = 256  # open connections at once; more are closed as they arrive
 REQUEST_TIMEOUT = 10.0  # seconds for a request's headers (from the previous one)
@@ -168,37 +169,6 @@ class SwapRequest(BaseModel):
     node: str = Field(max_length=256)
     kind: str = Field(max_length=1024)
     params: dict[str, Any] | None = None
-
-
-# Param names that say where data goes or comes from: an address, a path, a token. A caller
-# of the endpoint may change an algorithm's params, never these (README: who can do what).
-_WHERE_KEYS = frozenset(
-    {"host", "port", "address", "addr", "url", "endpoint", "endpoints", "connect", "listen",
-     "path", "paths", "dir", "directory", "folder", "output", "file", "files", "token",
-     "dbc", "script", "source", "interface", "channel", "device", "key", "keys"}
-)  # fmt: skip
-_WHERE_SUFFIXES = ("_host", "_port", "_url", "_path", "_dir", "_file", "_token", "_address")
-
-
-def where_keys(params: Any, prefix: str = "") -> list[str]:
-    """The keys of ``params`` (nested) that name an address, a path or a token."""
-    found: list[str] = []
-    if isinstance(params, dict):
-        for k, v in params.items():
-            name = str(k).lower()
-            dotted = f"{prefix}{k}"
-            if name in _WHERE_KEYS or name.endswith(_WHERE_SUFFIXES):
-                found.append(dotted)
-            else:
-                found += where_keys(v, dotted + ".")
-    elif isinstance(params, list):
-        for i, v in enumerate(params):
-            found += where_keys(v, f"{prefix}{i}.")
-    return found
-
-
-class SwapRefused(Exception):
-    """A swap the endpoint does not allow (403): a kind not allowed, a param that moves data."""
 
 
 class ReloadRequest(BaseModel):
@@ -429,8 +399,7 @@ class ControlServer:
             moved = [
                 k
                 for k in where_keys(req.params)
-                if _lookup(req.params, k) != _lookup(current, k)
-                or req.kind != runner.rnode.spec.kind
+                if lookup(req.params, k) != lookup(current, k) or req.kind != runner.rnode.spec.kind
             ]
             if moved:
                 raise SwapRefused(
@@ -785,18 +754,6 @@ class _Gateway:
         return _reply(*await self.read("rtdb_record", {"name": name, "n": n}))
 
 
-def _lookup(tree: Any, dotted: str) -> Any:
-    """``tree["a"]["b"]`` for ``"a.b"`` (list indexes as numbers); None when absent."""
-    for part in dotted.split("."):
-        if isinstance(tree, dict):
-            tree = tree.get(part)
-        elif isinstance(tree, list) and part.isdigit() and int(part) < len(tree):
-            tree = tree[int(part)]
-        else:
-            return None
-    return tree
-
-
 def _no_constant(name: str) -> Any:
     raise ValueError(f"{name} is not a number here")
 
@@ -835,49 +792,3 @@ def _error(status: int, message: str, headers: dict[str, str] | None = None) -> 
 
 
 # --- the client: flowrt ctl ---------------------------------------------------------------
-
-
-class ControlError(Exception):
-    """The runtime could not be reached or refused the request; the message says which."""
-
-
-class ControlClient:
-    """A small synchronous client of the control endpoint (stdlib only)."""
-
-    def __init__(
-        self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 5.0
-    ) -> None:
-        self.url = url.rstrip("/")
-        self.token = token
-        self.timeout = timeout
-
-    def request(self, method: str, path: str, body: Any = None) -> Any:
-        data = None if body is None else json.dumps(body).encode()
-        req = urllib.request.Request(self.url + path, data=data, method=method)
-        if data is not None:
-            req.add_header("Content-Type", "application/json")
-        if self.token:
-            req.add_header("Authorization", f"Bearer {self.token}")
-        try:
-            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
-                return json.loads(resp.read() or b"null")
-        except urllib.error.HTTPError as e:
-            try:
-                message = json.loads(e.read()).get("error", e.reason)
-            except (ValueError, AttributeError):
-                message = e.reason
-            if e.code == 401:
-                message = f"{message} (give --token or set FLOWRT_TOKEN)"
-            raise ControlError(f"{e.code}: {message}") from None
-        except (urllib.error.URLError, OSError) as e:
-            reason = getattr(e, "reason", e)
-            raise ControlError(
-                f"cannot reach the runtime at {self.url} ({reason}); "
-                "is `flowrt run --control` running?"
-            ) from None
-
-    def get(self, path: str) -> Any:
-        return self.request("GET", path)
-
-    def post(self, path: str, body: Any) -> Any:
-        return self.request("POST", path, body)

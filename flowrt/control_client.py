@@ -1,0 +1,60 @@
+"""A small synchronous client of the control endpoint (stdlib only): ``flowrt ctl``'s, and a
+script's. The server side is :mod:`flowrt.control`."""
+
+from __future__ import annotations
+
+import json
+import urllib.error
+import urllib.request
+from typing import Any
+
+DEFAULT_PORT = 8766  # not 8765: that is the Foxglove apps' default (flowrt run --foxglove)
+DEFAULT_URL = f"http://127.0.0.1:{DEFAULT_PORT}"
+
+__all__ = ["DEFAULT_PORT", "DEFAULT_URL", "ControlClient", "ControlError"]
+
+
+class ControlError(Exception):
+    """The runtime could not be reached or refused the request; the message says which."""
+
+
+class ControlClient:
+    """A small synchronous client of the control endpoint (stdlib only)."""
+
+    def __init__(
+        self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 5.0
+    ) -> None:
+        self.url = url.rstrip("/")
+        self.token = token
+        self.timeout = timeout
+
+    def request(self, method: str, path: str, body: Any = None) -> Any:
+        data = None if body is None else json.dumps(body).encode()
+        req = urllib.request.Request(self.url + path, data=data, method=method)
+        if data is not None:
+            req.add_header("Content-Type", "application/json")
+        if self.token:
+            req.add_header("Authorization", f"Bearer {self.token}")
+        try:
+            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
+                return json.loads(resp.read() or b"null")
+        except urllib.error.HTTPError as e:
+            try:
+                message = json.loads(e.read()).get("error", e.reason)
+            except (ValueError, AttributeError):
+                message = e.reason
+            if e.code == 401:
+                message = f"{message} (give --token or set FLOWRT_TOKEN)"
+            raise ControlError(f"{e.code}: {message}") from None
+        except (urllib.error.URLError, OSError) as e:
+            reason = getattr(e, "reason", e)
+            raise ControlError(
+                f"cannot reach the runtime at {self.url} ({reason}); "
+                "is `flowrt run --control` running?"
+            ) from None
+
+    def get(self, path: str) -> Any:
+        return self.request("GET", path)
+
+    def post(self, path: str, body: Any) -> Any:
+        return self.request("POST", path, body)
