@@ -1,6 +1,7 @@
 """flowrt: a real-time dataflow runtime for robot perception and control."""
 
 from . import _startup  # noqa: F401  (first: Ctrl-C while the flowrt command imports)
+from .audio import AudioBlock as AudioBlock
 from .builder import GraphBuilder as GraphBuilder
 from .clock import Clock as Clock
 from .clock import SystemClock as SystemClock
@@ -51,6 +52,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "RTDB",
+    "AudioBlock",
     "Clock",
     "ControlConfig",
     "ControlServer",

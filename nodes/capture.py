@@ -120,7 +120,7 @@ OUTPUT_FORMATS: tuple[str, ...] = ("BGR", "RGB", "GRAY")
 INPUT_FORMATS: tuple[str, ...] = ("BGR", "RGB", "GRAY", "YUYV", "UYVY", "I420", "NV12")
 _PACKED = ("YUYV", "UYVY")  # 4:2:2, two bytes per pixel: (h, w, 2)
 _PLANAR = ("I420", "NV12")  # 4:2:0, Y plane then chroma: (h * 3 / 2, w)
-SCENES = ("soccer",)
+SCENES = ("soccer", "flash")
 
 # One cv2.cvtColor code per (input, output) pair: every conversion is a single pass.
 _CVT: dict[tuple[str, str], int] = {
@@ -283,6 +283,8 @@ class CaptureParams(BaseModel):
     clutter: float = Field(
         0.3, ge=0.0, le=1.0, description="synthetic scene: noise, lighting, distractors"
     )
+    flash_on: Ms = Field(100.0, gt=0, description="synthetic:flash: the LED is on this long")
+    flash_period: Ms = Field(1000.0, gt=0, description="synthetic:flash: every this long")
     grab_timeout: Ms | None = Field(None, description="ms; default two frame periods")
     open_timeout: Ms = 5000.0
     backoff: Ms = 200.0
@@ -871,7 +873,12 @@ class Capture(Node):
         self._position = 0  # where a reopened file or image sequence resumes
         self._last_frame_at = 0.0
         self._stalled = False  # a slow file/image read was reported, not yet a failure
-        if self._kind == "synthetic":
+        if self._kind == "synthetic" and p.kind()[1] == "flash":
+            from .calibration import FlashScene
+
+            w, h = p.size or (320, 240)
+            self._scene = FlashScene(w, h, p.flash_on / 1000, p.flash_period / 1000)
+        elif self._kind == "synthetic":
             from .scene import SoccerScene
 
             w, h = p.size or (320, 240)
@@ -918,6 +925,12 @@ class Capture(Node):
 
     def _synthetic(self) -> dict[str, Any]:
         p: CaptureParams = self.params
+        if not hasattr(self._scene, "render"):  # the flash: lit by the time of the exposure
+            t = self.ctx.now()
+            img, _ = self._scene.render_at(t, 1 / p.fps)
+            frame = self._publishable(img, "BGR", None)
+            frame.timestamp = t  # the exposure's start: what the brightness was integrated from
+            return {"frame": frame}
         img, truth = self._scene.render(self._seq)
         fmt_in = p.input_format or "BGR"
         raw = encode_raw(img, fmt_in) if fmt_in != "BGR" else img

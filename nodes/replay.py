@@ -33,9 +33,9 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from flowrt import Frame, LoopTrigger, Node, Output, resolve_path
+from flowrt import AudioBlock, Frame, LoopTrigger, Node, Output, resolve_path
 from flowrt.recording import Decoder
-from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
+from flowrt.recording.encoding import ANNOTATIONS_SCHEMA, AUDIO_SCHEMA
 from flowrt.recording.reader import Recording, iter_messages, iter_session
 from flowrt.recording.session import mcap_files
 
@@ -141,11 +141,12 @@ class ReplayBase(Node):
             port = self._port(m.topic, m.source, image)
             if port is None:
                 continue
-            value = (
-                self.decoder.image(m.schema, m.data)
-                if image
-                else self.decoder.message(name, m.data)
-            )
+            if image:
+                value: Any = self.decoder.image(m.schema, m.data)
+            elif name == AUDIO_SCHEMA:  # stamped in Unix time: moved to this run at publish
+                value = self.decoder.audio(m.schema, m.data, m.sequence, 0.0)
+            else:
+                value = self.decoder.message(name, m.data)
             yield _Item(port, m.log_time, m.sequence, value)
 
     def _prefetch(self) -> asyncio.Future[_Item | None]:
@@ -195,6 +196,9 @@ class ReplayBase(Node):
         """A recorded ``timestamp`` is epoch nanoseconds (the recording's time base): mapped
         to this run's clock, as old relative to its publication as it was when recorded."""
         value = item.value
+        if isinstance(value, AudioBlock):  # its first sample's Unix time, as recorded
+            lead = max(0.0, item.log_time / 1e9 - value.timestamp)
+            return dataclasses.replace(value, timestamp=self.ctx.now() - lead / self.params.rate)
         ts = (
             value.get("timestamp") if isinstance(value, dict) else getattr(value, "timestamp", None)
         )

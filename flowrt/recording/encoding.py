@@ -86,6 +86,32 @@ def image_schema(compressed: bool) -> StreamSchema:
     return StreamSchema(s.name, s.encoding, bytes(s.data), "protobuf")
 
 
+AUDIO_SCHEMA = "foxglove.RawAudio"
+
+
+def audio_schema() -> StreamSchema:
+    """The foxglove-sdk's own schema of RawAudio (protobuf descriptors)."""
+    from foxglove.messages import RawAudio
+
+    s = RawAudio.get_schema()
+    return StreamSchema(s.name, s.encoding, bytes(s.data), "protobuf")
+
+
+def encode_audio(block: Any, epoch_time: float) -> Encoded:
+    """An :class:`flowrt.AudioBlock` as a foxglove RawAudio: pcm-s16, interleaved, stamped
+    with its first sample's time (Unix time, the recording's time base)."""
+    from foxglove.messages import RawAudio
+
+    msg = RawAudio(
+        timestamp=_timestamp(max(0.0, epoch_time)),
+        data=block.pcm16(),
+        format="pcm-s16",
+        sample_rate=int(block.rate),
+        number_of_channels=int(block.channels),
+    )
+    return Encoded(audio_schema(), msg.encode())
+
+
 def encode_frame(
     frame: Frame, epoch_time: float, image_format: str = "raw", *, gil_free: bool = False
 ) -> Encoded:
@@ -491,6 +517,24 @@ class Decoder:
         px = rows[:, : msg.width * channels * itemsize].view(dtype)
         shape = (msg.height, msg.width) if channels == 1 else (msg.height, msg.width, channels)
         return px.reshape(shape), fmt
+
+    def audio(self, schema: Any, data: bytes, seq: int, epoch_offset: float) -> Any:
+        """A RawAudio message as an :class:`flowrt.AudioBlock` (float32 samples), its time
+        moved by ``epoch_offset`` (recorded Unix time minus the replaying clock)."""
+        from ..audio import AudioBlock
+
+        dec = self._decoders.get(schema.id)
+        if dec is None:
+            dec = self._factory.decoder_for("protobuf", schema)
+            if dec is None:
+                raise ValueError(f"no protobuf decoder for schema {schema.name}")
+            self._decoders[schema.id] = dec
+        msg = dec(data)
+        ch = max(1, int(msg.number_of_channels))
+        pcm = np.frombuffer(msg.data, dtype="<i2")
+        samples = (pcm.reshape(-1, ch).astype(np.float32) / 32768.0).copy()
+        t = msg.timestamp.seconds + msg.timestamp.nanos / 1e9 - epoch_offset
+        return AudioBlock(samples, int(msg.sample_rate), t, seq)
 
     def message(self, schema_name: str, data: bytes) -> Any:
         """A JSON message as its dataclass when importable, else as a dict (or bare value)."""

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from ..audio import AudioBlock
 from ..frames import Frame
 from ..stats import Running
 from .directio import open_direct
@@ -44,6 +45,7 @@ from .encoding import (
     Overlay,
     StreamSchema,
     encode_annotations,
+    encode_audio,
     encode_frame,
     encode_json,
     schema_for,
@@ -489,6 +491,8 @@ class RecordingWriter:
                 self.image_formats.get(item.topic, "raw"),
                 gil_free=self.gil_free,
             )
+        if isinstance(v, AudioBlock):  # foxglove.RawAudio, its first sample's time
+            return encode_audio(v, v.timestamp + self.epoch_offset)
         if isinstance(v, Overlay):  # stamped like the frame: the same float, the same offset
             return encode_annotations(v.detection, v.detection.timestamp + self.epoch_offset)
         cached = self._json_schemas
