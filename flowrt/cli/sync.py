@@ -1,0 +1,181 @@
+"""``flowrt sync measure SESSION --video TOPIC --audio TOPIC``: the measured lag between two
+sensors of a recording, from a flashing LED and a beeping speaker (or two cameras seeing one
+LED). The estimator is :mod:`flowrt.analysis.avsync`; this reads the recording."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+
+from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, printable, stdout_console
+
+
+def _stamp(msg: Any) -> float:
+    ts = msg.timestamp
+    return float(ts.seconds) + float(ts.nanos) / 1e9
+
+
+def _read(path: Path, topics: set[str]) -> dict[str, list[tuple[float, Any]]]:
+    """(Unix time, decoded message) per topic, in order; images as their mean brightness,
+    audio as (samples, rate)."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from ..recording.reader import iter_session
+
+    factory = DecoderFactory()
+    decoders: dict[int, Any] = {}
+    out: dict[str, list[tuple[float, Any]]] = {t: [] for t in topics}
+    from ..recording.session import mcap_files
+
+    for m in iter_session(mcap_files(path), topics, []):
+        schema = m.schema
+        if schema is None:
+            continue
+        dec = decoders.get(schema.id)
+        if dec is None:
+            dec = decoders[schema.id] = factory.decoder_for("protobuf", schema)
+        if dec is None:
+            continue
+        msg = dec(m.data)
+        if schema.name == "foxglove.RawImage":
+            px = np.frombuffer(msg.data, np.uint8)
+            out[m.topic].append((_stamp(msg), float(px.mean()) if px.size else 0.0))
+        elif schema.name == "foxglove.CompressedImage":
+            import cv2
+
+            img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE)
+            out[m.topic].append((_stamp(msg), float(img.mean()) if img is not None else 0.0))
+        elif schema.name == "foxglove.RawAudio":
+            ch = max(1, int(msg.number_of_channels))
+            pcm = np.frombuffer(msg.data, "<i2").reshape(-1, ch)[:, 0].astype(np.float32)
+            out[m.topic].append((_stamp(msg), (pcm / 32768.0, int(msg.sample_rate))))
+    return out
+
+
+def _video(rows: list[tuple[float, float]]) -> list[float]:
+    from ..analysis.avsync import video_onsets
+
+    if len(rows) < 2:
+        return []
+    t = [r[0] for r in rows]
+    exposure = float(np.median(np.diff(t)))  # a frame integrates light over its period
+    return video_onsets(t, [r[1] for r in rows], exposure)
+
+
+def _audio(rows: list[tuple[float, Any]]) -> list[float]:
+    from ..analysis.avsync import audio_onsets
+
+    if not rows:
+        return []
+    times = np.concatenate([t + np.arange(len(s)) / rate for t, (s, rate) in rows])
+    samples = np.concatenate([s for _, (s, _) in rows])
+    return audio_onsets(times, samples)
+
+
+def cmd_measure(args: argparse.Namespace) -> int:
+    from ..analysis.avsync import measure_lag
+
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
+    path = Path(args.session)
+    if not path.exists():
+        err.print(f"flowrt sync measure: {args.session}: no such file or folder", markup=False)
+        return EXIT_BAD_GRAPH
+    videos = list(args.video or [])
+    if not videos or (not args.audio and len(videos) != 2):
+        err.print(
+            "flowrt sync measure: give --video TOPIC --audio TOPIC, or --video A --video B",
+            markup=False,
+        )
+        return EXIT_BAD_GRAPH
+    other = args.audio or videos[1]
+    data = _read(path, {videos[0], other})
+    for topic in (videos[0], other):
+        if not data[topic]:
+            err.print(
+                f"flowrt sync measure: {printable(topic)}: no image or audio messages in "
+                f"{printable(str(path))}",
+                markup=False,
+            )
+            return EXIT_BAD_GRAPH
+    ref = _video(data[videos[0]])
+    oth = _audio(data[other]) if args.audio else _video(data[other])
+    report = measure_lag(ref, oth)
+    if args.json:
+        print(json.dumps({k: (None if isinstance(v, float) and math.isnan(v) else v)
+                          for k, v in report.json().items()}))  # fmt: skip
+    else:
+        _show(stdout_console(), videos[0], other, report, len(ref), len(oth))
+    if args.plot and report.events:
+        problem = _plot(report, args.plot, other)
+        if problem:
+            err.print(f"flowrt sync measure: {problem}", markup=False)
+            return EXIT_BAD_GRAPH
+    return EXIT_OK if report.events else EXIT_FAILED
+
+
+def _show(console: Console, ref: str, other: str, r: Any, n_ref: int, n_other: int) -> None:
+    console.print(
+        f"lag of {printable(other)} against {printable(ref)} (positive: {printable(other)} late)",
+        markup=False,
+    )
+    console.print(
+        f"onsets: {n_ref} in {ref}, {n_other} in {other}; paired {r.events}", markup=False
+    )
+    if not r.events:
+        console.print("no event could be paired", style="red")
+        return
+    console.print(
+        f"lag mean {r.lag_ms:.2f} ms  min {r.min_ms:.2f}  max {r.max_ms:.2f}  "
+        f"std {r.std_ms:.2f}  events {r.events}",
+        markup=False,
+    )
+    lo, hi = min(r.lags_ms), max(r.lags_ms)
+    span = max(hi - lo, 1e-6)
+    width = 40
+    console.print("lag per event (ms):", markup=False)
+    t0 = r.times[0]
+    for t, lag in zip(r.times, r.lags_ms, strict=True):
+        bar = "#" * (1 + round((lag - lo) / span * (width - 1)))
+        console.print(f"  {t - t0:7.2f} s  {lag:8.2f}  {bar}", markup=False)
+
+
+def _plot(r: Any, path: str, other: str) -> str | None:
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return "--plot needs matplotlib (pip install matplotlib)"
+    fig, ax = plt.subplots(figsize=(8, 3))
+    t0 = r.times[0]
+    ax.plot([t - t0 for t in r.times], r.lags_ms, "o-")
+    ax.axhline(r.lag_ms, linestyle="--")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"lag of {other} (ms)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return None
+
+
+def add_parsers(sub: Any) -> None:
+    s = sub.add_parser("sync", help="sensors in sync: measure the lag between two streams")
+    what = s.add_subparsers(dest="sync_command", required=True)
+    m = what.add_parser(
+        "measure", help="lag of an audio (or second video) stream against a video stream"
+    )
+    m.add_argument("session", help="a session folder or an .mcap file")
+    m.add_argument(
+        "--video", action="append", metavar="TOPIC", help="the LED camera (twice: camera B)"
+    )
+    m.add_argument("--audio", metavar="TOPIC", help="the microphone hearing the beeps")
+    m.add_argument("--json", action="store_true", help="print one JSON document")
+    m.add_argument("--plot", metavar="PNG", help="also plot the lag per event (matplotlib)")
+    m.set_defaults(func=cmd_measure)
