@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import fnmatch
+import itertools
 from pathlib import Path
 from typing import Any
 
@@ -274,6 +275,8 @@ def print_info(
     )
     t = fit_table(cols, info.streams, console.width)
     console.print(t)
+    for line in _audio_lines(info):
+        console.print(line, markup=False, highlight=False)
     for name, meta in info.metadata.items():
         console.print(
             printable(f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in meta.items())),
@@ -290,6 +293,34 @@ def print_info(
         console.print(
             f"recorded graph: {lines} lines (flowrt info --graph prints it)", highlight=False
         )
+
+
+def _audio_lines(info: Any) -> list[str]:
+    """Per foxglove.RawAudio stream: its rate and channels (from its first block) and the
+    blocks lost (sequence gaps of the recorded blocks)."""
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from ..recording.reader import iter_messages
+
+    audio = [s.topic for s in info.streams if s.schema_name == "foxglove.RawAudio"]
+    lines = []
+    for topic in audio:
+        rate = channels = 0
+        seqs: list[int] = []
+        dec: Any = None
+        for m in iter_messages(Path(info.path), {topic}):
+            if dec is None and m.schema is not None:
+                dec = DecoderFactory().decoder_for("protobuf", m.schema)
+                msg = dec(m.data) if dec is not None else None
+                if msg is not None:
+                    rate, channels = int(msg.sample_rate), int(msg.number_of_channels)
+            seqs.append(int(m.sequence))
+        lost = sum(max(0, b - a - 1) for a, b in itertools.pairwise(seqs))
+        lines.append(
+            f"audio {printable(topic)}: {rate} Hz, {channels} channel(s), {len(seqs)} blocks, "
+            f"{lost} lost"
+        )
+    return lines
 
 
 def print_session(console: Console, session: Any, show_graph: bool = False) -> None:
