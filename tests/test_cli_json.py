@@ -61,8 +61,12 @@ def test_every_command_with_json_is_covered() -> None:
     """A new --json option needs its case above."""
     from flowrt.cli import build_parser
 
-    # ctl stats --json: tests/test_control.py; can stats --json: tests/test_can_*.py
-    covered = {"kinds", "check", "can analyse", "can analyze", "can stats", "info", "ctl stats"}
+    # ctl stats --json: tests/test_control.py; can stats --json: tests/test_can_*.py;
+    # sync measure --json: tests/test_avsync.py
+    covered = {
+        "kinds", "check", "can analyse", "can analyze", "can stats", "info", "ctl stats",
+        "sync measure",
+    }  # fmt: skip
     parser = build_parser()
     found = set()
     for action in parser._subparsers._group_actions:  # type: ignore[union-attr]
