@@ -206,6 +206,33 @@ def importable(folder: Path) -> None:
         sys.path.append(entry)
 
 
+@dataclass
+class _Resolution:
+    """What the steps of :func:`resolve` share: the spec, what was found so far, and the
+    diagnostics. Each step adds to it; none raises (every problem is collected)."""
+
+    spec: GraphSpec
+    locs: Locations
+    kinds: Mapping[str, type[Node]] | None
+    base_dir: Path | None
+    import_kinds: bool
+    invalid_nodes: Collection[str]
+    diags: list[Diagnostic]
+    classes: dict[str, type[Node]] = field(default_factory=dict)
+    params: dict[str, BaseModel] = field(default_factory=dict)
+    not_imported: dict[str, str] = field(default_factory=dict)
+    edges: list[Edge] = field(default_factory=list)
+    triggers: dict[str, Trigger] = field(default_factory=dict)
+
+    @property
+    def names(self) -> list[str]:
+        """Every node name the file gave, the ones dropped as invalid too."""
+        return [*self.spec.nodes, *self.invalid_nodes]
+
+    def at(self, path: tuple[str | int, ...], msg: str, sev: Severity = Severity.error) -> None:
+        self.diags.append(self.locs.diag(path, msg, sev))
+
+
 def resolve(
     spec: GraphSpec,
     locs: Locations | None = None,
@@ -224,20 +251,50 @@ def resolve(
     the params models as validation context (see :func:`resolve_path`). ``import_kinds=False``
     leaves dotted-path kinds unimported (their nodes unchecked, listed in
     ``Graph.not_imported``).
+
+    The steps, in order: kinds and params, edges, triggers and placement, exports, cycles
+    and frame chains, modes and QoS, then deadlines once nothing else is wrong.
     """
     locs = locs or Locations("<python>")
-    diags: list[Diagnostic] = list(earlier)
-    err = diags.append
-
-    def at(path: tuple[str | int, ...], msg: str, sev: Severity = Severity.error) -> None:
-        err(locs.diag(path, msg, sev))
-
-    spec = _with_imports(spec, at)
+    r = _Resolution(spec, locs, kinds, base_dir, import_kinds, invalid_nodes, list(earlier))
+    r.spec = _with_imports(spec, r.at)  # import: nodes added, their problems located
     if base_dir is not None and import_kinds:
         importable(base_dir)
-    classes: dict[str, type[Node]] = {}
-    params: dict[str, BaseModel] = {}
-    not_imported: dict[str, str] = {}
+    _resolve_classes(r)
+    _resolve_edges(r)
+    _resolve_triggers(r)
+    _check_exports(r)
+    _check_cycles(r.spec, r.edges, r.at)
+    _check_frame_chains(r.triggers, r.at)
+    _check_modes_and_qos(r)
+    resolved = {
+        name: ResolvedNode(name, ns, r.classes[name], r.params[name], r.triggers[name], i)
+        for i, (name, ns) in enumerate(r.spec.nodes.items())
+        if name in r.classes and name in r.params and name in r.triggers
+    }
+    graph = Graph(
+        r.spec,
+        resolved,
+        r.edges,
+        file=locs.file,
+        base_dir=base_dir,
+        not_imported=r.not_imported,
+    )
+    diags = r.diags
+    if not [d for d in diags if d.severity is Severity.error]:
+        _check_deadlines(graph, r.at)
+    diags.sort(key=lambda d: (d.line, d.column))
+    if any(d.severity is Severity.error for d in diags):
+        raise GraphError(diags)
+    graph.warnings = diags
+    return graph
+
+
+def _resolve_classes(r: _Resolution) -> None:
+    """Each node's class (imported unless told not to) and its validated params."""
+    spec, locs, at, diags = r.spec, r.locs, r.at, r.diags
+    classes, params, base_dir = r.classes, r.params, r.base_dir
+    kinds, import_kinds, not_imported = r.kinds, r.import_kinds, r.not_imported
     for name, ns in spec.nodes.items():
         try:
             classes[name] = resolve_kind(ns.kind, kinds, allow_import=import_kinds)
@@ -269,8 +326,11 @@ def resolve(
         for key, message in advice:
             at(("nodes", name, "params", *([key] if key else [])), message, Severity.warning)
 
-    names = [*spec.nodes, *invalid_nodes]
-    edges: list[Edge] = []
+
+def _resolve_edges(r: _Resolution) -> None:
+    """Every input's edge, its ports and types checked; required inputs connected."""
+    spec, at, classes, params = r.spec, r.at, r.classes, r.params
+    names, invalid_nodes, edges = r.names, r.invalid_nodes, r.edges
     for name, ns in spec.nodes.items():
         cls = classes.get(name)
         misspelt: set[str | None] = set()  # inputs already named by a "did you mean"
@@ -322,7 +382,11 @@ def resolve(
                 if p.required and port not in ns.inputs and port not in misspelt:
                     at(("nodes", name), f"required input {port!r} of {ns.kind} is not connected")
 
-    triggers: dict[str, Trigger] = {}
+
+def _resolve_triggers(r: _Resolution) -> None:
+    """Each node's trigger (its own, its class's default, or its inputs) and placement."""
+    spec, at, classes, params = r.spec, r.at, r.classes, r.params
+    names, triggers = r.names, r.triggers
     for name, ns in spec.nodes.items():
         cls = classes.get(name)
         trig = ns.trigger
@@ -377,6 +441,11 @@ def resolve(
                         "pool); an inline node runs in the loop process",
                     )
 
+
+def _check_exports(r: _Resolution) -> None:
+    """Exports name outputs that exist."""
+    spec, at, classes, params, names = r.spec, r.at, r.classes, r.params, r.names
+    invalid_nodes = r.invalid_nodes
     for key, ex in spec.exports.items():
         src_cls = classes.get(ex.node)
         if ex.node not in spec.nodes and ex.node not in invalid_nodes:
@@ -392,9 +461,11 @@ def resolve(
                 f"node {ex.node!r} has no output {ex.port!r}" + did_you_mean(ex.port, src_outs),
             )
 
-    _check_cycles(spec, edges, at)
-    _check_frame_chains(triggers, at)
 
+def _check_modes_and_qos(r: _Resolution) -> None:
+    """Modes override known nodes with fitting timing and valid params; QoS names nodes."""
+    spec, at, classes, diags = r.spec, r.at, r.classes, r.diags
+    locs, base_dir, names, triggers = r.locs, r.base_dir, r.names, r.triggers
     for mode_name, mode in spec.modes.items():
         for node, o in mode.nodes.items():
             path = ("modes", mode_name, "nodes", node)
@@ -418,22 +489,6 @@ def resolve(
     if spec.initial_mode is not None and spec.initial_mode not in spec.modes:
         hint = did_you_mean(spec.initial_mode, spec.modes)
         at(("initial_mode",), f"unknown mode {spec.initial_mode!r}" + hint)
-
-    resolved = {
-        name: ResolvedNode(name, ns, classes[name], params[name], triggers[name], i)
-        for i, (name, ns) in enumerate(spec.nodes.items())
-        if name in classes and name in params and name in triggers
-    }
-    graph = Graph(
-        spec, resolved, edges, file=locs.file, base_dir=base_dir, not_imported=not_imported
-    )
-    if not [d for d in diags if d.severity is Severity.error]:
-        _check_deadlines(graph, at)
-    diags.sort(key=lambda d: (d.line, d.column))
-    if any(d.severity is Severity.error for d in diags):
-        raise GraphError(diags)
-    graph.warnings = diags
-    return graph
 
 
 def _params_ports(
