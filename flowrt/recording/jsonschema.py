@@ -15,7 +15,7 @@ signal could be plotted. :func:`app_schema` rewrites a schema into that subset:
 - an object without ``properties`` (a free-form mapping) gets ``"properties": {}``;
 - a field with no type (``Any``) becomes a string, the one type every value can be shown as.
 
-Measured choice (docs/DESIGN-NOTES.md): JSON with such schemas rather than protobuf built from
+The choice (docs/DESIGN-NOTES.md): JSON with such schemas rather than protobuf built from
 the models: the recording keeps one encoder for every value type, the apps plot the fields,
 and a plain reader (``json``) needs no generated code.
 """
