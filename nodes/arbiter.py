@@ -60,6 +60,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from flowrt import HealthAlert, Input, Node, Output, parse_duration_ms
+from flowrt.refusals import Refusals, finite_number
 
 __all__ = ["Arbiter", "LockSpec", "SourceSpec", "valid_command"]
 
@@ -157,32 +158,22 @@ class ArbiterParams(BaseModel):
 def valid_command(value: Any, keys: list[str]) -> bool:
     """A command the actuator may get: a mapping whose ``keys`` (when present) are finite
     numbers. NaN, inf, a string or a bool where a speed belongs make the whole value invalid."""
-    if not isinstance(value, Mapping):
-        return False
-    for key in keys:
-        if key not in value:
-            continue
-        x = value[key]
-        if isinstance(x, bool) or not isinstance(x, int | float):
-            return False
-        try:
-            if not math.isfinite(x):
-                return False
-        except OverflowError:  # an int beyond a float's range
-            return False
-    return True
+    return isinstance(value, Mapping) and all(
+        finite_number(value[key]) for key in keys if key in value
+    )
 
 
 class _SourceState:
-    """What the arbiter keeps per source: counters and the burst of invalid values."""
+    """What the arbiter keeps per source: its refusals and stale activations."""
 
-    __slots__ = ("counted_t", "in_burst", "invalid", "stale")
+    __slots__ = ("refused", "stale")
 
-    def __init__(self) -> None:
-        self.invalid = 0  # publications refused (NaN/inf, wrong type); each counted once
+    def __init__(self, name: str) -> None:
+        self.refused = Refusals(
+            "arbiter-invalid",
+            f"source {name}: a command with a non-finite or wrong-type value refused",
+        )
         self.stale = 0  # activations where the source held a value older than timeout
-        self.counted_t: float | None = None  # publication time of the last counted invalid
-        self.in_burst = False  # an alert was raised and no valid value came since
 
 
 class Arbiter(Node):
@@ -218,7 +209,7 @@ class Arbiter(Node):
         self.filtered = [[z for z in self.zero_values] for _ in range(n)]
         self.fresh = [False] * n
         old = getattr(self, "sources", {})
-        self.sources: dict[str, _SourceState] = {k: old.get(k, _SourceState()) for k in names}
+        self.sources: dict[str, _SourceState] = {k: old.get(k) or _SourceState(k) for k in names}
 
     # --- locks ----------------------------------------------------------------------------
 
@@ -236,7 +227,7 @@ class Arbiter(Node):
 
     # --- sources --------------------------------------------------------------------------
 
-    def _fresh_valid(self, i: int, name: str, value: Any, now: float) -> bool:
+    def _fresh_valid(self, name: str, value: Any) -> bool:
         if value is None:
             return False
         age = self.ctx.input_age(name, value)
@@ -245,23 +236,9 @@ class Arbiter(Node):
             state.stale += 1
             return False
         if valid_command(value, self.keys):
-            state.in_burst = False
+            state.refused.accept()
             return True
-        published = self.ctx.input_time(name)
-        if published is None or published != state.counted_t:
-            state.invalid += 1
-            state.counted_t = published
-        if not state.in_burst:
-            state.in_burst = True
-            self.ctx.emit(
-                HealthAlert(
-                    self.ctx.elapsed(),
-                    self.ctx.name,
-                    "arbiter-invalid",
-                    f"source {name}: a command with a non-finite or wrong-type value refused",
-                    "warning",
-                )
-            )
+        state.refused.refuse(self.ctx, self.ctx.input_time(name))
         return False
 
     def process(self, **inputs: Any) -> dict[str, Any]:
@@ -279,7 +256,7 @@ class Arbiter(Node):
         if not locked:
             for i, name in enumerate(self.names):
                 value = inputs.get(name)
-                self.fresh[i] = self._fresh_valid(i, name, value, now)
+                self.fresh[i] = self._fresh_valid(name, value)
                 if self.fresh[i]:
                     self._filter(i, p.sources[name], value, dt)
                 else:  # a source coming back starts from zero, not from its old filter state
@@ -302,10 +279,10 @@ class Arbiter(Node):
             "switches": self.switches,
             "locks": dict(self.engaged),
             "sources": {
-                name: {"invalid": st.invalid, "stale": st.stale}
+                name: {"invalid": st.refused.count, "stale": st.stale}
                 for name, st in self.sources.items()
             },
-            "invalid": sum(st.invalid for st in self.sources.values()),
+            "invalid": sum(st.refused.count for st in self.sources.values()),
         }
 
     def _filter(self, i: int, spec: SourceSpec, value: Mapping[str, Any], dt: float) -> None:

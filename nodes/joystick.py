@@ -44,8 +44,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from flowrt import HealthAlert, Node, Output, TimerTrigger, resolve_path
+from flowrt import Node, Output, TimerTrigger, resolve_path
 from flowrt.files import check_regular_file, read_text
+from flowrt.refusals import Refusals, finite_number
 
 MAX_SCRIPT_BYTES = 16 << 20  # a scripted drive of hours at 1 kHz is a few MB
 
@@ -150,9 +151,9 @@ class Joystick(Node):
         self.script: list[tuple[float, dict[str, float], dict[str, bool]]] = []
         self.row = -1
         self.t0: float | None = None
-        self.invalid = 0  # page messages refused (an axis NaN, inf or not a number)
-        self.invalid_t: float | None = None  # the last refused message, counted once
-        self.in_burst = False  # an alert was raised and no valid message came since
+        self.refused = Refusals(
+            "joystick-invalid", "joystick message refused: an axis is NaN, inf or not a number"
+        )
         if kind == "script":
             self.script = load_script(rest)  # a bad file fails set-up: one clear reason
             if not self.script:
@@ -201,33 +202,17 @@ class Joystick(Node):
         self._found()
         value = rec.value if isinstance(rec.value, dict) else {}
         raw_axes = value.get("axes") or {}
-        if not isinstance(raw_axes, dict) or not all(_number(v) for v in raw_axes.values()):
-            self._refuse(rec.timestamp)
+        if not isinstance(raw_axes, dict) or not all(finite_number(v) for v in raw_axes.values()):
+            self.refused.refuse(self.ctx, rec.timestamp)
             return None  # nothing published: teleop sees a stale input and gives zero
-        self.in_burst = False
+        self.refused.accept()
         axes = {str(k): _clamp(v) for k, v in raw_axes.items()}
         buttons = {str(k): bool(v) for k, v in (value.get("buttons") or {}).items()}
         return JoyState(axes, buttons, now)
 
-    def _refuse(self, t: float) -> None:
-        if t != self.invalid_t:
-            self.invalid += 1
-            self.invalid_t = t
-        if not self.in_burst:
-            self.in_burst = True
-            self.ctx.emit(
-                HealthAlert(
-                    self.ctx.elapsed(),
-                    self.ctx.name,
-                    "joystick-invalid",
-                    "joystick message refused: an axis is NaN, inf or not a number",
-                    "warning",
-                )
-            )
-
     def report(self) -> dict[str, Any]:
         """What the statistics show of the joystick (``reports``: table, --stats-json)."""
-        return {"source": self.kind, "invalid": self.invalid}
+        return {"source": self.kind, "invalid": self.refused.count}
 
     # --- evdev --------------------------------------------------------------------------
 
@@ -309,16 +294,6 @@ def _code_name(table: Any, code: int) -> str:
     if isinstance(name, list):
         name = name[0]
     return str(name).lower().removeprefix("abs_").removeprefix("btn_")
-
-
-def _number(v: Any) -> bool:
-    """A finite number (not a bool): what an axis may be."""
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        return False
-    try:
-        return math.isfinite(v)
-    except OverflowError:
-        return False
 
 
 def _clamp(v: Any) -> float:

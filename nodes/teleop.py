@@ -51,6 +51,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from flowrt import HealthAlert, Input, Node, Output
+from flowrt.refusals import Refusals, finite_number
 
 __all__ = ["AxisLock", "AxisShaping", "Teleop", "shape"]
 
@@ -128,13 +129,6 @@ def shape(
     return x * a.scale
 
 
-def _finite(v: float) -> bool:
-    try:
-        return math.isfinite(v)
-    except OverflowError:  # an int beyond a float's range
-        return False
-
-
 def _field(value: Any, key: str) -> Any:
     if isinstance(value, Mapping):
         return value.get(key)
@@ -164,9 +158,9 @@ class Teleop(Node):
         self.last_t: float | None = None
         self.pressed: dict[str, bool] = {}
         self.transitions = 0
-        self.invalid = 0  # joystick publications refused (NaN/inf or wrong-type axis)
-        self.invalid_t: float | None = None  # publication time of the last one counted
-        self.in_burst = False  # an alert was raised and no valid input came since
+        self.refused = Refusals(
+            "teleop-invalid", "joystick value refused: an axis is NaN, inf or not a number"
+        )
 
     # --- helpers ------------------------------------------------------------------------
 
@@ -254,37 +248,25 @@ class Teleop(Node):
 
     def _valid(self, axes: Any, buttons: Any) -> bool:
         """Axes that are finite numbers and mappings where mappings belong; else one counted
-        refusal per publication and one alert per burst (see the arbiter's rule)."""
-        ok = isinstance(axes, Mapping) and isinstance(buttons, Mapping)
+        refusal per publication and one alert per burst (flowrt.refusals)."""
+        ok = (
+            isinstance(axes, Mapping)
+            and isinstance(buttons, Mapping)
+            and all(finite_number(axes.get(a.input, 0.0)) for a in self.shaping)
+        )
         if ok:
-            for a in self.shaping:
-                v = axes.get(a.input, 0.0)
-                if isinstance(v, bool) or not isinstance(v, int | float) or not _finite(v):
-                    ok = False
-                    break
-        if ok:
-            self.in_burst = False
-            return True
-        published = self.ctx.input_time("joy")
-        if published is None or published != self.invalid_t:
-            self.invalid += 1
-            self.invalid_t = published
-        if not self.in_burst:
-            self.in_burst = True
-            self.ctx.emit(
-                HealthAlert(
-                    self.ctx.elapsed(),
-                    self.ctx.name,
-                    "teleop-invalid",
-                    "joystick value refused: an axis is NaN, inf or not a number",
-                    "warning",
-                )
-            )
-        return False
+            self.refused.accept()
+        else:
+            self.refused.refuse(self.ctx, self.ctx.input_time("joy"))
+        return ok
 
     def report(self) -> dict[str, Any]:
         """What the statistics show of teleop (``reports``: table, --stats-json)."""
-        return {"state": self.status, "transitions": self.transitions, "invalid": self.invalid}
+        return {
+            "state": self.status,
+            "transitions": self.transitions,
+            "invalid": self.refused.count,
+        }
 
     def _begin_calibration(self, axes: Mapping[str, Any]) -> None:
         for i, a in enumerate(self.shaping):
