@@ -13,12 +13,16 @@ import os
 import stat
 from pathlib import Path
 
-__all__ = ["NotARegularFile", "check_regular_file", "read_bytes", "read_text"]
+__all__ = ["NotARegularFile", "check_regular_file", "file_problem", "read_bytes", "read_text"]
 
 
 class NotARegularFile(OSError):
     """A path that is a device, a FIFO, a socket or a directory, or a file over the limit;
     ``strerror`` is one line meant for the user."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message)
+        self.strerror = message
 
 
 def _kind(mode: int) -> str:
@@ -42,16 +46,26 @@ def check_regular_file(path: str | Path, max_bytes: int | None = None) -> int:
 
 def _checked(path: str | Path, st: os.stat_result, max_bytes: int | None) -> int:
     if not stat.S_ISREG(st.st_mode):
-        err = NotARegularFile(f"{path} is {_kind(st.st_mode)}, not a regular file")
-        err.strerror = str(err)
-        raise err
+        raise NotARegularFile(f"{path} is {_kind(st.st_mode)}, not a regular file")
     if max_bytes is not None and st.st_size > max_bytes:
-        err = NotARegularFile(
+        raise NotARegularFile(
             f"{path} is {st.st_size} bytes, more than the {max_bytes} accepted here"
         )
-        err.strerror = str(err)
-        raise err
     return int(st.st_size)
+
+
+def file_problem(path: str | Path, max_bytes: int | None = None) -> str | None:
+    """Why ``path`` cannot be read as a regular file within ``max_bytes`` (one line, the path
+    in it), or None when it can."""
+    try:
+        check_regular_file(path, max_bytes)
+    except FileNotFoundError:
+        return f"{path}: no such file"
+    except NotARegularFile as e:
+        return str(e)
+    except OSError as e:
+        return f"{path}: {e.strerror or e}"
+    return None
 
 
 def read_bytes(path: str | Path, max_bytes: int) -> bytes:
@@ -69,9 +83,7 @@ def read_bytes(path: str | Path, max_bytes: int) -> bytes:
             chunks.append(chunk)
             got += len(chunk)
             if got > max_bytes:
-                err = NotARegularFile(f"{path} grew past {max_bytes} bytes while read")
-                err.strerror = str(err)
-                raise err
+                raise NotARegularFile(f"{path} grew past {max_bytes} bytes while read")
         return b"".join(chunks)
     finally:
         os.close(fd)

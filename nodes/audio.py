@@ -38,7 +38,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from flowrt import AudioBlock, Node, Output, TimerTrigger, parse_duration_ms, resolve_path
-from flowrt.files import check_regular_file
+from flowrt.files import file_problem
 
 __all__ = ["Audio", "AudioParams", "beep_starts"]
 
@@ -83,12 +83,9 @@ class AudioParams(BaseModel):
             return v
         if kind == "file" and rest:
             path = resolve_path(rest, info)
-            try:
-                check_regular_file(path)
-            except FileNotFoundError:
-                raise ValueError(f"audio file not found: {path}") from None
-            except OSError as e:
-                raise ValueError(f"audio file: {e.strerror or e}") from None
+            problem = file_problem(path)
+            if problem is not None:
+                raise ValueError(f"audio file: {problem}")
             return f"file:{path}"
         raise ValueError("source must be device:NAME, file:PATH.wav, synthetic:tone or :beep")
 

@@ -26,14 +26,13 @@ same input made a set first).
 
 from __future__ import annotations
 
-import math
 from collections import deque
-from collections.abc import Mapping
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from flowrt import Frame, Input, InputTrigger, Node, Output, parse_duration_ms
+from flowrt.freshness import own_timestamp
 
 __all__ = ["Sync", "SyncParams"]
 
@@ -70,10 +69,9 @@ def _own(value: Any) -> Any:
 
 
 def value_time(value: Any, published: float | None) -> float | None:
-    t = value.get("timestamp") if isinstance(value, Mapping) else getattr(value, "timestamp", None)
-    if isinstance(t, int | float) and not isinstance(t, bool) and math.isfinite(t):
-        return float(t)
-    return published
+    """The value's own timestamp (flowrt.freshness's reading of it), else its publication."""
+    own = own_timestamp(value)
+    return own if own is not None else published
 
 
 class Sync(Node):

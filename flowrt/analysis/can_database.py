@@ -63,17 +63,13 @@ def load_database(path: str | Path, strict: bool = False) -> tuple[Any, list[Dat
     """A cantools database and the strict-loading warnings, or a one-line CanDatabaseError."""
     import cantools
 
-    from ..files import NotARegularFile, check_regular_file
+    from ..files import file_problem
 
     p = Path(path)
-    try:  # only a regular file, its size checked before cantools reads it (not /dev/zero)
-        check_regular_file(p, MAX_DATABASE_BYTES)
-    except FileNotFoundError:
-        raise CanDatabaseError(f"{path}: no such file") from None
-    except NotARegularFile as e:
-        raise CanDatabaseError(str(e)) from None
-    except OSError as e:
-        raise CanDatabaseError(f"{path}: {e.strerror or _one_line(e)}") from None
+    # only a regular file, its size checked before cantools reads it (not /dev/zero)
+    problem = file_problem(p, MAX_DATABASE_BYTES)
+    if problem is not None:
+        raise CanDatabaseError(problem)
     try:
         db = cantools.database.load_file(str(p), strict=False)
     except Exception as e:  # cantools raises parser, value and key errors of several kinds

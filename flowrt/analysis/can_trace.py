@@ -63,16 +63,11 @@ def read_trace(path: str) -> Iterable[Any]:
     """The frames of a trace, or TraceError (one line) for a file python-can cannot read."""
     import can
 
-    from ..files import NotARegularFile, check_regular_file
+    from ..files import file_problem
 
-    try:  # a FIFO or a device would block or never end: regular files only
-        check_regular_file(path)
-    except FileNotFoundError:
-        raise TraceError(f"{path}: no such file") from None
-    except NotARegularFile as e:
-        raise TraceError(str(e)) from None
-    except OSError as e:
-        raise TraceError(f"{path}: {e.strerror or _one_line(e)}") from None
+    problem = file_problem(path)  # a FIFO or a device would block or never end
+    if problem is not None:
+        raise TraceError(problem)
     try:
         reader = can.LogReader(path)
     except Exception as e:  # python-can raises many kinds on unknown suffixes and bad headers

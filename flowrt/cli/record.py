@@ -298,22 +298,19 @@ def print_info(
 def _audio_lines(info: Any) -> list[str]:
     """Per foxglove.RawAudio stream: its rate and channels (from its first block) and the
     blocks lost (sequence gaps of the recorded blocks)."""
-    from mcap_protobuf.decoder import DecoderFactory
-
+    from ..recording.encoding import Decoder
     from ..recording.reader import iter_messages
 
     audio = [s.topic for s in info.streams if s.schema_name == "foxglove.RawAudio"]
     lines = []
+    decoder = Decoder()
     for topic in audio:
         rate = channels = 0
         seqs: list[int] = []
-        dec: Any = None
         for m in iter_messages(Path(info.path), {topic}):
-            if dec is None and m.schema is not None:
-                dec = DecoderFactory().decoder_for("protobuf", m.schema)
-                msg = dec(m.data) if dec is not None else None
-                if msg is not None:
-                    rate, channels = int(msg.sample_rate), int(msg.number_of_channels)
+            if not seqs and m.schema is not None:  # the first block says rate and channels
+                msg = decoder.protobuf(m.schema, m.data)
+                rate, channels = int(msg.sample_rate), int(msg.number_of_channels)
             seqs.append(int(m.sequence))
         lost = sum(max(0, b - a - 1) for a, b in itertools.pairwise(seqs))
         lines.append(

@@ -22,39 +22,25 @@ def _stamp(msg: Any) -> float:
 
 
 def _read(path: Path, topics: set[str]) -> dict[str, list[tuple[float, Any]]]:
-    """(Unix time, decoded message) per topic, in order; images as their mean brightness,
-    audio as (samples, rate)."""
-    from mcap_protobuf.decoder import DecoderFactory
-
+    """(Unix time, value) per topic, in order: images as their mean brightness, audio as
+    (first channel's samples, rate); decoded by the recording's own Decoder."""
+    from ..recording.encoding import AUDIO_SCHEMA, Decoder
     from ..recording.reader import iter_session
-
-    factory = DecoderFactory()
-    decoders: dict[int, Any] = {}
-    out: dict[str, list[tuple[float, Any]]] = {t: [] for t in topics}
     from ..recording.session import mcap_files
 
+    decoder = Decoder()
+    out: dict[str, list[tuple[float, Any]]] = {t: [] for t in topics}
     for m in iter_session(mcap_files(path), topics, []):
         schema = m.schema
         if schema is None:
             continue
-        dec = decoders.get(schema.id)
-        if dec is None:
-            dec = decoders[schema.id] = factory.decoder_for("protobuf", schema)
-        if dec is None:
-            continue
-        msg = dec(m.data)
-        if schema.name == "foxglove.RawImage":
-            px = np.frombuffer(msg.data, np.uint8)
+        if decoder.is_image(schema.name):
+            msg = decoder.protobuf(schema, m.data)
+            px, _ = decoder.pixels(schema.name, msg)
             out[m.topic].append((_stamp(msg), float(px.mean()) if px.size else 0.0))
-        elif schema.name == "foxglove.CompressedImage":
-            import cv2
-
-            img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_GRAYSCALE)
-            out[m.topic].append((_stamp(msg), float(img.mean()) if img is not None else 0.0))
-        elif schema.name == "foxglove.RawAudio":
-            ch = max(1, int(msg.number_of_channels))
-            pcm = np.frombuffer(msg.data, "<i2").reshape(-1, ch)[:, 0].astype(np.float32)
-            out[m.topic].append((_stamp(msg), (pcm / 32768.0, int(msg.sample_rate))))
+        elif schema.name == AUDIO_SCHEMA:
+            block = decoder.audio(schema, m.data, m.sequence, 0.0)  # Unix time kept
+            out[m.topic].append((block.timestamp, (block.samples[:, 0], block.rate)))
     return out
 
 

@@ -489,16 +489,25 @@ class Decoder:
     def is_image(self, schema_name: str) -> bool:
         return schema_name in ("foxglove.RawImage", "foxglove.CompressedImage")
 
-    def image(self, schema: Any, data: bytes) -> tuple[np.ndarray, str]:
-        """(pixels, flowrt pixel format) of a RawImage/CompressedImage message."""
+    def protobuf(self, schema: Any, data: bytes) -> Any:
+        """A protobuf message (images, audio) decoded with the descriptors stored in the file,
+        one decoder per schema."""
         dec = self._decoders.get(schema.id)
         if dec is None:
             dec = self._factory.decoder_for("protobuf", schema)
             if dec is None:
                 raise ValueError(f"no protobuf decoder for schema {schema.name}")
             self._decoders[schema.id] = dec
-        msg = dec(data)
-        if schema.name == "foxglove.CompressedImage":
+        return dec(data)
+
+    def image(self, schema: Any, data: bytes) -> tuple[np.ndarray, str]:
+        """(pixels, flowrt pixel format) of a RawImage/CompressedImage message."""
+        return self.pixels(schema.name, self.protobuf(schema, data))
+
+    def pixels(self, schema_name: str, msg: Any) -> tuple[np.ndarray, str]:
+        """(pixels, flowrt pixel format) of a decoded RawImage/CompressedImage (its other
+        fields, the timestamp, stay the caller's to read)."""
+        if schema_name == "foxglove.CompressedImage":
             import cv2
 
             img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
@@ -523,13 +532,7 @@ class Decoder:
         moved by ``epoch_offset`` (recorded Unix time minus the replaying clock)."""
         from ..audio import AudioBlock
 
-        dec = self._decoders.get(schema.id)
-        if dec is None:
-            dec = self._factory.decoder_for("protobuf", schema)
-            if dec is None:
-                raise ValueError(f"no protobuf decoder for schema {schema.name}")
-            self._decoders[schema.id] = dec
-        msg = dec(data)
+        msg = self.protobuf(schema, data)
         ch = max(1, int(msg.number_of_channels))
         pcm = np.frombuffer(msg.data, dtype="<i2")
         samples = (pcm.reshape(-1, ch).astype(np.float32) / 32768.0).copy()
