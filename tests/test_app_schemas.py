@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import FlowrtCli
 
 from flowrt.recording.jsonschema import app_schema, schema_problems
 
@@ -25,16 +24,20 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.mark.subprocess
 @pytest.mark.parametrize("graph", ["cambada", "agent", "can", "video"])
 def test_every_json_channel_of_a_recording_passes_the_apps_rules(
-    graph: str, tmp_path: Path
+    graph: str, tmp_path: Path, flowrt_cli: FlowrtCli
 ) -> None:
     from mcap.reader import make_reader
 
-    r = subprocess.run(
-        [sys.executable, "-m", "flowrt.cli", "record", f"graphs/{graph}.yaml", "-o",
-         str(tmp_path), "--duration", "1", "--no-ui", "--no-display"],
-        cwd=REPO, env=dict(os.environ, COLUMNS="200"), capture_output=True, text=True,
-        timeout=120,
-    )  # fmt: skip
+    r = flowrt_cli(
+        "record",
+        f"graphs/{graph}.yaml",
+        "-o",
+        str(tmp_path),
+        "--duration",
+        "1",
+        "--no-ui",
+        "--no-display",
+    )
     assert r.returncode == 0, r.stderr
     (path,) = tmp_path.glob("*/*.mcap")
     with open(path, "rb") as f:
@@ -112,7 +115,7 @@ def test_app_schema_rewrites_what_the_apps_refuse(
 
 @pytest.mark.slow
 @pytest.mark.subprocess
-def test_can_signals_are_recorded_as_plottable_json(tmp_path: Path) -> None:
+def test_can_signals_are_recorded_as_plottable_json(tmp_path: Path, flowrt_cli: FlowrtCli) -> None:
     """Issue 26: `--topics chassis.WheelSpeeds` matched nothing (a CAN node's messages are
     outputs of its params) and raw data was a Python repr; now each message is a channel with
     its signals as schema fields and the frame's data as base64 bytes."""
@@ -120,12 +123,17 @@ def test_can_signals_are_recorded_as_plottable_json(tmp_path: Path) -> None:
 
     from mcap.reader import make_reader
 
-    r = subprocess.run(
-        [sys.executable, "-m", "flowrt.cli", "record", "graphs/can.yaml", "-o", str(tmp_path),
-         "--duration", "1", "--no-ui", "--topics", "chassis.WheelSpeeds"],
-        cwd=REPO, env=dict(os.environ, COLUMNS="200"), capture_output=True, text=True,
-        timeout=120,
-    )  # fmt: skip
+    r = flowrt_cli(
+        "record",
+        "graphs/can.yaml",
+        "-o",
+        str(tmp_path),
+        "--duration",
+        "1",
+        "--no-ui",
+        "--topics",
+        "chassis.WheelSpeeds",
+    )
     assert r.returncode == 0, r.stderr
     (path,) = tmp_path.glob("*/*.mcap")
     with open(path, "rb") as f:
@@ -141,18 +149,25 @@ def test_can_signals_are_recorded_as_plottable_json(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.subprocess
-def test_one_time_base_values_are_stamped_in_epoch_nanoseconds(tmp_path: Path) -> None:
+def test_one_time_base_values_are_stamped_in_epoch_nanoseconds(
+    tmp_path: Path, flowrt_cli: FlowrtCli
+) -> None:
     """Issue 26: a detection's own timestamp was the run's monotonic seconds beside epoch log
     times; now it is epoch nanoseconds too, the frame's time: at or before its log time."""
     from mcap.reader import make_reader
 
-    r = subprocess.run(
-        [sys.executable, "-m", "flowrt.cli", "record", "graphs/cambada.yaml", "-o",
-         str(tmp_path), "--duration", "1", "--no-ui", "--no-display",
-         "--topics", "ball_fr.detection"],
-        cwd=REPO, env=dict(os.environ, COLUMNS="200"), capture_output=True, text=True,
-        timeout=120,
-    )  # fmt: skip
+    r = flowrt_cli(
+        "record",
+        "graphs/cambada.yaml",
+        "-o",
+        str(tmp_path),
+        "--duration",
+        "1",
+        "--no-ui",
+        "--no-display",
+        "--topics",
+        "ball_fr.detection",
+    )
     assert r.returncode == 0, r.stderr
     (path,) = tmp_path.glob("*/*.mcap")
     with open(path, "rb") as f:
@@ -167,7 +182,7 @@ def test_one_time_base_values_are_stamped_in_epoch_nanoseconds(tmp_path: Path) -
 
 @pytest.mark.slow
 @pytest.mark.subprocess
-def test_raw_can_frames_are_a_channel_of_their_own(tmp_path: Path) -> None:
+def test_raw_can_frames_are_a_channel_of_their_own(tmp_path: Path, flowrt_cli: FlowrtCli) -> None:
     """Issue 26: raw frames as their own channel (id, extended, fd, remote, dlc, data)."""
     import base64
 
@@ -180,12 +195,17 @@ def test_raw_can_frames_are_a_channel_of_their_own(tmp_path: Path) -> None:
     graph = REPO / "graphs" / f"_raw_{os.getpid()}.yaml"  # beside robot.dbc's folder
     graph.write_text(text)
     try:
-        r = subprocess.run(
-            [sys.executable, "-m", "flowrt.cli", "record", str(graph), "-o", str(tmp_path),
-             "--duration", "1", "--no-ui", "--topics", "chassis.frames"],
-            cwd=REPO, env=dict(os.environ, COLUMNS="200"), capture_output=True, text=True,
-            timeout=120,
-        )  # fmt: skip
+        r = flowrt_cli(
+            "record",
+            str(graph),
+            "-o",
+            str(tmp_path),
+            "--duration",
+            "1",
+            "--no-ui",
+            "--topics",
+            "chassis.frames",
+        )
     finally:
         graph.unlink()
     assert r.returncode == 0, r.stderr
