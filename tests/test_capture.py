@@ -377,26 +377,27 @@ def _write_video(path: Path, n: int, size: tuple[int, int] = (64, 48)) -> None:
     w.release()
 
 
+def _lamp_tracker(g: flowrt.GraphBuilder) -> None:
+    """A tracker of the lamp (the "candle" class) on every frame of ``cam``."""
+    g.add(
+        "lamp",
+        "tracker",
+        params={"object": "candle"},
+        trigger={"frame": "cam"},
+        inputs={"frame": "cam.frame"},
+    )
+
+
 @pytest.mark.skipif(not VIDEO.exists(), reason=f"{VIDEO} not available")
 async def test_real_video_frames_and_tracker() -> None:
     """The sample video through a file source, tracked (its glowing table lamp) inline."""
-
-    def tracker(g: flowrt.GraphBuilder) -> None:
-        g.add(
-            "lamp",
-            "tracker",
-            params={"object": "candle"},
-            trigger={"frame": "cam"},
-            inputs={"frame": "cam.frame"},
-        )
 
     got: list[Any] = []
 
     def done(r: Run) -> bool:
         return bool(r.alerts("end-of-stream"))
 
-    g_extra = tracker
-    run = await _run_with_detections(f"file:{VIDEO}", g_extra, got, done)
+    run = await _run_with_detections(f"file:{VIDEO}", _lamp_tracker, got, done)
     assert len(run.rows) == 270
     assert {r["shape"] for r in run.rows} == {(528, 720, 3)}
     assert [r["seq"] for r in run.rows] == list(range(270))
@@ -413,18 +414,9 @@ async def test_real_video_frames_and_tracker() -> None:
 async def test_the_repository_clip_through_a_file_source_and_tracker() -> None:
     """graphs/sample.avi (what graphs/video.yaml plays): every frame read, the lamp found."""
 
-    def tracker(g: flowrt.GraphBuilder) -> None:
-        g.add(
-            "lamp",
-            "tracker",
-            params={"object": "candle"},
-            trigger={"frame": "cam"},
-            inputs={"frame": "cam.frame"},
-        )
-
     got: list[Any] = []
     run = await _run_with_detections(
-        f"file:{SAMPLE}", tracker, got, lambda r: bool(r.alerts("end-of-stream"))
+        f"file:{SAMPLE}", _lamp_tracker, got, lambda r: bool(r.alerts("end-of-stream"))
     )
     assert len(run.rows) == 200
     assert {r["shape"] for r in run.rows} == {(240, 320, 3)}
