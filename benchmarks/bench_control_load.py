@@ -133,7 +133,7 @@ async def scenario(
     ):
         await asyncio.sleep(warmup)
         for r in rt.scheduler.runners.values():
-            r.interval = Running()
+            r.counts.interval = Running()
         first = rt.stats()
         before = {c: (first.node(c).skipped, first.node(c).deadline_misses) for c in CRITICAL}
         cpu0 = time.process_time()  # the runtime's process: the loop and its threads

@@ -34,7 +34,6 @@ from .rtdb import RTDB as RTDB
 from .rtdb import Record as Record
 from .runtime import Monitor as Monitor
 from .runtime import Runtime as Runtime
-from .runtime import Subscription as Subscription
 from .runtime import SwapError as SwapError
 from .spec import DurationMs as DurationMs
 from .spec import FrameTrigger as FrameTrigger
@@ -47,6 +46,7 @@ from .spec import parse_duration_ms as parse_duration_ms
 from .stats import EdgeStats as EdgeStats
 from .stats import NodeStats as NodeStats
 from .stats import RuntimeStats as RuntimeStats
+from .subscription import Subscription as Subscription
 
 __version__ = "0.1.0"
 

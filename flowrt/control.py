@@ -26,7 +26,7 @@ quiet gap between timer releases (:meth:`flowrt.Runtime.quiet_delay`); reads are
 ``/stats`` cost the loop what one client polling 5 times a second costs; and a connection
 that asks again sooner than that is answered when the cache may hold news (its client waits
 rather than spins). Changes are checked
-completely (:func:`flowrt.qos.check_change`, the ranges of graph files) before any of it is
+completely (:meth:`flowrt.timing.TimingChange.parse`, the ranges of graph files) before any of it is
 applied, and applied between ticks, at once. Limits: ``MAX_CONNECTIONS`` at once (more are
 closed as they arrive), a request's headers within ``REQUEST_TIMEOUT`` of the connection or
 of its previous request, a whole request within ``REQUEST_TIMEOUT``, bodies up to
@@ -148,8 +148,8 @@ class TimingRequest(TimingOverride):
 
     The graph file's own model (:class:`flowrt.spec.TimingOverride`), so a request obeys the
     same rules as a mode in a graph file; the ranges are checked again where the change is
-    applied (:func:`flowrt.qos.check_change`). ``force`` passes admission control (never the
-    ranges).
+    applied (:meth:`flowrt.timing.TimingChange.parse`). ``force`` passes admission control
+    (never the ranges).
     """
 
     node: str = Field(max_length=256)

@@ -18,32 +18,24 @@ half of it) and modes are :meth:`flowrt.Runtime.set_mode`. This module holds wha
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
-from pydantic import ValidationError
-
 from .clock import Clock, Handle, PeriodicTimer
 from .events import Event, TimingChanged
 from .spec import (
-    MAX_DURATION_MS,
-    MAX_FRAME_PERIOD,
-    MAX_PRIORITY,
-    MIN_DEADLINE_MS,
-    MIN_PRIORITY,
-    MIN_TIMER_MS,
     FrameTrigger,
     ModeSpec,
     OverloadSpec,
     TimerTrigger,
     TimingOverride,
 )
+from .timing import TimingChange
 
 if TYPE_CHECKING:
     from .graph import Graph, ResolvedNode
-    from .scheduler import NodeRunner
+    from .kernel import NodeRunner
 
 log = logging.getLogger("flowrt.qos")
 
@@ -68,14 +60,14 @@ def nominal_timing(node: ResolvedNode) -> TimingOverride:
 _FIELDS = ("period", "phase", "timer", "timer_phase", "deadline", "priority", "enabled")
 
 
-def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[str, TimingOverride]:
+def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[str, TimingChange]:
     """The timing changes that switch from mode ``previous`` to mode ``new``.
 
     A field the new mode sets takes its value; a field only the previous mode set returns to
     the graph's value; fields neither mode sets keep what they are now (an operator's change).
     """
     before = previous.nodes if previous is not None else {}
-    plan: dict[str, TimingOverride] = {}
+    plan: dict[str, TimingChange] = {}
     for name in [*new.nodes, *(n for n in before if n not in new.nodes)]:
         nominal = nominal_timing(graph.nodes[name])
         old, o = before.get(name), new.nodes.get(name)
@@ -95,103 +87,8 @@ def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[st
                 if nominal.phase is not None and nominal.phase < values["period"]
                 else 0
             )
-        plan[name] = TimingOverride(**values)
+        plan[name] = TimingChange.unchecked(TimingOverride(**values))
     return plan
-
-
-#: The ranges a run-time change must keep: the graph files' own (flowrt.spec, README "Timing
-#: ranges"). A 1e-9 ms timer rounds to a zero timerfd interval (it fires once, then never); a
-#: 1e300 ms timer or a 10**18-frame period stops a node for good; NaN makes every activation a
-#: miss. Checked again here for plans built without validation (``model_construct``).
-TIMER_MS = (MIN_TIMER_MS, MAX_DURATION_MS)
-DEADLINE_MS = (MIN_DEADLINE_MS, MAX_DURATION_MS)
-MAX_PERIOD = MAX_FRAME_PERIOD
-PRIORITY = (MIN_PRIORITY, MAX_PRIORITY)
-
-
-def _range_problems(name: str, o: TimingOverride) -> list[str]:
-    """Finite numbers within the documented ranges (whatever the model let through)."""
-    problems = []
-    for label, value, (lo, hi) in (
-        ("timer", o.timer, TIMER_MS),
-        ("deadline", o.deadline, DEADLINE_MS),
-    ):
-        if value is None:
-            continue
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            problems.append(f"{name}: {label} must be a number of ms, got {value!r}")
-        elif not math.isfinite(value) or not lo <= value <= hi:
-            problems.append(f"{name}: {label} must be between {lo:g} and {hi:g} ms, got {value!r}")
-    for label, value, (lo, hi) in (
-        ("period", o.period, (1, MAX_PERIOD)),
-        ("phase", o.phase, (0, MAX_PERIOD - 1)),
-        ("priority", o.priority, PRIORITY),
-    ):
-        if value is None:
-            continue
-        if isinstance(value, bool) or not isinstance(value, int):
-            problems.append(f"{name}: {label} must be an integer, got {value!r}")
-        elif not lo <= value <= hi:
-            problems.append(f"{name}: {label} must be between {lo} and {hi}, got {value}")
-    if o.enabled is not None and not isinstance(o.enabled, bool):
-        problems.append(f"{name}: enabled must be true or false, got {o.enabled!r}")
-    return problems
-
-
-def check_change(runners: Mapping[str, NodeRunner], node: str, **change: Any) -> None:
-    """Raise (KeyError: no such node; ValueError: a bad value) before anything is applied.
-
-    The change is validated by the graph files' own model (:class:`flowrt.spec.TimingOverride`,
-    the same rules as a mode in a graph file), then against the node (:func:`check_plan`).
-    """
-    if node not in runners:
-        from .diagnostics import did_you_mean
-
-        raise KeyError(f"unknown node {node!r}" + did_you_mean(node, runners))
-    given = {k: v for k, v in change.items() if v is not None}
-    try:
-        override = TimingOverride.model_validate(given)
-    except ValidationError as e:
-        found = "; ".join(
-            f"{'.'.join(str(x) for x in err['loc'])}: {err['msg']}" for err in e.errors()
-        )
-        raise ValueError(f"{node}: {found}") from None
-    check_plan(runners, {node: override})
-
-
-def check_plan(runners: Mapping[str, NodeRunner], plan: Mapping[str, TimingOverride]) -> None:
-    """Raise ValueError, before anything is applied, if any change of ``plan`` is invalid."""
-    problems = []
-    for name, o in plan.items():
-        r = runners[name]
-        found = _range_problems(name, o)
-        if found:
-            problems += found
-            continue
-        is_frame = isinstance(r.rnode.trigger, FrameTrigger)
-        if (o.period is not None or o.phase is not None) and not is_frame:
-            problems.append(f"{name}: period/phase in frames apply to frame-triggered nodes")
-        if o.timer is not None and r.timing.timer is None:
-            problems.append(f"{name}: timer applies to timer-triggered nodes")
-        if o.timer_phase is not None:
-            timer_ms = o.timer if o.timer is not None else (r.timing.timer or 0) * 1000
-            if r.timing.timer is None:
-                problems.append(f"{name}: timer_phase applies to timer-triggered nodes")
-            elif not 0 <= o.timer_phase < timer_ms:
-                problems.append(
-                    f"{name}: timer_phase must be in 0..{timer_ms:g} ms (its timer), "
-                    f"got {o.timer_phase:g}"
-                )
-        period = r.timing.period if o.period is None else o.period
-        phase = r.timing.phase if o.phase is None else o.phase
-        if is_frame and (period <= 0 or not 0 <= phase < period):
-            problems.append(
-                f"{name}: need period > 0 and 0 <= phase < period (got {period}/{phase})"
-            )
-        if (o.timer is not None and o.timer <= 0) or (o.deadline is not None and o.deadline <= 0):
-            problems.append(f"{name}: timer and deadline must be positive")
-    if problems:
-        raise ValueError("; ".join(problems))
 
 
 class Runners(Protocol):
@@ -229,7 +126,7 @@ class QosHost(Protocol):
 
     def qos_status(self) -> QosStatus: ...
 
-    def _record(self, name: str, value: Any) -> None: ...
+    def record_state(self, name: str, value: Any) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -405,7 +302,8 @@ class OverloadController:
         assert self.rt is not None
         self._window_start = self.rt.clock.now()
         counters = {
-            name: (r.activations, r.misses) for name, r in self.rt.scheduler.runners.items()
+            name: (r.counts.activations, r.counts.misses)
+            for name, r in self.rt.scheduler.runners.items()
         }
         return _Window(counters=counters)
 
@@ -418,8 +316,8 @@ class OverloadController:
             if r.timing.deadline is None or not r.timing.enabled:
                 continue
             a0, m0 = old.counters.get(name, (0, 0))
-            acts += r.activations - a0
-            misses += r.misses - m0
+            acts += r.counts.activations - a0
+            misses += r.counts.misses - m0
         cpu: float | None = None
         if self.spec.cpu_percent is not None:
             import psutil
@@ -481,7 +379,7 @@ class OverloadController:
             if not was:
                 log.warning("overload: %s", reason)
             if self._shed_one(reason):
-                rt._record("flowrt.qos", rt.qos_status())
+                rt.record_state("flowrt.qos", rt.qos_status())
         elif calm:
             if self._calm_since is None:
                 self._calm_since = now
@@ -491,7 +389,7 @@ class OverloadController:
             ):
                 self._restore_one()
                 self._last_restore = now
-                rt._record("flowrt.qos", rt.qos_status())
+                rt.record_state("flowrt.qos", rt.qos_status())
                 if not self._steps:
                     self._backoff = 1
         else:

@@ -440,7 +440,7 @@ class TimingOverride(_Strict):
     Validated with the graph files' ranges (``TimingOverride.model_validate(change)``), so a
     change from a mode, the control endpoint or the API can be checked whole before any of
     it is applied. Whether it fits the node's trigger (frames take period/phase, timers ms)
-    is checked against the graph (``flowrt.graph`` / ``flowrt.qos.check_plan``).
+    is checked against the graph (``flowrt.graph`` / ``flowrt.timing.TimingChange.problems``).
     """
 
     period: FramePeriod | None = None

@@ -20,7 +20,7 @@ from flowrt.analysis.phases import advise, snippet  # noqa: E402
 from flowrt.analysis.rta import Task, global_response_time  # noqa: E402
 from flowrt.analysis.schedulability import analyse  # noqa: E402
 from flowrt.analysis.timing import Budget, NodeTiming, apply_changes, graph_timing  # noqa: E402
-from flowrt.spec import TimingOverride  # noqa: E402
+from flowrt.timing import TimingChange  # noqa: E402
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -96,7 +96,7 @@ def test_missing_budget_and_disabled_nodes() -> None:
     assert v.node("r").schedulable is None
     assert "no budget" in v.node("r").note
     assert not v.schedulable
-    off = apply_changes(graph_timing(g), {"r": TimingOverride(enabled=False)})
+    off = apply_changes(graph_timing(g), {"r": TimingChange(enabled=False)})
     assert [n.name for n in analyse(off).nodes] == ["cam"]
     assert analyse(off).schedulable
 
@@ -113,7 +113,7 @@ def test_overloaded_node_does_not_poison_the_rest() -> None:
 
 def test_changes_apply_to_the_analysis() -> None:
     t = graph_timing(_graph(TWO_ON_CPU0))
-    slower = apply_changes(t, {"lo": TimingOverride(deadline=8.0), "hi": TimingOverride(period=2)})
+    slower = apply_changes(t, {"lo": TimingChange(deadline_ms=8.0), "hi": TimingChange(period=2)})
     v = analyse(slower)
     assert v.node("hi").period_ms == pytest.approx(20)
     assert v.node("lo").schedulable
@@ -150,7 +150,7 @@ def test_phase_advice_spreads_all_zero_phases() -> None:
     assert "# cam: heaviest tick 11ms -> 5ms" in text
     assert "trigger: {frame: cam, period: 4, phase:" in text
     # The advice keeps every period and really reaches the peak it announces.
-    plan = {n: TimingOverride(phase=int(p)) for n, p in adv.changed.items()}
+    plan = {n: TimingChange(phase=int(p)) for n, p in adv.changed.items()}
     (after,) = load_tables(apply_changes(t, plan))
     assert after.peak_ms == 5
 

@@ -269,7 +269,7 @@ async def test_interface_gone_and_back(
         assert "node-error" in kinds
         assert "node-recovered" in kinds
         assert runner.state != "failed"
-        assert runner.errors == 0  # nothing raised out of the node
+        assert runner.counts.errors == 0  # nothing raised out of the node
 
 
 async def test_periodic_transmit_from_the_scheduler(channel: str, peer: can.BusABC) -> None:
@@ -396,7 +396,7 @@ async def test_input_that_does_not_fit_is_counted_not_raised(
         assert n.msgs["MotorSetpoints"].bad_inputs >= 10
         assert n.msgs["MotorSetpoints"].sent == 0
         assert peer.recv(0) is None
-        assert rt.scheduler.runners["chassis"].errors == 0
+        assert rt.scheduler.runners["chassis"].counts.errors == 0
         row = {r.name: r for r in n.snapshot().messages}["MotorSetpoints"]
         assert row.bad_inputs == n.msgs["MotorSetpoints"].bad_inputs
 

@@ -131,7 +131,7 @@ async def test_unplug_and_replug_are_survived(gateway: tuple[SlcanDevice, can.Bu
         await until(lambda: any(abs(v["LeftSpeed"] - 2.0) < 1e-6 for v in _drain(speeds, seen)))
         await until(lambda: len(dev.from_host) > sent_before)  # transmitting again too
         assert runner.state != "failed"
-        assert runner.errors == 0
+        assert runner.counts.errors == 0
         kinds = [e.alert for e in rt.events if isinstance(e, HealthAlert)]
         assert "node-error" in kinds
         assert "node-recovered" in kinds

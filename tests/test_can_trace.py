@@ -319,4 +319,4 @@ async def test_a_trace_that_cannot_open_leaves_the_bus_running_in_error(
         assert runner.error_reason is not None
         assert "CAN trace" in runner.error_reason
         assert "cannot open" in runner.error_reason
-        assert runner.errors == 0  # nothing raised out of the node
+        assert runner.counts.errors == 0  # nothing raised out of the node

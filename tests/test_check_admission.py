@@ -14,7 +14,7 @@ from flowrt import GraphBuilder, Runtime, VirtualClock
 from flowrt.analysis.admission import AdmissionRefused, admit, current_timing
 from flowrt.cli import main
 from flowrt.control import ControlConfig, ControlServer
-from flowrt.spec import TimingOverride
+from flowrt.timing import TimingChange
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -105,7 +105,7 @@ def test_budgets_are_declared_wcet_else_measured_p99() -> None:
             period=1, phase=0, timer=timer, deadline=None, priority=prio, enabled=True
         )
         ex = SimpleNamespace(count=count, summary=lambda: SimpleNamespace(p99=p99))
-        return SimpleNamespace(timing=timing, execution=ex)
+        return SimpleNamespace(timing=timing, counts=SimpleNamespace(execution=ex))
 
     runners = {"a": runner(0.010, 35, 10, 1.5), "b": runner(0.020, 20, 10, 99.0)}
     t = current_timing(built, runners)
@@ -117,7 +117,7 @@ def test_budgets_are_declared_wcet_else_measured_p99() -> None:
     assert (t["a"].priority, t["b"].timer_ms) == (35, 20)
     # not yet run: not judged, so not refused
     quiet = {"a": runner(0.010, 30, 0, 0.0), "b": runner(0.010, 50, 10, 1.0)}
-    res = admit(current_timing(built, quiet), {"b": TimingOverride(timer=0.5)})
+    res = admit(current_timing(built, quiet), {"b": TimingChange(timer_ms=0.5)})
     assert res.admitted
 
 

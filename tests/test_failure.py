@@ -82,9 +82,9 @@ async def test_1025th_consecutive_failure_does_not_overflow() -> None:
     g.add("bad", AlwaysFails, trigger={"timer": "10ms"}, restart={"max_failures": None})
     async with Runtime(g.build(), clock=clock) as rt:
         runner = rt.scheduler.runners["bad"]
-        runner.consecutive_failures = 1023
+        runner.supervisor.consecutive = 1023
         await clock.advance(0.015)  # the first activation fails: failure number 1024
-        assert runner.consecutive_failures == 1024
+        assert runner.supervisor.consecutive == 1024
         restarts = [e for e in rt.events if isinstance(e, flowrt.NodeRestarted)]
         await clock.advance(5.02)
         s = rt.stats().node("bad")

@@ -92,7 +92,7 @@ async def test_worker_relays_hand_the_slot_on(
         assert is_shared is shared
         assert pixel == (seq - offset) % 256  # the producer's pixels, whichever way
     assert all(n.errors == 0 for n in s.nodes)
-    pools = rt._frames.stats() if rt._frames is not None else []
+    pools = rt.resources.frames.stats() if rt.resources is not None else []
     assert all(p.slots <= p.max_slots for p in pools)
     assert not [n for n in os.listdir("/dev/shm") if n.startswith(f"flowrt_{os.getpid()}_")]
 

@@ -22,7 +22,7 @@ import pytest
 from pydantic import BaseModel, ConfigDict
 
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
-from flowrt import workers as workers_mod
+from flowrt.workers import channel as workers_channel
 from flowrt.frames import FrameStore
 from flowrt.grants import OutputGrants, WorkerSlots, lazy_report
 
@@ -142,13 +142,13 @@ async def test_worker_frames_arrive_in_slots(
     middle: list[dict[str, Any]], socket: dict[str, int], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     sizes: list[int] = []
-    on_reply = workers_mod._Worker._on_reply
+    on_reply = workers_channel.Worker._on_reply
 
     def spy(self: Any, raw: bytes) -> None:
         sizes.append(len(raw))
         on_reply(self, raw)
 
-    monkeypatch.setattr(workers_mod._Worker, "_on_reply", spy)
+    monkeypatch.setattr(workers_channel.Worker, "_on_reply", spy)
     async with Runtime(_graph(middle)) as rt:
         sub = rt.subscribe("sink.result")
         await rt.run(1.0)

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "flowrt"
 
 #: What the runtime core must never import: its users (monitors, the CLI) and the nodes.
-RUNTIME_CORE = ("flowrt.runtime", "flowrt.scheduler", "flowrt.qos", "flowrt.workers")
+RUNTIME_CORE = ("flowrt.runtime", "flowrt.kernel", "flowrt.qos", "flowrt.workers")
 USERS = ("flowrt.control", "flowrt.status", "flowrt.cli", "flowrt.nodes")
 
 

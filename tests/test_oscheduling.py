@@ -12,7 +12,8 @@ import psutil
 import pytest
 
 from flowrt.oscheduling import FairShare, lowest_nice
-from flowrt.workers import PoolExecutor, ProcessExecutor, _Anticipation
+from flowrt.workers import PoolExecutor, ProcessExecutor
+from flowrt.workers.child import Anticipation
 
 
 class Pid:
@@ -118,7 +119,7 @@ async def test_pool_switches_cpus_per_node() -> None:
 
 
 def test_anticipation_predicts_the_next_periodic_call() -> None:
-    a = _Anticipation()
+    a = Anticipation()
     a.configure(1, 0.0003)
     assert a.window(0.0) is None  # nothing known yet
     for k in range(5):
@@ -136,12 +137,12 @@ def test_anticipation_predicts_the_next_periodic_call() -> None:
 
 
 def test_anticipation_ignores_calls_too_close_to_spin_between() -> None:
-    a = _Anticipation()
+    a = Anticipation()
     a.configure(1, 0.0003)
     for k in range(6):
         a.called(1, 1.0 + 0.001 * k)  # 1 ms apart: spinning 0.6 ms of each would be waste
     assert a.window(1.01) is None
-    b = _Anticipation()
+    b = Anticipation()
     b.configure(1, 0.0003)
     for _ in range(6):
         b.called(1, 2.0)  # all at once: no period at all
@@ -149,7 +150,7 @@ def test_anticipation_ignores_calls_too_close_to_spin_between() -> None:
 
 
 def test_anticipation_ignores_irregular_calls() -> None:
-    a = _Anticipation()
+    a = Anticipation()
     a.configure(1, 0.0003)
     for t in (0.0, 0.05, 0.06, 0.2, 0.21):
         a.called(1, t)

@@ -107,7 +107,7 @@ async def _collect(
         len(got) < want if last is None else not any(v == last for v, _ in got)
     ):
         await rt.run(0.02)
-        peak = max(peak, runner.inflight)
+        peak = max(peak, runner.pipeline.inflight)
         got += sub.drain()
     got.append(("peak", peak))
     return got

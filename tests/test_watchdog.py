@@ -12,7 +12,8 @@ from typing import Any
 
 import pytest
 
-from flowrt import GraphBuilder, HealthAlert, Input, Node, NodeFailed, Output, Runtime, workers
+from flowrt import GraphBuilder, HealthAlert, Input, Node, NodeFailed, Output, Runtime
+from flowrt.workers import channel, watchdog
 
 
 class Work(Node):
@@ -99,7 +100,7 @@ def check_starved(
     call_cpu: float = 1.0,
 ) -> None:
     """The verdict on a 0.5 s window in which the worker ran ``cpu`` s and waited ``wait``."""
-    w = workers._Worker("w")
+    w = channel.Worker("w")
     loop = _Loop()
     w._loop = loop  # type: ignore[assignment]
     w.pid = 12345
@@ -107,8 +108,8 @@ def check_starved(
     w._call_cpu = call_cpu
     loop.t = 0.5
     progress = (0.5, 1.0 + cpu, None if wait is None else 2.0 + wait)
-    monkeypatch.setattr(workers, "_progress_of", lambda pid, now: progress)
-    monkeypatch.setattr(workers, "_state_of", lambda pid: state)
+    monkeypatch.setattr(channel, "progress_of", lambda pid, now: progress)
+    monkeypatch.setattr(channel, "state_of", lambda pid: state)
     detail = w._starved(0.5)
     assert bool(detail) is starved
     if starved:
@@ -116,12 +117,12 @@ def check_starved(
 
 
 def test_progress_is_read_from_proc() -> None:
-    got = workers._progress_of(os.getpid(), 1.0)
+    got = watchdog.progress_of(os.getpid(), 1.0)
     assert got is not None
     t, cpu, _ = got
     assert t == 1.0
     assert cpu > 0
-    assert workers._state_of(os.getpid()) == "R"  # this process, reading its own stat
+    assert watchdog.state_of(os.getpid()) == "R"  # this process, reading its own stat
 
 
 def graph(node: type[Node], n: int = 1, watchdog: str = "300ms") -> Any:
@@ -194,7 +195,7 @@ async def test_cpu_starvation_kills_no_worker() -> None:
     async with Runtime(graph(Work, n=3)) as rt:
         rt.on_event(seen)
         await asyncio.sleep(0.5)
-        pids = {n: rt.scheduler.runners[n].executor._inner.pid for n in ("w0", "w1", "w2")}  # type: ignore[attr-defined]
+        pids = {n: rt.scheduler.runners[n].executor.pid for n in ("w0", "w1", "w2")}  # type: ignore[attr-defined]
         busy = [
             await asyncio.create_subprocess_exec(
                 "chrt", "-f", "50", sys.executable, "-c", BUSY.format(s=3.0)
@@ -205,7 +206,7 @@ async def test_cpu_starvation_kills_no_worker() -> None:
             await asyncio.wait_for(p.wait(), 30)
         await asyncio.sleep(1.0)  # calls in flight at the end of the starvation complete
         stats = rt.stats()
-        after = {n: rt.scheduler.runners[n].executor._inner.pid for n in pids}  # type: ignore[attr-defined]
+        after = {n: rt.scheduler.runners[n].executor.pid for n in pids}  # type: ignore[attr-defined]
     assert [p.returncode for p in busy] == [0, 0]
     assert not failures, [f.error for f in failures]
     assert after == pids

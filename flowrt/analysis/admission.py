@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from ..graph import Graph
-from ..spec import TimingOverride
+from ..timing import TimingChange
 from .schedulability import GraphVerdict, analyse
 from .timing import Budget, NodeTiming, apply_changes, graph_timing
 
@@ -38,14 +38,15 @@ class RunnerView(Protocol):
     """What admission control reads of a running node: its timing and its execution times.
 
     ``timing`` has ``period``, ``phase``, ``timer`` and ``deadline`` (seconds), ``priority``
-    and ``enabled``; ``execution`` has ``count`` and ``summary()`` (milliseconds, ``p99``).
+    and ``enabled``; ``counts.execution`` has ``count`` and ``summary()`` (milliseconds,
+    ``p99``).
     """
 
     @property
     def timing(self) -> Any: ...
 
     @property
-    def execution(self) -> Any: ...
+    def counts(self) -> Any: ...
 
 
 @dataclass(frozen=True)
@@ -61,19 +62,19 @@ def current_timing(graph: Graph, runners: Mapping[str, RunnerView]) -> dict[str,
     """The timing table of a running graph: its current timing and today's budgets."""
     budgets: dict[str, Budget] = {}
     for name, r in runners.items():
-        if name in graph.nodes and graph.nodes[name].spec.wcet is None and r.execution.count:
-            budgets[name] = Budget(max(r.execution.summary().p99, 1e-6), "measured p99")
+        if name in graph.nodes and graph.nodes[name].spec.wcet is None and r.counts.execution.count:
+            budgets[name] = Budget(max(r.counts.execution.summary().p99, 1e-6), "measured p99")
     timing = graph_timing(graph, budgets)
-    now: dict[str, TimingOverride] = {}
+    now: dict[str, TimingChange] = {}
     for name, r in runners.items():
         if name not in timing:
             continue
         tm, frame = r.timing, timing[name].trigger == "frame"
-        now[name] = TimingOverride.model_construct(
+        now[name] = TimingChange(
             period=tm.period if frame else None,
             phase=tm.phase if frame else None,
-            timer=None if tm.timer is None else tm.timer * 1000,
-            deadline=None if tm.deadline is None else tm.deadline * 1000,
+            timer_ms=None if tm.timer is None else tm.timer * 1000,
+            deadline_ms=None if tm.deadline is None else tm.deadline * 1000,
             priority=tm.priority,
             enabled=tm.enabled,
         )
@@ -81,7 +82,7 @@ def current_timing(graph: Graph, runners: Mapping[str, RunnerView]) -> dict[str,
 
 
 def admit(
-    timing: Mapping[str, NodeTiming], plan: Mapping[str, TimingOverride], cpus: int | None = None
+    timing: Mapping[str, NodeTiming], plan: Mapping[str, TimingChange], cpus: int | None = None
 ) -> Admission:
     """Would ``plan`` applied to ``timing`` keep every critical node schedulable?"""
     cpus = cpus or os.cpu_count() or 1
@@ -113,7 +114,7 @@ def _fmt(x: float | None) -> str:
 def check_change(
     graph: Graph,
     runners: Mapping[str, RunnerView],
-    plan: Mapping[str, TimingOverride],
+    plan: Mapping[str, TimingChange],
     cpus: int | None = None,
 ) -> None:
     """Raise :class:`AdmissionRefused` if ``plan`` would make a critical node unschedulable.

@@ -15,7 +15,8 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 from ..graph import Graph
-from ..spec import FrameTrigger, InputTrigger, TimerTrigger, TimingOverride
+from ..spec import FrameTrigger, InputTrigger, TimerTrigger
+from ..timing import TimingChange
 
 TriggerKind = Literal["frame", "timer", "input", "loop"]
 
@@ -106,7 +107,7 @@ def graph_timing(
 
 
 def apply_changes(
-    timing: Mapping[str, NodeTiming], plan: Mapping[str, TimingOverride]
+    timing: Mapping[str, NodeTiming], plan: Mapping[str, TimingChange]
 ) -> dict[str, NodeTiming]:
     """``timing`` with the overrides of ``plan`` applied (unset fields keep their value)."""
     out = dict(timing)
@@ -116,8 +117,8 @@ def apply_changes(
         for f_o, f_t in (
             ("period", "period"),
             ("phase", "phase"),
-            ("timer", "timer_ms"),
-            ("deadline", "deadline_ms"),
+            ("timer_ms", "timer_ms"),
+            ("deadline_ms", "deadline_ms"),
             ("priority", "priority"),
             ("enabled", "enabled"),
         ):
@@ -162,17 +163,17 @@ def with_mode(timing: Mapping[str, NodeTiming], graph: Graph, mode: str) -> dict
     ``Runtime.set_mode`` applies them from the graph's timing: a new period without a phase
     keeps the phase if it still fits, else 0. Raises KeyError for an unknown mode."""
     spec = graph.spec.modes[mode]
-    plan: dict[str, TimingOverride] = {}
+    plan: dict[str, TimingChange] = {}
     for name, o in spec.nodes.items():
         phase = o.phase
         t = timing[name]
         if o.period is not None and phase is None and t.trigger == "frame":
             phase = t.phase if t.phase < o.period else 0
-        plan[name] = TimingOverride.model_construct(
+        plan[name] = TimingChange(
             period=o.period,
             phase=phase,
-            timer=o.timer,
-            deadline=o.deadline,
+            timer_ms=o.timer,
+            deadline_ms=o.deadline,
             priority=o.priority,
             enabled=o.enabled,
         )

@@ -44,7 +44,8 @@ from .encoding import (
 
 if TYPE_CHECKING:
     from ..events import Event
-    from ..runtime import Runtime, Subscription
+    from ..runtime import Runtime
+    from ..subscription import Subscription
 
 __all__ = ["FoxgloveLive"]
 

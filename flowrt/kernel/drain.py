@@ -1,0 +1,140 @@
+"""The end of a run: sources stop, the rest finishes what it holds, leftovers are counted.
+
+A stop must not lose data silently: what a source published before the stop is delivered
+(every lossless edge drains, producers blocked on a full one get their values in), within a
+bound; what is still undelivered when the bound hits is counted as dropped with its reason.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Protocol
+
+from ..clock import Clock
+from ..edges import Buffer, LatestBuffer, LosslessBuffer
+from ..events import Event, HealthAlert
+from ..spec import LoopTrigger
+from .runner import NodeRunner
+from .state import RunState
+
+
+class DrainedGraph(Protocol):
+    """What the drain reads of the scheduler: its runners and edges."""
+
+    runners: dict[str, NodeRunner]
+    buffers: list[Buffer]
+    reader_of: dict[int, NodeRunner]
+    loop: asyncio.AbstractEventLoop
+    clock: Clock
+    emit: Callable[[Event], None]
+
+    def rel(self, t: float) -> float: ...
+
+
+log = logging.getLogger("flowrt.scheduler")
+
+
+class Drain:
+    """Drains one scheduler's graph at stop (once; later calls return the first result)."""
+
+    def __init__(self, sched: DrainedGraph, timeout: float) -> None:
+        self._s = sched
+        self.timeout = timeout  # seconds the drain at stop may take (then reported)
+        self.done = False
+        self.left: list[str] = []  # what a timed-out drain left undone
+
+    async def run(self, limit: float | None = None) -> list[str]:
+        """Stop the sources, then let the graph finish what it holds (at most ``limit`` s).
+
+        Sources (nodes without inputs, and free-running ones) are released no more and their
+        in-flight activation is cancelled (a capture waiting for a frame, a paced source
+        waiting for its readers): nothing new is published after the stop request, but what
+        a source did publish, even a value waiting on a full lossless edge, is delivered.
+        Every other node keeps running: in-flight activations finish, every lossless edge
+        delivers what it holds, producers waiting on a full lossless edge get their values in.
+        Returns what was left undone when the limit hit (then reported as a ``drain-timeout``
+        HealthAlert and a warning), or []. The limit is a deadline for the whole graph, not
+        for one awaited call (hence no ``asyncio.timeout``).
+        """
+        if self.done:
+            return self.left
+        self.done = True
+        s = self._s
+        timeout = self.timeout if limit is None else limit
+        loop = s.loop
+        t0 = loop.time()
+        for r in s.runners.values():
+            if not r.inputs or isinstance(r.rnode.trigger, LoopTrigger):
+                r.stop_releasing()
+                if r.task is not None and not r.task.done():
+                    r.task.add_done_callback(r.cancelled)
+                    r.task.cancel()  # e.g. a capture waiting for its next frame
+        while True:
+            left = self.undrained()
+            if not left or loop.time() - t0 >= timeout:
+                break
+            for r in s.runners.values():
+                r.catch_up()
+            await asyncio.sleep(0.002)
+        self.left = left
+        if left:
+            detail = f"not drained within {timeout:g} s: " + "; ".join(left)
+            log.warning("drain: %s", detail)
+            s.emit(HealthAlert(s.rel(s.clock.now()), None, "drain-timeout", detail))
+        else:
+            log.debug("drained in %.1f ms", (loop.time() - t0) * 1000)
+        return left
+
+    def undrained(self) -> list[str]:
+        """What the drain still waits for, in words."""
+        s = self._s
+        left = []
+        for r in s.runners.values():
+            if r.busy:
+                left.append(
+                    f"{r.name} waits on a full lossless edge"
+                    if r.backpressure.blocked
+                    else f"{r.name} running"
+                )
+            elif r.state in (RunState.starting, RunState.backoff) and self._waits_for(r):
+                left.append(f"{r.name} restarting")
+        for buf in s.buffers:
+            reader = s.reader_of.get(id(buf))
+            if (
+                reader is not None
+                and isinstance(buf, LosslessBuffer)
+                and buf.pending()
+                and reader.timing.enabled
+                and reader.state is not RunState.failed
+            ):
+                left.append(f"{buf.name} holds {buf.pending()}")
+        return left
+
+    @staticmethod
+    def _waits_for(r: NodeRunner) -> bool:
+        """A restarting node the drain waits for: it has lossless values to deliver."""
+        return r.backlog() and r.timing.enabled
+
+    def discard_leftovers(self) -> None:
+        """Count what a stop leaves undelivered on queue and lossless edges, with a reason."""
+        s = self._s
+        late = "drain timeout" if self.left else "stop"
+        for r in s.runners.values():
+            r.backpressure.abandon(late)
+        for buf in s.buffers:
+            reader = s.reader_of.get(id(buf))
+            if reader is None or isinstance(buf, LatestBuffer):
+                buf.clear()  # a host subscription, or a sampled/latest value: not a loss
+                continue
+            why = (
+                "reader failed"
+                if reader.state is RunState.failed
+                else "reader disabled"
+                if not reader.timing.enabled
+                else late
+            )
+            n = buf.discard(why)
+            if n:
+                log.warning("%s: %d value(s) dropped at stop (%s)", buf.name, n, why)

@@ -1,0 +1,120 @@
+"""Where a node's ``process`` runs: the kernel's one interface to it, and the inline kind.
+
+The runner only ever talks to an :class:`Executor`: inline here, worker processes in
+:mod:`flowrt.workers` (which implement this protocol directly, no adapter). Interfaces apart
+from implementations, as anyio keeps its abstract classes apart from its backends.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from ..node import Node
+
+
+class Executor(Protocol):
+    """Runs one node instance's ``setup``/``process``/``teardown`` somewhere.
+
+    ``sync``: ``call_sync`` may be used (an inline node whose ``process`` is a plain
+    function: run straight from a loop callback, no task). ``pipelined``: ``submit`` is
+    available, so calls may overlap (a worker of its own, see :mod:`flowrt.kernel.pipeline`).
+    ``granted``: the OS scheduling it got, for the status table ("" inline).
+    """
+
+    @property
+    def sync(self) -> bool: ...
+
+    @property
+    def pipelined(self) -> bool: ...
+
+    @property
+    def granted(self) -> str: ...
+
+    async def start(self) -> None: ...
+
+    def call_sync(self, inputs: dict[str, Any]) -> Any: ...
+
+    async def call(self, inputs: dict[str, Any]) -> Any: ...
+
+    def submit(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
+        """Start a call now; up to ``window`` run back to back, results in order."""
+        ...
+
+    def set_priority(self, priority: int) -> None: ...
+
+    async def stop(self) -> None: ...
+
+
+class NoExecutor:
+    """The executor of a runner not started yet: every call is a programming error."""
+
+    sync = False
+    pipelined = False
+    granted = ""
+
+    async def start(self) -> None:
+        raise RuntimeError("node not started")
+
+    def call_sync(self, inputs: dict[str, Any]) -> Any:
+        raise RuntimeError("node not started")
+
+    async def call(self, inputs: dict[str, Any]) -> Any:
+        raise RuntimeError("node not started")
+
+    def submit(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
+        raise RuntimeError("node not started")
+
+    def set_priority(self, priority: int) -> None:
+        pass
+
+    async def stop(self) -> None:
+        pass
+
+
+class InlineExecutor:
+    """The node runs on the event loop, in this process: ``process`` is a plain call."""
+
+    pipelined = False
+    granted = ""
+
+    def __init__(self, factory: Callable[[], Node]) -> None:
+        self._factory = factory
+        self.node: Node | None = None
+        self.last_node: Node | None = None  # what it reported last stays readable after stop
+        self.sync = False
+
+    async def start(self) -> None:
+        node = self._factory()
+        self.node = node
+        self.sync = not inspect.iscoroutinefunction(node.process)
+        result = node.setup()
+        if inspect.isawaitable(result):
+            await result
+
+    def call_sync(self, inputs: dict[str, Any]) -> Any:
+        assert self.node is not None
+        return self.node.process(**inputs)
+
+    async def call(self, inputs: dict[str, Any]) -> Any:
+        assert self.node is not None
+        result = self.node.process(**inputs)
+        if inspect.isawaitable(result):
+            result = await result
+        return result
+
+    def submit(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
+        raise NotImplementedError("an inline node is never pipelined")
+
+    def set_priority(self, priority: int) -> None:
+        pass  # the loop's own priority: nothing to change per node
+
+    async def stop(self) -> None:
+        node, self.node = self.node, None
+        self.last_node = node
+        if node is not None:
+            result = node.teardown()
+            if inspect.isawaitable(result):
+                await result

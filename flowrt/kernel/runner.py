@@ -1,0 +1,588 @@
+"""One node's runner: its releases, inputs, activations and outputs.
+
+The runner decides *whether* a release runs and moves the values; each other concern is a
+collaborator of its own (trio's ``_core`` hands each concern to a named object the same way):
+:class:`~flowrt.kernel.activation.Activation` (the frame links one run holds),
+:class:`~flowrt.kernel.deadlines.DeadlineWatch`, :class:`~flowrt.kernel.pipeline.Pipeline`
+(overlapping worker calls), :class:`~flowrt.kernel.backpressure.Backpressure` (full lossless
+readers), :class:`~flowrt.kernel.supervisor.Supervisor` (failures, restarts),
+:class:`~flowrt.kernel.swapping.Swapper`, :class:`~flowrt.kernel.counters.Counters`.
+
+Activation semantics (the CAMBADA process manager): a release while the previous activation
+still runs is skipped and counted (overrun); an input-triggered node is never re-entered:
+data that arrives meanwhile waits in its buffer and causes one more activation afterwards.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+from ..clock import Handle, PeriodicTimer
+from ..edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer
+from ..events import LoopBlocked
+from ..frames import Frame
+from ..graph import ResolvedNode, checked_type
+from ..node import NodeFactory, make_node
+from ..spec import FrameTrigger, InputTrigger, LoopTrigger, Placement, TimerTrigger
+from ..stats import NodeStats
+from ..timing import Timing
+from .activation import Activation, release_all
+from .backpressure import Backpressure
+from .context import RunnerContext
+from .counters import Counters
+from .deadlines import DeadlineWatch
+from .executor import Executor, InlineExecutor, NoExecutor
+from .pipeline import Pipeline
+from .ports import SchedulerPort
+from .state import RunState
+from .supervisor import Supervisor
+from .swapping import Swapper
+
+log = logging.getLogger("flowrt.scheduler")
+
+BLOCKING_THRESHOLD = 0.010  # an inline call longer than this is reported as blocking the loop
+
+
+def _timing_of(rnode: ResolvedNode) -> Timing:
+    spec, trig = rnode.spec, rnode.trigger
+    return Timing(
+        period=trig.period if isinstance(trig, FrameTrigger) else 1,
+        phase=trig.phase if isinstance(trig, FrameTrigger) else 0,
+        timer=trig.timer / 1000 if isinstance(trig, TimerTrigger) else None,
+        timer_phase=trig.phase / 1000 if isinstance(trig, TimerTrigger) else 0.0,
+        deadline=spec.deadline / 1000 if spec.deadline else None,
+        priority=spec.priority,
+        enabled=spec.enabled,
+    )
+
+
+class NodeRunner:
+    """One node: when it runs, what it takes and what it publishes.
+
+    Invariants (each kept by the one method named):
+    - ``busy`` is true exactly while an activation is released and not ended, pipelined calls
+      are in flight, or the node holds values for full lossless readers (``release`` sets it,
+      ``idle`` clears it; ``Supervisor.failed`` clears it with the activation lost);
+    - ``state is running`` implies ``busy``; ``untaken`` (released, inputs not taken yet)
+      implies ``busy``;
+    - ``act`` is the inline activation in progress (None between activations and for
+      pipelined nodes, whose activations belong to their tasks);
+    - ``deferred`` holds at most one release of a paced source, taken by ``idle`` or the
+      pipeline;
+    - ``stopping`` never returns to false.
+    """
+
+    def __init__(self, sched: SchedulerPort, rnode: ResolvedNode) -> None:
+        self.sched = sched
+        self.rnode = rnode
+        self.name = rnode.name
+        self.timing = _timing_of(rnode)
+        self.inputs: dict[str, Buffer] = {}
+        # Publication time (runtime clock) of the value each input held at the last take:
+        # NodeContext.input_time/input_age. Invariant: a port is absent when it held no value.
+        self.input_times: dict[str, float] = {}
+        self.frame_seqs: dict[str, int] = {}  # next sequence of unstamped frames, per port
+        self.ports = list(rnode.cls.inputs)  # declared inputs, then any-named ones connected
+        self.outputs: dict[str, list[Buffer]] = {
+            p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
+        }
+        self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
+        self.required = [p for p, port in rnode.cls.inputs.items() if port.required]
+        self.port_types: dict[str, type] = {}  # inputs whose values are type-checked
+        self.type_errors: set[tuple[str, str]] = set()  # (port, type) already logged
+        self.trigger_inputs: list[str] = []
+        self.lossless: list[LosslessBuffer] = []  # inputs that must deliver every value
+        self.frame_key: str | None = None  # the frame clock this node is triggered by
+        self.executor: Executor = NoExecutor()
+        self.timer: PeriodicTimer | None = None
+        self.task: asyncio.Task[None] | None = None
+        self.state = RunState.idle
+        self._busy = False
+        self._idle_waiters: list[asyncio.Future[None]] = []
+        self.deferred: float | None = None  # a paced source's tick that came while busy
+        self.untaken = False  # released, inputs not yet taken (the run is scheduled)
+        self.more_input = False
+        self.stopping = False
+        self.act: Activation | None = None
+        self._acts = 0  # activations begun: their ids
+        self._loose: list[Frame] = []  # frames made outside an activation: the next one's
+        self.error_reason: str | None = None  # set_error(): an error state the node reports
+        self.counts = Counters()
+        self.deadlines = DeadlineWatch(
+            self.name,
+            self.timing,
+            self.counts,
+            sched.clock,
+            sched.emit,
+            sched.rel,
+            lambda: self.rnode.spec.miss_policy,
+        )
+        self.pipeline = Pipeline(self)
+        self.backpressure = Backpressure(sched.loop, self.idle)
+        self.supervisor = Supervisor(self)
+        self.swapper = Swapper(self)
+
+    # --- readiness ----------------------------------------------------------------------
+
+    @property
+    def busy(self) -> bool:
+        """An activation is running (or its producer waits on a full lossless edge)."""
+        return self._busy
+
+    @busy.setter
+    def busy(self, value: bool) -> None:
+        self._busy = value
+        if not value and self._idle_waiters:
+            self.readers_may_go()
+
+    def readers_may_go(self) -> None:
+        """Wake whoever waits for this node to be ready (a paced source)."""
+        waiters, self._idle_waiters = self._idle_waiters, []
+        for fut in waiters:
+            if not fut.done():
+                fut.set_result(None)
+
+    @property
+    def window(self) -> int:
+        return self.pipeline.window
+
+    def ready_for_frame(self) -> bool:
+        """True when this node has taken the previous frame of a paced source (or never will).
+
+        It may still be running on it: the next tick is then deferred (see Scheduler.tick),
+        so that the source prepares frame k+1 while a worker processes frame k; a pipelined
+        reader in a worker of its own has up to ``window`` frames in flight instead.
+        """
+        if not self.timing.enabled or self.state is RunState.failed or self.stopping:
+            return True
+        if self.state in (RunState.starting, RunState.backoff):
+            return False
+        if self.deferred is not None or self.untaken:
+            return False
+        window = self.window
+        return window == 1 or self.pipeline.inflight < window
+
+    async def wait_ready(self) -> None:
+        fut = self.sched.loop.create_future()
+        self._idle_waiters.append(fut)
+        await fut
+
+    def cancelled(self, task: asyncio.Task[None]) -> None:
+        """A task cancelled before its first step never ran ``run_async``'s own clean-up."""
+        if task is self.task and task.cancelled() and self.busy and not self.backpressure.blocked:
+            self._drop_loose()
+            self.untaken = False
+            self.busy = False
+            if self.state is RunState.running:
+                self.state = RunState.idle
+
+    def backlog(self) -> bool:
+        """A lossless input holds values not yet delivered."""
+        return any(b.pending() for b in self.lossless)
+
+    def catch_up(self) -> None:
+        """Run once more for a lossless input's backlog (never skipped: see release)."""
+        if self.pipeline.active():
+            self.pipeline.schedule_pump()  # several activations may take from the backlog
+            return
+        if (
+            not self.busy
+            and self.state is RunState.idle
+            and not self.stopping
+            and self.timing.enabled
+            and self.backlog()
+        ):
+            self.release(self.sched.clock.now())
+
+    def stop_releasing(self) -> None:
+        """No release from now on (stop, or the drain of a source)."""
+        self.stopping = True
+        if self.timer is not None:
+            self.timer.cancel()
+            self.timer = None
+
+    # --- wiring -------------------------------------------------------------------------
+
+    def make_executor(self, rnode: ResolvedNode | None = None, reload: bool = False) -> Executor:
+        """An executor for ``rnode`` (default: the runner's own) where its placement says."""
+        rnode = rnode or self.rnode
+        if rnode.spec.placement is Placement.inline:
+            ctx = RunnerContext(self)
+            cls, params = rnode.cls, rnode.params
+            return InlineExecutor(lambda: make_node(cls, params, ctx))
+        factory = NodeFactory(rnode.cls, rnode.params, self.name)
+        factory.reload = reload
+        return self.sched.worker_executor(rnode, self.timing.priority, factory)
+
+    def connect_input(self, port: str, buf: Buffer) -> None:
+        self.inputs[port] = buf
+        if port not in self.ports:
+            self.ports.append(port)
+        if isinstance(buf, LosslessBuffer):
+            self.lossless.append(buf)
+            buf.on_full = self.catch_up
+        declared = self.rnode.cls.inputs.get(port) or self.rnode.cls.any_inputs
+        checked = checked_type(declared.type) if declared is not None else None
+        if checked is not None:
+            self.port_types[port] = checked
+        trig = self.rnode.trigger
+        if isinstance(trig, InputTrigger):
+            wanted = [trig.input] if isinstance(trig.input, str) else trig.input
+            if "any" in wanted or port in wanted:
+                self.trigger_inputs.append(port)
+                buf.on_put = self.input_arrived
+                return
+        # Periodic readers sample: values they never read are expected, not lost.
+        buf.sampled = isinstance(buf, LatestBuffer)
+
+    # --- releases -----------------------------------------------------------------------
+
+    def release(self, t_release: float) -> None:
+        """A trigger fired: run now unless disabled, down, or still running (overrun)."""
+        if not self.timing.enabled or self.stopping:
+            return
+        if (self.busy or self.state in (RunState.backoff, RunState.starting)) and self.backlog():
+            return  # not skipped: the lossless value waits, and idle() runs the node for it
+        self.counts.activations += 1
+        if self.state.down or self.busy:
+            self.counts.skipped += 1
+            for buf in self.inputs.values():
+                buf.reader_skipped()  # the value it was due to read is lost if replaced
+            return
+        self.busy = True
+        self.untaken = True
+        loop = self.sched.loop
+        if self.executor.sync:
+            loop.call_soon(self.run_sync, t_release)
+        else:
+            self.task = loop.create_task(self.run_async(t_release))
+
+    def release_frame(self, t: float, paced: bool) -> None:
+        """Tick of this node's frame source, on its period and phase (see Scheduler.tick)."""
+        if paced and self.timing.period == 1:
+            if self.window > 1:
+                self.pipeline.release_paced(t)  # a worker's call may follow the one in flight
+                return
+            if self.busy and self.deferred is None:
+                self.deferred = t  # not an overrun: the source waited for this reader
+                self.counts.lead_max = max(self.counts.lead_max, 2)  # one running, one waiting
+                return
+            self.release(t)
+            self.counts.lead_max = max(self.counts.lead_max, int(self.busy))
+            return
+        self.release(t)
+
+    def release_timer(self, t: float, missed: int) -> None:
+        """The node's timer fired at ``t``; ``missed`` releases passed unserved before it."""
+        if missed and self.timing.enabled:
+            self.counts.activations += missed
+            self.counts.skipped += missed
+        self.release(t)
+
+    def input_arrived(self) -> None:
+        if self.pipeline.active():  # (inline: one attribute, no more)
+            self.pipeline.schedule_pump()
+            return
+        if self.busy or self.state is not RunState.idle or self.stopping or not self.timing.enabled:
+            self.more_input = True
+            return
+        self.release(self.sched.clock.now())
+
+    # --- one activation -----------------------------------------------------------------
+
+    def _take_inputs(self) -> dict[str, Any] | None:
+        values: dict[str, Any] = {}
+        for port in self.ports:
+            buf = self.inputs.get(port)
+            if buf is None:
+                values[port] = None
+                continue
+            value = buf.take_new() if port in self.trigger_inputs else buf.take()  # type: ignore[attr-defined]
+            if value is EMPTY or buf.taken_t is None:
+                self.input_times.pop(port, None)
+            else:
+                self.input_times[port] = buf.taken_t
+            if value is EMPTY:
+                if port in self.required:
+                    release_all(values.values())
+                    return None
+                value = None
+            elif port in self.port_types and not isinstance(value, self.port_types[port]):
+                self._wrong_type(port, value)
+                release_all([*values.values(), value])
+                return None
+            values[port] = value
+        return values
+
+    def _wrong_type(self, port: str, value: Any) -> None:
+        """A value the input's type refuses: one counted error, one log line per type.
+
+        Validation refuses edges whose declared types differ; this catches what an
+        ``object``-typed output (a relay, ``Runtime.publish``) lets through. The node is
+        not called (it would raise on every value) and the activation is skipped.
+        """
+        self.counts.errors += 1
+        got = type(value).__name__
+        if (port, got) not in self.type_errors:
+            self.type_errors.add((port, got))
+            want = self.rnode.cls.inputs.get(port) or self.rnode.cls.any_inputs
+            log.error(
+                "node %s: input %r expects %s, got %s: values of this type are dropped "
+                "and counted as errors",
+                self.name,
+                port,
+                getattr(want.type if want else None, "__name__", "?"),
+                got,
+            )
+
+    def begin(self, t_release: float) -> Activation | None:
+        """Take the inputs of a released activation; None: skipped (counted)."""
+        now = self.sched.clock.now()
+        inputs = self._take_inputs()
+        self.untaken = False
+        if self._idle_waiters:
+            self.readers_may_go()  # a paced source may publish the next frame now
+        if inputs is None:
+            self.counts.skipped += 1
+            return None
+        c = self.counts
+        if c.interval_from is not None:
+            c.interval.add(now - c.interval_from)
+        c.interval_from = c.last_start = now
+        self.state = RunState.running
+        self._acts += 1
+        act = Activation(self._acts, t_release, now)
+        act.inputs = inputs
+        if self._loose:
+            act.made, self._loose = self._loose, []
+        return act
+
+    def new_frame(self, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame:
+        """A frame for this node to fill (``ctx.new_frame``), held by its activation."""
+        frame = self.sched.new_frame(self.name, shape, dtype, pixel_format)
+        (self.act.made if self.act is not None else self._loose).append(frame)
+        return frame
+
+    def _drop_loose(self) -> None:
+        loose, self._loose = self._loose, []
+        release_all(loose)
+
+    def run_sync(self, t_release: float) -> None:
+        act = self.begin(t_release)
+        if act is None:
+            self.idle()
+            return
+        self.act = act
+        try:
+            result = self.executor.call_sync(act.inputs)
+        except Exception as e:
+            self.act = None
+            act.close()
+            self.supervisor.failed(e)
+            return
+        self.act = None
+        end = self.sched.clock.now()
+        if end - act.start > BLOCKING_THRESHOLD and self.sched.real_time:
+            self.sched.blocked_calls += 1
+            self.sched.emit(LoopBlocked(self.sched.rel(end), self.name, (end - act.start) * 1000))
+        self.complete(act, result, end)
+
+    async def run_async(self, t_release: float) -> None:
+        act = self.begin(t_release)
+        if act is None:
+            self.idle()
+            return
+        self.act = act
+        self.deadlines.arm(act)
+        watchdog = self._arm_watchdog(act.start)
+        try:
+            result = await self.executor.call(act.inputs)
+        except asyncio.CancelledError as e:
+            act.close()
+            if self.stopping:
+                self.idle()
+                raise
+            wd = self.rnode.spec.watchdog or 0
+            self.supervisor.failed(TimeoutError(f"watchdog: no return within {wd:g} ms ({e})"))
+            return
+        except Exception as e:
+            act.close()
+            self.supervisor.failed(e)
+            return
+        finally:
+            self.act = None
+            self.deadlines.disarm(act)
+            if watchdog is not None:
+                watchdog.cancel()
+        act.adopt(result)
+        self.complete(act, result, self.sched.clock.now())
+
+    def _arm_watchdog(self, start: float) -> Handle | None:
+        """An inline coroutine that does not return within its watchdog is cancelled."""
+        wd = self.rnode.spec.watchdog
+        task = self.task
+        if wd is None or self.rnode.spec.placement is not Placement.inline or task is None:
+            return None
+
+        def cancel() -> None:
+            task.cancel(f"watchdog {wd:g} ms")
+
+        return self.sched.clock.call_at(start + wd / 1000, cancel)
+
+    def complete(self, act: Activation, result: Any, end: float) -> None:
+        """``act`` returned ``result`` at ``end``: count it, publish (or discard), close."""
+        c = self.counts
+        c.completions += 1
+        self.supervisor.succeeded()
+        c.last_finish = end
+        c.execution.add(end - act.start)
+        c.response.add(end - act.t_release)
+        try:
+            if self.deadlines.finish(act, end):
+                c.discarded += 1
+                act.discard(result)
+            elif result is not None:
+                self._publish_result(result, end)
+        finally:
+            act.close()
+        self.idle()
+
+    def _publish_result(self, result: Any, t: float) -> None:
+        outs = self.outputs
+        if len(outs) == 1:
+            (port,) = outs
+            self.publish(port, result, t)
+            return
+        if not isinstance(result, Mapping):
+            raise TypeError(
+                f"{self.name}: a node with outputs {list(outs)} must return a mapping of them"
+            )
+        for port, value in result.items():
+            if port not in outs:
+                raise TypeError(f"{self.name}: no output port {port!r}")
+            if value is not None:
+                self.publish(port, value, t)
+
+    def publish(self, port: str, value: Any, t: float) -> None:
+        """Fan a value out to every reader of ``port``; a frame port also ticks its frame clock."""
+        if isinstance(value, Frame) and value.timestamp == 0.0:
+            self._stamp(port, value, t)
+        for buf in self.outputs[port]:
+            if not buf.put(value, t):
+                assert isinstance(buf, LosslessBuffer)
+                self.backpressure.hold(buf, value, t)
+        key = self.tick_ports.get(port)
+        if key is not None:
+            self.sched.tick(key, t)
+
+    def _stamp(self, port: str, frame: Frame, t: float) -> None:
+        """A ``Frame(array)`` made without a timestamp: the activation's time, and the node's
+        own sequence on that port when its seq was left at 0 too (recordings, health and
+        freshness need both; a 4 s recording showed 'duration 1336 s, missing 19987')."""
+        last = self.counts.last_start
+        frame.timestamp = last if last is not None else t
+        n = self.frame_seqs.get(port, 0)
+        if frame.seq == 0:
+            frame.seq = n
+        self.frame_seqs[port] = max(n, frame.seq) + 1
+
+    # --- between activations ------------------------------------------------------------
+
+    def idle(self) -> None:
+        """An activation ended: the node is free unless values wait; start what is due."""
+        if self.backpressure.blocked:
+            self.backpressure.start()  # idle() again once the values are in
+            return
+        if self.pipeline.inflight > 0:  # more activations in flight; take the next input
+            self.pipeline.schedule_pump()
+            return
+        self.busy = False
+        if self.state is RunState.running:
+            self.state = RunState.idle
+        self.swapper.take_pending()  # a swap waits for this moment
+        if self.stopping:
+            return
+        if self.deferred is not None:  # a paced source's frame waits: run on it now
+            t, self.deferred = self.deferred, None
+            if self.window > 1:
+                self.pipeline.release_paced(t)
+            else:
+                self.release(t)
+        if isinstance(self.rnode.trigger, LoopTrigger):
+            self.sched.loop.call_soon(self.release, self.sched.clock.now())
+        elif self.trigger_inputs:
+            self.more_input = False
+            for p in self.trigger_inputs:
+                if self.inputs[p].pending():
+                    self.input_arrived()  # release() schedules the run: no re-entry
+                    break
+        if self.lossless and not self.busy:
+            self.sched.loop.call_soon(self.catch_up)
+
+    # --- facade for the runtime -----------------------------------------------------------
+
+    @property
+    def failure_log(self) -> Any:
+        return self.supervisor.log
+
+    def set_params(self, params: Any) -> None:
+        self.swapper.set_params(params)
+
+    async def swap(self, cls: Any, params: Any, kind: str, *, reload: bool = False) -> None:
+        await self.swapper.swap(cls, params, kind, reload=reload)
+
+    def stats(self) -> NodeStats:
+        """The runner's statistics, times relative to the runtime's origin."""
+        c = self.counts
+        spec = self.rnode.spec
+        trig = self.rnode.trigger
+        if isinstance(trig, FrameTrigger):
+            trigger = f"frame {trig.frame}"
+        elif isinstance(trig, TimerTrigger):
+            trigger = "timer"
+        elif isinstance(trig, InputTrigger):
+            trigger = "input"
+        else:
+            trigger = "loop"
+        timed = isinstance(trig, FrameTrigger | TimerTrigger)
+        period = self.timing.describe_period() if timed else "-"
+        failed = self.state is RunState.failed
+        if not self.timing.enabled:
+            state = "disabled"
+        elif self.error_reason is not None and not failed:
+            state = "error"
+        else:
+            state = self.state.value
+        rel = self.sched.rel
+        return NodeStats(
+            name=self.name,
+            kind=spec.kind,
+            placement=spec.placement.value,
+            trigger=trigger,
+            priority=self.timing.priority,
+            period=period,
+            deadline_ms=None if self.timing.deadline is None else self.timing.deadline * 1000,
+            watchdog_ms=spec.watchdog,
+            enabled=self.timing.enabled,
+            state=state,
+            reason=self.supervisor.failed_reason if failed else self.error_reason or "",
+            activations=c.activations,
+            completions=c.completions,
+            skipped=c.skipped,
+            deadline_misses=c.misses,
+            discarded=c.discarded,
+            aborted=c.aborted,
+            paced_lead_max=c.lead_max,
+            dropped=c.discarded + c.aborted + sum(b.dropped for b in self.inputs.values()),
+            errors=c.errors,
+            restarts=c.restarts,
+            last_start=None if c.last_start is None else rel(c.last_start),
+            last_finish=None if c.last_finish is None else rel(c.last_finish),
+            interval=c.interval.summary(),
+            execution=c.execution.summary(),
+            response=c.response.summary(),
+            granted=self.executor.granted,
+        )

@@ -1,0 +1,296 @@
+"""The frame-tick scheduler: frame clocks, timers and dispatch order for a graph's runners.
+
+The ``Scheduler`` owns the frame clocks (one tick counter per frame source), the timers and
+the order of dispatch (priority, then file order); each :class:`NodeRunner` decides whether
+a release runs. Everything runs on one event loop, so a change made by ``apply_timing``
+between two callbacks is atomic with respect to ticks.
+
+Activation semantics (the CAMBADA process manager):
+- frame trigger: on tick ``k`` of the source, release when ``k % period == phase``;
+- timer trigger: release at ``origin + phase + n*period`` (timerfd, no drift);
+- input trigger: release when a triggering input receives data (see the runner);
+- a release while the previous activation still runs is skipped and counted (overrun).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from ..clock import Clock
+from ..edges import Buffer, make_buffer
+from ..events import Event, TimingChanged
+from ..frames import Frame
+from ..graph import Graph, ResolvedNode
+from ..node import NodeFactory
+from ..spec import LoopTrigger, Placement
+from ..timing import TimingChange
+from .drain import Drain
+from .executor import Executor
+from .runner import NodeRunner
+from .services import Services
+from .state import RunState
+
+log = logging.getLogger("flowrt.scheduler")
+
+
+class Scheduler:
+    """Frame clocks, timers and dispatch order for a graph's runners."""
+
+    def __init__(self, graph: Graph, clock: Clock, services: Services) -> None:
+        self.graph = graph
+        self.clock = clock
+        self.services = services
+        self.emit: Callable[[Event], None] = services.emit
+        self.real_time = services.real_time
+        self.loop = asyncio.get_event_loop()
+        self.blocked_calls = 0
+        self.runners: dict[str, NodeRunner] = {}
+        for name in sorted(graph.nodes, key=lambda n: graph.nodes[n].order):
+            self.runners[name] = NodeRunner(self, graph.nodes[name])
+        self.buffers: list[Buffer] = []
+        self.reader_of: dict[int, NodeRunner] = {}  # id(edge buffer) -> the node reading it
+        for edge in graph.edges:
+            buf = make_buffer(edge.policy.value, edge.name, edge.size, clock.now)
+            self.runners[edge.src].outputs[edge.src_port].append(buf)
+            self.runners[edge.dst].connect_input(edge.dst_port, buf)
+            self.buffers.append(buf)
+            self.reader_of[id(buf)] = self.runners[edge.dst]
+        self.paced: set[str] = set()  # frame clocks whose source waits for its readers
+        self._drain = Drain(self, services.drain_timeout)
+        # frame clocks: source key -> (tick count, readers in dispatch order)
+        self.ticks: dict[str, int] = {}
+        self.readers: dict[str, list[NodeRunner]] = {}
+        for r in self.runners.values():
+            src = r.rnode.frame_source
+            if src is not None:
+                key = graph.frame_port(src)
+                r.frame_key = key
+                self.readers.setdefault(key, []).append(r)
+                self.ticks.setdefault(key, 0)
+        self.order: list[NodeRunner] = []
+        self.resort()
+
+    def rel(self, t: float) -> float:
+        """Seconds since the runtime's time origin."""
+        return t - self.clock.origin
+
+    def resort(self) -> None:
+        """Dispatch order within a tick: higher priority first, then file order."""
+        for readers in self.readers.values():
+            readers.sort(key=lambda r: (-r.timing.priority, r.rnode.order))
+        self.order = sorted(
+            self.runners.values(), key=lambda r: (-r.timing.priority, r.rnode.order)
+        )
+
+    def worker_executor(self, rnode: ResolvedNode, priority: int, factory: NodeFactory) -> Executor:
+        workers = self.services.workers
+        if workers is None:
+            raise RuntimeError(
+                f"{rnode.name}: placement {rnode.spec.placement.value} needs worker support"
+            )
+        return workers.executor_for(rnode, priority, factory)
+
+    def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame:
+        frames = self.services.frames
+        if frames is not None:
+            return frames.new_frame(owner, shape, dtype, pixel_format)
+        return Frame(np.empty(shape, dtype=dtype), source=owner, pixel_format=pixel_format)
+
+    def tick(self, key: str, t: float) -> None:
+        """A frame was published on ``key``: release the readers whose period/phase match."""
+        k = self.ticks.get(key)
+        if k is None:
+            return
+        self.ticks[key] = k + 1
+        paced = key in self.paced
+        for r in self.readers[key]:
+            if k % r.timing.period == r.timing.phase:
+                r.release_frame(t, paced)
+
+    async def wait_readers(self, runner: NodeRunner) -> None:
+        """Wait until every period-1 frame-triggered reader of ``runner``'s frames is ready.
+
+        A ``pacing: fast`` source calls this before publishing: a reader in a worker process
+        that is slower than the source is then never skipped (the source follows the slowest
+        such reader instead of outrunning it). "Ready" means the reader has taken the previous
+        frame: it may still run on it, and the new frame's tick then waits for it to finish
+        (deferred, not skipped), so that the source prepares frame k+1 while the worker
+        processes frame k. A reader in a worker of its own is pipelined instead: it is
+        ready while fewer than its window of frames are in flight (see
+        :meth:`flowrt.kernel.pipeline.Pipeline.paced_reader`). Readers with a longer period
+        sample by design and are not waited for; nor are failed, disabled or stopping ones.
+        """
+        self.paced.update(runner.tick_ports.values())
+        while not runner.stopping:
+            waiting = [
+                r
+                for key in runner.tick_ports.values()
+                for r in self.readers.get(key, ())
+                if r.timing.period == 1 and not r.ready_for_frame()
+            ]
+            if not waiting:
+                return
+            await waiting[0].wait_ready()
+
+    async def sleep(self, seconds: float) -> None:
+        fut = self.loop.create_future()
+
+        def wake() -> None:
+            if not fut.done():
+                fut.set_result(None)
+
+        self.clock.call_at(self.clock.now() + seconds, wake)
+        await fut
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Set every node up (workers in parallel), then arm triggers."""
+        for r in self.runners.values():
+            r.executor = r.make_executor()
+            r.state = RunState.starting
+
+        async def start_one(r: NodeRunner) -> None:
+            try:
+                await r.executor.start()
+                r.state = RunState.idle
+            except Exception as e:
+                r.state = RunState.idle
+                r.supervisor.failed(e, starting=True)
+
+        inline = [r for r in self.runners.values() if r.rnode.spec.placement is Placement.inline]
+        others = [
+            r for r in self.runners.values() if r.rnode.spec.placement is not Placement.inline
+        ]
+        await asyncio.gather(*(start_one(r) for r in others))
+        for r in inline:
+            await start_one(r)
+        for r in self.order:
+            if r.timing.timer is not None:
+                r.timer = self.clock.periodic(r.timing.timer, r.timing.timer_phase, r.release_timer)
+            elif isinstance(r.rnode.trigger, LoopTrigger):
+                self.loop.call_soon(r.release, self.clock.now())
+
+    @property
+    def drain_timeout(self) -> float:
+        return self._drain.timeout
+
+    @property
+    def drained(self) -> bool:
+        return self._drain.done
+
+    @property
+    def drain_left(self) -> list[str]:
+        return self._drain.left
+
+    async def drain(self, limit: float | None = None) -> list[str]:
+        """See :meth:`flowrt.kernel.drain.Drain.run`."""
+        return await self._drain.run(limit)
+
+    async def stop(self, grace: float = 1.0) -> None:
+        """Drain (bounded), stop releasing, cancel what still runs, tear every node down."""
+        await self.drain()
+        for r in self.runners.values():
+            r.stop_releasing()
+        pending = [
+            r.task for r in self.runners.values() if r.task is not None and not r.task.done()
+        ]
+        if pending:
+            _, still = await asyncio.wait(pending, timeout=grace)
+            for t in still:
+                t.cancel()
+            if still:
+                await asyncio.wait(still, timeout=grace)
+        drains = [
+            r.backpressure.task
+            for r in self.runners.values()
+            if r.backpressure.task is not None and not r.backpressure.task.done()
+        ]
+        for t in drains:
+            t.cancel()
+        if drains:
+            await asyncio.wait(drains, timeout=grace)
+        self._drain.discard_leftovers()
+        for r in reversed(self.order):
+            try:
+                await asyncio.wait_for(r.executor.stop(), timeout=max(grace, 2.0))
+            except Exception as e:
+                log.warning("node %s: teardown failed: %s", r.name, e)
+        for r in self.runners.values():
+            r.failure_log.flush(self.clock.now())
+
+    # --- run-time changes ---------------------------------------------------------------
+
+    def apply_timing(self, node: str, change: TimingChange, origin: str = "api") -> str:
+        """Apply a timing change now (between ticks: the loop runs one callback at a time).
+
+        ``change`` was validated by whoever made it (:meth:`TimingChange.problems`, checked
+        by ``Runtime.set_timing``/``set_mode``): this applies it, says what changed (a
+        ``TimingChanged`` event) and returns the same words.
+        """
+        r = self.runners[node]
+        tm = r.timing
+        changes: list[str] = []
+
+        def note(label: str, old: Any, new: Any) -> None:
+            if new is not None and new != old:
+                changes.append(f"{label} {old} -> {new}")
+
+        note("period", tm.period, change.period)
+        note("phase", tm.phase, change.phase)
+        note("timer_ms", _ms(tm.timer), _float(change.timer_ms))
+        note("deadline_ms", _ms(tm.deadline), _float(change.deadline_ms))
+        phase_ms = None if tm.timer is None else tm.timer_phase * 1000
+        note("timer_phase_ms", phase_ms, _float(change.timer_phase_ms))
+        note("priority", tm.priority, change.priority)
+        note("enabled", tm.enabled, change.enabled)
+        if change.period is not None:
+            tm.period = change.period
+        if change.phase is not None:
+            tm.phase = change.phase
+        if change.deadline_ms is not None:
+            tm.deadline = change.deadline_ms / 1000
+        if change.priority is not None:
+            tm.priority = change.priority
+            self.resort()
+            r.executor.set_priority(change.priority)
+        if change.enabled is not None:
+            was = tm.enabled
+            tm.enabled = change.enabled
+            loop_node = isinstance(r.rnode.trigger, LoopTrigger)
+            if change.enabled and not was and loop_node and not r.busy:
+                self.loop.call_soon(r.release, self.clock.now())
+        self._apply_timer(r, change)
+        restart = ("period", "phase", "timer_ms", "timer_phase_ms", "enabled")
+        if any(c.split()[0] in restart for c in changes):
+            r.counts.new_interval_series()
+        text = ", ".join(changes) or "no change"
+        if changes:
+            self.emit(TimingChanged(self.rel(self.clock.now()), node, text, origin))
+        return text
+
+    @staticmethod
+    def _apply_timer(r: NodeRunner, change: TimingChange) -> None:
+        tm = r.timing
+        timer = None if change.timer_ms is None else change.timer_ms / 1000
+        if change.timer_phase_ms is not None and tm.timer is not None:
+            tm.timer_phase = change.timer_phase_ms / 1000
+        if (timer is not None or change.timer_phase_ms is not None) and r.timer is not None:
+            tm.timer = tm.timer if timer is None else timer
+            assert tm.timer is not None
+            r.timer.reset(tm.timer, min(tm.timer_phase, tm.timer * 0.999))
+        elif timer is not None:
+            tm.timer = timer
+
+
+def _ms(seconds: float | None) -> float | None:
+    return None if seconds is None else seconds * 1000
+
+
+def _float(ms: float | None) -> float | None:
+    return None if ms is None else float(ms)

@@ -1,0 +1,112 @@
+"""A node that raised: count, log (rate-limited), restart after a back-off, or give up.
+
+The one supervision rule of :mod:`flowrt.supervision` (Erlang/OTP's restart intensity, in
+the words of a graph file's ``restart:``), applied to one runner.
+"""
+
+from __future__ import annotations
+
+import logging
+import traceback
+from typing import Protocol
+
+from ..events import NodeFailed, NodeGaveUp, NodeRestarted
+from ..graph import ResolvedNode
+from ..supervision import FailureLog, backoff_s, failure_kind, give_up_reason, out_of_resources
+from .counters import Counters
+from .executor import Executor
+from .ports import SchedulerPort
+from .state import RunState
+
+
+class SupervisedRunner(Protocol):
+    """What supervision reads and changes of its runner."""
+
+    name: str
+    rnode: ResolvedNode
+    counts: Counters
+    state: RunState
+    busy: bool
+    executor: Executor
+    stopping: bool
+    sched: SchedulerPort
+
+    def make_executor(self) -> Executor: ...
+
+    def idle(self) -> None: ...
+
+
+log = logging.getLogger("flowrt.scheduler")
+
+
+class Supervisor:
+    """Restarts one runner's node after failures, or gives it up (state ``failed``)."""
+
+    def __init__(self, runner: SupervisedRunner) -> None:
+        self._r = runner
+        self.consecutive = 0  # failures since the last completion (or swap)
+        self.log = FailureLog(runner.name)
+        self.failed_reason = ""  # why the node was given up (state "failed")
+
+    def succeeded(self) -> None:
+        self.consecutive = 0
+
+    def failed(self, exc: BaseException, starting: bool = False) -> None:
+        r = self._r
+        sched = r.sched
+        r.counts.errors += 1
+        self.consecutive += 1
+        # A worker's error brings its own one-line summary and the worker's traceback (none
+        # for a dead worker): the main side's stack would only show the transport.
+        tb = getattr(exc, "traceback", None)
+        if not isinstance(tb, str):
+            tb = "".join(traceback.format_exception(exc))
+        error = getattr(exc, "summary", None) or f"{type(exc).__name__}: {exc}"
+        now = sched.clock.now()
+        fatal = bool(getattr(exc, "fatal", False))
+        if not fatal:  # a fatal error is said once, below
+            self.log.failed(now, error, tb)
+        sched.emit(NodeFailed(sched.rel(now), r.name, error, tb))
+        r.busy = False
+        policy = r.rnode.spec.restart
+        # Out of descriptors/processes/memory: the machine's failure, retried without a bound.
+        counted = 0 if out_of_resources(exc) else self.consecutive
+        never_started = starting and r.counts.completions == 0
+        why = give_up_reason(policy, counted, r.counts.restarts, fatal, never_started)
+        if why is not None:
+            r.state = RunState.failed
+            last = failure_kind(error)
+            self.failed_reason = last if fatal else f"{why}; last error: {last}"
+            self.log.flush(now)
+            log.error("node %s given up: %s", r.name, self.failed_reason)
+            sched.emit(NodeGaveUp(sched.rel(now), r.name, self.failed_reason))
+            sched.loop.create_task(self.stop_executor())
+            return
+        r.state = RunState.backoff
+        sched.loop.create_task(self._restart(backoff_s(policy, self.consecutive)))
+
+    async def stop_executor(self) -> None:
+        try:
+            await self._r.executor.stop()
+        except Exception as e:
+            log.warning("node %s: teardown failed: %s", self._r.name, e)
+
+    async def _restart(self, backoff: float) -> None:
+        r = self._r
+        sched = r.sched
+        await self.stop_executor()
+        await sched.sleep(backoff)
+        if r.stopping:
+            return
+        r.counts.restarts += 1
+        sched.emit(
+            NodeRestarted(sched.rel(sched.clock.now()), r.name, r.counts.restarts, backoff * 1000)
+        )
+        r.executor = r.make_executor()
+        try:
+            await r.executor.start()
+        except Exception as e:
+            self.failed(e, starting=True)
+            return
+        r.state = RunState.idle
+        r.idle()

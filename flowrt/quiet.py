@@ -1,0 +1,42 @@
+"""Where a monitor may hold the loop: the widest gap between timer releases.
+
+Monitors that hold the loop for a while (a terminal table, a summary line) wait for the
+middle of that gap, so their work falls where no timer (and so no frame tick) is due.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+
+@lru_cache(maxsize=8)
+def quiet_gap(timers: tuple[tuple[float, float], ...]) -> tuple[float, float]:
+    """(offset of the widest gap's middle, cycle) in seconds over the timers' hyperperiod.
+
+    ``timers``: (period, phase) of each enabled timer, in seconds, sorted (the cache key).
+    The hyperperiod is bounded (2 s, or ten of the longest period): a window, not forever.
+    """
+    us = [(round(p * 1e6), round(ph * 1e6)) for p, ph in timers]
+    cycle = 1
+    for p, _ in us:
+        cycle = cycle * p // math.gcd(cycle, p)
+    cycle = min(cycle, 10 * max(p for p, _ in us), 2_000_000)
+    instants = sorted(
+        {ph + k * p for p, ph in us for k in range(cycle // p + 1) if ph + k * p < cycle}
+    )
+    gaps = [(b - a, a) for a, b in zip(instants, [*instants[1:], instants[0] + cycle], strict=True)]
+    width, start = max(gaps)
+    return (((start + width / 2) % cycle) / 1e6, cycle / 1e6)
+
+
+def delay_to_gap(
+    timers: list[tuple[float, float]], now: float, origin: float, at_least: float
+) -> float:
+    """Seconds from ``now`` to the middle of the next widest gap, at least ``at_least``."""
+    if not timers:
+        return at_least
+    offset, cycle = quiet_gap(tuple(sorted(timers)))
+    base = origin + offset
+    k = math.ceil((now + at_least - base) / cycle)
+    return max(0.0, base + k * cycle - now)

@@ -1,0 +1,75 @@
+"""Run-time timing changes and modes: one :class:`~flowrt.timing.TimingChange` each, checked
+whole (ranges, the node's trigger, then admission control) before any of it is applied.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Protocol
+
+from .events import ModeChanged
+from .hotswap import SwapHost, apply_mode_params
+from .kernel import NodeRunner
+from .spec import FrameTrigger
+from .timing import TimingChange
+
+
+class TimingHost(SwapHost, Protocol):
+    """What timing changes and modes need of the runtime (this module does not import it)."""
+
+    mode: str | None
+
+    def record_state(self, name: str, value: Any) -> None: ...
+
+
+def check_plan(runners: Mapping[str, NodeRunner], plan: Mapping[str, TimingChange]) -> None:
+    """Raise ValueError, before anything is applied, if any change of ``plan`` is invalid."""
+    problems = []
+    for name, change in plan.items():
+        r = runners[name]
+        problems += change.problems(name, r.timing, isinstance(r.rnode.trigger, FrameTrigger))
+    if problems:
+        raise ValueError("; ".join(problems))
+
+
+def set_timing(rt: TimingHost, node: str, origin: str, force: bool, given: dict[str, Any]) -> str:
+    """See :meth:`flowrt.Runtime.set_timing` (``given``: the graph file's names, ms)."""
+    runners = rt.scheduler.runners
+    if node not in runners:
+        from .diagnostics import did_you_mean
+
+        raise KeyError(f"unknown node {node!r}" + did_you_mean(node, runners))
+    change = TimingChange.parse(node, **given)
+    check_plan(runners, {node: change})
+    if not force and origin != "qos":
+        admit(rt, {node: change})
+    return rt.scheduler.apply_timing(node, change, origin)
+
+
+def set_mode(rt: TimingHost, mode: str, origin: str, force: bool) -> None:
+    """See :meth:`flowrt.Runtime.set_mode`."""
+    spec = rt.graph.spec.modes.get(mode)
+    if spec is None:
+        from .diagnostics import did_you_mean
+
+        raise KeyError(f"unknown mode {mode!r}" + did_you_mean(mode, rt.graph.spec.modes))
+    from .qos import mode_plan
+
+    previous_spec = rt.graph.spec.modes.get(rt.mode) if rt.mode else None
+    plan = mode_plan(rt.graph, previous_spec, spec)
+    check_plan(rt.scheduler.runners, plan)  # all or nothing
+    if not force and origin != "graph":  # the initial mode is the graph's own choice
+        admit(rt, plan)
+    for node, change in plan.items():
+        rt.scheduler.apply_timing(node, change, f"mode {mode}")
+    apply_mode_params(rt, previous_spec, spec)
+    previous, rt.mode = rt.mode, mode
+    rt.emit(ModeChanged(rt.now(), None, mode, previous, origin))
+    rt.record_state("flowrt.mode", mode)
+
+
+def admit(rt: TimingHost, plan: Mapping[str, TimingChange]) -> None:
+    """Raise ValueError (AdmissionRefused) if ``plan`` breaks a critical deadline."""
+    from .analysis.admission import check_change
+
+    check_change(rt.graph, rt.scheduler.runners, plan)

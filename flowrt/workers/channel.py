@@ -1,0 +1,434 @@
+"""One worker process seen from the event loop: its request queue, calls in flight, death."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import heapq
+import itertools
+import multiprocessing
+import multiprocessing.context
+import os
+import pickle
+import select
+import signal
+import socket
+import traceback
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from flowrt.frames import release_handoffs
+from flowrt.grants import Grant, OutputGrants
+
+from .child import worker_main
+from .errors import WorkerError, WorkerKind
+from .forkserver import (
+    EXIT_MAIN_UNGUARDED,
+    NO_MAIN,
+    WITH_MAIN,
+    context,
+    exit_if_importing_main,
+    unguarded_main_message,
+)
+from .watchdog import proc_forget, progress_of, state_of
+from .wire import HDR, OP_EXIT, PICKLE, R_ERR, R_FATAL, R_OK, SIGNALS_KILLED
+
+
+@dataclass(order=True)
+class _Call:
+    """One request to a worker, ordered for dispatch by priority then arrival."""
+
+    sort_key: tuple[int, int]
+    payload: bytes = field(compare=False)
+    future: asyncio.Future[Any] = field(compare=False)
+    node: str = field(compare=False)
+    watchdog: float | None = field(compare=False)
+    window: int = field(default=1, compare=False)  # >1: may be sent behind calls of its node
+    index: int = field(default=-1, compare=False)  # its place on the wire (see R_OK)
+    # The node's output slots and the grants this call carries (flowrt.grants).
+    outputs: tuple[OutputGrants, tuple[Grant, ...]] | None = field(default=None, compare=False)
+
+
+class _Protocol(asyncio.Protocol):
+    """Splits the worker's byte stream into replies."""
+
+    def __init__(self, worker: Worker) -> None:
+        self.worker = worker
+        self.buf = bytearray()
+
+    def data_received(self, data: bytes) -> None:
+        buf = self.buf
+        buf += data
+        while len(buf) >= 4:
+            (n,) = HDR.unpack_from(buf)
+            if len(buf) < 4 + n:
+                break
+            msg = bytes(buf[4 : 4 + n])
+            del buf[: 4 + n]
+            self.worker._on_reply(msg)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self.worker._on_eof()
+
+
+class Worker:
+    """One worker process seen from the event loop: a request queue and the calls in flight.
+
+    Normally one call at a time, so that waiting calls can be dispatched by priority (a pool
+    worker shared by several nodes). A *pipelined* call (``window`` > 1, for a node whose
+    inputs are queues: every value is to be processed, in order) is written behind the calls
+    of the same node still in flight, up to ``window`` of them: the worker finds the next
+    request in its socket when it answers one and runs back to back, while the loop goes on
+    publishing. The worker serves requests in order, so replies come back in the order of the
+    calls (FIFO over one stream socket), each with the sequence number of its call. The
+    watchdog arms for the call at the head of the line only, when it starts running (sent
+    into an idle worker, or when the reply of the call before it arrives): it still measures
+    the call itself, not its wait.
+    """
+
+    def __init__(self, name: str, *, import_main: bool = False) -> None:
+        self.name = name
+        self.import_main = import_main
+        self.proc: multiprocessing.process.BaseProcess | None = None
+        self.pid: int | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._transport: asyncio.Transport | None = None
+        self._inflight: deque[_Call] = deque()
+        self._waiting: list[_Call] = []
+        self._seq = itertools.count()
+        self._wire = itertools.count()  # requests written, matched by the replies' index
+        self._timer: asyncio.TimerHandle | None = None
+        self._hung_node: str | None = None
+        self._exited = asyncio.Event()
+        self._eof_timer: asyncio.TimerHandle | None = None
+        self.death: WorkerError | None = None
+        self.alive = False  # the process exists (until its sentinel fires)
+        self._killing = False
+        self.last_run_time = 0.0
+        # Watchdog progress check (see _on_hung): the worker's CPU and run-queue wait at the
+        # last check, and who hears of a call spared because the worker was starved of CPU.
+        self._progress: tuple[float, float, float | None] | None = None
+        self._call_cpu = 0.0  # the worker's CPU time when the call in flight was sent
+        self.on_starved: Callable[[str, str], None] | None = None
+
+    async def spawn(self) -> None:
+        exit_if_importing_main()
+        loop = asyncio.get_running_loop()
+        self._loop = loop
+        ctx = context()
+        parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        proc = ctx.Process(
+            target=worker_main,
+            args=(child, self.name, os.getpid()),
+            name=(WITH_MAIN if self.import_main else NO_MAIN) + self.name,
+            daemon=True,
+        )
+        try:
+            # Blocking (talks to the forkserver, which may still be starting): off the loop.
+            await asyncio.to_thread(proc.start)
+        except BaseException:
+            parent.close()
+            raise
+        finally:
+            child.close()
+        self.proc = proc
+        self.pid = proc.pid
+        self.alive = True
+        parent.setblocking(False)
+        transport, _ = await loop.create_unix_connection(lambda: _Protocol(self), sock=parent)
+        self._transport = transport
+        loop.add_reader(proc.sentinel, self._on_exit)
+
+    # -- requests ----------------------------------------------------------------------------
+
+    def request(
+        self,
+        msg: tuple[Any, ...],
+        node: str,
+        priority: int,
+        watchdog: float | None,
+        window: int = 1,
+        outputs: tuple[OutputGrants, tuple[Grant, ...]] | None = None,
+    ) -> asyncio.Future[Any]:
+        """Queue a request; the future resolves to the reply payload or a WorkerError.
+
+        ``window`` > 1: send it at once behind calls of the same node already in flight, as
+        long as fewer than ``window`` are (see the class docstring). ``outputs``: the node's
+        output slots and the grants ``msg`` carries (told of the reply, or taken back).
+        """
+        if not self.usable or self._loop is None:
+            raise self.death_for(node)
+        fut = self._loop.create_future()
+        fut.add_done_callback(_retrieved)
+        seq = next(self._seq)
+        call = _Call(
+            (-priority, seq), pickle.dumps(msg, PICKLE), fut, node, watchdog, window, -1, outputs
+        )
+        if not self._inflight or self._may_follow(call):
+            self._send(call)
+        else:
+            heapq.heappush(self._waiting, call)
+        return fut
+
+    def _may_follow(self, call: _Call) -> bool:
+        """A pipelined call may go behind the calls in flight: all its node's, window not full."""
+        inflight = self._inflight
+        return (
+            call.window > 1
+            and len(inflight) < call.window
+            and not self._waiting
+            and all(c.node == call.node and c.window > 1 for c in inflight)
+        )
+
+    @property
+    def in_flight(self) -> int:
+        """Calls written to the worker and not answered yet."""
+        return len(self._inflight)
+
+    def _send(self, call: _Call) -> None:
+        assert self._transport is not None
+        call.index = next(self._wire)
+        self._inflight.append(call)
+        self._transport.write(HDR.pack(len(call.payload)) + call.payload)
+        if len(self._inflight) == 1:
+            self._arm(call)
+
+    def _arm(self, call: _Call) -> None:
+        """The call at the head of the line starts running now: its watchdog starts too."""
+        assert self._loop is not None
+        if call.watchdog is not None:
+            self._progress = progress_of(self.pid, self._loop.time())
+            self._call_cpu = 0.0 if self._progress is None else self._progress[1]
+            self._timer = self._loop.call_later(call.watchdog, self._on_hung)
+
+    def _dispatch_next(self) -> None:
+        while self._waiting:
+            call = self._waiting[0]
+            if call.future.done():  # skip calls whose caller gave up
+                heapq.heappop(self._waiting)
+                if call.outputs is not None:
+                    call.outputs[0].unsent(call.outputs[1])
+                continue
+            if self._inflight and not self._may_follow(call):
+                return
+            heapq.heappop(self._waiting)
+            self._send(call)
+            if call.window <= 1:
+                return
+
+    def _on_reply(self, raw: bytes) -> None:
+        if not self._inflight:
+            return
+        call = self._inflight.popleft()
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        if self._inflight:
+            self._arm(self._inflight[0])
+        fut = call.future
+        report = None
+        try:
+            status, payload, seconds, index, report = pickle.loads(raw)
+        except Exception:
+            status, payload, seconds, index = R_ERR, traceback.format_exc(), 0.0, call.index
+        if call.outputs is not None:
+            call.outputs[0].replied(report)
+        if fut.done() and status == R_OK:
+            release_handoffs(payload)  # nobody will take the frames it made
+        if index != call.index:  # cannot happen on one stream socket; never hand out a
+            # result to the wrong activation: the worker is condemned like a crashed one
+            if not fut.done():
+                fut.set_exception(
+                    WorkerError(call.node, "crashed", f"reply {index} to call {call.index}")
+                )
+            self.kill()
+            return
+        self.last_run_time = seconds
+        if not fut.done():
+            if status == R_OK:
+                fut.set_result(payload)
+            else:
+                fatal = status == R_FATAL
+                fut.set_exception(WorkerError(call.node, "exception", payload, fatal=fatal))
+        self._dispatch_next()
+
+    # -- failure -----------------------------------------------------------------------------
+
+    def _on_hung(self) -> None:
+        self._timer = None
+        if not self._inflight or not self.alive:
+            return
+        call = self._inflight[0]
+        assert self._loop is not None
+        assert call.watchdog is not None
+        if self._reply_waiting():  # answered; the loop was late to read it (uvloop runs
+            self._timer = self._loop.call_later(0.005, self._on_hung)  # timers before I/O)
+            return
+        starved = self._starved(call.watchdog)
+        if starved:
+            if self.on_starved is not None:
+                self.on_starved(call.node, starved)
+            self._timer = self._loop.call_later(call.watchdog, self._on_hung)
+            return
+        self._hung_node = call.node
+        self.death = self._classify(None)
+        err = WorkerError(
+            call.node,
+            "hung",
+            f"no result within the {call.watchdog:g} s watchdog; worker {self.pid} killed",
+        )
+        if not call.future.done():
+            call.future.set_exception(err)
+        self.kill()
+
+    def _reply_waiting(self) -> bool:
+        """Bytes from the worker wait in the socket (a reply, or EOF that the sentinel follows)."""
+        sock = None if self._transport is None else self._transport.get_extra_info("socket")
+        if sock is None:
+            return False
+        try:
+            readable, _, _ = select.select([sock.fileno()], [], [], 0)
+        except (OSError, ValueError):
+            return False
+        return bool(readable)
+
+    def _starved(self, watchdog: float) -> str:
+        """Why a call past its watchdog is spared ('' if it is not): the worker was starved.
+
+        A hung worker and a starved machine look the same from the loop's clock. The kernel
+        tells them apart: a starved worker got less than half the window's CPU and either
+        waited on the run queue for most of it (``/proc/PID/schedstat``) or is runnable now
+        (``/proc/PID/stat``: schedstat counts a wait only when it ends). A hung worker is
+        asleep or blocked, or it spins and gets the CPU; and a call is killed anyway once it
+        has had a whole watchdog of CPU time, so on a machine merely loaded (a spinning
+        worker gets a share, not half), a spinning hang is killed a few watchdogs late, and
+        on a starved one at the first check after the starvation ends.
+        """
+        assert self._loop is not None
+        before, now = self._progress, progress_of(self.pid, self._loop.time())
+        self._progress = now
+        if before is None or now is None:
+            return ""
+        t0, cpu0, wait0 = before
+        t1, cpu1, wait1 = now
+        window = t1 - t0
+        cpu = cpu1 - cpu0
+        if cpu1 - self._call_cpu >= watchdog:
+            return ""  # a whole watchdog of CPU time and no result: hung however loaded
+        if window <= 0 or cpu >= 0.5 * window:
+            return ""  # it had the CPU: a hang (or a call longer than its watchdog)
+        if wait0 is not None and wait1 is not None and wait1 - wait0 >= 0.5 * window:
+            what = f"waited {(wait1 - wait0) * 1000:.0f} ms for a CPU"
+        elif state_of(self.pid) == "R":
+            # schedstat adds a wait when it ends: a worker still queued shows none yet
+            what = "is runnable but not running"
+        else:
+            return ""  # asleep or blocked: hung
+        return (
+            f"worker {self.pid} ran {cpu * 1000:.0f} ms of CPU in {window * 1000:.0f} ms and "
+            f"{what}: starved of CPU, not hung; watchdog extended by {watchdog * 1000:g} ms"
+        )
+
+    def _on_eof(self) -> None:
+        # Normally followed at once by the sentinel. A worker that closed its socket but lives
+        # on would never answer again: give it a moment, then kill it.
+        if self.alive and self._loop is not None and self._eof_timer is None:
+            self._eof_timer = self._loop.call_later(1.0, self.kill)
+
+    def _on_exit(self) -> None:
+        assert self._loop is not None
+        assert self.proc is not None
+        self._loop.remove_reader(self.proc.sentinel)
+        if self._eof_timer is not None:
+            self._eof_timer.cancel()
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self.proc.join(0)
+        exitcode = self.proc.exitcode
+        self.alive = False
+        proc_forget(self.pid)
+        self.death = self._classify(exitcode)
+        if self._transport is not None:
+            self._transport.abort()
+        calls = [*self._inflight, *self._waiting]
+        self._inflight = deque()
+        self._waiting = []
+        for grants in {id(c.outputs[0]): c.outputs[0] for c in calls if c.outputs}.values():
+            grants.reclaim()  # the slots lent to the dead worker return to their pool
+        for call in calls:
+            if not call.future.done():
+                call.future.set_exception(self.death_for(call.node))
+        with contextlib.suppress(ValueError):
+            self.proc.close()
+        self._exited.set()
+
+    def _classify(self, exitcode: int | None) -> WorkerError:
+        if self._hung_node is not None:
+            return WorkerError(
+                self._hung_node, "hung", f"worker {self.pid} killed after the watchdog", exitcode
+            )
+        if exitcode is None:
+            return WorkerError(self.name, "crashed", f"worker {self.pid} vanished", exitcode)
+        if exitcode < 0:
+            try:
+                signame = signal.Signals(-exitcode).name
+            except ValueError:
+                signame = f"signal {-exitcode}"
+            kind: WorkerKind = "killed" if -exitcode in SIGNALS_KILLED else "crashed"
+            return WorkerError(self.name, kind, f"worker {self.pid} died of {signame}", exitcode)
+        if exitcode == EXIT_MAIN_UNGUARDED and self.import_main:
+            return WorkerError(self.name, "crashed", unguarded_main_message(), exitcode, fatal=True)
+        return WorkerError(
+            self.name, "crashed", f"worker {self.pid} exited with code {exitcode}", exitcode
+        )
+
+    def death_for(self, node: str) -> WorkerError:
+        """The error a node of this worker sees once the worker is dead."""
+        d = self.death
+        if d is None:
+            return WorkerError(node, "crashed", f"worker {self.name} is not running")
+        if d.kind == "hung" and d.node != node:
+            return WorkerError(
+                node, "crashed", f"worker shared with {d.node}, which hung: {d.detail}", d.exitcode
+            )
+        return WorkerError(node, d.kind, d.detail, d.exitcode, fatal=d.fatal)
+
+    @property
+    def usable(self) -> bool:
+        """Alive and not condemned (a killed worker stays alive until its sentinel fires)."""
+        return self.alive and not self._killing
+
+    def kill(self) -> None:
+        if self.alive and self.pid is not None:
+            self._killing = True
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, signal.SIGKILL)
+
+    async def wait_exit(self, grace: float = 2.0) -> None:
+        """Wait until the process is gone and reaped (killing it if it takes too long)."""
+        if not self.alive:
+            return
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._exited.wait(), grace)
+        if self.alive:
+            self.kill()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._exited.wait(), grace)
+
+    async def stop(self, grace: float = 2.0) -> None:
+        """Tear every node down and let the worker exit; kill it if it does not in time."""
+        if self.usable:
+            with contextlib.suppress(WorkerError, TimeoutError):
+                await asyncio.wait_for(self.request((OP_EXIT,), self.name, 1 << 30, grace), grace)
+        await self.wait_exit(grace)
+
+
+def _retrieved(fut: asyncio.Future[Any]) -> None:
+    """Mark a request's error as seen: whoever awaits it still gets it, and a caller that
+    gave up (a node task cancelled at stop while its worker died) leaves no "Future exception
+    was never retrieved" behind."""
+    if not fut.cancelled():
+        fut.exception()

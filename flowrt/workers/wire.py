@@ -1,0 +1,30 @@
+"""The wire between the loop and a worker: length-prefixed pickles, one reply per request.
+
+Requests and replies are tuples whose first item says what they are (below); frames travel
+as descriptors of their shared-memory slot (:mod:`flowrt.frames`).
+"""
+
+from __future__ import annotations
+
+import pickle
+import signal
+import struct
+
+HDR = struct.Struct("<I")
+PICKLE = pickle.HIGHEST_PROTOCOL
+
+# Requests (main -> worker); every request gets exactly one reply.
+OP_ADD = 0  # (op, node_id, node_name, factory, WorkerScheduling) -> granted: str
+OP_CALL = 1  # (op, node_id, inputs, grants) -> result (grants: slots lent, flowrt.grants)
+OP_REMOVE = 2  # (op, node_id) -> None (teardown)
+OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
+OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
+
+# Replies (worker -> main), in the order of the requests; ``index`` counts the requests the
+# worker has read (0, 1, 2, ...), so that the main side matches each reply to its call;
+# ``report`` says what a call did with its output slots (flowrt.grants), else None.
+R_OK = 0  # (status, payload, run_seconds, index, report)
+R_ERR = 1  # (status, formatted traceback, run_seconds, index)
+R_FATAL = 2  # as R_ERR, from an exception whose ``fatal`` is true: do not restart
+
+SIGNALS_KILLED = {signal.SIGKILL, signal.SIGTERM, signal.SIGINT, signal.SIGHUP}
