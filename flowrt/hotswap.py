@@ -86,7 +86,7 @@ async def _swap_to(
 ) -> None:
     old_kind = runner.rnode.spec.kind
     try:
-        await runner.swap(cls, model, label, reload=reload)
+        await runner.swapper.swap(cls, model, label, reload=reload)
     except Exception as e:
         raise SwapError(
             f"{runner.name}: swap to {label} failed, the old instance runs on: {e}"
@@ -118,7 +118,7 @@ def set_params(rt: SwapHost, node: str, params: Mapping[str, Any], merge: bool) 
         model = rt.graph.validate_params(runner.rnode.cls, target)
     except ValidationError as e:
         raise ValueError(f"{node}: params: {e}") from None
-    runner.set_params(model)
+    runner.swapper.set_params(model)
 
 
 def apply_mode_params(rt: SwapHost, previous: ModeSpec | None, new: ModeSpec) -> None:
@@ -131,4 +131,4 @@ def apply_mode_params(rt: SwapHost, previous: ModeSpec | None, new: ModeSpec) ->
         base = rt.graph.spec.nodes[name].params
         target = merge_params(base, o.params if o is not None else None)
         runner = rt.scheduler.runners[name]
-        runner.set_params(rt.graph.validate_params(runner.rnode.cls, target))
+        runner.swapper.set_params(rt.graph.validate_params(runner.rnode.cls, target))

@@ -31,12 +31,16 @@ def quiet_gap(timers: tuple[tuple[float, float], ...]) -> tuple[float, float]:
 
 
 def delay_to_gap(
-    timers: list[tuple[float, float]], now: float, origin: float, at_least: float
+    timers: list[tuple[float | None, float]], now: float, origin: float, at_least: float
 ) -> float:
-    """Seconds from ``now`` to the middle of the next widest gap, at least ``at_least``."""
-    if not timers:
+    """Seconds from ``now`` to the middle of the next widest gap, at least ``at_least``.
+
+    ``timers``: (period or None, phase) of each node; a None or zero period is no timer.
+    """
+    running = tuple(sorted((p, ph) for p, ph in timers if p))
+    if not running:
         return at_least
-    offset, cycle = quiet_gap(tuple(sorted(timers)))
+    offset, cycle = quiet_gap(running)
     base = origin + offset
     k = math.ceil((now + at_least - base) / cycle)
     return max(0.0, base + k * cycle - now)

@@ -19,25 +19,26 @@ import contextlib
 import gc
 import logging
 import math
-import os
-from collections import deque
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
-from . import hotswap, timing_control
+from . import host_ports, hotswap, timing_control
 from .clock import Clock, SystemClock
-from .edges import make_buffer
+from .event_hub import EventHub
+from .event_hub import Monitor as Monitor
 from .eventloop import run as run
 from .events import Event, HealthAlert, NodeGaveUp, RealtimeStatus
 from .graph import Graph, resolve
 from .hotswap import SwapError as SwapError
 from .kernel import NodeRunner, Scheduler, Services
+from .loop_share import LoopShare
 from .node import Node
 from .quiet import delay_to_gap
 from .resources import RunResources
-from .spec import EdgePolicy, GraphSpec, Placement
-from .stats import LoopStats, NodeStats, Running, RuntimeStats
+from .runtime_stats import runtime_stats
+from .spec import GraphSpec, Placement
+from .stats import NodeStats, Running, RuntimeStats
 from .subscription import Subscription
 
 if TYPE_CHECKING:
@@ -47,16 +48,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("flowrt")
 T = TypeVar("T")
-
-
-class Monitor(Protocol):
-    """Something that watches a runtime: told when it starts, of each event, when it stops."""
-
-    def started(self, rt: Runtime) -> None: ...
-
-    def event(self, event: Event) -> None: ...
-
-    def stopped(self, rt: Runtime) -> None: ...
 
 
 class Runtime:
@@ -87,22 +78,21 @@ class Runtime:
         if clock is not None and spin:
             raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
         self.clock: Clock = clock or SystemClock(spin=spin)
-        self.monitors: list[Monitor] = list(monitors)
+        self.hub = EventHub(list(monitors))
+        self.monitors = self.hub.monitors  # watchers of the run (table, web view, QoS...)
         self.realtime_requested = realtime
         self.realtime = ""
         self.latency_hint = ""
         self.mode: str | None = None
-        self.events: deque[Event] = deque(maxlen=1000)
-        self.event_count = 0
-        self._listeners: list[Callable[[Event], None]] = []
+        self.events = self.hub.events  # the last 1000 events
         self._sched: Scheduler | None = None
         self.resources: RunResources | None = None  # frames and workers, while running
         self._stop = asyncio.Event()
-        self._lag = Running()
+        self.lag = Running()  # the loop's lateness, by a 10 ms probe timer
         self._lag_handle: asyncio.TimerHandle | None = None
         self._rtdb: RTDB | None = None
         self._fair: FairShare | None = None
-        self._nice_before: int | None = None
+        self._loop_share = LoopShare()
         self.qos: OverloadController | None = None
         self._bridge: Any = None  # flowrt.remote.ZenohBridge when the graph spans machines
         self.started = False
@@ -146,7 +136,7 @@ class Runtime:
             if not granted:
                 log.warning("--realtime: %s", self.realtime)
         if not self.realtime.startswith("SCHED_FIFO"):
-            self._fair_share()
+            self._fair, self.latency_hint = self._loop_share.apply(self.graph)
         self.resources = resources = RunResources(
             self.clock,
             self._emit,
@@ -232,7 +222,7 @@ class Runtime:
                     log.exception("monitor failed at stop")
             if self._rtdb is not None:
                 self._rtdb.close()
-            self._restore_fair_share()
+            self._loop_share.restore()
             gc.unfreeze()
 
     async def run(self, duration: float | None = None) -> None:
@@ -256,50 +246,7 @@ class Runtime:
 
     # --- resources ----------------------------------------------------------------------
 
-    def _fair_share(self) -> None:
-        """Without SCHED_FIFO: the loop at the lowest nice permitted, workers ranked above it.
-
-        The loop also asks for a short EEVDF slice, so that its timer wake-ups preempt a busy
-        process instead of waiting for that process's slice to end.
-        """
-        from .oscheduling import FairShare, lowest_nice, request_short_slice
-
-        floor = lowest_nice()
-        self._nice_before = nice = os.getpriority(os.PRIO_PROCESS, 0)
-        with contextlib.suppress(OSError):
-            if floor < nice:
-                os.setpriority(os.PRIO_PROCESS, 0, floor)
-        nice = os.getpriority(os.PRIO_PROCESS, 0)
-        # Ranked among the workers only: inline nodes run in the loop, which is above them all.
-        workers = {
-            name for name, n in self.graph.nodes.items() if n.spec.placement is not Placement.inline
-        }
-        priorities = [self.graph.nodes[name].spec.priority for name in workers]
-        for mode in self.graph.spec.modes.values():
-            priorities += [
-                o.priority
-                for name, o in mode.nodes.items()
-                if name in workers and o.priority is not None
-            ]
-        self._fair = FairShare(priorities, nice)
-        self.latency_hint = ", ".join(x for x in (f"nice {nice}", request_short_slice()) if x)
-
-    def _restore_fair_share(self) -> None:
-        """Give an embedding program its nice level and slice back."""
-        if self._nice_before is None:
-            return
-        from .oscheduling import request_short_slice
-
-        with contextlib.suppress(OSError):
-            os.setpriority(os.PRIO_PROCESS, 0, self._nice_before)
-        request_short_slice(0)
-        self._nice_before = None
-
-    # --- events -------------------------------------------------------------------------
-
     def _emit(self, event: Event) -> None:
-        self.events.append(event)
-        self.event_count += 1
         if isinstance(event, NodeGaveUp) and self.stop_on_failure:
             log.info(
                 "node %s failed: stopping the run (--keep-going, or stop_on_failure=False, "
@@ -309,16 +256,7 @@ class Runtime:
             self.request_stop()
         if isinstance(event, HealthAlert):
             self.record_state("flowrt.alerts", event)
-        for m in self.monitors:
-            try:
-                m.event(event)
-            except Exception:
-                log.exception("monitor failed on %s", event.kind)
-        for cb in self._listeners:
-            try:
-                cb(event)
-            except Exception:
-                log.exception("event listener failed on %s", event.kind)
+        self.hub.publish(event)
 
     def emit(self, event: Event) -> None:
         """Publish an event from the host program (e.g. a health alert)."""
@@ -326,12 +264,11 @@ class Runtime:
 
     def on_event(self, callback: Callable[[Event], None]) -> Callable[[], None]:
         """Call ``callback`` for every event; returns a function that unsubscribes."""
-        self._listeners.append(callback)
-        return lambda: self._listeners.remove(callback)
+        return self.hub.listen(callback)
 
     def _probe_lag(self, expected: float) -> None:
         now = self.clock.now()
-        self._lag.add(max(0.0, now - expected))
+        self.lag.add(max(0.0, now - expected))
         loop = asyncio.get_running_loop()
         self._lag_handle = loop.call_later(0.010, self._probe_lag, now + 0.010)
 
@@ -344,17 +281,10 @@ class Runtime:
         return self._sched
 
     def quiet_delay(self, at_least: float) -> float:
-        """Seconds from now to the middle of the widest gap between timer releases.
-
-        Monitors that hold the loop for a while (a terminal table, a summary line) wait for
-        this, so their work falls where no timer (and so no frame tick) is due, at least
-        ``at_least`` from now (:mod:`flowrt.quiet`).
-        """
-        timers = [
-            (r.timing.timer, r.timing.timer_phase)
-            for r in self.scheduler.runners.values()
-            if r.timing.timer and r.timing.enabled
-        ]
+        """Seconds from now to the middle of the widest gap between timer releases, at least
+        ``at_least``: where a monitor may hold the loop (:mod:`flowrt.quiet`)."""
+        tms = [r.timing for r in self.scheduler.order]
+        timers = [(t.timer if t.enabled else None, t.timer_phase) for t in tms]
         return delay_to_gap(timers, self.clock.now(), self.clock.origin, at_least)
 
     def now(self) -> float:
@@ -391,25 +321,20 @@ class Runtime:
         return QosStatus(self.mode, True, q.overloaded, q.reason, q.shed(), q.last)
 
     def stats(self) -> RuntimeStats:
-        sched = self.scheduler
-        res = self.resources
-        return RuntimeStats(
-            graph=self.graph.spec.name,
-            uptime=self.now(),
-            mode=self.mode,
-            realtime=self.realtime,
-            loop_scheduling=self.loop_scheduling,
-            nodes=[r.stats() for r in sched.runners.values()],
-            edges=[b.stats() for b in sched.buffers],
-            loop=LoopStats(
-                lag=self._lag.summary(),
-                blocked_calls=sched.blocked_calls,
-                starvation_events=self.starvation_events,
-            ),
-            frames=[] if res is None else res.frame_stats(),
-            worker_frames=[] if res is None else res.worker_frame_stats(),
-            events=self.event_count,
-            reports=self._reports(),
+        """Every node, edge, frame pool and the loop, now (:mod:`flowrt.runtime_stats`)."""
+        return runtime_stats(
+            {
+                "graph": self.graph.spec.name,
+                "uptime": self.now(),
+                "mode": self.mode,
+                "realtime": self.realtime,
+                "loop_scheduling": self.loop_scheduling,
+            },
+            self.scheduler,
+            self.resources,
+            self.lag,
+            self.starvation_events,
+            self.hub.count,
         )
 
     def failures(self) -> list[NodeStats]:
@@ -420,24 +345,6 @@ class Runtime:
         if self._sched is None:
             return []
         return [n for n in self.stats().nodes if n.state in ("failed", "error")]
-
-    def _reports(self) -> dict[str, Any]:
-        """Each inline node's optional ``report()`` (also after stop: its last instance's)."""
-        out: dict[str, Any] = {}
-        for name, r in self.scheduler.runners.items():
-            ex = r.executor
-            node = getattr(ex, "node", None) or getattr(ex, "last_node", None)
-            hook = getattr(node, "report", None)
-            if not callable(hook):
-                continue
-            try:
-                value = hook()
-            except Exception as e:  # a report must never break the statistics
-                log.warning("node %s: report() failed: %s", name, e)
-                continue
-            if value is not None:
-                out[name] = value
-        return out
 
     @property
     def starvation_events(self) -> int:
@@ -527,28 +434,9 @@ class Runtime:
             raise KeyError(f"unknown node {node!r}" + did_you_mean(node, self.scheduler.runners))
         return runner
 
-    def _runner_port(self, target: str) -> tuple[NodeRunner, str]:
-        from .diagnostics import did_you_mean
-
-        node, _, port = target.partition(".")
-        runner = self.scheduler.runners.get(node)
-        if runner is None:
-            raise KeyError(f"unknown node {node!r}" + did_you_mean(node, self.scheduler.runners))
-        ports = [*runner.outputs, *runner.inputs, *runner.rnode.cls.inputs]
-        if port not in ports:
-            raise KeyError(f"{node} has no port {port!r}" + did_you_mean(port, ports))
-        return runner, port
-
     def publish(self, target: str, value: Any) -> None:
         """Inject a value: into ``node.output`` (fans out, ticks frames) or ``node.input``."""
-        runner, port = self._runner_port(target)
-        t = self.clock.now()
-        if port in runner.outputs:
-            runner.publish(port, value, t)
-        elif port in runner.inputs:
-            runner.inputs[port].put(value, t)
-        else:
-            raise KeyError(f"{target} is an input that nothing feeds; connect it in the graph")
+        host_ports.publish(self.scheduler, self.clock.now(), target, value)
 
     def subscribe(
         self, target: str, policy: str = "queue", size: int = 64, *, sampled: bool = False
@@ -558,15 +446,7 @@ class Runtime:
         ``sampled``: the reader takes the newest value only when it wants one (a viewer with
         nobody watching): values replaced before it took them are ``unread``, not dropped.
         """
-        runner, port = self._runner_port(target)
-        if port not in runner.outputs:
-            raise KeyError(f"{target} is not an output")
-        EdgePolicy(policy)
-        buf = make_buffer(policy, f"{target}->host", size, self.clock.now)
-        buf.sampled = sampled
-        runner.outputs[port].append(buf)
-        self.scheduler.buffers.append(buf)
-        return Subscription(buf)
+        return host_ports.subscribe(self.scheduler, self.clock.now, target, policy, size, sampled)
 
 
 def _freeze_heap() -> None:

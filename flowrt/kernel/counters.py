@@ -7,9 +7,13 @@ aborted, failed): nothing is lost silently, and the same figures reach the statu
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from ..stats import Running
+from ..graph import ResolvedNode
+from ..spec import FrameTrigger, InputTrigger, TimerTrigger
+from ..stats import NodeStats, Running
+from ..timing import Timing
 
 
 @dataclass
@@ -39,3 +43,63 @@ class Counters:
         """The interval statistics describe the new timing, not a mean of old and new."""
         self.interval = Running()
         self.interval_from = None
+
+
+def node_stats(
+    rnode: ResolvedNode,
+    timing: Timing,
+    c: Counters,
+    state: str,
+    error_reason: str | None,
+    failed_reason: str,
+    input_drops: int,
+    granted: str,
+    rel: Callable[[float], float],
+) -> NodeStats:
+    """A node's statistics, as the table, ``--stats-json`` and the web view show them."""
+    spec, trig = rnode.spec, rnode.trigger
+    if isinstance(trig, FrameTrigger):
+        trigger = f"frame {trig.frame}"
+    elif isinstance(trig, TimerTrigger):
+        trigger = "timer"
+    elif isinstance(trig, InputTrigger):
+        trigger = "input"
+    else:
+        trigger = "loop"
+    period = timing.describe_period() if isinstance(trig, FrameTrigger | TimerTrigger) else "-"
+    failed = state == "failed"
+    if not timing.enabled:
+        shown = "disabled"
+    elif error_reason is not None and not failed:
+        shown = "error"
+    else:
+        shown = state
+    return NodeStats(
+        name=rnode.name,
+        kind=spec.kind,
+        placement=spec.placement.value,
+        trigger=trigger,
+        priority=timing.priority,
+        period=period,
+        deadline_ms=None if timing.deadline is None else timing.deadline * 1000,
+        watchdog_ms=spec.watchdog,
+        enabled=timing.enabled,
+        state=shown,
+        reason=failed_reason if failed else error_reason or "",
+        activations=c.activations,
+        completions=c.completions,
+        skipped=c.skipped,
+        deadline_misses=c.misses,
+        discarded=c.discarded,
+        aborted=c.aborted,
+        paced_lead_max=c.lead_max,
+        dropped=c.discarded + c.aborted + input_drops,
+        errors=c.errors,
+        restarts=c.restarts,
+        last_start=None if c.last_start is None else rel(c.last_start),
+        last_finish=None if c.last_finish is None else rel(c.last_finish),
+        interval=c.interval.summary(),
+        execution=c.execution.summary(),
+        response=c.response.summary(),
+        granted=granted,
+    )

@@ -21,20 +21,21 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..clock import Handle, PeriodicTimer
-from ..edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer
+from ..edges import Buffer, LosslessBuffer
 from ..events import LoopBlocked
 from ..frames import Frame
-from ..graph import ResolvedNode, checked_type
+from ..graph import ResolvedNode
 from ..node import NodeFactory, make_node
-from ..spec import FrameTrigger, InputTrigger, LoopTrigger, Placement, TimerTrigger
+from ..spec import FrameTrigger, LoopTrigger, Placement, TimerTrigger
 from ..stats import NodeStats
 from ..timing import Timing
 from .activation import Activation, release_all
 from .backpressure import Backpressure
 from .context import RunnerContext
-from .counters import Counters
+from .counters import Counters, node_stats
 from .deadlines import DeadlineWatch
 from .executor import Executor, InlineExecutor, NoExecutor
+from .inputs import Inputs
 from .pipeline import Pipeline
 from .ports import SchedulerPort
 from .state import RunState
@@ -80,21 +81,17 @@ class NodeRunner:
         self.rnode = rnode
         self.name = rnode.name
         self.timing = _timing_of(rnode)
-        self.inputs: dict[str, Buffer] = {}
-        # Publication time (runtime clock) of the value each input held at the last take:
-        # NodeContext.input_time/input_age. Invariant: a port is absent when it held no value.
-        self.input_times: dict[str, float] = {}
+        self.counts = Counters()
+        self.ins = Inputs(self.name, rnode, self.counts)
+        self.inputs = self.ins.buffers  # by port (the same dict: read by the runtime)
+        self.input_times = self.ins.times  # NodeContext.input_time/input_age
+        self.trigger_inputs = self.ins.triggers
+        self.lossless = self.ins.lossless
         self.frame_seqs: dict[str, int] = {}  # next sequence of unstamped frames, per port
-        self.ports = list(rnode.cls.inputs)  # declared inputs, then any-named ones connected
         self.outputs: dict[str, list[Buffer]] = {
             p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
         }
         self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
-        self.required = [p for p, port in rnode.cls.inputs.items() if port.required]
-        self.port_types: dict[str, type] = {}  # inputs whose values are type-checked
-        self.type_errors: set[tuple[str, str]] = set()  # (port, type) already logged
-        self.trigger_inputs: list[str] = []
-        self.lossless: list[LosslessBuffer] = []  # inputs that must deliver every value
         self.frame_key: str | None = None  # the frame clock this node is triggered by
         self.executor: Executor = NoExecutor()
         self.timer: PeriodicTimer | None = None
@@ -110,7 +107,6 @@ class NodeRunner:
         self._acts = 0  # activations begun: their ids
         self._loose: list[Frame] = []  # frames made outside an activation: the next one's
         self.error_reason: str | None = None  # set_error(): an error state the node reports
-        self.counts = Counters()
         self.deadlines = DeadlineWatch(
             self.name,
             self.timing,
@@ -181,7 +177,7 @@ class NodeRunner:
 
     def backlog(self) -> bool:
         """A lossless input holds values not yet delivered."""
-        return any(b.pending() for b in self.lossless)
+        return self.ins.backlog()
 
     def catch_up(self) -> None:
         """Run once more for a lossless input's backlog (never skipped: see release)."""
@@ -218,25 +214,7 @@ class NodeRunner:
         return self.sched.worker_executor(rnode, self.timing.priority, factory)
 
     def connect_input(self, port: str, buf: Buffer) -> None:
-        self.inputs[port] = buf
-        if port not in self.ports:
-            self.ports.append(port)
-        if isinstance(buf, LosslessBuffer):
-            self.lossless.append(buf)
-            buf.on_full = self.catch_up
-        declared = self.rnode.cls.inputs.get(port) or self.rnode.cls.any_inputs
-        checked = checked_type(declared.type) if declared is not None else None
-        if checked is not None:
-            self.port_types[port] = checked
-        trig = self.rnode.trigger
-        if isinstance(trig, InputTrigger):
-            wanted = [trig.input] if isinstance(trig.input, str) else trig.input
-            if "any" in wanted or port in wanted:
-                self.trigger_inputs.append(port)
-                buf.on_put = self.input_arrived
-                return
-        # Periodic readers sample: values they never read are expected, not lost.
-        buf.sampled = isinstance(buf, LatestBuffer)
+        self.ins.connect(port, buf, self.input_arrived, self.catch_up)
 
     # --- releases -----------------------------------------------------------------------
 
@@ -293,55 +271,10 @@ class NodeRunner:
 
     # --- one activation -----------------------------------------------------------------
 
-    def _take_inputs(self) -> dict[str, Any] | None:
-        values: dict[str, Any] = {}
-        for port in self.ports:
-            buf = self.inputs.get(port)
-            if buf is None:
-                values[port] = None
-                continue
-            value = buf.take_new() if port in self.trigger_inputs else buf.take()  # type: ignore[attr-defined]
-            if value is EMPTY or buf.taken_t is None:
-                self.input_times.pop(port, None)
-            else:
-                self.input_times[port] = buf.taken_t
-            if value is EMPTY:
-                if port in self.required:
-                    release_all(values.values())
-                    return None
-                value = None
-            elif port in self.port_types and not isinstance(value, self.port_types[port]):
-                self._wrong_type(port, value)
-                release_all([*values.values(), value])
-                return None
-            values[port] = value
-        return values
-
-    def _wrong_type(self, port: str, value: Any) -> None:
-        """A value the input's type refuses: one counted error, one log line per type.
-
-        Validation refuses edges whose declared types differ; this catches what an
-        ``object``-typed output (a relay, ``Runtime.publish``) lets through. The node is
-        not called (it would raise on every value) and the activation is skipped.
-        """
-        self.counts.errors += 1
-        got = type(value).__name__
-        if (port, got) not in self.type_errors:
-            self.type_errors.add((port, got))
-            want = self.rnode.cls.inputs.get(port) or self.rnode.cls.any_inputs
-            log.error(
-                "node %s: input %r expects %s, got %s: values of this type are dropped "
-                "and counted as errors",
-                self.name,
-                port,
-                getattr(want.type if want else None, "__name__", "?"),
-                got,
-            )
-
     def begin(self, t_release: float) -> Activation | None:
         """Take the inputs of a released activation; None: skipped (counted)."""
         now = self.sched.clock.now()
-        inputs = self._take_inputs()
+        inputs = self.ins.take()
         self.untaken = False
         if self._idle_waiters:
             self.readers_may_go()  # a paced source may publish the next frame now
@@ -469,7 +402,7 @@ class NodeRunner:
     def publish(self, port: str, value: Any, t: float) -> None:
         """Fan a value out to every reader of ``port``; a frame port also ticks its frame clock."""
         if isinstance(value, Frame) and value.timestamp == 0.0:
-            self._stamp(port, value, t)
+            _stamp(value, port, self.frame_seqs, self.counts.last_start, t)
         for buf in self.outputs[port]:
             if not buf.put(value, t):
                 assert isinstance(buf, LosslessBuffer)
@@ -477,17 +410,6 @@ class NodeRunner:
         key = self.tick_ports.get(port)
         if key is not None:
             self.sched.tick(key, t)
-
-    def _stamp(self, port: str, frame: Frame, t: float) -> None:
-        """A ``Frame(array)`` made without a timestamp: the activation's time, and the node's
-        own sequence on that port when its seq was left at 0 too (recordings, health and
-        freshness need both; a 4 s recording showed 'duration 1336 s, missing 19987')."""
-        last = self.counts.last_start
-        frame.timestamp = last if last is not None else t
-        n = self.frame_seqs.get(port, 0)
-        if frame.seq == 0:
-            frame.seq = n
-        self.frame_seqs[port] = max(n, frame.seq) + 1
 
     # --- between activations ------------------------------------------------------------
 
@@ -515,74 +437,32 @@ class NodeRunner:
             self.sched.loop.call_soon(self.release, self.sched.clock.now())
         elif self.trigger_inputs:
             self.more_input = False
-            for p in self.trigger_inputs:
-                if self.inputs[p].pending():
-                    self.input_arrived()  # release() schedules the run: no re-entry
-                    break
+            if self.ins.trigger_pending():
+                self.input_arrived()  # release() schedules the run: no re-entry
         if self.lossless and not self.busy:
             self.sched.loop.call_soon(self.catch_up)
 
-    # --- facade for the runtime -----------------------------------------------------------
-
-    @property
-    def failure_log(self) -> Any:
-        return self.supervisor.log
-
-    def set_params(self, params: Any) -> None:
-        self.swapper.set_params(params)
-
-    async def swap(self, cls: Any, params: Any, kind: str, *, reload: bool = False) -> None:
-        await self.swapper.swap(cls, params, kind, reload=reload)
-
     def stats(self) -> NodeStats:
         """The runner's statistics, times relative to the runtime's origin."""
-        c = self.counts
-        spec = self.rnode.spec
-        trig = self.rnode.trigger
-        if isinstance(trig, FrameTrigger):
-            trigger = f"frame {trig.frame}"
-        elif isinstance(trig, TimerTrigger):
-            trigger = "timer"
-        elif isinstance(trig, InputTrigger):
-            trigger = "input"
-        else:
-            trigger = "loop"
-        timed = isinstance(trig, FrameTrigger | TimerTrigger)
-        period = self.timing.describe_period() if timed else "-"
-        failed = self.state is RunState.failed
-        if not self.timing.enabled:
-            state = "disabled"
-        elif self.error_reason is not None and not failed:
-            state = "error"
-        else:
-            state = self.state.value
-        rel = self.sched.rel
-        return NodeStats(
-            name=self.name,
-            kind=spec.kind,
-            placement=spec.placement.value,
-            trigger=trigger,
-            priority=self.timing.priority,
-            period=period,
-            deadline_ms=None if self.timing.deadline is None else self.timing.deadline * 1000,
-            watchdog_ms=spec.watchdog,
-            enabled=self.timing.enabled,
-            state=state,
-            reason=self.supervisor.failed_reason if failed else self.error_reason or "",
-            activations=c.activations,
-            completions=c.completions,
-            skipped=c.skipped,
-            deadline_misses=c.misses,
-            discarded=c.discarded,
-            aborted=c.aborted,
-            paced_lead_max=c.lead_max,
-            dropped=c.discarded + c.aborted + sum(b.dropped for b in self.inputs.values()),
-            errors=c.errors,
-            restarts=c.restarts,
-            last_start=None if c.last_start is None else rel(c.last_start),
-            last_finish=None if c.last_finish is None else rel(c.last_finish),
-            interval=c.interval.summary(),
-            execution=c.execution.summary(),
-            response=c.response.summary(),
-            granted=self.executor.granted,
+        return node_stats(
+            self.rnode,
+            self.timing,
+            self.counts,
+            self.state.value,
+            self.error_reason,
+            self.supervisor.failed_reason,
+            sum(b.dropped for b in self.inputs.values()),
+            self.executor.granted,
+            self.sched.rel,
         )
+
+
+def _stamp(frame: Frame, port: str, seqs: dict[str, int], last: float | None, t: float) -> None:
+    """A ``Frame(array)`` made without a timestamp: the activation's time, and the node's own
+    sequence on that port when its seq was left at 0 too (recordings, health and freshness
+    need both; a 4 s recording showed 'duration 1336 s, missing 19987')."""
+    frame.timestamp = last if last is not None else t
+    n = seqs.get(port, 0)
+    if frame.seq == 0:
+        frame.seq = n
+    seqs[port] = max(n, frame.seq) + 1

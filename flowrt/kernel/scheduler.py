@@ -222,7 +222,7 @@ class Scheduler:
             except Exception as e:
                 log.warning("node %s: teardown failed: %s", r.name, e)
         for r in self.runners.values():
-            r.failure_log.flush(self.clock.now())
+            r.supervisor.log.flush(self.clock.now())
 
     # --- run-time changes ---------------------------------------------------------------
 
