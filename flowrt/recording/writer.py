@@ -174,8 +174,7 @@ class RecordingWriter:
         self._disk = threading.Condition()
         self._file: Any = None
         self._writer: Any = None
-        self._schemas: dict[StreamSchema, int] = {}
-        self._channels: dict[str, int] = {}
+        self._channels = _Channels()  # of the current part
         self._channel_meta: dict[str, dict[str, str]] = {}
         self._metadata: dict[str, dict[str, str]] = {}
         self._attachments: list[tuple[str, str, bytes]] = []
@@ -184,7 +183,7 @@ class RecordingWriter:
         self._end_attachments: Callable[[], list[tuple[str, str, bytes]]] = list
         self._on_finished: Callable[[], None] | None = None
         self._inflight: Frame | None = None
-        self._json_schemas: dict[tuple[str, type], StreamSchema] = {}
+        self._values = _ValueEncoder(self.image_formats, epoch_offset, gil_free)
         self._unencodable: set[str] = set()
         self.notes: list[str] = []  # problems other than write errors (said once per stream)
 
@@ -292,20 +291,8 @@ class RecordingWriter:
         At stop the shared-memory pools go away, but a slow disk may still be writing: after
         this (and once :meth:`encoding_frame` is false) the writer holds no pool slot.
         """
-        originals: list[Frame] = []
         with self._cond:
-            for item in self._queue:
-                v = item.value
-                if isinstance(v, Frame) and v.shared:
-                    item.value = Frame(
-                        np.array(v.data),
-                        source=v.source,
-                        seq=v.seq,
-                        timestamp=v.timestamp,
-                        pixel_format=v.pixel_format,
-                    )
-                    originals.append(v)
-        return originals
+            return _to_heap(self._queue)
 
     def encoding_frame(self) -> bool:
         """True while the thread reads a frame's pixels (they are copied into the message)."""
@@ -332,7 +319,7 @@ class RecordingWriter:
             for name, data in self._metadata.items():
                 w.add_metadata(name, data)
             if self.split is not None:
-                w.add_metadata("flowrt.part", self._part_record(len(self.files)))
+                w.add_metadata("flowrt.part", _part_record(self.split, self.base, self.files))
             for name, media, blob in self._attachments:
                 w.add_attachment(now, now, name, media, blob)
             file.flush()
@@ -342,21 +329,8 @@ class RecordingWriter:
         self._file, self._writer, self.path = file, w, path
         self.files.append(path)
         self.part_messages.append(0)
-        self._schemas, self._channels = {}, {}  # each part declares its own
+        self._channels = _Channels()  # each part declares its own
         self._part_bytes, self._part_start = file.tell(), None
-
-    def _part_record(self, index: int) -> dict[str, str]:
-        """The ``flowrt.part`` metadata: which part of which session, and the policy."""
-        split = self.split
-        assert split is not None
-        out = {"index": str(index), "first": part_path(self.base.name, 0)}
-        if index:
-            out["previous"] = self.files[-1].name
-        if split.size is not None:
-            out["split_size"] = str(split.size)
-        if split.duration is not None:
-            out["split_duration"] = f"{split.duration:g}"
-        return out
 
     # --- on the writer thread ---------------------------------------------------------------
 
@@ -385,7 +359,7 @@ class RecordingWriter:
     def _encode_item(self, item: _Item) -> Encoded | None:
         is_frame = isinstance(item.value, Frame)
         try:
-            return None if self.error is not None else self._encode(item)
+            return None if self.error is not None else self._values.encode(item.topic, item.value)
         except Exception as e:  # a value that cannot be encoded: counted, said once
             if item.topic not in self._unencodable:
                 self._unencodable.add(item.topic)
@@ -438,7 +412,9 @@ class RecordingWriter:
             if self.error is not None:
                 s.unwritten += 1
                 return
-        cid = self._channel(item.topic, enc.schema)
+        cid = self._channels.id_for(
+            self._writer, item.topic, enc.schema, self._channel_meta.get(item.topic, {})
+        )
         ns = round((item.t + self.epoch_offset) * 1e9)
         if not self._guard(
             lambda: self._writer.add_message(cid, ns, enc.data, ns, item.seq & 0xFFFFFFFF)
@@ -482,41 +458,6 @@ class RecordingWriter:
         if self.on_written is not None:
             self.on_written()
 
-    def _encode(self, item: _Item) -> Encoded:
-        v = item.value
-        if isinstance(v, Frame):
-            return encode_frame(
-                v,
-                v.timestamp + self.epoch_offset,
-                self.image_formats.get(item.topic, "raw"),
-                gil_free=self.gil_free,
-            )
-        if isinstance(v, AudioBlock):  # foxglove.RawAudio, its first sample's time
-            return encode_audio(v, v.timestamp + self.epoch_offset)
-        if isinstance(v, Overlay):  # stamped like the frame: the same float, the same offset
-            return encode_annotations(v.detection, v.detection.timestamp + self.epoch_offset)
-        cached = self._json_schemas
-        key = (item.topic, type(v))
-        schema = cached.get(key)
-        if schema is None:
-            schema = cached[key] = schema_for(v)
-        return encode_json(v, schema, self.epoch_offset)
-
-    def _channel(self, topic: str, schema: StreamSchema) -> int:
-        cid = self._channels.get(topic)
-        if cid is not None:
-            return cid
-        sid = self._schemas.get(schema)
-        if sid is None:
-            sid = self._schemas[schema] = self._writer.register_schema(
-                schema.name, schema.encoding, schema.data
-            )
-        new: int = self._writer.register_channel(
-            topic, schema.message_encoding, sid, self._channel_meta.get(topic, {})
-        )
-        self._channels[topic] = new
-        return new
-
     def _guard(self, fn: Callable[[], Any]) -> bool:
         """Run a write; on OSError stop writing for good (what is in the file stays)."""
         if self.error is not None:
@@ -550,6 +491,82 @@ class RecordingWriter:
         # (the descriptor is closed even when the final flush fails); the file stays.
         with contextlib.suppress(OSError, ValueError):
             self._file.close()
+
+
+def _to_heap(queue: deque[_Item]) -> list[Frame]:
+    """The shared frames of ``queue`` replaced by heap copies; returns the originals."""
+    originals: list[Frame] = []
+    for item in queue:
+        v = item.value
+        if isinstance(v, Frame) and v.shared:
+            item.value = Frame(
+                np.array(v.data),
+                source=v.source,
+                seq=v.seq,
+                timestamp=v.timestamp,
+                pixel_format=v.pixel_format,
+            )
+            originals.append(v)
+    return originals
+
+
+class _ValueEncoder:
+    """A value to the bytes of its message: frames as images, audio, overlays, else JSON."""
+
+    def __init__(self, image_formats: dict[str, str], epoch_offset: float, gil_free: bool) -> None:
+        self._formats = image_formats
+        self._offset = epoch_offset
+        self._gil_free = gil_free
+        self._json_schemas: dict[tuple[str, type], StreamSchema] = {}
+
+    def encode(self, topic: str, v: Any) -> Encoded:
+        if isinstance(v, Frame):
+            fmt = self._formats.get(topic, "raw")
+            return encode_frame(v, v.timestamp + self._offset, fmt, gil_free=self._gil_free)
+        if isinstance(v, AudioBlock):  # foxglove.RawAudio, its first sample's time
+            return encode_audio(v, v.timestamp + self._offset)
+        if isinstance(v, Overlay):  # stamped like the frame: the same float, the same offset
+            return encode_annotations(v.detection, v.detection.timestamp + self._offset)
+        key = (topic, type(v))
+        schema = self._json_schemas.get(key)
+        if schema is None:
+            schema = self._json_schemas[key] = schema_for(v)
+        return encode_json(v, schema, self._offset)
+
+
+class _Channels:
+    """The schemas and channels one part (one MCAP file) has declared."""
+
+    def __init__(self) -> None:
+        self._schemas: dict[StreamSchema, int] = {}
+        self._channels: dict[str, int] = {}
+
+    def id_for(self, writer: Any, topic: str, schema: StreamSchema, meta: dict[str, str]) -> int:
+        cid = self._channels.get(topic)
+        if cid is not None:
+            return cid
+        sid = self._schemas.get(schema)
+        if sid is None:
+            sid = self._schemas[schema] = writer.register_schema(
+                schema.name, schema.encoding, schema.data
+            )
+        new: int = writer.register_channel(topic, schema.message_encoding, sid, meta)
+        self._channels[topic] = new
+        return new
+
+
+def _part_record(split: SplitPolicy | None, base: Path, files: list[Path]) -> dict[str, str]:
+    """The ``flowrt.part`` metadata: which part of which session, and the policy."""
+    assert split is not None
+    index = len(files)
+    out = {"index": str(index), "first": part_path(base.name, 0)}
+    if index:
+        out["previous"] = files[-1].name
+    if split.size is not None:
+        out["split_size"] = str(split.size)
+    if split.duration is not None:
+        out["split_duration"] = f"{split.duration:g}"
+    return out
 
 
 def _library() -> str:
