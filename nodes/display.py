@@ -74,11 +74,19 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
-from flowrt import Frame, Input, InputTrigger, Node, serving
+from flowrt import Frame, Input, InputTrigger, Node, resolve_path, serving
 
-from . import display_server
+from . import display_server, operator_record
 from .display_render import Mark, render
 
 __all__ = ["Display", "Mark", "render"]
@@ -241,6 +249,22 @@ class Display(Node):
         refresh_ms: int = Field(
             333, ge=50, le=3_600_000, description="how often the page polls the statistics"
         )
+        recordings: str | None = Field(
+            None,
+            description="a folder of recorded sessions to review (besides every recorder's; "
+            "relative: beside the graph file); flowrt run --recordings DIR sets it",
+        )
+        health_hz: float = Field(
+            1.0, ge=0.1, le=10, description="machine and stream health samples per second"
+        )
+        health_keep_s: float = Field(
+            900.0, ge=60, le=86400, description="seconds of health history kept for the plots"
+        )
+
+        @field_validator("recordings", mode="after")
+        @classmethod
+        def _beside_the_graph(cls, v: str | None, info: ValidationInfo) -> str | None:
+            return None if v is None else resolve_path(v, info)
 
         @model_validator(mode="after")
         def _token_beyond_loopback(self) -> Display.Params:
@@ -273,6 +297,7 @@ class Display(Node):
         self._writer: asyncio.StreamWriter | None = None
         self._proc: Any = None
         self._task: asyncio.Task[None] | None = None
+        self._calls: set[asyncio.Task[None]] = set()  # the server's requests being answered
         host, port = self.params.host, self.params.port
         self.url = ""
         try:
@@ -299,6 +324,11 @@ class Display(Node):
             "page": page,
             "source_wait": SOURCE_WAIT,
             "header_timeout": HEADER_TIMEOUT,
+            "recordings": [str(Path(self.params.recordings).resolve())]
+            if self.params.recordings
+            else [],
+            "health_hz": self.params.health_hz,
+            "health_keep_s": self.params.health_keep_s,
         }
         ours, theirs = socket.socketpair()
         ctx = multiprocessing.get_context("spawn")
@@ -358,6 +388,10 @@ class Display(Node):
                     self._send_stats()
                 elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
                     self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
+                elif op == "record":  # the record panel: answered when the recorders have
+                    task = asyncio.get_running_loop().create_task(self._record(header))
+                    self._calls.add(task)
+                    task.add_done_callback(self._calls.discard)
         except (asyncio.IncompleteReadError, ConnectionError) as e:
             if not ready.done():
                 ready.set_exception(e)
@@ -365,6 +399,15 @@ class Display(Node):
                 reason = f"display: the view's server process ended; {self.url} is gone"
                 self.ctx.set_error(reason)
                 self.ctx.log.error("%s: %s", self.ctx.name, reason)
+
+    async def _record(self, header: dict[str, Any]) -> None:
+        try:
+            result = await operator_record.obey(
+                self.ctx.rtdb, str(header.get("action")), header.get("name")
+            )
+        except Exception as e:  # an RTDB that cannot be written: the page says why
+            result = {"status": 500, "error": f"{type(e).__name__}: {e}"}
+        self._send({"op": "reply", "id": header.get("id"), "result": result})
 
     def _send(self, header: dict[str, Any], body: bytes = b"") -> None:
         if self._writer is not None and not self._writer.is_closing():
@@ -551,9 +594,14 @@ class Display(Node):
             }
             for port, (t, dets) in self.detections.items()
         ]
+        try:
+            recording = operator_record.state(self.ctx.rtdb)
+        except RuntimeError:  # no runtime around the node (a bare test harness)
+            recording = {"recording": [], "recordings": []}
         return {
             "url": self.url,
             "encodes": self.encodes,
             "sources": sources,
             "detections": detections,
+            **recording,
         }

@@ -13,10 +13,16 @@ process's descriptors, never the runtime's.
 The channel carries frames of ``>II`` (header length, body length), a JSON header and a
 body. The node sends ``frame`` (a source's newest frame, pickled: a descriptor of its
 shared-memory slot, which this process maps, and the detections to draw on it; one per
-source at a time, encoded here in a thread), ``sources`` (the inputs that have sent frames)
-and ``stats`` (an answer); this process sends ``ready``, ``want`` (a frame of a source newer
-than the one it has), ``done`` (the node may release the frame it lent) and ``stats`` (a
-request).
+source at a time, encoded here in a thread), ``sources`` (the inputs that have sent frames),
+``stats`` (an answer) and ``reply`` (the answer to a request with an ``id``); this process
+sends ``ready``, ``want`` (a frame of a source newer than the one it has), ``done`` (the
+node may release the frame it lent), ``stats`` (a request) and ``record`` (the record
+panel's start or stop, with an ``id``).
+
+The operator's station lives here too, each part in a module of its own: the record panel
+(:mod:`.operator_record`), the review of recorded sessions (:mod:`.operator_sessions`) and
+the machine and stream health over time (:mod:`.health_history`, sampled by this process
+once a second from the statistics the node already answers).
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
+import itertools
 import json
 import pickle
 import secrets
@@ -32,6 +39,7 @@ import socket
 import struct
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -49,6 +57,9 @@ from flowrt.serving import (
 )
 
 from .display_render import Mark, render
+from .health_history import HealthHistory
+from .operator_record import RecordApi
+from .operator_sessions import Sessions
 
 STATS_MAX_AGE = 0.2  # seconds /stats.json is served from this process's cache
 STATS_WAIT = 2.0  # seconds to wait for the node's statistics
@@ -62,6 +73,8 @@ STREAM_SNDBUF = 256 << 10  # bytes buffered per MJPEG client: a few frames, then
 MAX_SESSIONS = 1024  # page sessions remembered (each page load makes one)
 COOKIE = "flowrt_view"  # holds the token once the page was opened with ?token=
 JPEG_PART = "Content-Type: image/jpeg\r\nContent-Length: "
+CALL_WAIT = 30.0  # seconds the node has to answer a request (the recorders' start or stop)
+STATIC = ("operator.js", "plots.js")  # the page's scripts, served from this package
 
 
 def serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]) -> None:
@@ -123,6 +136,14 @@ class ViewServer:
         self._writer: asyncio.StreamWriter | None = None
         self._stats: tuple[float, bytes] | None = None
         self._stats_wait: asyncio.Future[bytes] | None = None
+        self._calls: dict[int, asyncio.Future[dict[str, Any]]] = {}
+        self._call_ids = itertools.count(1)
+        self.recordings: list[str] = list(settings.get("recordings", ()))
+        hz = float(settings.get("health_hz", 1.0))
+        disk = self.recordings[0] if self.recordings else "/"
+        self.history = HealthHistory(float(settings.get("health_keep_s", 900.0)), hz, disk)
+        self.records = RecordApi(self.call)
+        self.reviews = Sessions(self._folders, self._active)
 
     # --- the channel ------------------------------------------------------------------------
 
@@ -137,6 +158,10 @@ class ViewServer:
                 web.get("/stats.json", self._stats_json),
                 web.get("/frame/{source}.jpg", self._snapshot),
                 web.get("/stream/{source}.mjpg", self._mjpeg),
+                web.get("/api/health/history", self._health),
+                *[web.get(f"/{name}", self._static) for name in STATIC],
+                *self.records.routes(),
+                *self.reviews.routes(),
             ]
         )
         runner = web.AppRunner(
@@ -158,11 +183,13 @@ class ViewServer:
 
         listener = await loop.create_server(factory, sock=sock)
         sweeper = loop.create_task(self._sweep())
+        sampler = loop.create_task(self._sample())
         self._send({"op": "ready"})
         try:
             await self._read(reader)
         finally:
             sweeper.cancel()
+            sampler.cancel()
             listener.close()
             closing = [c.ws.close(code=1001, message=b"runtime stopping") for c in self.clients]
             if closing:
@@ -197,10 +224,82 @@ class ViewServer:
                     self._stats = (time.monotonic(), data)
                     if self._stats_wait is not None and not self._stats_wait.done():
                         self._stats_wait.set_result(data)
+                elif op == "reply":
+                    call = self._calls.pop(int(header.get("id") or 0), None)
+                    if call is not None and not call.done():
+                        call.set_result(dict(header.get("result") or {}))
 
     def _send(self, header: dict[str, Any]) -> None:
         if self._writer is not None and not self._writer.is_closing():
             self._writer.write(pack(header))
+
+    async def call(self, op: str, **args: Any) -> dict[str, Any]:
+        """Ask the node (``op`` with ``args``) and wait for its ``reply``."""
+        n = next(self._call_ids)
+        answer: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
+        self._calls[n] = answer
+        self._send({"op": op, "id": n, **args})
+        try:
+            return await asyncio.wait_for(answer, CALL_WAIT)
+        except TimeoutError:
+            return {"status": 504, "error": f"the runtime did not answer {op} in {CALL_WAIT:g} s"}
+        finally:
+            self._calls.pop(n, None)
+
+    # --- the operator's station -----------------------------------------------------------
+
+    def _folders(self) -> list[str]:
+        """Where sessions are: the display's folder, then every recorder's."""
+        seen = list(self.recordings)
+        for folder in self.records.state.get("recordings", []):
+            if folder not in seen:
+                seen.append(folder)
+        return seen
+
+    def _active(self) -> set[str]:
+        """The sessions being written now (not to be scanned while they grow)."""
+        rows = self.records.state.get("recording", [])
+        return {Path(r["session"]).name for r in rows if r.get("session")}
+
+    async def _sample(self) -> None:
+        """Health: one sample per period, with the node's statistics of that moment."""
+        period = 1.0 / self.history.hz
+        loop = asyncio.get_running_loop()
+        next_at = loop.time()
+        while True:
+            try:
+                body = await self.fresh_stats()
+                stats = json.loads(body) if body is not None else None
+            except ValueError:
+                stats = None
+            if stats is not None:
+                self.records.observe(stats, time.monotonic())
+            self.history.sample(stats)  # psutil's reads: well under a millisecond
+            next_at = max(next_at + period, loop.time())
+            await asyncio.sleep(next_at - loop.time())
+
+    async def _health(self, request: web.Request) -> web.Response:
+        keep = (self.history.samples.maxlen or 1) / self.history.hz
+        try:
+            seconds = float(request.query.get("seconds", "600"))
+        except ValueError:
+            raise web.HTTPBadRequest(text="seconds: a number\n") from None
+        if not 0 < seconds < float("inf"):
+            raise web.HTTPBadRequest(text="seconds: a positive number\n")
+        return web.Response(
+            text=json.dumps(self.history.window(min(seconds, keep))),
+            content_type="application/json",
+            headers={"Cache-Control": "no-store"},
+        )
+
+    async def _static(self, request: web.Request) -> web.Response:
+        name = request.path.lstrip("/")
+        return web.Response(
+            body=(Path(__file__).parent / name).read_bytes(),
+            content_type="text/javascript",
+            charset="utf-8",
+            headers={"Cache-Control": "no-cache"},
+        )
 
     def _source(self, name: str) -> _Shown:
         src = self.sources.get(name)
@@ -362,22 +461,23 @@ class ViewServer:
             headers={"Cache-Control": "no-store"},
         )
 
-    async def _stats_json(self, request: web.Request) -> web.Response:
+    async def fresh_stats(self) -> bytes | None:
+        """The node's statistics, at most STATS_MAX_AGE old (None: it gave none in time)."""
         cached = self._stats
-        if cached is None or time.monotonic() - cached[0] >= STATS_MAX_AGE:
-            if self._stats_wait is None or self._stats_wait.done():
-                self._stats_wait = asyncio.get_running_loop().create_future()
-                self._send({"op": "stats"})
-            try:
-                body = await asyncio.wait_for(asyncio.shield(self._stats_wait), STATS_WAIT)
-            except TimeoutError:
-                if cached is None:
-                    raise web.HTTPServiceUnavailable(
-                        text="no statistics from the runtime"
-                    ) from None
-                body = cached[1]
-        else:
-            body = cached[1]
+        if cached is not None and time.monotonic() - cached[0] < STATS_MAX_AGE:
+            return cached[1]
+        if self._stats_wait is None or self._stats_wait.done():
+            self._stats_wait = asyncio.get_running_loop().create_future()
+            self._send({"op": "stats"})
+        try:
+            return await asyncio.wait_for(asyncio.shield(self._stats_wait), STATS_WAIT)
+        except TimeoutError:
+            return cached[1] if cached is not None else None
+
+    async def _stats_json(self, request: web.Request) -> web.Response:
+        body = await self.fresh_stats()
+        if body is None:
+            raise web.HTTPServiceUnavailable(text="no statistics from the runtime")
         return web.Response(
             body=body, content_type="application/json", headers={"Cache-Control": "no-store"}
         )
