@@ -165,7 +165,7 @@ class HealthHistory:
         """The samples of the last ``seconds``: one time axis, every series aligned on it
         (None where a series had no value, e.g. a stream that had not started)."""
         end = self.samples[-1].t if self.samples else time.time()
-        chosen = [s for s in self.samples if s.t >= end - seconds]
+        chosen = [s for s in self.samples if s.t > end - seconds]
         names = [n for n in self.series if any(n in s.values for s in chosen)]
         first = chosen[0].t if chosen else end
         return {

@@ -149,6 +149,13 @@ class RecordApi:
             }
         self._edges = (now, counts)
 
+    def _now_recording(self, sessions: dict[str, str]) -> None:
+        """What the recorders just said, without waiting for the next statistics."""
+        rows = {r["node"]: r for r in self.state["recording"]}
+        for node, folder in sessions.items():
+            rows[node] = {"node": node, "session": folder, "since": 0.0}
+        self.state = {**self.state, "recording": list(rows.values())}
+
     async def start(self, request: web.Request) -> web.Response:
         body = await _body(request)
         name = body.get("name")
@@ -157,6 +164,7 @@ class RecordApi:
         answer = await self.call("record", action="start", name=name)
         if answer.get("status") != 200:
             return _error(int(answer.get("status", 500)), str(answer.get("error")))
+        self._now_recording(answer["sessions"])
         folders = list(answer["sessions"].values())
         return _json(
             {
@@ -171,6 +179,7 @@ class RecordApi:
         answer = await self.call("record", action="stop")
         if answer.get("status") != 200:
             return _error(int(answer.get("status", 500)), str(answer.get("error")))
+        self._now_recording(dict.fromkeys(answer["sessions"], ""))
         folders = [Path(f) for f in answer["sessions"].values()]
         reports = await _reports(folders, REPORT_WAIT)
         if reports is None:
