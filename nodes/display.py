@@ -324,9 +324,7 @@ class Display(Node):
             "page": page,
             "source_wait": SOURCE_WAIT,
             "header_timeout": HEADER_TIMEOUT,
-            "recordings": [str(Path(self.params.recordings).resolve())]
-            if self.params.recordings
-            else [],
+            "recordings": [self.params.recordings] if self.params.recordings else [],
             "health_hz": self.params.health_hz,
             "health_keep_s": self.params.health_keep_s,
         }

@@ -116,7 +116,9 @@ class HealthHistory:
             received, net
         )
 
-    def _stream_values(self, stats: dict[str, Any], values: dict[str, float | None], t: float) -> None:
+    def _stream_values(
+        self, stats: dict[str, Any], values: dict[str, float | None], t: float
+    ) -> None:
         runtime = stats.get("runtime") or {}
         display = stats.get("display") or {}
         nodes = {n.get("name"): n for n in runtime.get("nodes", [])}

@@ -144,9 +144,7 @@ class RecordApi:
                 counts[topic] = int(e.get("delivered", 0))
         if self._edges is not None and now > self._edges[0]:
             dt = now - self._edges[0]
-            self.rates = {
-                t: max(0, c - self._edges[1].get(t, c)) / dt for t, c in counts.items()
-            }
+            self.rates = {t: max(0, c - self._edges[1].get(t, c)) / dt for t, c in counts.items()}
         self._edges = (now, counts)
 
     def _now_recording(self, sessions: dict[str, str]) -> None:
@@ -206,7 +204,12 @@ class RecordApi:
             folder = Path(r["session"])
             size = await asyncio.to_thread(_size, folder)
             sessions.append(
-                {"node": r["node"], "session": folder.name, "elapsed_s": r.get("since"), "size_bytes": size}
+                {
+                    "node": r["node"],
+                    "session": folder.name,
+                    "elapsed_s": r.get("since"),
+                    "size_bytes": size,
+                }
             )
         return _json(
             {
@@ -273,5 +276,7 @@ def _error(status: int, text: str) -> web.Response:
 
 def _json(data: Any) -> web.Response:
     return web.Response(
-        text=json.dumps(data), content_type="application/json", headers={"Cache-Control": "no-store"}
+        text=json.dumps(data),
+        content_type="application/json",
+        headers={"Cache-Control": "no-store"},
     )

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import json
 import math
 import statistics
@@ -50,9 +51,7 @@ class Sessions:
     """The review API over the folders ``folders()`` names (they may change as recorders
     appear); ``active()`` names the sessions being recorded now."""
 
-    def __init__(
-        self, folders: Callable[[], list[str]], active: Callable[[], set[str]]
-    ) -> None:
+    def __init__(self, folders: Callable[[], list[str]], active: Callable[[], set[str]]) -> None:
         self.folders = folders
         self.active = active
         self._summaries: dict[Path, tuple[Any, dict[str, Any]]] = {}
@@ -102,7 +101,10 @@ class Sessions:
     def _summary(self, path: Path, recording: bool) -> dict[str, Any]:
         files = _files(path)
         size = sum(f.stat().st_size for f in files if f.exists())
-        signature = (tuple((f.name, f.stat().st_size) for f in files), (path / SESSION_FILE).exists())
+        signature = (
+            tuple((f.name, f.stat().st_size) for f in files),
+            (path / SESSION_FILE).exists(),
+        )
         cached = self._summaries.get(path)
         if cached is not None and cached[0] == signature and not recording:
             return cached[1]
@@ -322,7 +324,7 @@ def _gaps(times: list[int], start_ns: int) -> list[dict[str, float]]:
     """Intervals longer than twice the stream's median interval (as ``flowrt info``)."""
     if len(times) < 3:
         return []
-    iv = [b - a for a, b in zip(times, times[1:], strict=False)]
+    iv = [b - a for a, b in itertools.pairwise(times)]
     period = statistics.median(iv)
     if period <= 0:
         return []
@@ -345,5 +347,7 @@ def _r(x: Any) -> float | None:
 
 def _json(data: Any) -> web.Response:
     return web.Response(
-        text=json.dumps(data), content_type="application/json", headers={"Cache-Control": "no-store"}
+        text=json.dumps(data),
+        content_type="application/json",
+        headers={"Cache-Control": "no-store"},
     )

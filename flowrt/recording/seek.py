@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .reader import MAX_CHUNK_BYTES, Recording, RecordedMessage, _records, chunk_data
+from .reader import MAX_CHUNK_BYTES, RecordedMessage, Recording, _records, chunk_data
 from .session import mcap_files
 
 __all__ = ["SessionIndex", "TopicIndex"]

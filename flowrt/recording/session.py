@@ -21,7 +21,14 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SESSION_FILE", "SESSION_NAME", "check_writable", "mcap_files", "new_session", "session_metadata"]
+__all__ = [
+    "SESSION_FILE",
+    "SESSION_NAME",
+    "check_writable",
+    "mcap_files",
+    "new_session",
+    "session_metadata",
+]
 
 SESSION_FILE = "streams.json"
 SESSION_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
