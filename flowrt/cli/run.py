@@ -76,7 +76,7 @@ def _with_recordings(graph: Graph, folder: str) -> Graph | str:
     sessions of ``folder``; or why not, in one line."""
     from ..graph import resolve
     from ..recording import check_writable
-    from .record import graph_outputs, with_recorder
+    from .recorders import graph_outputs, with_recorder
 
     problem = check_writable(folder)
     if problem is not None:
