@@ -74,7 +74,9 @@ function plotGroup(canvas, data, group) {
       if (a.t < t0) continue;
       const ax = x(a.t);
       g.beginPath(); g.moveTo(ax, top); g.lineTo(ax, h - bottom); g.stroke();
-      g.fillText(`${a.text} (${a.stream})`, Math.min(ax + 3, w - 190), top + 12 + 12 * (alerts % 3));
+      const text = `${a.text} (${a.stream})`;
+      const tw = g.measureText(text).width;
+      g.fillText(text, ax + 3 + tw < w - right ? ax + 3 : Math.max(left, ax - 3 - tw), top + 12 + 12 * (alerts % 3));
       alerts += 1;
     }
   }

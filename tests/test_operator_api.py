@@ -339,3 +339,83 @@ def test_a_killed_recording_is_indexed_up_to_its_damage(tmp_path: Path) -> None:
     last = index.message("cam.frame", len(topic.times) - 1)
     assert last.sequence == len(topic.times) - 1
     assert topic.at(index.start_ns + 250_000_000) == 5  # 0.25 s at 20 Hz
+
+
+# --- the issue's scenario, as a user runs it ------------------------------------------------
+
+
+@pytest.mark.subprocess
+async def test_cambada_with_recordings_start_three_seconds_stop(tmp_path: Path, repo: Path) -> None:
+    """``flowrt run graphs/cambada.yaml --recordings DIR``: start, 3 s, stop: both cameras at
+    about 20 fps and nothing lost; the session listed, a frame at 1.0 s, a cross-origin POST
+    refused, 5 s of health with at least 3 samples of every series."""
+    import os
+    import signal
+    import sys
+
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "flowrt.cli",
+        "run",
+        "graphs/cambada.yaml",
+        "--recordings",
+        str(tmp_path / "rec"),
+        "--no-ui",
+        "--display-port",
+        "0",
+        cwd=repo,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.STDOUT,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    assert proc.stdout is not None
+    out: list[str] = []
+    try:
+        url = ""
+        while not url:
+            line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
+            assert line, "flowrt run ended: " + "".join(out)
+            out.append(line)
+            m = re.search(r"display: (http://127\.0\.0\.1:\d+)", line)
+            url = m.group(1) if m else ""
+        drain = asyncio.ensure_future(_collect(proc.stdout, out))
+        async with aiohttp.ClientSession() as http:
+            state = await get(http, f"{url}/api/record")
+            assert state["recorders"] == ["recorder"] and not state["recording"]  # waits
+            started, table = await record(http, url, "cambada", 3.0)
+            assert started["session"] == "cambada_001"
+            assert table["lost"] == 0 and table["error"] is None
+            for cam in ("front_cam.frame", "omni_cam.frame"):
+                row = next(s for s in table["streams"] if s["topic"] == cam)
+                assert abs(row["rate_mean"] - 20) < 2, row
+                assert row["lost"] == 0 and row["written"] == row["received"] >= 55, row
+
+            listed = await get(http, f"{url}/api/sessions")
+            assert [s["name"] for s in listed["sessions"]] == ["cambada_001"]
+            async with http.get(
+                f"{url}/api/sessions/cambada_001/frame",
+                params={"topic": "omni_cam.frame", "t": "1.0"},
+            ) as r:
+                assert r.status == 200 and r.content_type == "image/jpeg"
+                assert (await r.read())[:2] == b"\xff\xd8"
+            status, _ = await post(
+                http, f"{url}/api/record/start", {"name": "x"}, Origin="http://evil.example"
+            )
+            assert status == 403
+            health = await get(http, f"{url}/api/health/history?seconds=5")
+            assert len(health["series"]) >= 2 + 6 + 3 * 2  # 2 cores, machine, 2 cameras
+            for s in health["series"]:
+                assert sum(v is not None for v in s["values"]) >= 3, s["name"]
+        proc.send_signal(signal.SIGINT)
+        assert await asyncio.wait_for(proc.wait(), 60) == 0, "".join(out)
+        await drain
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+
+
+async def _collect(stream: asyncio.StreamReader, out: list[str]) -> None:
+    async for line in stream:
+        out.append(line.decode())
