@@ -123,7 +123,7 @@ class HealthHistory:
         display = stats.get("display") or {}
         nodes = {n.get("name"): n for n in runtime.get("nodes", [])}
         pools = {p.get("owner"): p for p in runtime.get("frames", [])}
-        for src in display.get("sources", []):
+        for src in sorted(display.get("sources", []), key=lambda s: str(s.get("name"))):
             name = str(src.get("name"))
             node = nodes.get(src.get("node"), {})
             pool = pools.get(src.get("node"), {})

@@ -109,7 +109,12 @@ async function pollRecord(again = true) {
       : s.recording ? `● REC ${s.session} · ${secs(s.elapsed_s)} · ${bytes(s.size_bytes)}` : "stopped";
     q("#recstate").className = s.recording ? "bad" : "muted";
     q("#reclive").replaceChildren(...s.streams.filter((x) => !x.topic.includes("/annotations/"))
-      .map((x) => tr([td(x.topic), td(`${x.rate.toFixed(1)} /s`)])));
+      .map((x) => {
+        const e = document.createElement("span");
+        e.dataset.topic = x.topic;
+        e.textContent = `${x.topic} ${x.rate.toFixed(1)}/s`;
+        return e;
+      }));
   } catch (e) {
     q("#recstate").textContent = `record state unavailable (${e.message})`;
   }
