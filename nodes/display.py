@@ -563,6 +563,11 @@ class Display(Node):
 
     # --- statistics ----------------------------------------------------------------
 
+    def report(self) -> Any:
+        """Where the view is (in the runtime's statistics, ``reports.NODE.url``): a program
+        that ran it on port 0 finds it there."""
+        return {"url": self.url} if getattr(self, "url", "") else None
+
     def display_stats(self) -> dict[str, Any]:
         """What the display measures: per source fps and frames, its clients and encodes."""
         now = self.ctx.now()
