@@ -206,6 +206,32 @@ def _local_host(host: str) -> str:
 RESOLVE_TIMEOUT = 2.0
 
 
+class Robot(BaseModel):
+    """A robot the base station's view watches and records through its control channel."""
+
+    model_config = ConfigDict(extra="forbid")
+    connect: list[str] = Field(
+        min_length=1, description="the robot's Zenoh endpoints, e.g. tcp/192.168.1.10:7447"
+    )
+    control: str = Field(description="the robot graph's zenoh.control key")
+    token: str | None = Field(None, description="its control token, when it needs one")
+
+    @field_validator("connect")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        from flowrt.spec import _endpoint
+
+        return [_endpoint(e) for e in v]
+
+    @field_validator("control")
+    @classmethod
+    def _key(cls, v: str) -> str:
+        from flowrt.spec import check_key_expr
+
+        check_key_expr(v, wildcards=False)
+        return v
+
+
 class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
@@ -259,6 +285,11 @@ class Display(Node):
         )
         health_keep_s: float = Field(
             900.0, ge=60, le=86400, description="seconds of health history kept for the plots"
+        )
+        robots: dict[str, Robot] = Field(
+            default_factory=dict,
+            description="robots (name: their Zenoh control channel) whose state the page shows "
+            "and whose recorders it starts and stops",
         )
 
         @field_validator("recordings", mode="after")
@@ -327,6 +358,7 @@ class Display(Node):
             "recordings": [self.params.recordings] if self.params.recordings else [],
             "health_hz": self.params.health_hz,
             "health_keep_s": self.params.health_keep_s,
+            "robots": {k: v.model_dump() for k, v in self.params.robots.items()},
         }
         ours, theirs = socket.socketpair()
         ctx = multiprocessing.get_context("spawn")

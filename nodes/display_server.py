@@ -59,6 +59,7 @@ from flowrt.serving import (
 from .display_render import Mark, render
 from .health_history import HealthHistory
 from .operator_record import RecordApi
+from .operator_robots import Robots
 from .operator_sessions import Sessions
 
 STATS_MAX_AGE = 0.2  # seconds /stats.json is served from this process's cache
@@ -144,6 +145,7 @@ class ViewServer:
         self.history = HealthHistory(float(settings.get("health_keep_s", 900.0)), hz, disk)
         self.records = RecordApi(self.call)
         self.reviews = Sessions(self._folders, self._active)
+        self.robots = Robots(dict(settings.get("robots", {})))
 
     # --- the channel ------------------------------------------------------------------------
 
@@ -162,6 +164,7 @@ class ViewServer:
                 *[web.get(f"/{name}", self._static) for name in STATIC],
                 *self.records.routes(),
                 *self.reviews.routes(),
+                *self.robots.routes(),
             ]
         )
         runner = web.AppRunner(
@@ -184,12 +187,15 @@ class ViewServer:
         listener = await loop.create_server(factory, sock=sock)
         sweeper = loop.create_task(self._sweep())
         sampler = loop.create_task(self._sample())
+        watcher = loop.create_task(self.robots.poll())
         self._send({"op": "ready"})
         try:
             await self._read(reader)
         finally:
             sweeper.cancel()
             sampler.cancel()
+            watcher.cancel()
+            await asyncio.to_thread(self.robots.close)
             listener.close()
             closing = [c.ws.close(code=1001, message=b"runtime stopping") for c in self.clients]
             if closing:

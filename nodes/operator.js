@@ -203,6 +203,57 @@ function tick(last) {
   requestAnimationFrame(() => tick(now));
 }
 
+// --- Robots (a base station: their state and recorders over Zenoh) ---------------------------
+
+async function robotRecord(name, action) {
+  const msg = q("#robotmsg");
+  msg.textContent = `${name}: ${action}…`;
+  msg.className = "warn";
+  try {
+    const body = action === "start" ? { name: q("#recname").value.trim() } : {};
+    const a = await api("POST", `api/robots/${encodeURIComponent(name)}/record/${action}`, body);
+    op.robotAnswers = (op.robotAnswers || 0) + 1;
+    op.lastRobot = a;
+    msg.textContent = action === "start" ? `${name}: recording ${a.session}`
+      : `${name}: ${a.session} · ${secs(a.duration_s)} · ${a.lost} lost · ` +
+        a.streams.filter((x) => !x.topic.includes("/annotations/")).map((x) => `${x.topic} ${x.written}/${x.expected ?? "–"}`).join(", ");
+    msg.className = action === "stop" && a.lost ? "bad" : "ok";
+  } catch (e) {
+    msg.textContent = `${name}: ${e.message}`;
+    msg.className = "bad";
+  }
+  pollRobots(false);
+}
+
+async function pollRobots(again = true) {
+  try {
+    const data = await api("GET", "api/robots");
+    op.robots = data.robots;
+    q("#robotspanel").hidden = !data.robots.length;
+    q("#robots tbody").replaceChildren(...data.robots.map((r) => {
+      const sessions = Object.values(r.recording || {}).filter((x) => x);
+      const buttons = document.createElement("td");
+      for (const action of ["start", "stop"]) {
+        const b = document.createElement("button");
+        b.textContent = action === "start" ? "● Start" : "■ Stop";
+        b.dataset.action = action;
+        b.disabled = !r.reachable || (action === "start" ? sessions.length > 0 : !sessions.length);
+        b.addEventListener("click", () => robotRecord(r.name, action));
+        buttons.append(b, " ");
+      }
+      const h = r.health;
+      const health = h ? `cpu ${h.cpu_percent.toFixed(0)} % · mem ${h.memory_percent.toFixed(0)} %` : "–";
+      const streams = (r.streams || []).map((x) => `${x.name} ${x.fps == null ? "–" : x.fps.toFixed(1)} fps`).join(", ");
+      return tr([td(r.name), td(r.reachable ? (r.failed.length ? `in error: ${r.failed.join(", ")}` : "ok") : r.error, r.reachable && !r.failed.length ? "l ok" : "l bad"),
+        td(r.graph, "l"), td(secs(r.uptime)), td(r.loop_lag_ms == null ? null : `${r.loop_lag_ms.toFixed(2)} ms`),
+        td(streams || "–", "l"), td(health, "l"),
+        td(sessions.length ? `● REC ${sessions.map((x) => x.split("/").pop()).join(", ")}` : "stopped", sessions.length ? "l bad" : "l muted"),
+        buttons], { "data-robot": r.name, "data-reachable": String(r.reachable) });
+    }));
+  } catch (e) { /* the next poll tries again */ }
+  if (again) setTimeout(pollRobots, 2000);
+}
+
 function setupOperator() {
   q("#recstart").addEventListener("click", recordStart);
   q("#recstop").addEventListener("click", recordStop);
@@ -218,6 +269,7 @@ function setupOperator() {
     }
   });
   pollRecord();
+  pollRobots();
   pollSessions();
   setInterval(pollSessions, 5000);
   pollHealth();
