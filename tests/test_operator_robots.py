@@ -16,6 +16,7 @@ from typing import Any
 import aiohttp
 import pytest
 
+from tests.test_display import chromium_path
 from tests.test_operator_api import get, post
 
 pytestmark = [pytest.mark.timeout(180), pytest.mark.subprocess, pytest.mark.realtime]
@@ -119,6 +120,8 @@ async def test_the_base_station_records_on_the_robot(tmp_path: Path, repo: Path)
             assert status == 403
             async with http.post(f"{url}/api/robots/nobody/record/start", json={}) as resp:
                 assert resp.status == 404
+        if chromium_path() is not None:
+            await the_page_records_on_the_robot(url, tmp_path)
     finally:
         for proc in (base, robot):
             if proc.returncode is None:
@@ -130,3 +133,35 @@ async def test_the_base_station_records_on_the_robot(tmp_path: Path, repo: Path)
                 proc.kill()
                 await proc.wait()
         await asyncio.gather(robot_done, base_done, return_exceptions=True)
+
+
+async def the_page_records_on_the_robot(url: str, tmp_path: Path) -> None:
+    """The same from the base's page: the robot's row, its Start and Stop clicked."""
+    from tests.test_display import browser
+    from tests.test_operator_page import click, shot
+    from tests.test_operator_page import until as page_until
+
+    async with browser(url + "/") as page:
+        row = '#robots tr[data-robot="robot1"]'
+        await page_until(
+            page,
+            f"document.querySelector('{row}')?.dataset.reachable === 'true'"
+            " && !document.querySelector('#robotspanel').hidden",
+            20,
+            "robot1",
+        )
+        await page.eval("document.querySelector('#recname').value = 'page'; true")
+        await click(page, f"{row} button[data-action=start]")
+        await page_until(
+            page, "window.flowrt.operator.lastRobot?.session === 'page_001'", 20, "start"
+        )
+        await page_until(
+            page, f"document.querySelector('{row}').textContent.includes('REC page_001')", 20, "REC"
+        )
+        await asyncio.sleep(2.0)
+        await shot(page, "#robotspanel", "operator-robots.png")
+        await click(page, f"{row} button[data-action=stop]")
+        await page_until(page, "window.flowrt.operator.lastRobot?.streams", 30, "the stop table")
+        text = await page.eval("document.querySelector('#robotmsg').textContent")
+        assert "page_001" in text, text
+        assert "0 lost" in text, text
