@@ -419,7 +419,8 @@ class Display(Node):
                 elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
                     self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
                 elif op == "record":  # the record panel: answered when the recorders have
-                    task = asyncio.get_running_loop().create_task(self._record(header))
+                    answer = operator_record.answer(self.ctx.rtdb, header, self._send)
+                    task = asyncio.get_running_loop().create_task(answer)
                     self._calls.add(task)
                     task.add_done_callback(self._calls.discard)
         except (asyncio.IncompleteReadError, ConnectionError) as e:
@@ -429,15 +430,6 @@ class Display(Node):
                 reason = f"display: the view's server process ended; {self.url} is gone"
                 self.ctx.set_error(reason)
                 self.ctx.log.error("%s: %s", self.ctx.name, reason)
-
-    async def _record(self, header: dict[str, Any]) -> None:
-        try:
-            result = await operator_record.obey(
-                self.ctx.rtdb, str(header.get("action")), header.get("name")
-            )
-        except Exception as e:  # an RTDB that cannot be written: the page says why
-            result = {"status": 500, "error": f"{type(e).__name__}: {e}"}
-        self._send({"op": "reply", "id": header.get("id"), "result": result})
 
     def _send(self, header: dict[str, Any], body: bytes = b"") -> None:
         if self._writer is not None and not self._writer.is_closing():
@@ -596,8 +588,7 @@ class Display(Node):
     # --- statistics ----------------------------------------------------------------
 
     def report(self) -> Any:
-        """Where the view is (in the runtime's statistics, ``reports.NODE.url``): a program
-        that ran it on port 0 finds it there."""
+        """``reports.NODE.url`` in the statistics: where a view on port 0 is."""
         return {"url": self.url} if getattr(self, "url", "") else None
 
     def display_stats(self) -> dict[str, Any]:

@@ -19,10 +19,8 @@ sends ``ready``, ``want`` (a frame of a source newer than the one it has), ``don
 node may release the frame it lent), ``stats`` (a request) and ``record`` (the record
 panel's start or stop, with an ``id``).
 
-The operator's station lives here too, each part in a module of its own: the record panel
-(:mod:`.operator_record`), the review of recorded sessions (:mod:`.operator_sessions`) and
-the machine and stream health over time (:mod:`.health_history`, sampled by this process
-once a second from the statistics the node already answers).
+The operator's station lives here too (:mod:`.operator_station`): the record panel, the
+review of recorded sessions, the health over time and the robots of a base station.
 """
 
 from __future__ import annotations
@@ -30,7 +28,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
-import itertools
 import json
 import pickle
 import secrets
@@ -39,7 +36,6 @@ import socket
 import struct
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -57,10 +53,7 @@ from flowrt.serving import (
 )
 
 from .display_render import Mark, render
-from .health_history import HealthHistory
-from .operator_record import RecordApi
-from .operator_robots import Robots
-from .operator_sessions import Sessions
+from .operator_station import Calls, Station
 
 STATS_MAX_AGE = 0.2  # seconds /stats.json is served from this process's cache
 STATS_WAIT = 2.0  # seconds to wait for the node's statistics
@@ -75,7 +68,6 @@ MAX_SESSIONS = 1024  # page sessions remembered (each page load makes one)
 COOKIE = "flowrt_view"  # holds the token once the page was opened with ?token=
 JPEG_PART = "Content-Type: image/jpeg\r\nContent-Length: "
 CALL_WAIT = 30.0  # seconds the node has to answer a request (the recorders' start or stop)
-STATIC = ("operator.js", "plots.js")  # the page's scripts, served from this package
 
 
 def serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]) -> None:
@@ -137,15 +129,8 @@ class ViewServer:
         self._writer: asyncio.StreamWriter | None = None
         self._stats: tuple[float, bytes] | None = None
         self._stats_wait: asyncio.Future[bytes] | None = None
-        self._calls: dict[int, asyncio.Future[dict[str, Any]]] = {}
-        self._call_ids = itertools.count(1)
-        self.recordings: list[str] = list(settings.get("recordings", ()))
-        hz = float(settings.get("health_hz", 1.0))
-        disk = self.recordings[0] if self.recordings else "/"
-        self.history = HealthHistory(float(settings.get("health_keep_s", 900.0)), hz, disk)
-        self.records = RecordApi(self.call)
-        self.reviews = Sessions(self._folders, self._active)
-        self.robots = Robots(dict(settings.get("robots", {})))
+        self.calls = Calls(self._send, CALL_WAIT)
+        self.station = Station(settings, self.calls.call, self.fresh_stats)
 
     # --- the channel ------------------------------------------------------------------------
 
@@ -160,11 +145,7 @@ class ViewServer:
                 web.get("/stats.json", self._stats_json),
                 web.get("/frame/{source}.jpg", self._snapshot),
                 web.get("/stream/{source}.mjpg", self._mjpeg),
-                web.get("/api/health/history", self._health),
-                *[web.get(f"/{name}", self._static) for name in STATIC],
-                *self.records.routes(),
-                *self.reviews.routes(),
-                *self.robots.routes(),
+                *self.station.routes(),
             ]
         )
         runner = web.AppRunner(
@@ -186,16 +167,14 @@ class ViewServer:
 
         listener = await loop.create_server(factory, sock=sock)
         sweeper = loop.create_task(self._sweep())
-        sampler = loop.create_task(self._sample())
-        watcher = loop.create_task(self.robots.poll())
+        station = loop.create_task(self.station.run())
         self._send({"op": "ready"})
         try:
             await self._read(reader)
         finally:
             sweeper.cancel()
-            sampler.cancel()
-            watcher.cancel()
-            await asyncio.to_thread(self.robots.close)
+            station.cancel()
+            await self.station.close()
             listener.close()
             closing = [c.ws.close(code=1001, message=b"runtime stopping") for c in self.clients]
             if closing:
@@ -231,81 +210,11 @@ class ViewServer:
                     if self._stats_wait is not None and not self._stats_wait.done():
                         self._stats_wait.set_result(data)
                 elif op == "reply":
-                    call = self._calls.pop(int(header.get("id") or 0), None)
-                    if call is not None and not call.done():
-                        call.set_result(dict(header.get("result") or {}))
+                    self.calls.reply(header)
 
     def _send(self, header: dict[str, Any]) -> None:
         if self._writer is not None and not self._writer.is_closing():
             self._writer.write(pack(header))
-
-    async def call(self, op: str, **args: Any) -> dict[str, Any]:
-        """Ask the node (``op`` with ``args``) and wait for its ``reply``."""
-        n = next(self._call_ids)
-        answer: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
-        self._calls[n] = answer
-        self._send({"op": op, "id": n, **args})
-        try:
-            return await asyncio.wait_for(answer, CALL_WAIT)
-        except TimeoutError:
-            return {"status": 504, "error": f"the runtime did not answer {op} in {CALL_WAIT:g} s"}
-        finally:
-            self._calls.pop(n, None)
-
-    # --- the operator's station -----------------------------------------------------------
-
-    def _folders(self) -> list[str]:
-        """Where sessions are: the display's folder, then every recorder's."""
-        seen = list(self.recordings)
-        for folder in self.records.state.get("recordings", []):
-            if folder not in seen:
-                seen.append(folder)
-        return seen
-
-    def _active(self) -> set[str]:
-        """The sessions being written now (not to be scanned while they grow)."""
-        rows = self.records.state.get("recording", [])
-        return {Path(r["session"]).name for r in rows if r.get("session")}
-
-    async def _sample(self) -> None:
-        """Health: one sample per period, with the node's statistics of that moment."""
-        period = 1.0 / self.history.hz
-        loop = asyncio.get_running_loop()
-        next_at = loop.time()
-        while True:
-            try:
-                body = await self.fresh_stats()
-                stats = json.loads(body) if body is not None else None
-            except ValueError:
-                stats = None
-            if stats is not None:
-                self.records.observe(stats, time.monotonic())
-            self.history.sample(stats)  # psutil's reads: well under a millisecond
-            next_at = max(next_at + period, loop.time())
-            await asyncio.sleep(next_at - loop.time())
-
-    async def _health(self, request: web.Request) -> web.Response:
-        keep = (self.history.samples.maxlen or 1) / self.history.hz
-        try:
-            seconds = float(request.query.get("seconds", "600"))
-        except ValueError:
-            raise web.HTTPBadRequest(text="seconds: a number\n") from None
-        if not 0 < seconds < float("inf"):
-            raise web.HTTPBadRequest(text="seconds: a positive number\n")
-        return web.Response(
-            text=json.dumps(self.history.window(min(seconds, keep))),
-            content_type="application/json",
-            headers={"Cache-Control": "no-store"},
-        )
-
-    async def _static(self, request: web.Request) -> web.Response:
-        name = request.path.lstrip("/")
-        return web.Response(
-            body=(Path(__file__).parent / name).read_bytes(),
-            content_type="text/javascript",
-            charset="utf-8",
-            headers={"Cache-Control": "no-cache"},
-        )
 
     def _source(self, name: str) -> _Shown:
         src = self.sources.get(name)
@@ -403,7 +312,7 @@ class ViewServer:
             if conn is not None:
                 conn.busy += 1
             try:
-                refused = self._refusal(request)
+                refused = refusal(request, self.token, self.allowed_hosts)
                 if refused is not None:
                     return refused
                 response: web.StreamResponse = await handler(request)
@@ -416,34 +325,6 @@ class ViewServer:
                     conn.deadline = time.monotonic() + self.header_timeout
 
         return guard
-
-    def _refusal(self, request: web.Request) -> web.Response | None:
-        token = self.token
-        if token:
-            scheme, _, given = request.headers.get("Authorization", "").partition(" ")
-            candidates = [
-                given.strip() if scheme.lower() == "bearer" else "",
-                request.cookies.get(COOKIE, ""),
-                request.query.get("token", ""),
-            ]
-            if not any(hmac.compare_digest(c.encode(), token.encode()) for c in candidates):
-                return web.Response(
-                    status=401,
-                    text="this live view needs its token: open it as /?token=TOKEN\n",
-                    headers={"WWW-Authenticate": 'Bearer realm="flowrt view"'},
-                )
-        else:
-            name = hostname(request.host)
-            if not is_loopback(name) and name not in self.allowed_hosts:
-                return web.Response(
-                    status=421,
-                    text=f"Host {request.host!r} is not this view's address "
-                    "(add it to the display's allowed_hosts, or give it a token)\n",
-                )
-        origin = request.headers.get("Origin")
-        if origin is not None and urlsplit(origin).netloc.lower() != request.host.lower():
-            return web.Response(status=403, text=f"Origin {origin!r} is not this view's own\n")
-        return None
 
     # --- HTTP -------------------------------------------------------------------------------
 
@@ -620,6 +501,35 @@ class ViewServer:
             if not sent_any:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self.any_change.wait(), 1.0)
+
+
+def refusal(request: web.Request, token: str | None, allowed: list[str]) -> web.Response | None:
+    """Why ``request`` is refused (the token, the Host, the Origin), or None; see ``_guard``."""
+    if token:
+        scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+        candidates = [
+            given.strip() if scheme.lower() == "bearer" else "",
+            request.cookies.get(COOKIE, ""),
+            request.query.get("token", ""),
+        ]
+        if not any(hmac.compare_digest(c.encode(), token.encode()) for c in candidates):
+            return web.Response(
+                status=401,
+                text="this live view needs its token: open it as /?token=TOKEN\n",
+                headers={"WWW-Authenticate": 'Bearer realm="flowrt view"'},
+            )
+    else:
+        name = hostname(request.host)
+        if not is_loopback(name) and name not in allowed:
+            return web.Response(
+                status=421,
+                text=f"Host {request.host!r} is not this view's address "
+                "(add it to the display's allowed_hosts, or give it a token)\n",
+            )
+    origin = request.headers.get("Origin")
+    if origin is not None and urlsplit(origin).netloc.lower() != request.host.lower():
+        return web.Response(status=403, text=f"Origin {origin!r} is not this view's own\n")
+    return None
 
 
 def _joystick(value: Any) -> dict[str, Any] | None:

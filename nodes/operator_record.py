@@ -108,6 +108,15 @@ async def obey(rtdb: Any, action: str, name: Any) -> dict[str, Any]:
     return {"status": 200, "sessions": now if action == "start" else current}
 
 
+async def answer(rtdb: Any, header: dict[str, Any], send: Callable[[dict[str, Any]], None]) -> None:
+    """The display node's answer to the server's ``record`` request (its ``id`` echoed)."""
+    try:
+        result = await obey(rtdb, str(header.get("action")), header.get("name"))
+    except Exception as e:  # an RTDB that cannot be written: the page says why
+        result = {"status": 500, "error": f"{type(e).__name__}: {e}"}
+    send({"op": "reply", "id": header.get("id"), "result": result})
+
+
 # --- the view's side ----------------------------------------------------------------------
 
 
