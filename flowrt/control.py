@@ -189,6 +189,11 @@ class RecordRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     action: Literal["start", "stop"]
     node: str | None = None
+    name: str | None = Field(
+        default=None,
+        pattern=r"^[A-Za-z0-9_\-]{1,64}$",
+        description="with start: the session's name, NAME_NNN (default: the recorder's)",
+    )
 
 
 def jsonable(value: Any) -> Any:
@@ -478,8 +483,11 @@ class ControlServer:
             targets = [rec.node] if rec.node is not None else recorders
             if not targets:
                 raise KeyError("the graph has no recorder node (add one, or use flowrt record)")
+            command: Any = rec.action
+            if rec.action == "start" and rec.name is not None:
+                command = {"action": "start", "name": rec.name}
             for name in targets:
-                rt.rtdb.write(RECORD_COMMAND + name, rec.action)
+                rt.rtdb.write(RECORD_COMMAND + name, command)
             return 200, _dumps({"action": rec.action, "nodes": targets})
         if op == "rtdb_record":
             name = str(args.get("name", ""))

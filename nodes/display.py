@@ -74,11 +74,19 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
-from flowrt import Frame, Input, InputTrigger, Node, serving
+from flowrt import Frame, Input, InputTrigger, Node, resolve_path, serving
 
-from . import display_server
+from . import display_server, operator_record
 from .display_render import Mark, render
 
 __all__ = ["Display", "Mark", "render"]
@@ -198,6 +206,32 @@ def _local_host(host: str) -> str:
 RESOLVE_TIMEOUT = 2.0
 
 
+class Robot(BaseModel):
+    """A robot the base station's view watches and records through its control channel."""
+
+    model_config = ConfigDict(extra="forbid")
+    connect: list[str] = Field(
+        min_length=1, description="the robot's Zenoh endpoints, e.g. tcp/192.168.1.10:7447"
+    )
+    control: str = Field(description="the robot graph's zenoh.control key")
+    token: str | None = Field(None, description="its control token, when it needs one")
+
+    @field_validator("connect")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        from flowrt.spec import _endpoint
+
+        return [_endpoint(e) for e in v]
+
+    @field_validator("control")
+    @classmethod
+    def _key(cls, v: str) -> str:
+        from flowrt.spec import check_key_expr
+
+        check_key_expr(v, wildcards=False)
+        return v
+
+
 class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
@@ -241,6 +275,27 @@ class Display(Node):
         refresh_ms: int = Field(
             333, ge=50, le=3_600_000, description="how often the page polls the statistics"
         )
+        recordings: str | None = Field(
+            None,
+            description="a folder of recorded sessions to review (besides every recorder's; "
+            "relative: beside the graph file); flowrt run --recordings DIR sets it",
+        )
+        health_hz: float = Field(
+            1.0, ge=0.1, le=10, description="machine and stream health samples per second"
+        )
+        health_keep_s: float = Field(
+            900.0, ge=60, le=86400, description="seconds of health history kept for the plots"
+        )
+        robots: dict[str, Robot] = Field(
+            default_factory=dict,
+            description="robots (name: their Zenoh control channel) whose state the page shows "
+            "and whose recorders it starts and stops",
+        )
+
+        @field_validator("recordings", mode="after")
+        @classmethod
+        def _beside_the_graph(cls, v: str | None, info: ValidationInfo) -> str | None:
+            return None if v is None else resolve_path(v, info)
 
         @model_validator(mode="after")
         def _token_beyond_loopback(self) -> Display.Params:
@@ -273,6 +328,7 @@ class Display(Node):
         self._writer: asyncio.StreamWriter | None = None
         self._proc: Any = None
         self._task: asyncio.Task[None] | None = None
+        self._calls: set[asyncio.Task[None]] = set()  # the server's requests being answered
         host, port = self.params.host, self.params.port
         self.url = ""
         try:
@@ -299,6 +355,10 @@ class Display(Node):
             "page": page,
             "source_wait": SOURCE_WAIT,
             "header_timeout": HEADER_TIMEOUT,
+            "recordings": [self.params.recordings] if self.params.recordings else [],
+            "health_hz": self.params.health_hz,
+            "health_keep_s": self.params.health_keep_s,
+            "robots": {k: v.model_dump() for k, v in self.params.robots.items()},
         }
         ours, theirs = socket.socketpair()
         ctx = multiprocessing.get_context("spawn")
@@ -358,6 +418,11 @@ class Display(Node):
                     self._send_stats()
                 elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
                     self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
+                elif op == "record":  # the record panel: answered when the recorders have
+                    answer = operator_record.answer(self.ctx.rtdb, header, self._send)
+                    task = asyncio.get_running_loop().create_task(answer)
+                    self._calls.add(task)
+                    task.add_done_callback(self._calls.discard)
         except (asyncio.IncompleteReadError, ConnectionError) as e:
             if not ready.done():
                 ready.set_exception(e)
@@ -522,6 +587,10 @@ class Display(Node):
 
     # --- statistics ----------------------------------------------------------------
 
+    def report(self) -> Any:
+        """``reports.NODE.url`` in the statistics: where a view on port 0 is."""
+        return {"url": self.url} if getattr(self, "url", "") else None
+
     def display_stats(self) -> dict[str, Any]:
         """What the display measures: per source fps and frames, its clients and encodes."""
         now = self.ctx.now()
@@ -551,9 +620,14 @@ class Display(Node):
             }
             for port, (t, dets) in self.detections.items()
         ]
+        try:
+            recording = operator_record.state(self.ctx.rtdb)
+        except RuntimeError:  # no runtime around the node (a bare test harness)
+            recording = {"recording": [], "recordings": []}
         return {
             "url": self.url,
             "encodes": self.encodes,
             "sources": sources,
             "detections": detections,
+            **recording,
         }

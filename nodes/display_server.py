@@ -13,10 +13,14 @@ process's descriptors, never the runtime's.
 The channel carries frames of ``>II`` (header length, body length), a JSON header and a
 body. The node sends ``frame`` (a source's newest frame, pickled: a descriptor of its
 shared-memory slot, which this process maps, and the detections to draw on it; one per
-source at a time, encoded here in a thread), ``sources`` (the inputs that have sent frames)
-and ``stats`` (an answer); this process sends ``ready``, ``want`` (a frame of a source newer
-than the one it has), ``done`` (the node may release the frame it lent) and ``stats`` (a
-request).
+source at a time, encoded here in a thread), ``sources`` (the inputs that have sent frames),
+``stats`` (an answer) and ``reply`` (the answer to a request with an ``id``); this process
+sends ``ready``, ``want`` (a frame of a source newer than the one it has), ``done`` (the
+node may release the frame it lent), ``stats`` (a request) and ``record`` (the record
+panel's start or stop, with an ``id``).
+
+The operator's station lives here too (:mod:`.operator_station`): the record panel, the
+review of recorded sessions, the health over time and the robots of a base station.
 """
 
 from __future__ import annotations
@@ -49,6 +53,7 @@ from flowrt.serving import (
 )
 
 from .display_render import Mark, render
+from .operator_station import Calls, Station
 
 STATS_MAX_AGE = 0.2  # seconds /stats.json is served from this process's cache
 STATS_WAIT = 2.0  # seconds to wait for the node's statistics
@@ -62,6 +67,7 @@ STREAM_SNDBUF = 256 << 10  # bytes buffered per MJPEG client: a few frames, then
 MAX_SESSIONS = 1024  # page sessions remembered (each page load makes one)
 COOKIE = "flowrt_view"  # holds the token once the page was opened with ?token=
 JPEG_PART = "Content-Type: image/jpeg\r\nContent-Length: "
+CALL_WAIT = 30.0  # seconds the node has to answer a request (the recorders' start or stop)
 
 
 def serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]) -> None:
@@ -123,6 +129,8 @@ class ViewServer:
         self._writer: asyncio.StreamWriter | None = None
         self._stats: tuple[float, bytes] | None = None
         self._stats_wait: asyncio.Future[bytes] | None = None
+        self.calls = Calls(self._send, CALL_WAIT)
+        self.station = Station(settings, self.calls.call, self.fresh_stats)
 
     # --- the channel ------------------------------------------------------------------------
 
@@ -137,6 +145,7 @@ class ViewServer:
                 web.get("/stats.json", self._stats_json),
                 web.get("/frame/{source}.jpg", self._snapshot),
                 web.get("/stream/{source}.mjpg", self._mjpeg),
+                *self.station.routes(),
             ]
         )
         runner = web.AppRunner(
@@ -158,11 +167,14 @@ class ViewServer:
 
         listener = await loop.create_server(factory, sock=sock)
         sweeper = loop.create_task(self._sweep())
+        station = loop.create_task(self.station.run())
         self._send({"op": "ready"})
         try:
             await self._read(reader)
         finally:
             sweeper.cancel()
+            station.cancel()
+            await self.station.close()
             listener.close()
             closing = [c.ws.close(code=1001, message=b"runtime stopping") for c in self.clients]
             if closing:
@@ -197,6 +209,8 @@ class ViewServer:
                     self._stats = (time.monotonic(), data)
                     if self._stats_wait is not None and not self._stats_wait.done():
                         self._stats_wait.set_result(data)
+                elif op == "reply":
+                    self.calls.reply(header)
 
     def _send(self, header: dict[str, Any]) -> None:
         if self._writer is not None and not self._writer.is_closing():
@@ -298,7 +312,7 @@ class ViewServer:
             if conn is not None:
                 conn.busy += 1
             try:
-                refused = self._refusal(request)
+                refused = refusal(request, self.token, self.allowed_hosts)
                 if refused is not None:
                     return refused
                 response: web.StreamResponse = await handler(request)
@@ -311,34 +325,6 @@ class ViewServer:
                     conn.deadline = time.monotonic() + self.header_timeout
 
         return guard
-
-    def _refusal(self, request: web.Request) -> web.Response | None:
-        token = self.token
-        if token:
-            scheme, _, given = request.headers.get("Authorization", "").partition(" ")
-            candidates = [
-                given.strip() if scheme.lower() == "bearer" else "",
-                request.cookies.get(COOKIE, ""),
-                request.query.get("token", ""),
-            ]
-            if not any(hmac.compare_digest(c.encode(), token.encode()) for c in candidates):
-                return web.Response(
-                    status=401,
-                    text="this live view needs its token: open it as /?token=TOKEN\n",
-                    headers={"WWW-Authenticate": 'Bearer realm="flowrt view"'},
-                )
-        else:
-            name = hostname(request.host)
-            if not is_loopback(name) and name not in self.allowed_hosts:
-                return web.Response(
-                    status=421,
-                    text=f"Host {request.host!r} is not this view's address "
-                    "(add it to the display's allowed_hosts, or give it a token)\n",
-                )
-        origin = request.headers.get("Origin")
-        if origin is not None and urlsplit(origin).netloc.lower() != request.host.lower():
-            return web.Response(status=403, text=f"Origin {origin!r} is not this view's own\n")
-        return None
 
     # --- HTTP -------------------------------------------------------------------------------
 
@@ -362,22 +348,23 @@ class ViewServer:
             headers={"Cache-Control": "no-store"},
         )
 
-    async def _stats_json(self, request: web.Request) -> web.Response:
+    async def fresh_stats(self) -> bytes | None:
+        """The node's statistics, at most STATS_MAX_AGE old (None: it gave none in time)."""
         cached = self._stats
-        if cached is None or time.monotonic() - cached[0] >= STATS_MAX_AGE:
-            if self._stats_wait is None or self._stats_wait.done():
-                self._stats_wait = asyncio.get_running_loop().create_future()
-                self._send({"op": "stats"})
-            try:
-                body = await asyncio.wait_for(asyncio.shield(self._stats_wait), STATS_WAIT)
-            except TimeoutError:
-                if cached is None:
-                    raise web.HTTPServiceUnavailable(
-                        text="no statistics from the runtime"
-                    ) from None
-                body = cached[1]
-        else:
-            body = cached[1]
+        if cached is not None and time.monotonic() - cached[0] < STATS_MAX_AGE:
+            return cached[1]
+        if self._stats_wait is None or self._stats_wait.done():
+            self._stats_wait = asyncio.get_running_loop().create_future()
+            self._send({"op": "stats"})
+        try:
+            return await asyncio.wait_for(asyncio.shield(self._stats_wait), STATS_WAIT)
+        except TimeoutError:
+            return cached[1] if cached is not None else None
+
+    async def _stats_json(self, request: web.Request) -> web.Response:
+        body = await self.fresh_stats()
+        if body is None:
+            raise web.HTTPServiceUnavailable(text="no statistics from the runtime")
         return web.Response(
             body=body, content_type="application/json", headers={"Cache-Control": "no-store"}
         )
@@ -514,6 +501,35 @@ class ViewServer:
             if not sent_any:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self.any_change.wait(), 1.0)
+
+
+def refusal(request: web.Request, token: str | None, allowed: list[str]) -> web.Response | None:
+    """Why ``request`` is refused (the token, the Host, the Origin), or None; see ``_guard``."""
+    if token:
+        scheme, _, given = request.headers.get("Authorization", "").partition(" ")
+        candidates = [
+            given.strip() if scheme.lower() == "bearer" else "",
+            request.cookies.get(COOKIE, ""),
+            request.query.get("token", ""),
+        ]
+        if not any(hmac.compare_digest(c.encode(), token.encode()) for c in candidates):
+            return web.Response(
+                status=401,
+                text="this live view needs its token: open it as /?token=TOKEN\n",
+                headers={"WWW-Authenticate": 'Bearer realm="flowrt view"'},
+            )
+    else:
+        name = hostname(request.host)
+        if not is_loopback(name) and name not in allowed:
+            return web.Response(
+                status=421,
+                text=f"Host {request.host!r} is not this view's address "
+                "(add it to the display's allowed_hosts, or give it a token)\n",
+            )
+    origin = request.headers.get("Origin")
+    if origin is not None and urlsplit(origin).netloc.lower() != request.host.lower():
+        return web.Response(status=403, text=f"Origin {origin!r} is not this view's own\n")
+    return None
 
 
 def _joystick(value: Any) -> dict[str, Any] | None:

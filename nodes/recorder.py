@@ -29,7 +29,10 @@ files, ``NAME_NNN_000.mcap``, ``NAME_NNN_001.mcap`` ..., each a complete, standa
 (:mod:`flowrt.recording.split`); the per-stream table counts across all of them.
 
 At run time ``flowrt ctl record start|stop`` (RTDB record ``flowrt.record.NODE``) starts a new
-session or closes the current one.
+session or closes the current one; the command may also be ``{"action": "start", "name":
+"drive"}`` (the live view's record panel): the new session is then ``drive_NNN``. The node
+says where its sessions go in ``flowrt.recordings.NODE`` (the folder), so the live view can
+list them for review.
 """
 
 from __future__ import annotations
@@ -55,7 +58,7 @@ from flowrt.recording import (
 )
 from flowrt.recording.encoding import Overlay, annotations_topic, is_detection
 from flowrt.recording.report import RecordingReport, report_text
-from flowrt.recording.session import SESSION_FILE, session_metadata, timing_json
+from flowrt.recording.session import SESSION_FILE, SESSION_NAME, session_metadata, timing_json
 
 COMMAND_RECORD = "flowrt.record."
 """RTDB record ``flowrt.record.NODE`` = ``start`` | ``stop``: what ``flowrt ctl record`` writes."""
@@ -63,6 +66,8 @@ FINISH_WAIT = 1.0
 """Seconds a stop waits for the file to be finished before leaving it to the writer thread."""
 STATUS_RECORD = "flowrt.recording."
 """RTDB record ``flowrt.recording.NODE``: the current session folder, or "" when stopped."""
+FOLDER_RECORD = "flowrt.recordings."
+"""RTDB record ``flowrt.recordings.NODE``: the folder this recorder creates its sessions in."""
 
 
 class Recorder(Node):
@@ -152,7 +157,10 @@ class Recorder(Node):
         self._draining: RecordingWriter | None = None  # closing: its frames still come back
         self._rtdb_ok = True
         self._task: asyncio.Task[None] | None = None  # a start/stop asked for by ctl
+        self._prefix = self.params.name  # the next session's name (a start command may set it)
         self._publish_status("")
+        if self._rtdb_ok:
+            self.ctx.rtdb.write(FOLDER_RECORD + self.ctx.name, str(Path(self.params.path)))
         if self.params.start:
             await asyncio.to_thread(self._open, self._stats())
             self._publish_status(str(self.session))
@@ -169,7 +177,7 @@ class Recorder(Node):
         if session is not None:
             session.mkdir(parents=True, exist_ok=True)
         else:
-            session = new_session(p.path, p.name)
+            session = new_session(p.path, self._prefix)
         self._started_wall = time.time()
         self._started_at = self.ctx.now()
         writer = RecordingWriter(
@@ -365,6 +373,11 @@ class Recorder(Node):
             return
         self._command_seq = rec.seq
         cmd = rec.value
+        if isinstance(cmd, dict):  # {"action": "start", "name": "drive"}: the live view's
+            name = cmd.get("name")
+            if cmd.get("action") == "start" and isinstance(name, str) and SESSION_NAME.match(name):
+                self._prefix = name
+            cmd = cmd.get("action")
         if cmd == "start" and self.writer is None:
             self._task = self._loop.create_task(self._start_async())
         elif cmd == "stop" and self.writer is not None:

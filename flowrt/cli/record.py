@@ -31,10 +31,8 @@ from .common import (
     seconds_arg,
     stdout_console,
 )
+from .recorders import RECORDER, graph_outputs, with_recorder
 from .run import add_run_options, run_graph
-
-RECORDER = "recorder"
-
 
 # --- record ------------------------------------------------------------------------------
 
@@ -50,33 +48,6 @@ def select_outputs(outputs: list[str], patterns: list[str]) -> tuple[list[str], 
     chosen = [o for o in outputs if any(fnmatch.fnmatchcase(o, p) for p in patterns)]
     unmatched = [p for p in patterns if not any(fnmatch.fnmatchcase(o, p) for o in outputs)]
     return chosen, unmatched
-
-
-def graph_outputs(graph: Any) -> list[str]:
-    """Every output, those a node declares from its params too (a CAN node's messages)."""
-    return [
-        f"{name}.{port}"
-        for name, n in graph.nodes.items()
-        for port in {**n.cls.outputs, **n.cls.params_outputs(n.params)}
-    ]
-
-
-def with_recorder(spec: Any, topics: list[str], params: dict[str, Any], size: int = 16) -> Any:
-    """``spec`` plus a recorder node reading ``topics`` over lossless edges."""
-    from ..spec import NodeSpec
-
-    name = RECORDER
-    while name in spec.nodes:
-        name += "_"
-    node = NodeSpec.model_validate(
-        {
-            "kind": "recorder",
-            "params": params,
-            "priority": 5,
-            "inputs": {t: {"from": t, "policy": "lossless", "size": size} for t in topics},
-        }
-    )
-    return spec.model_copy(update={"nodes": {**spec.nodes, name: node}})
 
 
 def _image_formats(text: str | None, topics: list[str]) -> dict[str, str] | str:

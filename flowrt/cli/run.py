@@ -61,7 +61,42 @@ def cmd_run(args: argparse.Namespace) -> int:
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
+    if args.recordings is not None:
+        problem = _with_recordings(graph, args.recordings)
+        if isinstance(problem, str):
+            err.print(f"flowrt run: --recordings: {problem}", markup=False, soft_wrap=True)
+            return EXIT_BAD_GRAPH
+        graph = problem
     return run_graph(graph, args, err)
+
+
+def _with_recordings(graph: Graph, folder: str) -> Graph | str:
+    """The graph with a recorder on every output that waits to be told to start (the live
+    view's record panel, ``flowrt ctl record start``), and its display nodes reviewing the
+    sessions of ``folder``; or why not, in one line."""
+    from ..graph import resolve
+    from ..recording import check_writable
+    from .recorders import graph_outputs, with_recorder
+
+    problem = check_writable(folder)
+    if problem is not None:
+        return problem
+    root = str(Path(folder).resolve())  # relative to where the command runs, as -o is
+    params = {
+        "path": root,
+        "start": False,
+        "graph_file": str(Path(graph.file).resolve()) if graph.file else None,
+    }
+    try:
+        base_dir = Path(graph.file).resolve().parent if graph.file else None
+        out = resolve(with_recorder(graph.spec, graph_outputs(graph), params), base_dir=base_dir)
+    except Exception as e:  # a recorder the graph cannot take
+        return _one_line(e)
+    out.file = graph.file
+    for name in _display_nodes(out):
+        n = out.nodes[name]
+        n.params = n.params.model_validate({**n.params.model_dump(), "recordings": root})
+    return out
 
 
 def run_graph(
@@ -406,6 +441,13 @@ def _drain_s(text: str) -> float:
 def add_parsers(sub: Any) -> None:
     run = sub.add_parser("run", help="run a graph with a live status table")
     run.add_argument("file", help="graph file")
+    run.add_argument(
+        "--recordings",
+        metavar="DIR",
+        help="add a recorder on every output that waits for Start (the live view's record "
+        "panel, or flowrt ctl record start); sessions go in DIR/NAME_NNN and are reviewed "
+        "in the live view",
+    )
     add_run_options(run)
     run.set_defaults(func=cmd_run)
 

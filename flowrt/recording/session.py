@@ -21,10 +21,19 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SESSION_FILE", "check_writable", "mcap_files", "new_session", "session_metadata"]
+__all__ = [
+    "SESSION_FILE",
+    "SESSION_NAME",
+    "check_writable",
+    "mcap_files",
+    "new_session",
+    "session_metadata",
+]
 
 SESSION_FILE = "streams.json"
-_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")
+SESSION_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+"""A session prefix (and a session folder's name): no path separator, no dot, bounded."""
+_NAME = SESSION_NAME
 _PART = re.compile(r"^(.*)_(\d+)\.mcap$")
 
 

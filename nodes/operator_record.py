@@ -1,0 +1,291 @@
+"""The record panel: start and stop a named session from the live view, and watch it.
+
+Two halves, one per process. In the view's server process, :class:`RecordApi` answers
+
+- ``POST /api/record/start`` with ``{"name": "drive"}``: every recorder of the graph starts a
+  new session ``drive_NNN``; answers ``{"session": "drive_NNN", "sessions": [...]}``;
+- ``POST /api/record/stop``: the recorders stop; once their files are finished, answers the
+  session's per-stream table (the recorder's ``streams.json``: ``expected``, ``received``,
+  ``written``, ``lost`` per stream, and the totals);
+- ``GET /api/record``: whether a session is being recorded, its elapsed time, its size on
+  disk and each stream's rate over the last statistics interval.
+
+State-changing requests must be ``application/json`` (a cross-site form cannot send that
+without a preflight the view never grants) and pass the view's guard like every request:
+an ``Origin`` other than the view's own is refused (403), the token is needed when the view
+has one. In the runtime's process, :func:`obey` (called by the display node) writes the
+recorders' RTDB command records (``flowrt.record.NODE``, the same ``flowrt ctl record``
+writes) and waits for their answers (``flowrt.recording.NODE``): the view never touches a
+recorder's files while it writes them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from .operator_sessions import SESSION_FILE, valid_name
+
+COMMAND = "flowrt.record."  # nodes.recorder.COMMAND_RECORD
+STATUS = "flowrt.recording."  # nodes.recorder.STATUS_RECORD: the session folder, "" stopped
+FOLDER = "flowrt.recordings."  # nodes.recorder.FOLDER_RECORD: where its sessions go
+OBEY_WAIT = 10.0  # seconds for the recorders to say they started or stopped
+REPORT_WAIT = 60.0  # seconds for a stopped session's files to be finished (a slow disk)
+
+Call = Callable[..., Awaitable[dict[str, Any]]]
+
+
+# --- the runtime's side -------------------------------------------------------------------
+
+
+def recorders(rtdb: Any) -> list[str]:
+    """The recorder nodes of the running graph: those that publish their state."""
+    return sorted(n[len(STATUS) :] for n in rtdb.names() if n.startswith(STATUS))
+
+
+def state(rtdb: Any) -> dict[str, Any]:
+    """Each recorder's session (``""``: stopped) and for how long, and the folders sessions
+    go in: what the display node adds to its statistics for the page."""
+    rows, folders = [], []
+    for node in recorders(rtdb):
+        rec = rtdb.read(STATUS + node)
+        rows.append(
+            {
+                "node": node,
+                "session": str(rec.value) if rec is not None and rec.value else "",
+                "since": rec.age if rec is not None else None,
+            }
+        )
+        folder = rtdb.value(FOLDER + node)
+        if isinstance(folder, str) and folder not in folders:
+            folders.append(folder)
+    return {"recording": rows, "recordings": folders}
+
+
+async def obey(rtdb: Any, action: str, name: Any) -> dict[str, Any]:
+    """Start (``name``: the session's prefix) or stop every recorder, and wait until each says
+    it did. ``{"status": 200, "sessions": {node: folder}}`` or ``{"status", "error"}``."""
+    nodes = recorders(rtdb)
+    if not nodes:
+        return {
+            "status": 404,
+            "error": "the graph has no recorder (run it with --recordings DIR, or add one)",
+        }
+    current = {n: rtdb.value(STATUS + n, "") for n in nodes}
+    if action == "start":
+        if not isinstance(name, str) or not valid_name(name):
+            return {"status": 400, "error": "name: letters, digits, _ and - (at most 64)"}
+        busy = {n: s for n, s in current.items() if s}
+        if busy:
+            where = ", ".join(f"{n} into {Path(s).name}" for n, s in busy.items())
+            return {"status": 409, "error": f"already recording: {where}"}
+        targets, command = nodes, {"action": "start", "name": name}
+    elif action == "stop":
+        targets = [n for n, s in current.items() if s]
+        if not targets:
+            return {"status": 409, "error": "not recording"}
+        command = "stop"  # type: ignore[assignment]
+    else:
+        return {"status": 400, "error": "action: start or stop"}
+    for node in targets:
+        rtdb.write(COMMAND + node, command)
+    loop = asyncio.get_running_loop()
+    end = loop.time() + OBEY_WAIT
+    while True:
+        now = {n: rtdb.value(STATUS + n, "") for n in targets}
+        if all(bool(s) == (action == "start") for s in now.values()):
+            break
+        if loop.time() > end:
+            late = [n for n, s in now.items() if bool(s) != (action == "start")]
+            return {"status": 504, "error": f"{', '.join(late)} did not {action} in time"}
+        await asyncio.sleep(0.05)
+    return {"status": 200, "sessions": now if action == "start" else current}
+
+
+async def answer(rtdb: Any, header: dict[str, Any], send: Callable[[dict[str, Any]], None]) -> None:
+    """The display node's answer to the server's ``record`` request (its ``id`` echoed)."""
+    try:
+        result = await obey(rtdb, str(header.get("action")), header.get("name"))
+    except Exception as e:  # an RTDB that cannot be written: the page says why
+        result = {"status": 500, "error": f"{type(e).__name__}: {e}"}
+    send({"op": "reply", "id": header.get("id"), "result": result})
+
+
+# --- the view's side ----------------------------------------------------------------------
+
+
+class RecordApi:
+    """The HTTP routes; ``call(op, **args)`` asks the display node and returns its answer."""
+
+    def __init__(self, call: Call) -> None:
+        self.call = call
+        self.state: dict[str, Any] = {"recording": [], "recordings": []}
+        self._edges: tuple[float, dict[str, int]] | None = None  # the previous statistics
+        self.rates: dict[str, float] = {}
+
+    def routes(self) -> list[web.RouteDef]:
+        return [
+            web.post("/api/record/start", self.start),
+            web.post("/api/record/stop", self.stop),
+            web.get("/api/record", self.status),
+        ]
+
+    def observe(self, stats: dict[str, Any], now: float) -> None:
+        """New statistics: the recorders' state, and each recorded stream's rate since the
+        previous ones (from the counts of the edges into the recorders)."""
+        display = stats.get("display") or {}
+        self.state = {
+            "recording": display.get("recording", []),
+            "recordings": display.get("recordings", []),
+        }
+        nodes = {r["node"] for r in self.state["recording"]}
+        counts: dict[str, int] = {}
+        for e in (stats.get("runtime") or {}).get("edges", []):
+            _, _, dst = str(e.get("name", "")).partition("->")
+            node, _, topic = dst.partition(".")
+            if node in nodes:
+                counts[topic] = int(e.get("delivered", 0))
+        if self._edges is not None and now > self._edges[0]:
+            dt = now - self._edges[0]
+            self.rates = {t: max(0, c - self._edges[1].get(t, c)) / dt for t, c in counts.items()}
+        self._edges = (now, counts)
+
+    def _now_recording(self, sessions: dict[str, str]) -> None:
+        """What the recorders just said, without waiting for the next statistics."""
+        rows = {r["node"]: r for r in self.state["recording"]}
+        for node, folder in sessions.items():
+            rows[node] = {"node": node, "session": folder, "since": 0.0}
+        self.state = {**self.state, "recording": list(rows.values())}
+
+    async def start(self, request: web.Request) -> web.Response:
+        body = await _body(request)
+        name = body.get("name")
+        if not isinstance(name, str) or not valid_name(name):
+            return _error(400, "name: a session name, letters, digits, _ and - (at most 64)")
+        answer = await self.call("record", action="start", name=name)
+        if answer.get("status") != 200:
+            return _error(int(answer.get("status", 500)), str(answer.get("error")))
+        self._now_recording(answer["sessions"])
+        folders = list(answer["sessions"].values())
+        return _json(
+            {
+                "session": Path(folders[0]).name,
+                "sessions": [Path(f).name for f in folders],
+                "nodes": list(answer["sessions"]),
+            }
+        )
+
+    async def stop(self, request: web.Request) -> web.Response:
+        await _body(request)
+        answer = await self.call("record", action="stop")
+        if answer.get("status") != 200:
+            return _error(int(answer.get("status", 500)), str(answer.get("error")))
+        self._now_recording(dict.fromkeys(answer["sessions"], ""))
+        folders = [Path(f) for f in answer["sessions"].values()]
+        reports = await _reports(folders, REPORT_WAIT)
+        if reports is None:
+            names = ", ".join(f.name for f in folders)
+            return _error(504, f"{names}: the files were not finished in {REPORT_WAIT:g} s")
+        streams = [s for r in reports for s in r.get("streams", [])]
+        first = reports[0]
+        return _json(
+            {
+                "session": Path(folders[0]).name,
+                "sessions": [f.name for f in folders],
+                "start_time": first.get("start_time"),
+                "duration_s": first.get("duration"),
+                "error": next((r["error"] for r in reports if r.get("error")), None),
+                "lost": sum(int(s.get("lost", 0)) for s in streams),
+                "streams": streams,
+            }
+        )
+
+    async def status(self, request: web.Request) -> web.Response:
+        rows = [r for r in self.state["recording"] if r.get("session")]
+        sessions = []
+        for r in rows:
+            folder = Path(r["session"])
+            size = await asyncio.to_thread(_size, folder)
+            sessions.append(
+                {
+                    "node": r["node"],
+                    "session": folder.name,
+                    "elapsed_s": r.get("since"),
+                    "size_bytes": size,
+                }
+            )
+        return _json(
+            {
+                "recording": bool(sessions),
+                "session": sessions[0]["session"] if sessions else None,
+                "elapsed_s": sessions[0]["elapsed_s"] if sessions else None,
+                "size_bytes": sum(s["size_bytes"] for s in sessions),
+                "sessions": sessions,
+                "recorders": [r["node"] for r in self.state["recording"]],
+                "streams": [
+                    {"topic": t, "rate": round(v, 2)} for t, v in sorted(self.rates.items())
+                ]
+                if sessions
+                else [],
+            }
+        )
+
+
+async def _body(request: web.Request) -> dict[str, Any]:
+    """The JSON object of a state-changing request; anything else is refused."""
+    if request.content_type != "application/json":
+        raise web.HTTPUnsupportedMediaType(text="send application/json\n")
+    try:
+        body = json.loads(await request.text() or "{}")
+    except ValueError:
+        raise web.HTTPBadRequest(text="the body is not JSON\n") from None
+    if not isinstance(body, dict):
+        raise web.HTTPBadRequest(text="the body is a JSON object\n")
+    return body
+
+
+async def _reports(folders: list[Path], wait: float) -> list[dict[str, Any]] | None:
+    """Each session's ``streams.json`` once its recorder has finished the files."""
+    end = time.monotonic() + wait
+    while True:
+        reports = []
+        for folder in folders:
+            try:
+                reports.append(json.loads((folder / SESSION_FILE).read_text()))
+            except (OSError, ValueError):
+                break
+        if len(reports) == len(folders):
+            return reports
+        if time.monotonic() > end:
+            return None
+        await asyncio.sleep(0.1)
+
+
+def _size(folder: Path) -> int:
+    try:
+        return sum(f.stat().st_size for f in folder.iterdir() if f.suffix == ".mcap")
+    except OSError:
+        return 0
+
+
+def _error(status: int, text: str) -> web.Response:
+    return web.Response(
+        status=status,
+        text=json.dumps({"error": text}),
+        content_type="application/json",
+        headers={"Cache-Control": "no-store"},
+    )
+
+
+def _json(data: Any) -> web.Response:
+    return web.Response(
+        text=json.dumps(data),
+        content_type="application/json",
+        headers={"Cache-Control": "no-store"},
+    )

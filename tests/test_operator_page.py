@@ -1,0 +1,228 @@
+"""The operator's station in headless Chromium, on the CAMBADA graph as a user runs it
+(``flowrt run graphs/cambada.yaml --recordings DIR``): Start and Stop clicked, the stop table,
+the session in the list, its player showing frames and playing, the health plots with data
+and, when a camera is slowed down through the control endpoint, the frame-drop alert.
+
+With ``FLOWRT_SCREENSHOTS=DIR`` the test also saves the README's screenshots there
+(``docs/img``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import os
+import re
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+
+from tests.test_display import Browser, browser, needs_chromium
+
+pytestmark = [pytest.mark.timeout(240), pytest.mark.subprocess, pytest.mark.browser]
+
+SHOTS = os.environ.get("FLOWRT_SCREENSHOTS")
+
+
+async def until(page: Browser, expression: str, within: float, what: str) -> Any:
+    loop = asyncio.get_running_loop()
+    end = loop.time() + 3 * within  # chromium and the graph share 2 CPUs: patience
+    while loop.time() < end:
+        value = await page.eval(expression)
+        if value:
+            return value
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+async def click(page: Browser, selector: str) -> None:
+    """A real click (mouse events at the element's centre), as the operator's."""
+    x, y = await page.eval(
+        f"(() => {{ const e = document.querySelector({selector!r});"
+        " e.scrollIntoView({block: 'center'}); const r = e.getBoundingClientRect();"
+        " return [r.x + r.width / 2, r.y + r.height / 2]; })()"
+    )
+    for kind in ("mousePressed", "mouseReleased"):
+        await page.call(
+            "Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1
+        )
+
+
+async def shot(page: Browser, selector: str, name: str, last: str | None = None) -> None:
+    """The element (to the element ``last``, when given) as a PNG in $FLOWRT_SCREENSHOTS."""
+    if not SHOTS:
+        return
+    await page.eval(
+        "document.querySelector('header').style.position = 'static';"
+        f" document.querySelector({selector!r}).scrollIntoView(); true"
+    )
+    await asyncio.sleep(0.3)
+    box = await page.eval(
+        f"(() => {{ const r = document.querySelector({selector!r}).getBoundingClientRect();"
+        f" const e = document.querySelector({last or selector!r}).getBoundingClientRect();"
+        " return {x: r.x + scrollX, y: r.y + scrollY, width: r.width,"
+        " height: e.bottom - r.top}; })()"
+    )
+    data = await page.call(
+        "Page.captureScreenshot",
+        format="png",
+        captureBeyondViewport=True,
+        clip={**box, "scale": 1},
+    )
+    await asyncio.to_thread(_save, Path(SHOTS, name), base64.b64decode(data["data"]))
+
+
+def _save(path: Path, png: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(png)
+
+
+async def started(proc: asyncio.subprocess.Process, out: list[str]) -> tuple[str, str]:
+    """The live view's and the control endpoint's addresses, from the run's output."""
+    assert proc.stdout is not None
+    view = control = ""
+    while not (view and control):
+        line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
+        assert line, "flowrt run ended: " + "".join(out)
+        out.append(line)
+        if m := re.search(r"display: (http://127\.0\.0\.1:\d+)", line):
+            view = m.group(1)
+        if m := re.search(r"control endpoint (http://127\.0\.0\.1:\d+)", line):
+            control = m.group(1)
+    return view, control
+
+
+@needs_chromium
+async def test_the_page_records_reviews_and_plots(tmp_path: Path, repo: Path) -> None:
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "flowrt.cli",
+        "run",
+        "graphs/cambada.yaml",
+        "--recordings",
+        str(tmp_path),
+        "--no-ui",
+        "--display-port",
+        "0",
+        "--control",
+        "127.0.0.1:0",
+        cwd=repo,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.STDOUT,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    out: list[str] = []
+    try:
+        view, control = await started(proc, out)
+        assert proc.stdout is not None
+        drain = asyncio.ensure_future(_collect(proc.stdout, out))
+        async with browser(view + "/") as page:
+            await until(
+                page, "document.querySelector('#recstart')?.disabled === false", 20, "Start"
+            )
+            await page.eval("document.querySelector('#recname').value = 'match'; true")
+            await click(page, "#recstart")
+            await until(page, "window.flowrt.operator.state?.recording", 10, "recording")
+            await until(
+                page,
+                "document.querySelector('#recstate').textContent.includes('match_001')",
+                10,
+                "the session shown as recording",
+            )
+            await until(
+                page, "document.querySelector('#sources img.processed')?.naturalWidth", 20, "frames"
+            )
+            await asyncio.sleep(2.0)
+            await until(
+                page, "document.querySelectorAll('#reclive span').length >= 2", 10, "live rates"
+            )
+            await shot(page, "#recordpanel", "operator-live.png", "#sources")
+            await click(page, "#recstop")
+            table = await until(
+                page,
+                "(() => { const r = [...document.querySelectorAll('#stoptable tbody tr')];"
+                " return r.length ? r.map((x) => [x.dataset.topic,"
+                " [...x.cells].map((c) => c.textContent)]) : null; })()",
+                30,
+                "the stop table",
+            )
+            rows = dict(table)
+            for cam in ("front_cam.frame", "omni_cam.frame"):
+                _, _, _, received, written, lost, _, rate = rows[cam]
+                assert lost == "0"
+                assert received == written
+                assert int(written) >= 55
+                assert abs(float(rate) - 20) < 2
+            await shot(page, "#recordpanel", "operator-stop.png")
+
+            # Review: the session in the list, opened in the player
+            await until(
+                page,
+                "!!document.querySelector('#sessions tr[data-session=\"match_001\"]')",
+                10,
+                "list",
+            )
+            await click(page, '#sessions tr[data-session="match_001"] button')
+            await until(
+                page,
+                "[...document.querySelectorAll('#playerviews img')].every((i) => i.naturalWidth)"
+                " && document.querySelectorAll('#playerviews img').length === 2",
+                20,
+                "both cameras' frames in the player",
+            )
+            await page.eval(
+                "(() => { const s = document.querySelector('#speed'); s.value = '2';"
+                " s.dispatchEvent(new Event('change')); return true; })()"
+            )
+            shown = await page.eval("window.flowrt.operator.player.shown")
+            await click(page, "#play")
+            await until(page, "window.flowrt.operator.player.t > 1.5", 20, "playing")
+            assert await page.eval("window.flowrt.operator.player.shown") > shown + 4
+            await until(page, "!window.flowrt.operator.player.playing", 20, "the end")
+            gaps = await page.eval(
+                "document.querySelector('#playerstreams tr[data-topic=\"front_cam.frame\"]')"
+                ".lastChild.textContent"
+            )
+            assert gaps == "0"
+            await shot(page, "#reviewpanel", "operator-review.png")
+
+            # Health: plots with data; a camera slowed to half its rate raises the alert
+            await until(
+                page,
+                "['cpu', 'fps', 'memory', 'network'].every((g) => Number(document.querySelector("
+                '`canvas[data-group="${g}"]`)?.dataset.points) > 6)',
+                20,
+                "plots with data",
+            )
+            async with (
+                aiohttp.ClientSession() as http,
+                http.post(f"{control}/timing", json={"node": "omni_cam", "timer": 100}) as r,
+            ):
+                assert r.status == 200, await r.text()
+            await until(
+                page,
+                "Number(document.querySelector('canvas[data-group=\"fps\"]').dataset.alerts) > 0",
+                20,
+                "the frame-drop alert on the fps plot",
+            )
+            text = await page.eval("document.querySelector('#alerts').textContent")
+            assert "ALERT - FRAME DROPS: omni_cam" in text
+            await asyncio.sleep(20.0 if SHOTS else 0.0)  # the README's picture: some history
+            await shot(page, "#healthpanel", "operator-health.png")
+        proc.send_signal(signal.SIGINT)
+        assert await asyncio.wait_for(proc.wait(), 60) == 0, "".join(out)
+        await drain
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()
+
+
+async def _collect(stream: asyncio.StreamReader, out: list[str]) -> None:
+    async for line in stream:
+        out.append(line.decode())
