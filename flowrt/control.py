@@ -45,26 +45,33 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import hmac
 import json
 import logging
-import math
 import multiprocessing
 import signal
 import socket
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ValidationError
 
 from .control_client import DEFAULT_PORT as DEFAULT_PORT  # the client's, re-exported
 from .control_client import DEFAULT_URL as DEFAULT_URL
 from .control_client import ControlClient as ControlClient
 from .control_client import ControlError as ControlError
-from .events import Event, NodeFailed
+from .control_wire import (
+    RECORD_COMMAND,
+    ModeRequest,
+    RecordRequest,
+    ReloadRequest,
+    SwapRequest,
+    TimingRequest,
+    event_json,
+    jsonable,
+)
 from .serving import (
     Conn,
     Refuse,
@@ -76,7 +83,6 @@ from .serving import (
     stop_server,
     unpack,
 )
-from .spec import TimingOverride
 from .swap_policy import SwapRefused, lookup, where_keys
 
 if TYPE_CHECKING:
@@ -141,86 +147,6 @@ class ControlConfig:
                 "give --token (or FLOWRT_TOKEN), or bind 127.0.0.1"
             )
         return config
-
-
-class TimingRequest(TimingOverride):
-    """Body of ``POST /timing``: the node and the fields to change (ms for timer/deadline).
-
-    The graph file's own model (:class:`flowrt.spec.TimingOverride`), so a request obeys the
-    same rules as a mode in a graph file; the ranges are checked again where the change is
-    applied (:meth:`flowrt.timing.TimingChange.parse`). ``force`` passes admission control
-    (never the ranges).
-    """
-
-    node: str = Field(max_length=256)
-    force: bool = False  # past admission control
-
-
-class ModeRequest(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    mode: str = Field(max_length=256)
-    force: bool = False  # past admission control
-
-
-class SwapRequest(BaseModel):
-    """``POST /swap``: a node's algorithm replaced while running (``Runtime.swap``)."""
-
-    model_config = ConfigDict(extra="forbid")
-    node: str = Field(max_length=256)
-    kind: str = Field(max_length=1024)
-    params: dict[str, Any] | None = None
-
-
-class ReloadRequest(BaseModel):
-    """``POST /reload``: a node's module re-imported from disk (``Runtime.reload``)."""
-
-    model_config = ConfigDict(extra="forbid")
-    node: str = Field(max_length=256)
-
-
-RECORD_COMMAND = "flowrt.record."
-"""RTDB record ``flowrt.record.NODE`` (start|stop) that a ``recorder`` node obeys; the node
-answers in ``flowrt.recording.NODE`` (its session folder, "" when stopped)."""
-
-
-class RecordRequest(BaseModel):
-    """``POST /record``: start or stop the graph's recorder nodes (or one of them)."""
-
-    model_config = ConfigDict(extra="forbid")
-    action: Literal["start", "stop"]
-    node: str | None = None
-    name: str | None = Field(
-        default=None,
-        pattern=r"^[A-Za-z0-9_\-]{1,64}$",
-        description="with start: the session's name, NAME_NNN (default: the recorder's)",
-    )
-
-
-def jsonable(value: Any) -> Any:
-    """A JSON-friendly copy of event fields and RTDB values (repr for what is not data)."""
-    if value is None or isinstance(value, bool | int | str):
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else repr(value)
-    if isinstance(value, BaseModel):
-        return value.model_dump(mode="json")
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple | set | frozenset):
-        return [jsonable(v) for v in value]
-    item = getattr(value, "item", None)  # numpy scalars
-    if callable(item) and getattr(value, "shape", None) == ():
-        return jsonable(item())
-    return repr(value)
-
-
-def event_json(event: Event) -> dict[str, Any]:
-    out = {"kind": event.kind, **jsonable(event)}
-    if isinstance(event, NodeFailed):
-        out.pop("traceback", None)
-    return out
 
 
 def listen(host: str, port: int) -> socket.socket:

@@ -22,9 +22,9 @@ import pytest
 from pydantic import BaseModel, ConfigDict
 
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
-from flowrt.workers import channel as workers_channel
 from flowrt.frames import FrameStore
 from flowrt.grants import OutputGrants, WorkerSlots, lazy_report
+from flowrt.workers import channel as workers_channel
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -121,16 +121,8 @@ def run_graph(
     from ..status import LiveTable, LogLines, render
 
     console = stdout_console()
-    from .check import startup_check
-
-    timing_ok, timing_lines = startup_check(graph)
-    if not timing_ok:
-        word = "refusing to start" if args.check else "warning"
-        err.print(f"{prog}: {word}: the timing may not hold (flowrt check)", markup=False)
-        for line in timing_lines:
-            err.print(f"  {line}", markup=False)
-        if args.check:
-            return EXIT_FAILED
+    if not _timing_holds(graph, args, err, prog):
+        return EXIT_FAILED
     problem = _display_options(graph, args)
     if problem:
         err.print(f"{prog}: {problem}", markup=False, soft_wrap=True)
@@ -192,21 +184,7 @@ def run_graph(
         stop_signals.loop = asyncio.get_running_loop()
         try:
             async with rt, server or contextlib.nullcontext():
-                if server is not None:
-                    logging.getLogger("flowrt").info("control endpoint %s", server.url)
-                zenoh = graph.spec.zenoh
-                if server is not None and zenoh is not None and zenoh.control is not None:
-                    from ..remote_control import ZenohControl
-
-                    forwarder = ZenohControl(rt.remote_session, zenoh.control, server.url)
-                    forwarder.start()
-                    logging.getLogger("flowrt").info("control through zenoh: %s", zenoh.control)
-                    try:
-                        await rt.run(args.duration)
-                    finally:
-                        await asyncio.to_thread(forwarder.stop)
-                else:
-                    await rt.run(args.duration)
+                await _serve_run(rt, server, graph, args.duration)
         finally:
             stop_signals.loop = None
 
@@ -226,6 +204,38 @@ def run_graph(
         console.print(f"statistics written to {args.stats_json}")
     code = _verdict(rt.failures(), err, prog)
     return code if after is None else max(code, after(rt))
+
+
+def _timing_holds(graph: Graph, args: argparse.Namespace, err: Console, prog: str) -> bool:
+    """The start-up timing check: a warning, or with ``--check`` a refusal (False)."""
+    from .check import startup_check
+
+    timing_ok, timing_lines = startup_check(graph)
+    if not timing_ok:
+        word = "refusing to start" if args.check else "warning"
+        err.print(f"{prog}: {word}: the timing may not hold (flowrt check)", markup=False)
+        for line in timing_lines:
+            err.print(f"  {line}", markup=False)
+    return timing_ok or not args.check
+
+
+async def _serve_run(rt: Any, server: Any, graph: Graph, duration: float | None) -> None:
+    """Run, with the control endpoint said and, when the graph asks, forwarded over Zenoh."""
+    if server is not None:
+        logging.getLogger("flowrt").info("control endpoint %s", server.url)
+    zenoh = graph.spec.zenoh
+    if server is None or zenoh is None or zenoh.control is None:
+        await rt.run(duration)
+        return
+    from ..remote_control import ZenohControl
+
+    forwarder = ZenohControl(rt.remote_session, zenoh.control, server.url)
+    forwarder.start()
+    logging.getLogger("flowrt").info("control through zenoh: %s", zenoh.control)
+    try:
+        await rt.run(duration)
+    finally:
+        await asyncio.to_thread(forwarder.stop)
 
 
 def _verdict(failures: list[Any], err: Console, prog: str = "flowrt run") -> int:
