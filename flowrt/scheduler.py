@@ -180,6 +180,10 @@ class RunnerContext(NodeContext):
         """Wait until this node's period-1 frame readers can take a new frame (fast pacing)."""
         await self._runner.sched.wait_readers(self._runner)
 
+    def observe(self, observer: Any) -> None:  # determinism
+        self._runner.sched.observer = observer  # determinism
+        observer.attach(self._runner.sched.graph, self._runner.sched)  # determinism
+
     def request_stop(self) -> None:
         """Ask the runtime to stop (e.g. a video source at its end with on_eof: stop)."""
         stopper = self._runner.sched.stop_requester
@@ -474,7 +478,7 @@ class NodeRunner:
                 got,
             )
 
-    def _begin(self) -> tuple[float, dict[str, Any] | None]:
+    def _begin(self, t_release: float = 0.0) -> tuple[float, dict[str, Any] | None]:  # determinism
         now = self.sched.clock.now()
         inputs = self._take_inputs()
         self.untaken = False
@@ -487,10 +491,13 @@ class NodeRunner:
             self.interval.add(now - self.interval_from)
         self.interval_from = self.last_start = now
         self.state = "running"
+        if (obs := self.sched.observer) is not None:  # determinism
+            held = {p: b.taken_seq for p, b in self.inputs.items()}  # determinism
+            obs.activation(self.name, t_release, now, held, self.rnode)  # determinism
         return now, inputs
 
     def run_sync(self, t_release: float) -> None:
-        start, inputs = self._begin()
+        start, inputs = self._begin(t_release)  # determinism
         if inputs is None:
             self._idle()
             return
@@ -509,7 +516,7 @@ class NodeRunner:
         self._complete(result, t_release, start, end)
 
     async def run_async(self, t_release: float) -> None:
-        start, inputs = self._begin()
+        start, inputs = self._begin(t_release)  # determinism
         if inputs is None:
             self._idle()
             return
@@ -664,7 +671,7 @@ class NodeRunner:
         self.activations += 1
         self.current += 1
         act = self.current
-        start, inputs = self._begin()
+        start, inputs = self._begin(t_release)  # determinism
         if inputs is None:  # a required input is missing: counted as skipped
             if self.inflight == 0:
                 self.state = "idle"
@@ -795,6 +802,8 @@ class NodeRunner:
                 self.sched.emit(
                     DeadlineMissed(self.sched.rel(end), self.name, deadline * 1000, False, discard)
                 )
+        if self.sched.observer is not None:  # determinism
+            self.sched.observer.completed(self.name, t_release, end, discard)  # determinism
         if discard:
             self.discarded += 1
             values = [result] if not isinstance(result, Mapping) else result.values()
@@ -826,6 +835,8 @@ class NodeRunner:
         """Fan a value out to every reader of ``port``; a frame port also ticks its frame clock."""
         if isinstance(value, Frame) and value.timestamp == 0.0:
             self._stamp(port, value, t)
+        if self.sched.observer is not None:  # determinism
+            self.sched.observer.published(self.name, port, value, t)  # determinism
         for buf in self.outputs[port]:
             if not buf.put(value, t):
                 assert isinstance(buf, LosslessBuffer)
@@ -1144,6 +1155,7 @@ class Scheduler:
         self.stop_requester: Callable[[], None] | None = None
         self.rtdb_provider: Callable[[], Any] | None = None
         self.mode_setter: Callable[[str, str], None] | None = None
+        self.observer: Any = None  # set by ctx.observe (flowrt.determinism)  # determinism
         self.runners: dict[str, NodeRunner] = {}
         for name in sorted(graph.nodes, key=lambda n: graph.nodes[n].order):
             self.runners[name] = NodeRunner(self, graph.nodes[name])
