@@ -157,6 +157,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         "split_size": split.size,
         "split_duration": split.duration,
         "log_report": False,  # printed below, once
+        "deterministic": args.deterministic,
     }
     try:
         # relative paths of the graph resolve beside its file, as when it was loaded
@@ -651,6 +652,12 @@ def add_parsers(sub: Any) -> None:
         "--no-annotations",
         action="store_true",
         help="do not also draw detections as foxglove.ImageAnnotations on their camera",
+    )
+    rec.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="also record every activation's inputs and a digest of every output, for "
+        "flowrt replay --deterministic (the sources' values are recorded whatever --topics says)",
     )
     add_run_options(rec)  # --duration, --realtime, --control ...: a recording is a run
     rec.set_defaults(func=cmd_record)
