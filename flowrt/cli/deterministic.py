@@ -55,7 +55,9 @@ def _graph(args: argparse.Namespace, log: Any, err: Console) -> Any:
         return Graph.from_text(log.graph, f"{args.path} (recorded graph)")
     except Exception as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        err.print(f"flowrt replay: the recorded graph is not valid: {printable(first)}", markup=False)
+        err.print(
+            f"flowrt replay: the recorded graph is not valid: {printable(first)}", markup=False
+        )
         return None
 
 

@@ -17,12 +17,15 @@ import asyncio
 import time
 from pathlib import Path
 from types import TracebackType
+from typing import TYPE_CHECKING
 
 from ..graph import Graph
 from ..runtime import Subscription
-from .engine import ReplayEngine
-from .log import DeterminismLog, read_log
 from .report import ReplayReport
+
+if TYPE_CHECKING:
+    from .engine import ReplayEngine
+    from .log import DeterminismLog
 
 __all__ = ["Replay", "replay"]
 
@@ -49,8 +52,13 @@ class Replay:
 
     async def start(self) -> None:
         """Read the log, load the graph, set the nodes up; raises LogError or GraphError."""
+        from .engine import ReplayEngine  # (the recording's readers: imported when used)
+        from .log import read_log
+
         self._t0 = time.perf_counter()
-        log = self.preloaded or await asyncio.to_thread(read_log, self.session)
+        log = self.preloaded
+        if log is None:
+            log = await asyncio.to_thread(read_log, self.session)
         g = self.graph_arg
         graph = g if isinstance(g, Graph) else Graph.from_file(g)
         self.engine = ReplayEngine(

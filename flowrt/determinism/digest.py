@@ -31,7 +31,7 @@ DIGEST_SIZE = 16
 
 def _array(a: np.ndarray) -> dict[str, Any]:
     data = np.ascontiguousarray(a)
-    h = hashlib.blake2b(data.view(np.uint8).reshape(-1) if data.size else b"", digest_size=16)
+    h = hashlib.blake2b(data.tobytes() if data.size else b"", digest_size=DIGEST_SIZE)
     return {"array": str(data.dtype), "shape": list(data.shape), "bytes": h.hexdigest()}
 
 

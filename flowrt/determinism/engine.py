@@ -98,10 +98,10 @@ class ReplayEngine:
         recorded = {a.node for a in log_.activations}
         for name, rnode in graph.nodes.items():
             if self.roles[name] == "replayed" and name in recorded:
-                period = rnode.trigger.timer / 1000 if isinstance(rnode.trigger, TimerTrigger) else None
-                ctx = ReplayContext(
-                    name, log_.seed, log_.origin, period, self._publisher(name)
+                period = (
+                    rnode.trigger.timer / 1000 if isinstance(rnode.trigger, TimerTrigger) else None
                 )
+                ctx = ReplayContext(name, log_.seed, log_.origin, period, self._publisher(name))
                 worker = not inline and rnode.spec.placement is not Placement.inline
                 worker = worker and not rnode.cls.inline_only
                 self.nodes[name] = _Node(rnode, ctx, worker, params=rnode.params)
@@ -269,20 +269,24 @@ class ReplayEngine:
     def _compare(self, n: _Node, a: Activation, outputs: list[tuple[str, Any]]) -> None:
         name = a.node
         expected: dict[str, deque[OutputRecord]] = {}
-        for rec in self.log.outputs.get((name, a.n), []):
-            expected.setdefault(rec.port, deque()).append(rec)
+        for r in self.log.outputs.get((name, a.n), []):
+            expected.setdefault(r.port, deque()).append(r)
         for port, value in outputs:
             queue = expected.get(port)
             rec = queue.popleft() if queue else None
             if rec is None:
                 seq = self.next_seq.get((name, port), 1)
-                self._diverged(n, a, port, seq, "an output the recording does not have", None, value)
+                self._diverged(
+                    n, a, port, seq, "an output the recording does not have", None, value
+                )
             else:
                 seq = rec.seq
                 n.compared += 1
                 self.compared += 1
                 if digest(value) != rec.digest:
-                    self._diverged(n, a, port, seq, "its digest differs from the recorded one", rec, value)
+                    self._diverged(
+                        n, a, port, seq, "its digest differs from the recorded one", rec, value
+                    )
             self.next_seq[(name, port)] = seq + 1
             key = (name, port, seq)
             if self.needs.get(key, 0) > 0:
@@ -293,7 +297,9 @@ class ReplayEngine:
         for port, queue in expected.items():
             if queue:
                 rec = queue[0]
-                self._diverged(n, a, port, rec.seq, "the recorded output was not produced", rec, None)
+                self._diverged(
+                    n, a, port, rec.seq, "the recorded output was not produced", rec, None
+                )
 
     def _value(self, key: Key) -> tuple[bool, Any, float | None]:
         """(found, value, publication time) of the value ``key`` an activation held."""
@@ -393,11 +399,10 @@ class ReplayEngine:
         for name in self.graph.nodes:
             n = self.nodes.get(name)
             if n is not None:
-                status = "not comparable" if n.reason else "compared"
                 nodes.append(
                     NodeReplay(
                         node=name,
-                        status=status,
+                        status="not comparable" if n.reason else "compared",
                         activations=n.activations,
                         compared=n.compared,
                         reason=n.reason,

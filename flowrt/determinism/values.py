@@ -102,7 +102,7 @@ def _restore(value: Any, src: SourceRecord) -> Any:
         return {**value, "timestamp": src.stamp}
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         try:
-            return dataclasses.replace(value, timestamp=src.stamp)  # type: ignore[type-var]
+            return dataclasses.replace(value, timestamp=src.stamp)
         except TypeError:
             return value
     return value
@@ -111,15 +111,13 @@ def _restore(value: Any, src: SourceRecord) -> Any:
 def read_one(path: Path, topic: str, index: int) -> Any:
     """The ``index``-th recorded message of ``topic``, decoded (None if absent): to show it."""
     decoder = Decoder()
-    n = 0
-    for m in iter_session(mcap_files(path), {topic}):
+    for n, m in enumerate(iter_session(mcap_files(path), {topic})):
         if n == index:
             name = m.schema.name if m.schema is not None else ""
             if decoder.is_image(name):
                 px, fmt = decoder.image(m.schema, m.data)
                 return Frame(np.array(px), pixel_format=fmt)
             return decoder.message(name, m.data)
-        n += 1
     return None
 
 

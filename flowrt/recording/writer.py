@@ -553,7 +553,7 @@ class RecordingWriter:
 
 
 def _library() -> str:
-    from .. import __version__
+    from ..version import __version__
 
     try:
         from importlib.metadata import version
