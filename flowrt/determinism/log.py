@@ -236,6 +236,34 @@ def _add(log: DeterminismLog, topic: str, r: dict[str, Any]) -> None:
         )
 
 
+def _facts(files: list[Path]) -> dict[str, Any] | None:
+    """Metadata, graph, duration from the files' summaries (a millisecond, where a full scan
+    reads every message); None when a file has no summary (not closed cleanly)."""
+    from mcap.reader import SeekingReader
+
+    facts: dict[str, Any] = {"metadata": {}, "graph": None, "start": None, "end": None}
+    try:
+        for f in files:
+            with open(f, "rb") as fh:
+                reader = SeekingReader(fh)
+                summary = reader.get_summary()
+                if summary is None or summary.statistics is None:
+                    return None
+                st = summary.statistics
+                if st.message_count:
+                    start, end = st.message_start_time, st.message_end_time
+                    facts["start"] = start if facts["start"] is None else min(facts["start"], start)
+                    facts["end"] = end if facts["end"] is None else max(facts["end"], end)
+                for m in reader.iter_metadata():
+                    facts["metadata"].setdefault(m.name, dict(m.metadata))
+                for a in reader.iter_attachments():
+                    if a.name == "graph.yaml" and facts["graph"] is None:
+                        facts["graph"] = a.data.decode("utf-8", "replace")
+    except Exception:  # a damaged file: the full scan says what is wrong
+        return None
+    return facts
+
+
 def read_log(path: str | Path) -> DeterminismLog:
     """The deterministic log of a session folder or file; LogError when it has none."""
     from ..recording.reader import iter_session, scan_session
@@ -247,23 +275,27 @@ def read_log(path: str | Path) -> DeterminismLog:
     files = mcap_files(p)
     if not files or not files[0].exists():
         raise LogError(f"{path}: no .mcap file")
-    info = scan_session(p)
-    meta = info.metadata.get(METADATA)
+    facts = _facts(files)
+    log = DeterminismLog(p)
+    if facts is None:
+        info = scan_session(p)
+        metadata, log.graph = info.metadata, info.graph
+        log.duration, log.closed_cleanly, log.damage = info.duration, info.closed_cleanly, info.damage
+    else:
+        metadata, log.graph = facts["metadata"], facts["graph"]
+        if facts["start"] is not None:
+            log.duration = (facts["end"] - facts["start"]) / 1e9
+    meta = metadata.get(METADATA)
     if meta is None:
         raise LogError(
             f"{path}: not a deterministic recording (record it with flowrt record --deterministic)"
         )
-    log = DeterminismLog(p)
     log.seed = meta.get("seed", "0")
     try:
         log.origin = float(meta.get("origin", "0"))
     except ValueError:
         raise LogError(f"{path}: bad clock origin {meta.get('origin')!r}") from None
-    log.graph = info.graph
-    log.version = info.metadata.get("flowrt", {}).get("flowrt_version", "")
-    log.duration = info.duration
-    log.closed_cleanly = info.closed_cleanly
-    log.damage = info.damage
+    log.version = metadata.get("flowrt", {}).get("flowrt_version", "")
     for m in iter_session(files, set(TOPICS)):
         try:
             _add(log, m.topic, json.loads(m.data))
