@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +73,7 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
     if bad is not None:
         err.print(f"flowrt replay: {bad} has no meaning with --deterministic", markup=False)
         return EXIT_BAD_GRAPH
+    began = time.perf_counter()  # wall_s counts reading the log and the graph, as the API's
     try:
         log = read_log(args.path)
     except LogError as e:
@@ -89,7 +91,7 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
 
     async def main() -> Any:
         rp = Replay(Path(args.path), graph, inline=args.inline, stop_at_divergence=args.check)
-        rp.preloaded = log
+        rp.preloaded, rp.began = log, began
         try:
             await rp.start()
             return await rp.run()

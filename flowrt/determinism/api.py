@@ -48,6 +48,7 @@ class Replay:
         self.engine: ReplayEngine | None = None
         self.report: ReplayReport | None = None
         self.preloaded: DeterminismLog | None = None  # the log, when the caller read it already
+        self.began: float | None = None  # perf_counter when the caller began (reading the log)
         self._t0 = 0.0
 
     async def start(self) -> None:
@@ -55,7 +56,7 @@ class Replay:
         from .engine import ReplayEngine  # (the recording's readers: imported when used)
         from .log import read_log
 
-        self._t0 = time.perf_counter()
+        self._t0 = self.began if self.began is not None else time.perf_counter()
         log = self.preloaded
         if log is None:
             log = await asyncio.to_thread(read_log, self.session)
