@@ -271,22 +271,45 @@ async def test_a_changed_param_diverges_at_that_node_the_same_way_every_time(
     assert report.stopped_early
 
 
-async def test_a_removed_producer_leaves_its_readers_not_comparable(tmp_path: Path) -> None:
+async def test_removed_nodes_are_not_run_and_a_new_node_runs(tmp_path: Path) -> None:
     TRACE.clear()
     _, session = await record(tmp_path, case_input_triggers)
+    ticks = [v for name, _, v, *_ in TRACE if name == "first"]
     g = GraphBuilder("det")
     g.add("tick", Ticker, trigger={"timer": "10ms"})
     g.add("first", Acc, inputs={"value": {"from": "tick.tick", "policy": "queue"}})
     g.add("third", Acc, inputs={"value": "tick.tick"})  # new: nothing recorded of it
+    TRACE.clear()
     async with flowrt.replay(session, g.build(), inline=True) as rp:
+        third = rp.subscribe("third.total")
         report = await rp.run()
     status = {n.node: (n.status, n.reason) for n in report.nodes}
     assert status["first"][0] == "compared"
-    assert status["third"][0] == "not run"
-    assert "no activation" in status["third"][1]
-    assert status["second"][0] == "not run"  # removed; recorded by the recorder: stands in
+    assert status["third"][0] == "new"  # run on its input trigger over the recorded ticks
+    assert [v for name, _, v, *_ in TRACE if name == "third"] == ticks
+    assert len(third.drain()) == len(ticks)
+    assert status["second"][0] == "not run"  # removed
     assert status["pair"][0] == "not run"
     assert report.identical
+
+
+async def test_a_new_frame_reader_runs_on_its_period_and_phase(tmp_path: Path) -> None:
+    TRACE.clear()
+    _, session = await record(tmp_path, case_frame_phases)
+    g = GraphBuilder("det")
+    case_frame_phases(g)
+    g.add(
+        "p2ph1",
+        Acc,
+        trigger=FrameTrigger(frame="cam", period=2, phase=1),
+        inputs={"value": "cam.frame"},
+    )
+    TRACE.clear()
+    async with flowrt.replay(session, g.build(), inline=True) as rp:
+        report = await rp.run()
+    assert [v for name, _, v, *_ in TRACE if name == "p2ph1"] == list(range(1, 20, 2))
+    assert report.identical
+    assert {n.node: n.status for n in report.nodes}["p2ph1"] == "new"
 
 
 async def test_a_reader_whose_input_is_gone_is_not_comparable(tmp_path: Path) -> None:

@@ -36,6 +36,7 @@ from .context import NOW_KEY, TIMES_KEY, ReplayContext, ReplayFactory, maybe_awa
 from .digest import digest
 from .log import Activation, DeterminismLog, Key, OutputRecord, roles
 from .report import Divergence, NodeReplay, ReplayReport
+from .synthesis import streams, synthesize
 from .values import RecordedValues, read_one, show
 
 __all__ = ["ReplayEngine"]
@@ -58,6 +59,7 @@ class _Node:
     activations: int = 0
     compared: int = 0
     reason: str = ""  # why it stopped being replayed (empty: it runs)
+    new: bool = False  # not in the recording: its activations come from its trigger
     restarts: deque[float] = field(default_factory=deque)
     published: list[tuple[str, Any]] = field(default_factory=list)
 
@@ -96,18 +98,43 @@ class ReplayEngine:
         self.started = False
         self.values: RecordedValues | None = None
         recorded = {a.node for a in log_.activations}
+        self.plan: list[Activation] = list(log_.activations)
+        self.not_run: dict[str, str] = {}  # new nodes that cannot run, and why
         for name, rnode in graph.nodes.items():
             if self.roles[name] == "replayed" and name in recorded:
-                period = (
-                    rnode.trigger.timer / 1000 if isinstance(rnode.trigger, TimerTrigger) else None
-                )
-                ctx = ReplayContext(name, log_.seed, log_.origin, period, self._publisher(name))
-                worker = not inline and rnode.spec.placement is not Placement.inline
-                worker = worker and not rnode.cls.inline_only
-                self.nodes[name] = _Node(rnode, ctx, worker, params=rnode.params)
+                self.nodes[name] = self._node(name, rnode)
         for c in log_.changes:
             if c.what == "restart" and c.node in self.nodes:
                 self.nodes[c.node].restarts.append(c.t)
+        self._plan_new_nodes(recorded)
+
+    def _plan_new_nodes(self, recorded: set[str]) -> None:
+        """Nodes of the graph the recording has no activation of, run on their trigger over
+        the recorded streams (:mod:`.synthesis`), merged into the recorded order by time."""
+        new = [n for n in self.graph.nodes if self.roles[n] == "replayed" and n not in recorded]
+        if not new:
+            return
+        available = streams(self.log, set(self.nodes))
+        for name in new:
+            acts, why = synthesize(self.graph, name, self.log, available)
+            if not acts:
+                self.not_run[name] = why or "its trigger never fired on the recorded streams"
+                continue
+            existing = self.nodes[name] = self._node(name, self.graph.nodes[name])
+            existing.new = True
+            self.plan.extend(acts)
+        # recorded activations keep their order (their starts never decrease); a new one goes
+        # after those that started at or before its time
+        self.plan.sort(
+            key=lambda a: (a.start, self.nodes[a.node].new if a.node in self.nodes else False)
+        )
+
+    def _node(self, name: str, rnode: ResolvedNode) -> _Node:
+        trig = rnode.trigger
+        period = trig.timer / 1000 if isinstance(trig, TimerTrigger) else None
+        ctx = ReplayContext(name, self.log.seed, self.log.origin, period, self._publisher(name))
+        worker = not self.inline and rnode.spec.placement is not Placement.inline
+        return _Node(rnode, ctx, worker and not rnode.cls.inline_only, params=rnode.params)
 
     def _publisher(self, name: str) -> Any:
         def publish(port: str, value: Any) -> None:
@@ -123,7 +150,7 @@ class ReplayEngine:
             return
         self.started = True
         uses: dict[tuple[str, int], int] = {}
-        for a in self.log.activations:
+        for a in self.plan:
             if a.node not in self.nodes:
                 continue
             for key in a.inputs.values():
@@ -197,7 +224,7 @@ class ReplayEngine:
     async def run(self) -> None:
         """Re-execute every recorded activation of the replayed nodes, in recorded order."""
         await self.start()
-        for a in self.log.activations:
+        for a in self.plan:
             n = self.nodes.get(a.node)
             if n is None or n.reason:
                 continue
@@ -244,6 +271,9 @@ class ReplayEngine:
             error, result = e, None
         outputs = n.published + self._results(n, result)
         n.published = []
+        if n.new:
+            self._publish_new(n, a, outputs, error)
+            return
         done = self.log.completions.get((a.node, a.n))
         if done is None or done.discarded:
             return  # it failed or was discarded in the run too: nothing was published then
@@ -254,6 +284,19 @@ class ReplayEngine:
             self._diverged_raised(n, a, error)
             return
         self._compare(n, a, outputs)
+
+    def _publish_new(
+        self, n: _Node, a: Activation, outputs: list[tuple[str, Any]], error: BaseException | None
+    ) -> None:
+        """A new node's outputs: nothing to compare them with; to its subscribers."""
+        if error is not None:
+            log.warning("replay: new node %s raised: %s", a.node, error)
+            return
+        for port, value in outputs:
+            seq = self.next_seq.get((a.node, port), 1)
+            self.next_seq[(a.node, port)] = seq + 1
+            for buf in self.subscribers.get((a.node, port), ()):
+                buf.put(value, a.start)
 
     def _results(self, n: _Node, result: Any) -> list[tuple[str, Any]]:
         """``process``'s return as (port, value) pairs, as the runner publishes it."""
@@ -338,7 +381,7 @@ class ReplayEngine:
     def _give_up(self, n: _Node, a: Activation, reason: str) -> None:
         """``n`` cannot be replayed from activation ``a`` on: its remaining uses are released."""
         n.reason = reason
-        rest = [x for x in self.log.activations if x.node == a.node and x.n >= a.n]
+        rest = [x for x in self.plan if x.node == a.node and x.n >= a.n]
         for x in rest:
             for key in x.inputs.values():
                 if key is None:
@@ -402,7 +445,7 @@ class ReplayEngine:
                 nodes.append(
                     NodeReplay(
                         node=name,
-                        status="not comparable" if n.reason else "compared",
+                        status="not comparable" if n.reason else "new" if n.new else "compared",
                         activations=n.activations,
                         compared=n.compared,
                         reason=n.reason,
@@ -411,7 +454,8 @@ class ReplayEngine:
             elif self.roles[name] == "source" and name in recorded_nodes:
                 nodes.append(NodeReplay(node=name, status="source"))
             else:
-                nodes.append(NodeReplay(node=name, status="not run", reason=self._why_not(name)))
+                why = self.not_run.get(name) or self._why_not(name)
+                nodes.append(NodeReplay(node=name, status="not run", reason=why))
         for name in sorted(recorded_nodes - set(self.graph.nodes)):
             nodes.append(
                 NodeReplay(

@@ -280,7 +280,11 @@ def read_log(path: str | Path) -> DeterminismLog:
     if facts is None:
         info = scan_session(p)
         metadata, log.graph = info.metadata, info.graph
-        log.duration, log.closed_cleanly, log.damage = info.duration, info.closed_cleanly, info.damage
+        log.duration, log.closed_cleanly, log.damage = (
+            info.duration,
+            info.closed_cleanly,
+            info.damage,
+        )
     else:
         metadata, log.graph = facts["metadata"], facts["graph"]
         if facts["start"] is not None:

@@ -31,7 +31,7 @@ class NodeReplay(BaseModel):
     """One node of the replayed graph: what was done with it."""
 
     node: str
-    status: Literal["compared", "not comparable", "source", "not run"]
+    status: Literal["compared", "new", "not comparable", "source", "not run"]
     activations: int = 0
     compared: int = 0
     reason: str = ""
@@ -71,6 +71,8 @@ def report_lines(report: ReplayReport) -> list[str]:
         detail = f"{n.activations} activations, {n.compared} outputs compared"
         if n.status == "source":
             detail = "recorded values"
+        elif n.status == "new":
+            detail = f"{n.activations} activations on its trigger (not in the recording)"
         elif n.status in ("not comparable", "not run"):
             detail = n.reason
         elif n.reason:
