@@ -33,8 +33,8 @@ def streams(log: DeterminismLog, replayed: set[str]) -> dict[tuple[str, str], St
     for (node, port, seq), o in log.output_at.items():
         if node in replayed or (o.topic is not None and o.index is not None):
             out.setdefault((node, port), []).append((o.t, seq))
-    for s in out.values():
-        s.sort()
+    for stream in out.values():
+        stream.sort()
     return out
 
 
@@ -79,7 +79,7 @@ def synthesize(
     else:
         return [], "loop-triggered and not in the recording: nothing says when it would run"
     required = [p for p, i in rnode.cls.inputs.items() if i.required]
-    acts = []
+    acts: list[Activation] = []
     for t, fixed in releases:
         inputs: dict[str, Key | None] = {}
         for port, src in feeds.items():
