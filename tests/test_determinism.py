@@ -67,6 +67,17 @@ class Acc(Node):
         return self.total
 
 
+class Fragile(Acc):
+    """Raises on a value that is a multiple of 7: supervision restarts it (a fresh total, a
+    fresh ``ctx.random``) after its back-off, and the failed activation published nothing."""
+
+    def process(self, value: Any) -> int:
+        if int(value) % 7 == 0:
+            TRACE.append((self.ctx.name, round(self.ctx.now(), 9), int(value), "raised"))
+            raise ValueError(f"{value} is a multiple of 7")
+        return super().process(value)
+
+
 class Pair(Node):
     """Two inputs, the second optional: what it held of each, and when it was published."""
 
@@ -185,12 +196,29 @@ def case_mode_change_mid_run(g: GraphBuilder) -> Drive:
     return drive
 
 
+def case_failure_and_restart(g: GraphBuilder) -> Drive:
+    g.add("tick", Ticker, trigger={"timer": "10ms"})
+    g.add(
+        "fragile",
+        Fragile,
+        inputs={"value": {"from": "tick.tick", "policy": "queue", "size": 64}},
+        restart={"backoff": "30ms"},
+    )
+    g.add("after", Acc, inputs={"value": {"from": "fragile.total", "policy": "queue"}})
+
+    async def drive(rt: Runtime, clock: VirtualClock) -> None:
+        await clock.advance(0.4)
+
+    return drive
+
+
 CASES = {
     "timers": case_timers,
     "frame phases": case_frame_phases,
     "input triggers": case_input_triggers,
     "lossless and latest edges": case_lossless_and_latest,
     "mode change mid-run": case_mode_change_mid_run,
+    "a failure and its restart": case_failure_and_restart,
 }
 
 
@@ -202,7 +230,7 @@ async def record(
     g = GraphBuilder("det")
     drive = case(g)
     nodes = g.build().nodes
-    outputs = [f"{n}.total" for n in nodes if nodes[n].cls is Acc] if values else []
+    outputs = [f"{n}.total" for n in nodes if issubclass(nodes[n].cls, Acc)] if values else []
     session = tmp_path / "session"
     recorder(g, session, *outputs)
     graph = g.build()
@@ -228,9 +256,13 @@ async def test_replay_re_executes_every_activation_with_its_inputs(
     assert replayed == live  # the same activations, in order, each with its inputs and time
     assert report.identical, report.first_divergence
     assert report.activations == len(live)
-    assert report.compared == len(live)
+    failed = sum(1 for entry in live if entry[-1] == "raised")
+    assert report.compared == len(live) - failed  # a failed activation published nothing
     log = read_log(session)
     assert len(log.activations) == len(live)
+    assert len(log.completions) == len(live) - failed
+    restarts = [c for c in log.changes if c.what == "restart"]
+    assert (failed >= 3, len(restarts) == failed) == (name == "a failure and its restart", True)
 
 
 async def test_mode_change_is_recorded_and_its_params_applied(tmp_path: Path) -> None:
