@@ -8,6 +8,7 @@ from .clock import SystemClock as SystemClock
 from .clock import VirtualClock as VirtualClock
 from .control import ControlConfig as ControlConfig
 from .control import ControlServer as ControlServer
+from .determinism.api import replay as replay  # after the runtime: it builds on it
 from .diagnostics import Diagnostic as Diagnostic
 from .diagnostics import GraphError as GraphError
 from .eventloop import run as run
@@ -47,8 +48,7 @@ from .stats import EdgeStats as EdgeStats
 from .stats import NodeStats as NodeStats
 from .stats import RuntimeStats as RuntimeStats
 from .subscription import Subscription as Subscription
-
-__version__ = "0.1.0"
+from .version import __version__ as __version__
 
 __all__ = [
     "RTDB",
@@ -95,6 +95,7 @@ __all__ = [
     "TimingChanged",
     "VirtualClock",
     "parse_duration_ms",
+    "replay",
     "resolve_path",
     "run",
 ]

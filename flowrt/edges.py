@@ -65,6 +65,10 @@ class Buffer:
         # Runtime-clock time at which the value last returned by take() was published here:
         # what freshness is judged on (NodeContext.input_time), never the value's identity.
         self.taken_t: float | None = None
+        # The sequence number (1, 2, ... per edge: the n-th value its producer published) of
+        # the value last returned by take(), or None when take() returned EMPTY: what a
+        # deterministic recording says each activation held (flowrt.determinism).
+        self.taken_seq: int | None = None
 
     def put(self, value: Any, t: float) -> bool:
         """Store a value published at time ``t``; False when a lossless buffer is full."""
@@ -160,12 +164,14 @@ class LatestBuffer(Buffer):
 
     def take(self) -> Any:
         if self._value is EMPTY:
+            self.taken_seq = None
             return EMPTY
         if not self._read:
             self._read = True
             self._delivered(self._seq, self._t)
         hold(self._value)
         self.taken_t = self._t
+        self.taken_seq = self._seq
         return self._value
 
     def reader_skipped(self) -> None:
@@ -173,7 +179,10 @@ class LatestBuffer(Buffer):
 
     def take_new(self) -> Any:
         """Like take, but EMPTY when the newest value was already delivered."""
-        return EMPTY if self._read else self.take()
+        if self._read:
+            self.taken_seq = None
+            return EMPTY
+        return self.take()
 
     def pending(self) -> int:
         return 0 if self._read or self._value is EMPTY else 1
@@ -208,10 +217,12 @@ class QueueBuffer(Buffer):
 
     def take(self) -> Any:
         if not self._q:
+            self.taken_seq = None
             return EMPTY
         seq, t, value = self._q.popleft()
         self._delivered(seq, t)
         self.taken_t = t
+        self.taken_seq = seq
         return value
 
     def take_new(self) -> Any:

@@ -26,8 +26,11 @@ Lifecycle and timing contract
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import os
 from collections.abc import Mapping
+from random import Random
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 import numpy as np
@@ -41,6 +44,22 @@ if TYPE_CHECKING:
     from .spec import Trigger
 
 T = TypeVar("T")
+
+SEED_ENV = "FLOWRT_SEED"
+"""Environment variable: the run's seed of ``ctx.random`` (default ``0``); inherited by worker
+processes, and stored in a deterministic recording so that replay draws the same numbers."""
+
+
+def node_seed(name: str, seed: str | None = None) -> int:
+    """The seed of node ``name``'s ``ctx.random`` for the run seed ``seed`` (default: the
+    ``FLOWRT_SEED`` environment variable, else ``0``).
+
+    A stable hash, not Python's ``hash`` (salted per process): a node gets the same numbers
+    in every run, in a worker process as on the loop, and when a recording is replayed.
+    """
+    run = os.environ.get(SEED_ENV, "0") if seed is None else seed
+    digest = hashlib.blake2b(f"{run}:{name}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "big")
 
 
 class Input(Generic[T]):
@@ -116,6 +135,21 @@ class NodeContext:
         self.log = logger or logging.getLogger(f"flowrt.node.{name}")
         self._rtdb_handle = rtdb
         self._rtdb: RTDB | None = None
+        self._random: Random | None = None
+
+    @property
+    def random(self) -> Random:
+        """The node's random numbers: seeded from its name and the run's seed
+        (:func:`node_seed`), so a run is reproducible and a deterministic replay draws exactly
+        what the recorded run drew. A restarted node starts the sequence again."""
+        if self._random is None:
+            self._random = Random(node_seed(self.name))
+        return self._random
+
+    def observe(self, observer: Any) -> None:
+        """Let ``observer`` watch every activation and publication of the graph (the
+        deterministic recording, :mod:`flowrt.determinism`); only on the event loop."""
+        raise RuntimeError("observe() is only available to inline nodes on the event loop")
 
     def now(self) -> float:
         """Runtime clock, seconds (monotonic; virtual under a test clock)."""
@@ -238,6 +272,11 @@ class Node:
     """Set to an ``Input`` to accept inputs of any name with that type (e.g. a display)."""
     inline_only: ClassVar[bool] = False
     """True for nodes that need the event loop (frame pools, servers): placement is checked."""
+    external: ClassVar[bool] = False
+    """True for nodes whose outputs come from outside the graph although they have inputs (a
+    CAN bus: frames received while it transmits its inputs). A deterministic recording stores
+    their outputs as values, like a source's, and replay publishes those instead of running
+    the node (:mod:`flowrt.determinism`)."""
 
     params: Any
     ctx: NodeContext

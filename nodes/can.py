@@ -225,6 +225,7 @@ class Can(Node):
 
     Params = CanParams
     inline_only = True  # its reader thread hands frames to the event loop
+    external = True  # received frames are recorded inputs: replay publishes them, sends nothing
 
     unknown = Output(CanFrame, doc="frames with ids the DBC does not know (unknown_output)")
     frames = Output(CanFrame, doc="every received frame, raw (raw_output)")

@@ -152,6 +152,7 @@ class Health(Node):
     """Machine, stream and node health, with alerts (see the module docstring)."""
 
     Params = HealthParams
+    external = True  # it reads the machine: its reports are recorded values, not recomputed
     any_inputs = Input(Frame, required=False, doc="frame streams to watch (any input name)")
     report = Output(HealthReport)
 

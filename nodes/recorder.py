@@ -28,6 +28,13 @@ With ``split_size`` (``4GiB``) and/or ``split_duration`` (``10m``) a session hol
 files, ``NAME_NNN_000.mcap``, ``NAME_NNN_001.mcap`` ..., each a complete, standalone MCAP
 (:mod:`flowrt.recording.split`); the per-stream table counts across all of them.
 
+With ``deterministic: true`` (``flowrt record --deterministic``) the session also holds what a
+deterministic replay needs (:mod:`flowrt.determinism`): every activation of the processing
+nodes with the sequence numbers of its inputs, a digest of each of their outputs, and the
+sources' values with their exact times. The recorder then takes every value it records as it
+is published (through the scheduler's observer), not from its input edges: each value's
+place in its stream is known, so replay finds it again.
+
 At run time ``flowrt ctl record start|stop`` (RTDB record ``flowrt.record.NODE``) starts a new
 session or closes the current one; the command may also be ``{"action": "start", "name":
 "drive"}`` (the live view's record panel): the new session is then ``drive_NNN``. The node
@@ -39,6 +46,7 @@ from __future__ import annotations
 
 import asyncio
 import datetime as dt
+import os
 import time
 from functools import partial
 from pathlib import Path
@@ -47,6 +55,9 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from flowrt import Frame, Input, InputTrigger, Node, resolve_path
+from flowrt.determinism.log import METADATA
+from flowrt.determinism.observer import Observer
+from flowrt.node import SEED_ENV
 from flowrt.recording import (
     RecordingWriter,
     SplitPolicy,
@@ -129,6 +140,10 @@ class Recorder(Node):
             return None if v is None else parse_duration(str(v))
 
         log_report: bool = Field(default=True, description="log the table when a recording stops")
+        deterministic: bool = Field(
+            default=False,
+            description="also record what a deterministic replay needs (activations, digests)",
+        )
 
     any_inputs = Input(
         object, required=False, policy="lossless", doc="any stream, under its topic name"
@@ -158,6 +173,12 @@ class Recorder(Node):
         self._rtdb_ok = True
         self._task: asyncio.Task[None] | None = None  # a start/stop asked for by ctl
         self._prefix = self.params.name  # the next session's name (a start command may set it)
+        self._indexes: dict[str, int] = {}  # messages accepted per topic (the current file set)
+        self._log_seq: dict[str, int] = {}
+        self._observer: Observer | None = None
+        if self.params.deterministic:
+            self._observer = Observer(self, self.ctx.name)
+            self.ctx.observe(self._observer)  # from now on: before any source publishes
         self._publish_status("")
         if self._rtdb_ok:
             self.ctx.rtdb.write(FOLDER_RECORD + self.ctx.name, str(Path(self.params.path)))
@@ -201,7 +222,18 @@ class Recorder(Node):
             except OSError as e:
                 self.ctx.log.warning("%s: graph file not attached: %s", self.ctx.name, e)
         graph = getattr(stats, "graph", "") if stats is not None else ""
-        writer.open(session_metadata(graph, self._started_wall), attachments)
+        metadata = session_metadata(graph, self._started_wall)
+        observer = self._observer
+        if observer is not None:
+            metadata[METADATA] = observer.metadata(os.environ.get(SEED_ENV, "0"))
+            if not p.graph_file and observer.graph is not None:
+                try:  # the graph is part of what makes the run reproducible
+                    text = Path(observer.graph.file).read_bytes()
+                    attachments.insert(0, ("graph.yaml", "application/yaml", text))
+                except OSError:
+                    self.ctx.log.info("%s: no graph file to attach", self.ctx.name)
+        self._indexes, self._log_seq = {}, {}
+        writer.open(metadata, attachments)
         self.writer, self.session = writer, session
         self.sessions.append(session)
         self._said_lost, self._said_error = 0, False
@@ -289,30 +321,67 @@ class Recorder(Node):
         writer = self.writer
         if writer is None:
             return
-        for topic, value in inputs.items():
-            if value is None:
-                continue
-            if topic not in writer.streams:
-                writer.declare(topic, self._source_of(topic))
-            is_frame = isinstance(value, Frame)
-            if is_frame:
-                t, seq = value.timestamp, value.seq
-                value.acquire()  # the writer's link, given back in _release_done
-            else:
-                stamp = getattr(value, "timestamp", None)
-                t = stamp if isinstance(stamp, float) and stamp > 0 else now
-                s = getattr(value, "seq", None)
-                seq = s if isinstance(s, int) and s >= 0 else self._seq.get(topic, 0)
-                self._seq[topic] = seq + 1
-            if not writer.submit(topic, value, t, seq) and is_frame:
-                value.release()
-            if is_frame:
-                self._cameras.setdefault(value.source, topic)
-        if self.params.annotations:
+        if self._observer is None:  # deterministic: the observer hands them over (value())
             for topic, value in inputs.items():
-                if value is not None and not isinstance(value, Frame) and is_detection(value):
-                    self._overlay(writer, topic, value)
+                if value is not None:
+                    self._record(writer, topic, self._source_of(topic), value, now, False)
+            if self.params.annotations:  # after the frames: their cameras are known then
+                for topic, value in inputs.items():
+                    if value is not None and not isinstance(value, Frame) and is_detection(value):
+                        self._overlay(writer, topic, value)
         self._watch(writer)
+
+    def _record(
+        self,
+        writer: RecordingWriter,
+        topic: str,
+        source: str,
+        value: Any,
+        now: float,
+        overlay: bool = True,
+    ) -> bool:
+        """Queue one value for the writer (and its annotations); False when refused."""
+        if topic not in writer.streams:
+            writer.declare(topic, source)
+        is_frame = isinstance(value, Frame)
+        if is_frame:
+            t, seq = value.timestamp, value.seq
+            value.acquire()  # the writer's link, given back in _release_done
+        else:
+            stamp = getattr(value, "timestamp", None)
+            t = stamp if isinstance(stamp, float) and stamp > 0 else now
+            s = getattr(value, "seq", None)
+            seq = s if isinstance(s, int) and s >= 0 else self._seq.get(topic, 0)
+            self._seq[topic] = seq + 1
+        accepted = writer.submit(topic, value, t, seq)
+        if not accepted and is_frame:
+            value.release()
+        if is_frame:
+            self._cameras.setdefault(value.source, topic)
+        elif overlay and self.params.annotations and is_detection(value):
+            self._overlay(writer, topic, value)
+        return accepted
+
+    # --- the deterministic log (flowrt.determinism.observer.Sink) ---------------------------
+
+    @property
+    def recording(self) -> bool:
+        return self.writer is not None
+
+    def log(self, topic: str, record: dict[str, Any], t: float) -> None:
+        writer = self.writer
+        if writer is not None:
+            seq = self._log_seq[topic] = self._log_seq.get(topic, -1) + 1
+            writer.submit(topic, record, t, seq)
+
+    def value(self, topic: str, source: str, value: Any) -> int | None:
+        """A value the observer saw published: recorded, and its index in ``topic``."""
+        writer = self.writer
+        if writer is None or not self._record(writer, topic, source, value, self.ctx.now()):
+            return None
+        index = self._indexes.get(topic, 0)
+        self._indexes[topic] = index + 1
+        return index
 
     def _overlay(self, writer: RecordingWriter, topic: str, det: Any) -> None:
         """The detection again, as annotations on its camera's image (when that is recorded)."""

@@ -128,6 +128,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         "split_size": split.size,
         "split_duration": split.duration,
         "log_report": False,  # printed below, once
+        "deterministic": args.deterministic,
     }
     try:
         # relative paths of the graph resolve beside its file, as when it was loaded
@@ -426,8 +427,15 @@ def cmd_replay(args: argparse.Namespace) -> int:
     from ..registry import resolve_kind
     from ..spec import NodeSpec
 
+    if args.deterministic:
+        from .deterministic import cmd_replay_deterministic
+
+        return cmd_replay_deterministic(args)
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     console = stdout_console()
+    if args.json or args.inline:
+        err.print("flowrt replay: --json and --inline go with --deterministic", markup=False)
+        return EXIT_BAD_GRAPH
     if args.rate <= 0:
         err.print("flowrt replay: --rate must be positive", markup=False)
         return EXIT_BAD_GRAPH
@@ -623,6 +631,12 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="do not also draw detections as foxglove.ImageAnnotations on their camera",
     )
+    rec.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="also record every activation's inputs and a digest of every output, for "
+        "flowrt replay --deterministic (the sources' values are recorded whatever --topics says)",
+    )
     add_run_options(rec)  # --duration, --realtime, --control ...: a recording is a run
     rec.set_defaults(func=cmd_record)
 
@@ -648,5 +662,25 @@ def add_parsers(sub: Any) -> None:
         help="run the graph stored in the recording (it imports the modules it names: only "
         "for recordings you trust); default: the recorded streams alone, or --graph",
     )
+    rep.add_argument(
+        "--deterministic",
+        action="store_true",
+        help="re-execute every recorded activation on recorded time, as fast as the CPU allows "
+        "(a flowrt record --deterministic session; needs --graph or --trust-graph)",
+    )
+    rep.add_argument(
+        "--json",
+        action="store_true",
+        help="with --deterministic: the result as one JSON object",
+    )
+    rep.add_argument(
+        "--inline",
+        action="store_true",
+        help="with --deterministic: every node on the event loop, whatever its placement",
+    )
     add_run_options(rep)  # --duration, --no-ui, --stats-json, --control, --display-port ...
+    rep._option_string_actions["--check"].help = (
+        "with --deterministic: compare every output with its recorded digest, exit 1 at the "
+        "first that differs; else refuse to start when flowrt check shows a missed deadline"
+    )
     rep.set_defaults(func=cmd_replay)

@@ -79,6 +79,13 @@ class RunnerContext(NodeContext):
         """Wait until this node's period-1 frame readers can take a new frame (fast pacing)."""
         await self._runner.sched.wait_readers(self._runner)
 
+    def observe(self, observer: Any) -> None:
+        """Tell ``observer`` of every activation and publication from now on (what
+        ``flowrt record --deterministic`` records; :mod:`flowrt.determinism`)."""
+        sched = self._runner.sched
+        sched.observer = observer
+        observer.attach(sched.graph, sched)
+
     def request_stop(self) -> None:
         """Ask the runtime to stop (e.g. a video source at its end with on_eof: stop)."""
         stopper = self._runner.sched.services.request_stop

@@ -13,7 +13,7 @@ from typing import Any, Protocol
 from ..clock import Clock
 from ..events import Event
 from ..frames import Frame
-from ..graph import ResolvedNode
+from ..graph import Graph, ResolvedNode
 from ..node import NodeFactory
 from .executor import Executor
 from .services import Services
@@ -27,6 +27,10 @@ class SchedulerPort(Protocol):
     blocked_calls: int
     paced: set[str]
     emit: Callable[[Event], None]
+    graph: Graph
+    # A run's observer (flowrt.determinism), set by ``ctx.observe``: told of every activation,
+    # completion and publication, in order, to record what makes the run reproducible.
+    observer: Any
 
     def rel(self, t: float) -> float: ...
 

@@ -112,7 +112,7 @@ class NodeRunner:
             self.timing,
             self.counts,
             sched.clock,
-            sched.emit,
+            lambda e: sched.emit(e),  # late-bound: an observer may tee the scheduler's emit
             sched.rel,
             lambda: self.rnode.spec.miss_policy,
         )
@@ -286,6 +286,9 @@ class NodeRunner:
             c.interval.add(now - c.interval_from)
         c.interval_from = c.last_start = now
         self.state = RunState.running
+        if (obs := self.sched.observer) is not None:
+            held = {p: b.taken_seq for p, b in self.inputs.items()}
+            obs.activation(self.name, t_release, now, held, self.rnode)
         self._acts += 1
         act = Activation(self._acts, t_release, now)
         act.inputs = inputs
@@ -330,7 +333,9 @@ class NodeRunner:
             return
         self.act = act
         self.deadlines.arm(act)
-        watchdog = self._arm_watchdog(act.start)
+        spec = self.rnode.spec
+        inline = spec.placement is Placement.inline
+        watchdog = _watchdog(self.sched, self.task, spec.watchdog, act.start) if inline else None
         try:
             result = await self.executor.call(act.inputs)
         except asyncio.CancelledError as e:
@@ -353,18 +358,6 @@ class NodeRunner:
         act.adopt(result)
         self.complete(act, result, self.sched.clock.now())
 
-    def _arm_watchdog(self, start: float) -> Handle | None:
-        """An inline coroutine that does not return within its watchdog is cancelled."""
-        wd = self.rnode.spec.watchdog
-        task = self.task
-        if wd is None or self.rnode.spec.placement is not Placement.inline or task is None:
-            return None
-
-        def cancel() -> None:
-            task.cancel(f"watchdog {wd:g} ms")
-
-        return self.sched.clock.call_at(start + wd / 1000, cancel)
-
     def complete(self, act: Activation, result: Any, end: float) -> None:
         """``act`` returned ``result`` at ``end``: count it, publish (or discard), close."""
         c = self.counts
@@ -374,7 +367,10 @@ class NodeRunner:
         c.execution.add(end - act.start)
         c.response.add(end - act.t_release)
         try:
-            if self.deadlines.finish(act, end):
+            discard = self.deadlines.finish(act, end)
+            if self.sched.observer is not None:
+                self.sched.observer.completed(self.name, act.t_release, end, discard)
+            if discard:
                 c.discarded += 1
                 act.discard(result)
             elif result is not None:
@@ -403,6 +399,8 @@ class NodeRunner:
         """Fan a value out to every reader of ``port``; a frame port also ticks its frame clock."""
         if isinstance(value, Frame) and value.timestamp == 0.0:
             _stamp(value, port, self.frame_seqs, self.counts.last_start, t)
+        if self.sched.observer is not None:
+            self.sched.observer.published(self.name, port, value, t)
         for buf in self.outputs[port]:
             if not buf.put(value, t):
                 assert isinstance(buf, LosslessBuffer)
@@ -466,3 +464,14 @@ def _stamp(frame: Frame, port: str, seqs: dict[str, int], last: float | None, t:
     if frame.seq == 0:
         frame.seq = n
     seqs[port] = max(n, frame.seq) + 1
+
+
+def _watchdog(sched: SchedulerPort, task: Any, wd: float | None, start: float) -> Handle | None:
+    """An inline coroutine that does not return within its watchdog (ms) is cancelled."""
+    if wd is None or task is None:
+        return None
+
+    def cancel() -> None:
+        task.cancel(f"watchdog {wd:g} ms")
+
+    return sched.clock.call_at(start + wd / 1000, cancel)

@@ -49,6 +49,7 @@ class Scheduler:
         self.real_time = services.real_time
         self.loop = asyncio.get_event_loop()
         self.blocked_calls = 0
+        self.observer: Any = None  # set by ctx.observe (flowrt.determinism)
         self.runners: dict[str, NodeRunner] = {}
         for name in sorted(graph.nodes, key=lambda n: graph.nodes[n].order):
             self.runners[name] = NodeRunner(self, graph.nodes[name])

@@ -98,7 +98,7 @@ def session_metadata(
     graph: str, started: float, extra: dict[str, str] | None = None
 ) -> dict[str, dict[str, str]]:
     """The ``flowrt`` metadata record: who recorded, where, when, which graph."""
-    from .. import __version__
+    from ..version import __version__
 
     meta = {
         "flowrt_version": __version__,

@@ -570,7 +570,7 @@ def _part_record(split: SplitPolicy | None, base: Path, files: list[Path]) -> di
 
 
 def _library() -> str:
-    from .. import __version__
+    from ..version import __version__
 
     try:
         from importlib.metadata import version

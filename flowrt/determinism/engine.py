@@ -1,0 +1,482 @@
+"""The deterministic replay: every recorded activation re-executed, in order, on recorded time.
+
+Nothing is scheduled: the log says which activation ran when and what each input held, so the
+engine walks the activations in the order they started and, for each one of a node it runs,
+gathers those exact values (a source's from the recording, a re-executed node's from its own
+earlier output with the same sequence number), sets the node's clock to the recorded start,
+calls ``process`` and compares each output's digest with the recorded one. A node's outputs
+get the sequence numbers the recording gives that activation's outputs, so its readers find
+them whatever happened elsewhere. An activation that failed or was discarded in the run is
+re-executed (its state changes count) but publishes nothing, as then. Param changes and
+restarts are applied before the first activation that followed them.
+
+Nodes run inline, or in worker processes as their placement says (``inline=False``): one call
+at a time, in the recorded order, which is what makes the replay deterministic; a whole
+recording is re-executed as fast as one core allows.
+
+Against another graph: a node that is not in it is not run, and its outputs, where recorded,
+stand in for it; a node of it whose input came from something that neither runs nor was
+recorded cannot be replayed from that activation on (``not comparable``, with the reason); a
+node the recording has no activations of is ``not run``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..edges import Buffer, QueueBuffer
+from ..graph import Graph, ResolvedNode
+from ..spec import Placement, TimerTrigger
+from .context import NOW_KEY, TIMES_KEY, ReplayContext, ReplayFactory, maybe_await
+from .digest import digest
+from .log import Activation, DeterminismLog, Key, OutputRecord, roles
+from .report import Divergence, NodeReplay, ReplayReport
+from .synthesis import streams, synthesize
+from .values import RecordedValues, read_one, show
+
+__all__ = ["ReplayEngine"]
+
+log = logging.getLogger("flowrt.determinism")
+
+UNBOUNDED = 1 << 62
+
+
+@dataclass
+class _Node:
+    """One re-executed node: its instance (inline) or worker, and what it did."""
+
+    rnode: ResolvedNode
+    ctx: ReplayContext
+    worker: bool
+    node: Any = None  # the inline instance
+    executor: Any = None  # the worker's executor
+    params: Any = None
+    activations: int = 0
+    compared: int = 0
+    reason: str = ""  # why it stopped being replayed (empty: it runs)
+    new: bool = False  # not in the recording: its activations come from its trigger
+    restarts: deque[float] = field(default_factory=deque)
+    published: list[tuple[str, Any]] = field(default_factory=list)
+
+    @property
+    def outputs(self) -> list[str]:
+        cls = self.rnode.cls
+        return [*cls.outputs, *cls.params_outputs(self.params)]
+
+
+class ReplayEngine:
+    """Re-executes a deterministic log against ``graph`` (see the module docstring)."""
+
+    def __init__(
+        self,
+        log_: DeterminismLog,
+        graph: Graph,
+        *,
+        inline: bool = False,
+        stop_at_divergence: bool = False,
+    ) -> None:
+        self.log = log_
+        self.graph = graph
+        self.inline = inline
+        self.stop_at_divergence = stop_at_divergence
+        self.roles = roles(graph)
+        self.nodes: dict[str, _Node] = {}
+        self.produced: dict[Key, Any] = {}
+        self.produced_times: dict[Key, float] = {}
+        self.needs: dict[Key, int] = {}
+        self.subscribers: dict[tuple[str, str], list[Buffer]] = {}
+        self.next_seq: dict[tuple[str, str], int] = {}
+        self.activations = 0
+        self.compared = 0
+        self.divergence: Divergence | None = None
+        self.stopped_early = False
+        self.started = False
+        self.values: RecordedValues | None = None
+        recorded = {a.node for a in log_.activations}
+        self.plan: list[Activation] = list(log_.activations)
+        self.not_run: dict[str, str] = {}  # new nodes that cannot run, and why
+        for name, rnode in graph.nodes.items():
+            if self.roles[name] == "replayed" and name in recorded:
+                self.nodes[name] = self._node(name, rnode)
+        for c in log_.changes:
+            if c.what == "restart" and c.node in self.nodes:
+                self.nodes[c.node].restarts.append(c.t)
+        self._plan_new_nodes(recorded)
+
+    def _plan_new_nodes(self, recorded: set[str]) -> None:
+        """Nodes of the graph the recording has no activation of, run on their trigger over
+        the recorded streams (:mod:`.synthesis`), merged into the recorded order by time."""
+        new = [n for n in self.graph.nodes if self.roles[n] == "replayed" and n not in recorded]
+        if not new:
+            return
+        available = streams(self.log, set(self.nodes))
+        for name in new:
+            acts, why = synthesize(self.graph, name, self.log, available)
+            if not acts:
+                self.not_run[name] = why or "its trigger never fired on the recorded streams"
+                continue
+            existing = self.nodes[name] = self._node(name, self.graph.nodes[name])
+            existing.new = True
+            self.plan.extend(acts)
+        # recorded activations keep their order (their starts never decrease); a new one goes
+        # after those that started at or before its time
+        self.plan.sort(
+            key=lambda a: (a.start, self.nodes[a.node].new if a.node in self.nodes else False)
+        )
+
+    def _node(self, name: str, rnode: ResolvedNode) -> _Node:
+        trig = rnode.trigger
+        period = trig.timer / 1000 if isinstance(trig, TimerTrigger) else None
+        ctx = ReplayContext(name, self.log.seed, self.log.origin, period, self._publisher(name))
+        worker = not self.inline and rnode.spec.placement is not Placement.inline
+        return _Node(rnode, ctx, worker and not rnode.cls.inline_only, params=rnode.params)
+
+    def _publisher(self, name: str) -> Any:
+        def publish(port: str, value: Any) -> None:
+            self.nodes[name].published.append((port, value))
+
+        return publish
+
+    # --- lifecycle ---------------------------------------------------------------------------
+
+    async def start(self) -> None:
+        """Set every replayed node up (workers in parallel, then inline ones in file order)."""
+        if self.started:
+            return
+        self.started = True
+        uses: dict[tuple[str, int], int] = {}
+        for a in self.plan:
+            if a.node not in self.nodes:
+                continue
+            for key in a.inputs.values():
+                if key is None:
+                    continue
+                self.needs[key] = self.needs.get(key, 0) + 1
+                if key[0] not in self.nodes:
+                    place = self.log.recorded(key)
+                    if place is not None:
+                        uses[place] = uses.get(place, 0) + 1
+        self.values = RecordedValues(self.log, uses)
+        workers = [n for n in self.nodes.values() if n.worker]
+        if workers:
+            from ..workers import start_forkserver
+
+            await asyncio.to_thread(start_forkserver)
+        await asyncio.gather(*(self._start_node(n) for n in workers))
+        for n in self.nodes.values():
+            if not n.worker:
+                await self._start_node(n)
+
+    async def _start_node(self, n: _Node) -> None:
+        n.ctx.time = self.log.origin
+        n.ctx._random = None  # a fresh instance draws from the start, as a restarted node does
+        if n.worker:
+            from ..workers import ProcessExecutor
+
+            factory = ReplayFactory(
+                n.rnode.cls, n.params, n.rnode.name, self.log.seed, self.log.origin, n.ctx.period
+            )
+            n.executor = ProcessExecutor(
+                n.rnode.name, factory, priority=n.rnode.spec.priority, realtime=False
+            )
+            await n.executor.start()
+        else:
+            from ..node import make_node
+
+            n.node = make_node(n.rnode.cls, n.params, n.ctx)
+            await maybe_await(n.node.setup())
+
+    async def _stop_node(self, n: _Node) -> None:
+        try:
+            if n.executor is not None:
+                await n.executor.stop()
+            elif n.node is not None:
+                await maybe_await(n.node.teardown())
+        except Exception as e:
+            log.warning("replay: %s: teardown failed: %s", n.rnode.name, e)
+        n.executor = n.node = None
+
+    async def stop(self) -> None:
+        for n in reversed(list(self.nodes.values())):
+            await self._stop_node(n)
+
+    def subscribe(self, target: str, size: int | None = None) -> Buffer:
+        """A buffer receiving every value a re-executed ``node.port`` publishes (as recorded)."""
+        node, _, port = target.partition(".")
+        n = self.nodes.get(node)
+        if n is None:
+            if node in self.graph.nodes:
+                raise KeyError(f"{node} is not re-executed by this replay ({self._why_not(node)})")
+            raise KeyError(f"unknown node {node!r}")
+        if port not in n.outputs:
+            raise KeyError(f"{node} has no output {port!r} (outputs: {', '.join(n.outputs)})")
+        buf = QueueBuffer(f"{target}->replay", size or UNBOUNDED, lambda: n.ctx.time)
+        self.subscribers.setdefault((node, port), []).append(buf)
+        return buf
+
+    # --- the replay --------------------------------------------------------------------------
+
+    async def run(self) -> None:
+        """Re-execute every recorded activation of the replayed nodes, in recorded order."""
+        await self.start()
+        for a in self.plan:
+            n = self.nodes.get(a.node)
+            if n is None or n.reason:
+                continue
+            await self._activation(n, a)
+            if self.divergence is not None and self.stop_at_divergence:
+                self.stopped_early = True
+                return
+
+    async def _activation(self, n: _Node, a: Activation) -> None:
+        while n.restarts and n.restarts[0] <= a.start:
+            n.restarts.popleft()
+            await self._stop_node(n)
+            await self._start_node(n)
+        if a.kind is not None and a.kind != n.rnode.spec.kind:
+            self._give_up(n, a, f"swapped to {a.kind} at {a.start - self.log.origin:.3f} s")
+            return
+        if a.params is not None:
+            await self._set_params(n, a.params)
+        inputs: dict[str, Any] = dict.fromkeys(n.rnode.cls.inputs)
+        times: dict[str, float] = {}
+        for port, key in a.inputs.items():
+            if key is None:
+                inputs[port] = None
+                continue
+            found, value, t = self._value(key)
+            if not found:
+                self._give_up(n, a, f"input {port}: {key[0]}.{key[1]} #{key[2]} is not recorded")
+                return
+            inputs[port] = value
+            if t is not None:
+                times[port] = t
+        n.ctx.time = a.start
+        n.ctx.times = times
+        n.published = []
+        n.activations += 1
+        self.activations += 1
+        error: BaseException | None = None
+        try:
+            if n.worker:
+                result = await n.executor.call({**inputs, NOW_KEY: a.start, TIMES_KEY: times})
+            else:
+                result = await maybe_await(n.node.process(**inputs))
+        except Exception as e:
+            error, result = e, None
+        outputs = n.published + self._results(n, result)
+        n.published = []
+        if n.new:
+            self._publish_new(n, a, outputs, error)
+            return
+        done = self.log.completions.get((a.node, a.n))
+        if done is None or done.discarded:
+            return  # it failed or was discarded in the run too: nothing was published then
+        if error is not None:
+            if n.executor is not None or n.node is not None:
+                await self._stop_node(n)
+                await self._start_node(n)  # as supervision would
+            self._diverged_raised(n, a, error)
+            return
+        self._compare(n, a, outputs)
+
+    def _publish_new(
+        self, n: _Node, a: Activation, outputs: list[tuple[str, Any]], error: BaseException | None
+    ) -> None:
+        """A new node's outputs: nothing to compare them with; to its subscribers."""
+        if error is not None:
+            log.warning("replay: new node %s raised: %s", a.node, error)
+            return
+        for port, value in outputs:
+            seq = self.next_seq.get((a.node, port), 1)
+            self.next_seq[(a.node, port)] = seq + 1
+            for buf in self.subscribers.get((a.node, port), ()):
+                buf.put(value, a.start)
+
+    def _results(self, n: _Node, result: Any) -> list[tuple[str, Any]]:
+        """``process``'s return as (port, value) pairs, as the runner publishes it."""
+        if result is None:
+            return []
+        outs = n.outputs
+        if len(outs) == 1:
+            return [(outs[0], result)]
+        if not isinstance(result, Mapping):
+            return [("?", result)]
+        return [(p, v) for p, v in result.items() if v is not None]
+
+    def _compare(self, n: _Node, a: Activation, outputs: list[tuple[str, Any]]) -> None:
+        name = a.node
+        expected: dict[str, deque[OutputRecord]] = {}
+        for r in self.log.outputs.get((name, a.n), []):
+            expected.setdefault(r.port, deque()).append(r)
+        for port, value in outputs:
+            queue = expected.get(port)
+            rec = queue.popleft() if queue else None
+            if rec is None:
+                seq = self.next_seq.get((name, port), 1)
+                self._diverged(
+                    n, a, port, seq, "an output the recording does not have", None, value
+                )
+            else:
+                seq = rec.seq
+                n.compared += 1
+                self.compared += 1
+                if digest(value) != rec.digest:
+                    self._diverged(
+                        n, a, port, seq, "its digest differs from the recorded one", rec, value
+                    )
+            self.next_seq[(name, port)] = seq + 1
+            key = (name, port, seq)
+            if self.needs.get(key, 0) > 0:
+                self.produced[key] = value
+                self.produced_times[key] = a.start if rec is None else rec.t
+            for buf in self.subscribers.get((name, port), ()):
+                buf.put(value, a.start if rec is None else rec.t)
+        for port, queue in expected.items():
+            if queue:
+                rec = queue[0]
+                self._diverged(
+                    n, a, port, rec.seq, "the recorded output was not produced", rec, None
+                )
+
+    def _value(self, key: Key) -> tuple[bool, Any, float | None]:
+        """(found, value, publication time) of the value ``key`` an activation held."""
+        src = key[0]
+        if src in self.nodes and not self.nodes[src].reason:
+            if key not in self.produced:
+                return False, None, None
+            value, t = self.produced[key], self.produced_times[key]
+            left = self.needs[key] = self.needs.get(key, 1) - 1
+            if left <= 0:
+                del self.produced[key], self.produced_times[key]
+            return True, value, t
+        place = self.log.recorded(key)
+        if place is None or self.values is None:
+            return False, None, None
+        found, value = self.values.get(place)
+        rec = self.log.sources.get(key) or self.log.output_at.get(key)
+        return found, value, None if rec is None else rec.t
+
+    async def _set_params(self, n: _Node, delta: dict[str, Any]) -> None:
+        """A recorded params change (what differed from the recorded graph's), over this
+        graph's params: inline, the instance gets them (and ``params_changed``); in a worker,
+        a fresh instance takes over, as a swap does in the run."""
+        base = self.graph.nodes[n.rnode.name].params.model_dump(mode="json")
+        params = self.graph.validate_params(n.rnode.cls, {**base, **delta})
+        old, n.params = n.params, params
+        if n.worker:
+            await self._stop_node(n)
+            await self._start_node(n)
+            return
+        n.node.params = params
+        hook = getattr(n.node, "params_changed", None)
+        if hook is not None:
+            hook(old)
+
+    def _give_up(self, n: _Node, a: Activation, reason: str) -> None:
+        """``n`` cannot be replayed from activation ``a`` on: its remaining uses are released."""
+        n.reason = reason
+        rest = [x for x in self.plan if x.node == a.node and x.n >= a.n]
+        for x in rest:
+            for key in x.inputs.values():
+                if key is None:
+                    continue
+                if key[0] not in self.nodes and self.values is not None:
+                    place = self.log.recorded(key)
+                    if place is not None:
+                        self.values.release(place)
+                elif key in self.needs:
+                    self.needs[key] -= 1
+
+    # --- divergences -------------------------------------------------------------------------
+
+    def _diverged(
+        self,
+        n: _Node,
+        a: Activation,
+        port: str,
+        seq: int,
+        why: str,
+        rec: OutputRecord | None,
+        value: Any,
+    ) -> None:
+        if self.divergence is not None:
+            return
+        recorded = None
+        if rec is not None and rec.topic is not None and rec.index is not None:
+            recorded = show(read_one(self.log.path, rec.topic, rec.index))
+        self.divergence = Divergence(
+            node=a.node,
+            port=port,
+            seq=seq,
+            time=round(a.start - self.log.origin, 6),
+            why=why,
+            recorded=recorded,
+            replayed=None if value is None else show(value),
+        )
+
+    def _diverged_raised(self, n: _Node, a: Activation, error: BaseException) -> None:
+        recs = self.log.outputs.get((a.node, a.n), [])
+        port, seq = (recs[0].port, recs[0].seq) if recs else ("-", 0)
+        summary = getattr(error, "summary", None) or f"{type(error).__name__}: {error}"
+        self._diverged(n, a, port, seq, f"it raised {summary}", recs[0] if recs else None, None)
+
+    # --- the report --------------------------------------------------------------------------
+
+    def _why_not(self, name: str) -> str:
+        role = self.roles.get(name)
+        if role == "source":
+            return "a source: its values are the recording's"
+        if role == "sink":
+            return "it has no outputs"
+        return "the recording has no activation of it"
+
+    def report(self, wall_s: float) -> ReplayReport:
+        nodes: list[NodeReplay] = []
+        recorded_nodes = {a.node for a in self.log.activations} | {s[0] for s in self.log.sources}
+        for name in self.graph.nodes:
+            n = self.nodes.get(name)
+            if n is not None:
+                nodes.append(
+                    NodeReplay(
+                        node=name,
+                        status="not comparable" if n.reason else "new" if n.new else "compared",
+                        activations=n.activations,
+                        compared=n.compared,
+                        reason=n.reason,
+                    )
+                )
+            elif self.roles[name] == "source" and name in recorded_nodes:
+                nodes.append(NodeReplay(node=name, status="source"))
+            else:
+                why = self.not_run.get(name) or self._why_not(name)
+                nodes.append(NodeReplay(node=name, status="not run", reason=why))
+        for name in sorted(recorded_nodes - set(self.graph.nodes)):
+            nodes.append(
+                NodeReplay(
+                    node=name,
+                    status="not run",
+                    reason="not in this graph (its recorded outputs stand in for it)",
+                )
+            )
+        changes = [
+            f"{c.t - self.log.origin:.3f} s {c.node or ''}: {c.what} {c.text}"
+            + (f" ({c.origin})" if c.origin else "")
+            for c in self.log.changes
+        ]
+        return ReplayReport(
+            identical=self.divergence is None,
+            activations=self.activations,
+            compared=self.compared,
+            first_divergence=self.divergence,
+            wall_s=wall_s,
+            recorded_s=self.log.duration,
+            nodes=nodes,
+            changes=changes,
+            stopped_early=self.stopped_early,
+        )

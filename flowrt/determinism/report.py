@@ -1,0 +1,100 @@
+"""What a deterministic replay found: the ``--json`` object, per-node lines, the divergence.
+
+``--json`` prints exactly :meth:`ReplayReport.summary`: ``identical``, ``activations`` (re-
+executed), ``compared`` (outputs whose digest was compared), ``first_divergence`` (``node``,
+``port``, ``seq``, ``time`` in seconds since the run started, or null), ``wall_s`` and
+``recorded_s``. The per-node table and the values at the divergence are for people.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, Field
+
+__all__ = ["Divergence", "NodeReplay", "ReplayReport", "report_lines"]
+
+
+class Divergence(BaseModel):
+    """The first output that differs from the recording."""
+
+    node: str
+    port: str
+    seq: int
+    time: float = Field(description="seconds since the recorded run started (its activation)")
+    why: str = Field(default="", description="digest differs, missing, extra, raised")
+    recorded: str | None = Field(default=None, description="the recorded value, when recorded")
+    replayed: str | None = Field(default=None, description="the re-executed value, if any")
+
+
+class NodeReplay(BaseModel):
+    """One node of the replayed graph: what was done with it."""
+
+    node: str
+    status: Literal["compared", "new", "not comparable", "source", "not run"]
+    activations: int = 0
+    compared: int = 0
+    reason: str = ""
+
+
+class ReplayReport(BaseModel):
+    identical: bool
+    activations: int
+    compared: int
+    first_divergence: Divergence | None
+    wall_s: float
+    recorded_s: float
+    nodes: list[NodeReplay] = Field(default_factory=list)
+    changes: list[str] = Field(default_factory=list, description="recorded changes, as applied")
+    stopped_early: bool = Field(default=False, description="stopped at the first divergence")
+
+    def summary(self) -> dict[str, Any]:
+        """The ``--json`` object (its keys are the issue's, exactly)."""
+        d = self.first_divergence
+        return {
+            "identical": self.identical,
+            "activations": self.activations,
+            "compared": self.compared,
+            "first_divergence": None
+            if d is None
+            else {"node": d.node, "port": d.port, "seq": d.seq, "time": d.time},
+            "wall_s": round(self.wall_s, 3),
+            "recorded_s": round(self.recorded_s, 3),
+        }
+
+
+def report_lines(report: ReplayReport) -> list[str]:
+    """The report in words: one line per node, the changes, the verdict."""
+    lines = []
+    width = max((len(n.node) for n in report.nodes), default=4)
+    for n in report.nodes:
+        detail = f"{n.activations} activations, {n.compared} outputs compared"
+        if n.status == "source":
+            detail = "recorded values"
+        elif n.status == "new":
+            detail = f"{n.activations} activations on its trigger (not in the recording)"
+        elif n.status in ("not comparable", "not run"):
+            detail = n.reason
+        elif n.reason:
+            detail += f" ({n.reason})"
+        lines.append(f"  {n.node:<{width}}  {n.status:<14}  {detail}")
+    for c in report.changes:
+        lines.append(f"  change: {c}")
+    speed = report.recorded_s / report.wall_s if report.wall_s > 0 else 0.0
+    lines.append(
+        f"{report.activations} activations re-executed, {report.compared} outputs compared "
+        f"in {report.wall_s:.2f} s ({report.recorded_s:.1f} s recorded, x{speed:.1f})"
+    )
+    d = report.first_divergence
+    if d is None:
+        lines.append("identical: every compared output has its recorded digest")
+    else:
+        lines.append(
+            f"diverged at {d.node}.{d.port} seq {d.seq}, t={d.time:.3f} s: {d.why}"
+            + (" (stopped there)" if report.stopped_early else "")
+        )
+        if d.recorded is not None:
+            lines.append(f"  recorded: {d.recorded}")
+        if d.replayed is not None:
+            lines.append(f"  replayed: {d.replayed}")
+    return lines
