@@ -42,7 +42,7 @@ import threading
 import time
 import uuid
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -64,7 +64,7 @@ from .zenoh_wire import (
     check_frame,
     decode_frame,
     encode_frame,
-    from_wire,
+    loads_wire,
     payload_encoding,
     to_wire,
 )
@@ -190,6 +190,7 @@ class _Export:
     seq: int = 0
     busy: bool = False
     errors: int = 0
+    encodings: dict[str, Any] = field(default_factory=dict)  # header kind -> Zenoh encoding
 
 
 class _Import:
@@ -254,18 +255,17 @@ class _Import:
                 raise Refused("too large", f"a header of {len(raw_att)} bytes")
             else:
                 header = Header.decode(raw_att.to_bytes())
-            if len(sample.payload) > self.max_bytes:  # refused before it is copied or parsed
-                raise Refused(
-                    "too large", f"{len(sample.payload)} bytes, the limit is {self.max_bytes}"
-                )
-            payload = sample.payload.to_bytes()
+            zbytes = sample.payload
+            if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
+                raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
+            payload = zbytes.to_bytes()
             if header.kind == "frame":
                 check_frame(header.frame, payload, self.max_pixels)
                 value: Any = self._frame(header.frame, decode_frame(header.frame, payload))
             elif header.kind == "bytes":
                 value = payload
             else:
-                value = from_wire(json.loads(payload))
+                value = loads_wire(payload)
         except Exception as e:
             reason = e.reason if isinstance(e, Refused) else "undecodable"
             with self.lock:
@@ -592,9 +592,10 @@ class ZenohBridge:
                     payload = json.dumps(to_wire(value), separators=(",", ":")).encode()
                     header = Header(self.stream, self.zid, exp.seq, now_wall, now_wall, "json")
                 exp.seq += 1
-                exp.publisher.put(
-                    payload, attachment=header.encode(), encoding=payload_encoding(header)
-                )
+                encoding = exp.encodings.get(header.kind)
+                if encoding is None:  # one per kind: a Zenoh object made once, not per put
+                    encoding = exp.encodings[header.kind] = payload_encoding(header)
+                exp.publisher.put(payload, attachment=header.encode(), encoding=encoding)
             except Exception as e:
                 exp.errors += 1
                 log.warning("export %s: %s", exp.key, e)

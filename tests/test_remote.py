@@ -76,7 +76,7 @@ def test_header_is_the_fixed_binary_layout_of_the_docs() -> None:
     fields = struct.unpack("<4sBBBB16s32sQddQIII4x8s8s", raw)
     magic, version, kind, enc, _, stream, zid, n, t, c, fseq, h, w, ch, dtype, pf = fields
     assert (magic, version, kind, enc) == (b"FLRT", 2, 1, 1)
-    assert stream.rstrip(b"\0") == b"0123456789abcdef" and zid.rstrip(b"\0") == b"a1b2"
+    assert (stream.rstrip(b"\0"), zid.rstrip(b"\0")) == (b"0123456789abcdef", b"a1b2")
     assert (n, t, c, fseq, h, w, ch) == (9, 1.5, 1.25, 11, 480, 640, 3)
     assert (dtype.rstrip(b"\0"), pf.rstrip(b"\0")) == (b"uint8", b"BGR")
     with pytest.raises(ValueError, match="longer than"):

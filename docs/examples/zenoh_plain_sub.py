@@ -23,9 +23,8 @@ done = threading.Event()
 
 
 def on_sample(sample: zenoh.Sample) -> None:
-    magic, version, kind, _, _, stream, zid, seq, sent, *_ = HEADER.unpack(
-        sample.attachment.to_bytes()
-    )  # flowrt's header (docs/zenoh.md)
+    fields = HEADER.unpack(sample.attachment.to_bytes())  # flowrt's header (docs/zenoh.md)
+    magic, version, kind, seq = fields[0], fields[1], fields[2], fields[7]
     assert (magic, version, kind) == (b"FLRT", 2, 0)  # a JSON message
     value = json.loads(sample.payload.to_bytes())  # the value itself
     got.append({"encoding": str(sample.encoding), "seq": seq, "value": value})
