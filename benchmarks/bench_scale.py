@@ -172,16 +172,33 @@ class FrameReader(Node):
 
 
 class Empty(Node):
-    """A worker node doing nothing: the call's cost is the runtime's."""
+    """A worker node doing nothing but return a small value: the call's cost is the runtime's."""
 
     Params = _P
+    done = Output(int)
 
     @classmethod
     def default_trigger(cls, params: Any) -> TimerTrigger:
         return TimerTrigger(timer=1000.0 / params.rate)
 
-    def process(self) -> None:
-        return None
+    def process(self) -> int:
+        return 1
+
+
+DONE: list[tuple[str, float]] = []  # (worker, when its result reached the loop)
+
+
+class Collector(Node):
+    """Inline, one per worker: when the worker's result arrived (the runtime's clock)."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        worker: str
+
+    value = Input(object)
+
+    def process(self, value: Any) -> None:
+        DONE.append((self.params.worker, self.ctx.now()))
 
 
 # --- the points ------------------------------------------------------------------------------
@@ -190,7 +207,9 @@ class Empty(Node):
 def inline_graph(shape: str, n: int) -> flowrt.Graph:
     rate = rate_for(n)
     g = GraphBuilder(f"{shape}-{n}")
-    if shape == "chain":
+    if shape == "idle":  # the runtime's own background (its lag probe...): one 1 Hz node
+        g.add("n0", Source, params={"rate": 1.0})
+    elif shape == "chain":
         g.add("n0", Source, params={"rate": rate})
         for i in range(1, n):
             g.add(f"n{i}", Relay, inputs={"value": f"n{i - 1}.out"}, trigger="input")
@@ -274,6 +293,8 @@ async def _inline(shape: str, n: int, seconds: float) -> dict[str, Any]:
         "n": n,
         "rate_hz": rate_for(n),
         "activations": a1 - a0,
+        "cpu_s_per_s": (c1 - c0) / seconds,
+        "activations_per_s": (a1 - a0) / seconds,
         "cpu_us_per_activation": (c1 - c0) / max(1, a1 - a0) * 1e6,
         "latency_p50_ms": float(np.percentile(la, 50)),
         "latency_p99_ms": float(np.percentile(la, 99)),
@@ -290,9 +311,11 @@ async def _inline(shape: str, n: int, seconds: float) -> dict[str, Any]:
 
 
 async def _workers(n: int, seconds: float) -> dict[str, Any]:
+    rate = 20.0
     g = GraphBuilder(f"workers-{n}")
     for i in range(n):
-        g.add(f"w{i}", Empty, params={"rate": 20.0}, placement="process")
+        g.add(f"w{i}", Empty, params={"rate": rate}, placement="process")
+        g.add(f"c{i}", Collector, params={"worker": f"w{i}"}, inputs={"value": f"w{i}.done"})
     graph = g.build()
     rt = Runtime(graph)
     t0 = time.perf_counter()
@@ -307,29 +330,46 @@ async def _workers(n: int, seconds: float) -> dict[str, Any]:
     t_ready = time.perf_counter() - t0
     await asyncio.sleep(1.0)
     pss = _tree_pss_mb()
-    c0, a0 = time.process_time(), _activations(rt)
+    c0, a0 = time.process_time(), sum(x.completions for x in rt.stats().nodes if x.name[0] == "w")
+    DONE.clear()
     await asyncio.sleep(seconds)
-    c1, a1 = time.process_time(), _activations(rt)
-    st = rt.stats()
-    resp = [x.response.p50 for x in st.nodes]
-    # a dead worker: the others' response in the second before and after, its return
+    c1, a1 = time.process_time(), sum(x.completions for x in rt.stats().nodes if x.name[0] == "w")
+    period, origin = 1.0 / rate, rt.clock.origin
+
+    def late(since: float, until: float, skip: str) -> list[float]:
+        """Release (the timer's grid) to the result on the loop, ms, of the workers but one."""
+        return [
+            ((t - origin) % period) * 1000
+            for w, t in DONE
+            if w != skip and since <= t < until
+        ]
+
+    steady = late(-math.inf, math.inf, "")
+    # a dead worker: the others' release -> result in the second before and after the kill
     victim = rt._sched.runners["w0"].executor._inner  # type: ignore[union-attr]
-    before = await _window_p99(rt, n)
-    restarts0 = st.node("w0").restarts
+    restarts0 = rt.stats().node("w0").restarts
+    DONE.clear()
+    await asyncio.sleep(1.0)
+    t_kill = rt.clock.now()
     os.kill(victim.pid, signal.SIGKILL)
-    t_kill = time.perf_counter()
-    after = await _window_p99(rt, n)
+    await asyncio.sleep(1.0)
+    skip = "w0" if n > 1 else ""
+    before = late(t_kill - 1.0, t_kill, skip)
+    after = late(t_kill, t_kill + 1.0, skip)
     back = math.nan
     end = time.perf_counter() + 30
-    c_before = st.node("w0").completions
     while time.perf_counter() < end:
-        s = rt.stats().node("w0")
-        if s.restarts > restarts0 and s.completions > c_before:
-            back = time.perf_counter() - t_kill
+        back_at = [t for w, t in DONE if w == "w0" and t > t_kill]
+        if rt.stats().node("w0").restarts > restarts0 and back_at:
+            back = back_at[0] - t_kill
             break
         await asyncio.sleep(0.01)
     t1 = time.perf_counter()
     await rt.stop()
+
+    def p(xs: list[float], q: float) -> float:
+        return float(np.percentile(xs, q)) if xs else math.nan
+
     return {
         "case": "workers",
         "n": n,
@@ -337,27 +377,17 @@ async def _workers(n: int, seconds: float) -> dict[str, Any]:
         "ready_s": t_ready,
         "pss_mb": pss,
         "pss_per_worker_mb": pss / n,
-        "call_ms_p50": float(np.median(resp)),
+        "call_ms_p50": p(steady, 50),
+        "call_ms_p99": p(steady, 99),
         "loop_cpu_us_per_call": (c1 - c0) / max(1, a1 - a0) * 1e6,
-        "others_p99_before_ms": before,
-        "others_p99_after_kill_ms": after,
+        "cpu_s_per_s": (c1 - c0) / seconds,
+        "calls_per_s": (a1 - a0) / seconds,
+        "others_p99_before_ms": p(before, 99),
+        "others_p99_after_kill_ms": p(after, 99),
+        "others_max_after_kill_ms": max(after, default=math.nan),
         "dead_back_s": back,
         "teardown_s": time.perf_counter() - t1,
     }
-
-
-async def _window_p99(rt: Runtime, n: int) -> float:
-    """The other workers' response p99 over the next second (from their max, per node)."""
-    names = [f"w{i}" for i in range(1, n)] or ["w0"]
-    # the runtime's summaries are cumulative: take the max of the response over the window
-    # through per-node last_finish and the response summary's max before/after
-    st0 = {x.name: (x.completions, x.response.max) for x in rt.stats().nodes}
-    await asyncio.sleep(1.0)
-    worst = 0.0
-    for x in rt.stats().nodes:
-        if x.name in names and x.completions > st0[x.name][0]:
-            worst = max(worst, x.response.p99)
-    return worst
 
 
 async def _readers(n: int, seconds: float) -> dict[str, Any]:
@@ -450,6 +480,7 @@ def _child(case: str, shape: str, n: int, seconds: float) -> dict[str, Any]:
 def plan(only: str | None) -> list[tuple[str, str, int]]:
     points: list[tuple[str, str, int]] = []
     if only in (None, "inline"):
+        points += [("inline", "idle", 1)]
         points += [("inline", s, n) for s in SHAPES for n in NS]
     if only in (None, "workers"):
         points += [("workers", "-", n) for n in (1, 8, 32)]
@@ -460,19 +491,35 @@ def plan(only: str | None) -> list[tuple[str, str, int]]:
     return points
 
 
+def net_us(r: dict[str, Any], idle: float) -> float:
+    """CPU per activation without the runtime's background (the idle point's CPU per s)."""
+    return float((r["cpu_s_per_s"] - idle) / max(r["activations_per_s"], 1e-9) * 1e6)
+
+
+def idle_cpu(rows: list[dict[str, Any]]) -> float:
+    return next(
+        (r["cpu_s_per_s"] for r in rows if r.get("shape") == "idle" and "error" not in r), 0.0
+    )
+
+
 def table(rows: list[dict[str, Any]]) -> str:
     out: list[str] = []
-    inl = [r for r in rows if r["case"] == "inline" and "error" not in r]
+    idle = idle_cpu(rows)
+    inl = [r for r in rows if r["case"] == "inline" and "error" not in r and r["shape"] != "idle"]
     if inl:
         out += [
-            "| shape | N | rate Hz | CPU us / activation | tick -> last p50 / p99 ms "
+            f"Idle runtime (one 1 Hz node): {idle * 1000:.1f} ms of CPU per second, "
+            "subtracted in the net column.",
+            "",
+            "| shape | N | rate Hz | CPU us / activation (net) | tick -> last p50 / p99 ms "
             "| validate s | build s | first s | teardown s | RSS MB (+ graph) | skipped |",
-            "|---|---:|---:|---:|---|---:|---:|---:|---:|---|---:|",
+            "|---|---:|---:|---|---|---:|---:|---:|---:|---|---:|",
         ]
         for r in inl:
             out.append(
                 f"| {r['shape']} | {r['n']} | {r['rate_hz']:g} | "
-                f"{r['cpu_us_per_activation']:.1f} | {r['latency_p50_ms']:.3f} / "
+                f"{r['cpu_us_per_activation']:.1f} ({net_us(r, idle):.1f}) | "
+                f"{r['latency_p50_ms']:.3f} / "
                 f"{r['latency_p99_ms']:.3f} | {r['validate_s']:.3f} | {r['build_s']:.3f} | "
                 f"{r['first_s']:.3f} | {r['teardown_s']:.3f} | {r['rss_mb']:.0f} "
                 f"(+{r['rss_delta_mb']:.0f}) | {r['skipped']} |"
@@ -481,17 +528,19 @@ def table(rows: list[dict[str, Any]]) -> str:
     if wk:
         out += [
             "",
-            "| workers | start s | all called s | PSS MB (per worker) | empty call p50 ms "
-            "| loop CPU us / call | others' p99 before / after a kill ms | dead one back s "
-            "| teardown s |",
-            "|---:|---:|---:|---|---:|---:|---|---:|---:|",
+            "| workers | start s | all called s | PSS MB (per worker) | release -> result p50 / "
+            "p99 ms | loop CPU us / call (net) | others' p99 before / after a kill (max) ms "
+            "| dead one back s | teardown s |",
+            "|---:|---:|---:|---|---|---:|---|---:|---:|",
         ]
         for r in wk:
             out.append(
                 f"| {r['n']} | {r['start_s']:.2f} | {r['ready_s']:.2f} | {r['pss_mb']:.0f} "
-                f"({r['pss_per_worker_mb']:.1f}) | {r['call_ms_p50']:.3f} | "
-                f"{r['loop_cpu_us_per_call']:.0f} | {r['others_p99_before_ms']:.2f} / "
-                f"{r['others_p99_after_kill_ms']:.2f} | {r['dead_back_s']:.2f} | "
+                f"({r['pss_per_worker_mb']:.1f}) | {r['call_ms_p50']:.3f} / "
+                f"{r['call_ms_p99']:.3f} | "
+                f"{(r['cpu_s_per_s'] - idle) / max(r['calls_per_s'], 1e-9) * 1e6:.0f} | "
+                f"{r['others_p99_before_ms']:.2f} / {r['others_p99_after_kill_ms']:.2f} "
+                f"({r['others_max_after_kill_ms']:.1f}) | {r['dead_back_s']:.2f} | "
                 f"{r['teardown_s']:.2f} |"
             )
     rd = [r for r in rows if r["case"] == "readers" and "error" not in r]
@@ -535,23 +584,27 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     inl = [r for r in rows if r["case"] == "inline" and "error" not in r]
+    idle = idle_cpu(rows)
     for shape in SHAPES:
-        pts = sorted((r["n"], r) for r in inl if r["shape"] == shape)
+        pts = sorted(((r["n"], r) for r in inl if r["shape"] == shape), key=lambda x: x[0])
         if not pts:
             continue
         xs = [n for n, _ in pts]
-        axes[0].plot(xs, [r["cpu_us_per_activation"] for _, r in pts], "o-", label=shape)
+        axes[0].plot(xs, [net_us(r, idle) for _, r in pts], "o-", label=shape)
         axes[1].plot(xs, [r["build_s"] + r["validate_s"] for _, r in pts], "o-", label=shape)
     axes[0].set(
         xscale="log",
         xlabel="inline nodes",
-        ylabel="loop CPU per activation (us)",
+        ylabel="loop CPU per activation, net of idle (us)",
         title="per activation: flat is O(1)",
     )
     axes[0].set_ylim(bottom=0)
     axes[1].set(xscale="log", yscale="log", xlabel="inline nodes", ylabel="s")
     axes[1].set_title("start-up (validate + build)")
-    rd = sorted((r["n"], r) for r in rows if r["case"] == "readers" and "error" not in r)
+    rd = sorted(
+        ((r["n"], r) for r in rows if r["case"] == "readers" and "error" not in r),
+        key=lambda x: x[0],
+    )
     if rd:
         axes[2].plot(
             [n for n, _ in rd], [r["publish_us_per_reader"] for _, r in rd], "o-", label="readers"
