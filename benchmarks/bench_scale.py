@@ -338,11 +338,7 @@ async def _workers(n: int, seconds: float) -> dict[str, Any]:
 
     def late(since: float, until: float, skip: str) -> list[float]:
         """Release (the timer's grid) to the result on the loop, ms, of the workers but one."""
-        return [
-            ((t - origin) % period) * 1000
-            for w, t in DONE
-            if w != skip and since <= t < until
-        ]
+        return [((t - origin) % period) * 1000 for w, t in DONE if w != skip and since <= t < until]
 
     steady = late(-math.inf, math.inf, "")
     # a dead worker: the others' release -> result in the second before and after the kill
@@ -417,6 +413,15 @@ async def _readers(n: int, seconds: float) -> dict[str, Any]:
     }
 
 
+def _mcap_bytes(folder: str) -> int:
+    """The recording's size, and the folder removed."""
+    import shutil
+
+    size = sum(p.stat().st_size for p in Path(folder).rglob("*.mcap"))
+    shutil.rmtree(folder, ignore_errors=True)
+    return size
+
+
 async def _record(n: int, seconds: float) -> dict[str, Any]:
     tmp = tempfile.mkdtemp(prefix="flowrt_scale_")
     g = GraphBuilder(f"record-{n}")
@@ -436,10 +441,7 @@ async def _record(n: int, seconds: float) -> dict[str, Any]:
     published = sum(e.published for e in st.edges if e.name.endswith(tuple(inputs)))
     dropped = sum(e.dropped for e in st.edges)
     frames = max(1, (a1 - a0) // 2)  # each frame: its source's and the recorder's activation
-    size = sum(p.stat().st_size for p in Path(tmp).rglob("*.mcap"))
-    import shutil
-
-    shutil.rmtree(tmp, ignore_errors=True)
+    size = await asyncio.to_thread(_mcap_bytes, tmp)
     return {
         "case": "record",
         "n": n,
