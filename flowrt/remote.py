@@ -10,11 +10,14 @@ outside the real-time router, no network I/O runs on the event loop:
   for messages, counted like any edge) hands one value at a time to a sender thread that
   encodes and publishes it; when that send is done the next value is taken. A slow network
   therefore drops at the edge, where it is counted, and never slows the producer.
-- Import: Zenoh's callback thread decodes (JPEG too), copies a frame's pixels into a frame of
-  the local pool that the loop keeps ready (local trackers read them zero-copy; the loop
-  copies only when no such frame fits), and parks the value in a bounded hand-over queue
-  (frames: ``FRAME_BACKLOG``; overruns counted); one ``call_soon_threadsafe`` wakes the loop, which
-  publishes on the import node's ``output`` (and writes the RTDB record after the readers).
+- Import: Zenoh's callback thread reads the fixed-size binary header (one ``struct`` call),
+  decodes the payload (JSON; JPEG/PNG, never on the loop), and for frames that a worker
+  process reads copies the pixels into a frame of the local pool that the loop keeps ready
+  (workers map it zero-copy; the loop copies only when no such frame fits); frames that only
+  inline nodes read are not copied at all (a read-only heap frame over the received bytes).
+  It parks the value in a bounded hand-over queue (frames: ``FRAME_BACKLOG``; overruns
+  counted); one ``call_soon_threadsafe`` per batch wakes the loop, which publishes on the
+  import node's ``output`` (and writes the RTDB record after the readers).
 
 Every message carries its stream id, sequence number, send time and capture time: the
 importing side counts sequence gaps as drops of the remote link (an edge named
@@ -39,7 +42,7 @@ import threading
 import time
 import uuid
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
@@ -49,7 +52,7 @@ from .edges import EMPTY, Buffer, make_buffer
 from .events import Event
 from .frames import Frame
 from .node import Node, Output
-from .spec import EdgePolicy, GraphSpec, TimerTrigger, ZenohSpec
+from .spec import EdgePolicy, GraphSpec, Placement, TimerTrigger, ZenohSpec
 from .stats import EdgeStats, Running
 from .zenoh_wire import (
     MAX_HEADER_BYTES,
@@ -61,7 +64,7 @@ from .zenoh_wire import (
     check_frame,
     decode_frame,
     encode_frame,
-    from_wire,
+    loads_wire,
     payload_encoding,
     to_wire,
 )
@@ -187,6 +190,7 @@ class _Export:
     seq: int = 0
     busy: bool = False
     errors: int = 0
+    encodings: dict[str, Any] = field(default_factory=dict)  # header kind -> Zenoh encoding
 
 
 class _Import:
@@ -228,6 +232,7 @@ class _Import:
         # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
         # keeps one pool frame of the last shape ready (``spare``); frames replaced before
         # delivery go back to the pool from the loop (``discard``).
+        self.zero_copy = False  # no worker reads the frames: no copy into the pool at all
         self.spare: Frame | None = None
         self.spare_key: tuple[Any, ...] | None = None
         self.discard: list[Frame] = []
@@ -250,19 +255,17 @@ class _Import:
                 raise Refused("too large", f"a header of {len(raw_att)} bytes")
             else:
                 header = Header.decode(raw_att.to_bytes())
-            if len(sample.payload) > self.max_bytes:  # refused before it is copied or parsed
-                raise Refused(
-                    "too large", f"{len(sample.payload)} bytes, the limit is {self.max_bytes}"
-                )
-            payload = sample.payload.to_bytes()
+            zbytes = sample.payload
+            if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
+                raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
+            payload = zbytes.to_bytes()
             if header.kind == "frame":
                 check_frame(header.frame, payload, self.max_pixels)
-                value: Any = decode_frame(header.frame, payload)
-                value = self._into_spare(header.frame, value)
+                value: Any = self._frame(header.frame, decode_frame(header.frame, payload))
             elif header.kind == "bytes":
                 value = payload
             else:
-                value = from_wire(json.loads(payload))
+                value = loads_wire(payload)
         except Exception as e:
             reason = e.reason if isinstance(e, Refused) else "undecodable"
             with self.lock:
@@ -309,9 +312,14 @@ class _Import:
             self.warned[reason] = now
             log.warning("%s (further ones counted, logged at most every %g s)", text, WARN_EVERY)
 
-    def _into_spare(self, meta: dict[str, Any], arr: np.ndarray) -> Any:
-        """The pixels in the pool frame the loop has ready, when its shape fits; else as is."""
+    def _frame(self, meta: dict[str, Any], arr: np.ndarray) -> Any:
+        """The received pixels as a frame: as they are when no worker process reads them
+        (``zero_copy``: a heap frame over the received bytes, read-only), else copied into
+        the pool frame the loop has ready when its shape fits (else the array, copied into
+        the pool on the loop)."""
         key = _frame_key(meta, arr)
+        if self.zero_copy:
+            return Frame(arr, source=self.name, pixel_format=key[2])
         with self.lock:
             spare = self.spare if self.spare_key == key else None
             if spare is not None:
@@ -346,9 +354,10 @@ class _Import:
             self.last_arrival = now
             captured_mono = now - max(0.0, wall_now - (header.captured - offset))
             if header.kind == "frame":
-                if isinstance(value, Frame):  # copied into the pool on Zenoh's thread
+                if isinstance(value, Frame):  # made on Zenoh's thread
                     frame = value
-                    key = _frame_key(header.frame, frame.data)
+                    if frame.shared:  # a pool frame: ready the next one
+                        key = _frame_key(header.frame, frame.data)
                 else:
                     arr = value
                     key = _frame_key(header.frame, arr)
@@ -518,6 +527,7 @@ class ZenohBridge:
         for name, im in self.spec.imports.items():
             imp = _Import(self, name, im.key, im.period, im.stale_after, im.size)
             imp.max_bytes, imp.max_pixels = im.byte_limit, im.max_pixels
+            imp.zero_copy = not worker_downstream(self.spec, name)
             imp.plain = (
                 PlainFormat(im.format, im.shape, im.dtype) if im.format != "flowrt" else None
             )
@@ -582,9 +592,10 @@ class ZenohBridge:
                     payload = json.dumps(to_wire(value), separators=(",", ":")).encode()
                     header = Header(self.stream, self.zid, exp.seq, now_wall, now_wall, "json")
                 exp.seq += 1
-                exp.publisher.put(
-                    payload, attachment=header.encode(), encoding=payload_encoding(header)
-                )
+                encoding = exp.encodings.get(header.kind)
+                if encoding is None:  # one per kind: a Zenoh object made once, not per put
+                    encoding = exp.encodings[header.kind] = payload_encoding(header)
+                exp.publisher.put(payload, attachment=header.encode(), encoding=encoding)
             except Exception as e:
                 exp.errors += 1
                 log.warning("export %s: %s", exp.key, e)
@@ -633,6 +644,25 @@ class ZenohBridge:
 
     def clocks(self) -> dict[str, tuple[float, float]]:
         return dict(self._offsets)
+
+
+def worker_downstream(spec: GraphSpec, source: str) -> bool:
+    """Whether a worker process may read what node ``source`` publishes: a ``process`` or
+    ``pool`` node fed by it, directly or through inline nodes. Only then is an imported
+    frame worth its copy into the shared-memory pool (a heap frame would travel to a worker
+    with its pixels); a node swapped into a worker later still gets the pixels, pickled."""
+    seen: set[str] = set()
+    todo = [source]
+    while todo:
+        upstream = todo.pop()
+        for name, node in spec.nodes.items():
+            if name in seen or all(i.node != upstream for i in node.inputs.values()):
+                continue
+            if node.placement != Placement.inline:
+                return True
+            seen.add(name)
+            todo.append(name)
+    return False
 
 
 def _frame_key(meta: dict[str, Any], arr: np.ndarray) -> tuple[Any, ...]:

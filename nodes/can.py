@@ -187,6 +187,12 @@ class _Msg:
     bad_inputs: int = 0
     encode_errors: int = 0
     window: int = 0  # frames since the last status
+    # The frame's bytes for ``value`` when it has no counter or checksum (which change at
+    # every send): a periodic message whose value did not change is not encoded again, so
+    # the sends of a tick follow its release closely (cantools' strict encode is the
+    # slowest step between the release and ``bus.send``).
+    encoded: bytes | None = None
+    signal_names: frozenset[str] = frozenset()
 
     @property
     def checksum_byte(self) -> int | None:
@@ -488,8 +494,9 @@ class Can(Node):
         if not isinstance(signals, Mapping):
             problem = f"expected a mapping of signal values, got {type(value).__name__}"
         else:
-            names = {s.name for s in st.dbc.signals}
-            unknown = sorted(set(signals) - names)
+            if not st.signal_names:
+                st.signal_names = frozenset(s.name for s in st.dbc.signals)
+            unknown = sorted(set(signals) - st.signal_names)
             if unknown:
                 problem = f"no signal {', '.join(map(repr, unknown))}"
         if problem:
@@ -506,12 +513,16 @@ class Can(Node):
         if not st.have_value:
             st.value = {s.name: (s.initial if s.initial is not None else 0) for s in st.dbc.signals}
         st.value.update(signals)
+        st.encoded = None
         st.have_value = True
         st.fresh = True
 
     def _send(self, st: _Msg) -> None:
         import can
 
+        if st.encoded is not None:
+            self._put(st, can.Message(**self._frame_fields(st), data=st.encoded))
+            return
         opts = st.opts
         values = st.value
         if opts.counter is not None:
@@ -535,14 +546,20 @@ class Can(Node):
             data[idx] = checksum(opts.checksum_kind, bytes(data), idx)
         if st.fd:
             data += bytes(fd_payload_length(len(data)) - len(data))
-        msg = can.Message(
-            arbitration_id=st.dbc.frame_id,
-            data=data,
-            is_extended_id=st.dbc.is_extended_frame,
-            is_fd=st.fd,
-            bitrate_switch=st.brs,
-            channel=self.params.channel,
-        )
+        if opts.counter is None and opts.checksum is None:
+            st.encoded = bytes(data)
+        self._put(st, can.Message(**self._frame_fields(st), data=data))
+
+    def _frame_fields(self, st: _Msg) -> dict[str, Any]:
+        return {
+            "arbitration_id": st.dbc.frame_id,
+            "is_extended_id": st.dbc.is_extended_frame,
+            "is_fd": st.fd,
+            "bitrate_switch": st.brs,
+            "channel": self.params.channel,
+        }
+
+    def _put(self, st: _Msg, msg: Any) -> None:
         if self.link.put(msg):
             self.sent += 1
             st.sent += 1

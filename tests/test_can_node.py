@@ -425,3 +425,39 @@ async def test_status_is_published_and_kept_in_the_rtdb(channel: str, peer: can.
         kept = rt.rtdb.read("chassis.can")
         assert kept is not None
         assert kept.value.received == 1
+
+
+async def test_an_unchanged_periodic_value_is_not_encoded_again(
+    channel: str, peer: can.BusABC, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Issue 31: a periodic message without counter or checksum is encoded once per new
+    value, not at every send (the encode sat between the timer's release and bus.send);
+    a new value goes out from the next send on."""
+    import flowrt.nodes.can as can_node
+
+    encodes: list[dict[str, Any]] = []
+    real = can_node.encode_signals
+
+    def counting(msg: Any, values: Any) -> bytes:
+        encodes.append(dict(values))
+        return real(msg, values)
+
+    monkeypatch.setattr(can_node, "encode_signals", counting)
+    clock = VirtualClock()
+    g = graph(channel, {"Battery": "host.values"})
+    g.add("host", "can-signals", params={"signals": {"Voltage": {}}}, enabled=False)
+    async with Runtime(g.build(), clock=clock) as rt:
+        await opened(rt)
+        rt.publish("host.values", {"Voltage": 12.0})  # the host program plays the source
+        await clock.advance(0.55)  # 100 ms cycle: 6 sends
+        rt.publish("host.values", {"Voltage": 13.0})
+        await clock.advance(0.5)
+        await asyncio.sleep(0.1)
+        sent = []
+        while (m := peer.recv(0)) is not None:
+            sent.append(db.decode_message(m.arbitration_id, m.data)["Voltage"])
+    assert len(sent) >= 10
+    assert len(encodes) == 2  # one per value
+    assert sent[0] == pytest.approx(12.0)
+    assert sent[-1] == pytest.approx(13.0)
+    assert sorted(set(sent), key=sent.index) == pytest.approx([12.0, 13.0])

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import time
+from typing import Any
 
 import pytest
 
@@ -38,3 +39,38 @@ async def test_periodic_ticks_never_fire_before_their_release(spin: float) -> No
 def test_spin_out_of_range_is_refused() -> None:
     with pytest.raises(ValueError, match="spin"):
         SystemClock(spin=0.5)
+
+
+async def test_timers_due_together_fire_in_creation_order_after_one_wake_up() -> None:
+    """Issue 31: a 10 ms timer created first (the scheduler creates them by priority) fires
+    before the eight 100 ms timers that fall due with it every tenth tick, whichever period
+    reached the instant; all of them on one timerfd."""
+    clock = SystemClock()
+    clock.origin = time.monotonic()
+    order: list[tuple[float, str]] = []
+    done = asyncio.Event()
+
+    def tick(name: str) -> Any:
+        def fire(release: float, missed: int) -> None:
+            order.append((release, name))
+            if len(order) > 60:
+                done.set()
+
+        return fire
+
+    timers = [clock.periodic(0.01, 0.0, tick("fast"))]
+    timers += [clock.periodic(0.1, 0.0, tick(f"slow{i}")) for i in range(8)]
+    loop = asyncio.get_running_loop()
+    try:
+        assert len(clock._wheels) == 1  # one timerfd for all nine
+        await asyncio.wait_for(done.wait(), 5)
+    finally:
+        for t in timers:
+            t.cancel()
+    assert not clock._wheels  # the last cancel closed it
+    shared = [r for r, name in order if name == "slow0"]
+    assert shared
+    for r in shared:
+        names = [name for r2, name in order if abs(r2 - r) < 1e-6]
+        assert names == ["fast"] + [f"slow{i}" for i in range(8)], names
+    assert loop.is_running()
