@@ -453,38 +453,16 @@ def cmd_replay(args: argparse.Namespace) -> int:
         err.print(f"flowrt replay: {path}: nothing to replay ({why})", markup=False)
         return EXIT_BAD_GRAPH
     if not info.closed_cleanly:
-        before = 0  # the replay stops at the first damage, in whichever file
-        for part in info.files:
-            before += part.messages
-            if not part.closed_cleanly:
-                break
-        err.print(
-            f"flowrt replay: {path} was not closed cleanly ({info.damage}): "
-            f"replaying the {before} messages before the damage",
-            markup=False,
-        )
+        _say_damage(info, path, err)
     if args.start >= info.duration and info.duration > 0:
         err.print(
             f"flowrt replay: --start {args.start:g}s is past the end ({info.duration:.1f} s)",
             markup=False,
         )
         return EXIT_BAD_GRAPH
-    from ..recording.encoding import ANNOTATIONS_SCHEMA
-
-    # annotations are drawn from the detections, which are replayed themselves
-    streams = [s for s in info.streams if s.schema_name != ANNOTATIONS_SCHEMA]
-    patterns = split_patterns(args.topics)
-    if patterns:
-        names = [s.topic for s in streams]
-        chosen, unmatched = select_outputs(names, patterns)
-        if unmatched:
-            err.print(
-                f"flowrt replay: --topics {', '.join(map(repr, unmatched))} matches no "
-                f"recorded stream ({', '.join(names)})",
-                markup=False,
-            )
-            return EXIT_BAD_GRAPH
-        streams = [s for s in streams if s.topic in chosen]
+    streams = _chosen_streams(info, args.topics, err)
+    if streams is None:
+        return EXIT_BAD_GRAPH
     by_node: dict[str, list[str]] = {}
     for s in streams:
         by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
@@ -557,6 +535,41 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 _REFUSED: Any = object()
+
+
+def _say_damage(info: Any, path: Path, err: Console) -> None:
+    """A session not closed cleanly replays up to its first damage, whichever file."""
+    before = 0
+    for part in info.files:
+        before += part.messages
+        if not part.closed_cleanly:
+            break
+    err.print(
+        f"flowrt replay: {path} was not closed cleanly ({info.damage}): "
+        f"replaying the {before} messages before the damage",
+        markup=False,
+    )
+
+
+def _chosen_streams(info: Any, topics: Any, err: Console) -> list[Any] | None:
+    """The recorded streams to replay (``--topics``); None: refused, said on ``err``."""
+    from ..recording.encoding import ANNOTATIONS_SCHEMA
+
+    # annotations are drawn from the detections, which are replayed themselves
+    streams = [s for s in info.streams if s.schema_name != ANNOTATIONS_SCHEMA]
+    patterns = split_patterns(topics)
+    if not patterns:
+        return streams
+    names = [s.topic for s in streams]
+    chosen, unmatched = select_outputs(names, patterns)
+    if unmatched:
+        err.print(
+            f"flowrt replay: --topics {', '.join(map(repr, unmatched))} matches no "
+            f"recorded stream ({', '.join(names)})",
+            markup=False,
+        )
+        return None
+    return [s for s in streams if s.topic in chosen]
 
 
 def _replay_target(args: argparse.Namespace, info: Any, path: Path, err: Console) -> Any:

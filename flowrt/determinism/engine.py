@@ -211,7 +211,9 @@ class ReplayEngine:
         n = self.nodes.get(node)
         if n is None:
             if node in self.graph.nodes:
-                raise KeyError(f"{node} is not re-executed by this replay ({self._why_not(node)})")
+                raise KeyError(
+                    f"{node} is not re-executed by this replay ({_why_not(self.roles, node)})"
+                )
             raise KeyError(f"unknown node {node!r}")
         if port not in n.outputs:
             raise KeyError(f"{node} has no output {port!r} (outputs: {', '.join(n.outputs)})")
@@ -269,7 +271,7 @@ class ReplayEngine:
                 result = await maybe_await(n.node.process(**inputs))
         except Exception as e:
             error, result = e, None
-        outputs = n.published + self._results(n, result)
+        outputs = n.published + _results(n, result)
         n.published = []
         if n.new:
             self._publish_new(n, a, outputs, error)
@@ -297,17 +299,6 @@ class ReplayEngine:
             self.next_seq[(a.node, port)] = seq + 1
             for buf in self.subscribers.get((a.node, port), ()):
                 buf.put(value, a.start)
-
-    def _results(self, n: _Node, result: Any) -> list[tuple[str, Any]]:
-        """``process``'s return as (port, value) pairs, as the runner publishes it."""
-        if result is None:
-            return []
-        outs = n.outputs
-        if len(outs) == 1:
-            return [(outs[0], result)]
-        if not isinstance(result, Mapping):
-            return [("?", result)]
-        return [(p, v) for p, v in result.items() if v is not None]
 
     def _compare(self, n: _Node, a: Activation, outputs: list[tuple[str, Any]]) -> None:
         name = a.node
@@ -428,14 +419,6 @@ class ReplayEngine:
 
     # --- the report --------------------------------------------------------------------------
 
-    def _why_not(self, name: str) -> str:
-        role = self.roles.get(name)
-        if role == "source":
-            return "a source: its values are the recording's"
-        if role == "sink":
-            return "it has no outputs"
-        return "the recording has no activation of it"
-
     def report(self, wall_s: float) -> ReplayReport:
         nodes: list[NodeReplay] = []
         recorded_nodes = {a.node for a in self.log.activations} | {s[0] for s in self.log.sources}
@@ -454,7 +437,7 @@ class ReplayEngine:
             elif self.roles[name] == "source" and name in recorded_nodes:
                 nodes.append(NodeReplay(node=name, status="source"))
             else:
-                why = self.not_run.get(name) or self._why_not(name)
+                why = self.not_run.get(name) or _why_not(self.roles, name)
                 nodes.append(NodeReplay(node=name, status="not run", reason=why))
         for name in sorted(recorded_nodes - set(self.graph.nodes)):
             nodes.append(
@@ -480,3 +463,25 @@ class ReplayEngine:
             changes=changes,
             stopped_early=self.stopped_early,
         )
+
+
+def _results(n: _Node, result: Any) -> list[tuple[str, Any]]:
+    """``process``'s return as (port, value) pairs, as the runner publishes it."""
+    if result is None:
+        return []
+    outs = n.outputs
+    if len(outs) == 1:
+        return [(outs[0], result)]
+    if not isinstance(result, Mapping):
+        return [("?", result)]
+    return [(p, v) for p, v in result.items() if v is not None]
+
+
+def _why_not(roles: Mapping[str, str], name: str) -> str:
+    """Why a node of the graph was not compared, in words for the report."""
+    role = roles.get(name)
+    if role == "source":
+        return "a source: its values are the recording's"
+    if role == "sink":
+        return "it has no outputs"
+    return "the recording has no activation of it"
