@@ -36,6 +36,7 @@ COMMAND = "flowrt.record."  # nodes.recorder.COMMAND_RECORD
 STATUS = "flowrt.recording."  # nodes.recorder.STATUS_RECORD: the session folder, "" stopped
 FOLDER = "flowrt.recordings."  # nodes.recorder.FOLDER_RECORD: where its sessions go
 OBEY_WAIT = 10.0  # seconds for the recorders to say they started or stopped
+RATE_INTERVAL = 0.5  # seconds: the shortest interval a live rate is measured over
 REPORT_WAIT = 60.0  # seconds for a stopped session's files to be finished (a slow disk)
 
 Call = Callable[..., Awaitable[dict[str, Any]]]
@@ -123,8 +124,9 @@ async def answer(rtdb: Any, header: dict[str, Any], send: Callable[[dict[str, An
 class RecordApi:
     """The HTTP routes; ``call(op, **args)`` asks the display node and returns its answer."""
 
-    def __init__(self, call: Call) -> None:
+    def __init__(self, call: Call, refresh: Callable[[], Awaitable[None]] | None = None) -> None:
         self.call = call
+        self.refresh = refresh  # new statistics into observe(), before a state is answered
         self.state: dict[str, Any] = {"recording": [], "recordings": []}
         self._edges: tuple[float, dict[str, int]] | None = None  # the previous statistics
         self.rates: dict[str, float] = {}
@@ -151,7 +153,9 @@ class RecordApi:
             node, _, topic = dst.partition(".")
             if node in nodes:
                 counts[topic] = int(e.get("delivered", 0))
-        if self._edges is not None and now > self._edges[0]:
+        if self._edges is not None and now - self._edges[0] < RATE_INTERVAL:
+            return  # too soon for a rate: keep the previous interval's
+        if self._edges is not None:
             dt = now - self._edges[0]
             self.rates = {t: max(0, c - self._edges[1].get(t, c)) / dt for t, c in counts.items()}
         self._edges = (now, counts)
@@ -207,6 +211,8 @@ class RecordApi:
         )
 
     async def status(self, request: web.Request) -> web.Response:
+        if self.refresh is not None:
+            await self.refresh()
         rows = [r for r in self.state["recording"] if r.get("session")]
         sessions = []
         for r in rows:

@@ -10,6 +10,7 @@ scripts (``operator.js``, ``plots.js``) are served from this package: nothing fr
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import itertools
 import json
 import time
@@ -70,7 +71,7 @@ class Station:
         hz = float(settings.get("health_hz", 1.0))
         disk = self.recordings[0] if self.recordings else "/"
         self.history = HealthHistory(float(settings.get("health_keep_s", 900.0)), hz, disk)
-        self.records = RecordApi(call)
+        self.records = RecordApi(call, self._refresh)
         self.reviews = Sessions(self._folders, self._active)
         self.robots = Robots(dict(settings.get("robots", {})))
 
@@ -86,6 +87,13 @@ class Station:
     async def run(self) -> None:
         """The health sampler and the robots' poller, until cancelled."""
         await asyncio.gather(self._sample(), self.robots.poll())
+
+    async def _refresh(self) -> None:
+        """The recorders' state as of now (a page asking right after the start)."""
+        body = await self.fresh_stats()
+        if body is not None:
+            with contextlib.suppress(ValueError):
+                self.records.observe(json.loads(body), time.monotonic())
 
     async def close(self) -> None:
         await asyncio.to_thread(self.robots.close)

@@ -381,7 +381,11 @@ async def test_cambada_with_recordings_start_three_seconds_stop(tmp_path: Path, 
             url = m.group(1) if m else ""
         drain = asyncio.ensure_future(_collect(proc.stdout, out))
         async with aiohttp.ClientSession() as http:
-            state = await get(http, f"{url}/api/record")
+            for _ in range(100):  # the recorder says it is there once it is set up
+                state = await get(http, f"{url}/api/record")
+                if state["recorders"]:
+                    break
+                await asyncio.sleep(0.1)
             assert state["recorders"] == ["recorder"]
             assert not state["recording"]
             started, table = await record(http, url, "cambada", 3.0)
