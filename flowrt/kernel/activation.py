@@ -81,7 +81,10 @@ class Activation:
         if self.timer is not None:
             self.timer.cancel()
             self.timer = None
-        inputs, self.inputs = self.inputs, {}
-        made, self.made = self.made, []
-        release_all(inputs.values())
-        release_all(made)
+        for v in self.inputs.values():
+            if isinstance(v, Frame):
+                v.release()
+        self.inputs = {}
+        if self.made:
+            made, self.made = self.made, []
+            release_all(made)

@@ -44,6 +44,7 @@ from .swapping import Swapper
 
 log = logging.getLogger("flowrt.scheduler")
 
+_DOWN = frozenset((RunState.starting, RunState.backoff, RunState.failed))  # releases skipped
 BLOCKING_THRESHOLD = 0.010  # an inline call longer than this is reported as blocking the loop
 
 
@@ -225,7 +226,7 @@ class NodeRunner:
         if (self.busy or self.state in (RunState.backoff, RunState.starting)) and self.backlog():
             return  # not skipped: the lossless value waits, and idle() runs the node for it
         self.counts.activations += 1
-        if self.state.down or self.busy:
+        if self.busy or self.state in _DOWN:
             self.counts.skipped += 1
             for buf in self.inputs.values():
                 buf.reader_skipped()  # the value it was due to read is lost if replaced
@@ -261,7 +262,7 @@ class NodeRunner:
         self.release(t)
 
     def input_arrived(self) -> None:
-        if self.pipeline.active():  # (inline: one attribute, no more)
+        if self.executor.pipelined and self.pipeline.window > 1:  # (inline: one attribute)
             self.pipeline.schedule_pump()
             return
         if self.busy or self.state is not RunState.idle or self.stopping or not self.timing.enabled:
@@ -367,7 +368,9 @@ class NodeRunner:
         c.execution.add(end - act.start)
         c.response.add(end - act.t_release)
         try:
-            discard = self.deadlines.finish(act, end)
+            discard = (act.timer is not None or self.timing.deadline is not None) and (
+                self.deadlines.finish(act, end)
+            )
             if self.sched.observer is not None:
                 self.sched.observer.completed(self.name, act.t_release, end, discard)
             if discard:
@@ -422,7 +425,8 @@ class NodeRunner:
         self.busy = False
         if self.state is RunState.running:
             self.state = RunState.idle
-        self.swapper.take_pending()  # a swap waits for this moment
+        if self.swapper.pending is not None:
+            self.swapper.take_pending()  # a swap waits for this moment
         if self.stopping:
             return
         if self.deferred is not None:  # a paced source's frame waits: run on it now
@@ -435,8 +439,11 @@ class NodeRunner:
             self.sched.loop.call_soon(self.release, self.sched.clock.now())
         elif self.trigger_inputs:
             self.more_input = False
-            if self.ins.trigger_pending():
-                self.input_arrived()  # release() schedules the run: no re-entry
+            buffers = self.inputs
+            for p in self.trigger_inputs:
+                if buffers[p].pending():
+                    self.input_arrived()  # release() schedules the run: no re-entry
+                    break
         if self.lossless and not self.busy:
             self.sched.loop.call_soon(self.catch_up)
 
