@@ -32,7 +32,7 @@ def cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
 def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("json")
     r = cli("record", "graphs/cambada.yaml", "-o", str(out), "--duration", "1", "--no-ui",
-            "--no-display", "--topics", "front_cam.frame")  # fmt: skip
+            "--no-display", "--topics", "front_cam.frame", "--deterministic")  # fmt: skip
     assert r.returncode == 0, r.stderr
     (s,) = out.glob("rec_*")
     return s
@@ -47,6 +47,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
         ["check", "graphs/cambada.yaml", "--measure", "1s", "--json"],
         ["can", "analyse", "nodes/robot.dbc", "--bitrate", "250000", "--json"],
         ["info", "{session}", "--json"],
+        ["replay", "{session}", "--graph", "graphs/cambada.yaml", "--deterministic", "--json"],
         ["schema", "stats"],
     ],
     ids=lambda a: " ".join(a[:2]),
@@ -65,7 +66,7 @@ def test_every_command_with_json_is_covered() -> None:
     # sync measure --json: tests/test_avsync.py
     covered = {
         "kinds", "check", "can analyse", "can analyze", "can stats", "info", "ctl stats",
-        "sync measure",
+        "sync measure", "replay",
     }  # fmt: skip
     parser = build_parser()
     found = set()
