@@ -363,6 +363,8 @@ class Recorder(Node):
     def log(self, topic: str, record: dict[str, Any], t: float) -> None:
         writer = self.writer
         if writer is not None:
+            if topic not in writer.streams:  # events, not a periodic stream: no gaps
+                writer.declare(topic, self.ctx.name, irregular="true")
             seq = self._log_seq[topic] = self._log_seq.get(topic, -1) + 1
             writer.submit(topic, record, t, seq)
 
