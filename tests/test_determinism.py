@@ -393,6 +393,12 @@ class _Model(BaseModel):
     a: float
 
 
+def _one_pixel(shape: tuple[int, ...]) -> np.ndarray:
+    a = np.zeros(shape, np.uint8)
+    a[shape[0] // 2, shape[1] // 2, 1] = 1
+    return a
+
+
 @pytest.mark.parametrize(
     ("left", "right", "same"),
     [
@@ -407,6 +413,9 @@ class _Model(BaseModel):
         (np.zeros((2, 3)), np.zeros((3, 2)), False),  # shape counts
         (frame(3), frame(3), True),
         (frame(3), frame(4), False),  # pixels differ
+        (np.zeros((300, 300, 3), np.uint8), _one_pixel((300, 300, 3)), False),  # large arrays
+        (np.zeros((300, 300, 3), np.uint8), np.zeros((300, 300, 3), np.uint8), True),
+        (np.zeros((300, 300, 3), np.uint8), np.zeros((300, 900), np.uint8), False),
         (float("nan"), float("nan"), True),
         (1, 1.0, False),
         (b"\x00\x01", b"\x00\x01", True),
