@@ -172,8 +172,9 @@ class ReplayEngine:
             if not n.worker:
                 await self._start_node(n)
 
-    async def _start_node(self, n: _Node) -> None:
-        n.ctx.time = self.log.origin
+    async def _start_node(self, n: _Node, at: float | None = None) -> None:
+        """A fresh instance, set up at ``at`` (the run's origin, or when it was restarted)."""
+        n.ctx.time = self.log.origin if at is None else at
         n.ctx._random = None  # a fresh instance draws from the start, as a restarted node does
         if n.worker:
             from ..workers import ProcessExecutor
@@ -235,25 +236,22 @@ class ReplayEngine:
 
     async def _activation(self, n: _Node, a: Activation) -> None:
         while n.restarts and n.restarts[0] <= a.start:
-            n.restarts.popleft()
+            at = n.restarts.popleft()
             await self._stop_node(n)
-            await self._start_node(n)
+            await self._start_node(n, at)
         if a.kind is not None and a.kind != n.rnode.spec.kind:
             self._give_up(n, a, f"swapped to {a.kind} at {a.start - self.log.origin:.3f} s")
             return
-        if a.params is not None:
-            await self._set_params(n, a.params)
+        if a.params is not None or a.swap:
+            await self._set_params(n, a.params or {}, a.swap, a.start)
+        for port, key in a.inputs.items():  # all there, or none taken (their uses stay right)
+            if key is not None and not self._available(key):
+                self._give_up(n, a, f"input {port}: {key[0]}.{key[1]} #{key[2]} is not recorded")
+                return
         inputs: dict[str, Any] = dict.fromkeys(n.rnode.cls.inputs)
         times: dict[str, float] = {}
         for port, key in a.inputs.items():
-            if key is None:
-                inputs[port] = None
-                continue
-            found, value, t = self._value(key)
-            if not found:
-                self._give_up(n, a, f"input {port}: {key[0]}.{key[1]} #{key[2]} is not recorded")
-                return
-            inputs[port] = value
+            inputs[port], t = (None, None) if key is None else self._value(key)
             if t is not None:
                 times[port] = t
         n.ctx.time = a.start
@@ -344,34 +342,48 @@ class ReplayEngine:
                     n, a, port, rec.seq, "the recorded output was not produced", rec, None
                 )
 
-    def _value(self, key: Key) -> tuple[bool, Any, float | None]:
-        """(found, value, publication time) of the value ``key`` an activation held."""
-        src = key[0]
-        if src in self.nodes and not self.nodes[src].reason:
-            if key not in self.produced:
-                return False, None, None
+    def _from_producer(self, key: Key) -> bool:
+        """The value comes from a node this replay re-executes (else from the recording)."""
+        n = self.nodes.get(key[0])
+        return n is not None and not n.reason
+
+    def _available(self, key: Key) -> bool:
+        if self._from_producer(key):
+            return key in self.produced
+        place = self.log.recorded(key)
+        return place is not None and self.values is not None and self.values.has(place)
+
+    def _value(self, key: Key) -> tuple[Any, float | None]:
+        """(value, publication time) of the value ``key`` an activation held (one use of it)."""
+        if self._from_producer(key):
             value, t = self.produced[key], self.produced_times[key]
             left = self.needs[key] = self.needs.get(key, 1) - 1
             if left <= 0:
                 del self.produced[key], self.produced_times[key]
-            return True, value, t
+            return value, t
         place = self.log.recorded(key)
-        if place is None or self.values is None:
-            return False, None, None
-        found, value = self.values.get(place)
+        assert place is not None  # checked by _available
+        assert self.values is not None
+        _, value = self.values.get(place)
         rec = self.log.sources.get(key) or self.log.output_at.get(key)
-        return found, value, None if rec is None else rec.t
+        return value, None if rec is None else rec.t
 
-    async def _set_params(self, n: _Node, delta: dict[str, Any]) -> None:
+    async def _set_params(self, n: _Node, delta: dict[str, Any], swap: bool, at: float) -> None:
         """A recorded params change (what differed from the recorded graph's), over this
-        graph's params: inline, the instance gets them (and ``params_changed``); in a worker,
-        a fresh instance takes over, as a swap does in the run."""
+        graph's params, as the run made it: inline, the instance gets them (and
+        ``params_changed``); a swap (``ctl swap``), or any change of a worker node, is a fresh
+        instance taking over, with the old one's ``get_state()`` when both are inline."""
         base = self.graph.nodes[n.rnode.name].params.model_dump(mode="json")
         params = self.graph.validate_params(n.rnode.cls, {**base, **delta})
         old, n.params = n.params, params
-        if n.worker:
+        if n.worker or swap:
+            getter = getattr(n.node, "get_state", None)
+            state = getter() if getter is not None else None
             await self._stop_node(n)
-            await self._start_node(n)
+            await self._start_node(n, at)
+            setter = getattr(n.node, "set_state", None)
+            if getter is not None and setter is not None:
+                setter(state)
             return
         n.node.params = params
         hook = getattr(n.node, "params_changed", None)
@@ -381,17 +393,19 @@ class ReplayEngine:
     def _give_up(self, n: _Node, a: Activation, reason: str) -> None:
         """``n`` cannot be replayed from activation ``a`` on: its remaining uses are released."""
         n.reason = reason
-        rest = [x for x in self.plan if x.node == a.node and x.n >= a.n]
-        for x in rest:
+        for x in self.plan:
+            if x.node != a.node or x.n < a.n:
+                continue
             for key in x.inputs.values():
                 if key is None:
                     continue
-                if key[0] not in self.nodes and self.values is not None:
-                    place = self.log.recorded(key)
-                    if place is not None:
-                        self.values.release(place)
-                elif key in self.needs:
-                    self.needs[key] -= 1
+                if self._from_producer(key):
+                    left = self.needs[key] = self.needs.get(key, 1) - 1
+                    if left <= 0:
+                        self.produced.pop(key, None)
+                        self.produced_times.pop(key, None)
+                elif self.values is not None and (place := self.log.recorded(key)) is not None:
+                    self.values.release(place)
 
     # --- divergences -------------------------------------------------------------------------
 
