@@ -44,6 +44,7 @@ __all__ = ["ReplayEngine"]
 log = logging.getLogger("flowrt.determinism")
 
 UNBOUNDED = 1 << 62
+BATCH = 8  # worker calls in flight at once (independent activations of different nodes)
 
 
 @dataclass
@@ -223,52 +224,108 @@ class ReplayEngine:
     # --- the replay --------------------------------------------------------------------------
 
     async def run(self) -> None:
-        """Re-execute every recorded activation of the replayed nodes, in recorded order."""
+        """Re-execute every recorded activation of the replayed nodes, in recorded order.
+
+        Consecutive activations of different worker nodes that do not read each other's
+        outputs are called together (a *batch*): each node still sees its own activations in
+        order and exactly their inputs, so the results are those of one call at a time, and
+        they are compared, counted and published in the recorded order.
+        """
         await self.start()
+        batch: list[tuple[_Node, Activation]] = []
         for a in self.plan:
             n = self.nodes.get(a.node)
             if n is None or n.reason:
                 continue
-            await self._activation(n, a)
+            if batch and not self._joins(batch, n, a):
+                if await self._run_batch(batch):
+                    return
+                batch = []
+                if n.reason:  # given up in that batch
+                    continue
+            batch.append((n, a))
+        if batch:
+            await self._run_batch(batch)
+
+    @staticmethod
+    def _joins(batch: list[tuple[_Node, Activation]], n: _Node, a: Activation) -> bool:
+        names = {m.rnode.name for m, _ in batch}
+        return (
+            n.worker
+            and batch[0][0].worker
+            and a.node not in names
+            and len(batch) < BATCH
+            and not any(key is not None and key[0] in names for key in a.inputs.values())
+        )
+
+    async def _run_batch(self, batch: list[tuple[_Node, Activation]]) -> bool:
+        """Prepare in order, call together, finish in order; True: stop (a divergence)."""
+        calls = [(n, a, await self._prepare(n, a)) for n, a in batch]
+        results = await asyncio.gather(
+            *(self._call(n, a, ready) for n, a, ready in calls if ready is not None)
+        )
+        it = iter(results)
+        for n, a, ready in calls:
+            if ready is None:
+                continue
+            result, error = next(it)
+            await self._finish(n, a, result, error)
             if self.divergence is not None and self.stop_at_divergence:
                 self.stopped_early = True
-                return
+                return True
+        return False
 
-    async def _activation(self, n: _Node, a: Activation) -> None:
+    async def _prepare(
+        self, n: _Node, a: Activation
+    ) -> tuple[dict[str, Any], dict[str, float]] | None:
+        """Recorded restarts and params applied, the inputs taken: (inputs, their times), or
+        None when the node cannot be replayed from here on."""
         while n.restarts and n.restarts[0] <= a.start:
             at = n.restarts.popleft()
             await self._stop_node(n)
             await self._start_node(n, at)
         if a.kind is not None and a.kind != n.rnode.spec.kind:
             self._give_up(n, a, f"swapped to {a.kind} at {a.start - self.log.origin:.3f} s")
-            return
+            return None
         if a.params is not None or a.swap:
             await self._set_params(n, a.params or {}, a.swap, a.start)
         for port, key in a.inputs.items():  # all there, or none taken (their uses stay right)
             if key is not None and not self._available(key):
                 self._give_up(n, a, f"input {port}: {key[0]}.{key[1]} #{key[2]} is not recorded")
-                return
+                return None
         inputs: dict[str, Any] = dict.fromkeys(n.rnode.cls.inputs)
         times: dict[str, float] = {}
         for port, key in a.inputs.items():
             inputs[port], t = (None, None) if key is None else self._value(key)
             if t is not None:
                 times[port] = t
+        return inputs, times
+
+    async def _call(
+        self, n: _Node, a: Activation, ready: tuple[dict[str, Any], dict[str, float]]
+    ) -> tuple[list[tuple[str, Any]], BaseException | None]:
+        """``process`` on recorded time: (what it published, in order; its exception)."""
+        inputs, times = ready
         n.ctx.time = a.start
         n.ctx.times = times
         n.published = []
-        n.activations += 1
-        self.activations += 1
-        error: BaseException | None = None
         try:
             if n.worker:
                 result = await n.executor.call({**inputs, NOW_KEY: a.start, TIMES_KEY: times})
             else:
                 result = await maybe_await(n.node.process(**inputs))
         except Exception as e:
-            error, result = e, None
+            n.published = []
+            return [], e
         outputs = n.published + self._results(n, result)
         n.published = []
+        return outputs, None
+
+    async def _finish(
+        self, n: _Node, a: Activation, outputs: list[tuple[str, Any]], error: BaseException | None
+    ) -> None:
+        n.activations += 1
+        self.activations += 1
         if n.new:
             self._publish_new(n, a, outputs, error)
             return
@@ -276,9 +333,8 @@ class ReplayEngine:
         if done is None or done.discarded:
             return  # it failed or was discarded in the run too: nothing was published then
         if error is not None:
-            if n.executor is not None or n.node is not None:
-                await self._stop_node(n)
-                await self._start_node(n)  # as supervision would
+            await self._stop_node(n)
+            await self._start_node(n, a.start)  # as supervision would
             self._diverged_raised(n, a, error)
             return
         self._compare(n, a, outputs)
