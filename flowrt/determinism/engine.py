@@ -10,9 +10,10 @@ them whatever happened elsewhere. An activation that failed or was discarded in 
 re-executed (its state changes count) but publishes nothing, as then. Param changes and
 restarts are applied before the first activation that followed them.
 
-Nodes run inline, or in worker processes as their placement says (``inline=False``): one call
-at a time, in the recorded order, which is what makes the replay deterministic; a whole
-recording is re-executed as fast as one core allows.
+Nodes run inline, or in worker processes as their placement says (``inline=False``). Each
+node's activations run one after the other in the recorded order, which with their recorded
+inputs is what makes the replay deterministic; calls of different workers that do not feed each
+other may be in flight together (see :meth:`ReplayEngine.run`).
 
 Against another graph: a node that is not in it is not run, and its outputs, where recorded,
 stand in for it; a node of it whose input came from something that neither runs nor was
