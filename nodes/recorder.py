@@ -33,7 +33,8 @@ deterministic replay needs (:mod:`flowrt.determinism`): every activation of the 
 nodes with the sequence numbers of its inputs, a digest of each of their outputs, and the
 sources' values with their exact times. The recorder then takes every value it records as it
 is published (through the scheduler's observer), not from its input edges: each value's
-place in its stream is known, so replay finds it again.
+place in its stream is known, so replay finds it again. One deterministic recorder per graph
+(the scheduler has one observer).
 
 At run time ``flowrt ctl record start|stop`` (RTDB record ``flowrt.record.NODE``) starts a new
 session or closes the current one.
