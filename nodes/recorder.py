@@ -33,7 +33,8 @@ deterministic replay needs (:mod:`flowrt.determinism`): every activation of the 
 nodes with the sequence numbers of its inputs, a digest of each of their outputs, and the
 sources' values with their exact times. The recorder then takes every value it records as it
 is published (through the scheduler's observer), not from its input edges: each value's
-place in its stream is known, so replay finds it again.
+place in its stream is known, so replay finds it again. One deterministic recorder per graph
+(the scheduler has one observer).
 
 At run time ``flowrt ctl record start|stop`` (RTDB record ``flowrt.record.NODE``) starts a new
 session or closes the current one; the command may also be ``{"action": "start", "name":
@@ -371,6 +372,8 @@ class Recorder(Node):
     def log(self, topic: str, record: dict[str, Any], t: float) -> None:
         writer = self.writer
         if writer is not None:
+            if topic not in writer.streams:  # events, not a periodic stream: no gaps
+                writer.declare(topic, self.ctx.name, irregular="true")
             seq = self._log_seq[topic] = self._log_seq.get(topic, -1) + 1
             writer.submit(topic, record, t, seq)
 

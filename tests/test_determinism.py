@@ -66,6 +66,12 @@ class Acc(Node):
         TRACE.append((self.ctx.name, round(self.ctx.now(), 9), v, noise, self.total))
         return self.total
 
+    def get_state(self) -> int:
+        return self.total
+
+    def set_state(self, total: int) -> None:
+        self.total = total
+
 
 class Fragile(Acc):
     """Raises on a value that is a multiple of 7: supervision restarts it (a fresh total, a
@@ -196,6 +202,19 @@ def case_mode_change_mid_run(g: GraphBuilder) -> Drive:
     return drive
 
 
+def case_swap_mid_run(g: GraphBuilder) -> Drive:
+    g.add("tick", Ticker, trigger={"timer": "10ms"})
+    g.add("acc", Acc, inputs={"value": {"from": "tick.tick", "policy": "queue"}})
+    g.add("after", Acc, inputs={"value": {"from": "acc.total", "policy": "queue"}})
+
+    async def drive(rt: Runtime, clock: VirtualClock) -> None:
+        await clock.advance(0.15)
+        await rt.swap("acc", Acc, {"factor": 3})  # a new instance, the old one's total
+        await clock.advance(0.15)
+
+    return drive
+
+
 def case_failure_and_restart(g: GraphBuilder) -> Drive:
     g.add("tick", Ticker, trigger={"timer": "10ms"})
     g.add(
@@ -219,6 +238,7 @@ CASES = {
     "lossless and latest edges": case_lossless_and_latest,
     "mode change mid-run": case_mode_change_mid_run,
     "a failure and its restart": case_failure_and_restart,
+    "a swap mid-run": case_swap_mid_run,
 }
 
 
@@ -261,6 +281,10 @@ async def test_replay_re_executes_every_activation_with_its_inputs(
     log = read_log(session)
     assert len(log.activations) == len(live)
     assert len(log.completions) == len(live) - failed
+    if name == "a swap mid-run":
+        assert [(a.node, a.swap, a.params) for a in log.activations if a.swap] == [
+            ("acc", True, {"factor": 3})
+        ]
     restarts = [c for c in log.changes if c.what == "restart"]
     assert (failed >= 3, len(restarts) == failed) == (name == "a failure and its restart", True)
 
@@ -393,6 +417,12 @@ class _Model(BaseModel):
     a: float
 
 
+def _one_pixel(shape: tuple[int, ...]) -> np.ndarray:
+    a = np.zeros(shape, np.uint8)
+    a[shape[0] // 2, shape[1] // 2, 1] = 1
+    return a
+
+
 @pytest.mark.parametrize(
     ("left", "right", "same"),
     [
@@ -407,6 +437,9 @@ class _Model(BaseModel):
         (np.zeros((2, 3)), np.zeros((3, 2)), False),  # shape counts
         (frame(3), frame(3), True),
         (frame(3), frame(4), False),  # pixels differ
+        (np.zeros((300, 300, 3), np.uint8), _one_pixel((300, 300, 3)), False),  # large arrays
+        (np.zeros((300, 300, 3), np.uint8), np.zeros((300, 300, 3), np.uint8), True),
+        (np.zeros((300, 300, 3), np.uint8), np.zeros((300, 900), np.uint8), False),
         (float("nan"), float("nan"), True),
         (1, 1.0, False),
         (b"\x00\x01", b"\x00\x01", True),

@@ -38,10 +38,9 @@ def _refused_options(args: argparse.Namespace) -> str | None:
 
 
 def _graph(args: argparse.Namespace, log: Any, err: Console) -> Any:
+    """The recorded graph with --trust-graph, else None after one line on ``err``."""
     from ..graph import Graph
 
-    if args.graph:
-        return load(args.graph, err)
     if not args.trust_graph:
         err.print(
             "flowrt replay: --deterministic needs --graph FILE (or --trust-graph to run the "
@@ -74,32 +73,39 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
         err.print(f"flowrt replay: {bad} has no meaning with --deterministic", markup=False)
         return EXIT_BAD_GRAPH
     began = time.perf_counter()  # wall_s counts reading the log and the graph, as the API's
-    try:
-        log = read_log(args.path)
-    except LogError as e:
-        err.print(f"flowrt replay: {printable(str(e))}", markup=False)
-        return EXIT_BAD_GRAPH
-    graph = _graph(args, log, err)
+    log: Any = None
+    if args.graph:  # its errors first; the log is read while the workers' forkserver starts
+        graph = load(args.graph, err)
+    else:
+        try:
+            log = read_log(args.path)
+        except LogError as e:
+            err.print(f"flowrt replay: {printable(str(e))}", markup=False)
+            return EXIT_BAD_GRAPH
+        graph = _graph(args, log, err)
     if graph is None:
         return EXIT_BAD_GRAPH
-    if not log.closed_cleanly:
-        err.print(
-            f"flowrt replay: {args.path} was not closed cleanly ({log.damage}): replaying "
-            "what was recorded before the damage",
-            markup=False,
-        )
 
     async def main() -> Any:
         rp = Replay(Path(args.path), graph, inline=args.inline, stop_at_divergence=args.check)
         rp.preloaded, rp.began = log, began
         try:
             await rp.start()
+            if rp.engine is not None and not rp.engine.log.closed_cleanly:
+                err.print(
+                    f"flowrt replay: {args.path} was not closed cleanly "
+                    f"({rp.engine.log.damage}): replaying what was recorded before the damage",
+                    markup=False,
+                )
             return await rp.run()
         finally:
             await rp.stop()
 
     try:
         report = run(main())
+    except LogError as e:
+        err.print(f"flowrt replay: {printable(str(e))}", markup=False)
+        return EXIT_BAD_GRAPH
     except Exception as e:  # a node whose setup fails, a worker that cannot start: one line
         summary = getattr(e, "summary", None) or f"{type(e).__name__}: {e}"
         err.print(f"flowrt replay: {printable(str(summary))}", markup=False)

@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING
 
 from ..graph import Graph
+from ..spec import Placement
 from ..subscription import Subscription
 from .report import ReplayReport
 
@@ -57,15 +59,27 @@ class Replay:
         from .log import read_log
 
         self._t0 = self.began if self.began is not None else time.perf_counter()
-        log = self.preloaded
-        if log is None:
-            log = await asyncio.to_thread(read_log, self.session)
         g = self.graph_arg
         graph = g if isinstance(g, Graph) else Graph.from_file(g)
+        reading = self._read_log(read_log)
+        if not self.inline and any(
+            n.spec.placement is not Placement.inline and not n.cls.inline_only
+            for n in graph.nodes.values()
+        ):  # the worker processes' forkserver (~0.5 s, importing OpenCV) meanwhile
+            from ..workers import start_forkserver
+
+            log, _ = await asyncio.gather(reading, asyncio.to_thread(start_forkserver))
+        else:
+            log = await reading
         self.engine = ReplayEngine(
             log, graph, inline=self.inline, stop_at_divergence=self.stop_at_divergence
         )
         await self.engine.start()
+
+    async def _read_log(self, read_log: Callable[[Path], DeterminismLog]) -> DeterminismLog:
+        if self.preloaded is not None:
+            return self.preloaded
+        return await asyncio.to_thread(read_log, self.session)
 
     def subscribe(self, target: str, size: int | None = None) -> Subscription:
         """Every value ``node.port`` publishes during the replay, in order (all of them unless

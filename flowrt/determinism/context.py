@@ -88,6 +88,13 @@ class ReplayContext(NodeContext):
     def stats(self) -> Any:
         raise RuntimeError("no runtime statistics in a deterministic replay")
 
+    @property
+    def rtdb(self) -> Any:
+        raise RuntimeError(
+            f"{self.name}: no RTDB in a deterministic replay (another node's state read through "
+            "it is not recorded)"
+        )
+
     def set_mode(self, mode: str) -> None:
         log.debug("%s: set_mode(%s) during replay: the recorded changes apply", self.name, mode)
 

@@ -10,9 +10,10 @@ them whatever happened elsewhere. An activation that failed or was discarded in 
 re-executed (its state changes count) but publishes nothing, as then. Param changes and
 restarts are applied before the first activation that followed them.
 
-Nodes run inline, or in worker processes as their placement says (``inline=False``): one call
-at a time, in the recorded order, which is what makes the replay deterministic; a whole
-recording is re-executed as fast as one core allows.
+Nodes run inline, or in worker processes as their placement says (``inline=False``). Each
+node's activations run one after the other in the recorded order, which with their recorded
+inputs is what makes the replay deterministic; calls of different workers that do not feed each
+other may be in flight together (see :meth:`ReplayEngine.run`).
 
 Against another graph: a node that is not in it is not run, and its outputs, where recorded,
 stand in for it; a node of it whose input came from something that neither runs nor was
@@ -44,6 +45,7 @@ __all__ = ["ReplayEngine"]
 log = logging.getLogger("flowrt.determinism")
 
 UNBOUNDED = 1 << 62
+BATCH = 8  # worker calls in flight at once (independent activations of different nodes)
 
 
 @dataclass
@@ -172,8 +174,9 @@ class ReplayEngine:
             if not n.worker:
                 await self._start_node(n)
 
-    async def _start_node(self, n: _Node) -> None:
-        n.ctx.time = self.log.origin
+    async def _start_node(self, n: _Node, at: float | None = None) -> None:
+        """A fresh instance, set up at ``at`` (the run's origin, or when it was restarted)."""
+        n.ctx.time = self.log.origin if at is None else at
         n.ctx._random = None  # a fresh instance draws from the start, as a restarted node does
         if n.worker:
             from ..workers import ProcessExecutor
@@ -224,55 +227,108 @@ class ReplayEngine:
     # --- the replay --------------------------------------------------------------------------
 
     async def run(self) -> None:
-        """Re-execute every recorded activation of the replayed nodes, in recorded order."""
+        """Re-execute every recorded activation of the replayed nodes, in recorded order.
+
+        Consecutive activations of different worker nodes that do not read each other's
+        outputs are called together (a *batch*): each node still sees its own activations in
+        order and exactly their inputs, so the results are those of one call at a time, and
+        they are compared, counted and published in the recorded order.
+        """
         await self.start()
+        batch: list[tuple[_Node, Activation]] = []
         for a in self.plan:
             n = self.nodes.get(a.node)
             if n is None or n.reason:
                 continue
-            await self._activation(n, a)
+            if batch and not self._joins(batch, n, a):
+                if await self._run_batch(batch):
+                    return
+                batch = []
+                if n.reason:  # given up in that batch
+                    continue
+            batch.append((n, a))
+        if batch:
+            await self._run_batch(batch)
+
+    @staticmethod
+    def _joins(batch: list[tuple[_Node, Activation]], n: _Node, a: Activation) -> bool:
+        names = {m.rnode.name for m, _ in batch}
+        return (
+            n.worker
+            and batch[0][0].worker
+            and a.node not in names
+            and len(batch) < BATCH
+            and not any(key is not None and key[0] in names for key in a.inputs.values())
+        )
+
+    async def _run_batch(self, batch: list[tuple[_Node, Activation]]) -> bool:
+        """Prepare in order, call together, finish in order; True: stop (a divergence)."""
+        calls = [(n, a, await self._prepare(n, a)) for n, a in batch]
+        results = await asyncio.gather(
+            *(self._call(n, a, ready) for n, a, ready in calls if ready is not None)
+        )
+        it = iter(results)
+        for n, a, ready in calls:
+            if ready is None:
+                continue
+            result, error = next(it)
+            await self._finish(n, a, result, error)
             if self.divergence is not None and self.stop_at_divergence:
                 self.stopped_early = True
-                return
+                return True
+        return False
 
-    async def _activation(self, n: _Node, a: Activation) -> None:
+    async def _prepare(
+        self, n: _Node, a: Activation
+    ) -> tuple[dict[str, Any], dict[str, float]] | None:
+        """Recorded restarts and params applied, the inputs taken: (inputs, their times), or
+        None when the node cannot be replayed from here on."""
         while n.restarts and n.restarts[0] <= a.start:
-            n.restarts.popleft()
+            at = n.restarts.popleft()
             await self._stop_node(n)
-            await self._start_node(n)
+            await self._start_node(n, at)
         if a.kind is not None and a.kind != n.rnode.spec.kind:
             self._give_up(n, a, f"swapped to {a.kind} at {a.start - self.log.origin:.3f} s")
-            return
-        if a.params is not None:
-            await self._set_params(n, a.params)
+            return None
+        if a.params is not None or a.swap:
+            await self._set_params(n, a.params or {}, a.swap, a.start)
+        for port, key in a.inputs.items():  # all there, or none taken (their uses stay right)
+            if key is not None and not self._available(key):
+                self._give_up(n, a, f"input {port}: {key[0]}.{key[1]} #{key[2]} is not recorded")
+                return None
         inputs: dict[str, Any] = dict.fromkeys(n.rnode.cls.inputs)
         times: dict[str, float] = {}
         for port, key in a.inputs.items():
-            if key is None:
-                inputs[port] = None
-                continue
-            found, value, t = self._value(key)
-            if not found:
-                self._give_up(n, a, f"input {port}: {key[0]}.{key[1]} #{key[2]} is not recorded")
-                return
-            inputs[port] = value
+            inputs[port], t = (None, None) if key is None else self._value(key)
             if t is not None:
                 times[port] = t
+        return inputs, times
+
+    async def _call(
+        self, n: _Node, a: Activation, ready: tuple[dict[str, Any], dict[str, float]]
+    ) -> tuple[list[tuple[str, Any]], BaseException | None]:
+        """``process`` on recorded time: (what it published, in order; its exception)."""
+        inputs, times = ready
         n.ctx.time = a.start
         n.ctx.times = times
         n.published = []
-        n.activations += 1
-        self.activations += 1
-        error: BaseException | None = None
         try:
             if n.worker:
                 result = await n.executor.call({**inputs, NOW_KEY: a.start, TIMES_KEY: times})
             else:
                 result = await maybe_await(n.node.process(**inputs))
         except Exception as e:
-            error, result = e, None
+            n.published = []
+            return [], e
         outputs = n.published + _results(n, result)
         n.published = []
+        return outputs, None
+
+    async def _finish(
+        self, n: _Node, a: Activation, outputs: list[tuple[str, Any]], error: BaseException | None
+    ) -> None:
+        n.activations += 1
+        self.activations += 1
         if n.new:
             self._publish_new(n, a, outputs, error)
             return
@@ -280,9 +336,8 @@ class ReplayEngine:
         if done is None or done.discarded:
             return  # it failed or was discarded in the run too: nothing was published then
         if error is not None:
-            if n.executor is not None or n.node is not None:
-                await self._stop_node(n)
-                await self._start_node(n)  # as supervision would
+            await self._stop_node(n)
+            await self._start_node(n, a.start)  # as supervision would
             self._diverged_raised(n, a, error)
             return
         self._compare(n, a, outputs)
@@ -335,34 +390,48 @@ class ReplayEngine:
                     n, a, port, rec.seq, "the recorded output was not produced", rec, None
                 )
 
-    def _value(self, key: Key) -> tuple[bool, Any, float | None]:
-        """(found, value, publication time) of the value ``key`` an activation held."""
-        src = key[0]
-        if src in self.nodes and not self.nodes[src].reason:
-            if key not in self.produced:
-                return False, None, None
+    def _from_producer(self, key: Key) -> bool:
+        """The value comes from a node this replay re-executes (else from the recording)."""
+        n = self.nodes.get(key[0])
+        return n is not None and not n.reason
+
+    def _available(self, key: Key) -> bool:
+        if self._from_producer(key):
+            return key in self.produced
+        place = self.log.recorded(key)
+        return place is not None and self.values is not None and self.values.has(place)
+
+    def _value(self, key: Key) -> tuple[Any, float | None]:
+        """(value, publication time) of the value ``key`` an activation held (one use of it)."""
+        if self._from_producer(key):
             value, t = self.produced[key], self.produced_times[key]
             left = self.needs[key] = self.needs.get(key, 1) - 1
             if left <= 0:
                 del self.produced[key], self.produced_times[key]
-            return True, value, t
+            return value, t
         place = self.log.recorded(key)
-        if place is None or self.values is None:
-            return False, None, None
-        found, value = self.values.get(place)
+        assert place is not None  # checked by _available
+        assert self.values is not None
+        _, value = self.values.get(place)
         rec = self.log.sources.get(key) or self.log.output_at.get(key)
-        return found, value, None if rec is None else rec.t
+        return value, None if rec is None else rec.t
 
-    async def _set_params(self, n: _Node, delta: dict[str, Any]) -> None:
+    async def _set_params(self, n: _Node, delta: dict[str, Any], swap: bool, at: float) -> None:
         """A recorded params change (what differed from the recorded graph's), over this
-        graph's params: inline, the instance gets them (and ``params_changed``); in a worker,
-        a fresh instance takes over, as a swap does in the run."""
+        graph's params, as the run made it: inline, the instance gets them (and
+        ``params_changed``); a swap (``ctl swap``), or any change of a worker node, is a fresh
+        instance taking over, with the old one's ``get_state()`` when both are inline."""
         base = self.graph.nodes[n.rnode.name].params.model_dump(mode="json")
         params = self.graph.validate_params(n.rnode.cls, {**base, **delta})
         old, n.params = n.params, params
-        if n.worker:
+        if n.worker or swap:
+            getter = getattr(n.node, "get_state", None)
+            state = getter() if getter is not None else None
             await self._stop_node(n)
-            await self._start_node(n)
+            await self._start_node(n, at)
+            setter = getattr(n.node, "set_state", None)
+            if getter is not None and setter is not None:
+                setter(state)
             return
         n.node.params = params
         hook = getattr(n.node, "params_changed", None)
@@ -372,17 +441,19 @@ class ReplayEngine:
     def _give_up(self, n: _Node, a: Activation, reason: str) -> None:
         """``n`` cannot be replayed from activation ``a`` on: its remaining uses are released."""
         n.reason = reason
-        rest = [x for x in self.plan if x.node == a.node and x.n >= a.n]
-        for x in rest:
+        for x in self.plan:
+            if x.node != a.node or x.n < a.n:
+                continue
             for key in x.inputs.values():
                 if key is None:
                     continue
-                if key[0] not in self.nodes and self.values is not None:
-                    place = self.log.recorded(key)
-                    if place is not None:
-                        self.values.release(place)
-                elif key in self.needs:
-                    self.needs[key] -= 1
+                if self._from_producer(key):
+                    left = self.needs[key] = self.needs.get(key, 1) - 1
+                    if left <= 0:
+                        self.produced.pop(key, None)
+                        self.produced_times.pop(key, None)
+                elif self.values is not None and (place := self.log.recorded(key)) is not None:
+                    self.values.release(place)
 
     # --- divergences -------------------------------------------------------------------------
 

@@ -6,7 +6,8 @@ Five JSON channels, written by :class:`~.observer.Observer` through the recorder
   ``node``, ``n`` (its activation number), ``release`` and ``start`` (runtime clock, seconds),
   ``inputs`` (per connected input: ``[source node, port, seq]`` of the value it held, or
   null), and ``params`` (what differs from the graph's params) when they changed since its
-  previous activation (a mode, ``ctl set``), ``kind`` when it was swapped;
+  previous activation (a mode, ``ctl set``), ``swap`` when a new instance took over (``ctl
+  swap``) and ``kind`` when that was of another kind;
 - ``/flowrt/det/completion``: ``node``, ``n``, ``end``, ``discarded`` (a firm deadline
   missed): an activation without one failed or was cut short, and published nothing;
 - ``/flowrt/det/output``: every publication of a replayed node: ``node``, ``port``, ``seq``,
@@ -97,6 +98,7 @@ class Activation:
     inputs: dict[str, Key | None]
     params: dict[str, Any] | None = None
     kind: str | None = None
+    swap: bool = False
 
 
 @dataclass(frozen=True)
@@ -198,6 +200,7 @@ def _add(log: DeterminismLog, topic: str, r: dict[str, Any]) -> None:
                 {str(p): _key(v) for p, v in dict(r["inputs"]).items()},
                 r.get("params"),
                 r.get("kind"),
+                bool(r.get("swap", False)),
             )
         )
     elif topic == COMPLETION:

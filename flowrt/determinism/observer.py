@@ -136,6 +136,8 @@ class Observer:
             if rnode.params is not last.params:
                 now = rnode.params.model_dump(mode="json")
                 record["params"] = _params_delta(self.base.get(node, {}), now)
+            if rnode.spec is not last.spec:  # a swap (set_params keeps the spec)
+                record["swap"] = True
             if rnode.spec.kind != last.spec.kind or rnode.cls is not last.cls:
                 record["kind"] = rnode.spec.kind
         self.sink.log(ACTIVATION, record, start)

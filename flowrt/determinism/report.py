@@ -69,6 +69,8 @@ def report_lines(report: ReplayReport) -> list[str]:
     width = max((len(n.node) for n in report.nodes), default=4)
     for n in report.nodes:
         detail = f"{n.activations} activations, {n.compared} outputs compared"
+        if report.stopped_early and n.status == "compared" and not n.activations:
+            detail = "not reached: stopped at the first divergence"
         if n.status == "source":
             detail = "recorded values"
         elif n.status == "new":

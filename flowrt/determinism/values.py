@@ -54,6 +54,12 @@ class RecordedValues:
         self.release(place)
         return True, value
 
+    def has(self, place: tuple[str, int]) -> bool:
+        """The recording holds ``place`` (read up to it if needed; no use consumed)."""
+        if place not in self.cache:
+            self._read_until(place)
+        return place in self.cache
+
     def _read_until(self, place: tuple[str, int]) -> None:
         if self._it is None:
             self._it = self._messages()

@@ -480,7 +480,8 @@ def _stream_info(c: _Chan, schema: str) -> StreamInfo:
         rmin = 1 / longest if longest > 0 else None
         rmax = 1 / shortest if shortest > 0 else None
         period = statistics.median(iv)
-        if period > 0:
+        # an event stream (a deterministic log) has no period: a pause there is not a gap
+        if period > 0 and c.metadata.get("irregular") != "true":
             gaps = [Gap(at=t[i] / 1e9, length=d) for i, d in enumerate(iv) if d > 2 * period]
     return StreamInfo(
         topic=c.topic,
