@@ -2,7 +2,9 @@
 
 ``SystemClock`` drives periodic timers with a Linux timerfd registered on the event loop:
 asyncio/libuv sleeps have ~1 ms granularity and drift under load, a timerfd with absolute
-expiry times has neither (≈0.03 ms std at 20 Hz on the dev machine). Elsewhere it falls back to
+expiry times has neither (≈0.03 ms std at 20 Hz on the dev machine). All the periodic timers
+of a loop share one timerfd, and those due at the same instant fire in the order they were
+made (the scheduler's priority order), after a single wake-up. Elsewhere it falls back to
 ``loop.call_at`` on absolute times, which does not drift but is coarser.
 
 ``VirtualClock`` holds time still until a test advances it, firing due callbacks in order.

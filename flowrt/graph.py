@@ -615,9 +615,14 @@ def _check_cycles(spec: GraphSpec, edges: list[Edge], at: Any) -> None:
     succ: dict[str, list[Edge]] = {n: [] for n in spec.nodes}
     for e in edges:
         succ[e.src].append(e)
+    # Only a node of a strongly connected component with a cycle can lead back to itself, and
+    # only through that component: a search from every node across the whole graph was
+    # quadratic (a chain of 1000 nodes took 0.1 s to validate, 2000 nodes 1.1 s).
+    component = _components(succ)
     in_reported: set[str] = set()
     for start in spec.nodes:
-        if start in in_reported:
+        comp = component.get(start)
+        if start in in_reported or comp is None:
             continue
         # Breadth first from `start`: the shortest way back to it, if there is one.
         came_by: dict[str, Edge] = {}
@@ -628,7 +633,7 @@ def _check_cycles(spec: GraphSpec, edges: list[Edge], at: Any) -> None:
                 if e.dst == start:
                     closing = e
                     break
-                if e.dst not in came_by:
+                if e.dst not in came_by and component.get(e.dst) == comp:
                     came_by[e.dst] = e
                     todo.append(e.dst)
         if closing is None:
@@ -640,6 +645,54 @@ def _check_cycles(spec: GraphSpec, edges: list[Edge], at: Any) -> None:
         in_reported.update(cycle)
         where = ("nodes", closing.dst, "inputs", closing.dst_port)
         at(where, "cycle in the graph: " + " -> ".join(cycle))
+
+
+def _components(succ: Mapping[str, list[Edge]]) -> dict[str, int]:
+    """The nodes that lie on a cycle, each with the number of its strongly connected
+    component (Tarjan's algorithm, iterative: a chain of thousands of nodes is no recursion)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on_stack: set[str] = set()
+    stack: list[str] = []
+    out: dict[str, int] = {}
+    counter = 0
+    for root in succ:
+        if root in index:
+            continue
+        work = [(root, 0)]
+        while work:
+            node, i = work.pop()
+            if i == 0:
+                index[node] = low[node] = counter
+                counter += 1
+                stack.append(node)
+                on_stack.add(node)
+            edges = succ[node]
+            while i < len(edges):
+                nxt = edges[i].dst
+                i += 1
+                if nxt not in index:
+                    work.append((node, i))
+                    work.append((nxt, 0))
+                    break
+                if nxt in on_stack:
+                    low[node] = min(low[node], index[nxt])
+            else:
+                if low[node] == index[node]:  # the root of a component: pop it
+                    members = []
+                    while True:
+                        m = stack.pop()
+                        on_stack.discard(m)
+                        members.append(m)
+                        if m == node:
+                            break
+                    if len(members) > 1 or any(e.dst == node for e in edges):
+                        for m in members:
+                            out[m] = index[node]
+                if work:
+                    parent = work[-1][0]
+                    low[parent] = min(low[parent], low[node])
+    return out
 
 
 def _check_frame_chains(triggers: Mapping[str, Trigger], at: Any) -> None:
