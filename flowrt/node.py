@@ -163,8 +163,8 @@ class NodeContext:
         """A writable frame to fill and return; in shared memory when the runtime provides it.
 
         In a worker process it is a slot the main process lent for this call (see
-        :mod:`flowrt.grants`): returned, only its descriptor crosses the socket. Valid for the
-        call that made it: once returned it is read-only, and one not returned is reused.
+        :mod:`flowrt.frames.lending`): returned, only its descriptor crosses the socket. Valid
+        for the call that made it: once returned it is read-only, and one not returned is reused.
         """
         return worker_frame(shape, dtype, self.name, pixel_format)
 

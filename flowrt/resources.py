@@ -25,7 +25,7 @@ from .spec import Placement
 from .stats import FramePoolStats, WorkerFrameStats
 
 if TYPE_CHECKING:
-    from .grants import OutputGrants
+    from .frames.lending import OutputGrants
     from .kernel import Executor
     from .oscheduling import FairShare
     from .workers import PoolExecutor
@@ -108,7 +108,7 @@ class RunResources:
 
     def _output_grants(self, rnode: ResolvedNode) -> OutputGrants | None:
         """The slots lent to a worker node for the frames it makes (None: no frame store)."""
-        from .grants import OutputGrants
+        from .frames.lending import OutputGrants
 
         if self.frames.closed:
             return None

@@ -189,7 +189,7 @@ class FramePoolStats(_Frozen):
 
 
 class WorkerFrameStats(_Frozen):
-    """Frames a worker node made and how they reached the main process (flowrt.grants)."""
+    """Frames a worker node made and how they reached the main process (flowrt.frames.lending)."""
 
     node: str
     in_slots: int = Field(description="frames written into a slot lent to the worker: zero copy")

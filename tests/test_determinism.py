@@ -62,7 +62,8 @@ class Acc(Node):
     def process(self, value: Any) -> int:
         v = value.seq if isinstance(value, Frame) else int(value)
         noise = self.ctx.random.randrange(1000)
-        self.total = (self.total * self.params.factor + v + noise) % 1_000_003
+        ms = round(self.ctx.now() * 1000)
+        self.total = (self.total * self.params.factor + v + noise + ms) % 1_000_003
         TRACE.append((self.ctx.name, round(self.ctx.now(), 9), v, noise, self.total))
         return self.total
 
@@ -94,7 +95,7 @@ class Pair(Node):
     def process(self, a: Any, b: Any) -> list[Any]:
         seen = [a, b, self.ctx.input_time("a")]
         TRACE.append((self.ctx.name, round(self.ctx.now(), 9), *seen))
-        return [a, b]
+        return seen
 
 
 def frame(seq: int) -> Frame:

@@ -15,6 +15,32 @@ from conftest import REPO, FlowrtCli
 
 pytestmark = [pytest.mark.subprocess, pytest.mark.slow]
 
+
+async def test_nodes_in_workers_replay_what_they_computed_inline(tmp_path: Path) -> None:
+    """ctx.now(), ctx.random and ctx.input_time reach a worker process as recorded: the
+    outputs of nodes recorded inline (each depends on all three) replay identical in workers."""
+    from test_determinism import Acc, Pair, Ticker, case_timers, record
+
+    import flowrt
+    from flowrt.graph import resolve
+    from flowrt.spec import Placement
+
+    graph, session = await record(tmp_path, case_timers)
+    spec = graph.spec
+    placed = {
+        name: n.model_copy(update={"placement": Placement.process})
+        if name in ("slow", "pair")
+        else n
+        for name, n in spec.nodes.items()
+    }
+    kinds = {f"test_determinism:{c.__name__}": c for c in (Acc, Pair, Ticker)}
+    workers = resolve(spec.model_copy(update={"nodes": placed}), kinds=kinds)
+    async with flowrt.replay(session, workers) as rp:
+        report = await rp.run()
+    assert report.identical, report.first_divergence
+    assert report.compared == report.activations > 20
+
+
 KEYS = {"identical", "activations", "compared", "first_divergence", "wall_s", "recorded_s"}
 
 

@@ -151,8 +151,8 @@ def test_pooled_frame_pickles_to_a_descriptor_of_the_same_memory(
     # Back in the owner process the descriptor is the frame itself (a worker's result).
     assert pickle.loads(blob) is f
     # As a worker sees it (it owns no slot): a read-only view of the same pages.
-    owner = flowrt.frames._occupants
-    monkeypatch.setattr(flowrt.frames, "_occupants", weakref.WeakValueDictionary())
+    owner = flowrt.frames.frame.occupants
+    monkeypatch.setattr(flowrt.frames.frame, "occupants", weakref.WeakValueDictionary())
     g = pickle.loads(blob)
     assert (g.source, g.seq, g.shape, g.pixel_format, g.shared) == (
         "cam",
@@ -167,7 +167,7 @@ def test_pooled_frame_pickles_to_a_descriptor_of_the_same_memory(
     # Passed on unchanged, an attached frame goes back as its descriptor: in the owner, f.
     back = pickle.dumps(g)
     assert len(back) < 1000
-    monkeypatch.setattr(flowrt.frames, "_occupants", owner)
+    monkeypatch.setattr(flowrt.frames.frame, "occupants", owner)
     assert pickle.loads(back) is f
     # New pixels travel as pixels (a worker returning an image it made).
     h = pickle.loads(pickle.dumps(Frame(g.data + 1, source="cam", seq=5)))

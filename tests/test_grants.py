@@ -1,4 +1,6 @@
-"""Frames made in workers go into shared-memory slots lent by the main process (flowrt.grants).
+"""Frames made in workers go into shared-memory slots lent by the main process.
+
+(:mod:`flowrt.frames.lending`)
 
 A node at ``placement: process`` that makes a new frame (``ctx.new_frame``, zero copy; or a
 ``Frame`` of its own array, copied once) hands back only a slot descriptor. Checked here: the
@@ -23,7 +25,7 @@ from pydantic import BaseModel, ConfigDict
 
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
 from flowrt.frames import FrameStore
-from flowrt.grants import OutputGrants, WorkerSlots, lazy_report
+from flowrt.frames.lending import OutputGrants, WorkerSlots, lazy_report
 from flowrt.workers import channel as workers_channel
 
 pytestmark = pytest.mark.timeout(60)

@@ -53,9 +53,10 @@ class Activation:
         """Hold the pooled frames of a worker's result until they are published.
 
         A worker that passes on a frame it received returns its descriptor, which resolves
-        to the very frame the activation sent (:func:`flowrt.frames._attach_frame`): without
-        a link of its own it would be recycled when the inputs are released. A frame the
-        worker made in a slot lent to it (:mod:`flowrt.grants`) carries its link: taken over.
+        to the very frame the activation sent (:func:`flowrt.frames.frame.attach_frame`):
+        without a link of its own it would be recycled when the inputs are released. A frame
+        the worker made in a slot lent to it (:mod:`flowrt.frames.lending`) carries its link:
+        taken over.
         """
         for v in _values(result):
             if isinstance(v, Frame) and v.shared:

@@ -16,8 +16,8 @@ worker side is a plain blocking socket. Frames from a :class:`~flowrt.frames.Fra
 to a descriptor of their shared-memory slot, so a 1080p frame costs the same as an integer.
 Results are pickled back. A frame the node received and passes on goes back as its descriptor;
 a frame it makes is written into a shared-memory slot the main process lent it with the call
-(:mod:`flowrt.grants`) and goes back as a descriptor too. Anything else (detections, poses, a
-bare array) travels pickled.
+(:mod:`flowrt.frames.lending`) and goes back as a descriptor too. Anything else (detections,
+poses, a bare array) travels pickled.
 
 Death detection: the process sentinel becomes readable when the worker exits for any reason
 (exception escaping, segfault, abort, SIGKILL); EOF on the socket is seen as well. The in-flight

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from flowrt.frames import release_handoffs
-from flowrt.grants import Grant, OutputGrants
+from flowrt.frames.lending import Grant, OutputGrants
 
 from .child import worker_main
 from .errors import WorkerError, WorkerKind
@@ -47,7 +47,7 @@ class _Call:
     watchdog: float | None = field(compare=False)
     window: int = field(default=1, compare=False)  # >1: may be sent behind calls of its node
     index: int = field(default=-1, compare=False)  # its place on the wire (see R_OK)
-    # The node's output slots and the grants this call carries (flowrt.grants).
+    # The node's output slots and the grants this call carries (flowrt.frames.lending).
     outputs: tuple[OutputGrants, tuple[Grant, ...]] | None = field(default=None, compare=False)
 
 

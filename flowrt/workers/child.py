@@ -19,7 +19,7 @@ import time
 import traceback
 from typing import Any
 
-from flowrt.grants import WorkerSlots, lazy_report
+from flowrt.frames.lending import WorkerSlots, lazy_report
 from flowrt.oscheduling import WorkerScheduling, apply_scheduling
 
 from .wire import (
@@ -191,7 +191,7 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
     conn = _BlockingConn(sock)
     nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
-    outputs: dict[int, WorkerSlots] = {}  # each node's output slots (flowrt.grants)
+    outputs: dict[int, WorkerSlots] = {}  # each node's output slots (flowrt.frames.lending)
     current: WorkerScheduling | None = None
     expected = Anticipation()
     loop: asyncio.AbstractEventLoop | None = None

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
-from flowrt.grants import OutputGrants
+from flowrt.frames.lending import OutputGrants
 from flowrt.oscheduling import WorkerScheduling, nice_for
 
 from .channel import Worker

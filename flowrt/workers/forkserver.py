@@ -23,7 +23,7 @@ PRELOAD_MODULES = [
     "numpy",
     "cv2",
     "flowrt.frames",
-    "flowrt.grants",
+    "flowrt.frames.lending",
     "flowrt.oscheduling",
     "flowrt.workers",
     "flowrt.workers.child",

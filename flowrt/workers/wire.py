@@ -15,14 +15,14 @@ PICKLE = pickle.HIGHEST_PROTOCOL
 
 # Requests (main -> worker); every request gets exactly one reply.
 OP_ADD = 0  # (op, node_id, node_name, factory, WorkerScheduling) -> granted: str
-OP_CALL = 1  # (op, node_id, inputs, grants) -> result (grants: slots lent, flowrt.grants)
+OP_CALL = 1  # (op, node_id, inputs, grants) -> result (grants: slots lent, frames.lending)
 OP_REMOVE = 2  # (op, node_id) -> None (teardown)
 OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
 OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
 
 # Replies (worker -> main), in the order of the requests; ``index`` counts the requests the
 # worker has read (0, 1, 2, ...), so that the main side matches each reply to its call;
-# ``report`` says what a call did with its output slots (flowrt.grants), else None.
+# ``report`` says what a call did with its output slots (flowrt.frames.lending), else None.
 R_OK = 0  # (status, payload, run_seconds, index, report)
 R_ERR = 1  # (status, formatted traceback, run_seconds, index)
 R_FATAL = 2  # as R_ERR, from an exception whose ``fatal`` is true: do not restart

@@ -43,7 +43,8 @@ from typing import Any
 
 import numpy as np
 
-from .frames import _HEADER, Frame, FramePool, _MappingCache, set_worker_outputs
+from .frame import HEADER, Frame, MappingCache, set_worker_outputs
+from .pool import FramePool
 
 __all__ = ["OutputGrants", "OutputStats", "WorkerSlots", "lazy_report"]
 
@@ -196,7 +197,7 @@ class OutputGrants:
 # Worker side
 
 
-_writable = _MappingCache(writable=True)
+_writable = MappingCache(writable=True)
 
 
 class WorkerSlots:
@@ -289,7 +290,7 @@ class WorkerSlots:
         origin = frame._origin
         mine = origin is not None and origin[0][0] in self.taken
         if not mine and origin is not None and frame.data is origin[1]:
-            return None  # a frame received, passed on: its own descriptor (frames.py)
+            return None  # a frame received, passed on: its own descriptor (frame.py)
         if id(frame) not in self.top:
             self.socket["nested"] += 1
             self.made += 1
@@ -334,7 +335,7 @@ def _view(grant: Grant, shape: tuple[int, ...], dtype: np.dtype[Any]) -> np.ndar
     name, size, _, _ = grant
     m = _writable.get(name, size)
     n = math.prod(shape) if shape else 1
-    return np.frombuffer(m, dtype=dtype, count=n, offset=_HEADER).reshape(shape)
+    return np.frombuffer(m, dtype=dtype, count=n, offset=HEADER).reshape(shape)
 
 
 class _LazyReport:
