@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-import flowrt.remote as remote
+import flowrt.remote_import as remote
 from benchmarks import bench_zenoh as bench
 
 STEPS = (
@@ -76,7 +76,7 @@ def main() -> None:
         put_cost(args.put_cost)
         return
     rec: dict[int, dict[str, float]] = {}
-    on_sample, deliver = remote._Import.on_sample, remote._Import.deliver
+    on_sample, deliver = remote.ImportLink.on_sample, remote.ImportLink.deliver
     process = bench.LatencySink.process
     sink_times: list[float] = []
 
@@ -103,8 +103,8 @@ def main() -> None:
         sink_times.append(time.time())
         process(self, value)
 
-    remote._Import.on_sample = traced_on_sample  # type: ignore[method-assign]
-    remote._Import.deliver = traced_deliver  # type: ignore[method-assign]
+    remote.ImportLink.on_sample = traced_on_sample  # type: ignore[method-assign]
+    remote.ImportLink.deliver = traced_deliver  # type: ignore[method-assign]
     bench.LatencySink.process = traced_process  # type: ignore[method-assign]
 
     port = bench._port()

@@ -1,4 +1,4 @@
-"""The runtime as the Zenoh bridge sees it (:class:`flowrt.remote.BridgeHost`)."""
+"""The runtime as the Zenoh bridge sees it: :class:`BridgeHost`, and :class:`RemoteHost`."""
 
 from __future__ import annotations
 
@@ -12,6 +12,31 @@ from .events import Event
 from .frames import Frame
 from .graph import Graph
 from .kernel import Scheduler
+
+
+class BridgeHost(Protocol):
+    """What the bridge needs from the runtime (kept narrow: the runtime owns it)."""
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop: ...
+
+    def now_mono(self) -> float: ...
+
+    def runner_output(self, node: str, port: str) -> list[Buffer]: ...
+
+    def add_buffer(self, buf: Buffer) -> None: ...
+
+    def publish(self, node: str, port: str, value: Any) -> None: ...
+
+    def new_frame(self, owner: str, shape: tuple[int, ...], dtype: Any, pf: str) -> Frame: ...
+
+    def import_node(self, name: str) -> Any: ...
+
+    def is_frame_port(self, node: str, port: str) -> bool: ...
+
+    def emit(self, event: Event) -> None: ...
+
+    def record(self, name: str, value: Any, validity_ms: float | None) -> None: ...
 
 
 class BridgedRuntime(Protocol):
@@ -36,7 +61,7 @@ log = logging.getLogger("flowrt")
 
 
 class RemoteHost:
-    """The runtime as the Zenoh bridge sees it (flowrt.remote.BridgeHost)."""
+    """The runtime as the Zenoh bridge sees it (a :class:`BridgeHost`)."""
 
     def __init__(self, rt: BridgedRuntime) -> None:
         self.rt = rt

@@ -21,7 +21,7 @@ import pytest
 
 from flowrt import Frame, Graph, GraphBuilder, GraphError, Node, Output, Runtime
 from flowrt.edges import EMPTY
-from flowrt.remote import FRAME_BACKLOG, _Import
+from flowrt.remote_import import FRAME_BACKLOG, ImportLink
 from flowrt.zenoh_wire import HEADER, Header, decode_frame, encode_frame, from_wire, to_wire
 
 pytestmark = pytest.mark.timeout(90)
@@ -366,7 +366,7 @@ def test_link_counts_each_loss_with_its_reason() -> None:
         loop=types.SimpleNamespace(call_soon_threadsafe=woken.append), now_mono=lambda: 0.0
     )
     bridge = types.SimpleNamespace(host=host, clock_probe=lambda zid: None)
-    imp = _Import(bridge, "rx", "k", None, 5.0, 16)  # type: ignore[arg-type]
+    imp = ImportLink(bridge, "rx", "k", None, 5.0, 16)  # type: ignore[arg-type]
     meta, pixels = encode_frame(Frame(np.zeros((4, 4, 3), np.uint8)), "raw", 90)
     for seq in (0, 1, 3, 4, 5, 6):  # 2 never arrives; the loop takes none of them
         imp.on_sample(_Sample(Header("s", "z", seq, 0.0, 0.0, "frame", meta), pixels))
@@ -389,7 +389,7 @@ def _imp() -> Any:
         loop=types.SimpleNamespace(call_soon_threadsafe=lambda f: None), now_mono=lambda: 0.0
     )
     bridge = types.SimpleNamespace(host=host, clock_probe=lambda zid: None)
-    imp = _Import(bridge, "rx", "k", None, 5.0, 16)  # type: ignore[arg-type]
+    imp = ImportLink(bridge, "rx", "k", None, 5.0, 16)  # type: ignore[arg-type]
     imp.max_bytes, imp.max_pixels = 1 << 20, 4096 * 4096
     return imp
 

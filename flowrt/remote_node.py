@@ -1,0 +1,56 @@
+"""The node an ``import:`` entry of a graph becomes: a source whose output is a remote stream.
+
+The graph names it by kind path (``flowrt.remote:RemoteSource``, re-exported there); the
+bridge binds its :class:`~flowrt.remote_import.ImportLink` once the runtime runs. Values
+arrive on Zenoh's thread and are published by the loop as they come; the node's own
+activations only check the stream is alive.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from .frames import Frame
+from .node import Node, Output
+from .remote_import import ImportLink
+from .spec import TimerTrigger
+
+__all__ = ["RemoteFrameSource", "RemoteSource", "RemoteSourceParams"]
+
+
+class RemoteSourceParams(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    key: str
+    period_ms: float | None = Field(default=None, gt=0)
+    stale_after: float = Field(default=5.0, gt=0)
+    size: int = Field(default=16, ge=1)
+
+
+class RemoteSource(Node):
+    """What an ``import:`` entry becomes: a node whose ``output`` is the remote stream.
+
+    Its activations are liveness checks (every 50 ms); values are published when they
+    arrive, not on the checks.
+    """
+
+    Params = RemoteSourceParams
+    output: Output[Any] = Output(object, doc="the remote stream's values (frames: local pool)")
+
+    @classmethod
+    def default_trigger(cls, params: Any) -> TimerTrigger:
+        return TimerTrigger(timer=50.0)
+
+    def setup(self) -> None:
+        self.link: ImportLink | None = None  # bound by the bridge once the runtime runs
+
+    def process(self) -> None:
+        if self.link is not None:
+            self.link.check_liveness(self.ctx)
+
+
+class RemoteFrameSource(RemoteSource):
+    """An import with ``frames: true``: its ``output`` is a frame source (every frame a tick)."""
+
+    output: Output[Any] = Output(Frame, doc="the remote frames, in the local frame pool")
