@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 import cv2
 import numpy as np
 import pytest
-from flowrt.nodes import capture as capture_mod
+from flowrt.nodes import capture_sources, capture_stderr
 from flowrt.nodes.capture import (
     Capture,
     CaptureParams,
@@ -210,6 +210,27 @@ def test_params_defaults_and_validation() -> None:
     for params in bad:
         with pytest.raises(ValidationError):
             CaptureParams.model_validate(params)
+
+
+@pytest.mark.parametrize("field", ["grab_timeout", "open_timeout", "backoff", "flash_on"])
+def test_durations_follow_the_graphs_rule(field: str) -> None:
+    """A capture duration is read by the graph's own rule (flowrt.parse_duration_ms): the
+    same strings mean the same milliseconds, and the same mistakes get the same message."""
+    for good in ("250ms", "1.5s", "500us", " 2 s ", 40, 2.5, "1e3"):
+        p = CaptureParams.model_validate({field: good, "max_backoff": "3600s"})
+        assert getattr(p, field) == pytest.approx(flowrt.parse_duration_ms(good)), good
+    for bad in ("soon", "10 parsecs", "1e999", "nan", True, [5], {"ms": 5}):
+        with pytest.raises(ValueError) as graph:  # noqa: PT011
+            flowrt.parse_duration_ms(bad)
+        with pytest.raises(ValidationError) as info:
+            CaptureParams.model_validate({field: bad})
+        [error] = info.value.errors()
+        assert error["loc"] == (field,)
+        assert error["msg"] == f"Value error, {graph.value}", bad
+    # The range is a capture timeout's: positive, at most an hour.
+    for out_of_range in (0, "0ms", "2h", 3_600_001):
+        with pytest.raises(ValidationError):
+            CaptureParams.model_validate({field: out_of_range, "max_backoff": "3600s"})
 
 
 def test_default_trigger() -> None:
@@ -648,8 +669,8 @@ async def test_slow_file_is_reported_then_resumed(
     _write_video(clip, 10)
     release = threading.Event()
     opened: list[Any] = []
-    original_init = capture_mod._VideoDevice.__init__
-    original_read = capture_mod._VideoDevice.read
+    original_init = capture_sources.VideoDevice.__init__
+    original_read = capture_sources.VideoDevice.read
 
     def init(self: Any, *args: Any, **kwargs: Any) -> None:
         original_init(self, *args, **kwargs)
@@ -660,8 +681,8 @@ async def test_slow_file_is_reported_then_resumed(
             release.wait(10)  # the first device hangs after three frames
         return original_read(self)
 
-    monkeypatch.setattr(capture_mod._VideoDevice, "__init__", init)
-    monkeypatch.setattr(capture_mod._VideoDevice, "read", read)
+    monkeypatch.setattr(capture_sources.VideoDevice, "__init__", init)
+    monkeypatch.setattr(capture_sources.VideoDevice, "read", read)
     try:
         run = await run_capture(
             {"source": str(clip), "fps": 50, "open_timeout": "300ms", "backoff": "30ms"},
@@ -726,7 +747,7 @@ class FakeCamera:
 async def test_stalled_camera_is_reopened(monkeypatch: pytest.MonkeyPatch) -> None:
     FakeCamera.instances.clear()
     FakeCamera.hang.clear()
-    monkeypatch.setattr(capture_mod.cv2, "VideoCapture", FakeCamera)
+    monkeypatch.setattr(capture_sources.cv2, "VideoCapture", FakeCamera)
     try:
         run = await run_capture(
             {
@@ -759,7 +780,7 @@ async def test_stalled_camera_is_reopened(monkeypatch: pytest.MonkeyPatch) -> No
     assert np.abs(run.rows[0]["data"].astype(int) - ref).max() <= 3
     assert [r["seq"] for r in run.rows] == list(range(len(run.rows)))
     # A missing camera index through the same path: a clear error, retried.
-    monkeypatch.setattr(capture_mod.cv2, "VideoCapture", FakeCamera)
+    monkeypatch.setattr(capture_sources.cv2, "VideoCapture", FakeCamera)
     missing = await run_capture({"source": "camera:3", "backoff": "50ms"}, 0.3)
     _assert_quiet_failure(missing)
     assert missing.alerts("source-error")[0].detail.startswith("cannot open camera 3")
@@ -796,12 +817,12 @@ def test_a_hung_open_gives_stderr_back(
     """A driver stuck in its open must not keep the process's stderr (nor the other sources'
     opens) for good: fd 2 comes back after the bound, and the stuck open's lines are still
     collected when it returns."""
-    monkeypatch.setattr(capture_mod, "_REDIRECT_MAX", 0.2)
+    monkeypatch.setattr(capture_stderr, "REDIRECT_MAX", 0.2)
     release, inside = threading.Event(), threading.Event()
     lines: list[str] = []
 
     def stuck_open() -> None:
-        with capture_mod._native_stderr(lines):
+        with capture_stderr.native_stderr(lines):
             os.write(2, b"said while opening\n")
             inside.set()
             release.wait(10)
@@ -811,8 +832,8 @@ def test_a_hung_open_gives_stderr_back(
     try:
         assert inside.wait(10)
         # the lock is free again once fd 2 was given back (a bound, not a timing threshold)
-        assert capture_mod._STDERR_LOCK.acquire(timeout=10)
-        capture_mod._STDERR_LOCK.release()
+        assert capture_stderr.STDERR_LOCK.acquire(timeout=10)
+        capture_stderr.STDERR_LOCK.release()
         os.write(2, b"said after the bound\n")
     finally:
         release.set()
