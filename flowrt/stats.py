@@ -56,8 +56,8 @@ class Running:
 
         Taken on the loop for every node and edge at each ``stats()`` (the live table asks 4
         times a second): with 1000 nodes that was 39 ms a call. A summary whose samples did
-        not change is the one made last time, and the snapshot is built without validation
-        (its fields are the floats computed here).
+        not change is the one made last time. (``model_construct`` was tried: slower than
+        pydantic's validation in Rust, 7.5 against 2.6 us.)
         """
         if not self.count:
             return Summary()
@@ -69,7 +69,7 @@ class Running:
         k50, k99 = min(n - 1, int(0.5 * n)), min(n - 1, int(0.99 * n))
         part = np.partition(recent, (k50, k99))
         std = math.sqrt(self.m2 / (self.count - 1)) if self.count > 1 else 0.0
-        out = Summary.model_construct(
+        out = Summary(
             count=self.count,
             min=self.min * scale,
             max=self.max * scale,

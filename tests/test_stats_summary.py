@@ -41,4 +41,4 @@ def test_the_figures_are_those_of_the_samples() -> None:
     ordered = np.sort(samples)
     assert s.p50 == pytest.approx(ordered[500] * 1000)
     assert s.p99 == pytest.approx(ordered[990] * 1000)
-    assert Summary.model_validate(s.model_dump()) == s  # a valid model, though not validated
+    assert Summary.model_validate(s.model_dump()) == s
