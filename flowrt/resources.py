@@ -54,7 +54,7 @@ class RunResources:
         self._realtime = realtime  # the loop has SCHED_FIFO: workers may have it too
         self._fair = fair
         self._rtdb_handle = rtdb_handle
-        self.frames = _frame_store()
+        self.frames = frame_store()
         self._pool: PoolExecutor | None = None
         self._grants: dict[str, list[OutputGrants]] = {}  # node -> its executors' output slots
         self._last_frame_stats: list[FramePoolStats] = []
@@ -184,7 +184,7 @@ def _worker_frame_stats(node: str, grants: list[OutputGrants]) -> WorkerFrameSta
     )
 
 
-def _frame_store() -> FrameStore:
+def frame_store() -> FrameStore:
     """The shared-memory frame store, after reclaiming what a killed runtime left."""
     with contextlib.suppress(Exception):
         reclaimed = FrameStore.reclaim_orphans()

@@ -108,28 +108,7 @@ class ReplayEngine:
         for c in log_.changes:
             if c.what == "restart" and c.node in self.nodes:
                 self.nodes[c.node].restarts.append(c.t)
-        self._plan_new_nodes(recorded)
-
-    def _plan_new_nodes(self, recorded: set[str]) -> None:
-        """Nodes of the graph the recording has no activation of, run on their trigger over
-        the recorded streams (:mod:`.synthesis`), merged into the recorded order by time."""
-        new = [n for n in self.graph.nodes if self.roles[n] == "replayed" and n not in recorded]
-        if not new:
-            return
-        available = streams(self.log, set(self.nodes))
-        for name in new:
-            acts, why = synthesize(self.graph, name, self.log, available)
-            if not acts:
-                self.not_run[name] = why or "its trigger never fired on the recorded streams"
-                continue
-            existing = self.nodes[name] = self._node(name, self.graph.nodes[name])
-            existing.new = True
-            self.plan.extend(acts)
-        # recorded activations keep their order (their starts never decrease); a new one goes
-        # after those that started at or before its time
-        self.plan.sort(
-            key=lambda a: (a.start, self.nodes[a.node].new if a.node in self.nodes else False)
-        )
+        _plan_new_nodes(self, recorded)
 
     def _node(self, name: str, rnode: ResolvedNode) -> _Node:
         trig = rnode.trigger
@@ -467,20 +446,8 @@ class ReplayEngine:
         rec: OutputRecord | None,
         value: Any,
     ) -> None:
-        if self.divergence is not None:
-            return
-        recorded = None
-        if rec is not None and rec.topic is not None and rec.index is not None:
-            recorded = show(read_one(self.log.path, rec.topic, rec.index))
-        self.divergence = Divergence(
-            node=a.node,
-            port=port,
-            seq=seq,
-            time=round(a.start - self.log.origin, 6),
-            why=why,
-            recorded=recorded,
-            replayed=None if value is None else show(value),
-        )
+        if self.divergence is None:
+            self.divergence = _divergence(self.log, a, port, seq, why, rec, value)
 
     def _diverged_raised(self, n: _Node, a: Activation, error: BaseException) -> None:
         recs = self.log.outputs.get((a.node, a.n), [])
@@ -491,49 +458,8 @@ class ReplayEngine:
     # --- the report --------------------------------------------------------------------------
 
     def report(self, wall_s: float) -> ReplayReport:
-        nodes: list[NodeReplay] = []
-        recorded_nodes = {a.node for a in self.log.activations} | {s[0] for s in self.log.sources}
-        for name in self.graph.nodes:
-            n = self.nodes.get(name)
-            if n is not None:
-                nodes.append(
-                    NodeReplay(
-                        node=name,
-                        status="not comparable" if n.reason else "new" if n.new else "compared",
-                        activations=n.activations,
-                        compared=n.compared,
-                        reason=n.reason,
-                    )
-                )
-            elif self.roles[name] == "source" and name in recorded_nodes:
-                nodes.append(NodeReplay(node=name, status="source"))
-            else:
-                why = self.not_run.get(name) or _why_not(self.roles, name)
-                nodes.append(NodeReplay(node=name, status="not run", reason=why))
-        for name in sorted(recorded_nodes - set(self.graph.nodes)):
-            nodes.append(
-                NodeReplay(
-                    node=name,
-                    status="not run",
-                    reason="not in this graph (its recorded outputs stand in for it)",
-                )
-            )
-        changes = [
-            f"{c.t - self.log.origin:.3f} s {c.node or ''}: {c.what} {c.text}"
-            + (f" ({c.origin})" if c.origin else "")
-            for c in self.log.changes
-        ]
-        return ReplayReport(
-            identical=self.divergence is None,
-            activations=self.activations,
-            compared=self.compared,
-            first_divergence=self.divergence,
-            wall_s=wall_s,
-            recorded_s=self.log.duration,
-            nodes=nodes,
-            changes=changes,
-            stopped_early=self.stopped_early,
-        )
+        """What was compared, what was not and why, the first divergence (if any)."""
+        return _report(self, wall_s)
 
 
 def _results(n: _Node, result: Any) -> list[tuple[str, Any]]:
@@ -556,3 +482,96 @@ def _why_not(roles: Mapping[str, str], name: str) -> str:
     if role == "sink":
         return "it has no outputs"
     return "the recording has no activation of it"
+
+
+def _report(self: ReplayEngine, wall_s: float) -> ReplayReport:
+    """See :meth:`ReplayEngine.report`."""
+    nodes: list[NodeReplay] = []
+    recorded_nodes = {a.node for a in self.log.activations} | {s[0] for s in self.log.sources}
+    for name in self.graph.nodes:
+        n = self.nodes.get(name)
+        if n is not None:
+            nodes.append(
+                NodeReplay(
+                    node=name,
+                    status="not comparable" if n.reason else "new" if n.new else "compared",
+                    activations=n.activations,
+                    compared=n.compared,
+                    reason=n.reason,
+                )
+            )
+        elif self.roles[name] == "source" and name in recorded_nodes:
+            nodes.append(NodeReplay(node=name, status="source"))
+        else:
+            why = self.not_run.get(name) or _why_not(self.roles, name)
+            nodes.append(NodeReplay(node=name, status="not run", reason=why))
+    for name in sorted(recorded_nodes - set(self.graph.nodes)):
+        nodes.append(
+            NodeReplay(
+                node=name,
+                status="not run",
+                reason="not in this graph (its recorded outputs stand in for it)",
+            )
+        )
+    changes = [
+        f"{c.t - self.log.origin:.3f} s {c.node or ''}: {c.what} {c.text}"
+        + (f" ({c.origin})" if c.origin else "")
+        for c in self.log.changes
+    ]
+    return ReplayReport(
+        identical=self.divergence is None,
+        activations=self.activations,
+        compared=self.compared,
+        first_divergence=self.divergence,
+        wall_s=wall_s,
+        recorded_s=self.log.duration,
+        nodes=nodes,
+        changes=changes,
+        stopped_early=self.stopped_early,
+    )
+
+
+def _divergence(
+    log_: DeterminismLog,
+    a: Activation,
+    port: str,
+    seq: int,
+    why: str,
+    rec: OutputRecord | None,
+    value: Any,
+) -> Divergence:
+    """The first divergence, with both values where the recording holds the recorded one."""
+    recorded = None
+    if rec is not None and rec.topic is not None and rec.index is not None:
+        recorded = show(read_one(log_.path, rec.topic, rec.index))
+    return Divergence(
+        node=a.node,
+        port=port,
+        seq=seq,
+        time=round(a.start - log_.origin, 6),
+        why=why,
+        recorded=recorded,
+        replayed=None if value is None else show(value),
+    )
+
+
+def _plan_new_nodes(self: ReplayEngine, recorded: set[str]) -> None:
+    """Nodes of the graph the recording has no activation of, run on their trigger over
+    the recorded streams (:mod:`.synthesis`), merged into the recorded order by time."""
+    new = [n for n in self.graph.nodes if self.roles[n] == "replayed" and n not in recorded]
+    if not new:
+        return
+    available = streams(self.log, set(self.nodes))
+    for name in new:
+        acts, why = synthesize(self.graph, name, self.log, available)
+        if not acts:
+            self.not_run[name] = why or "its trigger never fired on the recorded streams"
+            continue
+        existing = self.nodes[name] = self._node(name, self.graph.nodes[name])
+        existing.new = True
+        self.plan.extend(acts)
+    # recorded activations keep their order (their starts never decrease); a new one goes
+    # after those that started at or before its time
+    self.plan.sort(
+        key=lambda a: (a.start, self.nodes[a.node].new if a.node in self.nodes else False)
+    )
