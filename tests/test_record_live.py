@@ -193,6 +193,7 @@ def test_run_foxglove_port_taken_is_one_line() -> None:
                 "run",
                 "graphs/cambada.yaml",
                 "--no-ui",
+                "--no-display",  # the view's port is not what this test is about
                 "--duration",
                 "5",
                 "--foxglove",
