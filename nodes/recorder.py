@@ -255,7 +255,9 @@ class Recorder(Node):
         self.writer, self.session = writer, session
         self.sessions.append(session)
         self._said_lost, self._said_error = 0, False
-        self.ctx.log.info("%s: recording into %s", self.ctx.name, writer.path)
+        pid = getattr(writer, "pid", None)
+        where = f" (writer process {pid})" if pid is not None else ""
+        self.ctx.log.info("%s: recording into %s%s", self.ctx.name, writer.path, where)
 
     async def _close(self) -> None:
         """Stop recording: the file is finished on the writer thread, whatever the loop does.
@@ -283,8 +285,9 @@ class Recorder(Node):
         writer.request_close(attachments, partial(self._finished, session, report))
         for frame in writer.detach_frames():
             frame.release()
-        end = time.monotonic() + LET_GO_WAIT  # the frame being encoded now, if any (a few ms)
-        while writer.encoding_frame() and time.monotonic() < end:
+        for _ in range(round(LET_GO_WAIT / 0.005)):  # the frame being encoded now, if any
+            if not writer.encoding_frame():
+                break
             await asyncio.sleep(0.005)
         self._release_done()
         if not await asyncio.to_thread(writer.join, FINISH_WAIT):

@@ -193,6 +193,11 @@ class ProcessRecordingWriter:
         self.part_messages.append(0)
         self._loop.call_soon_threadsafe(self._attach)
 
+    @property
+    def pid(self) -> int | None:
+        """The writer process's id (None before :meth:`open`)."""
+        return None if self._proc is None else int(self._proc.pid)
+
     def _attach(self) -> None:
         """On the loop: read the process's answers, and see it die."""
         if self._dead or self._closing or self._sock is None:
@@ -477,7 +482,9 @@ class ProcessRecordingWriter:
         found: dict[str, list[int]] = {}
         index = len(self.files) - 1
         while True:
-            path = self.base.with_name(part_path(self.base.name, index)) if self.split else self.base
+            path = (
+                self.base.with_name(part_path(self.base.name, index)) if self.split else self.base
+            )
             if not path.exists():
                 break
             with contextlib.suppress(Exception):

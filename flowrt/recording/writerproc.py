@@ -163,7 +163,7 @@ class _Session:
 
     def recv(self) -> tuple[Any, ...] | None:
         raw = recv_message(self.sock, self.framer, self.pending)
-        return None if raw is None else pickle.loads(raw)  # type: ignore[no-any-return]
+        return None if raw is None else pickle.loads(raw)
 
     def serve(self) -> None:
         first = self.recv()
@@ -206,7 +206,9 @@ class _Session:
         w.join()
         self.acks.close()
 
-    def _message(self, w: RecordingWriter, mid: int, topic: str, value: Any, t: float, seq: int) -> None:
+    def _message(
+        self, w: RecordingWriter, mid: int, topic: str, value: Any, t: float, seq: int
+    ) -> None:
         if isinstance(value, bytes):  # a frame in a slot: mapped now (read-only)
             try:
                 value = pickle.loads(value)
