@@ -71,6 +71,9 @@ class ProcessRecordingWriter:
 
     Args:
         loop: the event loop that calls :meth:`submit` (its thread does every send).
+        options: the writer process's :class:`~.writer.RecordingWriter` keyword arguments
+            (``image_formats``, ``epoch_offset``, ``chunk_size``, ``compression``, ``crc``,
+            ``flush_interval``, ``max_bytes``, ``direct_io``).
         The others: as :class:`~.writer.RecordingWriter`.
     """
 
@@ -79,18 +82,11 @@ class ProcessRecordingWriter:
         path: str | Path,
         *,
         loop: asyncio.AbstractEventLoop,
-        image_formats: dict[str, str] | None = None,
-        epoch_offset: float = 0.0,
-        chunk_size: int = 4 << 20,
-        compression: str = "none",
-        flush_interval: float = 1.0,
         max_frames: int = 8,
         max_messages: int = 10000,
-        max_bytes: int = 256 << 20,
-        crc: bool = True,
-        direct_io: bool = False,
         on_written: Callable[[], None] | None = None,
         split: SplitPolicy | None = None,
+        **options: Any,
     ) -> None:
         self.split = split if split is not None and split.active else None
         self.base = Path(path)
@@ -106,19 +102,9 @@ class ProcessRecordingWriter:
         self.done: deque[Frame] = deque()  # frames let go of: their links go back on the loop
         self.notes: list[str] = []
         self._loop = loop
-        self._config: dict[str, Any] = {
-            "path": str(self.base),
-            "image_formats": dict(image_formats or {}),
-            "epoch_offset": epoch_offset,
-            "chunk_size": chunk_size,
-            "compression": compression,
-            "flush_interval": flush_interval,
-            "max_bytes": max_bytes,
-            "crc": crc,
-            "direct_io": direct_io,
-            "split": self.split,
-        }
-        self._values = _ValueEncoder(self._config["image_formats"], epoch_offset, False)
+        self._config = {**options, "path": str(self.base), "split": self.split}
+        formats = dict(options.get("image_formats") or {})
+        self._values = _ValueEncoder(formats, options.get("epoch_offset", 0.0), False)
         self._unencodable: set[str] = set()
         # Invariant: ``_sent`` holds every message sent and not yet reported, ``_held`` every
         # frame of those whose slot the process may still read (the link this writer holds);
@@ -154,24 +140,7 @@ class ProcessRecordingWriter:
 
         Blocking (the process starts, the file is created): call it off the loop.
         """
-        from ..workers.forkserver import NO_MAIN, context
-        from .writerproc import writer_main
-
-        parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        proc = context().Process(
-            target=writer_main,
-            args=(child, os.getpid()),
-            name=f"{NO_MAIN}recorder {self.base.name}",
-            daemon=True,
-        )
-        try:
-            proc.start()
-        except BaseException:
-            parent.close()
-            raise
-        finally:
-            child.close()
-        self._sock, self._proc = parent, proc
+        parent, proc = self._sock, self._proc = _start_process(self.base.name)
         try:
             parent.settimeout(OPEN_TIMEOUT)
             parent.sendall(pack((OPEN, self._config, dict(metadata), list(attachments))))
@@ -311,8 +280,7 @@ class ProcessRecordingWriter:
                 return
 
     def _on_exit(self) -> None:
-        self._on_readable()  # what it said before it went
-        self._died()
+        self._on_readable()  # what it said before it went; then EOF: _died
 
     # --- the process's answers (on the loop; once closing, on the closer thread) ----------
 
@@ -385,12 +353,7 @@ class ProcessRecordingWriter:
         if self._sock is None:
             self._finish()
             return
-        if self._on_loop:
-            self._on_loop = False
-            with contextlib.suppress(Exception):
-                self._loop.remove_reader(self._sock.fileno())
-                self._loop.remove_reader(self._proc.sentinel)
-                self._loop.remove_writer(self._sock.fileno())
+        self._off_loop()
         closer = threading.Thread(target=self._close_run, name=f"{THREAD_PREFIX}{self.path.name}")
         closer.start()  # not a daemon: the process waits for the file, as with the thread
 
@@ -424,6 +387,15 @@ class ProcessRecordingWriter:
             self._proc.join(5)
         sock.close()
 
+    def _off_loop(self) -> None:
+        """The loop stops reading the socket (the closer thread takes it, or nobody)."""
+        if self._on_loop and self._sock is not None:
+            self._on_loop = False
+            with contextlib.suppress(Exception):  # (a closed loop: nothing to remove)
+                self._loop.remove_reader(self._sock.fileno())
+                self._loop.remove_reader(self._proc.sentinel)
+                self._loop.remove_writer(self._sock.fileno())
+
     def join(self, timeout: float | None = None) -> bool:
         """Wait for a requested close; True when the file is finished."""
         return self._finished.wait(timeout)
@@ -452,13 +424,7 @@ class ProcessRecordingWriter:
             return
         self._dead = True
         proc = self._proc
-        if self._on_loop:
-            self._on_loop = False
-            with contextlib.suppress(Exception):
-                self._loop.remove_reader(self._sock.fileno())  # type: ignore[union-attr]
-                self._loop.remove_reader(proc.sentinel)
-                if self._want_write:
-                    self._loop.remove_writer(self._sock.fileno())  # type: ignore[union-attr]
+        self._off_loop()
         with contextlib.suppress(Exception):
             proc.join(0.2)  # gone already (its socket closed): reaped at once
         if self.error is None:
@@ -477,29 +443,19 @@ class ProcessRecordingWriter:
 
     def _count_again(self) -> None:
         """The messages of the current part (and any later) that a reader finds, per stream."""
-        from .reader import scan
-
-        found: dict[str, list[int]] = {}
-        index = len(self.files) - 1
-        while True:
-            path = (
-                self.base.with_name(part_path(self.base.name, index)) if self.split else self.base
-            )
+        first = len(self.files) - 1
+        paths = [self.path]
+        while self.split is not None:  # a part it started, unanswered, counts too
+            path = self.base.with_name(part_path(self.base.name, first + len(paths)))
             if not path.exists():
                 break
-            with contextlib.suppress(Exception):
-                info = scan(path)
-                for st in info.streams:
-                    f = found.setdefault(st.topic, [0, 0])
-                    f[0] += st.count
-                    f[1] += st.bytes
-                if index >= len(self.files):
-                    self.files.append(path)
-                    self.part_messages.append(0)
-                self.part_messages[index] = info.messages
-            if self.split is None:
-                break
-            index += 1
+            paths.append(path)
+        found, messages = _in_files(paths)
+        for i, (path, n) in enumerate(zip(paths, messages, strict=True)):
+            if first + i >= len(self.files):
+                self.files.append(path)
+                self.part_messages.append(0)
+            self.part_messages[first + i] = n
         for topic, s in self.streams.items():
             believed = self._part_counts.get(topic, [0, 0])
             there = found.get(topic, [0, 0])
@@ -507,6 +463,48 @@ class ProcessRecordingWriter:
             s.written += moved
             s.unwritten -= moved
             s.bytes += there[1] - believed[1]
+
+
+def _start_process(name: str) -> tuple[socket.socket, Any]:
+    """A writer process from the workers' forkserver, and the recorder's end of its socket."""
+    from ..workers.forkserver import NO_MAIN, context
+    from .writerproc import writer_main
+
+    parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+    proc = context().Process(
+        target=writer_main,
+        args=(child, os.getpid()),
+        name=f"{NO_MAIN}recorder {name}",  # the main script is not imported again there
+        daemon=True,
+    )
+    try:
+        proc.start()
+    except BaseException:
+        parent.close()
+        raise
+    finally:
+        child.close()
+    return parent, proc
+
+
+def _in_files(paths: list[Path]) -> tuple[dict[str, list[int]], list[int]]:
+    """Messages and bytes per topic that a reader finds in ``paths``; messages per file."""
+    from .reader import scan
+
+    found: dict[str, list[int]] = {}
+    messages = []
+    for path in paths:
+        try:
+            info = scan(path)
+        except Exception:  # not even a header: nothing in it
+            messages.append(0)
+            continue
+        for st in info.streams:
+            f = found.setdefault(st.topic, [0, 0])
+            f[0] += st.count
+            f[1] += st.bytes
+        messages.append(info.messages)
+    return found, messages
 
 
 def _how(proc: Any) -> str:
