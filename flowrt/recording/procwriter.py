@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import importlib.util
 import os
 import pickle
 import signal
@@ -106,6 +107,7 @@ class ProcessRecordingWriter:
         formats = dict(options.get("image_formats") or {})
         self._values = _ValueEncoder(formats, options.get("epoch_offset", 0.0), False)
         self._unencodable: set[str] = set()
+        self._travels: dict[tuple[str, type], bool] = {}  # pickled as is, or encoded here
         # Invariant: ``_sent`` holds every message sent and not yet reported, ``_held`` every
         # frame of those whose slot the process may still read (the link this writer holds);
         # ``_frames_waiting`` and ``_messages_waiting`` count ``_sent`` by kind.
@@ -164,7 +166,6 @@ class ProcessRecordingWriter:
 
     @property
     def pid(self) -> int | None:
-        """The writer process's id (None before :meth:`open`)."""
         return None if self._proc is None else int(self._proc.pid)
 
     def _attach(self) -> None:
@@ -192,9 +193,8 @@ class ProcessRecordingWriter:
     def submit(self, topic: str, value: Any, t: float, seq: int) -> bool:
         """Queue a message logged at runtime-clock time ``t``; False (and counted) if refused.
 
-        A frame is kept by reference: the caller holds one link on it for the writer and
-        takes it back from :attr:`done` once the process has let go of it (or at once, when
-        refused).
+        A frame is kept by reference: the caller holds one link on it for the writer, given
+        back through :attr:`done` once the process has let go of it (at once if refused).
         """
         s = self.streams.get(topic) or self.declare(topic)
         s.received += 1
@@ -221,7 +221,7 @@ class ProcessRecordingWriter:
                 s.lost_behind += 1
                 return False
             try:
-                payload = self._values.encode(topic, value)
+                payload = _payload(topic, value, self._travels, self._values)
             except Exception as e:  # a value that cannot be encoded: counted, said once
                 if topic not in self._unencodable:
                     self._unencodable.add(topic)
@@ -505,6 +505,35 @@ def _in_files(paths: list[Path]) -> tuple[dict[str, list[int]], list[int]]:
             f[1] += st.bytes
         messages.append(info.messages)
     return found, messages
+
+
+def _payload(
+    topic: str, value: Any, travels: dict[tuple[str, type], bool], values: _ValueEncoder
+) -> Any:
+    """The value pickled (a few us; the process encodes it), or encoded here (tens of us)
+    when the process could not unpickle it: its class lives in the main script."""
+    key = (topic, type(value))
+    ok = travels.get(key)
+    if ok is None:
+        ok = travels[key] = _travels(value)
+    if ok:
+        with contextlib.suppress(Exception):
+            return pickle.dumps(value, PICKLE)
+        travels[key] = False
+    return values.encode(topic, value)
+
+
+def _travels(value: Any) -> bool:
+    """True when the writer process can unpickle ``value``: its classes import there."""
+    module = type(value).__module__
+    if module == "__main__":
+        return False
+    try:
+        if b"__main__" in pickle.dumps(value, PICKLE):
+            return False
+        return importlib.util.find_spec(module) is not None
+    except Exception:
+        return False
 
 
 def _how(proc: Any) -> str:

@@ -209,13 +209,13 @@ class _Session:
     def _message(
         self, w: RecordingWriter, mid: int, topic: str, value: Any, t: float, seq: int
     ) -> None:
-        if isinstance(value, bytes):  # a frame in a slot: mapped now (read-only)
+        if isinstance(value, bytes):  # a value, or a frame's slot: mapped now (read-only)
             try:
                 value = pickle.loads(value)
             except Exception as e:  # the slot is gone (the runtime freed its pools)
                 if topic not in self.unreadable:
                     self.unreadable.add(topic)
-                    w.notes.append(f"{topic}: frame not readable: {e}")
+                    w.notes.append(f"{topic}: cannot read the message: {e}")
                 self.acks.released([mid])
                 self.acks.result(mid, -1, len(w.files) - 1, None)
                 return
