@@ -1,6 +1,8 @@
 """Recording: throughput at the acquisition paper's resolution, timing disturbance, rate fidelity.
 
     python benchmarks/bench_record.py throughput --seconds 15   # 2 (and 3) x 1936x1216 @ 20 fps
+    python benchmarks/bench_record.py throughput --streams 3 --fps 30 --seconds 60 --crc yes
+    python benchmarks/bench_record.py throughput --streams 3 --fps 100 --seconds 20  # > the disk
     python benchmarks/bench_record.py cambada --seconds 15 --rounds 3 --realtime  # with/without
     python benchmarks/bench_record.py fidelity --seconds 5      # reduced Table 5 + PNG plot
     python benchmarks/bench_record.py lateness --seconds 5 --rounds 3  # event-loop lateness
@@ -8,17 +10,22 @@
 
 What runs:
 
-1. throughput: N synthetic BGR streams of 1936x1216 at 20 fps (a source node copying one of
+Every comparison names the recorder's writer: ``process`` (the default: a writer process
+reading the frames from shared memory) or ``thread`` (writer threads in the runtime's process);
+``--writers`` picks them (throughput, cambada), ``--conditions`` the lateness conditions.
+
+1. throughput: N synthetic BGR streams of 1936x1216 at ``--fps`` (a source node copying one of
    eight pre-rendered scene frames into a shared-memory pool slot per tick, so the scene's
    renderer is not what is measured), each timer-phased 50/N ms apart, recorded by a
    ``recorder`` node over lossless edges (RawImage, no compression). Reported from the
    session's own report: expected/received/written/lost per stream, the writer's MB/s over the
-   recording (bytes written / recording time; the file is fsync'd at close and the close is
-   timed), the process CPU (user+sys, every thread) with and without the recorder in the same
-   run, and the raw disk write speed in the same run: ``dd if=/dev/zero bs=8M oflag=direct``
-   into the same folder.
-2. cambada: ``flowrt run graphs/cambada.yaml`` and ``flowrt record graphs/cambada.yaml`` (every
-   output) for the same time, one after the other: inter-activation std of the critical tasks
+   recording (bytes written / recording time; the close is timed), the CPU (user+sys of this
+   process, every thread, and its descendants: the writer process) with and without the
+   recorder in the same run, and the raw disk write speed in the same run, before and after:
+   ``dd if=/dev/zero bs=8M oflag=direct`` into the same folder; each writer's rate as a share
+   of it.
+2. cambada: ``flowrt run graphs/cambada.yaml`` and ``flowrt record graphs/cambada.yaml --writer
+   W`` (every output) for the same time, interleaved: inter-activation std of the critical tasks
    (avoid_fr, avoid_om), skipped activations, edge drops, frame-pool drops.
 3. fidelity: 640x480, 1280x720, 1936x1216 at 5, 10, 20, 30 fps, 1 and 2 streams: recorded fps
    (written-1 over the span of their log times, read back from the file) vs requested, lost.
@@ -285,10 +292,12 @@ def cambada(args: argparse.Namespace) -> None:
     written = lost = streams = 0
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         for r in range(args.rounds):
-            for label, cmd in (
-                ("run (no recording)", ["run", "graphs/cambada.yaml"]),
-                ("record (every output)", ["record", "graphs/cambada.yaml", "-o", tmp]),
-            ):
+            runs = [("run (no recording)", ["run", "graphs/cambada.yaml"])]
+            runs += [
+                (f"record, writer {w}", ["record", "graphs/cambada.yaml", "-o", tmp, "--writer", w])
+                for w in args.writers
+            ]
+            for label, cmd in runs:
                 out = Path(tmp) / "stats.json"
                 out.unlink(missing_ok=True)
                 subprocess.run(
