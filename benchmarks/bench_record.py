@@ -31,13 +31,13 @@ reading the frames from shared memory) or ``thread`` (writer threads in the runt
    (written-1 over the span of their log times, read back from the file) vs requested, lost.
    Writes benchmarks/results/record_fidelity.png.
 4. lateness: in one process, a 1 kHz uvloop timer measuring its own lateness (due -> callback)
-   while cambada-like traffic (2 x 640x480 BGR frames at 20 Hz, 11 detection streams) is fed
-   to a RecordingWriter or not: no writer; the writer with mcap's own buffers (the old way);
-   the writer with its GIL-free copies (flowrt.recording.gilfree); the two writers again with
-   sys.setswitchinterval(0.5 ms); and the same writer and traffic in a forked process (the
-   CPU contention without the shared GIL) beside this one's timer. Conditions interleaved,
-   rounds repeated; p50/p99/p99.9/max lateness, and the on-loop cost of submit and of giving
-   written frames' links back.
+   while cambada-like traffic (2 x 640x480 BGR frames at 20 Hz in shared-memory pool slots, 11
+   detection streams) is fed to a writer or not: ``none``; ``thread``: the writer threads with
+   their GIL-free copies (flowrt.recording.gilfree); ``process``: the writer process (the
+   recorder's default); older conditions on request: ``mcap`` (the threads with mcap's own
+   buffers), ``*-switch`` (sys.setswitchinterval(0.5 ms)), ``forked`` (the thread writer and
+   its traffic in a forked process). Conditions interleaved, rounds repeated;
+   p50/p99/p99.9/max lateness, and the on-loop cost of submit and of giving frames' links back.
 
 The machine is shared (2 cores, other engineers' test runs): every comparison is made within
 one run, and RESULTS.md says when it was noisy.
