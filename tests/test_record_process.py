@@ -17,6 +17,7 @@ import subprocess
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -253,3 +254,53 @@ def test_kill_9_of_the_writer_process_is_seen_counted_and_the_run_goes_on(
     (fixed,) = json.loads(r.stdout)["files"]
     assert fixed["closed_cleanly"] is True
     assert fixed["messages"] == sum(in_file.values())
+
+
+@dataclass
+class Pose:
+    """A value whose class the writer process imports (this module): pickled, encoded there."""
+
+    x: float
+    y: float
+    timestamp: float = 0.0
+
+
+async def test_heap_frames_and_values_of_any_class_are_written(tmp_path: Path) -> None:
+    @dataclass
+    class Local:  # not importable anywhere else: encoded on the recorder's side
+        v: int
+
+    loop = asyncio.get_running_loop()
+    w = ProcessRecordingWriter(tmp_path / "z.mcap", loop=loop)
+    await asyncio.to_thread(w.open, {}, [])
+    heap = flowrt.Frame(np.full((12, 16, 3), 7, np.uint8), source="c", seq=1, timestamp=1.0)
+    assert w.submit("heap.frame", heap, 1.0, 1)
+    assert w.submit("pose", Pose(1.0, 2.0, 1.0), 1.0, 0)
+    assert w.submit("local", Local(3), 1.0, 0)
+    assert w.submit("dict", {"a": [1, 2]}, 1.0, 0)
+    w.request_close()
+    assert await asyncio.to_thread(w.join, 30)
+    assert w.error is None
+    assert w.notes == []
+    assert {t: (s.written, s.lost) for t, s in w.streams.items()} == {
+        "heap.frame": (1, 0),
+        "pose": (1, 0),
+        "local": (1, 0),
+        "dict": (1, 0),
+    }
+    got = {m.topic: m.data for m in _messages(tmp_path / "z.mcap")}
+    assert json.loads(got["pose"])["x"] == 1.0
+    assert json.loads(got["local"]) == {"v": 3}
+    assert json.loads(got["dict"]) == {"a": [1, 2]}
+    assert got["heap.frame"].endswith(bytes([7]) * 12 * 16 * 3)
+
+
+def _messages(path: Path) -> list[Any]:
+    from mcap.reader import make_reader
+
+    class M:
+        def __init__(self, topic: str, data: bytes) -> None:
+            self.topic, self.data = topic, data
+
+    with open(path, "rb") as f:
+        return [M(c.topic, m.data) for _s, c, m in make_reader(f).iter_messages()]
