@@ -57,7 +57,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -406,21 +405,6 @@ def report_fidelity(results: list[Any]) -> None:
 # --- lateness: does the writer delay the event loop? ------------------------------------------
 
 
-@dataclass
-class _Det:
-    """A tracker's detection, as the cambada graph's trackers send them (JSON in the file)."""
-
-    found: bool
-    centroid: tuple[float, float]
-    bbox: tuple[int, int, int, int]
-    area: int
-    confidence: float
-    cost: int
-    object: str = "ball"
-    timestamp: float = 0.0
-    seq: int = 0
-
-
 async def _lateness_once(
     writer_kind: str, seconds: float, folder: Path, shape: tuple[int, ...]
 ) -> dict[str, Any]:
@@ -431,6 +415,8 @@ async def _lateness_once(
     runtime's cameras do; only whether it is handed to a writer (and which one) changes:
     ``mcap`` / ``gil-free``: a RecordingWriter's threads; ``process``: the writer process.
     """
+    from flowrt.nodes.tracker import FrameDetection  # what the trackers publish
+
     from flowrt.frames import FrameStore
     from flowrt.recording import ProcessRecordingWriter, RecordingWriter
 
@@ -488,7 +474,9 @@ async def _lateness_once(
     async def detections(k: int, rate: float) -> None:
         seq, due = 0, time.monotonic()
         while time.monotonic() < stop:
-            d = _Det(True, (1.5, 2.5), (1, 2, 3, 4), 12, 0.9, 1000, "ball", time.monotonic(), seq)
+            d = FrameDetection(
+                True, (1.5, 2.5), (1, 2, 3, 4), 12, 0.9, 1000, "ball", "cam0", seq, time.monotonic()
+            )
             t0 = time.perf_counter_ns()
             if writer is not None:
                 writer.submit(f"t{k}.detection", d, d.timestamp, seq)
