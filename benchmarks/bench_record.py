@@ -1,6 +1,8 @@
 """Recording: throughput at the acquisition paper's resolution, timing disturbance, rate fidelity.
 
     python benchmarks/bench_record.py throughput --seconds 15   # 2 (and 3) x 1936x1216 @ 20 fps
+    python benchmarks/bench_record.py throughput --streams 3 --fps 30 --seconds 60 --crc yes
+    python benchmarks/bench_record.py throughput --streams 3 --fps 100 --seconds 20  # > the disk
     python benchmarks/bench_record.py cambada --seconds 15 --rounds 3 --realtime  # with/without
     python benchmarks/bench_record.py fidelity --seconds 5      # reduced Table 5 + PNG plot
     python benchmarks/bench_record.py lateness --seconds 5 --rounds 3  # event-loop lateness
@@ -8,29 +10,34 @@
 
 What runs:
 
-1. throughput: N synthetic BGR streams of 1936x1216 at 20 fps (a source node copying one of
+Every comparison names the recorder's writer: ``process`` (the default: a writer process
+reading the frames from shared memory) or ``thread`` (writer threads in the runtime's process);
+``--writers`` picks them (throughput, cambada), ``--conditions`` the lateness conditions.
+
+1. throughput: N synthetic BGR streams of 1936x1216 at ``--fps`` (a source node copying one of
    eight pre-rendered scene frames into a shared-memory pool slot per tick, so the scene's
    renderer is not what is measured), each timer-phased 50/N ms apart, recorded by a
    ``recorder`` node over lossless edges (RawImage, no compression). Reported from the
    session's own report: expected/received/written/lost per stream, the writer's MB/s over the
-   recording (bytes written / recording time; the file is fsync'd at close and the close is
-   timed), the process CPU (user+sys, every thread) with and without the recorder in the same
-   run, and the raw disk write speed in the same run: ``dd if=/dev/zero bs=8M oflag=direct``
-   into the same folder.
-2. cambada: ``flowrt run graphs/cambada.yaml`` and ``flowrt record graphs/cambada.yaml`` (every
-   output) for the same time, one after the other: inter-activation std of the critical tasks
+   recording (bytes written / recording time; the close is timed), the CPU (user+sys of this
+   process, every thread, and its descendants: the writer process) with and without the
+   recorder in the same run, and the raw disk write speed in the same run, before and after:
+   ``dd if=/dev/zero bs=8M oflag=direct`` into the same folder; each writer's rate as a share
+   of it.
+2. cambada: ``flowrt run graphs/cambada.yaml`` and ``flowrt record graphs/cambada.yaml --writer
+   W`` (every output) for the same time, interleaved: inter-activation std of the critical tasks
    (avoid_fr, avoid_om), skipped activations, edge drops, frame-pool drops.
 3. fidelity: 640x480, 1280x720, 1936x1216 at 5, 10, 20, 30 fps, 1 and 2 streams: recorded fps
    (written-1 over the span of their log times, read back from the file) vs requested, lost.
    Writes benchmarks/results/record_fidelity.png.
 4. lateness: in one process, a 1 kHz uvloop timer measuring its own lateness (due -> callback)
-   while cambada-like traffic (2 x 640x480 BGR frames at 20 Hz, 11 detection streams) is fed
-   to a RecordingWriter or not: no writer; the writer with mcap's own buffers (the old way);
-   the writer with its GIL-free copies (flowrt.recording.gilfree); the two writers again with
-   sys.setswitchinterval(0.5 ms); and the same writer and traffic in a forked process (the
-   CPU contention without the shared GIL) beside this one's timer. Conditions interleaved,
-   rounds repeated; p50/p99/p99.9/max lateness, and the on-loop cost of submit and of giving
-   written frames' links back.
+   while cambada-like traffic (2 x 640x480 BGR frames at 20 Hz in shared-memory pool slots, 11
+   detection streams) is fed to a writer or not: ``none``; ``thread``: the writer threads with
+   their GIL-free copies (flowrt.recording.gilfree); ``process``: the writer process (the
+   recorder's default); older conditions on request: ``mcap`` (the threads with mcap's own
+   buffers), ``*-switch`` (sys.setswitchinterval(0.5 ms)), ``forked`` (the thread writer and
+   its traffic in a forked process). Conditions interleaved, rounds repeated;
+   p50/p99/p99.9/max lateness, and the on-loop cost of submit and of giving frames' links back.
 
 The machine is shared (2 cores, other engineers' test runs): every comparison is made within
 one run, and RESULTS.md says when it was noisy.
@@ -50,7 +57,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -93,7 +99,12 @@ class Frames(Node):
 
 
 def streams_graph(
-    n: int, fps: float, size: tuple[int, int], out: Path | None, crc: bool = True
+    n: int,
+    fps: float,
+    size: tuple[int, int],
+    out: Path | None,
+    crc: bool = True,
+    writer: str = "process",
 ) -> flowrt.Graph:
     g = flowrt.GraphBuilder(f"{n}x{size[0]}x{size[1]}@{fps:g}")
     period = 1000.0 / fps
@@ -109,7 +120,7 @@ def streams_graph(
         g.add(
             "rec",
             "recorder",
-            params={"path": str(out), "name": "bench", "crc": crc},
+            params={"path": str(out), "name": "bench", "crc": crc, "writer": writer},
             inputs={
                 f"cam{i}.frame": {"from": f"cam{i}.frame", "policy": "lossless", "size": 16}
                 for i in range(n)
@@ -119,27 +130,41 @@ def streams_graph(
 
 
 def cpu_seconds() -> float:
-    t = psutil.Process().cpu_times()
-    return t.user + t.system
+    """This process (every thread) and its live descendants (the writer process, workers)."""
+    total = 0.0
+    me = psutil.Process()
+    for p in [me, *me.children(recursive=True)]:
+        try:
+            t = p.cpu_times()
+        except psutil.Error:
+            continue
+        total += t.user + t.system
+    return total
 
 
 async def run_streams(
-    n: int, fps: float, size: tuple[int, int], seconds: float, out: Path | None, crc: bool = True
+    n: int,
+    fps: float,
+    size: tuple[int, int],
+    seconds: float,
+    out: Path | None,
+    crc: bool = True,
+    writer: str = "process",
 ) -> dict[str, Any]:
-    graph = streams_graph(n, fps, size, out, crc)
+    graph = streams_graph(n, fps, size, out, crc, writer)
     c0 = cpu_seconds()
     t0 = time.perf_counter()
     async with flowrt.Runtime(graph) as rt:
         await rt.run(seconds)
         t_stop = time.perf_counter()
+        cpu = cpu_seconds() - c0  # before the stop: the writer process is still there
         stats = rt.stats()
     from flowrt.cli.record import wait_for_writers
 
     await asyncio.to_thread(wait_for_writers)
     t_closed = time.perf_counter()
-    cpu = cpu_seconds() - c0
     result: dict[str, Any] = {
-        "cpu_percent": 100 * cpu / (t_closed - t0),
+        "cpu_percent": 100 * cpu / (t_stop - t0),
         "close_s": t_closed - t_stop,
         "pool_dropped": sum(p.dropped for p in stats.frames),
         "skipped": sum(x.skipped for x in stats.nodes if x.name.startswith("cam")),
@@ -181,43 +206,57 @@ def machine() -> str:
 def throughput(args: argparse.Namespace) -> None:
     base = Path(args.dir)
     base.mkdir(parents=True, exist_ok=True)
-    print(f"### Recording throughput, 1936x1216 BGR at 20 fps ({args.seconds:g} s per run)\n")
+    size = (1936, 1216)
+    print(
+        f"### Recording throughput, {size[0]}x{size[1]} BGR at {args.fps:g} fps "
+        f"({args.seconds:g} s per run; writers: {', '.join(args.writers)})\n"
+    )
     print(machine() + "\n")
     dd_before = disk_speed(base)
     rows = []
-    for n, crc in [(n, crc) for n in args.streams for crc in (True, False)]:
-        folder = Path(tempfile.mkdtemp(dir=base))
-        base_run = flowrt.run(run_streams(n, 20, (1936, 1216), args.seconds, None))
-        rec = flowrt.run(run_streams(n, 20, (1936, 1216), args.seconds, folder, crc))
-        rep = rec["report"]
-        written = sum(s["bytes"] for s in rep["streams"])
-        mbps = written / rep["duration"] / 1e6
-        for s in rep["streams"]:
-            rows.append(
-                f"| {n} | {'yes' if crc else 'no'} | {s['topic']} | {s['expected']} | "
-                f"{s['received']} | {s['written']} | "
-                f"**{s['lost']}** | {s['rate_mean']:.2f} | {s['rate_min']:.2f} | "
-                f"{s['rate_max']:.2f} | {s['bytes'] / 1e6:.0f} MB |"
-            )
-        rows.append(
-            f"| {n} | {'yes' if crc else 'no'} | *all* | | | | | | | | writer **{mbps:.0f} MB/s**; "
-            f"close {rec['close_s']:.2f} s; CPU {rec['cpu_percent']:.0f}% vs "
-            f"{base_run['cpu_percent']:.0f}% without recording; pool drops "
-            f"{rec['pool_dropped']}; source skips {rec['skipped']} |"
-        )
-        shutil.rmtree(folder)
+    rates: dict[str, list[float]] = {}
+    crcs = [c == "yes" for c in args.crc]
+    for n in args.streams:
+        base_run = flowrt.run(run_streams(n, args.fps, size, args.seconds, None))
+        for crc in crcs:
+            for writer in args.writers:
+                folder = Path(tempfile.mkdtemp(dir=base))
+                rec = flowrt.run(run_streams(n, args.fps, size, args.seconds, folder, crc, writer))
+                rep = rec["report"]
+                written = sum(s["bytes"] for s in rep["streams"])
+                mbps = written / rep["duration"] / 1e6
+                rates.setdefault(writer, []).append(mbps)
+                lead = f"| {n} | {'yes' if crc else 'no'} | {writer} |"
+                for s in rep["streams"]:
+                    rows.append(
+                        f"{lead} {s['topic']} | {s['expected']} | {s['received']} | "
+                        f"{s['written']} | **{s['lost']}** | {s['rate_mean']:.2f} | "
+                        f"{s['bytes'] / 1e6:.0f} MB |"
+                    )
+                rows.append(
+                    f"{lead} *all* | | | | | | writer **{mbps:.0f} MB/s**; close "
+                    f"{rec['close_s']:.2f} s; CPU {rec['cpu_percent']:.0f}% vs "
+                    f"{base_run['cpu_percent']:.0f}% without recording; pool drops "
+                    f"{rec['pool_dropped']}; source skips {rec['skipped']} |"
+                )
+                shutil.rmtree(folder)
     dd_after = disk_speed(base)
-    cached = disk_speed(base, 2048, direct=False)
     print(
-        "| streams | CRC | stream | expected | received | written | lost | Hz mean | Hz min | "
-        "Hz max | bytes |"
+        "| streams | CRC | writer | stream | expected | received | written | lost | Hz mean | "
+        "bytes |"
     )
-    print("|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|")
+    print("|---:|---|---|---|---:|---:|---:|---:|---:|---|")
     print("\n".join(rows))
+    dd = (dd_before + dd_after) / 2
     print(
         f"\nRaw disk, same run: `dd if=/dev/zero bs=8M count=64 oflag=direct conv=fsync` "
-        f"{dd_before:.0f} MB/s before, {dd_after:.0f} MB/s after; through the page cache "
-        f"(`dd bs=8M count=256`, no sync, as the writer writes) {cached:.0f} MB/s.\n"
+        f"{dd_before:.0f} MB/s before, {dd_after:.0f} MB/s after (mean {dd:.0f}). Writer rate "
+        "against it: "
+        + "; ".join(
+            f"{w} {', '.join(f'{r:.0f} MB/s ({100 * r / dd:.0f} %)' for r in v)}"
+            for w, v in rates.items()
+        )
+        + f". Load average at the end: {os.getloadavg()[0]:.2f}.\n"
     )
 
 
@@ -252,10 +291,12 @@ def cambada(args: argparse.Namespace) -> None:
     written = lost = streams = 0
     with tempfile.TemporaryDirectory(dir=args.dir) as tmp:
         for r in range(args.rounds):
-            for label, cmd in (
-                ("run (no recording)", ["run", "graphs/cambada.yaml"]),
-                ("record (every output)", ["record", "graphs/cambada.yaml", "-o", tmp]),
-            ):
+            runs = [("run (no recording)", ["run", "graphs/cambada.yaml"])]
+            runs += [
+                (f"record, writer {w}", ["record", "graphs/cambada.yaml", "-o", tmp, "--writer", w])
+                for w in args.writers
+            ]
+            for label, cmd in runs:
                 out = Path(tmp) / "stats.json"
                 out.unlink(missing_ok=True)
                 subprocess.run(
@@ -364,38 +405,28 @@ def report_fidelity(results: list[Any]) -> None:
 # --- lateness: does the writer delay the event loop? ------------------------------------------
 
 
-@dataclass
-class _Det:
-    """A tracker's detection, as the cambada graph's trackers send them (JSON in the file)."""
-
-    found: bool
-    centroid: tuple[float, float]
-    bbox: tuple[int, int, int, int]
-    area: int
-    confidence: float
-    cost: int
-    object: str = "ball"
-    timestamp: float = 0.0
-    seq: int = 0
-
-
 async def _lateness_once(
     writer_kind: str, seconds: float, folder: Path, shape: tuple[int, ...]
 ) -> dict[str, Any]:
     """One condition: a 1 kHz timer measuring its own lateness while cambada-like traffic runs.
 
     The traffic (2 cameras at 20 Hz, half a period apart, 11 detection streams: 6 at 20 Hz, 5
-    at 5 Hz) is made in every condition, frames copied into fresh arrays as a camera would;
-    only whether it is handed to a RecordingWriter (and which one) changes.
+    at 5 Hz) is made in every condition, frames copied into shared-memory pool slots as the
+    runtime's cameras do; only whether it is handed to a writer (and which one) changes:
+    ``mcap`` / ``gil-free``: a RecordingWriter's threads; ``process``: the writer process.
     """
-    from flowrt.recording import RecordingWriter
+    from flowrt.nodes.tracker import FrameDetection  # what the trackers publish
+
+    from flowrt.frames import FrameStore
+    from flowrt.recording import ProcessRecordingWriter, RecordingWriter
 
     loop = asyncio.get_running_loop()
+    store = FrameStore()
+    pools = [store.pool(f"cam{i}") for i in range(2)]
     late: list[float] = []
     submit_ns: list[int] = []
     release_ns: list[int] = []
     writer: Any = None
-    stop = time.monotonic() + seconds
 
     def release_done() -> None:
         t0 = time.perf_counter_ns()
@@ -403,9 +434,15 @@ async def _lateness_once(
             writer.done.popleft().release()
         release_ns.append(time.perf_counter_ns() - t0)
 
-    if writer_kind != "none":
+    path = folder / f"late_{time.monotonic_ns()}.mcap"
+    if writer_kind == "process":
+        writer = ProcessRecordingWriter(
+            path, loop=loop, direct_io=True, on_written=lambda: loop.call_soon(release_done)
+        )
+        await asyncio.to_thread(writer.open, {"bench": {"what": "lateness"}}, [])
+    elif writer_kind != "none":
         writer = RecordingWriter(
-            folder / f"late_{time.monotonic_ns()}.mcap",
+            path,
             direct_io=True,
             gil_free=writer_kind == "gil-free",
             on_written=lambda: loop.call_soon_threadsafe(release_done),
@@ -413,12 +450,17 @@ async def _lateness_once(
         writer.open({"bench": {"what": "lateness"}}, [])
     rng = np.random.default_rng(1)
     images = [rng.integers(0, 255, shape, np.uint8) for _ in range(2)]
+    stop = time.monotonic() + seconds
 
     async def camera(i: int, phase: float) -> None:
         await asyncio.sleep(phase)
         seq, due = 0, time.monotonic()
         while time.monotonic() < stop:
-            f = Frame(images[i].copy(), source=f"cam{i}", seq=seq, timestamp=time.monotonic())
+            now = time.monotonic()
+            f = pools[i].reserve(shape, np.uint8, source=f"cam{i}", seq=seq, timestamp=now)
+            if f is None:  # every slot held (the writer is behind): a heap frame, counted
+                f = Frame(np.empty(shape, np.uint8), source=f"cam{i}", seq=seq, timestamp=now)
+            np.copyto(f.data, images[i])
             t0 = time.perf_counter_ns()
             if writer is not None:
                 f.acquire()
@@ -432,7 +474,9 @@ async def _lateness_once(
     async def detections(k: int, rate: float) -> None:
         seq, due = 0, time.monotonic()
         while time.monotonic() < stop:
-            d = _Det(True, (1.5, 2.5), (1, 2, 3, 4), 12, 0.9, 1000, "ball", time.monotonic(), seq)
+            d = FrameDetection(
+                True, (1.5, 2.5), (1, 2, 3, 4), 12, 0.9, 1000, "ball", "cam0", seq, time.monotonic()
+            )
             t0 = time.perf_counter_ns()
             if writer is not None:
                 writer.submit(f"t{k}.detection", d, d.timestamp, seq)
@@ -461,12 +505,19 @@ async def _lateness_once(
     await asyncio.gather(*tasks)
     out: dict[str, Any] = {"late_ms": np.array(late) * 1e3}
     if writer is not None:
-        await asyncio.to_thread(writer.close)
+        writer.request_close()  # as the recorder closes either writer
+        for frame in writer.detach_frames():
+            frame.release()
+        while writer.encoding_frame():
+            release_done()
+            await asyncio.sleep(0.005)
+        await asyncio.to_thread(writer.join)
         release_done()
         out["written"] = sum(s.written for s in writer.streams.values())
         out["lost"] = sum(s.lost for s in writer.streams.values())
         out["submit_us"] = np.array(submit_ns) / 1e3
         out["release_us"] = np.array(release_ns) / 1e3
+    store.close()
     return out
 
 
@@ -486,14 +537,16 @@ def lateness(args: argparse.Namespace) -> None:
     from flowrt.eventloop import new_event_loop
 
     shape = (args.height, args.width, 3)
-    conditions = [
-        ("no recording", "none", 0.005),
-        ("writer, mcap's own buffers", "mcap", 0.005),
-        ("writer, GIL-free copies", "gil-free", 0.005),
-        ("writer, mcap's own buffers, switch 0.5 ms", "mcap", 0.0005),
-        ("writer, GIL-free copies, switch 0.5 ms", "gil-free", 0.0005),
-        ("writer in another process (same work, no GIL shared)", "process", 0.005),
-    ]
+    every = {
+        "none": ("no recording", "none", 0.005),
+        "mcap": ("writer thread, mcap's own buffers", "mcap", 0.005),
+        "thread": ("writer thread (GIL-free copies)", "gil-free", 0.005),
+        "mcap-switch": ("writer thread, mcap's own buffers, switch 0.5 ms", "mcap", 0.0005),
+        "thread-switch": ("writer thread, GIL-free copies, switch 0.5 ms", "gil-free", 0.0005),
+        "forked": ("writer thread in a forked process beside this one", "process-fork", 0.005),
+        "process": ("writer process (the recorder's default)", "process", 0.005),
+    }
+    conditions = [every[c] for c in args.conditions]
     print(
         f"### Event-loop lateness with and without the writer ({args.seconds:g} s per "
         f"condition, {args.rounds} interleaved rounds, frames {args.width}x{args.height} BGR)\n"
@@ -508,7 +561,7 @@ def lateness(args: argparse.Namespace) -> None:
             for label, kind, switch in conditions:
                 sys.setswitchinterval(switch)
                 other = None
-                if kind == "process":  # the same traffic and writer, in a forked process
+                if kind == "process-fork":  # the same traffic and writer, in a forked process
                     other = multiprocessing.get_context("fork").Process(
                         target=_writer_elsewhere, args=(args.seconds + 0.5, Path(tmp), shape)
                     )
@@ -559,8 +612,25 @@ def main() -> None:
     p.add_argument("what", choices=("throughput", "cambada", "fidelity", "lateness", "all"))
     p.add_argument("--seconds", type=float, default=None)
     p.add_argument("--streams", type=int, nargs="+", default=[2, 3])
+    p.add_argument("--fps", type=float, default=20.0, help="throughput: each source's rate")
+    p.add_argument(
+        "--writers",
+        nargs="+",
+        choices=("process", "thread"),
+        default=["process", "thread"],
+        help="throughput, cambada: the recorder's writer(s) to measure",
+    )
+    p.add_argument(
+        "--crc", nargs="+", choices=("yes", "no"), default=["yes", "no"], help="throughput"
+    )
     p.add_argument("--rounds", type=int, default=3, help="cambada: interleaved rounds")
     p.add_argument("--realtime", action="store_true", help="cambada: runs with --realtime")
+    p.add_argument(
+        "--conditions",
+        nargs="+",
+        default=["none", "thread", "process"],
+        help="lateness: none mcap thread mcap-switch thread-switch forked process",
+    )
     p.add_argument("--width", type=int, default=640, help="lateness: frame width")
     p.add_argument("--height", type=int, default=480, help="lateness: frame height")
     p.add_argument("--dir", default=str(REPO / "benchmarks" / "results" / "rec_tmp"))

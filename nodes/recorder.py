@@ -11,7 +11,10 @@ Each input is a stream; its input name is the MCAP topic (``flowrt record`` name
 their source, ``node.port``). Inputs should be ``lossless`` edges: the producer is never
 dropped on, and since ``process`` only queues (frames by reference, holding their
 shared-memory slot), the producer does not wait either unless the disk falls behind. Writing
-happens on the writer thread (:mod:`flowrt.recording.writer`), never on the event loop.
+happens in a process of its own (``writer: process``, the default:
+:mod:`flowrt.recording.procwriter`), which reads each frame from its shared-memory slot, so
+neither the disk nor the writer's CPU work touches the event loop or its GIL; ``writer:
+thread`` writes on threads of the runtime's process instead (:mod:`flowrt.recording.writer`).
 
 A writer that cannot keep up loses messages *counted per stream*, and the node goes into the
 error state at once (red in the status table, a ``HealthAlert``); a write error (disk full)
@@ -60,6 +63,7 @@ from flowrt.determinism.log import METADATA
 from flowrt.determinism.observer import Observer
 from flowrt.node import SEED_ENV
 from flowrt.recording import (
+    ProcessRecordingWriter,
     RecordingWriter,
     SplitPolicy,
     build_report,
@@ -76,6 +80,9 @@ COMMAND_RECORD = "flowrt.record."
 """RTDB record ``flowrt.record.NODE`` = ``start`` | ``stop``: what ``flowrt ctl record`` writes."""
 FINISH_WAIT = 1.0
 """Seconds a stop waits for the file to be finished before leaving it to the writer thread."""
+LET_GO_WAIT = 2.0
+"""Seconds a stop waits for the writer to let go of the frames' slots (a process: a round trip)."""
+AnyWriter = RecordingWriter | ProcessRecordingWriter
 STATUS_RECORD = "flowrt.recording."
 """RTDB record ``flowrt.recording.NODE``: the current session folder, or "" when stopped."""
 FOLDER_RECORD = "flowrt.recordings."
@@ -119,6 +126,11 @@ class Recorder(Node):
         crc: bool = Field(
             default=True, description="chunk CRCs: damage found; off halves the CPU cost"
         )
+        writer: Literal["process", "thread"] = Field(
+            default="process",
+            description="process: a writer process reading frames from shared memory; "
+            "thread: writer threads in the runtime's process",
+        )
         split_size: int | None = Field(
             default=None, description="start a new file past this size: 4GiB, 500MB, bytes"
         )
@@ -157,7 +169,7 @@ class Recorder(Node):
 
     async def setup(self) -> None:
         self._loop = asyncio.get_running_loop()
-        self.writer: RecordingWriter | None = None
+        self.writer: AnyWriter | None = None
         self.session: Path | None = None
         self.sessions: list[Path] = []
         self.reports: list[RecordingReport] = []
@@ -170,7 +182,7 @@ class Recorder(Node):
         self._said_error = False
         self._next_command_check = 0.0
         self._command_seq = 0
-        self._draining: RecordingWriter | None = None  # closing: its frames still come back
+        self._draining: AnyWriter | None = None  # closing: its frames still come back
         self._rtdb_ok = True
         self._task: asyncio.Task[None] | None = None  # a start/stop asked for by ctl
         self._prefix = self.params.name  # the next session's name (a start command may set it)
@@ -202,19 +214,24 @@ class Recorder(Node):
             session = new_session(p.path, self._prefix)
         self._started_wall = time.time()
         self._started_at = self.ctx.now()
-        writer = RecordingWriter(
-            session / f"{session.name}.mcap",
-            image_formats=dict(p.images),
-            epoch_offset=self._started_wall - self._started_at,
-            chunk_size=p.chunk_size,
-            compression=p.compression,
-            flush_interval=p.flush_interval,
-            max_frames=p.max_frames,
-            crc=p.crc,
-            direct_io=p.direct_io,
-            on_written=self._written,
-            split=SplitPolicy(p.split_size, p.split_duration),
-        )
+        options: dict[str, Any] = {
+            "image_formats": dict(p.images),
+            "epoch_offset": self._started_wall - self._started_at,
+            "chunk_size": p.chunk_size,
+            "compression": p.compression,
+            "flush_interval": p.flush_interval,
+            "max_frames": p.max_frames,
+            "crc": p.crc,
+            "direct_io": p.direct_io,
+            "on_written": self._written,
+            "split": SplitPolicy(p.split_size, p.split_duration),
+        }
+        path = session / f"{session.name}.mcap"
+        writer: AnyWriter
+        if p.writer == "process":
+            writer = ProcessRecordingWriter(path, loop=self._loop, **options)
+        else:
+            writer = RecordingWriter(path, **options)
         attachments = [("timing.json", "application/json", timing_json(stats))]
         if p.graph_file:
             try:
@@ -238,7 +255,9 @@ class Recorder(Node):
         self.writer, self.session = writer, session
         self.sessions.append(session)
         self._said_lost, self._said_error = 0, False
-        self.ctx.log.info("%s: recording into %s", self.ctx.name, writer.path)
+        pid = getattr(writer, "pid", None)
+        where = f" (writer process {pid})" if pid is not None else ""
+        self.ctx.log.info("%s: recording into %s%s", self.ctx.name, writer.path, where)
 
     async def _close(self) -> None:
         """Stop recording: the file is finished on the writer thread, whatever the loop does.
@@ -266,7 +285,7 @@ class Recorder(Node):
         writer.request_close(attachments, partial(self._finished, session, report))
         for frame in writer.detach_frames():
             frame.release()
-        for _ in range(100):  # the frame being encoded now, if any (a few ms)
+        for _ in range(round(LET_GO_WAIT / 0.005)):  # the frame being encoded now, if any
             if not writer.encoding_frame():
                 break
             await asyncio.sleep(0.005)
@@ -334,7 +353,7 @@ class Recorder(Node):
 
     def _record(
         self,
-        writer: RecordingWriter,
+        writer: AnyWriter,
         topic: str,
         source: str,
         value: Any,
@@ -386,7 +405,7 @@ class Recorder(Node):
         self._indexes[topic] = index + 1
         return index
 
-    def _overlay(self, writer: RecordingWriter, topic: str, det: Any) -> None:
+    def _overlay(self, writer: AnyWriter, topic: str, det: Any) -> None:
         """The detection again, as annotations on its camera's image (when that is recorded)."""
         camera = self._cameras.get(det.source)
         if camera is None:
@@ -397,7 +416,7 @@ class Recorder(Node):
         seq = det.seq if isinstance(getattr(det, "seq", None), int) and det.seq >= 0 else 0
         writer.submit(name, Overlay(det), det.timestamp, seq)
 
-    def _watch(self, writer: RecordingWriter) -> None:
+    def _watch(self, writer: AnyWriter) -> None:
         """Say at once when something is lost or the disk failed (red in the table)."""
         if writer.error is not None and not self._said_error:
             self._said_error = True
@@ -411,7 +430,7 @@ class Recorder(Node):
             self.ctx.set_error(f"recorder behind: {lost} lost ({worst.topic}: {worst.lost_behind})")
 
     def _written(self) -> None:
-        """From the writer thread: give the written frames' links back on the loop."""
+        """From the writer (any thread): give the written frames' links back on the loop."""
         if not self._loop.is_closed():
             self._loop.call_soon_threadsafe(self._release_done)
 

@@ -36,6 +36,7 @@ SLOW_FILES = {
     "test_readme.py": ("subprocess",),
     "test_record.py": ("subprocess",),
     "test_record_crash.py": ("subprocess",),
+    "test_record_process.py": ("subprocess",),
     "test_record_split.py": ("subprocess", "realtime"),
     "test_remote.py": ("realtime",),
     "test_remote_control.py": ("realtime",),

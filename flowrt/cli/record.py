@@ -124,6 +124,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         "images": images,
         "compression": args.compression,
         "crc": not args.no_crc,
+        "writer": args.writer,
         "annotations": not args.no_annotations,
         "split_size": split.size,
         "split_duration": split.duration,
@@ -628,6 +629,13 @@ def add_parsers(sub: Any) -> None:
         "--no-crc",
         action="store_true",
         help="no chunk CRCs: half the writer's CPU, but damage inside a chunk goes unseen",
+    )
+    rec.add_argument(
+        "--writer",
+        choices=("process", "thread"),
+        default="process",
+        help="where the files are written: a process of its own reading the frames from "
+        "shared memory (default), or threads of the runtime's process",
     )
     rec.add_argument(
         "--split-size",

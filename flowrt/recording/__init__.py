@@ -2,6 +2,8 @@
 
 - :mod:`.encoding`: values to messages and back (foxglove RawImage/CompressedImage, JSON)
 - :mod:`.writer`: the writer thread and its per-stream counters
+- :mod:`.procwriter`, :mod:`.writerproc`, :mod:`.writer_wire`: the same writer in a process of
+  its own (the recorder's default), its process, and what they say to each other
 - :mod:`.split`: when a recording starts a new file (``--split-size``, ``--split-duration``)
 - :mod:`.session`: session folders and the metadata a recording carries
 - :mod:`.report`: the per-stream table after a recording
@@ -11,6 +13,7 @@ The runtime never imports this package; the ``recorder`` and ``replay`` nodes an
 """
 
 from .encoding import Decoder as Decoder
+from .procwriter import ProcessRecordingWriter as ProcessRecordingWriter
 from .report import RecordingReport as RecordingReport
 from .report import StreamReport as StreamReport
 from .report import build_report as build_report
@@ -26,6 +29,7 @@ from .writer import StreamCounters as StreamCounters
 
 __all__ = [
     "Decoder",
+    "ProcessRecordingWriter",
     "RecordingReport",
     "RecordingWriter",
     "SplitPolicy",

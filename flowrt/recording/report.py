@@ -11,11 +11,12 @@ trigger's source rate divided by its period), as the runtime's statistics report
 from __future__ import annotations
 
 import re
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 from pydantic import BaseModel, Field
 
-from .writer import RecordingWriter, StreamCounters
+from .writer import StreamCounters
 
 __all__ = ["RecordingReport", "StreamReport", "build_report", "nominal_rates", "report_table"]
 
@@ -111,8 +112,23 @@ def _stream(c: StreamCounters, hz: float | None, window: float | None) -> Stream
     )
 
 
+class Written(Protocol):
+    """What a report reads of a writer (the thread's or the process's)."""
+
+    @property
+    def streams(self) -> dict[str, StreamCounters]: ...
+    @property
+    def files(self) -> list[Path]: ...
+    @property
+    def path(self) -> Path: ...
+    @property
+    def error(self) -> str | None: ...
+    @property
+    def notes(self) -> list[str]: ...
+
+
 def build_report(
-    writer: RecordingWriter,
+    writer: Written,
     session: str,
     start_time: str,
     duration: float,

@@ -53,7 +53,7 @@ from .encoding import (
 from .gilfree import install
 from .split import SplitPolicy, part_path
 
-__all__ = ["RecordingWriter", "StreamCounters"]
+__all__ = ["RecordingWriter", "StreamCounters", "count_written"]
 
 PROFILE = "flowrt"
 MESSAGE_OVERHEAD = 31 + 16
@@ -119,6 +119,8 @@ class RecordingWriter:
             on the loaded dev VM), so a high-rate recording may turn them off.
         on_written: called from the writer thread after a frame was written, so the owner can
             give its link back on the event loop.
+        on_result: called from the disk thread with each message's topic, its bytes (-1: not
+            written) and its part's index (a writer process reports these to the recorder).
         gil_free: the large copies of the writing with the GIL released (:mod:`.gilfree`);
             False only to measure against ``mcap``'s own buffers (the benchmark's baseline).
     """
@@ -140,6 +142,7 @@ class RecordingWriter:
         on_written: Callable[[], None] | None = None,
         split: SplitPolicy | None = None,
         gil_free: bool = True,
+        on_result: Callable[[str, int, int], None] | None = None,
     ) -> None:
         self.gil_free = gil_free
         self.split = split if split is not None and split.active else None
@@ -158,6 +161,7 @@ class RecordingWriter:
         self.crc = crc
         self.direct_io = direct_io
         self.on_written = on_written
+        self.on_result = on_result
         self.streams: dict[str, StreamCounters] = {}
         self.error: str | None = None
         self.closed = False
@@ -247,10 +251,6 @@ class RecordingWriter:
             self._queue.append(_Item(topic, value, t, seq))
             self._cond.notify()
         return True
-
-    def waiting(self) -> int:
-        """Messages queued and not yet written."""
-        return len(self._queue)
 
     def close(self, attachments: list[tuple[str, str, bytes]] = ()) -> None:  # type: ignore[assignment]
         """Write what is queued, the end attachments and the summary; blocks: use a thread."""
@@ -402,16 +402,23 @@ class RecordingWriter:
 
     def _write(self, item: _Item, enc: Encoded | None) -> None:
         s = self.streams[item.topic]
-        if enc is None or self.error is not None:
+        n = -1
+        if enc is not None and self.error is None:
+            if self.split is not None and self.split.due(
+                self._part_bytes, self._part_start, len(enc.data) + MESSAGE_OVERHEAD, item.t
+            ):
+                self._next_part()
+            if self.error is None:
+                n = self._add(item, enc)
+        if n < 0:
             s.unwritten += 1
-            return
-        if self.split is not None and self.split.due(
-            self._part_bytes, self._part_start, len(enc.data) + MESSAGE_OVERHEAD, item.t
-        ):
-            self._next_part()
-            if self.error is not None:
-                s.unwritten += 1
-                return
+        else:
+            count_written(s, item.t, n)
+        if self.on_result is not None:
+            self.on_result(item.topic, n, len(self.files) - 1)
+
+    def _add(self, item: _Item, enc: Encoded) -> int:
+        """Write one message into the current part: its size, or -1 (a write error)."""
         cid = self._channels.id_for(
             self._writer, item.topic, enc.schema, self._channel_meta.get(item.topic, {})
         )
@@ -419,19 +426,12 @@ class RecordingWriter:
         if not self._guard(
             lambda: self._writer.add_message(cid, ns, enc.data, ns, item.seq & 0xFFFFFFFF)
         ):
-            s.unwritten += 1
-            return
-        s.written += 1
-        s.bytes += len(enc.data)
+            return -1
         self.part_messages[-1] += 1
         self._part_bytes += len(enc.data) + MESSAGE_OVERHEAD
         if self._part_start is None:
             self._part_start = item.t
-        if s.last_time is not None:
-            s.intervals.add(item.t - s.last_time)
-        else:
-            s.first_time = item.t
-        s.last_time = item.t
+        return len(enc.data)
 
     def _next_part(self) -> None:
         """Finish the current part (a complete file) and open the next, on the disk thread.
@@ -493,6 +493,17 @@ class RecordingWriter:
             self._file.close()
 
 
+def count_written(s: StreamCounters, t: float, nbytes: int) -> None:
+    """One message of ``s`` logged at ``t`` written, ``nbytes`` long."""
+    s.written += 1
+    s.bytes += nbytes
+    if s.last_time is not None:
+        s.intervals.add(t - s.last_time)
+    else:
+        s.first_time = t
+    s.last_time = t
+
+
 def _to_heap(queue: deque[_Item]) -> list[Frame]:
     """The shared frames of ``queue`` replaced by heap copies; returns the originals."""
     originals: list[Frame] = []
@@ -520,6 +531,8 @@ class _ValueEncoder:
         self._json_schemas: dict[tuple[str, type], StreamSchema] = {}
 
     def encode(self, topic: str, v: Any) -> Encoded:
+        if isinstance(v, Encoded):  # encoded by the recorder (a writer process's messages)
+            return v
         if isinstance(v, Frame):
             fmt = self._formats.get(topic, "raw")
             return encode_frame(v, v.timestamp + self._offset, fmt, gil_free=self._gil_free)
