@@ -208,31 +208,35 @@ class _TimerfdWheel:
         except BlockingIOError:
             return
         self._armed = math.inf
-        spin = self._clock.spin
-        first = self._top()
-        if spin and first < math.inf:
-            spin_until(first)
+        if self._clock.spin:
+            first = self._top()
+            if first < math.inf:
+                spin_until(first)
         now = time.monotonic()
         due = _ns(now)
         heap = self._heap
-        fired: list[tuple[_TimerfdTimer, float, int]] = []
+        pop, push = heapq.heappop, heapq.heappush
         while heap and heap[0][0] <= due:
-            _, _, version, t = heapq.heappop(heap)
+            _, index, version, t = pop(heap)
             if t.dead or version != t.version:
                 continue
             when = t._next
             if when > now:  # within the rounding of a nanosecond: never early
-                heapq.heappush(heap, (_ns(when), t.index, version, t))
+                push(heap, (_ns(when), index, version, t))
                 break
-            missed = max(0, math.floor((now - when) / t.period))
+            missed = int((now - when) // t.period)
             release = when + missed * t.period
             t._next = release + t.period
-            heapq.heappush(heap, (_ns(t._next), t.index, version, t))
-            fired.append((t, release, missed))
-        self._arm(self._top())  # before the callbacks: one of them may reset its timer
-        for t, release, missed in fired:
-            if not t.dead:
-                t._callback(release, missed)
+            push(heap, (_ns(t._next), index, version, t))
+            t._callback(release, missed)  # in (release, creation) order: the heap's
+        # Armed again after what the callbacks started (the activations they released are
+        # queued first): the timerfd_settime call (~30 us cold, through ctypes) must not sit
+        # between a release and its activation. A timer a callback resets arms on its own.
+        self._loop.call_soon(self._rearm)
+
+    def _rearm(self) -> None:
+        if self._armed == math.inf:
+            self._arm(self._top())
 
 
 class _LoopTimer:
