@@ -138,7 +138,8 @@ class _TimerfdWheel:
     whatever order epoll gave, so the most important node's activation was queued behind the
     reads and releases of the others (~0.15 ms every tenth tick on the dev machine: the CAN
     transmitter's p99). Here the due timers fire in their creation order, which the scheduler
-    makes its priority order (higher first), after a single wake-up and read; a heap keeps
+    makes its priority order (higher first), after a single wake-up and read, and each after
+    the activation the one before it released (``loop.call_soon``); a heap keeps
     the next releases, so a wake-up costs O(log n) per timer due, whatever the number of
     timers. The kernel keeps the expiry as an absolute time, so nothing drifts.
     """
@@ -216,6 +217,7 @@ class _TimerfdWheel:
         due = _ns(now)
         heap = self._heap
         pop, push = heapq.heappop, heapq.heappush
+        first = True
         while heap and heap[0][0] <= due:
             _, index, version, t = pop(heap)
             if t.dead or version != t.version:
@@ -228,11 +230,23 @@ class _TimerfdWheel:
             release = when + missed * t.period
             t._next = release + t.period
             push(heap, (_ns(t._next), index, version, t))
-            t._callback(release, missed)  # in (release, creation) order: the heap's
+            # In (release, creation) order, the heap's. The first at once; the others after
+            # what it starts (the scheduler queues the activation it releases): the most
+            # important node's activation does not wait for the releases of the others.
+            if first:
+                first = False
+                t._callback(release, missed)
+            else:
+                self._loop.call_soon(self._fire, t, release, missed)
         # Armed again after what the callbacks started (the activations they released are
         # queued first): the timerfd_settime call (~30 us cold, through ctypes) must not sit
         # between a release and its activation. A timer a callback resets arms on its own.
         self._loop.call_soon(self._rearm)
+
+    @staticmethod
+    def _fire(t: _TimerfdTimer, release: float, missed: int) -> None:
+        if not t.dead:
+            t._callback(release, missed)
 
     def _rearm(self) -> None:
         if self._armed == math.inf:
