@@ -642,7 +642,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     axes[0].set(
         xscale="log",
         xlabel="inline nodes",
-        ylabel="loop CPU per activation, net of idle (us)",
+        ylabel="process CPU per activation, net of idle (us)",
         title="per activation: flat is O(1)",
     )
     axes[0].set_ylim(bottom=0)
@@ -679,7 +679,14 @@ def main() -> None:
     ap.add_argument("--out", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--point", nargs=3, metavar=("CASE", "SHAPE", "N"))
+    ap.add_argument("--replot", type=Path, help="table and plot again from an --out file")
     args = ap.parse_args()
+    if args.replot:
+        rows = json.loads(args.replot.read_text())["medians"]
+        print(table(rows))
+        if args.plot:
+            plot(rows, args.plot)
+        return
     if args.point:
         case, shape, n = args.point
         print(json.dumps(point(case, shape, int(n), args.seconds)))
