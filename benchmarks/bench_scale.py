@@ -1,6 +1,6 @@
 """How the runtime's own cost grows with the graph: nodes, workers, readers, recorded streams.
 
-    python -m benchmarks.bench_scale [--seconds 4] [--out FILE.json] [--plot FILE.png]
+    python -m benchmarks.bench_scale [--seconds 4] [--rounds 3] [--out FILE.json] [--plot FILE.png]
     python -m benchmarks.bench_scale --only inline        # or workers, readers, record
 
 Every point runs in a subprocess of its own (a clean heap, its own RSS), all points in one
@@ -498,6 +498,28 @@ def _child(case: str, shape: str, n: int, seconds: float) -> dict[str, Any]:
     return out
 
 
+def median_rows(runs: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Each point's figures: the median over the rounds (a failed round is left out)."""
+    out = []
+    for row in runs[0]:
+        key = (row["case"], row.get("shape", "-"), row["n"])
+        same = [
+            r
+            for rows in runs
+            for r in rows
+            if (r["case"], r.get("shape", "-"), r["n"]) == key and "error" not in r
+        ]
+        if not same:
+            out.append(row)
+            continue
+        merged = dict(same[0])
+        for k, v in same[0].items():
+            if isinstance(v, int | float) and not isinstance(v, bool) and k != "n":
+                merged[k] = float(np.median([r[k] for r in same]))
+        out.append(merged)
+    return out
+
+
 def plan(only: str | None) -> list[tuple[str, str, int]]:
     points: list[tuple[str, str, int]] = []
     if only in (None, "inline"):
@@ -543,7 +565,7 @@ def table(rows: list[dict[str, Any]]) -> str:
                 f"{r['latency_p50_ms']:.3f} / "
                 f"{r['latency_p99_ms']:.3f} | {r['validate_s']:.3f} | {r['build_s']:.3f} | "
                 f"{r['first_s']:.3f} | {r['teardown_s']:.3f} | {r['rss_mb']:.0f} "
-                f"(+{r['rss_delta_mb']:.0f}) | {r['skipped']} |"
+                f"(+{r['rss_delta_mb']:.0f}) | {r['skipped']:.0f} |"
             )
     wk = [r for r in rows if r["case"] == "workers" and "error" not in r]
     if wk:
@@ -578,7 +600,7 @@ def table(rows: list[dict[str, Any]]) -> str:
                 f"| {r['n']} | {r['publish_us_p50']:.0f} / {r['publish_us_p99']:.0f} | "
                 f"{r['publish_us_per_reader']:.1f} | {r['loop_cpu_us_per_frame']:.0f} "
                 f"({(r['cpu_s_per_s'] - idle) / max(r['frames_per_s'], 1e-9) * 1e6:.0f}) | "
-                f"{r['skipped']} |"
+                f"{r['skipped']:.0f} |"
             )
     rc = [r for r in rows if r["case"] == "record" and "error" not in r]
     if rc:
@@ -592,8 +614,8 @@ def table(rows: list[dict[str, Any]]) -> str:
             out.append(
                 f"| {r['n']} | {r['loop_cpu_us_per_frame']:.0f} "
                 f"({(r['cpu_s_per_s'] - idle) / max(r['frames_per_s'], 1e-9) * 1e6:.0f}) | "
-                f"{r['published']} | "
-                f"{r['dropped']} | {r['mcap_mb']:.1f} |"
+                f"{r['published']:.0f} | "
+                f"{r['dropped']:.0f} | {r['mcap_mb']:.1f} |"
             )
     for r in rows:
         if "error" in r:
@@ -620,7 +642,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     axes[0].set(
         xscale="log",
         xlabel="inline nodes",
-        ylabel="loop CPU per activation, net of idle (us)",
+        ylabel="process CPU per activation, net of idle (us)",
         title="per activation: flat is O(1)",
     )
     axes[0].set_ylim(bottom=0)
@@ -652,25 +674,41 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=4.0)
+    ap.add_argument("--rounds", type=int, default=1, help="rounds, alternating order; medians")
     ap.add_argument("--only", choices=["inline", "workers", "readers", "record"])
     ap.add_argument("--out", type=Path)
     ap.add_argument("--plot", type=Path)
     ap.add_argument("--point", nargs=3, metavar=("CASE", "SHAPE", "N"))
+    ap.add_argument("--replot", type=Path, help="table and plot again from an --out file")
     args = ap.parse_args()
+    if args.replot:
+        rows = json.loads(args.replot.read_text())["medians"]
+        print(table(rows))
+        if args.plot:
+            plot(rows, args.plot)
+        return
     if args.point:
         case, shape, n = args.point
         print(json.dumps(point(case, shape, int(n), args.seconds)))
         return
     start_load = os.getloadavg()
-    rows = []
-    for case, shape, n in plan(args.only):
-        r = _child(case, shape, n, args.seconds)
-        print(json.dumps(r), flush=True)
-        rows.append(r)
-    print(f"\nload average {start_load} at the start, {os.getloadavg()} at the end\n")
+    runs: list[list[dict[str, Any]]] = []
+    for k in range(args.rounds):
+        points = plan(args.only)
+        rows = []
+        for case, shape, n in points if k % 2 == 0 else points[::-1]:
+            r = _child(case, shape, n, args.seconds)
+            print(json.dumps(r), flush=True)
+            rows.append(r)
+        runs.append(rows)
+    rows = median_rows(runs)
+    print(
+        f"\n{args.rounds} round(s), medians; load average {start_load} at the start, "
+        f"{os.getloadavg()} at the end\n"
+    )
     print(table(rows))
     if args.out:
-        args.out.write_text(json.dumps(rows, indent=2))
+        args.out.write_text(json.dumps({"medians": rows, "rounds": runs}, indent=1))
     if args.plot:
         plot(rows, args.plot)
 
