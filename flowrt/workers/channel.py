@@ -398,8 +398,11 @@ class Worker:
 
     @property
     def usable(self) -> bool:
-        """Alive and not condemned (a killed worker stays alive until its sentinel fires)."""
-        return self.alive and not self._killing
+        """Alive and not condemned (a killed worker stays alive until its sentinel fires), and
+        its socket open: a worker killed from outside closes it before its sentinel fires, and
+        writing then would raise the transport's RuntimeError, not the worker's death."""
+        t = self._transport
+        return self.alive and not self._killing and (t is None or not t.is_closing())
 
     def kill(self) -> None:
         if self.alive and self.pid is not None:
