@@ -23,14 +23,18 @@ from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from . import host_ports, hotswap, timing_control
 from .clock import Clock, SystemClock
 from .event_hub import EventHub
 from .event_hub import Monitor as Monitor
 from .eventloop import run as run
 from .events import Event, HealthAlert, NodeGaveUp, RealtimeStatus
 from .graph import Graph, resolve
+from .host_ports import publish as inject_value
+from .host_ports import subscribe as subscribe_port
 from .hotswap import SwapError as SwapError
+from .hotswap import reload as reload_node
+from .hotswap import set_params as set_node_params
+from .hotswap import swap as swap_node
 from .kernel import NodeRunner, Scheduler, Services
 from .loop_share import LoopShare
 from .node import Node
@@ -40,6 +44,8 @@ from .runtime_stats import runtime_stats
 from .spec import GraphSpec, Placement
 from .stats import NodeStats, Running, RuntimeStats
 from .subscription import Subscription
+from .timing_control import set_mode as switch_mode
+from .timing_control import set_timing as change_timing
 
 if TYPE_CHECKING:
     from .oscheduling import FairShare
@@ -384,7 +390,7 @@ class Runtime:
             "priority": priority,
             "enabled": enabled,
         }
-        return timing_control.set_timing(self, node, origin, force, given)
+        return change_timing(self, node, origin, force, given)
 
     def set_mode(self, mode: str, origin: str = "api", force: bool = False) -> None:
         """Apply a named mode of the graph file: all of its overrides in one step.
@@ -394,7 +400,7 @@ class Runtime:
         to the graph's timing). Nothing else is touched. Admission control checks the whole
         switch as one change (see :meth:`set_timing`), unless ``force``.
         """
-        timing_control.set_mode(self, mode, origin, force)
+        switch_mode(self, mode, origin, force)
 
     async def swap(
         self,
@@ -415,15 +421,15 @@ class Runtime:
         keeps running. ``resolved`` is ``kind``'s class when the caller imported it already
         (the control endpoint does, off the loop).
         """
-        await hotswap.swap(self, node, kind, params, origin, resolved)
+        await swap_node(self, node, kind, params, origin, resolved)
 
     async def reload(self, node: str, *, origin: str = "api") -> None:
         """Re-import ``node``'s module from disk and swap to the edited class (see ``swap``)."""
-        await hotswap.reload(self, node, origin)
+        await reload_node(self, node, origin)
 
     def set_params(self, node: str, params: Mapping[str, Any], *, merge: bool = True) -> None:
         """Change a node's params between activations (merged over its current ones)."""
-        hotswap.set_params(self, node, params, merge)
+        set_node_params(self, node, params, merge)
 
     def runner(self, node: str) -> NodeRunner:
         """The kernel's runner of ``node`` (KeyError naming the nearest names otherwise)."""
@@ -436,7 +442,7 @@ class Runtime:
 
     def publish(self, target: str, value: Any) -> None:
         """Inject a value: into ``node.output`` (fans out, ticks frames) or ``node.input``."""
-        host_ports.publish(self.scheduler, self.clock.now(), target, value)
+        inject_value(self.scheduler, self.clock.now(), target, value)
 
     def subscribe(
         self, target: str, policy: str = "queue", size: int = 64, *, sampled: bool = False
@@ -446,7 +452,7 @@ class Runtime:
         ``sampled``: the reader takes the newest value only when it wants one (a viewer with
         nobody watching): values replaced before it took them are ``unread``, not dropped.
         """
-        return host_ports.subscribe(self.scheduler, self.clock.now, target, policy, size, sampled)
+        return subscribe_port(self.scheduler, self.clock.now, target, policy, size, sampled)
 
 
 def _freeze_heap() -> None:

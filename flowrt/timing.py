@@ -11,7 +11,7 @@ without a second check (:meth:`flowrt.kernel.Scheduler.apply_timing`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import ValidationError
@@ -106,9 +106,6 @@ class TimingChange:
             priority=o.priority,
             enabled=o.enabled,
         )
-
-    def is_empty(self) -> bool:
-        return all(getattr(self, f.name) is None for f in fields(self))
 
     def problems(self, name: str, timing: Timing, is_frame: bool) -> list[str]:
         """What makes this change wrong for node ``name`` with ``timing`` ([] when none)."""

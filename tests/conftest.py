@@ -13,10 +13,14 @@ processes, are marked here so that a new test in them is tiered too.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import os
+import re
+import signal
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
 import pytest
@@ -86,3 +90,61 @@ def flowrt_cli() -> FlowrtCli:
         )
 
     return run
+
+
+class FlowrtRun:
+    """A ``flowrt`` command running in the background, its output kept (see flowrt_running)."""
+
+    def __init__(self, proc: asyncio.subprocess.Process) -> None:
+        self.proc = proc
+        self.out: list[str] = []
+        self._drain: asyncio.Future[None] | None = None
+
+    async def addresses(self, **patterns: str) -> dict[str, str]:
+        """Read the output until each regular expression has matched (group 1 kept), then keep
+        reading it in the background (a full pipe would stall the run)."""
+        stdout = self.proc.stdout
+        assert stdout is not None
+        found: dict[str, str] = {}
+        while len(found) < len(patterns):
+            line = (await asyncio.wait_for(stdout.readline(), 60)).decode()
+            assert line, "flowrt ended: " + "".join(self.out)
+            self.out.append(line)
+            for key, pattern in patterns.items():
+                if m := re.search(pattern, line):
+                    found[key] = m.group(1)
+        self._drain = asyncio.ensure_future(self._collect(stdout))
+        return found
+
+    async def _collect(self, stream: asyncio.StreamReader) -> None:
+        async for line in stream:
+            self.out.append(line.decode())
+
+    async def stop(self) -> None:
+        """Ctrl-C, as a user stops it: the run must end cleanly (exit 0)."""
+        self.proc.send_signal(signal.SIGINT)
+        assert await asyncio.wait_for(self.proc.wait(), 60) == 0, "".join(self.out)
+        if self._drain is not None:
+            await self._drain
+
+
+@contextlib.asynccontextmanager
+async def flowrt_running(*args: str, cwd: Path | None = None) -> AsyncIterator[FlowrtRun]:
+    """``python -m flowrt.cli ARGS`` in the background; killed on the way out if still running
+    (the body calls ``stop()`` for a clean end it checks)."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "flowrt.cli",
+        *args,
+        cwd=cwd or REPO,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.STDOUT,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+    try:
+        yield FlowrtRun(proc)
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()

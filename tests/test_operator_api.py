@@ -24,6 +24,7 @@ from flowrt.nodes.health_history import ALERT_TEXT, HealthHistory
 import flowrt
 from flowrt import Frame, Input, Node, Output
 from flowrt.recording.seek import SessionIndex
+from tests.conftest import flowrt_running
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.realtime]
 
@@ -349,37 +350,9 @@ async def test_cambada_with_recordings_start_three_seconds_stop(tmp_path: Path, 
     """``flowrt run graphs/cambada.yaml --recordings DIR``: start, 3 s, stop: both cameras at
     about 20 fps and nothing lost; the session listed, a frame at 1.0 s, a cross-origin POST
     refused, 5 s of health with at least 3 samples of every series."""
-    import os
-    import signal
-    import sys
-
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "flowrt.cli",
-        "run",
-        "graphs/cambada.yaml",
-        "--recordings",
-        str(tmp_path / "rec"),
-        "--no-ui",
-        "--display-port",
-        "0",
-        cwd=repo,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.STDOUT,
-        env={**os.environ, "COLUMNS": "200"},
-    )
-    assert proc.stdout is not None
-    out: list[str] = []
-    try:
-        url = ""
-        while not url:
-            line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
-            assert line, "flowrt run ended: " + "".join(out)
-            out.append(line)
-            m = re.search(r"display: (http://127\.0\.0\.1:\d+)", line)
-            url = m.group(1) if m else ""
-        drain = asyncio.ensure_future(_collect(proc.stdout, out))
+    run_args = ("run", "graphs/cambada.yaml", "--recordings", str(tmp_path / "rec"))
+    async with flowrt_running(*run_args, "--no-ui", "--display-port", "0", cwd=repo) as run:
+        url = (await run.addresses(view=r"display: (http://127\.0\.0\.1:\d+)"))["view"]
         async with aiohttp.ClientSession() as http:
             for _ in range(100):  # the recorder says it is there once it is set up
                 state = await get(http, f"{url}/api/record")
@@ -415,15 +388,4 @@ async def test_cambada_with_recordings_start_three_seconds_stop(tmp_path: Path, 
             assert len(health["series"]) >= 2 + 6 + 3 * 2  # 2 cores, machine, 2 cameras
             for s in health["series"]:
                 assert sum(v is not None for v in s["values"]) >= 3, s["name"]
-        proc.send_signal(signal.SIGINT)
-        assert await asyncio.wait_for(proc.wait(), 60) == 0, "".join(out)
-        await drain
-    finally:
-        if proc.returncode is None:
-            proc.kill()
-            await proc.wait()
-
-
-async def _collect(stream: asyncio.StreamReader, out: list[str]) -> None:
-    async for line in stream:
-        out.append(line.decode())
+        await run.stop()

@@ -12,15 +12,13 @@ from __future__ import annotations
 import asyncio
 import base64
 import os
-import re
-import signal
-import sys
 from pathlib import Path
 from typing import Any
 
 import aiohttp
 import pytest
 
+from tests.conftest import flowrt_running
 from tests.test_display import Browser, browser, needs_chromium
 
 pytestmark = [pytest.mark.timeout(240), pytest.mark.subprocess, pytest.mark.browser]
@@ -81,46 +79,16 @@ def _save(path: Path, png: bytes) -> None:
     path.write_bytes(png)
 
 
-async def started(proc: asyncio.subprocess.Process, out: list[str]) -> tuple[str, str]:
-    """The live view's and the control endpoint's addresses, from the run's output."""
-    assert proc.stdout is not None
-    view = control = ""
-    while not (view and control):
-        line = (await asyncio.wait_for(proc.stdout.readline(), 60)).decode()
-        assert line, "flowrt run ended: " + "".join(out)
-        out.append(line)
-        if m := re.search(r"display: (http://127\.0\.0\.1:\d+)", line):
-            view = m.group(1)
-        if m := re.search(r"control endpoint (http://127\.0\.0\.1:\d+)", line):
-            control = m.group(1)
-    return view, control
-
-
 @needs_chromium
 async def test_the_page_records_reviews_and_plots(tmp_path: Path, repo: Path) -> None:
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        "-m",
-        "flowrt.cli",
-        "run",
-        "graphs/cambada.yaml",
-        "--recordings",
-        str(tmp_path),
-        "--no-ui",
-        "--display-port",
-        "0",
-        "--control",
-        "127.0.0.1:0",
-        cwd=repo,
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.STDOUT,
-        env={**os.environ, "COLUMNS": "200"},
-    )
-    out: list[str] = []
-    try:
-        view, control = await started(proc, out)
-        assert proc.stdout is not None
-        drain = asyncio.ensure_future(_collect(proc.stdout, out))
+    run_args = ("run", "graphs/cambada.yaml", "--recordings", str(tmp_path), "--no-ui")
+    ports = ("--display-port", "0", "--control", "127.0.0.1:0")
+    async with flowrt_running(*run_args, *ports, cwd=repo) as run:
+        found = await run.addresses(
+            view=r"display: (http://127\.0\.0\.1:\d+)",
+            control=r"control endpoint (http://127\.0\.0\.1:\d+)",
+        )
+        view, control = found["view"], found["control"]
         async with browser(view + "/") as page:
             await until(
                 page, "document.querySelector('#recstart')?.disabled === false", 20, "Start"
@@ -214,15 +182,4 @@ async def test_the_page_records_reviews_and_plots(tmp_path: Path, repo: Path) ->
             assert "ALERT - FRAME DROPS: omni_cam" in text
             await asyncio.sleep(20.0 if SHOTS else 0.0)  # the README's picture: some history
             await shot(page, "#healthpanel", "operator-health.png")
-        proc.send_signal(signal.SIGINT)
-        assert await asyncio.wait_for(proc.wait(), 60) == 0, "".join(out)
-        await drain
-    finally:
-        if proc.returncode is None:
-            proc.kill()
-            await proc.wait()
-
-
-async def _collect(stream: asyncio.StreamReader, out: list[str]) -> None:
-    async for line in stream:
-        out.append(line.decode())
+        await run.stop()

@@ -58,7 +58,9 @@ class DeadlineWatch:
 
     def finish(self, act: Activation, end: float) -> bool:
         """``act`` ended at ``end``: count a miss not reported yet; True: discard its result."""
-        self.disarm(act)
+        if act.timer is not None:
+            act.timer.cancel()
+            act.timer = None
         deadline = self._timing.deadline
         if deadline is None or end - act.t_release <= deadline:
             return False

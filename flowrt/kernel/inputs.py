@@ -70,9 +70,6 @@ class Inputs:
         """A lossless input holds values not yet delivered."""
         return any(b.pending() for b in self.lossless)
 
-    def trigger_pending(self) -> bool:
-        return any(self.buffers[p].pending() for p in self.triggers)
-
     def take(self) -> dict[str, Any] | None:
         """One value per port (None where it has none); None: the activation is skipped."""
         values: dict[str, Any] = {}

@@ -368,9 +368,7 @@ class NodeRunner:
         c.execution.add(end - act.start)
         c.response.add(end - act.t_release)
         try:
-            discard = (act.timer is not None or self.timing.deadline is not None) and (
-                self.deadlines.finish(act, end)
-            )
+            discard = self.deadlines.finish(act, end)
             if self.sched.observer is not None:
                 self.sched.observer.completed(self.name, act.t_release, end, discard)
             if discard:

@@ -181,14 +181,6 @@ class Scheduler:
     def drain_timeout(self) -> float:
         return self._drain.timeout
 
-    @property
-    def drained(self) -> bool:
-        return self._drain.done
-
-    @property
-    def drain_left(self) -> list[str]:
-        return self._drain.left
-
     async def drain(self, limit: float | None = None) -> list[str]:
         """See :meth:`flowrt.kernel.drain.Drain.run`."""
         return await self._drain.run(limit)

@@ -15,8 +15,3 @@ class RunState(enum.StrEnum):
     running = "running"
     backoff = "backoff"
     failed = "failed"
-
-    @property
-    def down(self) -> bool:
-        """No activation can start: a release now is skipped (and counted)."""
-        return self in (RunState.starting, RunState.backoff, RunState.failed)

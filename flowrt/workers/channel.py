@@ -19,9 +19,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from flowrt.frames import release_handoffs
-from flowrt.frames.lending import Grant, OutputGrants
-
+from ..frames import release_handoffs
+from ..frames.lending import Grant, OutputGrants
 from .child import worker_main
 from .errors import WorkerError, WorkerKind
 from .forkserver import (

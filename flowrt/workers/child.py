@@ -19,9 +19,8 @@ import time
 import traceback
 from typing import Any
 
-from flowrt.frames.lending import WorkerSlots, lazy_report
-from flowrt.oscheduling import WorkerScheduling, apply_scheduling
-
+from ..frames.lending import WorkerSlots, lazy_report
+from ..oscheduling import WorkerScheduling, apply_scheduling
 from .wire import (
     HDR,
     OP_ADD,

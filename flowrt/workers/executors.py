@@ -13,9 +13,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
-from flowrt.frames.lending import OutputGrants
-from flowrt.oscheduling import WorkerScheduling, nice_for
-
+from ..frames.lending import OutputGrants
+from ..oscheduling import WorkerScheduling, nice_for
 from .channel import Worker
 from .errors import WorkerError
 from .forkserver import check_main_importable
