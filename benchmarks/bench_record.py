@@ -98,6 +98,17 @@ class Frames(Node):
         return frame
 
 
+def writer_params(writer: str) -> dict[str, str]:
+    """``process-idle``: the writer process at the idle priority (``writer_priority: idle``)."""
+    if writer == "process-idle":
+        return {"writer": "process", "writer_priority": "idle"}
+    return {"writer": writer}
+
+
+def writer_flags(writer: str) -> list[str]:
+    return [f"--{k.replace('_', '-')}={v}" for k, v in writer_params(writer).items()]
+
+
 def streams_graph(
     n: int,
     fps: float,
@@ -120,7 +131,7 @@ def streams_graph(
         g.add(
             "rec",
             "recorder",
-            params={"path": str(out), "name": "bench", "crc": crc, "writer": writer},
+            params={"path": str(out), "name": "bench", "crc": crc, **writer_params(writer)},
             inputs={
                 f"cam{i}.frame": {"from": f"cam{i}.frame", "policy": "lossless", "size": 16}
                 for i in range(n)
@@ -293,7 +304,10 @@ def cambada(args: argparse.Namespace) -> None:
         for r in range(args.rounds):
             runs = [("run (no recording)", ["run", "graphs/cambada.yaml"])]
             runs += [
-                (f"record, writer {w}", ["record", "graphs/cambada.yaml", "-o", tmp, "--writer", w])
+                (
+                    f"record, writer {w}",
+                    ["record", "graphs/cambada.yaml", "-o", tmp, *writer_flags(w)],
+                )
                 for w in args.writers
             ]
             for label, cmd in runs:
@@ -406,7 +420,7 @@ def report_fidelity(results: list[Any]) -> None:
 
 
 async def _lateness_once(
-    writer_kind: str, seconds: float, folder: Path, shape: tuple[int, ...]
+    writer_kind: str, seconds: float, folder: Path, shape: tuple[int, ...], probe: str = "timerfd"
 ) -> dict[str, Any]:
     """One condition: a 1 kHz timer measuring its own lateness while cambada-like traffic runs.
 
@@ -435,9 +449,13 @@ async def _lateness_once(
         release_ns.append(time.perf_counter_ns() - t0)
 
     path = folder / f"late_{time.monotonic_ns()}.mcap"
-    if writer_kind == "process":
+    if writer_kind.startswith("process"):
         writer = ProcessRecordingWriter(
-            path, loop=loop, direct_io=True, on_written=lambda: loop.call_soon(release_done)
+            path,
+            loop=loop,
+            direct_io=True,
+            on_written=lambda: loop.call_soon(release_done),
+            priority="idle" if writer_kind == "process-idle" else "normal",
         )
         await asyncio.to_thread(writer.open, {"bench": {"what": "lateness"}}, [])
     elif writer_kind != "none":
@@ -487,20 +505,34 @@ async def _lateness_once(
     tasks = [loop.create_task(camera(0, 0.0)), loop.create_task(camera(1, 0.025))]
     tasks += [loop.create_task(detections(k, 20.0 if k < 6 else 5.0)) for k in range(11)]
     period = 0.001
-    due = time.monotonic() + period
     finished = loop.create_future()
+    if probe == "timerfd":  # the runtime's own periodic timers (flowrt.clock, one timerfd)
+        from flowrt.clock import SystemClock
 
-    def tick() -> None:
-        nonlocal due
-        now = time.monotonic()
-        late.append(now - due)
-        if now >= stop:
-            finished.set_result(None)
-            return
-        due = max(due + period, now + period / 2)
-        loop.call_later(due - time.monotonic(), tick)
+        timer: Any = None
 
-    loop.call_later(period, tick)
+        def on_tick(release: float, missed: int) -> None:
+            now = time.monotonic()
+            late.append(now - release)
+            if now >= stop and not finished.done():
+                timer.cancel()
+                finished.set_result(None)
+
+        timer = SystemClock().periodic(period, 0.0, on_tick)
+    else:  # the loop's call_later: uvloop's timers have a resolution of 1 ms
+        due = time.monotonic() + period
+
+        def tick() -> None:
+            nonlocal due
+            now = time.monotonic()
+            late.append(now - due)
+            if now >= stop:
+                finished.set_result(None)
+                return
+            due = max(due + period, now + period / 2)
+            loop.call_later(due - time.monotonic(), tick)
+
+        loop.call_later(period, tick)
     await finished
     await asyncio.gather(*tasks)
     out: dict[str, Any] = {"late_ms": np.array(late) * 1e3}
@@ -545,11 +577,13 @@ def lateness(args: argparse.Namespace) -> None:
         "thread-switch": ("writer thread, GIL-free copies, switch 0.5 ms", "gil-free", 0.0005),
         "forked": ("writer thread in a forked process beside this one", "process-fork", 0.005),
         "process": ("writer process (the recorder's default)", "process", 0.005),
+        "process-idle": ("writer process, writer_priority idle", "process-idle", 0.005),
     }
     conditions = [every[c] for c in args.conditions]
     print(
         f"### Event-loop lateness with and without the writer ({args.seconds:g} s per "
-        f"condition, {args.rounds} interleaved rounds, frames {args.width}x{args.height} BGR)\n"
+        f"condition, {args.rounds} interleaved rounds, frames {args.width}x{args.height} BGR, "
+        f"probe: {args.probe})\n"
     )
     print(machine() + "\n")
     default_switch = sys.getswitchinterval()
@@ -571,7 +605,7 @@ def lateness(args: argparse.Namespace) -> None:
                 try:
                     got[label].append(
                         loop.run_until_complete(
-                            _lateness_once(kind, args.seconds, Path(tmp), shape)
+                            _lateness_once(kind, args.seconds, Path(tmp), shape, args.probe)
                         )
                     )
                 finally:
@@ -616,7 +650,7 @@ def main() -> None:
     p.add_argument(
         "--writers",
         nargs="+",
-        choices=("process", "thread"),
+        choices=("process", "process-idle", "thread"),
         default=["process", "thread"],
         help="throughput, cambada: the recorder's writer(s) to measure",
     )
@@ -629,7 +663,13 @@ def main() -> None:
         "--conditions",
         nargs="+",
         default=["none", "thread", "process"],
-        help="lateness: none mcap thread mcap-switch thread-switch forked process",
+        help="lateness: none mcap thread mcap-switch thread-switch forked process process-idle",
+    )
+    p.add_argument(
+        "--probe",
+        choices=("timerfd", "loop"),
+        default="timerfd",
+        help="lateness: the 1 kHz probe on the runtime's timerfd clock, or the loop's call_later",
     )
     p.add_argument("--width", type=int, default=640, help="lateness: frame width")
     p.add_argument("--height", type=int, default=480, help="lateness: frame height")

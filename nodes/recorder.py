@@ -56,7 +56,14 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
 from flowrt import Frame, Input, InputTrigger, Node, resolve_path
 from flowrt.determinism.log import METADATA
@@ -131,6 +138,11 @@ class Recorder(Node):
             description="process: a writer process reading frames from shared memory; "
             "thread: writer threads in the runtime's process",
         )
+        writer_priority: Literal["normal", "idle"] = Field(
+            default="normal",
+            description="idle: the writer process only takes CPU time nobody else wants; "
+            "the loop's timers never wait for it, but under load it falls behind (counted)",
+        )
         split_size: int | None = Field(
             default=None, description="start a new file past this size: 4GiB, 500MB, bytes"
         )
@@ -141,6 +153,13 @@ class Recorder(Node):
             default=True, description="detections also as ImageAnnotations on their camera"
         )
         graph_file: str | None = Field(default=None, description="attached as graph.yaml")
+
+        @model_validator(mode="after")
+        def _priority_of_a_process(self) -> Recorder.Params:
+            """A priority is the writer process's: threads share the loop's process."""
+            if self.writer_priority != "normal" and self.writer != "process":
+                raise ValueError("writer_priority idle needs writer: process")
+            return self
 
         @field_validator("split_size", mode="before")
         @classmethod
@@ -229,6 +248,7 @@ class Recorder(Node):
         path = session / f"{session.name}.mcap"
         writer: AnyWriter
         if p.writer == "process":
+            options["priority"] = p.writer_priority
             writer = ProcessRecordingWriter(path, loop=self._loop, **options)
         else:
             writer = RecordingWriter(path, **options)

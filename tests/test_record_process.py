@@ -304,3 +304,41 @@ def _messages(path: Path) -> list[Any]:
 
     with open(path, "rb") as f:
         return [M(c.topic, m.data) for _s, c, m in make_reader(f).iter_messages()]
+
+
+@pytest.mark.parametrize(
+    ("priority", "policy"), [("normal", os.SCHED_OTHER), ("idle", os.SCHED_IDLE)]
+)
+async def test_the_writer_process_runs_at_the_priority_asked_every_thread_of_it(
+    tmp_path: Path, priority: str, policy: int
+) -> None:
+    async with flowrt.Runtime(small_graph(tmp_path, writer_priority=priority)) as rt:
+        await rt.run(0.8)
+        writer = the_writer_process(tmp_path / "drive_001" / "drive_001.mcap")
+        assert writer is not None
+        tids = [int(t) for t in os.listdir(f"/proc/{writer.pid}/task")]
+        policies = {os.sched_getscheduler(t) for t in tids}
+        await rt.run(0.4)
+    await asyncio.to_thread(wait_for_writers)
+    assert len(tids) >= 3  # the main one, the writer's threads, the acknowledgements'
+    assert policies == {policy}
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the runtime's own is untouched
+    _, report = session_of(tmp_path)
+    assert all(s.lost == 0 and s.written == s.received for s in report.streams)
+
+
+def test_an_idle_priority_for_writer_threads_is_refused_in_one_line(tmp_path: Path) -> None:
+    with pytest.raises(flowrt.GraphError, match="writer_priority idle needs writer: process"):
+        small_graph(tmp_path, writer="thread", writer_priority="idle")
+
+
+def test_the_cli_refuses_an_idle_priority_for_writer_threads_in_one_line(
+    tmp_path: Path, flowrt_cli: Any
+) -> None:
+    r = flowrt_cli(
+        "record", "graphs/video.yaml", "-o", str(tmp_path), "--writer", "thread",
+        "--writer-priority", "idle", "--duration", "1",
+    )  # fmt: skip
+    assert r.returncode == 2
+    assert r.stderr.strip() == "flowrt record: --writer-priority idle needs --writer process"
+    assert list(tmp_path.iterdir()) == []  # refused before a session folder was made

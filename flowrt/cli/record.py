@@ -106,6 +106,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     if isinstance(split, str):
         err.print(f"flowrt record: {split}", markup=False)
         return EXIT_BAD_GRAPH
+    if args.writer == "thread" and args.writer_priority != "normal":
+        err.print("flowrt record: --writer-priority idle needs --writer process", markup=False)
+        return EXIT_BAD_GRAPH
     images = _image_formats(args.images, topics)
     if isinstance(images, str):
         err.print(f"flowrt record: {images}", markup=False)
@@ -125,6 +128,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         "compression": args.compression,
         "crc": not args.no_crc,
         "writer": args.writer,
+        "writer_priority": args.writer_priority,
         "annotations": not args.no_annotations,
         "split_size": split.size,
         "split_duration": split.duration,
@@ -636,6 +640,13 @@ def add_parsers(sub: Any) -> None:
         default="process",
         help="where the files are written: a process of its own reading the frames from "
         "shared memory (default), or threads of the runtime's process",
+    )
+    rec.add_argument(
+        "--writer-priority",
+        choices=("normal", "idle"),
+        default="normal",
+        help="idle: the writer process takes only CPU time nobody else wants (the loop's "
+        "timers never wait for it; under load it falls behind, counted)",
     )
     rec.add_argument(
         "--split-size",

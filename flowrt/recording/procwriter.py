@@ -74,7 +74,9 @@ class ProcessRecordingWriter:
         loop: the event loop that calls :meth:`submit` (its thread does every send).
         options: the writer process's :class:`~.writer.RecordingWriter` keyword arguments
             (``image_formats``, ``epoch_offset``, ``chunk_size``, ``compression``, ``crc``,
-            ``flush_interval``, ``max_bytes``, ``direct_io``).
+            ``flush_interval``, ``max_bytes``, ``direct_io``), and ``priority``: ``normal``
+            or ``idle`` (the process runs only on CPU time nobody else wants: it never delays
+            the loop's timers, but falls behind under load; :func:`.writerproc._set_priority`).
         The others: as :class:`~.writer.RecordingWriter`.
     """
 
