@@ -10,7 +10,10 @@ keep the shared machine usable: ~3000 intervals per configuration):
   the cycles, 10 ms; each message on the ticks of its cycle), the values from ``can-signals``
   nodes; ``flowrt --realtime``: the same with SCHED_FIFO/nice for the loop where permitted;
 - ``send_periodic``: python-can's ``bus.send_periodic(msg, period)`` for each message (its
-  thread-based cyclic tasks), the way python-can users do it.
+  thread-based cyclic tasks), the way python-can users do it;
+- with ``--kinds``, also ``flowrt-spin`` (``--spin 0.3ms``) and ``bare-loop`` /
+  ``bare-thread``: no node at all, one sender of pre-built frames on flowrt's timerfd clock
+  or in one thread sleeping to absolute deadlines (what a single sender per bus costs).
 
 Each configuration runs in its own subprocess; a passive monitor bus in that process (read
 only after the run, so it wakes no thread meanwhile) keeps the virtual bus's send timestamp
@@ -35,8 +38,21 @@ import time
 from pathlib import Path
 from typing import Any
 
+KINDS = [
+    "flowrt",
+    "flowrt-rt",
+    "flowrt-spin",
+    "flowrt-offsets",
+    "send_periodic",
+    "bare-loop",
+    "bare-thread",
+]
 HERE = Path(__file__).resolve().parent
 DBC = HERE / "periodic.dbc"
+
+
+SPIN = {"flowrt-spin": 0.0003}
+"""``flowrt --spin 0.3ms``: the loop wakes 0.3 ms early and busy-waits to the release."""
 
 
 def _spin() -> None:
@@ -62,7 +78,9 @@ class Monitor:
         return out
 
 
-def run_flowrt(duration: float, realtime: bool) -> dict[int, list[float]]:
+def run_flowrt(
+    duration: float, realtime: bool, spin: float = 0.0, offsets: bool = False
+) -> dict[int, list[float]]:
     import cantools
 
     import flowrt
@@ -73,19 +91,34 @@ def run_flowrt(duration: float, realtime: bool) -> dict[int, list[float]]:
     g = GraphBuilder()
     inputs = {}
     for i, m in enumerate(db.messages):
-        g.add(f"v{i}", "can-signals", params={"rate_ms": 100, "signals": {f"Value{i}": {}}})
+        g.add(
+            f"v{i}",
+            "can-signals",
+            params={"rate_ms": 100, "signals": {f"Value{i}": {}}},
+            **({"trigger": {"timer": "100ms", "phase": "8.5ms"}} if offsets else {}),
+        )
         inputs[m.name] = f"v{i}.values"
     g.add(
         "bus",
         "can",
-        params={"interface": "virtual", "channel": channel, "dbc": str(DBC)},
+        params={
+            "interface": "virtual",
+            "channel": channel,
+            "dbc": str(DBC),
+            # each message 1 ms after the one before in the 10 ms grid: one send per tick
+            **(
+                {"messages": {m.name: {"phase_ms": float(i)} for i, m in enumerate(db.messages)}}
+                if offsets
+                else {}
+            ),
+        },
         inputs=inputs,
         priority=50,
     )
     mon = Monitor(channel)
 
     async def main() -> None:
-        async with Runtime(g.build(), realtime=realtime):
+        async with Runtime(g.build(), realtime=realtime, spin=spin):
             await asyncio.sleep(duration)
 
     flowrt.run(main())
@@ -111,6 +144,71 @@ def run_send_periodic(duration: float) -> dict[int, list[float]]:
         t.stop()
     bus.shutdown()
     return mon.drain()
+
+
+def _bare_messages(bus_channel: str) -> tuple[Any, list[tuple[Any, int]]]:
+    import can
+    import cantools
+
+    db = cantools.database.load_file(str(DBC))
+    bus = can.Bus(interface="virtual", channel=bus_channel)
+    msgs = [
+        (
+            can.Message(
+                arbitration_id=m.frame_id, data=m.encode({f"Value{i}": 0}), is_extended_id=False
+            ),
+            int(m.cycle_time // 10),
+        )
+        for i, m in enumerate(db.messages)
+    ]
+    return bus, msgs
+
+
+def run_bare(duration: float, on_loop: bool) -> dict[int, list[float]]:
+    """One sender, no flowrt node: the pre-built frames sent on a 10 ms grid, in DBC order,
+    from flowrt's timerfd clock on the event loop (``bare-loop``) or from one thread sleeping
+    to absolute deadlines (``bare-thread``). What a single sender per bus costs by itself."""
+    channel = f"periodic-{os.getpid()}"
+    mon = Monitor(channel)
+    bus, msgs = _bare_messages(channel)
+
+    def tick(k: int) -> None:
+        for msg, every in msgs:
+            if k % every == 0:
+                bus.send(msg)
+
+    if on_loop:
+        import flowrt
+        from flowrt.clock import SystemClock
+
+        async def main() -> None:
+            k = itertools.count(1)
+            timer = SystemClock().periodic(0.01, 0.0, lambda t, missed: tick(next(k)))
+            await asyncio.sleep(duration)
+            timer.cancel()
+
+        flowrt.run(main())
+    else:
+        t0 = time.monotonic()
+        for k in range(1, int(duration / 0.01)):
+            delay = t0 + k * 0.01 - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            tick(k)
+    bus.shutdown()
+    return mon.drain()
+
+
+def per_message(stamps: dict[int, list[float]], periods: dict[int, float]) -> str:
+    """p50 / p99 of |interval - period| per message, ms: where in a tick the error grows."""
+    out = []
+    for ident, ts in sorted(stamps.items()):
+        ts = sorted(ts)[1:]
+        errs = sorted(abs((b - a) * 1000 - periods[ident]) for a, b in itertools.pairwise(ts))
+        out.append(
+            f"{ident:#x} {statistics.median(errs):.3f}/{errs[int(0.99 * (len(errs) - 1))]:.3f}"
+        )
+    return ", ".join(out)
 
 
 def summarise(stamps: dict[int, list[float]], periods: dict[int, float]) -> dict[str, Any]:
@@ -141,16 +239,26 @@ def one(kind: str, duration: float) -> None:
     periods = {m.frame_id: float(m.cycle_time) for m in db.messages}
     if kind == "send_periodic":
         stamps = run_send_periodic(duration)
+    elif kind.startswith("bare-"):
+        stamps = run_bare(duration, on_loop=kind == "bare-loop")
     else:
-        stamps = run_flowrt(duration, realtime=kind == "flowrt-rt")
-    print(json.dumps(summarise(stamps, periods)))
+        stamps = run_flowrt(
+            duration,
+            realtime=kind == "flowrt-rt",
+            spin=SPIN.get(kind, 0.0),
+            offsets=kind == "flowrt-offsets",
+        )
+    print(json.dumps({**summarise(stamps, periods), "per_message": per_message(stamps, periods)}))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--duration", type=float, default=15.0)
     ap.add_argument("--burners", type=int, default=2)
-    ap.add_argument("--one", choices=["flowrt", "flowrt-rt", "send_periodic"])
+    ap.add_argument("--one", choices=KINDS)
+    ap.add_argument(
+        "--kinds", nargs="+", choices=KINDS, default=["flowrt", "flowrt-rt", "send_periodic"]
+    )
     ap.add_argument("--json", help="write all results here")
     args = ap.parse_args()
     if args.one:
@@ -167,7 +275,7 @@ def main() -> None:
                 b.start()
             time.sleep(1.0)
         try:
-            for kind in ("flowrt", "flowrt-rt", "send_periodic"):
+            for kind in args.kinds:
                 la = os.getloadavg()[0]
                 res = subprocess.run(
                     [sys.executable, __file__, "--one", kind, "--duration", str(args.duration)],
@@ -194,14 +302,18 @@ def main() -> None:
             f"{r['p99_ms']:.3f} | {r['max_ms']:.3f} | {r['mean_period_error_ms']:+.4f} | "
             f"{r['loadavg']:.2f} |"
         )
+    print("\nPer message, |interval - period| p50/p99 ms:\n")
+    for r in rows:
+        print(f"- {r['load']}, {r['kind']}: {r['per_message']}")
     for load in ("idle", f"{args.burners} burners"):
         by = {r["kind"]: r for r in rows if r["load"] == load}
-        print(
-            f"\n{load}: send_periodic p99 / flowrt p99 = "
-            f"{by['send_periodic']['p99_ms'] / by['flowrt']['p99_ms']:.1f}x, "
-            f"/ flowrt --realtime p99 = "
-            f"{by['send_periodic']['p99_ms'] / by['flowrt-rt']['p99_ms']:.1f}x"
-        )
+        if "send_periodic" in by:
+            ratios = ", ".join(
+                f"{k} {by['send_periodic']['p99_ms'] / by[k]['p99_ms']:.1f}x"
+                for k in by
+                if k != "send_periodic"
+            )
+            print(f"\n{load}: send_periodic p99 / p99 of {ratios}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=2))
 
