@@ -166,6 +166,9 @@ class Bench:
         self.env = dict(os.environ)
         self.env["PYTHONPATH"] = str(REPO) + os.pathsep + self.env.get("PYTHONPATH", "")
         self.bindir = Path(sys.executable).parent
+        # dora spawns its Python nodes as `python` from PATH: this interpreter's, the one with
+        # dora-rs installed (run as `.venv/bin/python -m benchmarks.peers`, PATH may not say so)
+        self.env["PATH"] = str(self.bindir) + os.pathsep + self.env.get("PATH", "")
         self.flowrt = shutil.which("flowrt", path=str(self.bindir)) or "flowrt"
         self.dora = shutil.which("dora", path=str(self.bindir)) or shutil.which("dora") or "dora"
         self.quiet_dora = quiet_dora

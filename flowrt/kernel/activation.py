@@ -38,11 +38,18 @@ class Activation:
 
     __slots__ = ("closed", "gen", "id", "inputs", "made", "missed", "start", "t_release", "timer")
 
-    def __init__(self, id: int, t_release: float, start: float, gen: int = 0) -> None:
+    def __init__(
+        self,
+        id: int,
+        t_release: float,
+        start: float,
+        gen: int = 0,
+        inputs: dict[str, Any] | None = None,
+    ) -> None:
         self.id = id
         self.t_release = t_release
         self.start = start
-        self.inputs: dict[str, Any] = {}
+        self.inputs: dict[str, Any] = {} if inputs is None else inputs
         self.made: list[Frame] = []  # frames made or adopted: released at close
         self.missed = False  # its deadline passed (counted once)
         self.closed = False
