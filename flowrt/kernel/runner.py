@@ -372,12 +372,8 @@ class NodeRunner:
         c.execution.add(end - act.start)
         c.response.add(end - act.t_release)
         try:
-            # without a deadline nor a deadline timer there is nothing to finish
-            discard = (
-                self.deadlines.finish(act, end)
-                if act.timer is not None or self.timing.deadline is not None
-                else False
-            )
+            timed = act.timer is not None or self.timing.deadline is not None  # else: no call
+            discard = self.deadlines.finish(act, end) if timed else False
             if (obs := self.sched.observer) is not None:
                 obs.completed(self.name, act.t_release, end, discard)
             if discard:
