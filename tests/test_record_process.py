@@ -342,3 +342,28 @@ def test_the_cli_refuses_an_idle_priority_for_writer_threads_in_one_line(
     assert r.returncode == 2
     assert r.stderr.strip() == "flowrt record: --writer-priority idle needs --writer process"
     assert list(tmp_path.iterdir()) == []  # refused before a session folder was made
+
+
+def _refuse(*_: Any) -> None:
+    raise PermissionError(1, "Operation not permitted")
+
+
+@pytest.mark.parametrize(
+    ("priority", "setter", "said"),
+    [
+        ("normal", _refuse, None),  # nothing asked, nothing tried
+        ("idle", lambda *_: None, None),
+        ("idle", _refuse, "cannot set SCHED_IDLE"),  # said in the recording's notes
+    ],
+)
+def test_a_priority_the_system_refuses_is_said_not_dropped(
+    monkeypatch: pytest.MonkeyPatch, priority: str, setter: Any, said: str | None
+) -> None:
+    from flowrt.recording.writerproc import _set_priority
+
+    monkeypatch.setattr(os, "sched_setscheduler", setter)
+    note = _set_priority(priority)
+    if said is None:
+        assert note is None
+    else:
+        assert note is not None and said in note

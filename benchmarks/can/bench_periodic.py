@@ -125,43 +125,36 @@ def run_flowrt(
     return mon.drain()
 
 
-def run_send_periodic(duration: float) -> dict[int, list[float]]:
+def _messages(channel: str) -> tuple[Any, list[tuple[Any, float]]]:
+    """A virtual bus on ``channel`` and the DBC's 8 frames, pre-built, with their cycles in ms:
+    what python-can's users and the bare senders send."""
     import can
     import cantools
 
     db = cantools.database.load_file(str(DBC))
-    channel = f"periodic-{os.getpid()}"
-    mon = Monitor(channel)
     bus = can.Bus(interface="virtual", channel=channel)
-    tasks = []
-    for i, m in enumerate(db.messages):
-        msg = can.Message(
-            arbitration_id=m.frame_id, data=m.encode({f"Value{i}": 0}), is_extended_id=False
-        )
-        tasks.append(bus.send_periodic(msg, m.cycle_time / 1000))
-    time.sleep(duration)
-    for t in tasks:
-        t.stop()
-    bus.shutdown()
-    return mon.drain()
-
-
-def _bare_messages(bus_channel: str) -> tuple[Any, list[tuple[Any, int]]]:
-    import can
-    import cantools
-
-    db = cantools.database.load_file(str(DBC))
-    bus = can.Bus(interface="virtual", channel=bus_channel)
     msgs = [
         (
             can.Message(
                 arbitration_id=m.frame_id, data=m.encode({f"Value{i}": 0}), is_extended_id=False
             ),
-            int(m.cycle_time // 10),
+            float(m.cycle_time),
         )
         for i, m in enumerate(db.messages)
     ]
     return bus, msgs
+
+
+def run_send_periodic(duration: float) -> dict[int, list[float]]:
+    channel = f"periodic-{os.getpid()}"
+    mon = Monitor(channel)
+    bus, msgs = _messages(channel)
+    tasks = [bus.send_periodic(msg, cycle_ms / 1000) for msg, cycle_ms in msgs]
+    time.sleep(duration)
+    for t in tasks:
+        t.stop()
+    bus.shutdown()
+    return mon.drain()
 
 
 def run_bare(duration: float, on_loop: bool) -> dict[int, list[float]]:
@@ -170,11 +163,12 @@ def run_bare(duration: float, on_loop: bool) -> dict[int, list[float]]:
     to absolute deadlines (``bare-thread``). What a single sender per bus costs by itself."""
     channel = f"periodic-{os.getpid()}"
     mon = Monitor(channel)
-    bus, msgs = _bare_messages(channel)
+    bus, msgs = _messages(channel)
+    every = [(msg, round(cycle_ms / 10)) for msg, cycle_ms in msgs]  # in 10 ms ticks
 
     def tick(k: int) -> None:
-        for msg, every in msgs:
-            if k % every == 0:
+        for msg, n in every:
+            if k % n == 0:
                 bus.send(msg)
 
     if on_loop:

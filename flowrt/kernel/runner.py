@@ -295,7 +295,7 @@ class NodeRunner:
             held = {p: b.taken_seq for p, b in self.inputs.items()}
             obs.activation(self.name, t_release, now, held, self.rnode)
         self._acts += 1
-        act = Activation(self._acts, t_release, now, 0, inputs)
+        act = Activation(self._acts, t_release, now, inputs=inputs)
         if self._loose:
             act.made, self._loose = self._loose, []
         return act

@@ -25,7 +25,6 @@ import contextlib
 import os
 import pickle
 import queue
-import signal
 import socket
 import threading
 import time
@@ -61,19 +60,13 @@ ATTACH_WAIT = 60.0
 
 def writer_main(sock: socket.socket, main_pid: int) -> None:
     """Entry point of a writer process: one session (a file or its parts), then exit."""
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_IGN)
-    from ..workers.child import _set_pdeathsig
+    from ..workers.child import tied_to_runtime
 
-    _set_pdeathsig()
-    try:
-        os.kill(main_pid, 0)
-    except ProcessLookupError:
-        return  # the runtime died while this process was being forked
-    _Session(sock).serve()
+    if tied_to_runtime(main_pid):
+        _Session(sock).serve()
 
 
-def _set_priority(priority: str) -> None:
+def _set_priority(priority: str) -> str | None:
     """``idle``: SCHED_IDLE for this process's threads (they inherit it from the main one).
 
     Each message the recorder sends wakes this process, and the kernel places a task woken
@@ -86,9 +79,12 @@ def _set_priority(priority: str) -> None:
     (no wake-up preemption, but not preempted at once either) measured worse than normal.
     """
     if priority != "idle":
-        return
-    with contextlib.suppress(AttributeError, OSError):
+        return None
+    try:
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError) as e:  # not Linux: said in the recording's notes
+        return f"writer_priority idle: cannot set SCHED_IDLE ({e}); writing at normal priority"
+    return None
 
 
 class _Acks:
@@ -188,7 +184,7 @@ class _Session:
         if first is None or first[0] != OPEN:
             return
         _, config, metadata, attachments = first
-        _set_priority(config.pop("priority", "normal"))
+        refused = _set_priority(config.pop("priority", "normal"))
         w = self.writer = RecordingWriter(
             on_written=self._written,
             on_result=self._result,
@@ -196,6 +192,8 @@ class _Session:
             max_messages=1 << 30,
             **config,
         )
+        if refused is not None:
+            w.notes.append(refused)
         try:
             w.open(metadata, attachments)
         except OSError as e:

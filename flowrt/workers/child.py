@@ -155,6 +155,20 @@ def _set_pdeathsig() -> None:
         pass
 
 
+def tied_to_runtime(main_pid: int) -> bool:
+    """Start of a process the runtime forks (a worker, a recording writer): Ctrl-C and
+    SIGTERM are the runtime's to handle, and the process dies with its parent; False when
+    the runtime is already gone (it died while this process was being forked)."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+    _set_pdeathsig()
+    try:
+        os.kill(main_pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
 def _reply(
     conn: _BlockingConn,
     status: int,
@@ -180,13 +194,8 @@ def _reply(
 
 def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     """Entry point of a worker process: serve requests until EXIT or EOF."""
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_IGN)
-    _set_pdeathsig()
-    try:
-        os.kill(main_pid, 0)
-    except ProcessLookupError:
-        return  # the runtime died while we were being forked: nothing to serve
+    if not tied_to_runtime(main_pid):
+        return  # nothing to serve
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
     conn = _BlockingConn(sock)
     nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
