@@ -366,4 +366,5 @@ def test_a_priority_the_system_refuses_is_said_not_dropped(
     if said is None:
         assert note is None
     else:
-        assert note is not None and said in note
+        assert note is not None
+        assert said in note
