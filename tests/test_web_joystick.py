@@ -61,15 +61,6 @@ async def test_on_screen_joystick_drives_teleop() -> None:
                 20,
                 "the joystick panel",
             )
-            await page.eval(
-                "document.querySelector('#joyon').scrollIntoView({block: 'center'}); true"
-            )
-            box = await page.eval(
-                "(() => { const r = document.querySelector('#joyon').getBoundingClientRect();"
-                " const p = document.querySelector('#pad').getBoundingClientRect();"
-                " return [r.x + r.width / 2, r.y + r.height / 2, p.x, p.y, p.width]; })()"
-            )
-            cx, cy = box[0], box[1]
 
             async def mouse(kind: str, x: float, y: float) -> None:
                 await page.call(
@@ -85,9 +76,20 @@ async def test_on_screen_joystick_drives_teleop() -> None:
                     windowsVirtualKeyCode=vk,
                 )
 
-            # "drive from this page": a real click on the checkbox
-            await mouse("mousePressed", cx, cy)
-            await mouse("mouseReleased", cx, cy)
+            # "drive from this page": a real click on the checkbox, measured again until the
+            # page has taken it (the status tables above it reflow as statistics arrive: a
+            # click measured before could land beside it; seen once in CI)
+            for _ in range(20):
+                cx, cy = await page.eval(
+                    "(() => { const b = document.querySelector('#joyon');"
+                    " b.scrollIntoView({block: 'center'}); const r = b.getBoundingClientRect();"
+                    " return [r.x + r.width / 2, r.y + r.height / 2]; })()"
+                )
+                await mouse("mousePressed", cx, cy)
+                await mouse("mouseReleased", cx, cy)
+                if await page.eval("document.querySelector('#joyon').checked"):
+                    break
+                await asyncio.sleep(0.25)
             await until(
                 lambda: page.eval("Number(document.querySelector('#joystate').dataset.sent) > 3"),
                 10,
