@@ -2,6 +2,7 @@
 
 - :mod:`.device`: the device protocol (open, read state, apply force, close) and its factory;
 - :mod:`.sim`, :mod:`.evdev_device`: the simulated handle and Linux force-feedback devices;
+- :mod:`.fixtures`: walls and springs from vision, rendered in the loop;
 - :mod:`.safety`: what force may reach the device (clamp, rate limit, cut to zero);
 - :mod:`.follow`: device space to actuator space, axis locks, follow modes;
 - :mod:`.node`: the ``haptic`` kind; :mod:`.vision`: the ``vision_force`` kind;
@@ -9,6 +10,7 @@
 """
 
 from .device import DeviceError, DeviceInfo, DeviceState, HapticDevice, make_device
+from .fixtures import Fixture
 from .messages import Buttons, Force, HandleState, Target
 from .node import Haptic
 from .sim import SimDevice
@@ -20,6 +22,7 @@ __all__ = [
     "DeviceError",
     "DeviceInfo",
     "DeviceState",
+    "Fixture",
     "Force",
     "HandleState",
     "Haptic",

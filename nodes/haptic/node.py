@@ -46,8 +46,9 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from flowrt import FatalError, Input, Node, Output, TimerTrigger, parse_duration_ms
 from flowrt.refusals import Refusals
 
-from .device import DeviceError, DeviceInfo, HapticDevice, make_device
+from .device import DeviceError, DeviceInfo, DeviceState, HapticDevice, make_device
 from .evdev_device import EvdevParams
+from .fixtures import Fixture, fixture_force
 from .follow import Follower, scale
 from .messages import Buttons, Force, HandleState, Target
 from .safety import ForceLimiter, parse_force
@@ -119,7 +120,7 @@ class Haptic(Node):
         object,
         required=False,
         policy="latest",
-        doc="newtons per axis: a Force, a list, or {axis: N}; stale/invalid -> zero",
+        doc="N per axis (a Force, a list, {axis: N}) or a Fixture; stale/invalid -> zero",
     )
     lock = Input(
         object,
@@ -225,7 +226,7 @@ class Haptic(Node):
                 return None
         try:
             state = self.device.read_state(now)
-            applied, reason = self._force(force, state.error, now, dt)
+            applied, reason = self._force(force, state, dt)
             self.device.apply_force(applied, now)
         except (DeviceError, OSError) as e:
             self._failed(now, f"device {self.params.device}: {e}")
@@ -261,10 +262,8 @@ class Haptic(Node):
             self.ctx.set_error(reason)
         self.flagged = reason
 
-    def _force(
-        self, force: Any, error: str | None, now: float, dt: float
-    ) -> tuple[tuple[float, ...], str]:
-        if error is not None:
+    def _force(self, force: Any, state: DeviceState, dt: float) -> tuple[tuple[float, ...], str]:
+        if state.error is not None:
             return self.limiter.cut(), "device-error"
         if not self.has_force:
             return self.limiter.cut(), "no-force"
@@ -274,7 +273,10 @@ class Haptic(Node):
         if age is None or age > self.params.timeout:
             self.stale += 1
             return self.limiter.cut(), "stale"
-        wanted = parse_force(force, self.axes)
+        if isinstance(force, Fixture):  # a wall from vision: rendered here, at the loop's rate
+            wanted = fixture_force(force, self.axes, state.position, state.velocity)
+        else:
+            wanted = parse_force(force, self.axes)
         if wanted is None:
             self.refused.refuse(self.ctx, self.ctx.input_time("force"))
             return self.limiter.cut(), "invalid"

@@ -42,7 +42,7 @@ class HapticView(Node):
     position = Input(object, required=False, policy="latest", doc="haptic.position")
     target = Input(object, required=False, policy="latest", doc="haptic.target")
     applied = Input(object, required=False, policy="latest", doc="haptic.applied")
-    anchor = Input(object, required=False, policy="latest", doc="vision_force.anchor")
+    fixture = Input(object, required=False, policy="latest", doc="vision_force.force")
     view = Output(Frame, doc="the picture")
 
     @classmethod
@@ -55,16 +55,16 @@ class HapticView(Node):
         return int(round((x - x0) / (x1 - x0) * s)), int(round((y1 - y) / (y1 - y0) * s))
 
     def process(
-        self, position: Any = None, target: Any = None, applied: Any = None, anchor: Any = None
+        self, position: Any = None, target: Any = None, applied: Any = None, fixture: Any = None
     ) -> Frame:
         p = self.params
         frame = self.ctx.new_frame((p.size, p.size, 3))
         img: np.ndarray = frame.data
         img[:] = (40, 40, 40)
-        if anchor is not None and getattr(anchor, "found", False):
-            ax, ay = anchor.position[0], anchor.position[1]
-            if anchor.mode == "wall":
-                nx, ny = anchor.normal[0], anchor.normal[1]
+        if fixture is not None and getattr(fixture, "found", False):
+            ax, ay = fixture.anchor[0], fixture.anchor[1]
+            if fixture.mode == "wall":
+                nx, ny = fixture.normal[0], fixture.normal[1]
                 far = 1e4
                 a = self._px(ax - ny * far, ay + nx * far)
                 b = self._px(ax + ny * far, ay - nx * far)
