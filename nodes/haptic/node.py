@@ -215,7 +215,8 @@ class Haptic(Node):
 
     def process(self, force: Any = None, lock: Any = None) -> dict[str, Any] | None:
         now = self.ctx.now()
-        dt = 0.0 if self.last_t is None else max(0.0, now - self.last_t)
+        # The first tick is one period after a zero force that held for ever.
+        dt = 1.0 / self.params.rate_hz if self.last_t is None else max(0.0, now - self.last_t)
         self.last_t = now
         if self.info is None:
             if now < self.reopen_at:
