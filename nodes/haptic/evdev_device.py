@@ -226,6 +226,6 @@ def _key_of(effect: Any, constant: int) -> tuple[int, ...]:
 
 def _key_name(ec: Any, code: int) -> str:
     name = ec.BTN.get(code) or ec.KEY.get(code) or str(code)
-    if isinstance(name, list):
-        name = name[0]
+    if isinstance(name, list | tuple):  # aliases: the last is the specific one (BTN_TRIGGER)
+        name = name[-1]
     return str(name).lower().removeprefix("btn_").removeprefix("key_")

@@ -174,6 +174,7 @@ class Haptic(Node):
         p = self.params
         self.info = info
         self.axes = info.axes
+        self.held = {b: False for b in info.buttons} | self.held  # a reopen keeps the held
         n = len(info.axes)
         unknown = sorted((set(p.actuator) | set(p.lock)) - set(info.axes))
         if unknown:
