@@ -1,0 +1,99 @@
+"""Forces from vision (issue 42): a tracked object becomes a wall or spring, rendered by the
+haptic loop against the handle; end to end on a virtual clock."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import pytest
+from flowrt.nodes.haptic import Fixture, VisionForce
+from flowrt.nodes.haptic.fixtures import fixture_force
+
+from flowrt import GraphBuilder, Node, Output, Runtime, VirtualClock
+from flowrt.testing import NodeHarness
+
+AXES = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class Seen:
+    """What a tracker publishes, as far as vision_force reads it."""
+
+    found: bool
+    centroid: tuple[float, float] | None
+    size: tuple[int, int] = (320, 240)
+    timestamp: float = 0.0
+
+
+def _wall(x: float, k: float = 300.0, b: float = 0.0) -> Fixture:
+    return Fixture("wall", ("x", "y"), (x, 0.0), (-1.0, 0.0), k, b, True, 0.0)
+
+
+def test_a_wall_pushes_only_from_behind_it() -> None:
+    wall = _wall(10.0)
+    assert fixture_force(wall, AXES, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)) == (0.0, 0.0, 0.0)
+    fx, fy, fz = fixture_force(wall, AXES, (20.0, 5.0, 0.0), (0.0, 0.0, 0.0)) or ()
+    assert fx == pytest.approx(-3.0)  # 300 N/m x 10 mm, along the normal
+    assert (fy, fz) == (0.0, 0.0)
+
+
+def test_wall_damping_resists_only_motion_into_the_wall() -> None:
+    wall = _wall(10.0, b=10.0)
+    into = fixture_force(wall, AXES, (20.0, 0.0, 0.0), (100.0, 0.0, 0.0))
+    out = fixture_force(wall, AXES, (20.0, 0.0, 0.0), (-100.0, 0.0, 0.0))
+    assert into is not None and out is not None
+    assert into[0] == pytest.approx(-3.0 - 1.0)
+    assert out[0] == pytest.approx(-3.0)
+
+
+def test_a_spring_pulls_towards_the_object() -> None:
+    spring = Fixture("spring", ("x", "y"), (10.0, -10.0), (1.0, 0.0), 100.0, 0.0, True, 0.0)
+    assert fixture_force(spring, AXES, (0.0, 0.0, 7.0), (0.0, 0.0, 0.0)) == pytest.approx(
+        (1.0, -1.0, 0.0)
+    )
+
+
+def test_the_image_position_maps_onto_the_workspace() -> None:
+    h = NodeHarness(VisionForce, {"u_range": [-100, 100], "v_range": [100, -100]})
+    h.ctx.time = 1.0
+    fix = h.process(detection=Seen(True, (240.0, 60.0), timestamp=0.97))
+    assert fix.anchor == pytest.approx((50.0, 50.0))
+    assert fix.timestamp == 0.97  # the camera frame's time: the age is vision-to-motor
+    gone = h.process(detection=Seen(False, None, timestamp=0.99))
+    assert not gone.found
+    assert fixture_force(gone, AXES, (90.0, 0.0, 0.0), (0.0, 0.0, 0.0)) == (0.0, 0.0, 0.0)
+
+
+class Camera(Node):
+    out = Output(object)  # published by the test
+
+
+async def test_the_wall_the_camera_sees_holds_the_hand_back() -> None:
+    """The hand pulls to x = +60 mm (40 N/m); a wall seen at the image centre (x = 0 mm, 300
+    N/m) holds it near 40 x (60 - d) = 300 x d, d = 7 mm, at 1 kHz on a virtual clock; the
+    tracker then stalls: the wall goes stale and the hand reaches its target."""
+    g = GraphBuilder("haptic-vision")
+    g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False)
+    g.add("wall", "vision_force", params={"stiffness": 300}, inputs={"detection": "cam.out"})
+    g.add(
+        "haptic",
+        "haptic",
+        params={"max_force": 3.0, "max_rate": 500.0, "timeout": "100ms"},
+        inputs={"force": "wall.force"},
+    )
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        positions = rt.subscribe("haptic.position", size=10_000)
+        applied = rt.subscribe("haptic.applied", size=10_000)
+        for _ in range(60):  # 2 s of a 30 fps camera
+            rt.publish("cam.out", Seen(True, (160.0, 120.0), timestamp=clock.now()))
+            await clock.advance(1 / 30)
+        held = positions.drain()[-1].position[0]
+        forces = applied.drain()
+        assert held == pytest.approx(7.0, abs=1.0)
+        assert max(abs(f.values[0]) for f in forces) <= 3.0
+        assert forces[-1].reason in ("", "rate-limited")
+        await clock.advance(1.5)  # no more frames
+        assert applied.drain()[-1].reason == "stale"
+        assert positions.drain()[-1].position[0] == pytest.approx(60.0, abs=1.0)
+        assert len(forces) >= 1900  # the loop ran at 1 kHz while vision gave 30 walls/s
