@@ -96,7 +96,6 @@ def wall_energy(stiffness: float, seconds: float = 2.0) -> dict[str, float]:
     h = NodeHarness(Haptic, params, name="haptic")
     wall = Fixture("wall", ("x", "y"), (0.0, 0.0), (-1.0, 0.0), stiffness, 0.0, True, 0.0)
     device = h.node.device
-    mass = device.p.mass
 
     def energy() -> float:
         depth = max(0.0, device.pos[0])  # metres behind the wall at x = 0

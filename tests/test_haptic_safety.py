@@ -138,7 +138,9 @@ def test_the_force_is_safe_whatever_arrives(
         if any(applied):  # the first tick comes one period after a zero force
             since = dt if prev_target is not None else 1.0 / RATE_HZ
             step = MAX_RATE * min(since, 2.0 / RATE_HZ)
-            change = math.sqrt(sum((a - b) ** 2 for a, b in zip(applied, prev_applied)))
+            change = math.sqrt(
+                sum((a - b) ** 2 for a, b in zip(applied, prev_applied, strict=False))
+            )
             assert change <= step + 1e-9, (change, step)
         # (d)
         locked = set(param_locks) | _locked_by(held.get("lock"))
@@ -189,9 +191,7 @@ def test_a_nan_is_refused_counted_once_and_alerted_once() -> None:
 
 
 def test_a_device_fault_zeroes_the_force_and_is_an_error_state() -> None:
-    h = NodeHarness(
-        Haptic, {"sim": {"faults": [[0.01, 0.02]]}, "max_rate": 1e5}, name="haptic"
-    )
+    h = NodeHarness(Haptic, {"sim": {"faults": [[0.01, 0.02]]}, "max_rate": 1e5}, name="haptic")
     push = (1.0, 0.0, 0.0)
     seen = []
     for i in range(30):

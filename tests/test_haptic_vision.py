@@ -41,7 +41,8 @@ def test_wall_damping_resists_only_motion_into_the_wall() -> None:
     wall = _wall(10.0, b=10.0)
     into = fixture_force(wall, AXES, (20.0, 0.0, 0.0), (100.0, 0.0, 0.0))
     out = fixture_force(wall, AXES, (20.0, 0.0, 0.0), (-100.0, 0.0, 0.0))
-    assert into is not None and out is not None
+    assert into is not None
+    assert out is not None
     assert into[0] == pytest.approx(-3.0 - 1.0)
     assert out[0] == pytest.approx(-3.0)
 
@@ -123,5 +124,6 @@ def test_the_wall_at_the_readme_stiffness_gives_no_energy_back() -> None:
         if entered is not None and dev.pos[0] <= 0:
             left = energy()
             break
-    assert entered is not None and left is not None, "the handle never came back out"
+    assert entered is not None, "the handle never reached the wall"
+    assert left is not None, "the handle never came back out"
     assert 0 < left < entered

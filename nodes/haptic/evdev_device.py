@@ -39,7 +39,7 @@ LEVEL = 0x7FFF
 class EvdevParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     axes: dict[str, str | int] = Field(
-        default_factory=lambda: {"x": "ABS_X", "y": "ABS_Y"},
+        default_factory=lambda: dict[str, str | int](x="ABS_X", y="ABS_Y"),
         description="axis name -> ABS_* code (name or number)",
     )
     travel: float = Field(default=100.0, gt=0, le=10_000, description="mm the full range is")
@@ -63,7 +63,10 @@ class EvdevDevice:
     ``opener`` builds the ``evdev.InputDevice`` (tests pass a fake)."""
 
     def __init__(
-        self, path: str, params: EvdevParams | None = None, opener: Callable[[str], Any] | None = None
+        self,
+        path: str,
+        params: EvdevParams | None = None,
+        opener: Callable[[str], Any] | None = None,
     ) -> None:
         self.path = path
         self.p = params or EvdevParams()
@@ -180,8 +183,8 @@ class EvdevDevice:
         ff = self.ff
         mag = min(1.0, math.hypot(fx, fy) / self.p.max_force)
         angle = math.atan2(-fx, fy) % (2 * math.pi)
-        direction = int(round(angle / (2 * math.pi) * 0x10000)) & 0xFFFF
-        level = int(round(mag * LEVEL))
+        direction = round(angle / (2 * math.pi) * 0x10000) & 0xFFFF
+        level = round(mag * LEVEL)
         if level == 0:
             direction = 0
         return ff.Effect(
@@ -202,7 +205,7 @@ class EvdevDevice:
                 break
             offset_mm = f / self.p.stiffness * 1000  # where this force would vanish
             centre_mm = self._mm(i) + offset_mm
-            centre = max(-LEVEL, min(LEVEL, int(round(centre_mm / (self.p.travel / 2) * LEVEL))))
+            centre = max(-LEVEL, min(LEVEL, round(centre_mm / (self.p.travel / 2) * LEVEL)))
             coeff = LEVEL if f != 0 else 0
             conds[i] = ff.Condition(sat, sat, coeff, coeff, 0, centre)
         return ff.Effect(

@@ -26,9 +26,9 @@ class Fixture:
     """A wall or a spring in device space, on ``axes`` (the others feel nothing).
 
     ``wall``: a plane through ``anchor`` (mm) with outward ``normal``: behind it by d metres
-    the handle is pushed out with ``stiffness`` × d (N/m), plus ``damping`` (N·s/m) against
-    its speed into the wall. ``spring``: a pull of ``stiffness`` × distance towards
-    ``anchor``, minus ``damping`` × velocity. ``found`` False: nothing there, zero force.
+    the handle is pushed out with ``stiffness`` x d (N/m), plus ``damping`` (N·s/m) against
+    its speed into the wall. ``spring``: a pull of ``stiffness`` x distance towards
+    ``anchor``, minus ``damping`` x velocity. ``found`` False: nothing there, zero force.
     ``timestamp``: when the measurement was taken (a camera frame's time)."""
 
     mode: str

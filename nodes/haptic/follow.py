@@ -24,9 +24,7 @@ from typing import Literal
 __all__ = ["Follower", "scale"]
 
 
-def scale(
-    x: float, device: tuple[float, float], actuator: tuple[float, float]
-) -> float:
+def scale(x: float, device: tuple[float, float], actuator: tuple[float, float]) -> float:
     """``x`` (device units) mapped linearly from the ``device`` range onto ``actuator``'s."""
     d0, d1 = device
     a0, a1 = actuator

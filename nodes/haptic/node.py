@@ -76,9 +76,7 @@ class HapticParams(BaseModel):
     max_force: float = Field(
         default=2.0, gt=0, le=100, allow_inf_nan=False, description="N (vector magnitude)"
     )
-    max_rate: float = Field(
-        default=100.0, gt=0, le=100_000, allow_inf_nan=False, description="N/s"
-    )
+    max_rate: float = Field(default=100.0, gt=0, le=100_000, allow_inf_nan=False, description="N/s")
     timeout: float = Field(default=0.1, description="a force older than this is stale")
     reopen: float = Field(default=0.5, description="wait before reopening a failed device")
     actuator: dict[str, tuple[float, float]] = Field(
@@ -106,7 +104,7 @@ class HapticParams(BaseModel):
 
     @model_validator(mode="after")
     def _device(self) -> HapticParams:
-        kind, _, rest = self.device.partition(":")
+        _kind, _, rest = self.device.partition(":")
         if self.device != "sim" and not rest:
             raise ValueError("device: sim, evdev:PATH, evdev:NAME or package.module:Class")
         return self
@@ -142,9 +140,7 @@ class Haptic(Node):
         options: Any = {"sim": p.sim.model_dump(), "evdev": p.evdev.model_dump()}
         kind = "sim" if p.device == "sim" else p.device.partition(":")[0]
         try:
-            self.device: HapticDevice = make_device(
-                p.device, options.get(kind, p.device_options)
-            )
+            self.device: HapticDevice = make_device(p.device, options.get(kind, p.device_options))
         except (ValueError, TypeError) as e:
             raise FatalError(str(e)) from None
         self.info: DeviceInfo | None = None
@@ -235,7 +231,9 @@ class Haptic(Node):
             return {"applied": Force(self.axes, self.limiter.cut(), now, "device-error")}
         self._flag(None if state.error is None else f"device reports: {state.error}")
         locked = self._locks(lock)
-        point = [scale(x, dev, act) for x, (dev, act) in zip(state.position, self.ranges)]
+        point = [
+            scale(x, dev, act) for x, (dev, act) in zip(state.position, self.ranges, strict=False)
+        ]
         target = self.follower.update(point, locked, dt)
         out: dict[str, Any] = {
             "position": HandleState(self.axes, tuple(state.position), tuple(state.velocity), now),
@@ -314,7 +312,9 @@ class Haptic(Node):
         ages = sorted(self.ages)
 
         def pct(q: float) -> float | None:
-            return None if not ages else round(ages[min(len(ages) - 1, int(q * len(ages)))] * 1e3, 3)
+            return (
+                None if not ages else round(ages[min(len(ages) - 1, int(q * len(ages)))] * 1e3, 3)
+            )
 
         return {
             "device": self.params.device,

@@ -8,7 +8,7 @@ The rules (proven by property tests on virtual time, tests/test_haptic_safety.py
   refused, counted, and the force is cut to zero.
 - **Clamped**: the force vector's magnitude never exceeds ``max_force`` (the direction is
   kept: clamping each axis alone would turn a push along a wall into a push through it).
-- **Rate-limited**: the vector changes by at most ``max_rate`` × dt per tick (dt capped at
+- **Rate-limited**: the vector changes by at most ``max_rate`` x dt per tick (dt capped at
   ``max_dt``, so a stalled loop does not earn a large step). Rising and falling alike.
 - **Cut**: stale, invalid, a device error, the stop: the force goes to zero *at once*; zero is
   the safe state, and a rate limit on the way down would keep pushing on a fault. That is the

@@ -20,6 +20,7 @@ exact and repeatable.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from typing import Any, Literal
@@ -148,7 +149,7 @@ class SimDevice:
             t %= end
         if t <= pts[0][0]:
             return pts[0][1:]
-        for a, b in zip(pts, pts[1:], strict=False):
+        for a, b in itertools.pairwise(pts):
             if t <= b[0]:
                 s = 0.0 if b[0] == a[0] else (t - a[0]) / (b[0] - a[0])
                 return (

@@ -52,7 +52,7 @@ class HapticView(Node):
     def _px(self, x: float, y: float) -> tuple[int, int]:
         (x0, x1), (y0, y1) = self.params.workspace
         s = self.params.size - 1
-        return int(round((x - x0) / (x1 - x0) * s)), int(round((y1 - y) / (y1 - y0) * s))
+        return round((x - x0) / (x1 - x0) * s), round((y1 - y) / (y1 - y0) * s)
 
     def process(
         self, position: Any = None, target: Any = None, applied: Any = None, fixture: Any = None

@@ -30,7 +30,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-from flowrt import InputTrigger, Input, Node, Output
+from flowrt import Input, InputTrigger, Node, Output
 from flowrt.freshness import own_timestamp
 
 from .fixtures import Fixture
@@ -44,9 +44,7 @@ class VisionForceParams(BaseModel):
     stiffness: float = Field(
         default=300.0, ge=0, le=100_000, allow_inf_nan=False, description="N/m"
     )
-    damping: float = Field(
-        default=0.0, ge=0, le=10_000, allow_inf_nan=False, description="N·s/m"
-    )
+    damping: float = Field(default=0.0, ge=0, le=10_000, allow_inf_nan=False, description="N·s/m")
     axes: tuple[str, str] = Field(default=("x", "y"), description="device axes of image u, v")
     u_range: tuple[float, float] = Field(default=(-100.0, 100.0), description="mm at u=0, u=w")
     v_range: tuple[float, float] = Field(default=(100.0, -100.0), description="mm at v=0, v=h")
@@ -84,13 +82,13 @@ class VisionForce(Node):
         stamp = own_timestamp(detection)
         if stamp is None:
             stamp = self.ctx.input_time("detection") or self.ctx.now()
-        centroid = getattr(detection, "centroid", None)
+        centroid: Any = getattr(detection, "centroid", None)
         found = bool(getattr(detection, "found", False)) and centroid is not None
-        anchor = (0.0, 0.0)
+        anchor: tuple[float, ...] = (0.0, 0.0)
         if found:
             self.found += 1
             size = getattr(detection, "size", None) or p.image_size
-            anchor = tuple(  # type: ignore[assignment]
+            anchor = tuple(
                 lo + (hi - lo) * float(pix) / max(1, n)
                 for pix, n, (lo, hi) in zip(centroid, size, (p.u_range, p.v_range), strict=True)
             )
