@@ -7,7 +7,8 @@
 1. **Loop timing and force age** (real time): ``flowrt run graphs/haptic.yaml --no-ui
    --no-display --duration S --stats-json F [--realtime]`` in a subprocess, idle and with
    ``--burners`` (default 2) processes spinning ``while True: pass`` at normal priority. From
-   the statistics: the haptic node's activations, completions, inter-activation std and p99,
+   the statistics ("no burners" is idle only on a machine nobody else uses: the load
+   average is printed before and after): the haptic node's activations, completions, inter-activation std and p99,
    deadline misses (its deadline: 1 ms), and its report's ``force_age_ms`` (the camera frame's
    time to the force given to the device: capture, tracker in a worker, vision_force, the
    newest wall taken by the loop).
@@ -75,7 +76,7 @@ def loop_table(duration: float, burners: int) -> list[tuple[str, dict[str, Any]]
             p.start()
         try:
             for realtime in (False, True):
-                name = ("idle" if load == 0 else f"{load} burners") + (" --realtime" * realtime)
+                name = (f"{load} burners" if load else "no burners") + (" --realtime" * realtime)
                 rows.append((name, run_graph(duration, realtime)))
                 print(f"  {name}: {rows[-1][1]}", file=sys.stderr)
         finally:
