@@ -8,10 +8,10 @@
    --no-display --duration S --stats-json F [--realtime]`` in a subprocess, idle and with
    ``--burners`` (default 2) processes spinning ``while True: pass`` at normal priority. From
    the statistics ("no burners" is idle only on a machine nobody else uses: the load
-   average is printed before and after): the haptic node's activations, completions, inter-activation std and p99,
-   deadline misses (its deadline: 1 ms), and its report's ``force_age_ms`` (the camera frame's
-   time to the force given to the device: capture, tracker in a worker, vision_force, the
-   newest wall taken by the loop).
+   average is printed before and after): the haptic node's activations, completions,
+   inter-activation std and p99, deadline misses (its deadline: 1 ms), and its report's
+   ``force_age_ms`` (the camera frame's time to the force given to the device: capture,
+   tracker in a worker, vision_force, the newest wall taken by the loop).
 2. **Virtual wall energy** (virtual time, deterministic): the simulated handle (0.2 kg,
    1 N·s/m, nobody holding it) thrown at 0.2 m/s against a vision wall at x = 0 rendered by
    the haptic node at 1 kHz with the graph's max_force (3 N) and max_rate (200 N/s). The
