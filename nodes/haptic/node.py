@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections import deque
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -153,7 +152,7 @@ class Haptic(Node):
         self.last_t: float | None = None
         self.flagged: str | None = None  # the reason of the error state the node is in
         self.held: dict[str, bool] = {}
-        self.ages: deque[float] = deque(maxlen=10_000)  # force age at the device (s)
+        self.ages = _AgeHistogram()  # force age at the device, every tick since the start
         self._open(self.ctx.now())
 
     # --- the device -----------------------------------------------------------------------
@@ -281,7 +280,7 @@ class Haptic(Node):
             self.refused.refuse(self.ctx, self.ctx.input_time("force"))
             return self.limiter.cut(), "invalid"
         self.refused.accept()
-        self.ages.append(age)
+        self.ages.add(age)
         clamped, limited = self.limiter.clamped, self.limiter.limited
         applied = self.limiter.step(wanted, dt)
         if self.limiter.clamped != clamped:
@@ -309,13 +308,6 @@ class Haptic(Node):
 
     def report(self) -> dict[str, Any]:
         """What the statistics show of the haptic loop (``reports``: table, --stats-json)."""
-        ages = sorted(self.ages)
-
-        def pct(q: float) -> float | None:
-            return (
-                None if not ages else round(ages[min(len(ages) - 1, int(q * len(ages)))] * 1e3, 3)
-            )
-
         return {
             "device": self.params.device,
             "open": self.info is not None,
@@ -328,8 +320,43 @@ class Haptic(Node):
             "clamped": self.limiter.clamped if hasattr(self, "limiter") else 0,
             "rate_limited": self.limiter.limited if hasattr(self, "limiter") else 0,
             "path_dropped": self.follower.dropped if hasattr(self, "follower") else 0,
-            "force_age_ms": {"p50": pct(0.5), "p99": pct(0.99), "max": pct(1.0)},
+            "force_age_ms": self.ages.summary(),
         }
+
+
+class _AgeHistogram:
+    """Ages in 0.25 ms bins up to 1 s: O(1) per tick, and a report (the status table asks
+    several times a second) that scans 4000 bins instead of sorting every tick's age, which
+    would be a millisecond taken from the loop."""
+
+    BIN = 0.00025
+    BINS = 4000
+
+    def __init__(self) -> None:
+        self.counts = [0] * (self.BINS + 1)  # the last bin: 1 s and older
+        self.n = 0
+        self.max = 0.0
+
+    def add(self, age: float) -> None:
+        self.counts[min(self.BINS, max(0, int(age / self.BIN)))] += 1
+        self.n += 1
+        self.max = max(self.max, age)
+
+    def summary(self) -> dict[str, float | None]:
+        """p50, p99 (bin upper edges, ms) and max (exact, ms); None before the first force."""
+        if self.n == 0:
+            return {"p50": None, "p99": None, "max": None}
+        out: dict[str, float | None] = {}
+        seen = 0
+        wanted = [("p50", 0.5 * self.n), ("p99", 0.99 * self.n)]
+        for i, c in enumerate(self.counts):
+            seen += c
+            while wanted and seen >= wanted[0][1]:
+                out[wanted.pop(0)[0]] = round(min((i + 1) * self.BIN, self.max) * 1e3, 3)
+            if not wanted:
+                break
+        out["max"] = round(self.max * 1e3, 3)
+        return out
 
 
 def _lock_axes(value: Any, axes: tuple[str, ...]) -> set[str] | None:
