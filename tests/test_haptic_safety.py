@@ -204,3 +204,19 @@ def test_a_device_fault_zeroes_the_force_and_is_an_error_state() -> None:
     assert "motor fault" in (seen[15][1] or "")
     assert seen[25] == ("", None)  # the fault is over: the force and the node are back
     assert h.node.report()["device_errors"] == 1
+
+
+def test_a_device_reading_nan_is_a_device_error_not_a_nan_force() -> None:
+    """A diverged simulation (or a device bug) reads NaN: a wall evaluated there would ask
+    for a NaN force; the node treats the reading as a device error and gives zero."""
+    h = NodeHarness(Haptic, {"sim": {"hand": {"mode": "none"}}}, name="haptic")
+    wall = Fixture("wall", ("x", "y"), (-50.0, 0.0), (-1.0, 0.0), 300.0, 0.0, True, 0.0)
+    h.ctx.time = 0.001
+    h.node.device.advance(0.0)
+    h.node.device.pos[0] = math.nan
+    out = h.process(force=wall)
+    assert out["applied"].values == (0.0, 0.0, 0.0)
+    assert out["applied"].reason == "device-error"
+    assert "non-finite" in (h.ctx.error or "")
+    assert h.node.device.force == [0.0, 0.0, 0.0]
+    assert "target" not in out  # the actuators are not sent to NaN

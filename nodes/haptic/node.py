@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+from dataclasses import replace
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -223,12 +224,17 @@ class Haptic(Node):
                 return None
         try:
             state = self.device.read_state(now)
+            garbled = not all(math.isfinite(x) for x in (*state.position, *state.velocity))
+            if garbled:
+                state = replace(state, error=f"non-finite position {state.position}")
             applied, reason = self._force(force, state, dt)
             self.device.apply_force(applied, now)
         except (DeviceError, OSError) as e:
             self._failed(now, f"device {self.params.device}: {e}")
             return {"applied": Force(self.axes, self.limiter.cut(), now, "device-error")}
         self._flag(None if state.error is None else f"device reports: {state.error}")
+        if garbled:
+            return {"applied": Force(self.axes, applied, now, reason)}  # no NaN target
         locked = self._locks(lock)
         point = [
             scale(x, dev, act) for x, (dev, act) in zip(state.position, self.ranges, strict=False)
@@ -276,7 +282,7 @@ class Haptic(Node):
             wanted = fixture_force(force, self.axes, state.position, state.velocity)
         else:
             wanted = parse_force(force, self.axes)
-        if wanted is None:
+        if wanted is None or not all(math.isfinite(f) for f in wanted):  # inf from a huge wall
             self.refused.refuse(self.ctx, self.ctx.input_time("force"))
             return self.limiter.cut(), "invalid"
         self.refused.accept()

@@ -56,7 +56,7 @@ class HandParams(BaseModel):
 
 class SimParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    mass: float = Field(default=0.2, gt=0, le=100, description="moving mass (kg)")
+    mass: float = Field(default=0.2, ge=0.001, le=100, description="moving mass (kg)")
     damping: float = Field(default=1.0, ge=0, le=1_000, description="viscous damping (N·s/m)")
     workspace: tuple[tuple[float, float], ...] = Field(
         default=((-100.0, 100.0),) * 3, description="per axis [lo, hi] (mm)"
@@ -71,7 +71,7 @@ class SimParams(BaseModel):
     faults: list[tuple[float, float]] = Field(
         default_factory=list, description="[t0, t1] windows where the device reports an error"
     )
-    step: float = Field(default=0.00025, gt=0, le=0.01, description="integration step (s)")
+    step: float = Field(default=0.00025, ge=1e-5, le=0.01, description="integration step (s)")
 
     @field_validator("workspace")
     @classmethod
