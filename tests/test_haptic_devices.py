@@ -252,3 +252,17 @@ def test_evdev_without_force_feedback_is_an_input_only_device() -> None:
     dev = EvdevDevice("/dev/input/event7", EvdevParams(), NoFF)
     assert dev.open().max_force is None
     assert math.isfinite(dev.read_state(0.0).position[0])
+
+
+def test_an_enable_button_is_a_deadman() -> None:
+    sim = {"buttons": [[0.010, "stylus", True], [0.020, "stylus", False]], "hand": {"mode": "none"}}
+    params = {"sim": sim, "enable_button": "stylus", "max_rate": 1e5}
+    h = NodeHarness(Haptic, params, name="haptic")
+    reasons = []
+    for i in range(30):
+        h.ctx.time = 0.001 * i
+        h.publish("force", (1.0, 0.0, 0.0))
+        reasons.append(h.process(force=(1.0, 0.0, 0.0))["applied"].reason)
+    assert set(reasons[:10]) == {"disabled"}
+    assert set(reasons[10:20]) == {""}
+    assert set(reasons[20:]) == {"disabled"}

@@ -103,3 +103,13 @@ def test_an_unreadable_lock_value_locks_every_axis_and_is_counted() -> None:
     out = h.process(lock=42)
     assert out["target"].locked == ("x", "y", "z")
     assert h.node.report()["invalid_locks"] == 1
+
+
+def test_a_handle_past_its_range_does_not_take_the_actuators_past_theirs() -> None:
+    h = _harness(sim={"hand": {"mode": "none"}})
+    h.ctx.time = 0.0
+    h.node.device.advance(0.0)
+    h.node.device.pos[0] = 0.150  # 150 mm: beyond the reported -100..100
+    out = h.process()
+    assert out["position"].position[0] == pytest.approx(150.0)
+    assert out["target"].values[0] == 1.0  # the top of x's actuator range [0, 1]

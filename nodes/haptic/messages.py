@@ -42,7 +42,7 @@ class Force:
     """A force per axis (newtons). From a sensor or a vision node on the ``force`` input;
     on the ``applied`` output, what the device was given, with ``reason`` saying why it is
     zero or held back ("" = as asked; ``stale``, ``invalid``, ``device-error``, ``no-force``,
-    ``clamped``, ``rate-limited``, ``stop``)."""
+    ``disabled``, ``clamped``, ``rate-limited``)."""
 
     axes: tuple[str, ...]
     values: tuple[float, ...]

@@ -88,6 +88,9 @@ class HapticParams(BaseModel):
         default=None, gt=0, allow_inf_nan=False, description="actuator units/s (None: at once)"
     )
     path_points: int = Field(default=10_000, ge=1, le=1_000_000)
+    enable_button: str | None = Field(
+        default=None, description="force only while this device button is held (a deadman)"
+    )
 
     @field_validator("timeout", "reopen", mode="before")
     @classmethod
@@ -236,8 +239,9 @@ class Haptic(Node):
         if garbled:
             return {"applied": Force(self.axes, applied, now, reason)}  # no NaN target
         locked = self._locks(lock)
-        point = [
-            scale(x, dev, act) for x, (dev, act) in zip(state.position, self.ranges, strict=False)
+        point = [  # a handle past its reported range must not take the actuators past theirs
+            min(max(scale(x, dev, act), min(act)), max(act))
+            for x, (dev, act) in zip(state.position, self.ranges, strict=False)
         ]
         target = self.follower.update(point, locked, dt)
         out: dict[str, Any] = {
@@ -270,6 +274,8 @@ class Haptic(Node):
     def _force(self, force: Any, state: DeviceState, dt: float) -> tuple[tuple[float, ...], str]:
         if state.error is not None:
             return self.limiter.cut(), "device-error"
+        if self.params.enable_button and not state.buttons.get(self.params.enable_button):
+            return self.limiter.cut(), "disabled"
         if not self.has_force:
             return self.limiter.cut(), "no-force"
         if force is None:
