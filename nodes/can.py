@@ -86,9 +86,11 @@ Replay
     as they were: FD, bit-rate switch, remote and error frames kept.
 
 Every ``status_ms`` the node publishes a :class:`CanBusStatus` on ``status``: per message
-received/sent, rate, age, timeouts, bad counters/checksums/lengths, late sends, validity;
-it is also kept in the RTDB record ``<node>.can`` (``flowrt ctl rtdb chassis.can`` while
-the graph runs with ``--control``).
+received/sent, rate, age, timeouts, bad counters/checksums/lengths, late sends, validity.
+Its bounded summary (:class:`CanBusSummary`: the bus counters, totals over the messages,
+how many are invalid and the first few names; the same size for 3 messages or 3000) is kept
+in the RTDB record ``<node>.can`` (``flowrt ctl rtdb chassis.can`` while the graph runs
+with ``--control``).
 The DBC is loaded when the graph is validated: a file that does not parse is one error line;
 what cantools' strict loading would refuse is a named warning, once (``strict: true``
 refuses). The wire is :mod:`flowrt.nodes.can_bus`, the params :mod:`flowrt.nodes.can_params`,
@@ -119,11 +121,12 @@ from .can_dbc import (
 )
 from .can_params import CanParams, MessageParams
 from .can_signals import SignalSource, Wave
-from .can_values import CanBusStatus, CanFrame, CanMessage, MessageStatus
+from .can_values import CanBusStatus, CanBusSummary, CanFrame, CanMessage, MessageStatus, summarise
 
 __all__ = [
     "Can",
     "CanBusStatus",
+    "CanBusSummary",
     "CanFrame",
     "CanMessage",
     "CanParams",
@@ -453,14 +456,22 @@ class Can(Node):
             self.replay = None
 
     def _record_status(self, status: CanBusStatus) -> None:
-        """Keep the status in the RTDB (``<node>.can``): ``flowrt ctl rtdb chassis.can``
-        shows it while the graph runs."""
+        """Keep the status's bounded summary in the RTDB (``<node>.can``): ``flowrt ctl rtdb
+        chassis.can`` shows it while the graph runs. The full table, which grows with the
+        DBC, is on ``status`` only: an RTDB value has a size limit, and a status over it
+        raised here and restarted the node every ``status_ms`` (issue 38)."""
         try:
             db = self.ctx.rtdb
         except RuntimeError:  # no RTDB (outside a Runtime): nothing to keep it in
             self.keep_status = False
             return
-        db.write(f"{self.ctx.name}.can", status, validity_ms=3 * self.params.status_ms)
+        try:
+            db.write(
+                f"{self.ctx.name}.can", summarise(status), validity_ms=3 * self.params.status_ms
+            )
+        except ValueError as e:  # an RTDB made with a smaller max_value: say so once, go on
+            self.keep_status = False
+            self.ctx.log.warning("%s: status not kept in the RTDB: %s", self.ctx.name, e)
 
     def _start(self, inputs: Mapping[str, Any]) -> None:
         self.started = True

@@ -38,6 +38,9 @@ __all__ = [
 
 log = logging.getLogger("flowrt.nodes.can")
 
+#: Strict-loading problems of one DBC logged one by one; the rest are counted in one line.
+WARNINGS_SHOWN = 5
+
 
 def dbc_path(path: str) -> Path:
     """The file ``path`` names: as given (relative to the working directory), else shipped
@@ -57,8 +60,18 @@ def _load(path: str, mtime_ns: int) -> tuple[Any, tuple[DatabaseWarning, ...]]:
         db, warnings = load_database(path)
     except CanDatabaseError as e:
         raise ValueError(str(e)) from None
-    for w in warnings:  # once per file and version: the cache keeps the load
+    # once per file and version (the cache keeps the load), and the first few only: a
+    # vehicle's DBC has hundreds (opendbc's gm_global_a_lowspeed: 1675 overlapping signals)
+    for w in warnings[:WARNINGS_SHOWN]:
         log.warning("%s: %s (cantools' strict loading would refuse it)", path, w)
+    if len(warnings) > WARNINGS_SHOWN:
+        log.warning(
+            "%s: %d more that cantools' strict loading would refuse "
+            "(flowrt can analyse %s --json lists them all)",
+            path,
+            len(warnings) - WARNINGS_SHOWN,
+            path,
+        )
     return db, tuple(warnings)
 
 
