@@ -236,8 +236,10 @@ class Can(Node):
     inline_only = True  # its reader thread hands frames to the event loop
     external = True  # received frames are recorded inputs: replay publishes them, sends nothing
 
-    unknown = Output(CanFrame, doc="frames with ids the DBC does not know (unknown_output)")
-    frames = Output(CanFrame, doc="every received frame, raw (raw_output)")
+    unknown = Output(
+        CanFrame, doc="frames with ids the DBC does not know (unknown_output)", rate_hz=None
+    )
+    frames = Output(CanFrame, doc="every received frame, raw (raw_output)", rate_hz=None)
     status = Output(CanBusStatus, doc="per-message and bus counters every status_ms")
 
     @classmethod
@@ -247,8 +249,21 @@ class Can(Node):
 
     @classmethod
     def params_outputs(cls, params: Any) -> Mapping[str, Output[Any]]:
+        """One per DBC message, expected at its cycle time; an event message (no cycle) or
+        one the ``receive`` filter keeps out has no rate: nothing of it is "missing"."""
         db = load_dbc(params.dbc)
-        return {m.name: Output(CanMessage, doc=f"decoded 0x{m.frame_id:X}") for m in db.messages}
+        kept = None if params.receive is None else set(params.receive)
+        out: dict[str, Output[Any]] = {}
+        for m in db.messages:
+            cycle = params.cycle_ms(m)
+            hz = 1000.0 / cycle if cycle and (kept is None or m.name in kept) else None
+            out[m.name] = Output(CanMessage, doc=f"decoded 0x{m.frame_id:X}", rate_hz=hz)
+        return out
+
+    @classmethod
+    def output_rates(cls, params: Any) -> Mapping[str, float | None]:
+        """Each message at its cycle, ``status`` every ``status_ms``, raw frames on events."""
+        return {**super().output_rates(params), "status": 1000.0 / params.status_ms}
 
     @classmethod
     def default_trigger(cls, params: Any) -> TimerTrigger:
