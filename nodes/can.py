@@ -23,6 +23,8 @@ Receive
     in the RTDB. Frames with other ids are counted (``unknown``) and, with
     ``unknown_output: true``, published raw on the ``unknown`` output (:class:`CanFrame`).
     A frame whose length differs from the DBC's is counted (``bad_length``), not decoded.
+    A message cantools cannot unpack whole (overlapping signals, as in GM's databases) is
+    decoded signal by signal, each as cantools decodes it alone.
 
 Transmit
     Every input named after a DBC message is encoded with the DBC from the latest value
@@ -112,6 +114,7 @@ from flowrt.analysis.can_frames import fd_payload_length
 from .can_bus import SERIAL_INTERFACES, CanLink, TraceLog, TraceReplay, one_line
 from .can_dbc import (
     EncodeProblem,
+    SignalDecoder,
     acceptance_filters,
     checksum,
     encode_signals,
@@ -196,6 +199,9 @@ class _Msg:
     # slowest step between the release and ``bus.send``).
     encoded: bytes | None = None
     signal_names: frozenset[str] = frozenset()
+    # Set when cantools refuses to decode the message whole (overlapping signals, loaded
+    # non-strictly): decoded signal by signal from then on (can_dbc.SignalDecoder).
+    by_signal: SignalDecoder | None = None
 
     @property
     def checksum_byte(self) -> int | None:
@@ -396,7 +402,7 @@ class Can(Node):
             self._bad(st)
             return
         try:
-            signals = st.dbc.decode(data[: st.dbc.length], decode_choices=False)
+            signals = _decode(st, data[: st.dbc.length])
         except Exception:
             self.decode_errors += 1
             self._bad(st)
@@ -658,6 +664,22 @@ class Can(Node):
             tuple((m, c, n) for (m, c), n in sorted(self.encode_causes.items())),
             tuple((c, i, e, n) for (c, i, e), n in sorted(self.id_counts.items())),
         )  # fmt: skip
+
+
+def _decode(st: _Msg, data: bytes) -> Mapping[str, Any]:
+    """Physical values as cantools decodes them: the message whole, or (one that cantools
+    cannot unpack whole: overlapping signals) each signal alone. A multiplexed message that
+    fails (a multiplexer value with no branch) raises: a decode error."""
+    if st.by_signal is not None:
+        return st.by_signal(data)
+    try:
+        values: Mapping[str, Any] = st.dbc.decode(data, decode_choices=False)
+        return values
+    except Exception:
+        if st.dbc.is_multiplexed():
+            raise
+        st.by_signal = SignalDecoder(st.dbc)  # structural: the same for every frame
+        return st.by_signal(data)
 
 
 def _bus_kwargs(p: CanParams, db: Any) -> dict[str, Any]:

@@ -26,6 +26,7 @@ from flowrt.analysis.can_database import (
 
 __all__ = [
     "EncodeProblem",
+    "SignalDecoder",
     "acceptance_filters",
     "checksum",
     "dbc_path",
@@ -113,6 +114,33 @@ def encode_signals(msg: Any, values: Mapping[str, Any]) -> bytes:
         detail = " ".join(str(e).split()).strip("'\"") or type(e).__name__
         cause = _NUMBER.sub("#", detail)
         raise EncodeProblem(cause if len(cause) <= 160 else cause[:157] + "...", detail) from None
+
+
+class SignalDecoder:
+    """Decodes a message signal by signal, each as cantools decodes it alone.
+
+    cantools decodes a message in one unpack, which refuses overlapping fields: opendbc's GM
+    databases have ``...Group`` signals that cover their parts (177 of the 367 messages of
+    ``gm_global_a_lowspeed_1818125``), and every frame of those was a decode error. Loaded
+    non-strictly, such a message is decoded by this instead (a non-multiplexed one only: a
+    multiplexed message's branches must be chosen by its multiplexer).
+    """
+
+    def __init__(self, msg: Any) -> None:
+        from cantools.database.utils import create_encode_decode_formats
+
+        self.length = int(msg.length)
+        self.parts = [
+            ([sig], create_encode_decode_formats([sig], self.length)) for sig in msg.signals
+        ]
+
+    def __call__(self, data: bytes) -> dict[str, Any]:
+        from cantools.database.utils import decode_data
+
+        out: dict[str, Any] = {}
+        for sigs, formats in self.parts:
+            out.update(decode_data(data, self.length, sigs, formats, False, True, False, False))
+        return out
 
 
 def acceptance_filters(db: Any, names: list[str]) -> list[dict[str, Any]]:
