@@ -162,3 +162,24 @@ def test_the_summary_is_bounded_whatever_the_dbc() -> None:
     small = summarise(CanBusStatus(1.0, "virtual", None, True, 0, 0, 0, 0, 0, 0, 0, 0, 0, ()))
     assert small.invalid_names == ()
     assert small.channel is None
+
+
+async def test_an_rtdb_too_small_for_the_summary_is_said_once_not_raised(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    channel = f"small-rtdb-{time.monotonic_ns()}"
+    g = GraphBuilder()
+    params = {"interface": "virtual", "channel": channel, "dbc": "robot.dbc", "status_ms": 100}
+    g.add("car", "can", params=params)
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        rt.rtdb.max_value = 64  # an RTDB made smaller than any summary
+        runner = rt.scheduler.runners["car"]
+        await until(lambda: getattr(runner.executor, "node", None) is not None)
+        await clock.advance(0.55)
+        assert runner.counts.restarts == 0
+        assert runner.counts.errors == 0
+        assert runner.executor.node.keep_status is False  # type: ignore[attr-defined]
+    said = [r for r in caplog.records if "status not kept in the RTDB" in r.getMessage()]
+    assert len(said) == 1
+    assert "more than max_value 64" in said[0].getMessage()
