@@ -3,8 +3,10 @@
 ``analyse`` reads a CAN database (DBC, KCD, ARXML, SYM: whatever cantools reads, loaded
 non-strictly: :mod:`flowrt.analysis.can_database`) and prints the analysis of
 :mod:`flowrt.analysis.can` (worst-case frame lengths, classic and FD, utilisation,
-worst-case response times after Davis et al. 2007); exit 1 when a message can miss its
-deadline, 2 when the database does not load or an argument is out of range. ``stats`` reads
+worst-case response times after Davis et al. 2007); exit 1 unless the bus is shown
+schedulable (a message can miss its deadline, the utilisation is over 100 %, or the
+verdict is unknown: nothing could be analysed), 2 when the database does not load or an
+argument is out of range. ``stats`` reads
 a trace in any format python-can reads (.asc, .blf, .log, .trc, .csv, .mf4, ...) and prints
 per channel and identifier the count, mean period and inter-arrival spread, and the bus
 load per second (:mod:`flowrt.analysis.can_trace`).
