@@ -45,7 +45,7 @@ Transmit
 Supervision (as opendbc does for cars)
     - A periodic message not received within ``timeout_factor`` (10) times its cycle (or its
       ``timeout_ms``) is republished with ``valid: false`` and ``reason: timeout`` and a
-      ``HealthAlert`` is raised; it is valid again with the next good frame. Messages this
+      ``HealthAlert`` is raised (one for the tick when more than 3 time out together); it is valid again with the next good frame. Messages this
       node transmits are not supervised. ``receive`` names the messages the node receives
       at all: only those are supervised, and acceptance filters keep the others out (in
       the adapter where it has them, else in python-can's reader), as an ECU filters.
@@ -141,6 +141,8 @@ __all__ = [
 ]
 
 CAN_ERR_BUSOFF = 0x40  # SocketCAN error class bit in an error frame's id (linux/can/error.h)
+#: Timeout alerts a tick raises one by one; more messages timing out together are one alert.
+ALERTS_PER_TICK = 3
 
 
 def _gcd_ms(values: list[float]) -> float:
@@ -610,6 +612,11 @@ class Can(Node):
             self.ctx.emit(HealthAlert(self.ctx.elapsed(), self.ctx.name, "can-encode", detail))
 
     def _supervise(self, now: float) -> None:
+        """Timed-out messages are republished invalid, each; the alert is one per message,
+        or one for the tick when more time out together (a vehicle's bus gone quiet is one
+        event, not 331 lines: the status output has every message's timeouts)."""
+        details: list[str] = []
+        names: list[str] = []
         for st in self.rxs:
             assert st.timeout is not None
             since = st.last_rx if st.last_rx is not None else self.supervise_from
@@ -618,11 +625,11 @@ class Can(Node):
             st.timed_out = True
             st.timeouts += 1
             st.last_counter = None
-            detail = (
-                f"{st.dbc.name} (0x{st.dbc.frame_id:X}) not received for "
+            names.append(f"{st.dbc.name} (0x{st.dbc.frame_id:X})")
+            details.append(
+                f"{names[-1]} not received for "
                 f"{(now - since) * 1000:.0f} ms (timeout {st.timeout * 1000:g} ms)"
             )
-            self.ctx.emit(HealthAlert(self.ctx.elapsed(), self.ctx.name, "can-timeout", detail))
             last = st.last
             self.ctx.publish(
                 st.dbc.name,
@@ -640,6 +647,13 @@ class Can(Node):
                     st.brs,
                 ),
             )
+        if len(details) > ALERTS_PER_TICK:
+            details = [
+                f"{len(details)} messages not received within their timeouts: "
+                f"{', '.join(names[:ALERTS_PER_TICK])}, ... (the status output has each)"
+            ]
+        for detail in details:
+            self.ctx.emit(HealthAlert(self.ctx.elapsed(), self.ctx.name, "can-timeout", detail))
 
     # --- statistics --------------------------------------------------------------------------
 

@@ -183,3 +183,31 @@ async def test_an_rtdb_too_small_for_the_summary_is_said_once_not_raised(
     said = [r for r in caplog.records if "status not kept in the RTDB" in r.getMessage()]
     assert len(said) == 1
     assert "more than max_value 64" in said[0].getMessage()
+
+
+async def test_a_quiet_vehicle_bus_is_one_alert_per_tick_not_one_per_message() -> None:
+    """Nothing on the bus: every periodic message times out, each republished invalid, and
+    the alerts come one per tick in which several timed out, not 331 lines."""
+    from flowrt import HealthAlert
+
+    path = opendbc("ford_lincoln_base_pt.dbc")
+    db = load_dbc(path)
+    channel = f"quiet-{time.monotonic_ns()}"
+    g = GraphBuilder()
+    g.add("car", "can", params={"interface": "virtual", "channel": channel, "dbc": path})
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        runner = rt.scheduler.runners["car"]
+        await until(lambda: getattr(runner.executor, "node", None) is not None)
+        node = runner.executor.node  # type: ignore[attr-defined]
+        await clock.advance(16.0)  # 10 x its cycles up to 1.5 s (one is 100 s)
+        periodic = [m for m in db.messages if m.cycle_time and m.cycle_time <= 1500]
+        assert len(periodic) == 149
+        assert all(node.msgs[m.name].timeouts == 1 for m in periodic)
+        alerts = [e for e in rt.events if isinstance(e, HealthAlert) and e.alert == "can-timeout"]
+    assert 0 < len(alerts) <= 16  # ten distinct timeouts, a tick or two each
+    grouped = [a for a in alerts if "messages not received within their timeouts" in a.detail]
+    assert grouped
+    assert sum(int(a.detail.split()[0]) for a in grouped) + len(alerts) - len(grouped) == len(
+        periodic
+    )
