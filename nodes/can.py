@@ -45,8 +45,9 @@ Transmit
 Supervision (as opendbc does for cars)
     - A periodic message not received within ``timeout_factor`` (10) times its cycle (or its
       ``timeout_ms``) is republished with ``valid: false`` and ``reason: timeout`` and a
-      ``HealthAlert`` is raised (one for the tick when more than 3 time out together); it is valid again with the next good frame. Messages this
-      node transmits are not supervised. ``receive`` names the messages the node receives
+      ``HealthAlert`` is raised (one for the tick when more than 3 time out together); it
+      is valid again with the next good frame. Messages this node transmits are not
+      supervised. ``receive`` names the messages the node receives
       at all: only those are supervised, and acceptance filters keep the others out (in
       the adapter where it has them, else in python-can's reader), as an ECU filters.
     - With a ``counter`` signal, a counter that is not the previous one plus one (skipped or
