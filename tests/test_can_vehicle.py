@@ -75,6 +75,7 @@ def cantools_decode(db: Any, m: Any, data: bytes) -> dict[str, Any]:
     return out
 
 
+@pytest.mark.slow  # 2-3 s a database (the reader thread takes hundreds of frames)
 @pytest.mark.parametrize("name", VEHICLE_DBCS)
 async def test_every_message_of_a_vehicle_dbc_decodes_as_cantools_does(name: str) -> None:
     path = opendbc(name)
