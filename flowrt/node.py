@@ -31,7 +31,7 @@ import logging
 import os
 from collections.abc import Mapping
 from random import Random
-from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, Final, Generic, Literal, TypeVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
@@ -88,12 +88,31 @@ class Input(Generic[T]):
         return f"Input({getattr(self.type, '__name__', self.type)}, name={self.name!r})"
 
 
-class Output(Generic[T]):
-    """An output port; every connected input gets its own buffer (fan-out)."""
+#: An output's expected rate when it publishes once per activation (the default).
+PER_ACTIVATION: Final = "activation"
 
-    def __init__(self, type_: type[T] | Any = object, *, doc: str = "") -> None:
+
+class Output(Generic[T]):
+    """An output port; every connected input gets its own buffer (fan-out).
+
+    ``rate_hz`` is how often the output is expected to publish, for the statistics and the
+    recording's stream table (expected vs received, "missing"): ``PER_ACTIVATION`` (the
+    default) at the node's own rate, a number of publications per second for an output
+    with a rate of its own (a status every second on a node ticking at 100 Hz), ``None``
+    for one without a rate (on events: nothing is expected, nothing counted missing). A
+    rate that depends on the params comes from :meth:`Node.output_rates`.
+    """
+
+    def __init__(
+        self,
+        type_: type[T] | Any = object,
+        *,
+        doc: str = "",
+        rate_hz: float | Literal["activation"] | None = PER_ACTIVATION,
+    ) -> None:
         self.type: Any = type_
         self.doc = doc
+        self.rate_hz = rate_hz
         self.name = ""
 
     def __set_name__(self, owner: type, name: str) -> None:
@@ -320,6 +339,20 @@ class Node:
         """Outputs that exist because of the params (a CAN node publishes each message of its
         DBC file on an output named after it), beside the class's own."""
         return {}
+
+    @classmethod
+    def output_rates(cls, params: Any) -> Mapping[str, float | None]:
+        """Expected publications per second of the outputs that do not publish once per
+        activation, by port; None for an output without a rate (event-driven). Outputs not
+        named follow the node's activation rate. The runtime's statistics (``output_hz``)
+        and the recording's stream table read it.
+
+        Default: each port's ``Output(rate_hz=...)``, the class's and the params' outputs.
+        Override it when a rate depends on the params (a CAN node's status every
+        ``status_ms``; each DBC message at its cycle time).
+        """
+        ports = {**cls.outputs, **cls.params_outputs(params)}
+        return {n: p.rate_hz for n, p in ports.items() if not isinstance(p.rate_hz, str)}
 
     @classmethod
     def frame_ports(cls) -> list[str]:

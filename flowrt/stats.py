@@ -146,6 +146,11 @@ class NodeStats(_Frozen):
     execution: Summary = Field(description="start to finish, ms")
     response: Summary = Field(description="release (tick) to finish, ms")
     granted: str = Field(default="", description="OS scheduling granted to the worker process")
+    output_hz: dict[str, float | None] = Field(
+        default_factory=dict,
+        description="expected publications per second of the outputs with a rate of their "
+        "own (None: no rate, on events); the others publish once per activation",
+    )
 
 
 class EdgeStats(_Frozen):

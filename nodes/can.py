@@ -23,6 +23,8 @@ Receive
     in the RTDB. Frames with other ids are counted (``unknown``) and, with
     ``unknown_output: true``, published raw on the ``unknown`` output (:class:`CanFrame`).
     A frame whose length differs from the DBC's is counted (``bad_length``), not decoded.
+    A message cantools cannot unpack whole (overlapping signals, as in GM's databases) is
+    decoded signal by signal, each as cantools decodes it alone.
 
 Transmit
     Every input named after a DBC message is encoded with the DBC from the latest value
@@ -43,8 +45,9 @@ Transmit
 Supervision (as opendbc does for cars)
     - A periodic message not received within ``timeout_factor`` (10) times its cycle (or its
       ``timeout_ms``) is republished with ``valid: false`` and ``reason: timeout`` and a
-      ``HealthAlert`` is raised; it is valid again with the next good frame. Messages this
-      node transmits are not supervised. ``receive`` names the messages the node receives
+      ``HealthAlert`` is raised (one for the tick when more than 3 time out together); it
+      is valid again with the next good frame. Messages this node transmits are not
+      supervised. ``receive`` names the messages the node receives
       at all: only those are supervised, and acceptance filters keep the others out (in
       the adapter where it has them, else in python-can's reader), as an ECU filters.
     - With a ``counter`` signal, a counter that is not the previous one plus one (skipped or
@@ -86,9 +89,11 @@ Replay
     as they were: FD, bit-rate switch, remote and error frames kept.
 
 Every ``status_ms`` the node publishes a :class:`CanBusStatus` on ``status``: per message
-received/sent, rate, age, timeouts, bad counters/checksums/lengths, late sends, validity;
-it is also kept in the RTDB record ``<node>.can`` (``flowrt ctl rtdb chassis.can`` while
-the graph runs with ``--control``).
+received/sent, rate, age, timeouts, bad counters/checksums/lengths, late sends, validity.
+Its bounded summary (:class:`CanBusSummary`: the bus counters, totals over the messages,
+how many are invalid and the first few names; the same size for 3 messages or 3000) is kept
+in the RTDB record ``<node>.can`` (``flowrt ctl rtdb chassis.can`` while the graph runs
+with ``--control``).
 The DBC is loaded when the graph is validated: a file that does not parse is one error line;
 what cantools' strict loading would refuse is a named warning, once (``strict: true``
 refuses). The wire is :mod:`flowrt.nodes.can_bus`, the params :mod:`flowrt.nodes.can_params`,
@@ -110,6 +115,7 @@ from flowrt.analysis.can_frames import fd_payload_length
 from .can_bus import SERIAL_INTERFACES, CanLink, TraceLog, TraceReplay, one_line
 from .can_dbc import (
     EncodeProblem,
+    SignalDecoder,
     acceptance_filters,
     checksum,
     encode_signals,
@@ -119,11 +125,12 @@ from .can_dbc import (
 )
 from .can_params import CanParams, MessageParams
 from .can_signals import SignalSource, Wave
-from .can_values import CanBusStatus, CanFrame, CanMessage, MessageStatus
+from .can_values import CanBusStatus, CanBusSummary, CanFrame, CanMessage, MessageStatus, summarise
 
 __all__ = [
     "Can",
     "CanBusStatus",
+    "CanBusSummary",
     "CanFrame",
     "CanMessage",
     "CanParams",
@@ -135,6 +142,8 @@ __all__ = [
 ]
 
 CAN_ERR_BUSOFF = 0x40  # SocketCAN error class bit in an error frame's id (linux/can/error.h)
+#: Timeout alerts a tick raises one by one; more messages timing out together are one alert.
+ALERTS_PER_TICK = 3
 
 
 def _gcd_ms(values: list[float]) -> float:
@@ -193,6 +202,9 @@ class _Msg:
     # slowest step between the release and ``bus.send``).
     encoded: bytes | None = None
     signal_names: frozenset[str] = frozenset()
+    # Set when cantools refuses to decode the message whole (overlapping signals, loaded
+    # non-strictly): decoded signal by signal from then on (can_dbc.SignalDecoder).
+    by_signal: SignalDecoder | None = None
 
     @property
     def checksum_byte(self) -> int | None:
@@ -233,8 +245,10 @@ class Can(Node):
     inline_only = True  # its reader thread hands frames to the event loop
     external = True  # received frames are recorded inputs: replay publishes them, sends nothing
 
-    unknown = Output(CanFrame, doc="frames with ids the DBC does not know (unknown_output)")
-    frames = Output(CanFrame, doc="every received frame, raw (raw_output)")
+    unknown = Output(
+        CanFrame, doc="frames with ids the DBC does not know (unknown_output)", rate_hz=None
+    )
+    frames = Output(CanFrame, doc="every received frame, raw (raw_output)", rate_hz=None)
     status = Output(CanBusStatus, doc="per-message and bus counters every status_ms")
 
     @classmethod
@@ -244,8 +258,21 @@ class Can(Node):
 
     @classmethod
     def params_outputs(cls, params: Any) -> Mapping[str, Output[Any]]:
+        """One per DBC message, expected at its cycle time; an event message (no cycle) or
+        one the ``receive`` filter keeps out has no rate: nothing of it is "missing"."""
         db = load_dbc(params.dbc)
-        return {m.name: Output(CanMessage, doc=f"decoded 0x{m.frame_id:X}") for m in db.messages}
+        kept = None if params.receive is None else set(params.receive)
+        out: dict[str, Output[Any]] = {}
+        for m in db.messages:
+            cycle = params.cycle_ms(m)
+            hz = 1000.0 / cycle if cycle and (kept is None or m.name in kept) else None
+            out[m.name] = Output(CanMessage, doc=f"decoded 0x{m.frame_id:X}", rate_hz=hz)
+        return out
+
+    @classmethod
+    def output_rates(cls, params: Any) -> Mapping[str, float | None]:
+        """Each message at its cycle, ``status`` every ``status_ms``, raw frames on events."""
+        return {**super().output_rates(params), "status": 1000.0 / params.status_ms}
 
     @classmethod
     def default_trigger(cls, params: Any) -> TimerTrigger:
@@ -378,7 +405,7 @@ class Can(Node):
             self._bad(st)
             return
         try:
-            signals = st.dbc.decode(data[: st.dbc.length], decode_choices=False)
+            signals = _decode(st, data[: st.dbc.length])
         except Exception:
             self.decode_errors += 1
             self._bad(st)
@@ -453,14 +480,22 @@ class Can(Node):
             self.replay = None
 
     def _record_status(self, status: CanBusStatus) -> None:
-        """Keep the status in the RTDB (``<node>.can``): ``flowrt ctl rtdb chassis.can``
-        shows it while the graph runs."""
+        """Keep the status's bounded summary in the RTDB (``<node>.can``): ``flowrt ctl rtdb
+        chassis.can`` shows it while the graph runs. The full table, which grows with the
+        DBC, is on ``status`` only: an RTDB value has a size limit, and a status over it
+        raised here and restarted the node every ``status_ms`` (issue 38)."""
         try:
             db = self.ctx.rtdb
         except RuntimeError:  # no RTDB (outside a Runtime): nothing to keep it in
             self.keep_status = False
             return
-        db.write(f"{self.ctx.name}.can", status, validity_ms=3 * self.params.status_ms)
+        try:
+            db.write(
+                f"{self.ctx.name}.can", summarise(status), validity_ms=3 * self.params.status_ms
+            )
+        except ValueError as e:  # an RTDB made with a smaller max_value: say so once, go on
+            self.keep_status = False
+            self.ctx.log.warning("%s: status not kept in the RTDB: %s", self.ctx.name, e)
 
     def _start(self, inputs: Mapping[str, Any]) -> None:
         self.started = True
@@ -578,6 +613,11 @@ class Can(Node):
             self.ctx.emit(HealthAlert(self.ctx.elapsed(), self.ctx.name, "can-encode", detail))
 
     def _supervise(self, now: float) -> None:
+        """Timed-out messages are republished invalid, each; the alert is one per message,
+        or one for the tick when more time out together (a vehicle's bus gone quiet is one
+        event, not 331 lines: the status output has every message's timeouts)."""
+        details: list[str] = []
+        names: list[str] = []
         for st in self.rxs:
             assert st.timeout is not None
             since = st.last_rx if st.last_rx is not None else self.supervise_from
@@ -586,11 +626,11 @@ class Can(Node):
             st.timed_out = True
             st.timeouts += 1
             st.last_counter = None
-            detail = (
-                f"{st.dbc.name} (0x{st.dbc.frame_id:X}) not received for "
+            names.append(f"{st.dbc.name} (0x{st.dbc.frame_id:X})")
+            details.append(
+                f"{names[-1]} not received for "
                 f"{(now - since) * 1000:.0f} ms (timeout {st.timeout * 1000:g} ms)"
             )
-            self.ctx.emit(HealthAlert(self.ctx.elapsed(), self.ctx.name, "can-timeout", detail))
             last = st.last
             self.ctx.publish(
                 st.dbc.name,
@@ -608,6 +648,13 @@ class Can(Node):
                     st.brs,
                 ),
             )
+        if len(details) > ALERTS_PER_TICK:
+            details = [
+                f"{len(details)} messages not received within their timeouts: "
+                f"{', '.join(names[:ALERTS_PER_TICK])}, ... (the status output has each)"
+            ]
+        for detail in details:
+            self.ctx.emit(HealthAlert(self.ctx.elapsed(), self.ctx.name, "can-timeout", detail))
 
     # --- statistics --------------------------------------------------------------------------
 
@@ -632,6 +679,22 @@ class Can(Node):
             tuple((m, c, n) for (m, c), n in sorted(self.encode_causes.items())),
             tuple((c, i, e, n) for (c, i, e), n in sorted(self.id_counts.items())),
         )  # fmt: skip
+
+
+def _decode(st: _Msg, data: bytes) -> Mapping[str, Any]:
+    """Physical values as cantools decodes them: the message whole, or (one that cantools
+    cannot unpack whole: overlapping signals) each signal alone. A multiplexed message that
+    fails (a multiplexer value with no branch) raises: a decode error."""
+    if st.by_signal is not None:
+        return st.by_signal(data)
+    try:
+        values: Mapping[str, Any] = st.dbc.decode(data, decode_choices=False)
+        return values
+    except Exception:
+        if st.dbc.is_multiplexed():
+            raise
+        st.by_signal = SignalDecoder(st.dbc)  # structural: the same for every frame
+        return st.by_signal(data)
 
 
 def _bus_kwargs(p: CanParams, db: Any) -> dict[str, Any]:

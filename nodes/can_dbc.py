@@ -26,6 +26,7 @@ from flowrt.analysis.can_database import (
 
 __all__ = [
     "EncodeProblem",
+    "SignalDecoder",
     "acceptance_filters",
     "checksum",
     "dbc_path",
@@ -37,6 +38,9 @@ __all__ = [
 ]
 
 log = logging.getLogger("flowrt.nodes.can")
+
+#: Strict-loading problems of one DBC logged one by one; the rest are counted in one line.
+WARNINGS_SHOWN = 5
 
 
 def dbc_path(path: str) -> Path:
@@ -57,8 +61,18 @@ def _load(path: str, mtime_ns: int) -> tuple[Any, tuple[DatabaseWarning, ...]]:
         db, warnings = load_database(path)
     except CanDatabaseError as e:
         raise ValueError(str(e)) from None
-    for w in warnings:  # once per file and version: the cache keeps the load
+    # once per file and version (the cache keeps the load), and the first few only: a
+    # vehicle's DBC has hundreds (opendbc's gm_global_a_lowspeed: 1675 overlapping signals)
+    for w in warnings[:WARNINGS_SHOWN]:
         log.warning("%s: %s (cantools' strict loading would refuse it)", path, w)
+    if len(warnings) > WARNINGS_SHOWN:
+        log.warning(
+            "%s: %d more that cantools' strict loading would refuse "
+            "(flowrt can analyse %s --json lists them all)",
+            path,
+            len(warnings) - WARNINGS_SHOWN,
+            path,
+        )
     return db, tuple(warnings)
 
 
@@ -100,6 +114,33 @@ def encode_signals(msg: Any, values: Mapping[str, Any]) -> bytes:
         detail = " ".join(str(e).split()).strip("'\"") or type(e).__name__
         cause = _NUMBER.sub("#", detail)
         raise EncodeProblem(cause if len(cause) <= 160 else cause[:157] + "...", detail) from None
+
+
+class SignalDecoder:
+    """Decodes a message signal by signal, each as cantools decodes it alone.
+
+    cantools decodes a message in one unpack, which refuses overlapping fields: opendbc's GM
+    databases have ``...Group`` signals that cover their parts (177 of the 367 messages of
+    ``gm_global_a_lowspeed_1818125``), and every frame of those was a decode error. Loaded
+    non-strictly, such a message is decoded by this instead (a non-multiplexed one only: a
+    multiplexed message's branches must be chosen by its multiplexer).
+    """
+
+    def __init__(self, msg: Any) -> None:
+        from cantools.database.utils import create_encode_decode_formats
+
+        self.length = int(msg.length)
+        self.parts = [
+            ([sig], create_encode_decode_formats([sig], self.length)) for sig in msg.signals
+        ]
+
+    def __call__(self, data: bytes) -> dict[str, Any]:
+        from cantools.database.utils import decode_data
+
+        out: dict[str, Any] = {}
+        for sigs, formats in self.parts:
+            out.update(decode_data(data, self.length, sigs, formats, False, True, False, False))
+        return out
 
 
 def acceptance_filters(db: Any, names: list[str]) -> list[dict[str, Any]]:

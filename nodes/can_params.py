@@ -87,7 +87,9 @@ class CanParams(BaseModel):
     reopen_max_ms: float = Field(default=5000.0, gt=0, description="longest reopen backoff")
     status_ms: float = Field(default=1000.0, gt=0, description="status output period")
     status_record: bool = Field(
-        default=True, description="also keep the status in the RTDB record '<node>.can'"
+        default=True,
+        description="also keep a bounded summary of the status (CanBusSummary) in the RTDB "
+        "record '<node>.can'",
     )
     send_thread: bool | None = Field(
         default=None, description="write frames from a thread (default: serial interfaces)"

@@ -10,7 +10,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["CanBusStatus", "CanFrame", "CanMessage", "MessageStatus"]
+__all__ = [
+    "SUMMARY_NAMES",
+    "CanBusStatus",
+    "CanBusSummary",
+    "CanFrame",
+    "CanMessage",
+    "MessageStatus",
+    "summarise",
+]
 
 
 @dataclass(frozen=True)
@@ -91,3 +99,69 @@ class CanBusStatus:
     encode_errors: tuple[tuple[str, str, int], ...] = ()  # (message, cause, count)
     #: frames received per (channel, id, extended): the same id on two channels is two streams
     ids_by_channel: tuple[tuple[str, int, bool, int], ...] = ()
+
+
+#: Invalid messages a :class:`CanBusSummary` names (the first, in DBC order); the count is whole.
+SUMMARY_NAMES = 8
+#: Longest text a summary keeps (a message name, the interface, the channel), in characters.
+SUMMARY_TEXT = 64
+
+
+@dataclass(frozen=True)
+class CanBusSummary:
+    """What the RTDB keeps of a ``can`` node's status (record ``<node>.can``): the bus
+    counters and totals over the messages, a fixed number of fields whatever the DBC.
+
+    An RTDB value has a size limit (4096 bytes pickled by default); the full table, one row
+    per DBC message, grows with the database (a vehicle's 331-message DBC is over 40 kB) and
+    goes on the ``status`` output instead. Names and texts are clipped to SUMMARY_TEXT and at
+    most SUMMARY_NAMES invalid messages are named, so the pickled summary stays under 2 kB.
+    """
+
+    t: float
+    interface: str
+    channel: str | None
+    open: bool
+    received: int
+    sent: int
+    unknown: int
+    error_frames: int
+    bus_off: int
+    interface_lost: int
+    reopens: int
+    send_errors: int
+    decode_errors: int
+    messages: int  # in the DBC
+    invalid: int  # messages not valid now (timed out, or too many bad frames)
+    invalid_names: tuple[str, ...]  # the first SUMMARY_NAMES of them
+    timeouts: int  # totals over the messages
+    bad_counter: int
+    bad_checksum: int
+    bad_length: int
+    late: int
+    bad_inputs: int
+    encode_errors: int
+    trace_frames: int = 0
+    trace_dropped: int = 0
+
+
+def _clip(text: str) -> str:
+    return text if len(text) <= SUMMARY_TEXT else text[: SUMMARY_TEXT - 3] + "..."
+
+
+def summarise(status: CanBusStatus) -> CanBusSummary:
+    """The bounded summary of a full status (see :class:`CanBusSummary`)."""
+    rows = status.messages
+    invalid = [r.name for r in rows if not r.valid]
+    return CanBusSummary(
+        status.t, _clip(status.interface),
+        None if status.channel is None else _clip(status.channel),
+        status.open, status.received, status.sent, status.unknown, status.error_frames,
+        status.bus_off, status.interface_lost, status.reopens, status.send_errors,
+        status.decode_errors, len(rows), len(invalid),
+        tuple(_clip(n) for n in invalid[:SUMMARY_NAMES]),
+        sum(r.timeouts for r in rows), sum(r.bad_counter for r in rows),
+        sum(r.bad_checksum for r in rows), sum(r.bad_length for r in rows),
+        sum(r.late for r in rows), sum(r.bad_inputs for r in rows),
+        sum(r.encode_errors for r in rows), status.trace_frames, status.trace_dropped,
+    )  # fmt: skip

@@ -131,7 +131,7 @@ class Decision(Node):
     """Switches modes by a decision table over RTDB records (see the module docstring)."""
 
     Params = DecisionParams
-    mode = Output(str, doc="the mode chosen, published when it changes")
+    mode = Output(str, doc="the mode chosen, published when it changes", rate_hz=None)
 
     @classmethod
     def default_trigger(cls, params: Any) -> TimerTrigger:

@@ -95,3 +95,29 @@ def write(tmp: Path, text: str, name: str = "bus.dbc") -> str:
 def without_data_bitrate(text: str) -> str:
     """The FD database without its BaudrateCANFD attribute."""
     return "\n".join(line for line in text.splitlines() if "BaudrateCANFD" not in line) + "\n"
+
+
+#: The largest production databases of the ``opendbc`` package (the test extra) that cantools
+#: loads, by size: a 331-message CAN FD powertrain, a 367-message body bus of extended ids
+#: (1675 overlapping signals strict loading refuses), CAN FD ADAS, multiplexed messages.
+VEHICLE_DBCS = (
+    "ford_lincoln_base_pt.dbc",
+    "gm_global_a_lowspeed_1818125.dbc",
+    "bmw_e9x_e8x.dbc",
+    "cadillac_ct6_object.dbc",
+    "generator/hyundai/hyundai_canfd.dbc",
+    "vw_mqb.dbc",
+    "hyundai_2015_ccan.dbc",
+)
+
+
+def opendbc(name: str) -> str:
+    """The path of one of opendbc's DBC files (installed with the test extra)."""
+    from importlib.metadata import version
+
+    import opendbc as package
+
+    path = Path(package.DBC_PATH) / name
+    if not path.is_file():
+        raise FileNotFoundError(f"opendbc {version('opendbc')} has no {name}")
+    return str(path)

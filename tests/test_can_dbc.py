@@ -95,7 +95,7 @@ def test_strict_refusals_are_named_warnings_once(tmp_path: Path) -> None:
     rc, out, err = _run("can", "analyse", path, "--strict")
     assert rc == 2
     assert err.strip().splitlines() == [
-        f"{path}: refused by strict loading: Over.B: overlaps signal A"
+        f"flowrt can analyse: {path}: refused by strict loading: Over.B: overlaps signal A"
     ]
 
 
@@ -105,7 +105,7 @@ def test_unparsable_database_is_one_line_with_its_line_number(tmp_path: Path) ->
     assert rc == 2
     assert len(err.strip().splitlines()) == 1
     line = FD_DBC.splitlines().index("BO_ 257 Fd12: 12 ECU") + 1
-    assert err.startswith(f"{path}:{line}: not a valid CAN database")
+    assert err.startswith(f"flowrt can analyse: {path}:{line}: not a valid CAN database")
     with pytest.raises(CanDatabaseError, match="no such file"):
         load_database(tmp_path / "missing.dbc")
 
@@ -209,7 +209,7 @@ def test_special_files_end_at_once(tmp_path: Path, command: str) -> None:
     for path, kind in ((str(fifo), "a FIFO (named pipe)"), ("/dev/zero", "a device")):
         rc, _, err = _run("can", command, path)
         assert rc == 2
-        assert err.strip() == f"{path} is {kind}, not a regular file"
+        assert err.strip() == f"flowrt can {command}: {path} is {kind}, not a regular file"
 
 
 def test_the_node_loads_what_cantools_loads_and_strict_refuses(

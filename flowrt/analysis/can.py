@@ -48,6 +48,7 @@ from typing import Any
 from .can_frames import fd_frame_bits, frame_bits
 
 __all__ = [
+    "NO_DATA_BITRATE",
     "BusAnalysis",
     "CanMessageTiming",
     "MessageResult",
@@ -58,6 +59,8 @@ __all__ = [
 ]
 
 _MAX_ITER = 100_000
+#: The note of an FD message with bit-rate switch analysed without a data bit rate.
+NO_DATA_BITRATE = "CAN FD with bit-rate switch: no data bit rate"
 #: Most instances of a message in its busy period that are examined (eq. 13): a queuing jitter
 #: of days against a period of milliseconds would otherwise take hours; past it the message
 #: is reported unbounded.
@@ -115,20 +118,76 @@ class MessageResult:
 
 @dataclass(frozen=True)
 class BusAnalysis:
+    """The bus as a whole: load, each message's result, and the verdict.
+
+    ``bits_per_s`` is the load in nominal bit times per second, ``utilisation * bitrate``:
+    an FD data phase at ``data_bitrate`` counts ``bitrate / data_bitrate`` of a nominal bit
+    per bit, so the figure and the utilisation always agree. ``arbitration_bits_per_s`` and
+    ``data_bits_per_s`` are the bits actually sent in each phase.
+
+    Without a data bit rate an FD message with bit-rate switch has no known length: it
+    counts at its no-BRS length in ``utilisation`` (an upper bound) and at its arbitration
+    phase only in ``utilisation_min`` (a lower bound, the data phase taken as instant).
+    """
+
     bitrate: int
-    bits_per_s: float  # worst-case bits per second of the periodic messages
-    utilisation: float  # sum of C/T: the share of the bus' time (bits_per_s / bitrate if classic)
+    bits_per_s: float  # nominal bit times per second of the periodic messages
+    utilisation: float  # sum of C/T: the share of the bus' time (an upper bound, see above)
     messages: list[MessageResult]  # in priority order, highest first
     data_bitrate: int | None = None
+    utilisation_min: float | None = None  # None: the same as utilisation (every length known)
+    arbitration_bits_per_s: float = 0.0
+    data_bits_per_s: float = 0.0
 
     @property
     def not_analysed(self) -> list[MessageResult]:
         return [m for m in self.messages if m.schedulable is None]
 
     @property
-    def schedulable(self) -> bool:
-        """Every periodic message meets its deadline (event-driven ones are not counted)."""
-        return all(m.schedulable is not False for m in self.messages)
+    def schedulable(self) -> bool | None:
+        """True when every analysed message meets its deadline and the bus is not over-full;
+        False when one misses it or the utilisation is over 100 % even at its lower bound;
+        None (unknown) when nothing could be analysed, or the utilisation may or may not be
+        over 100 % (the FD data phase at an unknown rate). Event-driven messages do not count.
+        """
+        if any(m.schedulable is False for m in self.messages):
+            return False
+        low = self.utilisation if self.utilisation_min is None else self.utilisation_min
+        if low > 1.0 + 1e-12:
+            return False
+        if not any(m.schedulable for m in self.messages) or self.utilisation > 1.0 + 1e-12:
+            return None
+        return True
+
+    @property
+    def verdict_reason(self) -> str:
+        """Why the verdict is no or unknown ("" when schedulable)."""
+        misses = [m.name for m in self.messages if m.schedulable is False]
+        if misses:
+            more = f" and {len(misses) - 3} more" if len(misses) > 3 else ""
+            return (
+                f"{len(misses)} message(s) can miss their deadline: {', '.join(misses[:3])}{more}"
+            )
+        low = self.utilisation if self.utilisation_min is None else self.utilisation_min
+        if low > 1.0 + 1e-12:
+            return f"utilisation {100 * low:.2f} % is over 100 %"
+        no_rate = sum(1 for m in self.not_analysed if m.note == NO_DATA_BITRATE)
+        if not any(m.schedulable for m in self.messages):
+            if not self.messages:
+                return "no messages"
+            why = (
+                f"{no_rate} CAN FD message(s) with bit-rate switch and no data bit rate "
+                "(give --data-bitrate or the DBC's BaudrateCANFD)"
+                if no_rate
+                else "no message has a cycle time (give --period or --sporadic)"
+            )
+            return f"nothing could be analysed: {why}"
+        if self.utilisation > 1.0 + 1e-12:
+            return (
+                f"utilisation between {100 * low:.2f} % and {100 * self.utilisation:.2f} % "
+                f"({no_rate} CAN FD message(s) with bit-rate switch and no data bit rate)"
+            )
+        return ""
 
     def to_json(self) -> dict[str, Any]:
         """The ``flowrt can analyse --json`` document: ids integers, times ms floats."""
@@ -136,8 +195,13 @@ class BusAnalysis:
             "bitrate": self.bitrate,
             "data_bitrate": self.data_bitrate,
             "utilisation": self.utilisation,
+            "utilisation_min": self.utilisation_min,
             "bits_per_s": self.bits_per_s,
+            "arbitration_bits_per_s": self.arbitration_bits_per_s,
+            "data_bits_per_s": self.data_bits_per_s,
             "schedulable": self.schedulable,
+            "reason": self.verdict_reason,
+            "not_analysed_count": len(self.not_analysed),
             "messages": [
                 {
                     "name": m.name,
@@ -245,9 +309,14 @@ def analyse_bus(
     frames = [_frame(m, tau_ms, data_bitrate) for m in msgs]
     bits = [a + d for a, d, _ in frames]
     cs = [c for _, _, c in frames]
-    periodic = [(b, c, m) for b, c, m in zip(bits, cs, msgs, strict=True) if m.period_ms]
-    bps = sum(b * 1000.0 / float(m.period_ms or 1) for b, _, m in periodic)
-    util = sum(c / float(m.period_ms or 1) for _, c, m in periodic)
+    periodic = [(f, m) for f, m in zip(frames, msgs, strict=True) if m.period_ms]
+    util = sum(c / float(m.period_ms or 1) for (_, _, c), m in periodic)
+    unknown = [(d, m) for (_, d, _), m in periodic if m.fd and m.brs and data_bitrate is None]
+    util_min = None
+    if unknown:  # their data phase at an unknown rate: at least their arbitration phase
+        util_min = util - sum(d * tau_ms / float(m.period_ms or 1) for d, m in unknown)
+    arb_bps = sum(a * 1000.0 / float(m.period_ms or 1) for (a, _, _), m in periodic)
+    data_bps = sum(d * 1000.0 / float(m.period_ms or 1) for (_, d, _), m in periodic)
     results: list[MessageResult] = []
     for i, m in enumerate(msgs):
         blocking = max(cs[i + 1 :], default=0.0)
@@ -264,7 +333,7 @@ def analyse_bus(
             )  # fmt: skip
             continue
         if m.fd and m.brs and data_bitrate is None:
-            note = "CAN FD with bit-rate switch: no data bit rate"
+            note = NO_DATA_BITRATE
             results.append(
                 MessageResult(
                     m, bits[i], cs[i], blocking, None, None, None, deadline, None, arb, data, note
@@ -283,7 +352,9 @@ def analyse_bus(
         results.append(
             MessageResult(m, bits[i], cs[i], blocking, busy, q, r, deadline, ok, arb, data)
         )
-    return BusAnalysis(bitrate, bps, util, results, data_bitrate)
+    return BusAnalysis(
+        bitrate, util * bitrate, util, results, data_bitrate, util_min, arb_bps, data_bps
+    )
 
 
 def timings_from_dbc(

@@ -20,7 +20,10 @@ from typing import Any
 
 from .can_frames import fd_frame_bits, frame_bits
 
-__all__ = ["TraceError", "frame_seconds", "read_trace", "trace_stats"]
+__all__ = ["MIN_PEAK_S", "TraceError", "frame_seconds", "read_trace", "trace_stats"]
+
+#: Shortest trace (s) whose busiest second ``peak_load`` is given; a shorter one has its mean.
+MIN_PEAK_S = 2.0
 
 
 class TraceError(Exception):
@@ -134,6 +137,7 @@ def trace_stats(
         "error_frames": sum(c["error_frames"] for c in channels),
         "brs_at_nominal_rate": brs_nominal,
         "mean_load": channels[0]["mean_load"] if len(channels) == 1 else None,
+        "peak_load": channels[0]["peak_load"] if len(channels) == 1 else None,
         "ids": [{**r, "channel": c["channel"]} for c in channels for r in c["ids"]],
         "load": channels[0]["load"],
         "channels": channels,
@@ -170,12 +174,20 @@ def _channel_doc(name: str, ch: _Channel, names: dict[tuple[int, bool], str]) ->
         for sec in sorted(ch.busy)
     ]
     busy = sum(ch.busy.values())
+    # the busiest whole second, of a trace of 2 s or more (which has at least one whole):
+    # the first and last bins hold only part of a second, which says nothing of a second's
+    # load, and the busiest of one or two is no figure to give
+    last = ch.last if ch.last is not None else first
+    whole = [ch.busy[sec] for sec in ch.busy if sec >= first and sec + 1 <= last]
+    if duration < MIN_PEAK_S:
+        whole = []
     return {
         "channel": name,
         "duration_s": duration,
         "frames": sum(len(s.arrivals) for s in ch.streams.values()),
         "error_frames": ch.error_frames,
         "mean_load": busy / duration if duration > 0 else None,
+        "peak_load": max(whole) if whole else None,
         "ids": ids,
         "load": load,
     }

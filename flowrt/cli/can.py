@@ -3,8 +3,10 @@
 ``analyse`` reads a CAN database (DBC, KCD, ARXML, SYM: whatever cantools reads, loaded
 non-strictly: :mod:`flowrt.analysis.can_database`) and prints the analysis of
 :mod:`flowrt.analysis.can` (worst-case frame lengths, classic and FD, utilisation,
-worst-case response times after Davis et al. 2007); exit 1 when a message can miss its
-deadline, 2 when the database does not load or an argument is out of range. ``stats`` reads
+worst-case response times after Davis et al. 2007); exit 1 unless the bus is shown
+schedulable (a message can miss its deadline, the utilisation is over 100 %, or the
+verdict is unknown: nothing could be analysed), 2 when the database does not load or an
+argument is out of range. ``stats`` reads
 a trace in any format python-can reads (.asc, .blf, .log, .trc, .csv, .mf4, ...) and prints
 per channel and identifier the count, mean period and inter-arrival spread, and the bus
 load per second (:mod:`flowrt.analysis.can_trace`).
@@ -27,6 +29,10 @@ from ..spec import parse_duration_ms
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, stdout_console
 
 __all__ = ["CanDatabaseError", "load_database", "parse_bitrate", "trace_stats"]
+
+#: Names (and strict-loading warnings) shown in a long list; ``--json`` has them all.
+SHOWN = 5
+QUOTES = "'\""
 
 #: Longest period, deadline, jitter or inter-arrival time taken (an hour): past it a busy
 #: period is not worth computing (``--jitter X=1e9`` took hours).
@@ -90,7 +96,9 @@ def cmd_analyse(args: argparse.Namespace) -> int:
             raise CanDatabaseError(f"{source} {data_rate} is below --bitrate {bitrate}")
         result = analyse_bus(timings, bitrate, data_rate)
     except (CanDatabaseError, KeyError, ValueError) as e:
-        err.print(str(e).strip("'\""), style="red", markup=False, soft_wrap=True)
+        err.print(
+            f"flowrt can analyse: {str(e).strip(QUOTES)}", style="red", markup=False, soft_wrap=True
+        )
         return EXIT_BAD_GRAPH
     if args.json:
         doc = result.to_json()
@@ -98,11 +106,48 @@ def cmd_analyse(args: argparse.Namespace) -> int:
             {"message": w.message, "signal": w.signal, "reason": w.reason} for w in warnings
         ]
         print(json.dumps(doc, indent=2))
-        return EXIT_OK if result.schedulable else EXIT_FAILED
-    for w in warnings:  # once each, on stderr: the analysis itself is on stdout
+        return EXIT_OK if result.schedulable is True else EXIT_FAILED
+    for w in warnings[:SHOWN]:  # on stderr: the analysis itself is on stdout
         err.print(f"warning: {args.dbc}: {w}", style="yellow", markup=False, soft_wrap=True)
+    if len(warnings) > SHOWN:
+        err.print(
+            f"warning: {args.dbc}: {len(warnings) - SHOWN} more that strict loading would "
+            "refuse (--json lists them all)",
+            style="yellow",
+            markup=False,
+            soft_wrap=True,
+        )
     _print_analysis(args.dbc, result)
-    return EXIT_OK if result.schedulable else EXIT_FAILED
+    return EXIT_OK if result.schedulable is True else EXIT_FAILED
+
+
+def _names(messages: list[Any]) -> str:
+    """``N: A, B, C, D, E, ... (--json lists them all)`` (the first SHOWN of a long list)."""
+    names = ", ".join(m.name for m in messages[:SHOWN])
+    if len(messages) <= SHOWN:
+        return names
+    return f"{len(messages)} messages: {names}, ... (--json lists them all)"
+
+
+def _verdict(result: Any) -> str:
+    """The bus line: load (in nominal bit times, the FD data phase at its own rate), the
+    utilisation (a range when an FD data phase has no known rate) and the verdict."""
+    load = f"bus: {result.bits_per_s:,.0f} bit/s"
+    if result.data_bitrate is not None and result.data_bits_per_s:
+        load += (
+            f" in nominal bit times ({result.arbitration_bits_per_s:,.0f} at the nominal rate "
+            f"+ {result.data_bits_per_s:,.0f} FD data-phase bit/s at {result.data_bitrate:,})"
+        )
+    if result.utilisation_min is None:
+        util = f"utilisation {100 * result.utilisation:.2f} %"
+    else:
+        util = (
+            f"utilisation {100 * result.utilisation_min:.2f} to {100 * result.utilisation:.2f} %"
+            " (FD data phase at an unknown rate)"
+        )
+    verdict = {True: "yes", False: "NO", None: "unknown"}[result.schedulable]
+    reason = result.verdict_reason
+    return f"{load}, {util}; schedulable: {verdict}" + (f" ({reason})" if reason else "")
 
 
 def _print_analysis(path: str, result: Any) -> None:
@@ -119,18 +164,14 @@ def _print_analysis(path: str, result: Any) -> None:
         markup=False,
     )
     console.print(_message_table(result.messages, console.width))
-    console.print(
-        f"bus: {result.bits_per_s:,.0f} bit/s, utilisation {100 * result.utilisation:.2f} %; "
-        f"schedulable: {'yes' if result.schedulable else 'NO'}",
-        markup=False,
-    )
+    console.print(_verdict(result), markup=False)
     left = result.not_analysed
     event = [m for m in left if m.timing.period_ms is None]
     fd = [m for m in left if m.timing.period_ms is not None]
     if fd:
         console.print(
             "not analysed (CAN FD with bit-rate switch, no data bit rate; give --data-bitrate "
-            f"or the DBC's BaudrateCANFD): {', '.join(m.name for m in fd)}; their no-BRS "
+            f"or the DBC's BaudrateCANFD): {_names(fd)}; their no-BRS "
             "length counts as interference and blocking for the others",
             style="yellow",
             markup=False,
@@ -138,7 +179,7 @@ def _print_analysis(path: str, result: Any) -> None:
     if event:
         console.print(
             "not analysed (no cycle time; give --period NAME=MS, or --sporadic NAME=MS for a "
-            f"minimum inter-arrival time): {', '.join(m.name for m in event)}",
+            f"minimum inter-arrival time): {_names(event)}",
             style="yellow",
             markup=False,
         )
@@ -171,7 +212,7 @@ def _message_table(messages: Any, width: int) -> Any:
         return f"0x{tm.id:08X}x" if tm.extended else f"0x{tm.id:03X}"
 
     def wcrt(m: Any) -> str:
-        ok = m.wcrt_ms is not None or m.timing.period_ms is None
+        ok = m.wcrt_ms is not None or m.schedulable is None  # not analysed: "-"
         return _ms(m.wcrt_ms) if ok else "unbounded"
 
     cols: tuple[Column[Any], ...] = (
@@ -216,7 +257,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
         db = load_database(args.dbc) if args.dbc else None
         doc = trace_stats(args.trace, bitrate, db, data_rate)
     except (CanDatabaseError, TraceError, OSError) as e:
-        err.print(str(e), style="red", markup=False, soft_wrap=True)
+        err.print(f"flowrt can stats: {e}", style="red", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
     if args.json:
         print(json.dumps(doc, indent=2))
@@ -261,13 +302,18 @@ def _print_channel(console: Console, ch: dict[str, Any], bitrate: int, head: boo
     )
     console.print(fit_table(cols, ch["ids"], console.width))
     if ch["load"]:
-        peak = max(b["load"] for b in ch["load"])
-        mean = ch["mean_load"]
-        lead = f"mean {100 * mean:.2f} %, " if mean is not None else ""
-        console.print(
-            f"bus load at {bitrate:,} bit/s (worst-case stuffing): {lead}"
-            f"busiest second {100 * peak:.2f} % ({len(ch['load'])} s)"
-        )
+        mean, peak, span = ch["mean_load"], ch["peak_load"], ch["duration_s"]
+        if peak is not None:
+            what = f"busiest second {100 * peak:.2f} % (of {span:.1f} s)"
+            what = (f"mean {100 * mean:.2f} %, " if mean is not None else "") + what
+        elif mean is not None:  # under 2 s: the mean is all there is
+            what = (
+                f"{100 * mean:.2f} % over the whole trace "
+                f"({span:.3f} s: too short for a busiest second)"
+            )
+        else:
+            what = "one instant only (a trace of one frame time)"
+        console.print(f"bus load at {bitrate:,} bit/s (worst-case stuffing): {what}", markup=False)
 
 
 def add_parsers(sub: Any) -> None:

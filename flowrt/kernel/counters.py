@@ -7,6 +7,7 @@ aborted, failed): nothing is lost silently, and the same figures reach the statu
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -14,6 +15,8 @@ from ..graph import ResolvedNode
 from ..spec import FrameTrigger, InputTrigger, TimerTrigger
 from ..stats import NodeStats, Running
 from ..timing import Timing
+
+log = logging.getLogger("flowrt")
 
 
 @dataclass
@@ -102,4 +105,26 @@ def node_stats(
         execution=c.execution.summary(),
         response=c.response.summary(),
         granted=granted,
+        output_hz=output_rates(rnode),
     )
+
+
+_rates: dict[int, tuple[object, dict[str, float | None]]] = {}
+
+
+def output_rates(rnode: ResolvedNode) -> dict[str, float | None]:
+    """The node's declared output rates (``Node.output_rates``), once per params object: a
+    CAN node's walk over a vehicle's DBC is not redone at every statistics call."""
+    key = id(rnode.params)
+    hit = _rates.get(key)
+    if hit is not None and hit[0] is rnode.params:
+        return hit[1]
+    try:
+        rates = dict(rnode.cls.output_rates(rnode.params))
+    except Exception as e:  # a node's declaration must never break the statistics
+        log.warning("node %s: output_rates() failed: %s", rnode.name, e)
+        rates = {}
+    if len(_rates) > 1024:  # params of runtimes long gone
+        _rates.clear()
+    _rates[key] = (rnode.params, rates)
+    return rates

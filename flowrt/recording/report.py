@@ -5,7 +5,10 @@ vs written, lost, rate mean/min/max and bytes per stream, lost in red.
 first to the last message the recorder received, any stream, plus one): a source that
 delivered less than it should shows up as ``missing`` even when the recorder lost nothing.
 The nominal rate comes from the running graph's timing (a timer trigger's period; a frame
-trigger's source rate divided by its period), as the runtime's statistics report it.
+trigger's source rate divided by its period), as the runtime's statistics report it, unless
+the output declares a rate of its own (``output_hz``: a status every second on a node that
+ticks at 100 Hz, a CAN message at its cycle time), or none: an output on events expects
+nothing, and nothing of it is ever "missing".
 """
 
 from __future__ import annotations
@@ -60,10 +63,11 @@ _TIMER = re.compile(r"^([0-9.]+)ms")
 _FRAME = re.compile(r"^(\d+)/")
 
 
-def nominal_rates(stats: Any) -> dict[str, float]:
-    """Node name -> nominal activations per second, for timer- and frame-triggered nodes."""
+def nominal_rates(stats: Any) -> dict[str, float | None]:
+    """Node name -> nominal activations per second, for timer- and frame-triggered nodes;
+    ``node.port`` -> the rate an output declares of its own (None: no rate)."""
     rows = {n.name: n for n in stats.nodes}
-    out: dict[str, float] = {}
+    out: dict[str, float | None] = {}
 
     def rate(name: str, depth: int = 0) -> float | None:
         if name in out:
@@ -84,7 +88,18 @@ def nominal_rates(stats: Any) -> dict[str, float]:
 
     for name in rows:
         rate(name)
+    for n in stats.nodes:
+        for port, hz in (getattr(n, "output_hz", None) or {}).items():
+            out[f"{n.name}.{port}"] = hz
     return out
+
+
+def stream_rate(rates: dict[str, float | None], source: str) -> float | None:
+    """The expected rate of the stream recorded from ``source`` (``node.port``): its own,
+    else its node's."""
+    if source in rates:
+        return rates[source]
+    return rates.get(source.split(".")[0])
 
 
 def _stream(c: StreamCounters, hz: float | None, window: float | None) -> StreamReport:
@@ -132,7 +147,7 @@ def build_report(
     session: str,
     start_time: str,
     duration: float,
-    rates: dict[str, float],
+    rates: dict[str, float | None],
 ) -> RecordingReport:
     """The report of a finished (or stopped) writer."""
     firsts = [c.first_seen for c in writer.streams.values() if c.first_seen is not None]
@@ -145,9 +160,7 @@ def build_report(
         duration=duration,
         error=writer.error,
         notes=list(writer.notes),
-        streams=[
-            _stream(c, rates.get(c.source.split(".")[0]), window) for c in writer.streams.values()
-        ],
+        streams=[_stream(c, stream_rate(rates, c.source), window) for c in writer.streams.values()],
     )
 
 
