@@ -256,7 +256,7 @@ def print_info(
         console.print(line, markup=False, highlight=False)
     for name, meta in info.metadata.items():
         console.print(
-            printable(f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in meta.items())),
+            printable(f"metadata {name}: " + ", ".join(f"{k}={_short(v)}" for k, v in meta.items())),
             highlight=False,
             markup=False,
         )
@@ -270,6 +270,12 @@ def print_info(
         console.print(
             f"recorded graph: {lines} lines (flowrt info --graph prints it)", highlight=False
         )
+
+
+def _short(value: str) -> str:
+    """A metadata value on one line (rosbag2 keeps a copy of metadata.yaml in one)."""
+    lines = value.splitlines()
+    return value if len(lines) < 2 else f"({len(lines)} lines of text)"
 
 
 def _audio_lines(info: Any) -> list[str]:
@@ -348,7 +354,11 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
     if not p.exists():
         err.print(f"flowrt {cmd}: {path}: no such file or folder", markup=False)
         return None
-    files = mcap_files(p)
+    try:
+        files = mcap_files(p)
+    except ValueError as e:  # a rosbag2 folder flowrt cannot read (compressed): why
+        err.print(f"flowrt {cmd}: {e}", markup=False)
+        return None
     if not files:
         err.print(f"flowrt {cmd}: {path}: no .mcap file in this folder", markup=False)
         return None
@@ -357,6 +367,10 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
 
 def _not_mcap(path: Path) -> bool:
     """True for a file that is not MCAP; one cut inside its magic (killed at creation) is."""
+    from ..recording.rosbag2 import is_db3
+
+    if is_db3(path):  # a rosbag2 SQLite3 file: read through the same reader
+        return False
     magic = b"\x89MCAP0\r\n"
     with open(path, "rb") as f:
         head = f.read(8)
@@ -468,6 +482,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
     streams = _chosen_streams(info, args.topics, err)
     if streams is None:
         return EXIT_BAD_GRAPH
+    left_out = _left_out(files, streams, err)
+    streams = [s for s in streams if s.topic not in left_out]
+    if not streams:
+        err.print(f"flowrt replay: {path}: nothing to replay (no stream decodes)", markup=False)
+        return EXIT_BAD_GRAPH
     by_node: dict[str, list[str]] = {}
     for s in streams:
         by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
@@ -534,7 +553,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         markup=False,
     )
     code = run_graph(rgraph, args, err, prog="flowrt replay", kinds=kinds)
-    if not info.closed_cleanly:
+    if not info.closed_cleanly or left_out:  # not everything asked for was replayed
         return max(code, EXIT_FAILED)
     return code
 
@@ -554,6 +573,16 @@ def _say_damage(info: Any, path: Path, err: Console) -> None:
         f"replaying the {before} messages before the damage",
         markup=False,
     )
+
+
+def _left_out(files: list[Path], streams: list[Any], err: Console) -> dict[str, str]:
+    """The chosen streams no decoder reads, one line each on ``err``: left out of the replay."""
+    from ..recording.decoding import undecodable
+
+    left = undecodable(files, [s.topic for s in streams])
+    for topic, why in left.items():
+        err.print(f"flowrt replay: {printable(topic)}: left out, cannot decode ({why})", markup=False)
+    return left
 
 
 def _chosen_streams(info: Any, topics: Any, err: Console) -> list[Any] | None:
