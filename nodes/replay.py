@@ -151,6 +151,7 @@ class ReplayBase(Node):
         """
         skip_before = self.origin + round(self.params.start * 1e9)
         self.read = []
+        seqs: dict[str, int] = {}
         for m in iter_session(self.files, self.wanted, self.read, skip_before):
             if m.log_time < skip_before:
                 continue
@@ -173,7 +174,10 @@ class ReplayBase(Node):
             except Exception as e:
                 self.left_out[m.topic] = [str(e) or type(e).__name__, 1]
                 continue
-            yield _Item(port, m.log_time, m.sequence, value)
+            # A writer that numbers nothing (rosbag2: 0 for every message) gets 0, 1, 2 ...
+            last = seqs.get(m.topic, -1)
+            seq = seqs[m.topic] = m.sequence if m.sequence > last else last + 1
+            yield _Item(port, m.log_time, seq, value)
 
     def _prefetch(self) -> asyncio.Future[_Item | None]:
         return asyncio.ensure_future(asyncio.to_thread(next, self._it, None))
