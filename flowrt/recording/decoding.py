@@ -219,6 +219,10 @@ def _register(store: Any, schema: Any) -> str:
     new = {k: v for k, v in types.items() if k not in store.fielddefs}
     if new:
         store.register(new)
+    try:
+        store.get_msgdef(name)  # compiles the reader: a type it names but lacks fails here
+    except KeyError as e:
+        raise UndecodableChannel(f"the schema of {schema.name} lacks the type {e}") from None
     return name
 
 
