@@ -109,6 +109,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     if args.writer == "thread" and args.writer_priority != "normal":
         err.print("flowrt record: --writer-priority idle needs --writer process", markup=False)
         return EXIT_BAD_GRAPH
+    if args.profile == "ros2" and args.deterministic:
+        err.print("flowrt record: --deterministic needs the flowrt profile", markup=False)
+        return EXIT_BAD_GRAPH
     images = _image_formats(args.images, topics)
     if isinstance(images, str):
         err.print(f"flowrt record: {images}", markup=False)
@@ -134,6 +137,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         "split_duration": split.duration,
         "log_report": False,  # printed below, once
         "deterministic": args.deterministic,
+        "profile": args.profile,
     }
     try:
         # relative paths of the graph resolve beside its file, as when it was loaded
@@ -697,6 +701,13 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="also record every activation's inputs and a digest of every output, for "
         "flowrt replay --deterministic (the sources' values are recorded whatever --topics says)",
+    )
+    rec.add_argument(
+        "--profile",
+        choices=("flowrt", "ros2"),
+        default="flowrt",
+        help="ros2: a rosbag2 folder (metadata.yaml + MCAP of CDR messages, ros2msg schemas: "
+        "sensor_msgs/Image, geometry_msgs/Twist, std_msgs...) that ROS 2 tools open",
     )
     add_run_options(rec)  # --duration, --realtime, --control ...: a recording is a run
     rec.set_defaults(func=cmd_record)

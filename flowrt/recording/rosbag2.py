@@ -174,25 +174,40 @@ def _standard_definition(typ: str) -> tuple[str, str]:
     return text, "ros2msg"
 
 
-def write_metadata(folder: Path, files: list[Path], topics: list[dict[str, Any]]) -> Path:
-    """Write ``metadata.yaml`` for a bag of MCAP ``files`` (the ``ros2`` profile's).
+def write_metadata(folder: Path, files: list[Path]) -> Path:
+    """Write ``metadata.yaml`` for a bag of finished MCAP ``files`` (the ``ros2`` profile).
 
-    ``topics``: per topic ``name``, ``type``, ``count``, ``first``/``last`` log times (ns).
+    Everything comes from the files' own summaries (channels, schemas, statistics), so the
+    metadata says what the files hold, whichever process wrote them.
     """
     import yaml
+    from mcap.reader import make_reader
 
-    firsts = [t["first"] for t in topics if t["count"]]
-    lasts = [t["last"] for t in topics if t["count"]]
-    start = min(firsts, default=0)
-    duration = max(0, max(lasts, default=0) - start)
-    count = sum(t["count"] for t in topics)
+    topics: dict[str, dict[str, Any]] = {}
+    per_file: list[tuple[Path, int, int, int]] = []  # path, count, start, end
+    for f in files:
+        with open(f, "rb") as fh:
+            summary = make_reader(fh).get_summary()
+        if summary is None or summary.statistics is None:
+            raise BagError(f"{f}: no summary (the file was not finished)")
+        st = summary.statistics
+        per_file.append((f, st.message_count, st.message_start_time, st.message_end_time))
+        for cid, ch in summary.channels.items():
+            schema = summary.schemas.get(ch.schema_id)
+            t = topics.setdefault(
+                ch.topic, {"name": ch.topic, "type": schema.name if schema else "", "count": 0}
+            )
+            t["count"] += st.channel_message_counts.get(cid, 0)
+    counted = [p for p in per_file if p[1]]
+    start = min((p[2] for p in counted), default=0)
+    duration = max((p[3] for p in counted), default=start) - start
     info = {
         "version": ROSBAG2_VERSION,
         "storage_identifier": "mcap",
         "relative_file_paths": [f.name for f in files],
         "duration": {"nanoseconds": duration},
         "starting_time": {"nanoseconds_since_epoch": start},
-        "message_count": count,
+        "message_count": sum(p[1] for p in per_file),
         "topics_with_message_count": [
             {
                 "topic_metadata": {
@@ -204,18 +219,18 @@ def write_metadata(folder: Path, files: list[Path], topics: list[dict[str, Any]]
                 },
                 "message_count": t["count"],
             }
-            for t in topics
+            for t in topics.values()
         ],
         "compression_format": "",
         "compression_mode": "",
         "files": [
             {
                 "path": f.name,
-                "starting_time": {"nanoseconds_since_epoch": start},
-                "duration": {"nanoseconds": duration},
+                "starting_time": {"nanoseconds_since_epoch": t0 if n else 0},
+                "duration": {"nanoseconds": (t1 - t0) if n else 0},
                 "message_count": n,
             }
-            for f, n in zip(files, _per_file(files, count), strict=True)
+            for f, n, t0, t1 in per_file
         ],
         "custom_data": None,
         "ros_distro": "flowrt",
@@ -225,19 +240,3 @@ def write_metadata(folder: Path, files: list[Path], topics: list[dict[str, Any]]
     tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False))
     tmp.replace(path)
     return path
-
-
-def _per_file(files: list[Path], count: int) -> list[int]:
-    """Messages per file: each file's own MCAP statistics (the total when unreadable)."""
-    from mcap.reader import make_reader
-
-    out = []
-    for f in files:
-        try:
-            with open(f, "rb") as fh:
-                summary = make_reader(fh).get_summary()
-            stats = summary.statistics if summary is not None else None
-            out.append(stats.message_count if stats is not None else 0)
-        except Exception:
-            out.append(count if len(files) == 1 else 0)
-    return out
