@@ -175,7 +175,7 @@ class Ros2Encoder:
         out.u8(0)
         out.u32(int(data.strides[0]))
         out.u32(data.nbytes)
-        body = out.bytes() + data.tobytes()
+        body = b"".join((out.bytes(), memoryview(data.reshape(-1).view(np.uint8))))  # type: ignore[arg-type]
         return Encoded(self._schema("sensor_msgs/msg/Image"), body)
 
     def _compressed(self, topic: str) -> Any:
