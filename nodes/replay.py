@@ -231,7 +231,7 @@ class ReplayBase(Node):
 
     def _left_out(self) -> None:
         """Say each channel left out once (one line naming it and why), as the node's error."""
-        for topic, (why, count) in self.left_out.items():
+        for topic, (why, _count) in self.left_out.items():
             if topic in self._said_left_out:
                 continue
             self._said_left_out.add(topic)

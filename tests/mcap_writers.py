@@ -119,7 +119,10 @@ def ros2(path: Path) -> Path:
                 "data": bytes([i % 256]) * 192,
             }
             w.write_message("/ros2/image", img, msg, t, t, i)
-            vel = {"linear": {"x": 0.1 * i, "y": 0.0, "z": 0.0}, "angular": {"x": 0, "y": 0, "z": 1}}
+            vel = {
+                "linear": {"x": 0.1 * i, "y": 0.0, "z": 0.0},
+                "angular": {"x": 0, "y": 0, "z": 1},
+            }
             w.write_message("/ros2/cmd_vel", tw, vel, t, t, i)
         w.finish()
     return path

@@ -38,9 +38,7 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("foreign")
 
 
-@pytest.mark.parametrize(
-    "writer", [*FAST, pytest.param("mcap-core", marks=pytest.mark.subprocess)]
-)
+@pytest.mark.parametrize("writer", [*FAST, pytest.param("mcap-core", marks=pytest.mark.subprocess)])
 def test_every_message_of_every_writer_decodes(writer: str, files: Path) -> None:
     path = _written(writer, files)
     info = scan_session(path)

@@ -14,14 +14,13 @@ from typing import Any
 
 import numpy as np
 import pytest
+from ros_data import STAMP_LEAD, T0, clip_frames, write_bag
 
 import flowrt
 from flowrt.recording.decoding import MessageDecoder, undecodable
 from flowrt.recording.encoding import to_jsonable
 from flowrt.recording.reader import iter_session, scan_session
 from flowrt.recording.session import mcap_files
-
-from ros_data import STAMP_LEAD, T0, clip_frames, write_bag
 
 pytestmark = pytest.mark.timeout(120)
 

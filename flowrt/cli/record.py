@@ -260,7 +260,9 @@ def print_info(
         console.print(line, markup=False, highlight=False)
     for name, meta in info.metadata.items():
         console.print(
-            printable(f"metadata {name}: " + ", ".join(f"{k}={_short(v)}" for k, v in meta.items())),
+            printable(
+                f"metadata {name}: " + ", ".join(f"{k}={_short(v)}" for k, v in meta.items())
+            ),
             highlight=False,
             markup=False,
         )
@@ -585,7 +587,9 @@ def _left_out(files: list[Path], streams: list[Any], err: Console) -> dict[str, 
 
     left = undecodable(files, [s.topic for s in streams])
     for topic, why in left.items():
-        err.print(f"flowrt replay: {printable(topic)}: left out, cannot decode ({why})", markup=False)
+        err.print(
+            f"flowrt replay: {printable(topic)}: left out, cannot decode ({why})", markup=False
+        )
     return left
 
 

@@ -35,11 +35,11 @@ from .rosbag2 import db3_messages, db3_topics, is_db3
 
 __all__ = [
     "FileInfo",
-    "channel_schemas",
     "RecordedMessage",
     "Recording",
     "SessionInfo",
     "StreamInfo",
+    "channel_schemas",
     "iter_messages",
     "iter_session",
     "repair",

@@ -64,7 +64,11 @@ DEFS: dict[str, str] = {
     "flowrt_msgs/msg/AudioBlock": "builtin_interfaces/Time stamp\nuint32 sample_rate\n"
     "uint32 channels\nint64 seq\nint16[] data\n",
 }
-_SCALAR_TYPES = {bool: "std_msgs/msg/Bool", int: "std_msgs/msg/Int64", float: "std_msgs/msg/Float64"}
+_SCALAR_TYPES = {
+    bool: "std_msgs/msg/Bool",
+    int: "std_msgs/msg/Int64",
+    float: "std_msgs/msg/Float64",
+}
 _VELOCITY = {"v": ("linear", "x"), "vx": ("linear", "x"), "vy": ("linear", "y")}
 _VELOCITY |= {"vz": ("linear", "z"), "w": ("angular", "z"), "wz": ("angular", "z")}
 _VELOCITY |= {"wx": ("angular", "x"), "wy": ("angular", "y")}
@@ -211,9 +215,7 @@ class Ros2Encoder:
         """A flowrt_msgs type for ``v`` (registered in ``self._defs``) and its converter."""
         if isinstance(v, dict) and not all(isinstance(k, str) and _FIELD.match(k) for k in v):
             return "flowrt_msgs/msg/KeyValues", lambda x: {"items": _key_values(x)}
-        if (dataclasses.is_dataclass(v) and not isinstance(v, type)) or hasattr(
-            v, "model_fields"
-        ):
+        if (dataclasses.is_dataclass(v) and not isinstance(v, type)) or hasattr(v, "model_fields"):
             hints = _hints(type(v))
             base = type(v).__name__
         elif isinstance(v, dict):
@@ -269,7 +271,9 @@ class Ros2Encoder:
         if origin in (tuple, list) and args:
             item = args[0]
             if all(a in (int, float, Ellipsis) for a in args) and item in (int, float):
-                typ, conv = ("int64", int) if set(args) - {Ellipsis} == {int} else ("float64", float)
+                typ, conv = (
+                    ("int64", int) if set(args) - {Ellipsis} == {int} else ("float64", float)
+                )
                 return f"{typ}[]", lambda x: [conv(i) for i in (x or ())]
         if origin is dict or hint is dict:
             return "flowrt_msgs/KeyValue[]", _key_values

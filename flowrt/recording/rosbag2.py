@@ -106,9 +106,7 @@ class Db3Topic:
 def _connect(path: Path) -> sqlite3.Connection:
     # read-only and immutable: a bag being copied or on a read-only medium is still read
     # the replay node reads on a worker thread of its own choosing, one call at a time
-    return sqlite3.connect(
-        f"file:{path}?mode=ro&immutable=1", uri=True, check_same_thread=False
-    )
+    return sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True, check_same_thread=False)
 
 
 def db3_topics(path: Path, with_times: bool = True) -> dict[int, Db3Topic]:
