@@ -37,7 +37,7 @@ from flowrt import AudioBlock, Frame, LoopTrigger, Node, Output, resolve_path
 from flowrt.recording.decoding import MessageDecoder
 from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.images import is_image_schema
-from flowrt.recording.reader import Recording, iter_messages, iter_session
+from flowrt.recording.reader import Recording, channel_schemas, iter_messages, iter_session
 from flowrt.recording.session import mcap_files
 
 LEAD = 0.05
@@ -122,6 +122,17 @@ class ReplayBase(Node):
         self.decoder = MessageDecoder()
         self.left_out: dict[str, list[Any]] = {}  # topic -> [why, messages not replayed]
         self._said_left_out: set[str] = set()
+        channels = channel_schemas(files)
+        missing = sorted((wanted or set()) - set(channels))
+        if missing:  # a misspelt topic would otherwise replay nothing, silently
+            raise ValueError(
+                f"{p.path}: no topic {', '.join(map(repr, missing))} "
+                f"(recorded: {', '.join(sorted(channels))})"
+            )
+        for topic in wanted:  # said on the first activation, before any message
+            why = self.decoder.why_not(*channels[topic])
+            if why is not None:
+                self.left_out[topic] = [why, 0]
         self.cycle = 0.0  # seconds added per completed loop
         self.last_due = 0.0
         self.published = 0
@@ -183,6 +194,8 @@ class ReplayBase(Node):
         return asyncio.ensure_future(asyncio.to_thread(next, self._it, None))
 
     async def process(self) -> dict[str, Any] | None:
+        if len(self.left_out) > len(self._said_left_out):
+            self._left_out()
         if self.ended:
             await asyncio.sleep(0.2)
             return None
@@ -201,8 +214,6 @@ class ReplayBase(Node):
                 self.ctx.request_stop()
             return None
         self._next = self._prefetch()  # decode the next one while this one waits
-        if len(self.left_out) > len(self._said_left_out):
-            self._left_out()
         due = (
             self.cycle
             + LEAD

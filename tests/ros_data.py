@@ -18,16 +18,16 @@ T0 = 1_700_000_000_000_000_000  # ns: the bag's first log time
 STAMP_LEAD = 5_000_000  # ns: each image's header.stamp is this much before its log time
 
 
-def clip_frames(folder: Path, n: int) -> tuple[Path, list[np.ndarray]]:
-    """The first ``n`` frames of graphs/sample.avi written as a clip of their own (lossless
-    FFV1 in .avi when OpenCV has it, else MJPG), and the frames as that clip reads back."""
+def clip_frames(folder: Path, n: int, source: Path = SAMPLE) -> tuple[Path, list[np.ndarray]]:
+    """The first ``n`` frames of ``source`` (graphs/sample.avi) written as a clip of their
+    own (MJPG), and the frames as that clip reads back (what ``capture file:`` sees)."""
     import cv2
 
-    src = cv2.VideoCapture(str(SAMPLE))
+    src = cv2.VideoCapture(str(source))
     frames = []
     while len(frames) < n:
         ok, img = src.read()
-        assert ok, "graphs/sample.avi is shorter than the test needs"
+        assert ok, f"{source} is shorter than the test needs"
         frames.append(img)
     src.release()
     clip = folder / "clip.avi"
