@@ -141,3 +141,11 @@ def test_record_profile_ros2_every_message_deserializes(
         assert listed[topic][0] == typ
     info = flowrt_cli("info", str(bag), timeout=60)  # and flowrt reads its own bag back
     assert info.returncode == 0, info.stderr
+    if graph == "cambada":  # the bag's cameras stand in for the graph's (a relative path)
+        graph_file = str(Path(__file__).resolve().parents[1] / "graphs" / "cambada.yaml")
+        again = flowrt_cli(
+            "replay", bag.name, "--graph", graph_file, "--duration", "2", "--no-ui",
+            "--no-display", cwd=tmp_path, timeout=120,
+        )  # fmt: skip
+        assert again.returncode == 0, again.stderr
+        assert "replacing its source node(s) front_cam, omni_cam" in again.stdout

@@ -498,7 +498,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
         by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
 
     replay_cls: Any = resolve_kind("replay")
-    common = {"path": str(path), "rate": args.rate, "start": args.start, "loop": args.loop}
+    # absolute: a relative path would resolve beside --graph's file, not where this runs
+    common = {
+        "path": str(path.resolve()),
+        "rate": args.rate,
+        "start": args.start,
+        "loop": args.loop,
+    }
     kinds: dict[str, Any] = {}
     graph = _replay_target(args, info, path, err)
     if graph is _REFUSED:
