@@ -76,6 +76,26 @@ def test_values_become_standard_or_flowrt_messages() -> None:
     assert items[1]["text"] == "drive"
 
 
+@dataclasses.dataclass
+class Upper:
+    LeftSpeed: float
+    ID: int
+
+
+def test_a_stream_keeps_its_first_type() -> None:
+    """One schema per channel: later values fit it or are refused (counted by the writer)."""
+    e = Ros2Encoder({}, epoch_offset=0.0)
+    assert _both(e.encode("n.x", 0))[1].value == {"data": 0}
+    assert _both(e.encode("n.x", 2.0))[1].value == {"data": 2}
+    with pytest.raises(ValueError, match="on a stream of integers"):
+        e.encode("n.x", 0.5)
+    with pytest.raises(ValueError, match="a str on a stream of int"):
+        e.encode("n.x", "x")
+    assert e.encode("f.x", np.float32(0.5)).schema.name == "std_msgs/msg/Float64"
+    upper = e.encode("u.v", Upper(1.5, 7))  # names made valid ROS 2 field names, kept
+    assert _both(upper)[1].value == {"left_speed": 1.5, "id": 7}
+
+
 def test_compressed_images_with_images_jpeg() -> None:
     e = Ros2Encoder({"cam.frame": "png"}, epoch_offset=0.0)
     px = np.full((8, 8, 3), 200, np.uint8)

@@ -107,7 +107,7 @@ class Ros2Encoder:
         self._formats = image_formats
         self._offset = epoch_offset
         self._defs = dict(DEFS)
-        self._streams: dict[tuple[str, type], tuple[StreamSchema, Any, Any]] = {}
+        self._streams: dict[str, tuple[type, StreamSchema, Any, Any]] = {}
         self._serializers: dict[str, Any] = {}
 
     def encode(self, topic: str, v: Any) -> Encoded:
@@ -117,11 +117,12 @@ class Ros2Encoder:
             raise ValueError("annotations are not recorded in the ros2 profile")
         if isinstance(v, Frame) and self._formats.get(topic, "raw") == "raw":
             return self._raw_image(v)
-        key = (topic, type(v))
-        got = self._streams.get(key)
+        got = self._streams.get(topic)  # a channel has one schema: its first value's
         if got is None:
-            got = self._streams[key] = self._stream(topic, v)
-        schema, convert, write = got
+            got = self._streams[topic] = (type(v), *self._stream(topic, v))
+        first, schema, convert, write = got
+        if type(v) is not first and not (_number(v) and _number_type(first)):
+            raise ValueError(f"a {type(v).__name__} on a stream of {first.__name__}")
         return Encoded(schema, write(convert(v)))
 
     def _schema(self, name: str) -> StreamSchema:
@@ -140,8 +141,12 @@ class Ros2Encoder:
             name, convert = "sensor_msgs/msg/CompressedImage", self._compressed(topic)
         elif isinstance(v, AudioBlock):
             name, convert = "flowrt_msgs/msg/AudioBlock", self._audio
-        elif isinstance(v, bool | int | float) and type(v) in _SCALAR_TYPES:
-            name, convert = _SCALAR_TYPES[type(v)], lambda x: {"data": x}
+        elif isinstance(v, bool | np.bool_):
+            name, convert = "std_msgs/msg/Bool", lambda x: {"data": bool(x)}
+        elif isinstance(v, int | np.integer):
+            name, convert = "std_msgs/msg/Int64", _integral
+        elif isinstance(v, float | np.floating):
+            name, convert = "std_msgs/msg/Float64", lambda x: {"data": float(x)}
         elif isinstance(v, str):
             name, convert = "std_msgs/msg/String", lambda x: {"data": x}
         elif _is_velocity(v):
@@ -225,18 +230,20 @@ class Ros2Encoder:
             hints = {"data": Any}
             base = type(v).__name__
         name = f"flowrt_msgs/msg/{_type_name(base)}"
-        fields = [(k, self._field_type(t)) for k, t in hints.items() if _FIELD.match(k)]
-        self._defs[name] = "".join(f"{typ} {k}\n" for k, (typ, _) in fields) or "uint8 empty\n"
+        fields = [(k, _field_name(k), self._field_type(t)) for k, t in hints.items()]
+        if len({f for _, f, _ in fields}) < len(fields):
+            raise ValueError(f"{base}: field names that differ only in case or punctuation")
+        self._defs[name] = "".join(f"{typ} {f}\n" for _, f, (typ, _) in fields) or "uint8 empty\n"
 
         def convert(x: Any) -> dict[str, Any]:
             if not isinstance(x, dict) and not hasattr(x, "__dict__") and hints == {"data": Any}:
                 x = {"data": x}
             out = {}
-            for k, (_, conv) in fields:
+            for k, f, (_, conv) in fields:
                 raw = x.get(k) if isinstance(x, dict) else getattr(x, k, None)
-                out[k] = conv(raw)
+                out[f] = conv(raw)
             if isinstance(x, dict):
-                extra = set(x) - {k for k, _ in fields}
+                extra = set(x) - {k for k, _, _ in fields}
                 if extra:
                     raise ValueError(f"keys not in its definition: {', '.join(sorted(extra))}")
             return out
@@ -316,9 +323,35 @@ def _sample_type(x: Any) -> Any:
     return Any
 
 
+def _field_name(key: str) -> str:
+    """A valid ROS 2 field name for ``key``: lower case, ``_`` for anything else."""
+    name = re.sub(r"[^a-z0-9_]", "_", re.sub(r"(?<=[a-z0-9])([A-Z])", r"_\1", key).lower())
+    name = re.sub(r"_+", "_", name).strip("_")
+    return name if name and name[0].isalpha() else f"f_{name}"
+
+
 def _type_name(base: str) -> str:
     name = re.sub(r"[^A-Za-z0-9]", "", base) or "Message"
     return name[0].upper() + name[1:] if name[0].isalpha() else f"M{name}"
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(
+        v, bool | np.bool_
+    )
+
+
+def _number_type(t: type) -> bool:
+    return issubclass(t, int | float | np.integer | np.floating) and not issubclass(
+        t, bool | np.bool_
+    )
+
+
+def _integral(x: Any) -> dict[str, int]:
+    """An Int64 stream's value: a float is taken only when it is a whole number."""
+    if float(x) != int(x):
+        raise ValueError(f"{x!r} on a stream of integers")
+    return {"data": int(x)}
 
 
 def _float(x: Any) -> float:
