@@ -96,6 +96,14 @@ def test_a_stream_keeps_its_first_type() -> None:
     assert _both(upper)[1].value == {"left_speed": 1.5, "id": 7}
 
 
+def test_topics_are_ros2_names() -> None:
+    from flowrt.recording.ros2_profile import ros2_topic
+
+    assert ros2_topic("front_cam.frame") == "/front_cam/frame"
+    assert ros2_topic("/camera/image_raw") == "/camera/image_raw"
+    assert ros2_topic("cam.frame/annotations/2d-box") == "/cam/frame/annotations/_2d_box"
+
+
 def test_compressed_images_with_images_jpeg() -> None:
     e = Ros2Encoder({"cam.frame": "png"}, epoch_offset=0.0)
     px = np.full((8, 8, 3), 200, np.uint8)
@@ -132,9 +140,9 @@ def _check_bag(bag: Path) -> dict[str, int]:
 @pytest.mark.parametrize(
     ("graph", "types"),
     [
-        ("cambada", {"front_cam.frame": "sensor_msgs/msg/Image"}),
-        ("can", {"chassis.WheelSpeeds": "flowrt_msgs/msg/CanMessage"}),
-        ("avsync", {"mic.audio": "flowrt_msgs/msg/AudioBlock"}),
+        ("cambada", {"/front_cam/frame": "sensor_msgs/msg/Image"}),
+        ("can", {"/chassis/WheelSpeeds": "flowrt_msgs/msg/CanMessage"}),
+        ("avsync", {"/mic/audio": "flowrt_msgs/msg/AudioBlock"}),
     ],
 )
 def test_record_profile_ros2_every_message_deserializes(

@@ -23,7 +23,8 @@ any other mapping (CAN signals)        ``flowrt_msgs/msg/KeyValues`` (key, value
 In flowrt definitions ``X | None`` is an array of zero or one ``X`` (``centroid`` of a
 detection that found nothing is ``[]``), a mapping is ``KeyValue[]``, a float ``timestamp``
 (the runtime clock) is a ``builtin_interfaces/msg/Time`` in Unix time, and a value of no
-ROS type is its JSON text. Detections are not drawn as annotations in this profile.
+ROS type is its JSON text. Detections are not drawn as annotations in this profile. Topics
+are ROS 2 names (:func:`ros2_topic`).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from ..audio import AudioBlock
 from ..frames import Frame
 from .encoding import FRAME_ENCODINGS, Encoded, Overlay, StreamSchema, to_jsonable
 
-__all__ = ["Ros2Encoder"]
+__all__ = ["Ros2Encoder", "ros2_topic"]
 
 SEP = "=" * 80 + "\n"
 TIME = "builtin_interfaces/msg/Time"
@@ -98,6 +99,16 @@ def _uses(text: str) -> list[str]:
             pkg, _, short = typ.partition("/")
             found.append(f"{pkg}/msg/{short}")
     return found
+
+
+def ros2_topic(name: str) -> str:
+    """A flowrt stream's name as a valid ROS 2 topic: ``front_cam.frame`` -> ``/front_cam/frame``.
+
+    ROS 2 refuses a dot in a topic name (``ros2 bag play`` could not publish it); the channel's
+    ``source`` metadata keeps the flowrt name, so flowrt's replay finds the node again.
+    """
+    parts = [re.sub(r"[^A-Za-z0-9_]", "_", p) for p in re.split(r"[./]+", name) if p]
+    return "/" + "/".join(p if not p[0].isdigit() else f"_{p}" for p in parts)
 
 
 class Ros2Encoder:

@@ -51,6 +51,7 @@ from .encoding import (
     schema_for,
 )
 from .gilfree import install
+from .ros2_profile import ros2_topic
 from .split import SplitPolicy, part_path
 
 __all__ = ["RecordingWriter", "StreamCounters", "count_written"]
@@ -424,7 +425,10 @@ class RecordingWriter:
     def _add(self, item: _Item, enc: Encoded) -> int:
         """Write one message into the current part: its size, or -1 (a write error)."""
         cid = self._channels.id_for(
-            self._writer, item.topic, enc.schema, self._channel_meta.get(item.topic, {})
+            self._writer,
+            ros2_topic(item.topic) if self.profile == "ros2" else item.topic,
+            enc.schema,
+            self._channel_meta.get(item.topic, {}),
         )
         ns = round((item.t + self.epoch_offset) * 1e9)
         if not self._guard(
