@@ -142,3 +142,19 @@ def _same_tracking(bag: Path, path: Path, n: int, found: float = 0.9) -> None:
     assert sorted(want) == list(range(n))  # the clip read whole, every frame tracked
     assert got == want
     assert sum(d.found for d in replayed) >= found * n  # the lamp is there: a real result
+
+
+@pytest.mark.subprocess
+def test_flowrt_info_and_replay_of_a_bag(bag: Path, flowrt_cli: Any) -> None:
+    import json
+
+    r = flowrt_cli("info", str(bag))
+    assert r.returncode == 0, r.stderr
+    for line in ("/camera/image_raw   sensor_msgs/msg/Image", "/cmd_vel   geometry_msgs/msg/Twist"):
+        topic, typ = line.split()
+        assert any(topic in row and typ in row and f" {N} " in row for row in r.stdout.splitlines())
+    got = json.loads(flowrt_cli("info", str(bag), "--json").stdout)
+    assert {s["topic"]: s["count"] for s in got["streams"]}["/camera/compressed"] == N
+    rep = flowrt_cli("replay", str(bag), "--no-ui", timeout=90)  # to its end: 1.2 s
+    assert rep.returncode == 0, rep.stderr
+    assert "Traceback" not in rep.stderr
