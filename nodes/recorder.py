@@ -31,6 +31,10 @@ With ``split_size`` (``4GiB``) and/or ``split_duration`` (``10m``) a session hol
 files, ``NAME_NNN_000.mcap``, ``NAME_NNN_001.mcap`` ..., each a complete, standalone MCAP
 (:mod:`flowrt.recording.split`); the per-stream table counts across all of them.
 
+With ``profile: ros2`` (``flowrt record --profile ros2``) the session is a rosbag2 folder:
+CDR messages under ``ros2msg`` schemas (:mod:`flowrt.recording.ros2_profile`) and, once the
+files are finished, ``metadata.yaml``; ROS 2 tools open it as a bag.
+
 With ``deterministic: true`` (``flowrt record --deterministic``) the session also holds what a
 deterministic replay needs (:mod:`flowrt.determinism`): every activation of the processing
 nodes with the sequence numbers of its inputs, a digest of each of their outputs, and the
@@ -81,7 +85,14 @@ from flowrt.recording import (
 )
 from flowrt.recording.encoding import Overlay, annotations_topic, is_detection
 from flowrt.recording.report import RecordingReport, report_text
-from flowrt.recording.session import SESSION_FILE, SESSION_NAME, session_metadata, timing_json
+from flowrt.recording.rosbag2 import write_metadata
+from flowrt.recording.session import (
+    SESSION_FILE,
+    SESSION_NAME,
+    mcap_files,
+    session_metadata,
+    timing_json,
+)
 
 COMMAND_RECORD = "flowrt.record."
 """RTDB record ``flowrt.record.NODE`` = ``start`` | ``stop``: what ``flowrt ctl record`` writes."""
@@ -153,6 +164,10 @@ class Recorder(Node):
             default=True, description="detections also as ImageAnnotations on their camera"
         )
         graph_file: str | None = Field(default=None, description="attached as graph.yaml")
+        profile: Literal["flowrt", "ros2"] = Field(
+            default="flowrt",
+            description="ros2: a rosbag2 folder (metadata.yaml, CDR messages, ros2msg schemas)",
+        )
 
         @model_validator(mode="after")
         def _priority_of_a_process(self) -> Recorder.Params:
@@ -244,6 +259,7 @@ class Recorder(Node):
             "direct_io": p.direct_io,
             "on_written": self._written,
             "split": SplitPolicy(p.split_size, p.split_duration),
+            "profile": p.profile,
         }
         path = session / f"{session.name}.mcap"
         writer: AnyWriter
@@ -322,6 +338,11 @@ class Recorder(Node):
     def _finished(self, session: Path, report_of: Any) -> None:
         """On the writer thread, the file complete: save and say the per-stream table."""
         report: RecordingReport = report_of()
+        if self.params.profile == "ros2":  # the folder becomes a rosbag2 bag
+            try:
+                write_metadata(session, mcap_files(session))
+            except (OSError, ValueError) as e:
+                report.error = report.error or f"metadata.yaml not written: {e}"
         try:
             (session / SESSION_FILE).write_text(report.model_dump_json(indent=1))
         except OSError as e:
@@ -428,7 +449,7 @@ class Recorder(Node):
     def _overlay(self, writer: AnyWriter, topic: str, det: Any) -> None:
         """The detection again, as annotations on its camera's image (when that is recorded)."""
         camera = self._cameras.get(det.source)
-        if camera is None:
+        if camera is None or self.params.profile == "ros2":
             return
         name = annotations_topic(camera, topic)
         if name not in writer.streams:

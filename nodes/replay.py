@@ -34,13 +34,27 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from flowrt import AudioBlock, Frame, LoopTrigger, Node, Output, resolve_path
-from flowrt.recording import Decoder
-from flowrt.recording.encoding import ANNOTATIONS_SCHEMA, AUDIO_SCHEMA
-from flowrt.recording.reader import Recording, iter_messages, iter_session
+from flowrt.recording.decoding import MessageDecoder
+from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
+from flowrt.recording.images import is_image_schema
+from flowrt.recording.reader import Recording, channel_schemas, iter_messages, iter_session
 from flowrt.recording.session import mcap_files
 
 LEAD = 0.05
 """Seconds between the start of the runtime and the first replayed message."""
+
+
+STAMP_SPAN = 60.0
+"""Seconds a message's own stamp may lie before its log time and still be its frame's time."""
+
+
+@dataclasses.dataclass
+class _Pixels:
+    """A decoded image: its pixels, flowrt pixel format and own stamp (ns), for a frame."""
+
+    data: np.ndarray
+    format: str
+    stamp: int | None
 
 
 class _Item:
@@ -105,7 +119,20 @@ class ReplayBase(Node):
         self.wanted = wanted or None
         self.read: list[Recording] = []  # every part read (the last one read says any damage)
         self.origin = _first_log_time(self.file)
-        self.decoder = Decoder()
+        self.decoder = MessageDecoder()
+        self.left_out: dict[str, list[Any]] = {}  # topic -> [why, messages not replayed]
+        self._said_left_out: set[str] = set()
+        channels = channel_schemas(files)
+        missing = sorted((wanted or set()) - set(channels))
+        if missing:  # a misspelt topic would otherwise replay nothing, silently
+            raise ValueError(
+                f"{p.path}: no topic {', '.join(map(repr, missing))} "
+                f"(recorded: {', '.join(sorted(channels))})"
+            )
+        for topic in wanted:  # said on the first activation, before any message
+            why = self.decoder.why_not(*channels[topic])
+            if why is not None:
+                self.left_out[topic] = [why, 0]
         self.cycle = 0.0  # seconds added per completed loop
         self.last_due = 0.0
         self.published = 0
@@ -128,31 +155,47 @@ class ReplayBase(Node):
         return "message" if "message" in self.outputs else None
 
     def _items(self) -> Iterator[_Item]:
-        """Decoded messages in file order (on the reader thread)."""
+        """Decoded messages in file order (on the reader thread).
+
+        A channel none of the decoders reads, or whose message fails to decode, is left out
+        from then on, said once and counted (:meth:`_left_out`): never a crash loop.
+        """
         skip_before = self.origin + round(self.params.start * 1e9)
         self.read = []
+        seqs: dict[str, int] = {}
         for m in iter_session(self.files, self.wanted, self.read, skip_before):
             if m.log_time < skip_before:
                 continue
             name = m.schema.name if m.schema is not None else ""
             if name == ANNOTATIONS_SCHEMA:
                 continue  # drawn from the detections, which are replayed themselves
-            image = self.decoder.is_image(name)
-            port = self._port(m.topic, m.source, image)
+            port = self._port(m.topic, m.source, is_image_schema(name))
             if port is None:
                 continue
-            if image:
-                value: Any = self.decoder.image(m.schema, m.data)
-            elif name == AUDIO_SCHEMA:  # stamped in Unix time: moved to this run at publish
-                value = self.decoder.audio(m.schema, m.data, m.sequence, 0.0)
-            else:
-                value = self.decoder.message(name, m.data)
-            yield _Item(port, m.log_time, m.sequence, value)
+            if m.topic in self.left_out:
+                self.left_out[m.topic][1] += 1
+                continue
+            try:
+                d = self.decoder.decode(m.encoding, m.schema, m.data)
+                value: Any = d.value
+                if d.kind == "image":
+                    value = _Pixels(d.value[0], d.value[1], d.stamp)
+                elif d.kind == "audio":  # stamped in Unix time: moved to this run at publish
+                    value = self.decoder.own.audio(m.schema, m.data, m.sequence, 0.0)
+            except Exception as e:
+                self.left_out[m.topic] = [str(e) or type(e).__name__, 1]
+                continue
+            # A writer that numbers nothing (rosbag2: 0 for every message) gets 0, 1, 2 ...
+            last = seqs.get(m.topic, -1)
+            seq = seqs[m.topic] = m.sequence if m.sequence > last else last + 1
+            yield _Item(port, m.log_time, seq, value)
 
     def _prefetch(self) -> asyncio.Future[_Item | None]:
         return asyncio.ensure_future(asyncio.to_thread(next, self._it, None))
 
     async def process(self) -> dict[str, Any] | None:
+        if len(self.left_out) > len(self._said_left_out):
+            self._left_out()
         if self.ended:
             await asyncio.sleep(0.2)
             return None
@@ -161,6 +204,7 @@ class ReplayBase(Node):
         if item is None:
             self._next = None
             self._report_damage()
+            self._left_out()
             if self.params.loop and self.published:
                 self.cycle = self.last_due + LEAD
                 self._it = self._items()
@@ -183,14 +227,29 @@ class ReplayBase(Node):
         return {item.port: self._value(item)}
 
     def _value(self, item: _Item) -> Any:
-        if not isinstance(item.value, tuple):
+        if not isinstance(item.value, _Pixels):
             return self._restamped(item)
-        px, fmt = item.value
-        frame: Frame = self.ctx.new_frame(px.shape, px.dtype, fmt)
-        np.copyto(frame.data, px)
+        px = item.value
+        frame: Frame = self.ctx.new_frame(px.data.shape, px.data.dtype, px.format)
+        np.copyto(frame.data, px.data)
         frame.seq = item.seq
-        frame.timestamp = self.ctx.now()
+        # The message's own stamp (header.stamp), as old relative to its publication as it
+        # was to its log time; a stamp on another clock (simulated time) is not used.
+        now = self.ctx.now()
+        age = (item.log_time - px.stamp) / 1e9 if px.stamp is not None else 0.0
+        frame.timestamp = now - age / self.params.rate if 0 <= age < STAMP_SPAN else now
         return frame
+
+    def _left_out(self) -> None:
+        """Say each channel left out once (one line naming it and why), as the node's error."""
+        for topic, (why, _count) in self.left_out.items():
+            if topic in self._said_left_out:
+                continue
+            self._said_left_out.add(topic)
+            msg = f"{topic}: left out, cannot decode ({why})"
+            self.ctx.log.warning("%s: %s", self.ctx.name, msg)
+            with contextlib.suppress(RuntimeError):
+                self.ctx.set_error(msg)
 
     def _restamped(self, item: _Item) -> Any:
         """A recorded ``timestamp`` is epoch nanoseconds (the recording's time base): mapped

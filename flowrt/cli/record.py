@@ -109,6 +109,9 @@ def cmd_record(args: argparse.Namespace) -> int:
     if args.writer == "thread" and args.writer_priority != "normal":
         err.print("flowrt record: --writer-priority idle needs --writer process", markup=False)
         return EXIT_BAD_GRAPH
+    if args.profile == "ros2" and args.deterministic:
+        err.print("flowrt record: --deterministic needs the flowrt profile", markup=False)
+        return EXIT_BAD_GRAPH
     images = _image_formats(args.images, topics)
     if isinstance(images, str):
         err.print(f"flowrt record: {images}", markup=False)
@@ -134,6 +137,7 @@ def cmd_record(args: argparse.Namespace) -> int:
         "split_duration": split.duration,
         "log_report": False,  # printed below, once
         "deterministic": args.deterministic,
+        "profile": args.profile,
     }
     try:
         # relative paths of the graph resolve beside its file, as when it was loaded
@@ -256,7 +260,9 @@ def print_info(
         console.print(line, markup=False, highlight=False)
     for name, meta in info.metadata.items():
         console.print(
-            printable(f"metadata {name}: " + ", ".join(f"{k}={v}" for k, v in meta.items())),
+            printable(
+                f"metadata {name}: " + ", ".join(f"{k}={_short(v)}" for k, v in meta.items())
+            ),
             highlight=False,
             markup=False,
         )
@@ -270,6 +276,12 @@ def print_info(
         console.print(
             f"recorded graph: {lines} lines (flowrt info --graph prints it)", highlight=False
         )
+
+
+def _short(value: str) -> str:
+    """A metadata value on one line (rosbag2 keeps a copy of metadata.yaml in one)."""
+    lines = value.splitlines()
+    return value if len(lines) < 2 else f"({len(lines)} lines of text)"
 
 
 def _audio_lines(info: Any) -> list[str]:
@@ -348,7 +360,11 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
     if not p.exists():
         err.print(f"flowrt {cmd}: {path}: no such file or folder", markup=False)
         return None
-    files = mcap_files(p)
+    try:
+        files = mcap_files(p)
+    except ValueError as e:  # a rosbag2 folder flowrt cannot read (compressed): why
+        err.print(f"flowrt {cmd}: {e}", markup=False)
+        return None
     if not files:
         err.print(f"flowrt {cmd}: {path}: no .mcap file in this folder", markup=False)
         return None
@@ -357,6 +373,10 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
 
 def _not_mcap(path: Path) -> bool:
     """True for a file that is not MCAP; one cut inside its magic (killed at creation) is."""
+    from ..recording.rosbag2 import is_db3
+
+    if is_db3(path):  # a rosbag2 SQLite3 file: read through the same reader
+        return False
     magic = b"\x89MCAP0\r\n"
     with open(path, "rb") as f:
         head = f.read(8)
@@ -468,12 +488,23 @@ def cmd_replay(args: argparse.Namespace) -> int:
     streams = _chosen_streams(info, args.topics, err)
     if streams is None:
         return EXIT_BAD_GRAPH
+    left_out = _left_out(files, streams, err)
+    streams = [s for s in streams if s.topic not in left_out]
+    if not streams:
+        err.print(f"flowrt replay: {path}: nothing to replay (no stream decodes)", markup=False)
+        return EXIT_BAD_GRAPH
     by_node: dict[str, list[str]] = {}
     for s in streams:
         by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
 
     replay_cls: Any = resolve_kind("replay")
-    common = {"path": str(path), "rate": args.rate, "start": args.start, "loop": args.loop}
+    # absolute: a relative path would resolve beside --graph's file, not where this runs
+    common = {
+        "path": str(path.resolve()),
+        "rate": args.rate,
+        "start": args.start,
+        "loop": args.loop,
+    }
     kinds: dict[str, Any] = {}
     graph = _replay_target(args, info, path, err)
     if graph is _REFUSED:
@@ -534,7 +565,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
         markup=False,
     )
     code = run_graph(rgraph, args, err, prog="flowrt replay", kinds=kinds)
-    if not info.closed_cleanly:
+    if not info.closed_cleanly or left_out:  # not everything asked for was replayed
         return max(code, EXIT_FAILED)
     return code
 
@@ -554,6 +585,18 @@ def _say_damage(info: Any, path: Path, err: Console) -> None:
         f"replaying the {before} messages before the damage",
         markup=False,
     )
+
+
+def _left_out(files: list[Path], streams: list[Any], err: Console) -> dict[str, str]:
+    """The chosen streams no decoder reads, one line each on ``err``: left out of the replay."""
+    from ..recording.decoding import undecodable
+
+    left = undecodable(files, [s.topic for s in streams])
+    for topic, why in left.items():
+        err.print(
+            f"flowrt replay: {printable(topic)}: left out, cannot decode ({why})", markup=False
+        )
+    return left
 
 
 def _chosen_streams(info: Any, topics: Any, err: Console) -> list[Any] | None:
@@ -668,6 +711,13 @@ def add_parsers(sub: Any) -> None:
         action="store_true",
         help="also record every activation's inputs and a digest of every output, for "
         "flowrt replay --deterministic (the sources' values are recorded whatever --topics says)",
+    )
+    rec.add_argument(
+        "--profile",
+        choices=("flowrt", "ros2"),
+        default="flowrt",
+        help="ros2: a rosbag2 folder (metadata.yaml + MCAP of CDR messages, ros2msg schemas: "
+        "sensor_msgs/Image, geometry_msgs/Twist, std_msgs...) that ROS 2 tools open",
     )
     add_run_options(rec)  # --duration, --realtime, --control ...: a recording is a run
     rec.set_defaults(func=cmd_record)

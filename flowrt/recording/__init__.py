@@ -8,6 +8,10 @@
 - :mod:`.session`: session folders and the metadata a recording carries
 - :mod:`.report`: the per-stream table after a recording
 - :mod:`.reader`: ``info``, damage-tolerant reading, repair, and the replay message stream
+- :mod:`.decoding`: every MCAP encoding back into values (:mod:`.images` for image messages of
+  ROS and Foxglove, :mod:`.plain` for the rest), whoever wrote the file
+- :mod:`.rosbag2`: rosbag2 folders (MCAP or SQLite3 storage) read like sessions, and their
+  ``metadata.yaml`` written; :mod:`.ros2_profile`: values as ROS 2 messages (``--profile ros2``)
 
 The runtime never imports this package; the ``recorder`` and ``replay`` nodes and the CLI do.
 """

@@ -37,7 +37,7 @@ from typing import Any, NamedTuple
 
 from ..frames import Frame
 from .split import SplitPolicy, part_path
-from .writer import THREAD_PREFIX, StreamCounters, _ValueEncoder, count_written
+from .writer import THREAD_PREFIX, StreamCounters, _ValueEncoder, count_written, value_encoder
 from .writer_wire import (
     ACKS,
     ATTACH,
@@ -107,7 +107,9 @@ class ProcessRecordingWriter:
         self._loop = loop
         self._config = {**options, "path": str(self.base), "split": self.split}
         formats = dict(options.get("image_formats") or {})
-        self._values = _ValueEncoder(formats, options.get("epoch_offset", 0.0), False)
+        self._values = value_encoder(
+            formats, options.get("epoch_offset", 0.0), False, options.get("profile", "flowrt")
+        )
         self._unencodable: set[str] = set()
         self._travels: dict[tuple[str, type], bool] = {}  # pickled as is, or encoded here
         # Invariant: ``_sent`` holds every message sent and not yet reported, ``_held`` every

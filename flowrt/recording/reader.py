@@ -31,12 +31,15 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
+from .rosbag2 import db3_messages, db3_topics, is_db3
+
 __all__ = [
     "FileInfo",
     "RecordedMessage",
     "Recording",
     "SessionInfo",
     "StreamInfo",
+    "channel_schemas",
     "iter_messages",
     "iter_session",
     "repair",
@@ -280,6 +283,8 @@ def _scan(path: str | Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
     )
 
     p = Path(path)
+    if is_db3(p):
+        return _scan_db3(p)
     rec = Recording(p)
     chans: dict[int, _Chan] = {}
     chunks = 0
@@ -377,6 +382,34 @@ def _scan(path: str | Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
         attachments=attachments,
         graph=graph,
         summary_ok=_summary_ok(p),
+    )
+    return info, named
+
+
+def _scan_db3(p: Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
+    """A rosbag2 SQLite3 file described as an MCAP file is (:mod:`.rosbag2`)."""
+    named = []
+    for top in db3_topics(p).values():
+        c = _Chan(top.name, top.schema.id, top.encoding, {}, top.times, top.bytes)
+        named.append((c, top.type))
+    streams = [_stream_info(c, name) for c, name in named]
+    start = min((s.first for s in streams if s.first is not None), default=None)
+    end = max((s.last for s in streams if s.last is not None), default=None)
+    for s in streams:
+        for g in s.gaps:
+            g.at = g.at - (start or 0.0)
+    info = FileInfo(
+        path=str(p),
+        size=p.stat().st_size,
+        closed_cleanly=True,
+        damage=None,
+        start=start,
+        end=end,
+        duration=(end - start) if start is not None and end is not None else 0.0,
+        messages=sum(s.count for s in streams),
+        chunks=0,
+        streams=streams,
+        summary_ok=True,
     )
     return info, named
 
@@ -521,6 +554,11 @@ def iter_messages(
     from mcap.records import Channel, Message, Schema
 
     rec = damage if damage is not None else Recording(Path(path))
+    if is_db3(Path(path)):
+        for top, t, data in db3_messages(Path(path), topics):
+            yield RecordedMessage(top.name, top.schema, top.encoding, t, 0, data, top.name)
+        rec.closed_cleanly = True
+        return
     schemas: dict[int, Any] = {}
     channels: dict[int, Any] = {}
     for r in _records(Path(path), rec, emit_chunks=False):
@@ -564,6 +602,36 @@ def iter_session(
         yield from iter_messages(f, topics, rec)
         if rec.damage is not None:
             return
+
+
+def channel_schemas(files: list[Path]) -> dict[str, tuple[str, Any]]:
+    """topic -> (message encoding, schema record or None) over the files of a recording.
+
+    From each file's summary when it has one (no message is read), else by reading it.
+    """
+    from mcap.reader import SeekingReader
+    from mcap.records import Channel, Schema
+
+    out: dict[str, tuple[str, Any]] = {}
+    for f in files:
+        if is_db3(f):
+            for top in db3_topics(f, with_times=False).values():
+                out.setdefault(top.name, (top.encoding, top.schema))
+            continue
+        summary = None
+        with contextlib.suppress(Exception), open(f, "rb") as fh:
+            summary = SeekingReader(fh).get_summary()
+        if summary is not None:
+            for ch in summary.channels.values():
+                out.setdefault(ch.topic, (ch.message_encoding, summary.schemas.get(ch.schema_id)))
+            continue
+        schemas: dict[int, Any] = {}
+        for r in _records(f, Recording(f), emit_chunks=False):
+            if isinstance(r, Schema):
+                schemas[r.id] = r
+            elif isinstance(r, Channel):
+                out.setdefault(r.topic, (r.message_encoding, schemas.get(r.schema_id)))
+    return out
 
 
 def _ends_before(path: Path, t: int) -> bool:

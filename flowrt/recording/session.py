@@ -21,6 +21,8 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from .rosbag2 import bag_files
+
 __all__ = [
     "SESSION_FILE",
     "SESSION_NAME",
@@ -75,12 +77,18 @@ def new_session(root: str | Path, name: str = "rec") -> Path:
 def mcap_files(path: str | Path) -> list[Path]:
     """The MCAP file(s) of a session folder in part order, or the file itself.
 
+    A rosbag2 folder gives its storage files (``.mcap`` or ``.db3``, :mod:`.rosbag2`); one
+    that flowrt cannot read raises :class:`~.rosbag2.BagError` with the reason.
+
     Parts sort by their number (``_999`` before ``_1000``); the originals that ``info
     --repair`` kept (``*.damaged.mcap``) and its unfinished output are not parts.
     """
     p = Path(path)
     if not p.is_dir():
         return [p]
+    bag = bag_files(p)  # a rosbag2 folder: its files, as metadata.yaml lists them
+    if bag is not None:
+        return bag
     files = [
         f
         for f in p.glob("*.mcap")

@@ -51,6 +51,7 @@ from .encoding import (
     schema_for,
 )
 from .gilfree import install
+from .ros2_profile import ros2_topic
 from .split import SplitPolicy, part_path
 
 __all__ = ["RecordingWriter", "StreamCounters", "count_written"]
@@ -123,6 +124,8 @@ class RecordingWriter:
             written) and its part's index (a writer process reports these to the recorder).
         gil_free: the large copies of the writing with the GIL released (:mod:`.gilfree`);
             False only to measure against ``mcap``'s own buffers (the benchmark's baseline).
+        profile: ``flowrt`` (foxglove protobuf images, JSON) or ``ros2`` (CDR messages with
+            ``ros2msg`` schemas, :mod:`.ros2_profile`); also the MCAP header's profile.
     """
 
     def __init__(
@@ -143,8 +146,10 @@ class RecordingWriter:
         split: SplitPolicy | None = None,
         gil_free: bool = True,
         on_result: Callable[[str, int, int], None] | None = None,
+        profile: str = PROFILE,
     ) -> None:
         self.gil_free = gil_free
+        self.profile = profile
         self.split = split if split is not None and split.active else None
         self.base = Path(path)
         self.path = self.base.with_name(part_path(self.base.name, 0)) if self.split else self.base
@@ -187,7 +192,7 @@ class RecordingWriter:
         self._end_attachments: Callable[[], list[tuple[str, str, bytes]]] = list
         self._on_finished: Callable[[], None] | None = None
         self._inflight: Frame | None = None
-        self._values = _ValueEncoder(self.image_formats, epoch_offset, gil_free)
+        self._values = value_encoder(self.image_formats, epoch_offset, gil_free, profile)
         self._unencodable: set[str] = set()
         self.notes: list[str] = []  # problems other than write errors (said once per stream)
 
@@ -314,7 +319,7 @@ class RecordingWriter:
             w = Writer(file, chunk_size=self.chunk_size, compression=comp, enable_crcs=self.crc)
             if self.gil_free:
                 install(w)  # large copies with the GIL released: the loop runs meanwhile
-            w.start(profile=PROFILE, library=_library())
+            w.start(profile=self.profile, library=_library())
             now = time.time_ns()
             for name, data in self._metadata.items():
                 w.add_metadata(name, data)
@@ -420,7 +425,10 @@ class RecordingWriter:
     def _add(self, item: _Item, enc: Encoded) -> int:
         """Write one message into the current part: its size, or -1 (a write error)."""
         cid = self._channels.id_for(
-            self._writer, item.topic, enc.schema, self._channel_meta.get(item.topic, {})
+            self._writer,
+            ros2_topic(item.topic) if self.profile == "ros2" else item.topic,
+            enc.schema,
+            self._channel_meta.get(item.topic, {}),
         )
         ns = round((item.t + self.epoch_offset) * 1e9)
         if not self._guard(
@@ -519,6 +527,17 @@ def _to_heap(queue: deque[_Item]) -> list[Frame]:
             )
             originals.append(v)
     return originals
+
+
+def value_encoder(
+    image_formats: dict[str, str], epoch_offset: float, gil_free: bool, profile: str = PROFILE
+) -> Any:
+    """The encoder of a profile: flowrt's own (:class:`_ValueEncoder`) or ROS 2's."""
+    if profile == "ros2":
+        from .ros2_profile import Ros2Encoder
+
+        return Ros2Encoder(image_formats, epoch_offset)
+    return _ValueEncoder(image_formats, epoch_offset, gil_free)
 
 
 class _ValueEncoder:

@@ -1,0 +1,431 @@
+"""The ``ros2`` recording profile: flowrt values as ROS 2 messages (CDR, ``ros2msg`` schemas).
+
+``flowrt record G --profile ros2`` (``profile: ros2`` on the ``recorder``) writes a rosbag2
+folder: the MCAP files hold CDR messages under ``ros2msg`` schemas, each schema the type's
+full definition with its dependencies (as rosbag2 writes them), so ``rosbags``'
+``AnyReader``, ``mcap-ros2-support`` and the Foxglove app read every message without a ROS 2
+install. A standard type is used where one fits, a flowrt definition otherwise:
+
+=====================================  =======================================================
+flowrt value                           ROS 2 message
+=====================================  =======================================================
+``Frame`` (BGR, RGB, GRAY, GRAY16)     ``sensor_msgs/msg/Image`` (bgr8, rgb8, mono8, mono16)
+``Frame`` with ``--images jpeg|png``   ``sensor_msgs/msg/CompressedImage``
+velocity command ``{v, w}`` or         ``geometry_msgs/msg/Twist`` (v/vx/vy/vz -> linear,
+``{vx, vy, vz, wx, wy, wz}``           w/wx/wy/wz -> angular)
+``bool``, ``int``, ``float``, ``str``  ``std_msgs/msg/Bool``, ``Int64``, ``Float64``, ``String``
+``AudioBlock``                         ``flowrt_msgs/msg/AudioBlock`` (pcm s16, interleaved)
+a dataclass / pydantic model           ``flowrt_msgs/msg/<ClassName>``, from its type hints
+a mapping of snake_case keys           ``flowrt_msgs/msg/<Topic>``, from its first value
+any other mapping (CAN signals)        ``flowrt_msgs/msg/KeyValues`` (key, value, text)
+=====================================  =======================================================
+
+In flowrt definitions ``X | None`` is an array of zero or one ``X`` (``centroid`` of a
+detection that found nothing is ``[]``), a mapping is ``KeyValue[]``, a float ``timestamp``
+(the runtime clock) is a ``builtin_interfaces/msg/Time`` in Unix time, and a value of no
+ROS type is its JSON text. Detections are not drawn as annotations in this profile. Topics
+are ROS 2 names (:func:`ros2_topic`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import struct
+import types
+import typing
+from typing import Any
+
+import numpy as np
+
+from ..audio import AudioBlock
+from ..frames import Frame
+from .encoding import FRAME_ENCODINGS, Encoded, Overlay, StreamSchema, to_jsonable
+
+__all__ = ["Ros2Encoder", "ros2_topic"]
+
+SEP = "=" * 80 + "\n"
+TIME = "builtin_interfaces/msg/Time"
+DEFS: dict[str, str] = {
+    TIME: "int32 sec\nuint32 nanosec\n",
+    "std_msgs/msg/Header": "builtin_interfaces/Time stamp\nstring frame_id\n",
+    "sensor_msgs/msg/Image": "std_msgs/Header header\nuint32 height\nuint32 width\n"
+    "string encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n",
+    "sensor_msgs/msg/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n",
+    "geometry_msgs/msg/Vector3": "float64 x\nfloat64 y\nfloat64 z\n",
+    "geometry_msgs/msg/Twist": "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular\n",
+    "std_msgs/msg/Bool": "bool data\n",
+    "std_msgs/msg/Int64": "int64 data\n",
+    "std_msgs/msg/Float64": "float64 data\n",
+    "std_msgs/msg/String": "string data\n",
+    "flowrt_msgs/msg/KeyValue": "string key\nfloat64 value\nstring text\n",
+    "flowrt_msgs/msg/KeyValues": "flowrt_msgs/KeyValue[] items\n",
+    "flowrt_msgs/msg/AudioBlock": "builtin_interfaces/Time stamp\nuint32 sample_rate\n"
+    "uint32 channels\nint64 seq\nint16[] data\n",
+}
+_SCALAR_TYPES = {
+    bool: "std_msgs/msg/Bool",
+    int: "std_msgs/msg/Int64",
+    float: "std_msgs/msg/Float64",
+}
+_VELOCITY = {"v": ("linear", "x"), "vx": ("linear", "x"), "vy": ("linear", "y")}
+_VELOCITY |= {"vz": ("linear", "z"), "w": ("angular", "z"), "wz": ("angular", "z")}
+_VELOCITY |= {"wx": ("angular", "x"), "wy": ("angular", "y")}
+_FIELD = re.compile(r"^[a-z][a-z0-9_]*$")
+_PRIMITIVE = {"bool", "int64", "float64", "string", "uint8", "int16", "uint32", "int32"}
+
+
+def _definition(name: str, defs: dict[str, str]) -> str:
+    """``name``'s definition followed by every type it uses, as rosbag2 writes a schema."""
+    out, seen, todo = [defs[name]], {name}, _uses(defs[name])
+    while todo:
+        dep = todo.pop(0)
+        if dep in seen:
+            continue
+        seen.add(dep)
+        pkg, _, short = dep.partition("/msg/")
+        out.append(f"{SEP}MSG: {pkg}/{short}\n{defs[dep]}")
+        todo.extend(_uses(defs[dep]))
+    return "".join(out)
+
+
+def _uses(text: str) -> list[str]:
+    found = []
+    for line in text.splitlines():
+        typ = line.split()[0].removesuffix("[]") if line.strip() else ""
+        if "/" in typ:
+            pkg, _, short = typ.partition("/")
+            found.append(f"{pkg}/msg/{short}")
+    return found
+
+
+def ros2_topic(name: str) -> str:
+    """A flowrt stream's name as a valid ROS 2 topic: ``front_cam.frame`` -> ``/front_cam/frame``.
+
+    ROS 2 refuses a dot in a topic name (``ros2 bag play`` could not publish it); the channel's
+    ``source`` metadata keeps the flowrt name, so flowrt's replay finds the node again.
+    """
+    parts = [re.sub(r"[^A-Za-z0-9_]", "_", p) for p in re.split(r"[./]+", name) if p]
+    return "/" + "/".join(p if not p[0].isdigit() else f"_{p}" for p in parts)
+
+
+class Ros2Encoder:
+    """A value to the CDR bytes of its ROS 2 message (the writer's encoder in this profile)."""
+
+    def __init__(self, image_formats: dict[str, str], epoch_offset: float) -> None:
+        self._formats = image_formats
+        self._offset = epoch_offset
+        self._defs = dict(DEFS)
+        self._streams: dict[str, tuple[type, StreamSchema, Any, Any]] = {}
+        self._serializers: dict[str, Any] = {}
+
+    def encode(self, topic: str, v: Any) -> Encoded:
+        if isinstance(v, Encoded):
+            return v
+        if isinstance(v, Overlay):
+            raise ValueError("annotations are not recorded in the ros2 profile")
+        if isinstance(v, Frame) and self._formats.get(topic, "raw") == "raw":
+            return self._raw_image(v)
+        got = self._streams.get(topic)  # a channel has one schema: its first value's
+        if got is None:
+            got = self._streams[topic] = (type(v), *self._stream(topic, v))
+        first, schema, convert, write = got
+        if type(v) is not first and not (_number(v) and _number_type(first)):
+            raise ValueError(f"a {type(v).__name__} on a stream of {first.__name__}")
+        return Encoded(schema, write(convert(v)))
+
+    def _schema(self, name: str) -> StreamSchema:
+        return StreamSchema(name, "ros2msg", _definition(name, self._defs).encode(), "cdr")
+
+    def _writer(self, name: str) -> Any:
+        from mcap_ros2._dynamic import serialize_dynamic
+
+        fn = serialize_dynamic(name, _definition(name, self._defs))[name]
+        return fn
+
+    def _stream(self, topic: str, v: Any) -> tuple[StreamSchema, Any, Any]:
+        """(schema, value -> dict, dict -> CDR) for the stream's first value."""
+        name: str
+        if isinstance(v, Frame):
+            name, convert = "sensor_msgs/msg/CompressedImage", self._compressed(topic)
+        elif isinstance(v, AudioBlock):
+            name, convert = "flowrt_msgs/msg/AudioBlock", self._audio
+        elif isinstance(v, bool | np.bool_):
+            name, convert = "std_msgs/msg/Bool", lambda x: {"data": bool(x)}
+        elif isinstance(v, int | np.integer):
+            name, convert = "std_msgs/msg/Int64", _integral
+        elif isinstance(v, float | np.floating):
+            name, convert = "std_msgs/msg/Float64", lambda x: {"data": float(x)}
+        elif isinstance(v, str):
+            name, convert = "std_msgs/msg/String", lambda x: {"data": x}
+        elif _is_velocity(v):
+            name, convert = "geometry_msgs/msg/Twist", _twist
+        else:
+            name, field = self._define(topic, v)
+            convert = lambda x: field(x)  # noqa: E731
+        return self._schema(name), convert, self._writer(name)
+
+    # --- images and audio -------------------------------------------------------------
+
+    def _stamp(self, t: float) -> dict[str, int]:
+        t = max(0.0, t + self._offset)
+        sec = math.floor(t)
+        return {"sec": int(sec), "nanosec": min(999_999_999, round((t - sec) * 1e9))}
+
+    def _raw_image(self, frame: Frame) -> Encoded:
+        """sensor_msgs/msg/Image, its CDR written by hand: the pixels copied once."""
+        data = np.ascontiguousarray(frame.data)
+        enc = FRAME_ENCODINGS.get(frame.pixel_format)
+        if data.dtype == np.uint16 and data.ndim == 2:
+            enc = "mono16"
+        if enc is None or data.dtype not in (np.uint8, np.uint16):
+            raise ValueError(f"no sensor_msgs/msg/Image encoding for {frame.pixel_format}")
+        h, w = data.shape[:2]
+        stamp = self._stamp(frame.timestamp)
+        out = _CdrOut()
+        out.u32(0x00000100)  # encapsulation: CDR little-endian (bytes 00 01 00 00)
+        out.i32(stamp["sec"])
+        out.u32(stamp["nanosec"])
+        out.string(frame.source)
+        out.u32(h)
+        out.u32(w)
+        out.string(enc)
+        out.u8(0)
+        out.u32(int(data.strides[0]))
+        out.u32(data.nbytes)
+        body = b"".join((out.bytes(), memoryview(data.reshape(-1).view(np.uint8))))  # type: ignore[arg-type]
+        return Encoded(self._schema("sensor_msgs/msg/Image"), body)
+
+    def _compressed(self, topic: str) -> Any:
+        fmt = self._formats.get(topic, "jpeg")
+
+        def convert(frame: Frame) -> dict[str, Any]:
+            import cv2
+
+            img = frame.data
+            if frame.pixel_format == "RGB":
+                img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+            ok, buf = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", img)
+            if not ok:
+                raise ValueError(f"cannot encode a {frame.pixel_format} frame as {fmt}")
+            header = {"stamp": self._stamp(frame.timestamp), "frame_id": frame.source}
+            return {"header": header, "format": fmt, "data": buf.tobytes()}
+
+        return convert
+
+    def _audio(self, block: AudioBlock) -> dict[str, Any]:
+        pcm = np.frombuffer(block.pcm16(), dtype="<i2")
+        return {
+            "stamp": self._stamp(block.timestamp),
+            "sample_rate": int(block.rate),
+            "channels": int(block.channels),
+            "seq": int(block.seq),
+            "data": pcm.tolist(),
+        }
+
+    # --- flowrt definitions ------------------------------------------------------------
+
+    def _define(self, topic: str, v: Any) -> tuple[str, Any]:
+        """A flowrt_msgs type for ``v`` (registered in ``self._defs``) and its converter."""
+        if isinstance(v, dict) and not all(isinstance(k, str) and _FIELD.match(k) for k in v):
+            return "flowrt_msgs/msg/KeyValues", lambda x: {"items": _key_values(x)}
+        if (dataclasses.is_dataclass(v) and not isinstance(v, type)) or hasattr(v, "model_fields"):
+            hints = _hints(type(v))
+            base = type(v).__name__
+        elif isinstance(v, dict):
+            hints = {k: _sample_type(x) for k, x in v.items()}
+            base = "".join(p.capitalize() for p in re.split(r"[^A-Za-z0-9]+", topic) if p)
+        else:
+            hints = {"data": Any}
+            base = type(v).__name__
+        name = f"flowrt_msgs/msg/{_type_name(base)}"
+        fields = [(k, _field_name(k), self._field_type(t)) for k, t in hints.items()]
+        if len({f for _, f, _ in fields}) < len(fields):
+            raise ValueError(f"{base}: field names that differ only in case or punctuation")
+        self._defs[name] = "".join(f"{typ} {f}\n" for _, f, (typ, _) in fields) or "uint8 empty\n"
+
+        def convert(x: Any) -> dict[str, Any]:
+            if not isinstance(x, dict) and not hasattr(x, "__dict__") and hints == {"data": Any}:
+                x = {"data": x}
+            out = {}
+            for k, f, (_, conv) in fields:
+                raw = x.get(k) if isinstance(x, dict) else getattr(x, k, None)
+                out[f] = conv(raw)
+            if isinstance(x, dict):
+                extra = set(x) - {k for k, _, _ in fields}
+                if extra:
+                    raise ValueError(f"keys not in its definition: {', '.join(sorted(extra))}")
+            return out
+
+        return name, convert
+
+    def _field_type(self, hint: Any) -> tuple[str, Any]:
+        """(ros2msg field type, Python value -> what the serializer takes) for a type hint."""
+        origin, args = typing.get_origin(hint), typing.get_args(hint)
+        if origin in (typing.Union, types.UnionType):
+            inner = [a for a in args if a is not type(None)]
+            if len(inner) == 1 and len(inner) < len(args):  # X | None: zero or one X
+                typ, conv = self._field_type(inner[0])
+                if typ.endswith("[]"):
+                    return typ, lambda x: [] if x is None else conv(x)
+                return f"{typ}[]", lambda x: [] if x is None else [conv(x)]
+            if all(a in (int, float) for a in inner):
+                return "float64", _float
+            return "string", _json_text
+        if hint is bool:
+            return "bool", lambda x: bool(x)
+        if hint is int:
+            return "int64", lambda x: int(x or 0)
+        if hint is float:
+            return "float64", _float
+        if hint is str:
+            return "string", lambda x: "" if x is None else str(x)
+        if hint is bytes:
+            return "uint8[]", lambda x: bytes(x or b"")
+        if hint is _Stamp:
+            return "builtin_interfaces/Time", lambda x: self._stamp(float(x or 0.0))
+        if origin in (tuple, list) and args:
+            item = args[0]
+            if all(a in (int, float, Ellipsis) for a in args) and item in (int, float):
+                typ, conv = (
+                    ("int64", int) if set(args) - {Ellipsis} == {int} else ("float64", float)
+                )
+                return f"{typ}[]", lambda x: [conv(i) for i in (x or ())]
+        if origin is dict or hint is dict:
+            return "flowrt_msgs/KeyValue[]", _key_values
+        return "string", _json_text
+
+
+class _Stamp:
+    """The type hint of a float ``timestamp`` field: runtime-clock seconds -> Time."""
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception:
+        hints = {}
+    names = (
+        [f.name for f in dataclasses.fields(cls)]
+        if dataclasses.is_dataclass(cls)
+        else list(getattr(cls, "model_fields", {}))
+    )
+    out = {n: hints.get(n, Any) for n in names}
+    if out.get("timestamp") is float:
+        out["timestamp"] = _Stamp
+    return out
+
+
+def _sample_type(x: Any) -> Any:
+    if isinstance(x, bool):
+        return bool
+    if isinstance(x, int | float):
+        return float  # a number that is 0 first may be 0.5 next
+    if isinstance(x, str):
+        return str
+    if isinstance(x, list | tuple) and all(
+        isinstance(i, int | float) and not isinstance(i, bool) for i in x
+    ):
+        return tuple[float, ...]
+    if isinstance(x, dict):
+        return dict
+    return Any
+
+
+def _field_name(key: str) -> str:
+    """A valid ROS 2 field name for ``key``: lower case, ``_`` for anything else."""
+    name = re.sub(r"[^a-z0-9_]", "_", re.sub(r"(?<=[a-z0-9])([A-Z])", r"_\1", key).lower())
+    name = re.sub(r"_+", "_", name).strip("_")
+    return name if name and name[0].isalpha() else f"f_{name}"
+
+
+def _type_name(base: str) -> str:
+    name = re.sub(r"[^A-Za-z0-9]", "", base) or "Message"
+    return name[0].upper() + name[1:] if name[0].isalpha() else f"M{name}"
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, int | float | np.integer | np.floating) and not isinstance(
+        v, bool | np.bool_
+    )
+
+
+def _number_type(t: type) -> bool:
+    return issubclass(t, int | float | np.integer | np.floating) and not issubclass(
+        t, bool | np.bool_
+    )
+
+
+def _integral(x: Any) -> dict[str, int]:
+    """An Int64 stream's value: a float is taken only when it is a whole number."""
+    if float(x) != int(x):
+        raise ValueError(f"{x!r} on a stream of integers")
+    return {"data": int(x)}
+
+
+def _float(x: Any) -> float:
+    return float(x) if x is not None else math.nan
+
+
+def _json_text(x: Any) -> str:
+    return json.dumps(to_jsonable(x), separators=(",", ":"))
+
+
+def _key_values(x: Any) -> list[dict[str, Any]]:
+    out = []
+    for k, v in (x or {}).items():
+        number = isinstance(v, int | float | np.number) and not isinstance(v, bool)
+        text = "" if number else (v if isinstance(v, str) else _json_text(v))
+        out.append({"key": str(k), "value": float(v) if number else math.nan, "text": text})
+    return out
+
+
+def _is_velocity(v: Any) -> bool:
+    if not isinstance(v, dict) or not v:
+        return False
+    keys = set(v) - {"timestamp"}
+    return (
+        bool(keys)
+        and keys <= set(_VELOCITY)
+        and all(isinstance(v[k], int | float) and not isinstance(v[k], bool) for k in keys)
+    )
+
+
+def _twist(v: dict[str, Any]) -> dict[str, Any]:
+    out = {"linear": {"x": 0.0, "y": 0.0, "z": 0.0}, "angular": {"x": 0.0, "y": 0.0, "z": 0.0}}
+    for k, (part, axis) in _VELOCITY.items():
+        if k in v:
+            out[part][axis] = float(v[k])
+    return out
+
+
+class _CdrOut:
+    """Little-endian CDR, aligned from the first byte after the encapsulation header."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    def _align(self, n: int) -> None:
+        pad = (-(len(self._buf) - 4)) % n if len(self._buf) >= 4 else 0
+        self._buf += b"\x00" * pad
+
+    def u8(self, v: int) -> None:
+        self._buf += struct.pack("<B", v)
+
+    def u32(self, v: int) -> None:
+        self._align(4)
+        self._buf += struct.pack("<I", v)
+
+    def i32(self, v: int) -> None:
+        self._align(4)
+        self._buf += struct.pack("<i", v)
+
+    def string(self, s: str) -> None:
+        raw = s.encode() + b"\x00"
+        self.u32(len(raw))
+        self._buf += raw
+
+    def bytes(self) -> bytes:
+        return bytes(self._buf)
