@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import os
 import sys
@@ -21,6 +20,7 @@ from rich.table import Table
 
 from ..diagnostics import GraphError
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, load, print_diagnostics, stdout_console
+from .json_output import emit
 
 
 def _ms(x: float | None) -> str:
@@ -75,25 +75,22 @@ def _check_tasks(args: argparse.Namespace, text: str, err: Console) -> int:
     ok = all(r.schedulable for r in res)
     util = utilisation(tasks)
     if args.json:
-        print(
-            json.dumps(
-                {
-                    "schedulable": ok,
-                    "utilisation": util,
-                    "tasks": [
-                        {
-                            "name": r.task.name,
-                            "wcet_ms": r.task.wcet,
-                            "period_ms": r.task.period,
-                            "deadline_ms": r.task.effective_deadline,
-                            "response_ms": _json_ms(r.response),
-                            "schedulable": r.schedulable,
-                        }
-                        for r in res
-                    ],
-                },
-                indent=2,
-            )
+        emit(
+            {
+                "schedulable": ok,
+                "utilisation": util,
+                "tasks": [
+                    {
+                        "name": r.task.name,
+                        "wcet_ms": r.task.wcet,
+                        "period_ms": r.task.period,
+                        "deadline_ms": r.task.effective_deadline,
+                        "response_ms": _json_ms(r.response),
+                        "schedulable": r.schedulable,
+                    }
+                    for r in res
+                ],
+            },
         )
     else:
         console = stdout_console()
@@ -192,7 +189,7 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
     paste = snippet(advice, timing)
     if args.json:
         extra = {"cpus": cpus, "mode": mode}
-        print(json.dumps({**_graph_json(verdict, tables, advice, paste), **extra}, indent=2))
+        emit({**_graph_json(verdict, tables, advice, paste), **extra})
     else:
         _print_graph(args.file, cpus, verdict, tables, advice, paste)
     if args.plot:

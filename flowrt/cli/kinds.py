@@ -17,6 +17,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .common import EXIT_BAD_GRAPH, EXIT_OK, stdout_console
+from .json_output import emit
 
 
 def _type_name(t: Any) -> str:
@@ -152,7 +153,7 @@ def cmd_kinds(args: argparse.Namespace) -> int:
             err.print(f"flowrt kinds: {e}", markup=False)
             return EXIT_BAD_GRAPH
         if args.json:
-            print(json.dumps(info, indent=1))
+            emit(info)
         else:
             _show(stdout_console(), info)
         return EXIT_OK
@@ -163,7 +164,7 @@ def cmd_kinds(args: argparse.Namespace) -> int:
         except Exception as e:  # a third-party kind that does not import: say so, go on
             rows.append({"kind": kind, "summary": f"(cannot import: {e})"})
     if args.json:
-        print(json.dumps(rows, indent=1))
+        emit(rows)
         return EXIT_OK
     console = stdout_console()
     table = Table(box=None, show_header=True, header_style="bold")

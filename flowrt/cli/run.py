@@ -24,7 +24,8 @@ from .common import (
     EXIT_OK,
     load,
     plain_handler,
-    seconds_arg,
+    positive_float_arg,
+    positive_seconds_arg,
     setup_logging,
     stdout_console,
 )
@@ -108,6 +109,8 @@ def run_graph(
     settle: Callable[[], None] | None = None,
     after: Callable[[Any], int] | None = None,
     kinds: dict[str, Any] | None = None,
+    result: dict[str, Any] | None = None,
+    final_table: bool = True,
 ) -> int:
     """Run a loaded graph with every option of ``flowrt run`` (see :func:`add_run_options`).
 
@@ -121,6 +124,9 @@ def run_graph(
     from ..status import LiveTable, LogLines, render
 
     console = stdout_console()
+    as_json = getattr(args, "json", False)
+    if as_json:
+        args.no_ui = True  # a live table on stderr would be noise around the log lines
     if not _timing_holds(graph, args, err, prog):
         return EXIT_FAILED
     problem = _display_options(graph, args)
@@ -198,12 +204,18 @@ def run_graph(
         settle()
     stats = rt.stats()
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
-        console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
+        if final_table:
+            console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
     code = _verdict(rt.failures(), err, prog)
-    return code if after is None else max(code, after(rt))
+    code = code if after is None else max(code, after(rt))
+    if as_json:
+        from .json_output import emit
+
+        emit({**(result or {}), "exit_code": code, "stats": stats.model_dump(mode="json")})
+    return code
 
 
 def _timing_holds(graph: Graph, args: argparse.Namespace, err: Console, prog: str) -> bool:
@@ -462,16 +474,28 @@ def add_parsers(sub: Any) -> None:
     run.set_defaults(func=cmd_run)
 
 
-def add_run_options(run: argparse.ArgumentParser) -> None:
-    """The options of a run, shared by ``flowrt run`` and ``flowrt record``."""
-    run.add_argument(
-        "--duration",
-        type=seconds_arg,
-        default=None,
-        metavar="S",
-        help="stop after S seconds of running, counted once every node is set up "
-        "(start-up, e.g. starting worker processes, and teardown come on top)",
-    )
+def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False) -> None:
+    """The options of a run, defined here once for every command that runs a graph:
+    ``flowrt run``, ``record``, ``replay`` and the measuring run of ``check --measure``
+    (``measuring``: its length is ``--measure``'s, and there is no ``--check`` or ``--json``
+    of a run). All go through :func:`run_graph`, so each command honours every one of them.
+    """
+    run = parser.add_argument_group("run options")
+    if not measuring:
+        run.add_argument(
+            "--duration",
+            type=positive_seconds_arg,
+            default=None,
+            metavar="S",
+            help="stop after S seconds of running, counted once every node is set up "
+            "(start-up, e.g. starting worker processes, and teardown come on top)",
+        )
+        run.add_argument(
+            "--json",
+            action="store_true",
+            help="print one JSON document on stdout at the end (the final statistics; "
+            "everything else goes to stderr); implies --no-ui",
+        )
     run.add_argument(
         "--no-ui", action="store_true", help="periodic log lines instead of the live table"
     )
@@ -496,9 +520,15 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
         help="at stop, let lossless edges and running activations finish for at most S seconds "
         "(default 5; reported when hit)",
     )
-    run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
     run.add_argument(
-        "--log-every", type=float, default=2.0, metavar="S", help="--no-ui summary period"
+        "--refresh", type=positive_float_arg, default=4.0, metavar="HZ", help="table refresh rate"
+    )
+    run.add_argument(
+        "--log-every",
+        type=positive_float_arg,
+        default=2.0,
+        metavar="S",
+        help="--no-ui summary period",
     )
     run.add_argument(
         "--control",
@@ -547,11 +577,13 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
     run.add_argument(
         "--no-display", action="store_true", help="run without the graph's display nodes"
     )
-    run.add_argument(
-        "--check",
-        action="store_true",
-        help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
-    )
+    if not measuring:
+        run.add_argument(
+            "--check",
+            action="store_true",
+            help="refuse to start when flowrt check shows a node missing its deadline "
+            "(declared wcet:)",
+        )
     run.add_argument(
         "--keep-going",
         action="store_true",
