@@ -21,6 +21,7 @@ from rich.table import Table
 from ..diagnostics import GraphError
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, load, print_diagnostics, stdout_console
 from .json_output import emit
+from .run import add_run_options
 
 
 def _ms(x: float | None) -> str:
@@ -155,6 +156,13 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
             )
             return EXIT_BAD_GRAPH
     budgets: dict[str, Budget] = {}
+    given = _run_option_given(args)
+    if given and args.measure is None:
+        err.print(
+            f"flowrt check: {given} is an option of the measuring run (give --measure DURATION)",
+            markup=False,
+        )
+        return EXIT_BAD_GRAPH
     if args.wcet_from:
         got = _stats_budgets(args, err)
         if got is None:
@@ -165,10 +173,13 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
             err.print(f"flowrt check: --plot: {_plot_unavailable()}", markup=False)
             return EXIT_BAD_GRAPH
         try:
-            budgets = _measure(graph, args.measure, args.wcet_stat, err)
+            measured = _measure(graph, args, err)
         except Exception as e:  # a node that cannot start, a port taken: one line, exit 1
             err.print(f"flowrt check: the measuring run failed: {e}", markup=False)
             return EXIT_FAILED
+        if measured is None:  # the run said why
+            return EXIT_FAILED
+        budgets = measured
     timing = graph_timing(graph, budgets)
     mode = args.mode if args.mode is not None else graph.spec.initial_mode
     if mode:
@@ -200,6 +211,18 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
         if not args.json:
             stdout_console().print(f"load per tick plotted to {args.plot}")
     return EXIT_OK if verdict.schedulable else EXIT_FAILED
+
+
+def _run_option_given(args: argparse.Namespace) -> str | None:
+    """The first run option given on the command line (not left at its default)."""
+    import argparse as ap
+
+    parser = ap.ArgumentParser(add_help=False)
+    add_run_options(parser, measuring=True)
+    for action in parser._actions:
+        if getattr(args, action.dest, action.default) != action.default:
+            return action.option_strings[0]
+    return None
 
 
 MAX_STATS_BYTES = 64 << 20  # a --stats-json of thousands of nodes is a few MB
@@ -238,26 +261,35 @@ def _plot_unavailable() -> str | None:
     return None
 
 
-def _measure(graph: Any, seconds: float, stat: Any, err: Console) -> dict[str, Any]:
-    """Run the graph headless for ``seconds`` and take each node's execution-time ``stat``."""
-    import asyncio
+def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, Any] | None:
+    """Run the graph headless for ``--measure`` and take each node's execution-time statistic;
+    None when the run failed (said on ``err``).
 
+    The run is :func:`flowrt.cli.run.run_graph` with the run options given to ``check``
+    (``--no-display``, ``--display-port``, ``--control``, ``--stats-json`` ...), as ``flowrt
+    run`` would run it.
+    """
     from ..analysis.budgets import budgets_from_stats
-    from ..eventloop import new_event_loop
-    from ..runtime import Runtime
+    from .run import run_graph
 
-    err.print(f"measuring: running {graph.spec.name} for {seconds:g} s ...", markup=False)
-    rt = Runtime(graph)
+    err.print(f"measuring: running {graph.spec.name} for {args.measure:g} s ...", markup=False)
+    run_args = argparse.Namespace(**vars(args))
+    run_args.duration, run_args.check = args.measure, False
+    run_args.json, run_args.no_ui = False, True  # headless; the check's own --json follows
+    ran: list[Any] = []
 
-    async def main() -> None:
-        async with rt:
-            await rt.run(seconds)
+    def keep(rt: Any) -> int:
+        ran.append(rt)
+        return EXIT_OK
 
     # What the graph's nodes print (a display's address) is not the check's output: a script
     # reading --json gets one JSON document on stdout and nothing else.
-    with contextlib.redirect_stdout(sys.stderr), asyncio.Runner(loop_factory=new_event_loop) as r:
-        r.run(main())
-    return budgets_from_stats(rt.stats().nodes, stat, "measured")
+    with contextlib.redirect_stdout(sys.stderr):
+        code = run_graph(graph, run_args, err, prog="flowrt check", after=keep, measuring=True)
+    if code != EXIT_OK or not ran:
+        err.print("flowrt check: the measuring run failed", markup=False)
+        return None
+    return budgets_from_stats(ran[0].stats().nodes, args.wcet_stat, "measured")
 
 
 def _graph_json(verdict: Any, tables: Any, advice: Any, paste: str) -> dict[str, Any]:
@@ -531,6 +563,7 @@ def add_parsers(sub: Any) -> None:
     )
     ck.add_argument("--json", action="store_true", help="machine-readable result")
     ck.add_argument("--plot", metavar="PNG", help="plot the load per tick (needs matplotlib)")
+    add_run_options(ck, measuring=True)  # for the measuring run: see _measure
     ck.set_defaults(func=cmd_check)
 
 

@@ -110,7 +110,7 @@ def run_graph(
     after: Callable[[Any], int] | None = None,
     kinds: dict[str, Any] | None = None,
     result: dict[str, Any] | None = None,
-    final_table: bool = True,
+    measuring: bool = False,
 ) -> int:
     """Run a loaded graph with every option of ``flowrt run`` (see :func:`add_run_options`).
 
@@ -119,6 +119,9 @@ def run_graph(
     with the runtime once it has stopped and the final table is printed; its exit code
     counts when it is worse than the run's own. ``settle`` runs first, before the final
     statistics are taken (a recorder's files finished, so its report is in them).
+    With ``--json`` the final statistics are the document, ``result`` (which ``after`` may
+    fill in) beside them. ``measuring`` (``check --measure``): no start-up timing check and
+    no table at the end; the check's own report follows.
     """
     from ..runtime import Runtime
     from ..status import LiveTable, LogLines, render
@@ -127,7 +130,7 @@ def run_graph(
     as_json = getattr(args, "json", False)
     if as_json:
         args.no_ui = True  # a live table on stderr would be noise around the log lines
-    if not _timing_holds(graph, args, err, prog):
+    if not measuring and not _timing_holds(graph, args, err, prog):
         return EXIT_FAILED
     problem = _display_options(graph, args)
     if problem:
@@ -204,7 +207,7 @@ def run_graph(
         settle()
     stats = rt.stats()
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
-        if final_table:
+        if not measuring:
             console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
@@ -474,11 +477,12 @@ def add_parsers(sub: Any) -> None:
     run.set_defaults(func=cmd_run)
 
 
-def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False) -> None:
+def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False) -> list[str]:
     """The options of a run, defined here once for every command that runs a graph:
     ``flowrt run``, ``record``, ``replay`` and the measuring run of ``check --measure``
     (``measuring``: its length is ``--measure``'s, and there is no ``--check`` or ``--json``
     of a run). All go through :func:`run_graph`, so each command honours every one of them.
+    Returns their destinations (``check`` refuses them without ``--measure``).
     """
     run = parser.add_argument_group("run options")
     if not measuring:
@@ -590,3 +594,4 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         help="keep the rest of the graph running when a node fails for good (default: stop at"
         " once); the exit code is 1 either way",
     )
+    return [a.dest for a in run._group_actions]
