@@ -47,8 +47,17 @@ class GraphError(Exception):
 
 
 def closest(word: str, choices: Iterable[str]) -> str | None:
-    """The choice most like ``word`` when one is close enough to be a typo, else None."""
-    matches = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.6)
+    """The choice most like ``word`` when one is close enough to be a typo, else None.
+
+    A word that begins exactly one choice is that choice's abbreviation (``prio``:
+    ``priority``, where plain similarity says ``period``).
+    """
+    options = list(choices)
+    if len(word) >= 3:
+        starting = [c for c in options if c.startswith(word) and c != word]
+        if len(starting) == 1:
+            return starting[0]
+    matches = difflib.get_close_matches(word, options, n=1, cutoff=0.6)
     return matches[0] if matches else None
 
 

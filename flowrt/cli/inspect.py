@@ -72,7 +72,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     ):
         topo.add_column(col, justify="right" if right else "left", overflow="fold")
     for name, n in graph.nodes.items():
-        dl = f"{n.spec.deadline:g}ms" if n.spec.deadline else "-"
+        dl = f"{_ms(n.spec.deadline)}ms" if n.spec.deadline else "-"
         if n.spec.deadline and n.spec.miss_policy.value != "continue":
             dl += f" {n.spec.miss_policy.value}"
         topo.add_row(
@@ -177,6 +177,10 @@ def _print_ticks(console: Console, tab: Any) -> None:
         console.print(t)
 
 
+def _ms(ms: float) -> str:
+    return f"{ms:.2f}".rstrip("0").rstrip(".") if ms >= 0.01 else f"{ms:.3g}"
+
+
 def _trigger_text(trig: Any) -> str:
     from ..spec import FrameTrigger, InputTrigger, TimerTrigger
 
@@ -185,8 +189,8 @@ def _trigger_text(trig: Any) -> str:
         every = f"1/{trig.period}" if trig.period != 1 else "each"
         return f"{every} {trig.frame}{phase}"
     if isinstance(trig, TimerTrigger):
-        phase = f" +{trig.phase:g}ms" if trig.phase else ""
-        return f"{trig.timer:g}ms{phase}"
+        phase = f" +{_ms(trig.phase)}ms" if trig.phase else ""
+        return f"{_ms(trig.timer)}ms{phase}"
     if isinstance(trig, InputTrigger):
         return f"input {trig.input}"
     return "loop"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from typing import Any
 
 from rich.console import Console
@@ -26,9 +27,21 @@ def _type_name(t: Any) -> str:
     return str(getattr(t, "__name__", t))
 
 
+#: A pointer to elsewhere at the end of a docstring's first line: it is read here alone.
+_POINTER = re.compile(
+    r"\s*(?:\(\s*see [^()]*\)|[;,]\s*see (?:the module\b[^.;]*|above|below))\s*\.?\s*$",
+    re.IGNORECASE,
+)
+
+
 def _summary(cls: Any) -> str:
+    """The docstring's first sentence as ``flowrt kinds`` lists it: without a "(see the
+    module docstring)" or "see above" that points nowhere from a list, nor reST quotes."""
     doc = (cls.__doc__ or "").strip().splitlines()
-    return doc[0].strip() if doc else ""
+    if not doc:
+        return ""
+    line = _POINTER.sub("", doc[0].strip()).replace("``", "")
+    return line if not line or line.endswith((".", "!", "?", ":")) else line + "."
 
 
 def _default_policy(port: Any) -> str:
@@ -51,7 +64,7 @@ def _range(field: Any) -> str:
             v = getattr(m, attr, None)
             if v is not None:
                 bounds.append(f"{word} {v}")
-    return ", ".join(bounds)
+    return ", ".join(dict.fromkeys(bounds))  # a bound both a type and a Field give: once
 
 
 def describe(kind: str) -> dict[str, Any]:
