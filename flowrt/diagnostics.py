@@ -65,3 +65,18 @@ def did_you_mean(word: str, choices: Iterable[str]) -> str:
     """A ' (did you mean X?)' suffix when a close match exists, else ''."""
     match = closest(word, choices)
     return f" (did you mean {match!r}?)" if match is not None else ""
+
+
+def validation_text(e: Exception) -> str:
+    """A pydantic ValidationError as one line a user reads (``object: Input should be a
+    valid string, got 5``), without pydantic's header and documentation links; any other
+    exception as its first line."""
+    errors = getattr(e, "errors", None)
+    if not callable(errors):
+        return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    parts = []
+    for err in errors(include_url=False):
+        where = ".".join(str(x) for x in err.get("loc", ())) or "params"
+        got = f", got {err['input']!r}" if err.get("type") != "missing" and "input" in err else ""
+        parts.append(f"{where}: {err.get('msg')}{got}"[:300])
+    return "; ".join(parts)
