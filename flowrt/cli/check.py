@@ -86,6 +86,7 @@ def _check_tasks(args: argparse.Namespace, text: str, err: Console) -> int:
                         "wcet_ms": r.task.wcet,
                         "period_ms": r.task.period,
                         "deadline_ms": r.task.effective_deadline,
+                        "blocking_ms": r.blocking,
                         "response_ms": _json_ms(r.response),
                         "schedulable": r.schedulable,
                     }
@@ -109,7 +110,7 @@ def _check_tasks(args: argparse.Namespace, text: str, err: Console) -> int:
                 _ms(k.period),
                 _ms(k.effective_deadline),
                 _ms(k.jitter),
-                _ms(k.blocking),
+                _ms(r.blocking),  # the B used: non-preemptive, the longest lower job too
                 _ms(r.response),
                 "[green]ok[/]" if r.schedulable else "[red]MISS[/]",
             )
@@ -302,6 +303,7 @@ def _graph_json(verdict: Any, tables: Any, advice: Any, paste: str) -> dict[str,
                 "wcet_ms": v.budget.ms if v.budget else None,
                 "period_ms": v.period_ms,
                 "deadline_ms": v.deadline_ms,
+                "blocking_ms": v.blocking_ms,
                 "response_ms": _json_ms(v.response_ms),
                 "schedulable": v.schedulable is True,
             }
