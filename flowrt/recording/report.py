@@ -10,7 +10,6 @@ trigger's source rate divided by its period), as the runtime's statistics report
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -56,10 +55,6 @@ class RecordingReport(BaseModel):
         return sum(s.lost for s in self.streams)
 
 
-_TIMER = re.compile(r"^([0-9.]+)ms")
-_FRAME = re.compile(r"^(\d+)/")
-
-
 def nominal_rates(stats: Any) -> dict[str, float]:
     """Node name -> nominal activations per second, for timer- and frame-triggered nodes."""
     rows = {n.name: n for n in stats.nodes}
@@ -72,12 +67,11 @@ def nominal_rates(stats: Any) -> dict[str, float]:
         if n is None or depth > 20:
             return None
         r: float | None = None
-        if n.trigger == "timer" and (m := _TIMER.match(n.period)):
-            ms = float(m.group(1))
-            r = 1000.0 / ms if ms > 0 else None
-        elif n.trigger.startswith("frame ") and (m := _FRAME.match(n.period)):
+        if n.trigger == "timer" and n.timer_ms:  # the numbers, not the shown text (rounded)
+            r = 1000.0 / n.timer_ms
+        elif n.trigger.startswith("frame ") and n.period_frames:
             src = rate(n.trigger.split()[1].split(".")[0], depth + 1)
-            r = None if src is None else src / int(m.group(1))
+            r = None if src is None else src / n.period_frames
         if r is not None:
             out[name] = r
         return r
