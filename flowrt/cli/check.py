@@ -162,6 +162,7 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
         err.print(
             f"flowrt check: {given} is an option of the measuring run (give --measure DURATION)",
             markup=False,
+            soft_wrap=True,
         )
         return EXIT_BAD_GRAPH
     if args.wcet_from:
