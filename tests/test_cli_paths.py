@@ -304,3 +304,16 @@ def test_an_images_glob_matching_nothing_fails_validation(
     (tmp_path / "shots").mkdir()
     (tmp_path / "shots" / "a.png").write_bytes(b"")
     assert main(["validate", str(path)]) == 0
+
+
+def test_a_session_has_one_length_first_message_to_last() -> None:
+    """Issue 43: POST /api/record/stop said 6.0 s (start to stop) for a session the sessions
+    API and the player give as 4.95 s (first message to last): both read the report's span."""
+    from flowrt.nodes.operator_sessions import session_length
+    from flowrt.recording import RecordingReport
+
+    report = RecordingReport(
+        session="s", files=[], start_time="t", duration=6.0, span=4.95, error=None, streams=[]
+    )
+    assert session_length(report.model_dump(mode="json")) == 4.95
+    assert session_length({"duration": 6.0}) == 6.0  # a report from before the span

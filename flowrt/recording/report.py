@@ -46,6 +46,11 @@ class RecordingReport(BaseModel):
     files: list[str]
     start_time: str
     duration: float = Field(description="seconds, start of recording to stop")
+    span: float | None = Field(
+        default=None,
+        description="seconds from the first message to the last: the session's length as "
+        "flowrt info, the player and the sessions API give it (None: no message)",
+    )
     error: str | None = Field(description="the write error that stopped the recording, if any")
     notes: list[str] = Field(default_factory=list)
     streams: list[StreamReport]
@@ -137,6 +142,7 @@ def build_report(
         files=[str(f) for f in writer.files] or [str(writer.path)],
         start_time=start_time,
         duration=duration,
+        span=window,
         error=writer.error,
         notes=list(writer.notes),
         streams=[
