@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -143,3 +144,31 @@ async def test_every_ctl_subcommand_prints_one_document(
         assert code == 1
         assert "nosuchnode" in doc["error"]["message"]
         await run.stop()
+
+
+def test_check_measure_takes_the_run_options(tmp_path: Path) -> None:
+    """Issue 43: `check --measure ... --display-port` was refused, and the measuring run bound
+    the live view's port anyway; now it runs as `flowrt run` would, with the options given."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        path = tmp_path / "d.yaml"
+        path.write_text(
+            GRAPH.split("modes:")[0]
+            + f"  view: {{kind: display, params: {{port: {port}}}, inputs: {{cam: cam.frame}}}}\n"
+        )
+        stats = tmp_path / "stats.json"
+        r = cli("check", str(path), "--measure", "1s", "--no-display", "--stats-json", str(stats),
+                "--cpus", "2", "--json")  # fmt: skip
+        doc = one_document(r)
+        assert r.returncode in (0, 1), r.stderr  # 1: a node without a deadline has no bound
+        assert "error" not in doc
+        assert {t["name"] for t in doc["tasks"]} >= {"cam", "tick"}
+        assert "view" not in {t["name"] for t in doc["tasks"]}  # the analysis of the run
+        assert "display:" not in r.stderr
+        assert stats.exists()  # --stats-json of the measuring run
+
+        r = cli("check", str(path), "--measure", "1s", "--json")  # the view's port is taken
+        assert r.returncode == 1
+        assert "display 'view'" in one_document(r)["error"]["message"]

@@ -288,8 +288,7 @@ def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, An
     # reading --json gets one JSON document on stdout and nothing else.
     with contextlib.redirect_stdout(sys.stderr):
         code = run_graph(graph, run_args, err, prog="flowrt check", after=keep, measuring=True)
-    if code != EXIT_OK or not ran:
-        err.print("flowrt check: the measuring run failed", markup=False)
+    if code != EXIT_OK or not ran:  # the run said why, as "flowrt check: ..."
         return None
     return budgets_from_stats(ran[0].stats().nodes, args.wcet_stat, "measured")
 
