@@ -140,6 +140,7 @@ def test_json_success_and_failure_are_one_document(
     assert isinstance(doc, dict)
     error = doc["error"]
     assert error["exit_code"] == failure_code
+    assert error["command"] == command
     assert error["message"]
     assert error["message"] in err  # what a person saw on stderr, the same words
 

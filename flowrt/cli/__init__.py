@@ -54,12 +54,24 @@ def main(argv: list[str] | None = None) -> int:
     return code
 
 
+def _name_command(args: argparse.Namespace) -> None:
+    """``ctl modes``, ``can stats``: the name an ``--json`` error document gives."""
+    from . import json_output
+
+    words = [args.command]
+    sub = getattr(args, f"{args.command}_command", None)
+    if isinstance(sub, str):
+        words.append(sub)
+    json_output.name_command(" ".join(words))
+
+
 def _main(argv: list[str]) -> int:
     from .._startup import imports_done
 
     try:
         imports_done()  # from here Ctrl-C is a KeyboardInterrupt, caught below
         args = build_parser().parse_args(argv)
+        _name_command(args)
         return int(args.func(args))
     except KeyboardInterrupt:
         return 130

@@ -42,6 +42,12 @@ def emit(doc: Any) -> None:
         _active.doc = doc
 
 
+def name_command(command: str) -> None:
+    """The subcommand, once the arguments are parsed (before: the first word given)."""
+    if _active is not None:
+        _active.command = command
+
+
 def note(**detail: Any) -> None:
     """Structured detail for the error document (a graph file's diagnostics)."""
     if _active is not None:
