@@ -98,7 +98,8 @@ class JsonOutput:
             if line.strip() and not _LOG_LINE.match(line)
         ]
         said = [ln for ln in lines if _MESSAGE.match(ln) and ": warning:" not in ln]
-        message = said[-1] if said else (lines[-1] if lines else f"exit code {code}")
+        quiet = "interrupted" if code == 130 else f"exit code {code}"  # Ctrl-C says nothing
+        message = said[-1] if said else (lines[-1] if lines else quiet)
         return {
             "message": message,
             "exit_code": code,
