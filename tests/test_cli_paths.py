@@ -202,6 +202,8 @@ def test_a_bad_option_gets_the_subcommand_usage_and_a_suggestion(
         ["run", "g.yaml", "--refresh", "-1"],
         ["replay", "s", "--rate", "-2"],
         ["replay", "s", "--rate", "0"],
+        ["check", "g.yaml", "--measure", "-3s"],
+        ["ctl", "events", "-n", "-5"],
     ],
 )
 def test_a_negative_value_is_a_value_that_must_be_more_than_0(

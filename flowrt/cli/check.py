@@ -515,6 +515,8 @@ def _plot(tables: Any, path: str) -> str | None:
 def _duration_s(text: str) -> float:
     from ..spec import parse_duration_ms
 
+    if text.startswith("-"):
+        raise argparse.ArgumentTypeError("must be more than 0")
     try:
         ms = parse_duration_ms(text if any(c.isalpha() for c in text) else f"{text}s")
     except ValueError as e:

@@ -25,6 +25,17 @@ def duration_ms_arg(text: str) -> float:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _count(text: str) -> int:
+    """``-n``: a whole number more than 0."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError("must be more than 0")
+    return n
+
+
 def _is_number(text: str) -> bool:
     try:
         float(text)
@@ -105,11 +116,11 @@ def add_parsers(sub: Any) -> None:
     )
     what.add_parser("modes", help="list the graph's modes and the current one")
     ev = what.add_parser("events", help="recent events")
-    ev.add_argument("-n", type=int, default=20, help="how many of the newest events")
+    ev.add_argument("-n", type=_count, default=20, help="how many of the newest events")
     what.add_parser("qos", help="mode, overload state and shed nodes")
     db = what.add_parser("rtdb", help="RTDB records (all, or the history of one)")
     db.add_argument("name", nargs="?", help="one record: its history (default: every record)")
-    db.add_argument("-n", type=int, default=8, help="history length for one record")
+    db.add_argument("-n", type=_count, default=8, help="history length for one record")
     rc = what.add_parser("record", help="start or stop the graph's recorder node(s)")
     rc.add_argument("action", choices=("start", "stop"), help="start or stop recording")
     rc.add_argument("--node", help="one recorder (default: every recorder of the graph)")
