@@ -91,13 +91,20 @@ class JsonOutput:
         self.detail: dict[str, Any] = {}
         self.stderr = _Stderr(sys.stderr)
 
-    def error_doc(self, code: int) -> dict[str, Any]:
-        lines = [
+    def _lines(self) -> list[str]:
+        """What stderr said, without log lines."""
+        return [
             line.rstrip()
             for line in self.stderr.text().splitlines()
             if line.strip() and not _LOG_LINE.match(line)
         ]
-        said = [ln for ln in lines if _MESSAGE.match(ln) and ": warning:" not in ln]
+
+    def _said(self) -> list[str]:
+        """The one-line messages (``flowrt info: ...``), warnings left out."""
+        return [ln for ln in self._lines() if _MESSAGE.match(ln) and ": warning:" not in ln]
+
+    def error_doc(self, code: int) -> dict[str, Any]:
+        lines, said = self._lines(), self._said()
         quiet = "interrupted" if code == 130 else f"exit code {code}"  # Ctrl-C says nothing
         message = said[-1] if said else (lines[-1] if lines else quiet)
         return {
@@ -112,8 +119,7 @@ class JsonOutput:
         if self.doc is None:
             return {"error": self.error_doc(code)} if code else {}
         if code and isinstance(self.doc, dict) and "error" not in self.doc:
-            has_message = any(_MESSAGE.match(ln) for ln in self.stderr.text().splitlines())
-            if has_message or self.detail:
+            if self._said() or self.detail:  # a failure said, not only a verdict (check)
                 return {**self.doc, "error": self.error_doc(code)}
         return self.doc
 
