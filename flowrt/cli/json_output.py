@@ -118,9 +118,9 @@ class JsonOutput:
     def document(self, code: int) -> Any:
         if self.doc is None:
             return {"error": self.error_doc(code)} if code else {}
-        if code and isinstance(self.doc, dict) and "error" not in self.doc:
-            if self._said() or self.detail:  # a failure said, not only a verdict (check)
-                return {**self.doc, "error": self.error_doc(code)}
+        failed = code and (self._said() or self.detail)  # not only a verdict (check: 1)
+        if failed and isinstance(self.doc, dict) and "error" not in self.doc:
+            return {**self.doc, "error": self.error_doc(code)}
         return self.doc
 
 
