@@ -321,3 +321,16 @@ def test_a_session_has_one_length_first_message_to_last() -> None:
     )
     assert session_length(report.model_dump(mode="json")) == 4.95
     assert session_length({"duration": 6.0}) == 6.0  # a report from before the span
+
+
+def test_a_verdict_is_a_result_not_an_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """check exits 1 when the timing does not hold: its document is the result, no error."""
+    path = tmp_path / "t.yaml"
+    path.write_text("tasks:\n  - {name: a, wcet: 3ms, period: 2ms}\n")
+    code, doc, _ = _json_run(capsys, ["check", str(path), "--json"])
+    assert code == 1
+    assert isinstance(doc, dict)
+    assert doc["schedulable"] is False
+    assert "error" not in doc
