@@ -264,8 +264,8 @@ def _plot_unavailable() -> str | None:
 
 
 def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, Any] | None:
-    """Run the graph headless for ``--measure`` and take each node's execution-time statistic;
-    None when the run failed (said on ``err``).
+    """Run the graph for ``--measure`` and take each node's execution-time statistic; None
+    when the run failed (said on ``err``).
 
     The run is :func:`flowrt.cli.run.run_graph` with the run options given to ``check``
     (``--no-display``, ``--display-port``, ``--control``, ``--stats-json`` ...), as ``flowrt
@@ -277,7 +277,9 @@ def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, An
     err.print(f"measuring: running {graph.spec.name} for {args.measure:g} s ...", markup=False)
     run_args = argparse.Namespace(**vars(args))
     run_args.duration, run_args.check = args.measure, False
-    run_args.json, run_args.no_ui = False, True  # headless; the check's own --json follows
+    run_args.json = False  # the check's own --json follows
+    # the live table (on stderr: stdout is the check's) in a terminal; else log lines
+    run_args.no_ui = args.no_ui or args.json or not sys.stderr.isatty()
     ran: list[Any] = []
 
     def keep(rt: Any) -> int:
