@@ -29,6 +29,7 @@ class Parser(argparse.ArgumentParser):
         self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
     ) -> tuple[argparse.Namespace, list[str]]:
         given = list(sys.argv[1:] if args is None else args)
+        self._given = given
         ns, extras = super().parse_known_args(self._joined(given), namespace)
         if extras:  # refused where they were given: a subcommand's before they reach flowrt
             self.unrecognized(extras)
@@ -44,6 +45,22 @@ class Parser(argparse.ArgumentParser):
         self.error(
             f"unrecognized arguments: {' '.join(extras)}" + "".join(f" ({h})" for h in hints)
         )
+
+    def _hint(self, message: str) -> str:
+        """A suggestion for argparse's own errors: a misspelt subcommand (``invalid choice:
+        'rnu'``), or an unknown option that left a required argument missing."""
+        choice = re.match(r"argument \S+: invalid choice: '([^']*)'", message)
+        if choice is not None:
+            names = [n for a in self._actions if a.choices for n in a.choices]
+            match = closest(choice.group(1), names)
+            return f" (did you mean {match}?)" if match is not None else ""
+        if message.startswith("the following arguments are required"):
+            for word in getattr(self, "_given", []):
+                if word.startswith("--") and self._option_for(word) is None:
+                    match = closest(word.split("=", 1)[0], self._long_options())
+                    if match is not None:
+                        return f" ({word}: did you mean {match}?)"
+        return ""
 
     def _long_options(self) -> list[str]:
         return [o for o in self._option_string_actions if o.startswith("--") and o != "--help"]
@@ -82,5 +99,6 @@ class Parser(argparse.ArgumentParser):
         return action
 
     def error(self, message: str) -> NoReturn:
+        message += self._hint(message)
         self.print_usage(sys.stderr)
         self.exit(2, f"{self.prog}: error: {message}\n")
