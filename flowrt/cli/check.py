@@ -39,6 +39,14 @@ def cmd_check(args: argparse.Namespace) -> int:
     from ..loading import parse_yaml, read_graph_file
 
     err = Console(stderr=True)
+    given = _run_option_given(args)
+    if given and args.measure is None:
+        err.print(
+            f"flowrt check: {given} is an option of the measuring run (give --measure DURATION)",
+            markup=False,
+            soft_wrap=True,
+        )
+        return EXIT_BAD_GRAPH
     try:
         text = read_graph_file(args.file)
     except GraphError as e:
@@ -157,14 +165,6 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
             )
             return EXIT_BAD_GRAPH
     budgets: dict[str, Budget] = {}
-    given = _run_option_given(args)
-    if given and args.measure is None:
-        err.print(
-            f"flowrt check: {given} is an option of the measuring run (give --measure DURATION)",
-            markup=False,
-            soft_wrap=True,
-        )
-        return EXIT_BAD_GRAPH
     if args.wcet_from:
         got = _stats_budgets(args, err)
         if got is None:

@@ -510,12 +510,13 @@ def add_parsers(sub: Any) -> None:
     run.set_defaults(func=cmd_run)
 
 
-def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False) -> list[str]:
+def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False) -> None:
     """The options of a run, defined here once for every command that runs a graph:
     ``flowrt run``, ``record``, ``replay`` and the measuring run of ``check --measure``
     (``measuring``: its length is ``--measure``'s, and there is no ``--check`` or ``--json``
     of a run). All go through :func:`run_graph`, so each command honours every one of them.
-    Returns their destinations (``check`` refuses them without ``--measure``).
+    A new run option goes here, in the "run options" group (``check`` refuses those given
+    without ``--measure``; tests/test_cli_paths.py checks the four commands agree).
     """
     run = parser.add_argument_group("run options")
     if not measuring:
@@ -627,4 +628,3 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         help="keep the rest of the graph running when a node fails for good (default: stop at"
         " once); the exit code is 1 either way",
     )
-    return [a.dest for a in run._group_actions]
