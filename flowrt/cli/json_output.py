@@ -118,6 +118,8 @@ class JsonOutput:
     def document(self, code: int) -> Any:
         if self.doc is None:
             return {"error": self.error_doc(code)} if code else {}
+        if isinstance(self.doc, dict) and "exit_code" in self.doc:  # the process's, at the end
+            self.doc = {**self.doc, "exit_code": code}
         failed = code and (self._said() or self.detail)  # not only a verdict (check: 1)
         if failed and isinstance(self.doc, dict) and "error" not in self.doc:
             return {**self.doc, "error": self.error_doc(code)}
