@@ -367,7 +367,8 @@ class ControlServer:
         except SwapRefused as e:
             return 403, _dumps({"error": str(e)})
         except (SwapError, ValueError, ValidationError) as e:
-            return 409 if isinstance(e, SwapError) else 400, _dumps({"error": str(e)})
+            said = _one_line(e) if isinstance(e, ValidationError) else str(e)  # no pydantic URL
+            return 409 if isinstance(e, SwapError) else 400, _dumps({"error": said})
         except Exception as e:
             log.exception("control endpoint: %s failed", op)
             return 500, _dumps({"error": f"{type(e).__name__}: {e}"})

@@ -16,6 +16,7 @@ from typing import Any, Protocol
 
 from pydantic import ValidationError
 
+from .diagnostics import validation_text
 from .events import Event, NodeSwapped
 from .graph import Graph
 from .kernel import NodeRunner, Scheduler
@@ -71,7 +72,7 @@ async def swap(
         try:
             model = rt.graph.validate_params(cls, params or {})
         except ValidationError as e:
-            raise SwapError(f"{node}: params for {label}: {e}") from None
+            raise SwapError(f"{node}: params for {label}: {validation_text(e)}") from None
     await _swap_to(rt, runner, cls, model, label, origin)
 
 
@@ -117,7 +118,7 @@ def set_params(rt: SwapHost, node: str, params: Mapping[str, Any], merge: bool) 
     try:
         model = rt.graph.validate_params(runner.rnode.cls, target)
     except ValidationError as e:
-        raise ValueError(f"{node}: params: {e}") from None
+        raise ValueError(f"{node}: params: {validation_text(e)}") from None
     runner.swapper.set_params(model)
 
 

@@ -106,7 +106,11 @@ class NodeStats(_Frozen):
     placement: str
     trigger: str
     priority: int
-    period: str
+    period: str = Field(description="as the table shows it: 66.67ms, 100ms +5ms, each, 1/4 +3")
+    period_frames: int | None = Field(
+        default=None, description="frame triggers: every this many frames"
+    )
+    timer_ms: float | None = Field(default=None, description="timer triggers: the period, ms")
     deadline_ms: float | None
     watchdog_ms: float | None = None
     enabled: bool

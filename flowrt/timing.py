@@ -45,9 +45,21 @@ class Timing:
     enabled: bool
 
     def describe_period(self) -> str:
+        """As the table shows it: ``66.67ms``, ``100ms +5ms``; frames as ``flowrt graph``
+        does: ``each``, ``1/4``, ``1/4 +3`` (every 4th frame, 3 frames late)."""
         if self.timer is not None:
-            return f"{self.timer * 1000:g}ms+{self.timer_phase * 1000:g}"
-        return f"{self.period}/{self.phase}"
+            phase = f" +{_ms(self.timer_phase)}" if self.timer_phase else ""
+            return _ms(self.timer) + phase
+        every = "each" if self.period == 1 else f"1/{self.period}"
+        return every + (f" +{self.phase}" if self.phase else "")
+
+
+def _ms(seconds: float) -> str:
+    """Milliseconds to at most two decimals (``66.67ms``, ``0.5ms``), microseconds below."""
+    ms = seconds * 1000
+    if 0 < ms < 0.01:
+        return f"{ms * 1000:.3g}us"
+    return f"{ms:.2f}".rstrip("0").rstrip(".") + "ms"
 
 
 #: The ranges a run-time change must keep: the graph files' own (flowrt.spec, README "Timing

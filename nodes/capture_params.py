@@ -10,6 +10,7 @@ shared memory its pool takes: a warning above :data:`WARN_FRAME_BYTES`, refused 
 
 from __future__ import annotations
 
+import glob
 import os
 import re
 from typing import Annotated, Literal
@@ -177,6 +178,9 @@ class CaptureParams(BaseModel):
         if kind not in ("file", "images") or not isinstance(target, str) or "://" in target:
             return v
         path = resolve_path(target, info)
+        if kind == "images" and not glob.glob(os.path.expanduser(path)):
+            where = "" if os.path.isabs(os.path.expanduser(target)) else _relative_hint(info)
+            raise ValueError(f"no image file matches {path}{where}")
         if kind == "file":
             if not os.path.exists(path):
                 where = "" if os.path.isabs(os.path.expanduser(target)) else _relative_hint(info)

@@ -383,8 +383,7 @@ class Display(Node):
         except (TimeoutError, ConnectionError, asyncio.IncompleteReadError) as e:
             await self.teardown()
             raise RuntimeError(f"display: the view's server did not start: {e!r}") from None
-        self.ctx.log.info("%s: live view at %s", self.ctx.name, self.url)
-        print(f"display: {self.url}", flush=True)
+        print(f"display: {self.url}", flush=True)  # once: scripts and tests read this line
 
     async def teardown(self) -> None:
         writer, task, proc = self._writer, self._task, self._proc

@@ -30,7 +30,7 @@ from typing import Any
 
 from aiohttp import web
 
-from .operator_sessions import SESSION_FILE, valid_name
+from .operator_sessions import SESSION_FILE, session_length, valid_name
 
 COMMAND = "flowrt.record."  # nodes.recorder.COMMAND_RECORD
 STATUS = "flowrt.recording."  # nodes.recorder.STATUS_RECORD: the session folder, "" stopped
@@ -203,7 +203,7 @@ class RecordApi:
                 "session": Path(folders[0]).name,
                 "sessions": [f.name for f in folders],
                 "start_time": first.get("start_time"),
-                "duration_s": first.get("duration"),
+                "duration_s": session_length(first),
                 "error": next((r["error"] for r in reports if r.get("error")), None),
                 "lost": sum(int(s.get("lost", 0)) for s in streams),
                 "streams": streams,

@@ -123,7 +123,7 @@ class Sessions:
             streams = report.get("streams", [])
             row.update(
                 start=report.get("start_time"),
-                duration_s=report.get("duration"),
+                duration_s=session_length(report),
                 lost=sum(int(s.get("lost", 0)) for s in streams),
                 error=report.get("error"),
                 streams=[
@@ -295,6 +295,14 @@ def _mark(mark: Any, d: dict[str, Any], topic: str) -> Any:
         centroid=None if centroid is None else (float(centroid[0]), float(centroid[1])),
         confidence=None if conf is None else float(conf),
     )
+
+
+def session_length(report: dict[str, Any]) -> float | None:
+    """A finished session's ``duration_s``: first message to last (the report's ``span``),
+    as the player measures it from the files; the recorder's start-to-stop time for a report
+    written before it had one."""
+    span = report.get("span")
+    return float(span) if span is not None else report.get("duration")
 
 
 def _is_session(path: Path) -> bool:

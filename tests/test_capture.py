@@ -583,6 +583,9 @@ async def test_bad_sources_raise_health_events(tmp_path: Path, source: str, deta
         def vanish() -> None:
             target.unlink()
             target.mkdir()
+    elif detail == "no image files match":  # validation refuses a glob matching nothing
+        (tmp_path / "gone.jpg").write_bytes(b"")
+        vanish = (tmp_path / "gone.jpg").unlink
 
     run = await run_capture(
         {"source": src, "backoff": "50ms", "max_backoff": "100ms"},

@@ -69,7 +69,7 @@ def test_task_set_json_has_exactly_the_documented_shape(
     assert data["schedulable"] is True
     assert data["utilisation"] == pytest.approx(3 / 7 + 3 / 12 + 5 / 20)
     assert [set(t) for t in data["tasks"]] == [
-        {"name", "wcet_ms", "period_ms", "deadline_ms", "response_ms", "schedulable"}
+        {"name", "wcet_ms", "period_ms", "deadline_ms", "blocking_ms", "response_ms", "schedulable"}
     ] * 3
     assert [t["response_ms"] for t in data["tasks"]] == [3, 6, 20]
 
@@ -287,3 +287,22 @@ def test_plot_of_a_task_set_says_why_not(
     )
     assert code == 2
     assert "a task set has no frame ticks" in " ".join(err.split())
+
+
+def test_non_preemptive_blocking_shown_is_the_one_used(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 43: B showed the declared 0 while R included a lower-priority job's blocking."""
+    text = (
+        "preemptive: false\ntasks:\n  - {name: A, wcet: 1ms, period: 2.5ms}\n"
+        "  - {name: B, wcet: 1ms, period: 3.5ms}\n  - {name: C, wcet: 1ms, period: 3.5ms}\n"
+    )
+    path = _write(tmp_path, "t.yaml", text)
+    code, out, _ = _run(capsys, path)
+    assert code == 0
+    row_a = next(line for line in out.splitlines() if line.strip("│ ").startswith("A "))
+    cells = [c.strip() for c in row_a.strip("│ ").split("│")]
+    assert cells[6] == "1"  # B: C's 1 ms job, less the 1 ns it must have started before
+    _, out, _ = _run(capsys, path, "--json")
+    blocking = [t["blocking_ms"] for t in json.loads(out)["tasks"]]
+    assert blocking == [pytest.approx(1, abs=1e-5), pytest.approx(1, abs=1e-5), 0]

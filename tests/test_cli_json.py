@@ -63,10 +63,12 @@ def test_every_command_with_json_is_covered() -> None:
     from flowrt.cli import build_parser
 
     # ctl stats --json: tests/test_control.py; can stats --json: tests/test_can_*.py;
-    # sync measure --json: tests/test_avsync.py
+    # sync measure --json: tests/test_avsync.py; every subcommand's success and failure:
+    # tests/test_cli_paths.py and tests/test_cli_json_runs.py (issue 43)
+    ctl = {"stats", "timing", "mode", "modes", "events", "qos", "rtdb", "record", "swap", "reload"}
     covered = {
-        "kinds", "check", "can analyse", "can analyze", "can stats", "info", "ctl stats",
-        "sync measure", "replay",
+        "kinds", "check", "can analyse", "can analyze", "can stats", "info", "sync measure",
+        "replay", "run", "record", "validate", "graph", "schema", *(f"ctl {c}" for c in ctl),
     }  # fmt: skip
     parser = build_parser()
     found = set()

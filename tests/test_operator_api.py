@@ -173,6 +173,9 @@ async def test_record_review_and_health_over_http(tmp_path: Path) -> None:
 
         detail = await get(http, f"{url}/api/sessions/drive_001")
         assert detail["cameras"] == ["cam.frame"]
+        # issue 43: one length per session, whichever answer gives it (first to last message)
+        assert abs(detail["duration_s"] - row["duration_s"]) < 0.1
+        assert abs(detail["duration_s"] - table["duration_s"]) < 0.1
         det = next(s for s in detail["streams"] if s["topic"] == "cam.frame")
         assert det["written"] == det["frames"] == cam["written"]
         assert det["gaps"] == []

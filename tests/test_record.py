@@ -311,17 +311,25 @@ def test_report_table_shows_lost_in_red() -> None:
 
 
 class _Row:
-    def __init__(self, name: str, trigger: str, period: str) -> None:
-        self.name, self.trigger, self.period = name, trigger, period
+    """A node's statistics as nominal_rates reads them: the numbers, not the shown period."""
+
+    def __init__(
+        self, name: str, trigger: str, frames: int | None = None, timer_ms: float | None = None
+    ) -> None:
+        self.name, self.trigger, self.period_frames, self.timer_ms = name, trigger, frames, timer_ms
 
 
 @pytest.mark.parametrize(
     ("rows", "expected"),
     [
-        ([_Row("cam", "timer", "50ms+0")], {"cam": 20.0}),
-        ([_Row("cam", "timer", "50ms+25"), _Row("t", "frame cam", "4/3")], {"cam": 20, "t": 5}),
-        ([_Row("cam", "loop", "-"), _Row("t", "frame cam", "1/0")], {}),
-        ([_Row("s", "input", "-")], {}),
+        ([_Row("cam", "timer", timer_ms=50)], {"cam": 20.0}),
+        (
+            [_Row("cam", "timer", timer_ms=50), _Row("t", "frame cam", frames=4)],
+            {"cam": 20, "t": 5},
+        ),
+        ([_Row("cam", "loop"), _Row("t", "frame cam", frames=1)], {}),
+        ([_Row("s", "input")], {}),
+        ([_Row("cam", "timer", timer_ms=1000 / 15)], {"cam": pytest.approx(15, rel=1e-12)}),
     ],
 )
 def test_nominal_rates(rows: list[_Row], expected: dict[str, float]) -> None:

@@ -309,3 +309,16 @@ async def test_swap_of_a_loop_triggered_node() -> None:
     assert values.index(-1) > values.index(1)
     assert set(values[values.index(-1) :]) == {-1}  # no old instance after the swap
     assert errors == 0
+
+
+async def test_bad_params_are_one_line_without_pydantic_links() -> None:
+    """Issue 43: ``ctl swap --params '{"object": 5}'`` printed pydantic's documentation URL."""
+    clock = VirtualClock()
+    async with Runtime(graph(), clock=clock) as rt:
+        with pytest.raises(SwapError) as info:
+            await rt.swap("alg", Doubler, {"factor": "not a number"})
+    text = str(info.value)
+    assert "factor: " in text
+    assert "'not a number'" in text
+    assert "pydantic.dev" not in text
+    assert "\n" not in text

@@ -87,13 +87,15 @@ class Task:
 class Response:
     """The analysis of one task. ``response`` is from arrival (includes the jitter: R = J + w);
     ``release_response`` from release (what a runtime measures from activation to finish).
-    Both are ``inf`` when the recurrence did not converge."""
+    Both are ``inf`` when the recurrence did not converge. ``blocking`` is the B the
+    analysis used: the task's own, or (non-preemptive) the longest lower-priority job."""
 
     task: Task
     response: float
     release_response: float
     instances: int
     converged: bool
+    blocking: float = 0.0
 
     @property
     def schedulable(self) -> bool:
@@ -249,6 +251,7 @@ def response_times(
         hp_i, lp_i = _interferers(tasks, i)
         me = ints[i]
         hp = [ints[k] for k in hp_i]
+        b = me.b
         if preemptive:
             res = _preemptive(me, hp)
         else:
@@ -257,10 +260,10 @@ def response_times(
             b = max([me.b, *(ints[k].c - 1 for k in lp_i if ints[k].c > 0)])
             res = _non_preemptive(_T(me.c, me.t, me.j, b), hp)
         if res is None:
-            out.append(Response(task, math.inf, math.inf, 0, False))
+            out.append(Response(task, math.inf, math.inf, 0, False, _ms(b)))
         else:
             r, rr, n = res
-            out.append(Response(task, _ms(r), _ms(rr), n, True))
+            out.append(Response(task, _ms(r), _ms(rr), n, True, _ms(b)))
     return out
 
 

@@ -18,10 +18,9 @@ GROUPS = ("run", "inspect", "kinds", "ctl", "can", "check", "record", "sync")
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
+    from .parser import Parser
 
-    p = argparse.ArgumentParser(
-        prog="flowrt", description="real-time dataflow runtime for robot perception"
-    )
+    p = Parser(prog="flowrt", description="real-time dataflow runtime for robot perception")
     p.add_argument("--version", action="version", version=f"flowrt {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
     for group in GROUPS:
@@ -30,11 +29,49 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Exit codes: see :mod:`flowrt.cli.common`; ``--json``: see :mod:`flowrt.cli.json_output`."""
+    import sys
+
+    given = list(sys.argv[1:] if argv is None else argv)
+    words = given[: given.index("--")] if "--" in given else given
+    if "--json" not in words:
+        return _main(given)
+    from .json_output import finish, json_mode
+
+    command = next((w for w in words if not w.startswith("-")), "")
+    bug: BaseException | None = None
+    with json_mode(command) as out:
+        try:
+            code = _main(given)
+        except SystemExit as e:  # argparse, --help, a refused option
+            code = e.code if isinstance(e.code, int) else (0 if e.code is None else 2)
+        except BaseException as e:  # a bug: the document says so, the traceback follows
+            print(f"flowrt {command}: {type(e).__name__}: {e}", file=sys.stderr)
+            code, bug = 1, e
+    finish(out, code)
+    if bug is not None:
+        raise bug
+    return code
+
+
+def _name_command(args: argparse.Namespace) -> None:
+    """``ctl modes``, ``can stats``: the name an ``--json`` error document gives."""
+    from . import json_output
+
+    words = [args.command]
+    sub = getattr(args, f"{args.command}_command", None)
+    if isinstance(sub, str):
+        words.append(sub)
+    json_output.name_command(" ".join(words))
+
+
+def _main(argv: list[str]) -> int:
     from .._startup import imports_done
 
     try:
         imports_done()  # from here Ctrl-C is a KeyboardInterrupt, caught below
         args = build_parser().parse_args(argv)
+        _name_command(args)
         return int(args.func(args))
     except KeyboardInterrupt:
         return 130

@@ -15,7 +15,6 @@ load per second (:mod:`flowrt.analysis.can_trace`).
 from __future__ import annotations
 
 import argparse
-import json
 from typing import Any
 
 from rich.console import Console
@@ -27,6 +26,7 @@ from ..analysis.can_trace import TraceError, trace_stats
 from ..columns import Column, fit_table
 from ..spec import parse_duration_ms
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, stdout_console
+from .json_output import emit
 
 __all__ = ["CanDatabaseError", "load_database", "parse_bitrate", "trace_stats"]
 
@@ -105,7 +105,7 @@ def cmd_analyse(args: argparse.Namespace) -> int:
         doc["warnings"] = [
             {"message": w.message, "signal": w.signal, "reason": w.reason} for w in warnings
         ]
-        print(json.dumps(doc, indent=2))
+        emit(doc)
         return EXIT_OK if result.schedulable is True else EXIT_FAILED
     for w in warnings[:SHOWN]:  # on stderr: the analysis itself is on stdout
         err.print(f"warning: {args.dbc}: {w}", style="yellow", markup=False, soft_wrap=True)
@@ -260,7 +260,7 @@ def cmd_stats(args: argparse.Namespace) -> int:
         err.print(f"flowrt can stats: {e}", style="red", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
     if args.json:
-        print(json.dumps(doc, indent=2))
+        emit(doc)
         return EXIT_OK
     console = stdout_console()
     console.print(

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import math
 import os
 import sys
@@ -21,6 +20,8 @@ from rich.table import Table
 
 from ..diagnostics import GraphError
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, load, print_diagnostics, stdout_console
+from .json_output import emit
+from .run import add_run_options
 
 
 def _ms(x: float | None) -> str:
@@ -38,6 +39,14 @@ def cmd_check(args: argparse.Namespace) -> int:
     from ..loading import parse_yaml, read_graph_file
 
     err = Console(stderr=True)
+    given = _run_option_given(args)
+    if given and args.measure is None:
+        err.print(
+            f"flowrt check: {given} is an option of the measuring run (give --measure DURATION)",
+            markup=False,
+            soft_wrap=True,
+        )
+        return EXIT_BAD_GRAPH
     try:
         text = read_graph_file(args.file)
     except GraphError as e:
@@ -75,25 +84,23 @@ def _check_tasks(args: argparse.Namespace, text: str, err: Console) -> int:
     ok = all(r.schedulable for r in res)
     util = utilisation(tasks)
     if args.json:
-        print(
-            json.dumps(
-                {
-                    "schedulable": ok,
-                    "utilisation": util,
-                    "tasks": [
-                        {
-                            "name": r.task.name,
-                            "wcet_ms": r.task.wcet,
-                            "period_ms": r.task.period,
-                            "deadline_ms": r.task.effective_deadline,
-                            "response_ms": _json_ms(r.response),
-                            "schedulable": r.schedulable,
-                        }
-                        for r in res
-                    ],
-                },
-                indent=2,
-            )
+        emit(
+            {
+                "schedulable": ok,
+                "utilisation": util,
+                "tasks": [
+                    {
+                        "name": r.task.name,
+                        "wcet_ms": r.task.wcet,
+                        "period_ms": r.task.period,
+                        "deadline_ms": r.task.effective_deadline,
+                        "blocking_ms": r.blocking,
+                        "response_ms": _json_ms(r.response),
+                        "schedulable": r.schedulable,
+                    }
+                    for r in res
+                ],
+            },
         )
     else:
         console = stdout_console()
@@ -111,7 +118,7 @@ def _check_tasks(args: argparse.Namespace, text: str, err: Console) -> int:
                 _ms(k.period),
                 _ms(k.effective_deadline),
                 _ms(k.jitter),
-                _ms(k.blocking),
+                _ms(r.blocking),  # the B used: non-preemptive, the longest lower job too
                 _ms(r.response),
                 "[green]ok[/]" if r.schedulable else "[red]MISS[/]",
             )
@@ -168,10 +175,13 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
             err.print(f"flowrt check: --plot: {_plot_unavailable()}", markup=False)
             return EXIT_BAD_GRAPH
         try:
-            budgets = _measure(graph, args.measure, args.wcet_stat, err)
+            measured = _measure(graph, args, err)
         except Exception as e:  # a node that cannot start, a port taken: one line, exit 1
             err.print(f"flowrt check: the measuring run failed: {e}", markup=False)
             return EXIT_FAILED
+        if measured is None:  # the run said why
+            return EXIT_FAILED
+        budgets = measured
     timing = graph_timing(graph, budgets)
     mode = args.mode if args.mode is not None else graph.spec.initial_mode
     if mode:
@@ -192,7 +202,7 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
     paste = snippet(advice, timing)
     if args.json:
         extra = {"cpus": cpus, "mode": mode}
-        print(json.dumps({**_graph_json(verdict, tables, advice, paste), **extra}, indent=2))
+        emit({**_graph_json(verdict, tables, advice, paste), **extra})
     else:
         _print_graph(args.file, cpus, verdict, tables, advice, paste)
     if args.plot:
@@ -203,6 +213,18 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
         if not args.json:
             stdout_console().print(f"load per tick plotted to {args.plot}")
     return EXIT_OK if verdict.schedulable else EXIT_FAILED
+
+
+def _run_option_given(args: argparse.Namespace) -> str | None:
+    """The first run option given on the command line (not left at its default)."""
+    import argparse as ap
+
+    parser = ap.ArgumentParser(add_help=False)
+    add_run_options(parser, measuring=True)
+    for action in parser._actions:
+        if getattr(args, action.dest, action.default) != action.default:
+            return action.option_strings[0]
+    return None
 
 
 MAX_STATS_BYTES = 64 << 20  # a --stats-json of thousands of nodes is a few MB
@@ -241,26 +263,36 @@ def _plot_unavailable() -> str | None:
     return None
 
 
-def _measure(graph: Any, seconds: float, stat: Any, err: Console) -> dict[str, Any]:
-    """Run the graph headless for ``seconds`` and take each node's execution-time ``stat``."""
-    import asyncio
+def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, Any] | None:
+    """Run the graph for ``--measure`` and take each node's execution-time statistic; None
+    when the run failed (said on ``err``).
 
+    The run is :func:`flowrt.cli.run.run_graph` with the run options given to ``check``
+    (``--no-display``, ``--display-port``, ``--control``, ``--stats-json`` ...), as ``flowrt
+    run`` would run it.
+    """
     from ..analysis.budgets import budgets_from_stats
-    from ..eventloop import new_event_loop
-    from ..runtime import Runtime
+    from .run import run_graph
 
-    err.print(f"measuring: running {graph.spec.name} for {seconds:g} s ...", markup=False)
-    rt = Runtime(graph)
+    err.print(f"measuring: running {graph.spec.name} for {args.measure:g} s ...", markup=False)
+    run_args = argparse.Namespace(**vars(args))
+    run_args.duration, run_args.check = args.measure, False
+    run_args.json = False  # the check's own --json follows
+    # the live table (on stderr: stdout is the check's) in a terminal; else log lines
+    run_args.no_ui = args.no_ui or args.json or not sys.stderr.isatty()
+    ran: list[Any] = []
 
-    async def main() -> None:
-        async with rt:
-            await rt.run(seconds)
+    def keep(rt: Any) -> int:
+        ran.append(rt)
+        return EXIT_OK
 
     # What the graph's nodes print (a display's address) is not the check's output: a script
     # reading --json gets one JSON document on stdout and nothing else.
-    with contextlib.redirect_stdout(sys.stderr), asyncio.Runner(loop_factory=new_event_loop) as r:
-        r.run(main())
-    return budgets_from_stats(rt.stats().nodes, stat, "measured")
+    with contextlib.redirect_stdout(sys.stderr):
+        code = run_graph(graph, run_args, err, prog="flowrt check", after=keep, measuring=True)
+    if code != EXIT_OK or not ran:  # the run said why, as "flowrt check: ..."
+        return None
+    return budgets_from_stats(ran[0].stats().nodes, args.wcet_stat, "measured")
 
 
 def _graph_json(verdict: Any, tables: Any, advice: Any, paste: str) -> dict[str, Any]:
@@ -273,6 +305,7 @@ def _graph_json(verdict: Any, tables: Any, advice: Any, paste: str) -> dict[str,
                 "wcet_ms": v.budget.ms if v.budget else None,
                 "period_ms": v.period_ms,
                 "deadline_ms": v.deadline_ms,
+                "blocking_ms": v.blocking_ms,
                 "response_ms": _json_ms(v.response_ms),
                 "schedulable": v.schedulable is True,
             }
@@ -484,6 +517,8 @@ def _plot(tables: Any, path: str) -> str | None:
 def _duration_s(text: str) -> float:
     from ..spec import parse_duration_ms
 
+    if text.startswith("-"):
+        raise argparse.ArgumentTypeError("must be more than 0")
     try:
         ms = parse_duration_ms(text if any(c.isalpha() for c in text) else f"{text}s")
     except ValueError as e:
@@ -534,30 +569,5 @@ def add_parsers(sub: Any) -> None:
     )
     ck.add_argument("--json", action="store_true", help="machine-readable result")
     ck.add_argument("--plot", metavar="PNG", help="plot the load per tick (needs matplotlib)")
+    add_run_options(ck, measuring=True)  # for the measuring run: see _measure
     ck.set_defaults(func=cmd_check)
-
-
-def startup_check(graph: Any) -> tuple[bool, list[str]]:
-    """For ``flowrt run``: (no node shown to miss, lines to print) with the declared wcets,
-    in the graph's initial mode.
-
-    Nodes without a declared ``wcet`` are not judged (one line says which); a node whose
-    bound exceeds its deadline makes the graph unschedulable.
-    """
-    from ..analysis.schedulability import analyse
-    from ..analysis.timing import graph_timing, with_mode
-
-    timing = graph_timing(graph)
-    if graph.spec.initial_mode in graph.spec.modes:
-        timing = with_mode(timing, graph, graph.spec.initial_mode)
-    verdict = analyse(timing, os.cpu_count() or 1)
-    misses = [v for v in verdict.nodes if v.schedulable is False]
-    unknown = [v.name for v in verdict.nodes if v.schedulable is None]
-    lines = [
-        f"{v.name}: worst-case response {_ms(v.response_ms)} ms > "
-        f"{'deadline' if v.has_deadline else 'period'} {_ms(v.deadline_ms)} ms"
-        for v in misses
-    ]
-    if unknown and len(unknown) < len(verdict.nodes):
-        lines.append(f"not checked (no wcet:): {', '.join(unknown)}")
-    return not misses, lines

@@ -13,7 +13,7 @@ import sys
 
 from rich.console import Console
 
-from ..diagnostics import GraphError, Severity
+from ..diagnostics import Diagnostic, GraphError, Severity
 from ..graph import Graph
 
 EXIT_OK = 0
@@ -21,12 +21,33 @@ EXIT_FAILED = 1
 EXIT_BAD_GRAPH = 2
 
 
+def plural(n: int, word: str) -> str:
+    """``1 edge``, ``2 nodes``, ``0 errors``."""
+    return f"{n} {word}{'' if n == 1 else 's'}"
+
+
+def diagnostic_json(d: Diagnostic) -> dict[str, object]:
+    return {
+        "file": d.file,
+        "line": d.line,
+        "column": d.column,
+        "severity": str(d.severity),
+        "key": d.key,
+        "message": d.message,
+    }
+
+
 def print_diagnostics(console: Console, e: GraphError) -> None:
+    from .json_output import note
+
+    errors = e.errors or e.diagnostics
+    more = f" (and {plural(len(errors) - 1, 'more error')})" if len(errors) > 1 else ""
+    note(message=f"{errors[0]}{more}" if errors else str(e))
+    note(diagnostics=[diagnostic_json(d) for d in e.diagnostics])
     for d in e.diagnostics:
         style = "red" if d.severity is Severity.error else "yellow"
         console.print(str(d), style=style, markup=False, highlight=False, soft_wrap=True)
-    n = len(e.errors)
-    console.print(f"{n} error{'s' if n != 1 else ''}", style="bold red")
+    console.print(plural(len(e.errors), "error"), style="bold red")
 
 
 def load(path: str, console: Console, *, import_kinds: bool = True) -> Graph | None:
@@ -71,10 +92,35 @@ def setup_logging(handler: logging.Handler) -> None:
 
 
 def seconds_arg(text: str) -> float:
-    """A command-line duration: ``60``, ``90s``, ``2m``, ``500ms`` (:func:`parse_seconds`)."""
+    """A command-line duration: ``60``, ``90s``, ``2m``, ``500ms`` (:func:`parse_seconds`);
+    0 or more (``--start``)."""
     from ..spec import parse_seconds
 
     try:
-        return parse_seconds(text)
+        s = parse_seconds(text.removeprefix("-"))
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+    if text.startswith("-") and s:
+        raise argparse.ArgumentTypeError("must be 0 or more")
+    return s
+
+
+def positive_seconds_arg(text: str) -> float:
+    """A length of time that must be more than 0 (``--duration``)."""
+    s = seconds_arg(text.removeprefix("-"))
+    if s <= 0 or text.startswith("-"):
+        raise argparse.ArgumentTypeError("must be more than 0")
+    return s
+
+
+def positive_float_arg(text: str) -> float:
+    """A rate or period that must be more than 0 (``--refresh``, ``--rate``)."""
+    import math
+
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(x) or x <= 0:
+        raise argparse.ArgumentTypeError("must be more than 0")
+    return x

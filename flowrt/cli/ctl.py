@@ -6,10 +6,12 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Callable
 from typing import Any
 
 from ..control import DEFAULT_URL, ControlClient, ControlError
 from .common import stdout_console
+from .json_output import emit
 
 
 def duration_ms_arg(text: str) -> float:
@@ -21,6 +23,17 @@ def duration_ms_arg(text: str) -> float:
         return parse_duration_ms(text if not _is_number(text) else float(text))
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _count(text: str) -> int:
+    """``-n``: a whole number more than 0."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError("must be more than 0")
+    return n
 
 
 def _is_number(text: str) -> bool:
@@ -103,11 +116,11 @@ def add_parsers(sub: Any) -> None:
     )
     what.add_parser("modes", help="list the graph's modes and the current one")
     ev = what.add_parser("events", help="recent events")
-    ev.add_argument("-n", type=int, default=20, help="how many of the newest events")
+    ev.add_argument("-n", type=_count, default=20, help="how many of the newest events")
     what.add_parser("qos", help="mode, overload state and shed nodes")
     db = what.add_parser("rtdb", help="RTDB records (all, or the history of one)")
     db.add_argument("name", nargs="?", help="one record: its history (default: every record)")
-    db.add_argument("-n", type=int, default=8, help="history length for one record")
+    db.add_argument("-n", type=_count, default=8, help="history length for one record")
     rc = what.add_parser("record", help="start or stop the graph's recorder node(s)")
     rc.add_argument("action", choices=("start", "stop"), help="start or stop recording")
     rc.add_argument("--node", help="one recorder (default: every recorder of the graph)")
@@ -119,6 +132,11 @@ def add_parsers(sub: Any) -> None:
     sw.add_argument("--params", metavar="JSON", help="the new instance's params (a JSON object)")
     rl = what.add_parser("reload", help="re-import a node's module from disk and swap to it")
     rl.add_argument("node", help="the node whose module is re-imported")
+    for name, parser in what.choices.items():
+        if "--json" not in parser._option_string_actions:  # stats: its own help
+            parser.add_argument(
+                "--json", action="store_true", help=f"the endpoint's reply to {name} as JSON"
+            )
     ctl.set_defaults(func=ctl_main)
 
 
@@ -163,11 +181,11 @@ def _close(client: Any) -> None:
 
 def _ctl(client: Any, args: argparse.Namespace) -> int:
     cmd = args.ctl_command
+    if args.json and cmd in _QUERIES:
+        emit(client.get(_QUERIES[cmd](args)))
+        return 0
     if cmd == "stats":
         data = client.get("/stats")
-        if args.json:
-            print(json.dumps(data, indent=2))
-            return 0
         from ..stats import RuntimeStats
         from ..status import render
 
@@ -182,10 +200,10 @@ def _ctl(client: Any, args: argparse.Namespace) -> int:
         if args.force:
             body["force"] = True
         reply = client.post("/timing", body)
-        print(f"{reply['node']}: {reply['change']}")
+        _say(args, reply, f"{reply['node']}: {reply['change']}")
     elif cmd == "mode":
         reply = client.post("/mode", {"mode": args.name, **({"force": True} if args.force else {})})
-        print(f"mode {reply['mode']}")
+        _say(args, reply, f"mode {reply['mode']}")
     elif cmd == "modes":
         reply = client.get("/modes")
         for name in reply["modes"]:
@@ -237,8 +255,26 @@ def _swap(client: Any, args: argparse.Namespace) -> int:
                 return 2
             body["params"] = params
     reply = client.post(f"/{args.ctl_command}", body)
-    print(f"{reply['node']}: now {reply['kind']} ({reply['op']})")
+    _say(args, reply, f"{reply['node']}: now {reply['kind']} ({reply['op']})")
     return 0
+
+
+def _say(args: argparse.Namespace, reply: Any, line: str) -> None:
+    """A change's reply: the endpoint's own with ``--json``, else one line."""
+    if args.json:
+        emit(reply)
+    else:
+        print(line)
+
+
+#: The queries: with ``--json`` each prints the endpoint's reply as it is.
+_QUERIES: dict[str, Callable[[argparse.Namespace], str]] = {
+    "stats": lambda a: "/stats",
+    "modes": lambda a: "/modes",
+    "events": lambda a: f"/events?n={a.n}",
+    "qos": lambda a: "/qos",
+    "rtdb": lambda a: f"/rtdb/{a.name}?n={a.n}" if a.name else "/rtdb",
+}
 
 
 def _record(client: Any, args: argparse.Namespace) -> int:
@@ -249,6 +285,7 @@ def _record(client: Any, args: argparse.Namespace) -> int:
     if args.node:
         body["node"] = args.node
     nodes = client.post("/record", body)["nodes"]
+    said: dict[str, Any] = {}
     for node in nodes:
         end = time.monotonic() + 5.0
         session: Any = None
@@ -263,5 +300,9 @@ def _record(client: Any, args: argparse.Namespace) -> int:
         else:
             print(f"flowrt ctl: {node} did not {args.action} within 5 s", file=sys.stderr)
             return 1
-        print(f"{node}: recording into {session}" if session else f"{node}: stopped")
+        said[node] = session or None
+        if not args.json:
+            print(f"{node}: recording into {session}" if session else f"{node}: stopped")
+    if args.json:
+        emit({"action": args.action, "nodes": said})
     return 0

@@ -10,7 +10,6 @@ the value). A session that is not a deterministic recording, a bad graph: one li
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ from typing import Any
 from rich.console import Console
 
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, load, printable, stdout_console
+from .json_output import emit
 
 __all__ = ["cmd_replay_deterministic"]
 
@@ -111,7 +111,7 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
         err.print(f"flowrt replay: {printable(str(summary))}", markup=False)
         return EXIT_FAILED
     if args.json:
-        print(json.dumps(report.summary()))
+        emit(report.summary())
     else:
         console = stdout_console()
         for line in report_lines(report):

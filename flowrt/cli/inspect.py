@@ -9,7 +9,8 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from .common import EXIT_BAD_GRAPH, load, stdout_console
+from .common import EXIT_BAD_GRAPH, diagnostic_json, load, plural, stdout_console
+from .json_output import emit
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -17,8 +18,21 @@ def cmd_validate(args: argparse.Namespace) -> int:
     graph = load(args.file, err, import_kinds=not args.no_import)
     if graph is None:
         return EXIT_BAD_GRAPH
+    if args.json:
+        emit(
+            {
+                "file": args.file,
+                "ok": True,
+                "nodes": len(graph.nodes),
+                "edges": len(graph.edges),
+                "warnings": [diagnostic_json(w) for w in graph.warnings],
+                "not_imported": graph.not_imported,
+            }
+        )
+        return 0
     out = Console(soft_wrap=True, highlight=False)
-    out.print(f"{args.file}: ok ({len(graph.nodes)} nodes, {len(graph.edges)} edges)", markup=False)
+    counts = f"{plural(len(graph.nodes), 'node')}, {plural(len(graph.edges), 'edge')}"
+    out.print(f"{args.file}: ok ({counts})", markup=False)
     if graph.not_imported:
         listed = ", ".join(f"{n} ({k})" for n, k in graph.not_imported.items())
         out.print(
@@ -38,6 +52,9 @@ def cmd_graph(args: argparse.Namespace) -> int:
     graph = load(args.file, Console(stderr=True))
     if graph is None:
         return EXIT_BAD_GRAPH
+    if args.json:
+        emit(_graph_json(graph))
+        return 0
     topo = Table(
         title=f"graph {graph.spec.name}: {len(graph.nodes)} nodes",
         title_justify="left",
@@ -55,7 +72,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     ):
         topo.add_column(col, justify="right" if right else "left", overflow="fold")
     for name, n in graph.nodes.items():
-        dl = f"{n.spec.deadline:g}ms" if n.spec.deadline else "-"
+        dl = f"{_ms(n.spec.deadline)}ms" if n.spec.deadline else "-"
         if n.spec.deadline and n.spec.miss_policy.value != "continue":
             dl += f" {n.spec.miss_policy.value}"
         topo.add_row(
@@ -85,6 +102,47 @@ def cmd_graph(args: argparse.Namespace) -> int:
     for tab in activation_tables(graph):
         _print_ticks(console, tab)
     return 0
+
+
+def _graph_json(graph: Any) -> dict[str, Any]:
+    """``flowrt graph --json``: what the tables show, as data."""
+    from ..analysis import activation_tables
+
+    return {
+        "name": graph.spec.name,
+        "nodes": [
+            {
+                "name": name,
+                "kind": n.spec.kind,
+                "trigger": _trigger_text(n.trigger),
+                "priority": n.spec.priority,
+                "deadline_ms": n.spec.deadline,
+                "miss_policy": n.spec.miss_policy.value,
+                "placement": n.spec.placement.value,
+            }
+            for name, n in graph.nodes.items()
+        ],
+        "edges": [
+            {
+                "from": f"{e.src}.{e.src_port}",
+                "to": f"{e.dst}.{e.dst_port}",
+                "policy": e.policy.value,
+            }
+            for e in graph.edges
+        ],
+        "activations": [
+            {
+                "clock": tab.clock,
+                "unit": tab.unit,
+                "ticks": tab.ticks,
+                "nodes": {
+                    name: [i for i, a in enumerate(active) if a] for name, _, active in tab.rows
+                },
+                "load": list(tab.load()),
+            }
+            for tab in activation_tables(graph)
+        ],
+    }
 
 
 def _print_ticks(console: Console, tab: Any) -> None:
@@ -119,6 +177,10 @@ def _print_ticks(console: Console, tab: Any) -> None:
         console.print(t)
 
 
+def _ms(ms: float) -> str:
+    return f"{ms:.2f}".rstrip("0").rstrip(".") if ms >= 0.01 else f"{ms:.3g}"
+
+
 def _trigger_text(trig: Any) -> str:
     from ..spec import FrameTrigger, InputTrigger, TimerTrigger
 
@@ -127,8 +189,8 @@ def _trigger_text(trig: Any) -> str:
         every = f"1/{trig.period}" if trig.period != 1 else "each"
         return f"{every} {trig.frame}{phase}"
     if isinstance(trig, TimerTrigger):
-        phase = f" +{trig.phase:g}ms" if trig.phase else ""
-        return f"{trig.timer:g}ms{phase}"
+        phase = f" +{_ms(trig.phase)}ms" if trig.phase else ""
+        return f"{_ms(trig.timer)}ms{phase}"
     if isinstance(trig, InputTrigger):
         return f"input {trig.input}"
     return "loop"
@@ -141,7 +203,11 @@ def cmd_schema(args: argparse.Namespace) -> int:
     from ..stats import RuntimeStats
 
     model: type[BaseModel] = GraphSpec if args.what == "graph" else RuntimeStats
-    print(json.dumps(model.model_json_schema(by_alias=True), indent=2))
+    schema = model.model_json_schema(by_alias=True)
+    if args.json:
+        emit(schema)
+    else:
+        print(json.dumps(schema, indent=2))
     return 0
 
 
@@ -154,10 +220,17 @@ def add_parsers(sub: Any) -> None:
         help="do not import dotted-path kinds (package.module:Class): checking a graph file "
         "from someone else runs none of its code",
     )
+    val.add_argument(
+        "--json", action="store_true", help="one JSON document: counts, warnings or errors"
+    )
     val.set_defaults(func=cmd_validate)
     gr = sub.add_parser("graph", help="print the topology and one hyperperiod of activations")
     gr.add_argument("file", help="graph file")
+    gr.add_argument("--json", action="store_true", help="nodes, edges and activations as JSON")
     gr.set_defaults(func=cmd_graph)
     sc = sub.add_parser("schema", help="print the JSON schema of graph files or statistics")
     sc.add_argument("what", choices=["graph", "stats"], help="graph files, or --stats-json output")
+    sc.add_argument(
+        "--json", action="store_true", help="the same (the schema is JSON): for scripts' sake"
+    )
     sc.set_defaults(func=cmd_schema)

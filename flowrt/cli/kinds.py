@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from typing import Any
 
 from rich.console import Console
 from rich.table import Table
 
 from .common import EXIT_BAD_GRAPH, EXIT_OK, stdout_console
+from .json_output import emit
 
 
 def _type_name(t: Any) -> str:
@@ -25,9 +27,21 @@ def _type_name(t: Any) -> str:
     return str(getattr(t, "__name__", t))
 
 
+#: A pointer to elsewhere at the end of a docstring's first line: it is read here alone.
+_POINTER = re.compile(
+    r"\s*(?:\(\s*see [^()]*\)|[;,]\s*see (?:the module\b[^.;]*|above|below))\s*\.?\s*$",
+    re.IGNORECASE,
+)
+
+
 def _summary(cls: Any) -> str:
+    """The docstring's first sentence as ``flowrt kinds`` lists it: without a "(see the
+    module docstring)" or "see above" that points nowhere from a list, nor reST quotes."""
     doc = (cls.__doc__ or "").strip().splitlines()
-    return doc[0].strip() if doc else ""
+    if not doc:
+        return ""
+    line = _POINTER.sub("", doc[0].strip()).replace("``", "")
+    return line if not line or line.endswith((".", "!", "?", ":")) else line + "."
 
 
 def _default_policy(port: Any) -> str:
@@ -50,7 +64,7 @@ def _range(field: Any) -> str:
             v = getattr(m, attr, None)
             if v is not None:
                 bounds.append(f"{word} {v}")
-    return ", ".join(bounds)
+    return ", ".join(dict.fromkeys(bounds))  # a bound both a type and a Field give: once
 
 
 def describe(kind: str) -> dict[str, Any]:
@@ -152,7 +166,7 @@ def cmd_kinds(args: argparse.Namespace) -> int:
             err.print(f"flowrt kinds: {e}", markup=False)
             return EXIT_BAD_GRAPH
         if args.json:
-            print(json.dumps(info, indent=1))
+            emit(info)
         else:
             _show(stdout_console(), info)
         return EXIT_OK
@@ -163,7 +177,7 @@ def cmd_kinds(args: argparse.Namespace) -> int:
         except Exception as e:  # a third-party kind that does not import: say so, go on
             rows.append({"kind": kind, "summary": f"(cannot import: {e})"})
     if args.json:
-        print(json.dumps(rows, indent=1))
+        emit(rows)
         return EXIT_OK
     console = stdout_console()
     table = Table(box=None, show_header=True, header_style="bold")

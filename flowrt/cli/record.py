@@ -27,10 +27,12 @@ from .common import (
     EXIT_FAILED,
     EXIT_OK,
     load,
+    positive_float_arg,
     printable,
     seconds_arg,
     stdout_console,
 )
+from .json_output import emit
 from .recorders import RECORDER, graph_outputs, with_recorder
 from .run import add_run_options, run_graph
 
@@ -151,20 +153,31 @@ def cmd_record(args: argparse.Namespace) -> int:
     console = stdout_console()
     console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
 
+    result: dict[str, Any] = {"session": str(session)}
+
     def report(rt: Any) -> int:
-        return _report(console, err, session)
+        return _report(console, err, session, result)
 
     try:
         return run_graph(
-            rgraph, args, err, prog="flowrt record", settle=wait_for_writers, after=report
+            rgraph,
+            args,
+            err,
+            prog="flowrt record",
+            settle=wait_for_writers,
+            after=report,
+            result=result,
         )
     finally:  # stopped before it began (a taken port, a bad option): no empty session left
         if session.is_dir() and not any(session.iterdir()):
             session.rmdir()
 
 
-def _report(console: Console, err: Console, session: Path) -> int:
-    """The per-stream table once the files are finished; exit 1 on any loss."""
+def _report(
+    console: Console, err: Console, session: Path, result: dict[str, Any] | None = None
+) -> int:
+    """The per-stream table once the files are finished; exit 1 on any loss. ``result``
+    (the ``--json`` document) gets the report."""
     from ..recording import RecordingReport, report_table
     from ..recording.session import SESSION_FILE
 
@@ -173,6 +186,8 @@ def _report(console: Console, err: Console, session: Path) -> int:
         err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
         return EXIT_FAILED
     report = RecordingReport.model_validate_json(report_path.read_text())
+    if result is not None:
+        result["recording"] = report.model_dump(mode="json")
     console.print(report_table(report, console.width))
     if report.error:
         err.print(f"flowrt record: recording stopped early: {report.error}", markup=False)
@@ -429,7 +444,7 @@ def cmd_info(args: argparse.Namespace) -> int:
                 )
     session = scan_session(args.path)
     if args.json:
-        print(session.model_dump_json(indent=1))
+        emit(session.model_dump(mode="json"))
     else:
         print_session(console, session, show_graph=args.graph)
         _print_session_report(console, Path(args.path))
@@ -458,8 +473,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return cmd_replay_deterministic(args)
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     console = stdout_console()
-    if args.json or args.inline:
-        err.print("flowrt replay: --json and --inline go with --deterministic", markup=False)
+    if args.inline:
+        err.print("flowrt replay: --inline goes with --deterministic", markup=False)
         return EXIT_BAD_GRAPH
     if args.rate <= 0:
         err.print("flowrt replay: --rate must be positive", markup=False)
@@ -564,7 +579,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
         highlight=False,
         markup=False,
     )
-    code = run_graph(rgraph, args, err, prog="flowrt replay", kinds=kinds)
+    result = {"path": str(path), "streams": [s.topic for s in streams], "into": into}
+    code = run_graph(rgraph, args, err, prog="flowrt replay", kinds=kinds, result=result)
     if not info.closed_cleanly or left_out:  # not everything asked for was replayed
         return max(code, EXIT_FAILED)
     return code
@@ -734,7 +750,9 @@ def add_parsers(sub: Any) -> None:
     rep = sub.add_parser("replay", help="replay a recording into a graph")
     rep.add_argument("path", help="session folder or .mcap file")
     rep.add_argument("--graph", help="run this graph, recorded streams replacing its sources")
-    rep.add_argument("--rate", type=float, default=1.0, help="playback speed (default 1.0)")
+    rep.add_argument(
+        "--rate", type=positive_float_arg, default=1.0, help="playback speed (default 1.0)"
+    )
     rep.add_argument("--loop", action="store_true", help="start over at the end")
     rep.add_argument("--start", type=seconds_arg, default=0.0, metavar="T", help="e.g. 10s")
     rep.add_argument("--topics", metavar="PATTERNS", help="streams to replay (default all)")
@@ -751,16 +769,15 @@ def add_parsers(sub: Any) -> None:
         "(a flowrt record --deterministic session; needs --graph or --trust-graph)",
     )
     rep.add_argument(
-        "--json",
-        action="store_true",
-        help="with --deterministic: the result as one JSON object",
-    )
-    rep.add_argument(
         "--inline",
         action="store_true",
         help="with --deterministic: every node on the event loop, whatever its placement",
     )
     add_run_options(rep)  # --duration, --no-ui, --stats-json, --control, --display-port ...
+    rep._option_string_actions["--json"].help = (
+        "print one JSON document on stdout at the end: the final statistics, or with "
+        "--deterministic the replay's result"
+    )
     rep._option_string_actions["--check"].help = (
         "with --deterministic: compare every output with its recorded digest, exit 1 at the "
         "first that differs; else refuse to start when flowrt check shows a missed deadline"

@@ -24,7 +24,8 @@ from .common import (
     EXIT_OK,
     load,
     plain_handler,
-    seconds_arg,
+    positive_float_arg,
+    positive_seconds_arg,
     setup_logging,
     stdout_console,
 )
@@ -108,6 +109,8 @@ def run_graph(
     settle: Callable[[], None] | None = None,
     after: Callable[[Any], int] | None = None,
     kinds: dict[str, Any] | None = None,
+    result: dict[str, Any] | None = None,
+    measuring: bool = False,
 ) -> int:
     """Run a loaded graph with every option of ``flowrt run`` (see :func:`add_run_options`).
 
@@ -116,12 +119,18 @@ def run_graph(
     with the runtime once it has stopped and the final table is printed; its exit code
     counts when it is worse than the run's own. ``settle`` runs first, before the final
     statistics are taken (a recorder's files finished, so its report is in them).
+    With ``--json`` the final statistics are the document, ``result`` (which ``after`` may
+    fill in) beside them. ``measuring`` (``check --measure``): no start-up timing check and
+    no table at the end; the check's own report follows.
     """
     from ..runtime import Runtime
     from ..status import LiveTable, LogLines, render
 
     console = stdout_console()
-    if not _timing_holds(graph, args, err, prog):
+    as_json = getattr(args, "json", False)
+    if as_json:
+        args.no_ui = True  # a live table on stderr would be noise around the log lines
+    if not measuring and not _timing_holds(graph, args, err, prog):
         return EXIT_FAILED
     problem = _display_options(graph, args)
     if problem:
@@ -198,18 +207,57 @@ def run_graph(
         settle()
     stats = rt.stats()
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
-        console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
+        if not measuring:
+            console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
     if args.stats_json:
         Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
         console.print(f"statistics written to {args.stats_json}")
     code = _verdict(rt.failures(), err, prog)
-    return code if after is None else max(code, after(rt))
+    code = code if after is None else max(code, after(rt))
+    if as_json:
+        from .json_output import emit
+
+        emit({**(result or {}), "exit_code": code, "stats": stats.model_dump(mode="json")})
+    return code
+
+
+def startup_check(graph: Any) -> tuple[bool, list[str]]:
+    """For ``flowrt run``: (no node shown to miss, lines to print) with the declared wcets,
+    in the graph's initial mode.
+
+    Nodes without a declared ``wcet`` are not judged (one line says which); a node whose
+    bound exceeds its deadline makes the graph unschedulable.
+    """
+    from ..analysis.schedulability import analyse
+    from ..analysis.timing import graph_timing, with_mode
+
+    timing = graph_timing(graph)
+    if graph.spec.initial_mode in graph.spec.modes:
+        timing = with_mode(timing, graph, graph.spec.initial_mode)
+    verdict = analyse(timing, os.cpu_count() or 1)
+    misses = [v for v in verdict.nodes if v.schedulable is False]
+    unknown = [v.name for v in verdict.nodes if v.schedulable is None]
+    lines = [
+        f"{v.name}: worst-case response {_ms(v.response_ms)} ms > "
+        f"{'deadline' if v.has_deadline else 'period'} {_ms(v.deadline_ms)} ms"
+        for v in misses
+    ]
+    if unknown and len(unknown) < len(verdict.nodes):
+        lines.append(f"not checked (no wcet:): {', '.join(unknown)}")
+    return not misses, lines
+
+
+def _ms(x: float | None) -> str:
+    """As ``flowrt check`` prints a time: ``2.5``, ``inf``, ``-``."""
+    import math
+
+    if x is None:
+        return "-"
+    return "inf" if not math.isfinite(x) else f"{x:.3f}".rstrip("0").rstrip(".")
 
 
 def _timing_holds(graph: Graph, args: argparse.Namespace, err: Console, prog: str) -> bool:
     """The start-up timing check: a warning, or with ``--check`` a refusal (False)."""
-    from .check import startup_check
-
     timing_ok, timing_lines = startup_check(graph)
     if not timing_ok:
         word = "refusing to start" if args.check else "warning"
@@ -462,16 +510,30 @@ def add_parsers(sub: Any) -> None:
     run.set_defaults(func=cmd_run)
 
 
-def add_run_options(run: argparse.ArgumentParser) -> None:
-    """The options of a run, shared by ``flowrt run`` and ``flowrt record``."""
-    run.add_argument(
-        "--duration",
-        type=seconds_arg,
-        default=None,
-        metavar="S",
-        help="stop after S seconds of running, counted once every node is set up "
-        "(start-up, e.g. starting worker processes, and teardown come on top)",
-    )
+def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False) -> None:
+    """The options of a run, defined here once for every command that runs a graph:
+    ``flowrt run``, ``record``, ``replay`` and the measuring run of ``check --measure``
+    (``measuring``: its length is ``--measure``'s, and there is no ``--check`` or ``--json``
+    of a run). All go through :func:`run_graph`, so each command honours every one of them.
+    A new run option goes here, in the "run options" group (``check`` refuses those given
+    without ``--measure``; tests/test_cli_paths.py checks the four commands agree).
+    """
+    run = parser.add_argument_group("run options")
+    if not measuring:
+        run.add_argument(
+            "--duration",
+            type=positive_seconds_arg,
+            default=None,
+            metavar="S",
+            help="stop after S seconds of running, counted once every node is set up "
+            "(start-up, e.g. starting worker processes, and teardown come on top)",
+        )
+        run.add_argument(
+            "--json",
+            action="store_true",
+            help="print one JSON document on stdout at the end (the final statistics; "
+            "everything else goes to stderr); implies --no-ui",
+        )
     run.add_argument(
         "--no-ui", action="store_true", help="periodic log lines instead of the live table"
     )
@@ -496,9 +558,15 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
         help="at stop, let lossless edges and running activations finish for at most S seconds "
         "(default 5; reported when hit)",
     )
-    run.add_argument("--refresh", type=float, default=4.0, metavar="HZ", help="table refresh rate")
     run.add_argument(
-        "--log-every", type=float, default=2.0, metavar="S", help="--no-ui summary period"
+        "--refresh", type=positive_float_arg, default=4.0, metavar="HZ", help="table refresh rate"
+    )
+    run.add_argument(
+        "--log-every",
+        type=positive_float_arg,
+        default=2.0,
+        metavar="S",
+        help="--no-ui summary period",
     )
     run.add_argument(
         "--control",
@@ -547,11 +615,13 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
     run.add_argument(
         "--no-display", action="store_true", help="run without the graph's display nodes"
     )
-    run.add_argument(
-        "--check",
-        action="store_true",
-        help="refuse to start when flowrt check shows a node missing its deadline (declared wcet:)",
-    )
+    if not measuring:
+        run.add_argument(
+            "--check",
+            action="store_true",
+            help="refuse to start when flowrt check shows a node missing its deadline "
+            "(declared wcet:)",
+        )
     run.add_argument(
         "--keep-going",
         action="store_true",

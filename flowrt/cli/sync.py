@@ -5,7 +5,6 @@ LED). The estimator is :mod:`flowrt.analysis.avsync`; this reads the recording."
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -14,6 +13,7 @@ import numpy as np
 from rich.console import Console
 
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, printable, stdout_console
+from .json_output import emit
 
 
 def _stamp(msg: Any) -> float:
@@ -93,8 +93,8 @@ def cmd_measure(args: argparse.Namespace) -> int:
     oth = _audio(data[other]) if args.audio else _video(data[other])
     report = measure_lag(ref, oth)
     if args.json:
-        print(json.dumps({k: (None if isinstance(v, float) and math.isnan(v) else v)
-                          for k, v in report.json().items()}))  # fmt: skip
+        emit({k: (None if isinstance(v, float) and math.isnan(v) else v)
+                          for k, v in report.json().items()})  # fmt: skip
     else:
         _show(stdout_console(), videos[0], other, report, len(ref), len(oth))
     if args.plot and report.events:

@@ -84,6 +84,8 @@ def node_stats(
         trigger=trigger,
         priority=timing.priority,
         period=period,
+        period_frames=timing.period if isinstance(trig, FrameTrigger) else None,
+        timer_ms=None if timing.timer is None else timing.timer * 1000,
         deadline_ms=None if timing.deadline is None else timing.deadline * 1000,
         watchdog_ms=spec.watchdog,
         enabled=timing.enabled,

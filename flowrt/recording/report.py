@@ -13,7 +13,6 @@ nothing, and nothing of it is ever "missing".
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -50,6 +49,11 @@ class RecordingReport(BaseModel):
     files: list[str]
     start_time: str
     duration: float = Field(description="seconds, start of recording to stop")
+    span: float | None = Field(
+        default=None,
+        description="seconds from the first message to the last: the session's length as "
+        "flowrt info, the player and the sessions API give it (None: no message)",
+    )
     error: str | None = Field(description="the write error that stopped the recording, if any")
     notes: list[str] = Field(default_factory=list)
     streams: list[StreamReport]
@@ -57,10 +61,6 @@ class RecordingReport(BaseModel):
     @property
     def lost(self) -> int:
         return sum(s.lost for s in self.streams)
-
-
-_TIMER = re.compile(r"^([0-9.]+)ms")
-_FRAME = re.compile(r"^(\d+)/")
 
 
 def nominal_rates(stats: Any) -> dict[str, float | None]:
@@ -76,12 +76,11 @@ def nominal_rates(stats: Any) -> dict[str, float | None]:
         if n is None or depth > 20:
             return None
         r: float | None = None
-        if n.trigger == "timer" and (m := _TIMER.match(n.period)):
-            ms = float(m.group(1))
-            r = 1000.0 / ms if ms > 0 else None
-        elif n.trigger.startswith("frame ") and (m := _FRAME.match(n.period)):
+        if n.trigger == "timer" and n.timer_ms:  # the numbers, not the shown text (rounded)
+            r = 1000.0 / n.timer_ms
+        elif n.trigger.startswith("frame ") and n.period_frames:
             src = rate(n.trigger.split()[1].split(".")[0], depth + 1)
-            r = None if src is None else src / int(m.group(1))
+            r = None if src is None else src / n.period_frames
         if r is not None:
             out[name] = r
         return r
@@ -158,6 +157,7 @@ def build_report(
         files=[str(f) for f in writer.files] or [str(writer.path)],
         start_time=start_time,
         duration=duration,
+        span=window,
         error=writer.error,
         notes=list(writer.notes),
         streams=[_stream(c, stream_rate(rates, c.source), window) for c in writer.streams.values()],

@@ -47,6 +47,8 @@ _SIZE_UNITS = {
 
 def parse_size(text: str) -> int:
     """Bytes of ``4GiB``, ``500MB``, ``1.5G``, ``65536``; ValueError with the reason."""
+    if text.startswith("-"):
+        raise ValueError(f"{text!r}: must be more than 0 (a part's size)")
     m = _SIZE.match(text)
     unit = m.group("unit").lower() if m else ""
     if m is None or unit not in _SIZE_UNITS:
@@ -59,9 +61,9 @@ def parse_size(text: str) -> int:
 
 def parse_duration(text: str) -> float:
     """Seconds of ``10m``, ``30s``, ``1h``, ``500ms``, ``90``; ValueError with the reason."""
-    s = parse_seconds(text)
-    if s <= 0:
-        raise ValueError(f"{text!r}: a part must last more than 0 s")
+    s = parse_seconds(text.removeprefix("-"))
+    if s <= 0 or text.startswith("-"):
+        raise ValueError(f"{text!r}: must be more than 0 (a part's length)")
     return s
 
 

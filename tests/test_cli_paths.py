@@ -1,0 +1,340 @@
+"""Issue 43, the command line as scripts and people use it (no process started here):
+
+- every subcommand with ``--json`` prints exactly one JSON document on stdout, a result on
+  success and ``{"error": {...}}`` on failure, with the exit code it has without ``--json``
+  (the runs of ``run``/``record``/``replay``/``ctl`` are in tests/test_cli_json_runs.py);
+- a bad option gets the subcommand's usage and a suggestion; a negative value is a value;
+- ``check`` takes the run options (for ``--measure``), and refuses them without it;
+- the small things: plurals, readable periods, ``prio`` suggesting ``priority``, kinds'
+  summaries and bounds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import pytest
+
+from flowrt.cli import build_parser, main
+
+pytestmark = pytest.mark.timeout(60)
+
+REPO = Path(__file__).resolve().parents[1]
+
+TASKS = "tasks:\n  - {name: a, wcet: 1ms, period: 5ms}\n  - {name: b, wcet: 2ms, period: 10ms}\n"
+GRAPH = """\
+name: tiny
+nodes:
+  tick: {kind: counter, trigger: {timer: 66.6667ms}}
+  out: {kind: sink, inputs: {input: tick.value}}
+"""
+
+
+@pytest.fixture
+def files(tmp_path: Path) -> dict[str, str]:
+    (tmp_path / "tasks.yaml").write_text(TASKS)
+    (tmp_path / "g.yaml").write_text(GRAPH)
+    (tmp_path / "bad.yaml").write_text("name: x\nnodes:\n  a: {kind: capture, prio: 3}\n")
+    trace = tmp_path / "t.asc"
+    with can.ASCWriter(str(trace)) as w:
+        for i in range(20):
+            w.on_message_received(
+                can.Message(timestamp=i * 0.01, arbitration_id=0x100, data=bytes(8))
+            )
+    return {
+        "tasks": str(tmp_path / "tasks.yaml"),
+        "graph": str(tmp_path / "g.yaml"),
+        "bad": str(tmp_path / "bad.yaml"),
+        "trace": str(trace),
+        "dbc": str(REPO / "nodes" / "robot.dbc"),
+        "tmp": str(tmp_path),
+    }
+
+
+@pytest.fixture
+def closed_port() -> Iterator[int]:
+    """A loopback port nobody listens on (bound, not listening: connections are refused)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        yield s.getsockname()[1]
+
+
+def _json_run(capsys: pytest.CaptureFixture[str], argv: list[str]) -> tuple[int, object, str]:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, json.loads(out), err  # the whole of stdout: one document, nothing else
+
+
+# (subcommand, argv of a success, argv of a failure and its exit code); {x}: from `files`
+CASES: dict[str, tuple[list[str] | None, list[str], int]] = {
+    "kinds": (["kinds", "capture"], ["kinds", "nope"], 2),
+    "validate": (["validate", "{graph}"], ["validate", "{bad}"], 2),
+    "graph": (["graph", "{graph}"], ["graph", "{tmp}/missing.yaml"], 2),
+    "schema": (["schema", "stats"], ["schema", "nope"], 2),
+    "check": (["check", "{tasks}"], ["check", "{bad}"], 2),
+    "can analyse": (["can", "analyse", "{dbc}"], ["can", "analyse", "{tmp}/nope.dbc"], 2),
+    "can analyze": (["can", "analyze", "{dbc}"], ["can", "analyze", "{graph}"], 2),
+    "can stats": (["can", "stats", "{trace}"], ["can", "stats", "{graph}"], 2),
+    "info": (None, ["info", "{tmp}/nothing"], 2),
+    "sync measure": (None, ["sync", "measure", "{tmp}/no", "--video", "a", "--audio", "b"], 2),
+    "run": (None, ["run", "{bad}"], 2),
+    "record": (None, ["record", "{graph}", "--split-duration", "-3s"], 2),
+    "replay": (None, ["replay", "{tmp}/nothing"], 2),
+    **{
+        f"ctl {q}": (None, ["ctl", "--url", "http://127.0.0.1:{port}", *rest], 1)
+        for q, rest in {
+            "stats": ["stats"],
+            "timing": ["timing", "tick", "--timer", "50ms"],
+            "mode": ["mode", "fast"],
+            "modes": ["modes"],
+            "events": ["events"],
+            "qos": ["qos"],
+            "rtdb": ["rtdb"],
+            "record": ["record", "start"],
+            "swap": ["swap", "tick", "counter"],
+            "reload": ["reload", "tick"],
+        }.items()
+    },
+}
+# Those with None: their success needs a run or a recording (test_cli_json_runs.py).
+
+
+def test_every_subcommand_has_json_and_a_case() -> None:
+    """A new subcommand needs --json and its cases here (and a run's in the slow file)."""
+    commands: dict[str, argparse.ArgumentParser] = {}
+
+    def walk(parser: argparse.ArgumentParser, prefix: str) -> None:
+        subs = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+        if not subs and prefix:
+            commands[prefix] = parser
+        for action in subs:
+            for name, sub in action.choices.items():
+                walk(sub, f"{prefix} {name}".strip())
+
+    walk(build_parser(), "")
+    assert set(commands) == set(CASES)
+    assert all("--json" in p._option_string_actions for p in commands.values())
+
+
+@pytest.mark.parametrize("command", sorted(CASES))
+def test_json_success_and_failure_are_one_document(
+    command: str,
+    files: dict[str, str],
+    closed_port: int,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    success, failure, failure_code = CASES[command]
+    values = {**files, "port": str(closed_port)}
+    if success is not None:
+        code, doc, err = _json_run(capsys, [a.format(**values) for a in success] + ["--json"])
+        assert code == 0, err
+        assert doc
+        assert "error" not in doc
+    code, doc, err = _json_run(capsys, [a.format(**values) for a in failure] + ["--json"])
+    assert code == failure_code
+    assert isinstance(doc, dict)
+    error = doc["error"]
+    assert error["exit_code"] == failure_code
+    assert error["command"] == command
+    assert error["message"]
+    assert error["message"] in err  # what a person saw on stderr, the same words
+
+
+def test_a_graph_error_in_json_has_its_diagnostics(
+    files: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, doc, _ = _json_run(capsys, ["validate", files["bad"], "--json"])
+    assert code == 2
+    assert isinstance(doc, dict)
+    (d,) = doc["error"]["diagnostics"]
+    assert (d["line"], d["key"]) == (3, "nodes.a.prio")
+    assert "did you mean 'priority'" in d["message"]
+
+
+def test_a_bad_option_in_json_is_an_error_document(
+    files: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, doc, err = _json_run(capsys, ["run", files["graph"], "--duraton", "3", "--json"])
+    assert code == 2
+    assert isinstance(doc, dict)
+    assert "did you mean --duration?" in doc["error"]["message"]
+    assert "usage: flowrt run" in err
+
+
+# --- option errors --------------------------------------------------------------------------
+
+
+def _refused(capsys: pytest.CaptureFixture[str], argv: list[str]) -> str:
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(argv)
+    assert e.value.code == 2
+    return capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("argv", "usage", "hint"),
+    [
+        (["run", "g.yaml", "--duraton", "3"], "usage: flowrt run ", "did you mean --duration?"),
+        (["record", "g.yaml", "--split-durration=3s"], "usage: flowrt record ", "--split-duration"),
+        (["ctl", "events", "--jsn"], "usage: flowrt ctl events", "did you mean --json?"),
+        (["check", "g.yaml", "--no-displya"], "usage: flowrt check ", "did you mean --no-display?"),
+        (["rnu", "g.yaml"], "usage: flowrt [-h]", "did you mean run?"),
+        (["ctl", "evnts"], "usage: flowrt ctl ", "did you mean events?"),
+        (["run", "--duraton", "3"], "usage: flowrt run ", "did you mean --duration?"),
+    ],
+)
+def test_a_bad_option_gets_the_subcommand_usage_and_a_suggestion(
+    capsys: pytest.CaptureFixture[str], argv: list[str], usage: str, hint: str
+) -> None:
+    err = _refused(capsys, argv)
+    assert err.startswith(usage)
+    if usage != "usage: flowrt [-h]":  # a subcommand's own usage, not flowrt's
+        assert "usage: flowrt [-h]" not in err
+    assert hint in err.splitlines()[-1]
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["run", "g.yaml", "--duration", "-3s"],
+        ["run", "g.yaml", "--duration", "-3"],
+        ["run", "g.yaml", "--refresh", "-1"],
+        ["replay", "s", "--rate", "-2"],
+        ["replay", "s", "--rate", "0"],
+        ["check", "g.yaml", "--measure", "-3s"],
+        ["ctl", "events", "-n", "-5"],
+    ],
+)
+def test_a_negative_value_is_a_value_that_must_be_more_than_0(
+    capsys: pytest.CaptureFixture[str], argv: list[str]
+) -> None:
+    err = _refused(capsys, argv)
+    assert "expected one argument" not in err
+    assert "must be more than 0" in err
+
+
+def test_split_duration_negative_says_more_than_0(
+    files: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["record", files["graph"], "-o", files["tmp"], "--split-duration", "-3s"]) == 2
+    err = capsys.readouterr().err
+    assert "--split-duration '-3s': must be more than 0" in err
+    assert not list(Path(files["tmp"]).glob("rec_*"))  # nothing left behind
+
+
+# --- the same run options ------------------------------------------------------------------
+
+
+def test_run_record_replay_and_check_share_the_run_options() -> None:
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+
+    def options(name: str) -> set[str]:
+        p = subs.choices[name]
+        group = next(g for g in p._action_groups if g.title == "run options")
+        return {o for a in group._group_actions for o in a.option_strings}
+
+    run = options("run")
+    for option in ("--no-display", "--display-port", "--control", "--foxglove", "--realtime"):
+        assert option in run
+    assert options("record") == run
+    assert options("replay") == run
+    assert options("check") == run - {"--duration", "--check", "--json"}
+
+
+def test_check_refuses_a_run_option_without_measure(
+    files: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["check", files["graph"], "--display-port", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--display-port is an option of the measuring run (give --measure DURATION)" in err
+
+
+# --- small things ---------------------------------------------------------------------------
+
+
+def test_validate_counts_in_the_singular_and_plural(
+    files: dict[str, str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["validate", files["graph"]]) == 0
+    assert "ok (2 nodes, 1 edge)" in capsys.readouterr().out
+
+
+def test_a_mode_override_misspelt_prio_suggests_priority(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "m.yaml"
+    path.write_text(GRAPH + "modes:\n  m:\n    nodes:\n      tick: {prio: 3}\n")
+    assert main(["validate", str(path)]) == 2
+    assert "unknown field 'prio' (did you mean 'priority'?)" in capsys.readouterr().err
+
+
+async def test_periods_read_as_people_write_them_and_rates_stay_exact() -> None:
+    from flowrt import GraphBuilder, Runtime, VirtualClock
+    from flowrt.recording.report import nominal_rates
+
+    g = GraphBuilder("p")
+    g.add("tick", "counter", trigger={"timer": "66.6667ms"})
+    g.add("late", "counter", trigger={"timer": "100ms", "phase": "5ms"})
+    async with Runtime(g.build(), clock=VirtualClock()) as rt:
+        stats = rt.stats()
+    assert stats.node("tick").period == "66.67ms"
+    assert stats.node("late").period == "100ms +5ms"
+    assert nominal_rates(stats)["tick"] == pytest.approx(1000 / 66.6667, rel=1e-9)
+
+
+def test_kinds_summaries_stand_alone_and_bounds_are_said_once(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["kinds", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    for r in rows:
+        assert "see the module" not in r["summary"]
+        assert "see above" not in r["summary"]
+    assert main(["kinds", "capture", "--json"]) == 0
+    params = {p["name"]: p for p in json.loads(capsys.readouterr().out)["params"]}
+    assert params["flash_on"]["range"] == "> 0, <= 3600000.0"
+
+
+def test_an_images_glob_matching_nothing_fails_validation(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "i.yaml"
+    path.write_text("nodes:\n  cam: {kind: capture, params: {source: 'images:shots/*.png'}}\n")
+    assert main(["validate", str(path)]) == 2
+    assert f"no image file matches {tmp_path}/shots/*.png" in capsys.readouterr().err
+    (tmp_path / "shots").mkdir()
+    (tmp_path / "shots" / "a.png").write_bytes(b"")
+    assert main(["validate", str(path)]) == 0
+
+
+def test_a_session_has_one_length_first_message_to_last() -> None:
+    """Issue 43: POST /api/record/stop said 6.0 s (start to stop) for a session the sessions
+    API and the player give as 4.95 s (first message to last): both read the report's span."""
+    from flowrt.nodes.operator_sessions import session_length
+
+    from flowrt.recording import RecordingReport
+
+    report = RecordingReport(
+        session="s", files=[], start_time="t", duration=6.0, span=4.95, error=None, streams=[]
+    )
+    assert session_length(report.model_dump(mode="json")) == 4.95
+    assert session_length({"duration": 6.0}) == 6.0  # a report from before the span
+
+
+def test_a_verdict_is_a_result_not_an_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """check exits 1 when the timing does not hold: its document is the result, no error."""
+    path = tmp_path / "t.yaml"
+    path.write_text("tasks:\n  - {name: a, wcet: 3ms, period: 2ms}\n")
+    code, doc, _ = _json_run(capsys, ["check", str(path), "--json"])
+    assert code == 1
+    assert isinstance(doc, dict)
+    assert doc["schedulable"] is False
+    assert "error" not in doc
