@@ -124,8 +124,7 @@ class RecordingWriter:
             written) and its part's index (a writer process reports these to the recorder).
         gil_free: the large copies of the writing with the GIL released (:mod:`.gilfree`);
             False only to measure against ``mcap``'s own buffers (the benchmark's baseline).
-        profile: ``flowrt`` (foxglove protobuf images, JSON) or ``ros2`` (CDR messages with
-            ``ros2msg`` schemas, :mod:`.ros2_profile`); also the MCAP header's profile.
+        profile: ``flowrt`` (protobuf images, JSON) or ``ros2`` (CDR, :mod:`.ros2_profile`).
     """
 
     def __init__(
