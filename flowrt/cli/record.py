@@ -464,8 +464,6 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_replay(args: argparse.Namespace) -> int:
     from ..graph import resolve
     from ..recording.reader import scan_session
-    from ..registry import resolve_kind
-    from ..spec import NodeSpec
 
     if args.deterministic:
         from .deterministic import cmd_replay_deterministic
@@ -512,7 +510,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
     for s in streams:
         by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
 
-    replay_cls: Any = resolve_kind("replay")
     # absolute: a relative path would resolve beside --graph's file, not where this runs
     common = {
         "path": str(path.resolve()),
@@ -520,10 +517,47 @@ def cmd_replay(args: argparse.Namespace) -> int:
         "start": args.start,
         "loop": args.loop,
     }
-    kinds: dict[str, Any] = {}
     graph = _replay_target(args, info, path, err)
     if graph is _REFUSED:
         return EXIT_BAD_GRAPH
+    built = _replay_spec(args, info, graph, by_node, common, err)
+    if built is None:
+        return EXIT_BAD_GRAPH
+    spec, kinds, into = built
+    try:
+        base = Path(args.graph).resolve().parent if args.graph else None
+        rgraph = resolve(spec, kinds=kinds, base_dir=base)
+    except Exception as e:
+        err.print(f"flowrt replay: {e}", markup=False)
+        return EXIT_BAD_GRAPH
+    parts = f", {len(files)} files" if len(files) > 1 else ""
+    console.print(
+        f"replaying {printable(str(path))} ({len(streams)} stream(s), "
+        f"{info.duration:.1f} s{parts}) at x{args.rate:g} into {printable(into)}",
+        highlight=False,
+        markup=False,
+    )
+    result = {"path": str(path), "streams": [s.topic for s in streams], "into": into}
+    code = run_graph(rgraph, args, err, prog="flowrt replay", kinds=kinds, result=result)
+    if not info.closed_cleanly or left_out:  # not everything asked for was replayed
+        return max(code, EXIT_FAILED)
+    return code
+
+
+def _replay_spec(
+    args: argparse.Namespace,
+    info: Any,
+    graph: Any,
+    by_node: dict[str, list[str]],
+    common: dict[str, Any],
+    err: Console,
+) -> tuple[Any, dict[str, Any], str] | None:  # the spec, the kinds it adds, what it replays into
+    """``--graph``'s graph with replay nodes for its sources, or replay nodes alone (None: no)."""
+    from ..registry import resolve_kind
+    from ..spec import GraphSpec, NodeSpec
+
+    kinds: dict[str, Any] = {}
+    replay_cls: Any = resolve_kind("replay")
     if graph is not None:
         graph_name = args.graph or "the recorded graph"
         nodes = dict(graph.spec.nodes)
@@ -543,13 +577,11 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 f"(recorded from: {', '.join(by_node)})",
                 markup=False,
             )
-            return EXIT_BAD_GRAPH
+            return None
         spec: Any = graph.spec.model_copy(update={"nodes": nodes})
         replaced = sorted(k.removeprefix("replay-as-") for k in kinds)
         into = f"{graph_name}, replacing its source node(s) {', '.join(replaced)}"
     else:
-        from ..spec import GraphSpec
-
         # Only the recorded streams: node names and topics from the file are plain strings
         # here; nothing the recording names is imported, served or sent to.
         spec = GraphSpec(
@@ -566,24 +598,7 @@ def cmd_replay(args: argparse.Namespace) -> int:
                 "data): give --graph FILE, or --trust-graph to run the recorded one",
                 markup=False,
             )
-    try:
-        base = Path(args.graph).resolve().parent if args.graph else None
-        rgraph = resolve(spec, kinds=kinds, base_dir=base)
-    except Exception as e:
-        err.print(f"flowrt replay: {e}", markup=False)
-        return EXIT_BAD_GRAPH
-    parts = f", {len(files)} files" if len(files) > 1 else ""
-    console.print(
-        f"replaying {printable(str(path))} ({len(streams)} stream(s), "
-        f"{info.duration:.1f} s{parts}) at x{args.rate:g} into {printable(into)}",
-        highlight=False,
-        markup=False,
-    )
-    result = {"path": str(path), "streams": [s.topic for s in streams], "into": into}
-    code = run_graph(rgraph, args, err, prog="flowrt replay", kinds=kinds, result=result)
-    if not info.closed_cleanly or left_out:  # not everything asked for was replayed
-        return max(code, EXIT_FAILED)
-    return code
+    return spec, kinds, into
 
 
 _REFUSED: Any = object()
