@@ -36,7 +36,10 @@ computer can read the cameras (DNS rebinding: 421; cross-site WebSocket: 403). T
 other machines on purpose, give ``host`` (e.g. 0.0.0.0) and a ``token`` (required off
 loopback): clients send ``Authorization: Bearer TOKEN`` or open ``/?token=TOKEN`` once (a
 cookie keeps it). ``max_clients`` connections at once; one that sends no complete request
-within 10 s is closed.
+within 10 s is closed, and at the cap the one idle longest makes room. MJPEG streams take at
+most ``max_streams`` of them (half by default), ``max_streams_per_peer`` per client address;
+each has at most one frame queued in the server, and one that falls more than a second behind
+is dropped (counted ``stalled``): the page, ``/stats.json`` and the API always find a slot.
 
 Why neither the graph nor the cameras wait for a browser: the web server is a process of its
 own (:mod:`flowrt.nodes.display_server`, at nice 19), so HTTP work and JPEG encoding take
@@ -259,6 +262,16 @@ class Display(Node):
         max_clients: int = Field(
             32, ge=1, le=1000, description="open connections at once; more are closed at once"
         )
+        max_streams: int | None = Field(
+            None,
+            ge=1,
+            le=1000,
+            description="MJPEG streams at once (default: half of max_clients): the other slots "
+            "stay for the page, /stats.json and the API",
+        )
+        max_streams_per_peer: int = Field(
+            4, ge=1, le=1000, description="MJPEG streams one client address may hold at once"
+        )
         max_fps: float | None = Field(
             None,
             gt=0,
@@ -351,6 +364,8 @@ class Display(Node):
             "token": self.params.token,
             "allowed_hosts": list(self.params.allowed_hosts),
             "max_clients": self.params.max_clients,
+            "max_streams": self.params.max_streams or max(1, self.params.max_clients // 2),
+            "max_streams_per_peer": self.params.max_streams_per_peer,
             "url": self.url,
             "page": page,
             "source_wait": SOURCE_WAIT,

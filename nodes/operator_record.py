@@ -130,6 +130,7 @@ class RecordApi:
         self.state: dict[str, Any] = {"recording": [], "recordings": []}
         self._edges: tuple[float, dict[str, int]] | None = None  # the previous statistics
         self.rates: dict[str, float] = {}
+        self.refused = 0  # requests refused for their body (not JSON, nested too deeply, ...)
 
     def routes(self) -> list[web.RouteDef]:
         return [
@@ -167,8 +168,15 @@ class RecordApi:
             rows[node] = {"node": node, "session": folder, "since": 0.0}
         self.state = {**self.state, "recording": list(rows.values())}
 
+    async def _body(self, request: web.Request) -> dict[str, Any]:
+        try:
+            return await _body(request)
+        except web.HTTPException:
+            self.refused += 1
+            raise
+
     async def start(self, request: web.Request) -> web.Response:
-        body = await _body(request)
+        body = await self._body(request)
         name = body.get("name")
         if not isinstance(name, str) or not valid_name(name):
             return _error(400, "name: a session name, letters, digits, _ and - (at most 64)")
@@ -186,7 +194,7 @@ class RecordApi:
         )
 
     async def stop(self, request: web.Request) -> web.Response:
-        await _body(request)
+        await self._body(request)
         answer = await self.call("record", action="stop")
         if answer.get("status") != 200:
             return _error(int(answer.get("status", 500)), str(answer.get("error")))
@@ -251,6 +259,8 @@ async def _body(request: web.Request) -> dict[str, Any]:
         body = json.loads(await request.text() or "{}")
     except ValueError:
         raise web.HTTPBadRequest(text="the body is not JSON\n") from None
+    except RecursionError:  # 100 000 nested [: refused, not a traceback
+        raise web.HTTPBadRequest(text="the body is nested too deeply\n") from None
     if not isinstance(body, dict):
         raise web.HTTPBadRequest(text="the body is a JSON object\n")
     return body
