@@ -248,6 +248,15 @@ class NodeContext:
         """Leave the error state set by :meth:`set_error` (the device is back)."""
         raise RuntimeError("clear_error() is only available to inline nodes on the event loop")
 
+    def set_waiting(self, reason: str | None) -> None:
+        """Say the node waits for something outside the graph that is normal to be absent
+        (an operator yet to open the page that drives it); ``None``: it no longer waits.
+
+        Not an error: the table shows state ``waiting`` with ``reason``, and a run ending
+        while a node waits ends well. Only on the event loop.
+        """
+        raise RuntimeError("set_waiting() is only available to inline nodes on the event loop")
+
 
 class Node:
     """Base class of every node; subclasses declare ports as class attributes.
