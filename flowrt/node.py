@@ -281,6 +281,13 @@ class Node:
     """Set to an ``Input`` to accept inputs of any name with that type (e.g. a display)."""
     inline_only: ClassVar[bool] = False
     """True for nodes that need the event loop (frame pools, servers): placement is checked."""
+    swappable: ClassVar[frozenset[str]] = frozenset()
+    """The params a swap over the control endpoint (``POST /swap``, ``flowrt ctl swap``) may
+    change: an algorithm's, never where data goes (an address, a device, a token, a folder).
+    Shown by ``flowrt kinds KIND``; none by default (:mod:`flowrt.swap_policy`)."""
+    swap_folders: ClassVar[Mapping[str, str]] = {}
+    """Path params in ``swappable`` -> the folder param each is confined to (a recorder's
+    ``session`` inside its ``path``): relative, without ``..``, resolved under that folder."""
     external: ClassVar[bool] = False
     """True for nodes whose outputs come from outside the graph although they have inputs (a
     CAN bus: frames received while it transmits its inputs). A deterministic recording stores

@@ -221,6 +221,8 @@ class _SourceState:
 class Arbiter(Node):
     """Selects or blends the fresh command sources (see the module docstring)."""
 
+    swappable = frozenset({"mode", "timeout", "sources"})  # over the control endpoint: flowrt kinds
+
     Params = ArbiterParams
     any_inputs = Input(object, required=False, policy="latest", doc="command sources and locks")
     command = Output(dict, doc="the command for the actuator: a mapping like `zero`")

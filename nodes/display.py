@@ -238,6 +238,19 @@ class Robot(BaseModel):
 class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset(
+        {
+            "max_fps",
+            "jpeg_quality",
+            "draw_on",
+            "detection_ttl",
+            "refresh_ms",
+            "health_hz",
+            "health_keep_s",
+        }
+    )
+
     inline_only = True
     listens = True  # params host/port: `flowrt run --display-host/--display-port` set them
 

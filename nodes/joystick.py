@@ -133,6 +133,9 @@ def load_script(path: str | Path) -> list[tuple[float, dict[str, float], dict[st
 class Joystick(Node):
     """Publishes the joystick's state at a steady rate while the device is there."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset({"rate_hz", "reopen_ms", "web_timeout_ms"})
+
     Params = JoystickParams
     output = Output(JoyState)
 

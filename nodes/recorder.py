@@ -99,6 +99,25 @@ FOLDER_RECORD = "flowrt.recordings."
 class Recorder(Node):
     """Records every input into ``path/NAME_NNN/NAME_NNN.mcap`` (or its parts); see above."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset(
+        {
+            "name",
+            "session",
+            "images",
+            "compression",
+            "chunk_size",
+            "flush_interval",
+            "max_frames",
+            "crc",
+            "split_size",
+            "split_duration",
+            "annotations",
+            "log_report",
+        }
+    )
+    swap_folders = {"session": "path"}  # a session only inside its recordings folder
+
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
         path: str = Field(

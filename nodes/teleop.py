@@ -138,6 +138,8 @@ def _field(value: Any, key: str) -> Any:
 class Teleop(Node):
     """Joystick -> speed command, with a safe-start state machine (see the module docstring)."""
 
+    swappable = frozenset({"timeout_ms", "centre_band"})  # over the control endpoint: flowrt kinds
+
     Params = TeleopParams
     joy = Input(object, required=False, policy="latest", doc="joystick: axes, buttons, timestamp")
     state = Input(object, required=False, policy="latest", doc="measured robot state (locks)")
