@@ -355,6 +355,7 @@ class Display(Node):
         self._proc: Any = None
         self._task: asyncio.Task[None] | None = None
         self._calls: set[asyncio.Task[None]] = set()  # the server's requests being answered
+        self._record_turn = asyncio.Lock()  # one start or stop of the recorders at a time
         host, port = self.params.host, self.params.port
         self.url = ""
         try:
@@ -447,7 +448,9 @@ class Display(Node):
                 elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
                     self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
                 elif op == "record":  # the record panel: answered when the recorders have
-                    answer = operator_record.answer(self.ctx.rtdb, header, self._send)
+                    answer = operator_record.answer(
+                        self.ctx.rtdb, header, self._send, self._record_turn
+                    )
                     task = asyncio.get_running_loop().create_task(answer)
                     self._calls.add(task)
                     task.add_done_callback(self._calls.discard)

@@ -49,6 +49,7 @@ list them for review.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import os
 import time
@@ -501,6 +502,8 @@ class Recorder(Node):
             return
         if rec is None or rec.seq == self._command_seq:
             return
+        if self._task is not None and not self._task.done():
+            return  # a start or stop is under way: the command is read again after it
         self._command_seq = rec.seq
         cmd = rec.value
         if isinstance(cmd, dict):  # {"action": "start", "name": "drive"}: the live view's
@@ -533,6 +536,10 @@ class Recorder(Node):
             self._rtdb_ok = False
 
     async def teardown(self) -> None:
+        task = getattr(self, "_task", None)
+        if task is not None and not task.done():  # a session being opened is closed too
+            with contextlib.suppress(Exception):
+                await task
         writer = getattr(self, "writer", None)
         if writer is not None:
             await self._close()

@@ -1,0 +1,120 @@
+"""Two operators and careless scripts at once (issue 37 item 3 and its "Done when").
+
+20 clients drive the control endpoint and the operator station's API together, at random:
+record start and stop (the station's panel and ``POST /record``), swaps, timing changes and
+mode switches. Nothing answers 5xx, nothing logs a traceback, every session that started is
+closed with its per-stream table (``streams.json``), a stop answers within 10 s, and the
+runtime runs on. ``FLOWRT_CONTENTION_S`` sets how long (60 in the issue; 12 by default here,
+to keep the suite in its CI budget).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import random
+import time
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+
+from flowrt import GraphBuilder, Runtime
+from flowrt.control import ControlConfig, ControlServer
+
+pytestmark = [pytest.mark.subprocess, pytest.mark.realtime, pytest.mark.timeout(300)]
+
+SECONDS = float(os.environ.get("FLOWRT_CONTENTION_S", "12"))
+CLIENTS = 20
+
+
+def graph(folder: Path) -> Any:
+    g = GraphBuilder("contention")
+    g.add("crit", "counter", trigger={"timer": "50ms"}, priority=40)
+    g.add("slow", "burn", params={"ms": 0.5}, trigger={"timer": "100ms"}, priority=10)
+    g.add(
+        "rec",
+        "recorder",
+        params={"path": str(folder), "start": False, "writer": "thread", "log_report": False},
+        inputs={"crit.value": {"from": "crit.value", "policy": "lossless"}},
+    )
+    g.add("view", "display", params={"port": 0, "health_hz": 1})
+    g.mode("calm", slow={"timer": "200ms"})
+    g.mode("busy", slow={"timer": "100ms"})
+    return g.build()
+
+
+async def client(
+    http: aiohttp.ClientSession, view: str, ctl: str, seed: int, end: float, seen: list[Any]
+) -> None:
+    rng = random.Random(seed)
+    while time.monotonic() < end:
+        choice = rng.random()
+        if choice < 0.5:  # the record panel, as a double click in two tabs does
+            action = rng.choice(["start", "stop"])
+            url, body = f"{view}/api/record/{action}", {"name": f"c{seed}"}
+        elif choice < 0.6:
+            url, body = f"{ctl}/record", {"action": rng.choice(["start", "stop"])}
+        elif choice < 0.75:
+            url, body = f"{ctl}/swap", {"node": "slow", "kind": "burn", "params": {"ms": 0.2}}
+        elif choice < 0.9:
+            url, body = f"{ctl}/timing", {"node": "slow", "priority": rng.randint(5, 30)}
+        else:
+            url, body = f"{ctl}/mode", {"mode": rng.choice(["calm", "busy"])}
+        t0 = time.monotonic()
+        try:
+            async with http.post(url, json=body) as r:
+                text = await r.text()
+                seen.append((url, r.status, time.monotonic() - t0, text[:200]))
+        except (aiohttp.ClientError, TimeoutError) as e:
+            seen.append((url, 599, time.monotonic() - t0, repr(e)))
+        await asyncio.sleep(rng.uniform(0.0, 0.3))
+
+
+async def test_twenty_clients_on_the_endpoint_and_the_station(
+    tmp_path: Path, capfd: pytest.CaptureFixture[str]
+) -> None:
+    seen: list[tuple[str, int, float, str]] = []
+    async with Runtime(graph(tmp_path)) as rt:
+        view = rt.runner("view").executor.node.url  # type: ignore[attr-defined]
+        async with (
+            ControlServer(rt, ControlConfig("127.0.0.1", 0)) as server,
+            aiohttp.ClientSession(timeout=aiohttp.ClientTimeout(total=30)) as http,
+        ):
+            end = time.monotonic() + SECONDS
+            await asyncio.gather(
+                *(client(http, view, server.url, i, end, seen) for i in range(CLIENTS))
+            )
+            async with http.post(f"{view}/api/record/stop", json={}) as r:
+                assert r.status in (200, 202, 409), await r.text()
+            async with http.get(f"{view}/stats.json") as r:
+                assert r.status == 200
+        assert rt.started
+        crit = rt.stats().node("crit")
+    failed = [s for s in seen if s[1] >= 500]
+    assert not failed, failed[:5]
+    sessions = [p for p in tmp_path.iterdir() if p.is_dir()]
+    unclosed = [p.name for p in sessions if not (p / "streams.json").exists()]
+    assert not unclosed, unclosed
+    for p in sessions:
+        json.loads((p / "streams.json").read_text())
+    stops = [s for s in seen if s[0].endswith("/api/record/stop")]
+    assert stops
+    assert max(s[2] for s in stops) < 10, max(stops, key=lambda s: s[2])
+    started = [
+        json.loads(s[3])["session"]
+        for s in seen
+        if s[0].endswith("/api/record/start") and s[1] == 200
+    ]
+    assert started, seen[:20]
+    assert len(set(started)) == len(started), "one session reported to two starts"
+    assert set(started) <= {p.name for p in sessions}
+    assert crit.errors == 0
+    out, err = capfd.readouterr()
+    assert "Traceback" not in out + err
+    print(
+        f"{len(seen)} requests, {len(sessions)} sessions, statuses "
+        f"{sorted({s[1] for s in seen})}, slowest stop {max(s[2] for s in stops):.2f} s"
+    )
