@@ -140,8 +140,15 @@ async def test_the_endpoint_never_points_a_recorder_outside_its_folder(tmp_path:
         assert status == 200, body
         await asyncio.sleep(0.5)
         assert rt.rtdb.value("flowrt.recording.recorder") == str(recs / "day1")
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["recs"]  # nothing written elsewhere
-    assert (recs / "day1" / "day1.mcap").exists()
+    assert written(tmp_path) == ["recs", "recs/day1/day1.mcap", "recs/rec_001/rec_001.mcap"]
+
+
+def written(folder: Path) -> list[str]:
+    return sorted(
+        str(p.relative_to(folder))
+        for p in folder.rglob("*")
+        if p.suffix == ".mcap" or p.parent == folder
+    )
 
 
 # --- a node owning a socket -----------------------------------------------------------------
