@@ -208,6 +208,13 @@ class NodeContext:
             self._rtdb = RTDB.attach(self._rtdb_handle)
         return self._rtdb
 
+    @property
+    def graph(self) -> Any:
+        """The running graph (a :class:`flowrt.Graph`: every node's kind, class and params),
+        to read, never to change: for a node that adapts to what else runs (the live view
+        requires a token when the graph can drive from its page). Only on the event loop."""
+        raise RuntimeError("graph is only available to inline nodes on the event loop")
+
     def set_mode(self, mode: str) -> None:
         """Switch the runtime to a mode of the graph file; only on the event loop."""
         raise RuntimeError("set_mode() is only available to inline nodes on the event loop")

@@ -70,6 +70,7 @@ import contextlib
 import math
 import multiprocessing
 import pickle
+import secrets
 import socket
 import time
 from collections import deque
@@ -101,6 +102,21 @@ WEB_JOYSTICK = "joystick.web"  # RTDB record of the page's joystick (nodes/joyst
 SOURCE_WAIT = 3.0  # seconds a request for a source that has sent no frame yet waits for one
 HEADER_TIMEOUT = 10.0  # seconds a connection has to send a complete request
 START_TIMEOUT = 30.0  # seconds for the view's server process to start (spawn + imports)
+
+
+def _drivers(ctx: Any) -> list[str]:
+    """The nodes the page can drive through (a joystick with ``source: web``), by name."""
+    from .joystick import Joystick
+
+    try:
+        graph = ctx.graph
+    except RuntimeError:  # no runtime around the node (a bare test harness)
+        return []
+    return [
+        name
+        for name, n in graph.nodes.items()
+        if issubclass(n.cls, Joystick) and getattr(n.params, "source", None) == "web"
+    ]
 
 
 def _is_detection(value: Any) -> bool:
@@ -268,6 +284,12 @@ class Display(Node):
             min_length=8,
             description="required of every client (Bearer header, or ?token= once: a cookie)",
         )
+        token_required: bool | None = Field(
+            None,
+            description="None: required when the graph can drive from the page (a joystick "
+            "with source: web), one generated and printed unless token is given; true: always; "
+            "false: never, any local process may open the page and drive (an explicit opt-out)",
+        )
         allowed_hosts: list[str] = Field(
             default_factory=list,
             description="names besides loopback a browser may use in Host (without a token)",
@@ -358,6 +380,14 @@ class Display(Node):
         self._record_turn = asyncio.Lock()  # one start or stop of the recorders at a time
         host, port = self.params.host, self.params.port
         self.url = ""
+        self.open_url = ""  # the URL to open: with ?token= when the view has one
+        self.drivers = _drivers(self.ctx)
+        token = self.params.token
+        required = self.params.token_required
+        if required is None:
+            required = bool(self.drivers)
+        if required and not token:  # generated, as Jupyter does: printed as a URL to open
+            token = secrets.token_urlsafe(16)
         try:
             sock = _listen(host, port)
         except OSError as e:
@@ -374,8 +404,9 @@ class Display(Node):
         shown = f"[{host}]" if ":" in host else host
         self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '::', '') else shown}:{self.port}"
         page = PAGE.read_bytes().replace(b"__REFRESH_MS__", str(self.params.refresh_ms).encode())
+        self.open_url = f"{self.url}/?token={token}" if token else self.url
         settings = {
-            "token": self.params.token,
+            "token": token,
             "allowed_hosts": list(self.params.allowed_hosts),
             "max_clients": self.params.max_clients,
             "max_streams": self.params.max_streams or max(1, self.params.max_clients // 2),
@@ -413,7 +444,15 @@ class Display(Node):
             await self.teardown()
             raise RuntimeError(f"display: the view's server did not start: {e!r}") from None
         self.ctx.log.info("%s: live view at %s", self.ctx.name, self.url)
-        print(f"display: {self.url}", flush=True)
+        if token and not self.params.token:
+            why = f"{', '.join(self.drivers)} can drive from the page" if self.drivers else ""
+            print(
+                f"display: {self.url} needs its token{': ' + why if why else ''}; open "
+                f"{self.open_url}",
+                flush=True,
+            )
+        else:
+            print(f"display: {self.url}", flush=True)
 
     async def teardown(self) -> None:
         writer, task, proc = self._writer, self._task, self._proc

@@ -49,11 +49,12 @@ async def until(cond: Any, within: float, what: str) -> None:
 @needs_chromium
 async def test_on_screen_joystick_drives_teleop() -> None:
     async with Runtime(graph()) as rt:
-        url = rt.scheduler.runners["view"].executor.node.url  # type: ignore[attr-defined]
+        # the graph can drive from the page: the view needs its token, in the URL to open
+        url = rt.scheduler.runners["view"].executor.node.open_url  # type: ignore[attr-defined]
         cmd = rt.subscribe("tele.command", policy="latest")
         mode = rt.subscribe("tele.mode", policy="latest")
 
-        async with browser(url + "/") as page:
+        async with browser(url) as page:
             await until(lambda: page.eval("!!document.querySelector('#pad')"), 20, "the page")
             # the panel shows once the statistics name a joystick with source: web
             await until(

@@ -111,6 +111,10 @@ class RunnerContext(NodeContext):
             HealthAlert(sched.rel(sched.clock.now()), self.name, "node-error", reason, "error")
         )
 
+    @property
+    def graph(self) -> Any:
+        return self._runner.sched.graph
+
     def set_waiting(self, reason: str | None) -> None:
         runner = self._runner
         if runner.waiting_reason == reason:
