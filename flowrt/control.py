@@ -334,8 +334,10 @@ class ControlServer:
             raise SwapError(f"{req.node}: kind {req.kind!r}: import failed: {e!r}") from None
         params = req.params
         if params is not None:
+            from .hotswap import as_written
+
             same = req.kind == runner.rnode.spec.kind
-            base = runner.rnode.spec.params if same else {}
+            base = as_written(self.rt, runner) if same else {}
             paths = confined(cls)
             plain = {k: v for k, v in params.items() if k not in paths}
 

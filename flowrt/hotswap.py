@@ -71,7 +71,7 @@ async def swap(
     if cls is runner.rnode.cls or label == old_kind:
         # Merged into the running params, as written (a duration stays "200ms", a path
         # relative to the graph file): a swap of one param keeps the port, the folder...
-        raw = merge_params(runner.rnode.spec.params, raw)
+        raw = merge_params(as_written(rt, runner), raw)
     if params is None and cls is runner.rnode.cls:
         model = runner.rnode.params
     else:
@@ -83,6 +83,22 @@ async def swap(
     runner.rnode = dataclasses.replace(
         runner.rnode, spec=runner.rnode.spec.model_copy(update={"params": raw})
     )
+
+
+def as_written(rt: SwapHost, runner: NodeRunner) -> dict[str, Any]:
+    """The running params as a graph file writes them: the file's text where the running
+    value is still the file's (a duration stays "200ms", not seconds read again as ms), the
+    running value where something set it since (``flowrt run --display-port``)."""
+    raw = dict(runner.rnode.spec.params)
+    running = runner.rnode.params
+    try:
+        written = rt.graph.validate_params(runner.rnode.cls, raw)
+    except ValidationError:
+        return dict(running.model_dump())
+    for key, value in running.model_dump().items():
+        if getattr(written, key, None) != getattr(running, key, None):
+            raw[key] = value
+    return raw
 
 
 async def _swap_to(

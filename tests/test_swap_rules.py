@@ -91,13 +91,16 @@ async def test_a_swap_merges_the_given_params_into_the_running_ones() -> None:
         params={"sources": {"a": {}}, "zero": {"vx": 0.0}, "timeout": "300ms"},
         trigger={"timer": "50ms"},
     )
+    graph = g.build()
+    alg = graph.nodes["alg"]  # a value set after the file, as flowrt run --display-port does
+    alg.params = alg.params.model_validate({**alg.params.model_dump(), "factor": 3.0})
     clock = VirtualClock()
-    async with Runtime(g.build(), clock=clock) as rt:
+    async with Runtime(graph, clock=clock) as rt:
         await clock.advance(0.2)
         kind = rt.graph.spec.nodes["alg"].kind
         await rt.swap("alg", kind, {"offset": 5.0})
         params = rt.runner("alg").rnode.params
-        assert (params.factor, params.offset) == (2.0, 5.0)  # type: ignore[attr-defined]
+        assert (params.factor, params.offset) == (3.0, 5.0)  # type: ignore[attr-defined]
         await rt.swap("drive", "arbiter", {"mode": "blend"})
         arb = rt.runner("drive").rnode.params
         # merged as written: "300ms" is not read again as 0.3 ms
