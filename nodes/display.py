@@ -36,8 +36,9 @@ computer can read the cameras (DNS rebinding: 421; cross-site WebSocket: 403). T
 other machines on purpose, give ``host`` (e.g. 0.0.0.0) and a ``token`` (required off
 loopback): clients send ``Authorization: Bearer TOKEN`` or open ``/?token=TOKEN`` once (a
 cookie keeps it). ``max_clients`` connections at once; one that sends no complete request
-within 10 s is closed, and at the cap the one idle longest makes room. MJPEG streams take at
-most ``max_streams`` of them (half by default), ``max_streams_per_peer`` per client address;
+within 10 s is closed, and at the cap the one idle longest makes room. MJPEG streams and the
+pages' WebSockets take at most ``max_streams`` of them (half by default), MJPEG streams at most
+``max_streams_per_peer`` per client address;
 each has at most one frame queued in the server, and one that falls more than a second behind
 is dropped (counted ``stalled``): the page, ``/stats.json`` and the API always find a slot.
 
@@ -301,8 +302,8 @@ class Display(Node):
             None,
             ge=1,
             le=1000,
-            description="MJPEG streams at once (default: half of max_clients): the other slots "
-            "stay for the page, /stats.json and the API",
+            description="MJPEG streams and page WebSockets at once (default: half of "
+            "max_clients): the other slots stay for the page, /stats.json and the API",
         )
         max_streams_per_peer: int = Field(
             4, ge=1, le=1000, description="MJPEG streams one client address may hold at once"

@@ -422,7 +422,7 @@ class ViewServer:
     async def _mjpeg(self, request: web.Request) -> web.StreamResponse:
         """The newest frames as MJPEG, one queued at most; see :mod:`.display_streams`."""
         peer = request.remote or "?"
-        refused = self.streams.refusal(peer)
+        refused = self.streams.refusal(peer, len(self.clients))
         if refused is not None:
             raise web.HTTPServiceUnavailable(text=refused + "\n")
         name, kind = await self._requested(request)
@@ -463,6 +463,12 @@ class ViewServer:
         return resp
 
     async def _websocket(self, request: web.Request) -> web.WebSocketResponse:
+        if len(self.clients) + len(self.streams.clients) >= self.streams.max_streams:
+            # a WebSocket holds its slot like a stream: together they leave the rest free
+            self.streams.refused += 1
+            raise web.HTTPServiceUnavailable(
+                text=f"{self.streams.max_streams} live connections already (max_streams)\n"
+            )
         ws = web.WebSocketResponse(
             heartbeat=10.0, compress=False, timeout=CLOSE_TIMEOUT, max_msg_size=1 << 16
         )

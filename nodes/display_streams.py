@@ -84,9 +84,10 @@ class StreamSlots:
         self.refused = 0  # streams refused at a cap
         self.stalled = 0  # streams dropped: behind by more than MAX_BEHIND
 
-    def refusal(self, peer: str) -> str | None:
-        """Why a new stream from ``peer`` is refused (counted), or None."""
-        if len(self.clients) >= self.max_streams:
+    def refusal(self, peer: str, others: int = 0) -> str | None:
+        """Why a new stream from ``peer`` is refused (counted), or None; ``others``: the
+        page WebSockets, which share ``max_streams`` with the streams."""
+        if len(self.clients) + others >= self.max_streams:
             self.refused += 1
             return f"{self.max_streams} streams already: the view keeps its other slots free"
         if sum(1 for c in self.clients if c.peer == peer) >= self.max_per_peer:

@@ -188,3 +188,23 @@ async def test_streams_never_take_the_page_and_api_slots() -> None:
         camera.cancel()
         for s in socks:
             s.close()
+
+
+@pytest.mark.realtime
+async def test_websockets_share_the_stream_slots() -> None:
+    """Page WebSockets hold their connections too: with the streams, at most max_streams."""
+    async with (
+        view(max_clients=8, max_streams=3) as (server, _, url),
+        aiohttp.ClientSession() as http,
+    ):
+        sockets = [await http.ws_connect(url + "/ws") for _ in range(3)]
+        with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+            await http.ws_connect(url + "/ws")
+        assert refused.value.status == 503
+        async with http.get(url + "/stream/cam.mjpg") as r:
+            assert r.status == 503
+        async with http.get(url + "/stats.json") as r:
+            assert r.status == 200  # the rest stay free
+        assert server.streams.refused == 2
+        for ws in sockets:
+            await ws.close()
