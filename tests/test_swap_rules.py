@@ -12,6 +12,7 @@ from typing import Any
 
 import aiohttp
 import pytest
+from flowrt.nodes.display import Display
 from flowrt.nodes.recorder import Recorder
 from pydantic import BaseModel
 
@@ -157,6 +158,11 @@ def written(folder: Path) -> list[str]:
 # --- a node owning a socket -----------------------------------------------------------------
 
 
+class BrokenView(Display):
+    async def setup(self) -> None:
+        raise RuntimeError("no certificate")
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -188,4 +194,8 @@ async def test_a_display_swapped_keeps_its_port_and_serves_on(tmp_path: Path) ->
         with pytest.raises(SwapError):
             await rt.swap("view", "relay")  # a kind that cannot take the node's place
         assert await served() == 200
+        with pytest.raises(SwapError, match="no certificate"):
+            await rt.swap("view", BrokenView)  # torn down first; a display as before again
+        assert await served() == 200
+        assert rt.runner("view").rnode.cls is Display
         assert rt.runner("view").counts.swaps == 1

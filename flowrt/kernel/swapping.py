@@ -172,7 +172,7 @@ class Swapper:
         new = r.make_executor(rnode, reload=reload)
         try:
             await new.start()
-        except BaseException:
+        except Exception:
             again = r.make_executor()  # the old class and params: rnode not replaced yet
             try:
                 await again.start()
