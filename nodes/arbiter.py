@@ -221,7 +221,9 @@ class _SourceState:
 class Arbiter(Node):
     """Selects or blends the fresh command sources (see the module docstring)."""
 
-    swappable = frozenset({"mode", "timeout", "sources"})  # over the control endpoint: flowrt kinds
+    # over the control endpoint (flowrt kinds): weights and priorities, as modes set them;
+    # never what keeps the robot safe (timeout, locks, zero, limits)
+    swappable = frozenset({"mode", "sources"})
 
     Params = ArbiterParams
     any_inputs = Input(object, required=False, policy="latest", doc="command sources and locks")

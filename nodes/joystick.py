@@ -134,7 +134,7 @@ class Joystick(Node):
     """Publishes the joystick's state at a steady rate while the device is there."""
 
     # what a swap over the control endpoint may change (flowrt kinds shows it)
-    swappable = frozenset({"rate_hz", "reopen_ms", "web_timeout_ms"})
+    swappable = frozenset({"reopen_ms"})  # never a timeout: what keeps a lost link safe
 
     Params = JoystickParams
     output = Output(JoyState)

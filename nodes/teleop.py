@@ -138,7 +138,8 @@ def _field(value: Any, key: str) -> Any:
 class Teleop(Node):
     """Joystick -> speed command, with a safe-start state machine (see the module docstring)."""
 
-    swappable = frozenset({"timeout_ms", "centre_band"})  # over the control endpoint: flowrt kinds
+    # over the control endpoint (flowrt kinds); never timeouts, scaling or the safe start
+    swappable = frozenset({"centre_band"})
 
     Params = TeleopParams
     joy = Input(object, required=False, policy="latest", doc="joystick: axes, buttons, timestamp")
