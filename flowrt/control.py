@@ -83,7 +83,8 @@ from .serving import (
     stop_server,
     unpack,
 )
-from .swap_policy import SwapRefused, lookup, where_keys
+from .spec import merge_params
+from .swap_policy import SwapRefused, check_params, confined
 
 if TYPE_CHECKING:
     from aiohttp import web
@@ -325,25 +326,27 @@ class ControlServer:
         runner = self.rt.scheduler.runners.get(req.node)
         if runner is None:
             raise KeyError(f"unknown node {req.node!r}")
-        if req.params is not None:
-            current = runner.rnode.params.model_dump(mode="json")
-            moved = [
-                k
-                for k in where_keys(req.params)
-                if lookup(req.params, k) != lookup(current, k) or req.kind != runner.rnode.spec.kind
-            ]
-            if moved:
-                raise SwapRefused(
-                    f"params {', '.join(moved)} change where data goes (an address, a path or a "
-                    "token): not over the control endpoint; edit the graph file instead"
-                )
         try:
             cls = await asyncio.to_thread(resolve_kind, req.kind, None)
         except asyncio.CancelledError:
             raise
         except BaseException as e:  # SystemExit from an import is contained
             raise SwapError(f"{req.node}: kind {req.kind!r}: import failed: {e!r}") from None
-        await self.rt.swap(req.node, req.kind, req.params, origin="control", resolved=cls)
+        params = req.params
+        if params is not None:
+            from .hotswap import as_written
+
+            same = req.kind == runner.rnode.spec.kind
+            base = as_written(self.rt, runner) if same else {}
+            paths = confined(cls)
+            plain = {k: v for k, v in params.items() if k not in paths}
+
+            def folder_of(param: str) -> str:
+                model = self.rt.graph.validate_params(cls, merge_params(base, plain))
+                return str(getattr(model, param))
+
+            params = check_params(req.kind, cls, params, folder_of)
+        await self.rt.swap(req.node, req.kind, params, origin="control", resolved=cls)
 
     async def answer_swap(self, op: str, body: bytes) -> tuple[int, bytes]:
         """``swap`` and ``reload``: the new instance is set up while the graph runs."""

@@ -1,5 +1,8 @@
 """Changing a running node's algorithm or params: ``Runtime.swap``, ``reload``, ``set_params``.
 
+A swap to the node's own kind merges the given params into the running ones (issue 37 item
+2: the display swapped with ``{"allowed_hosts": [...]}`` alone moved to the default port).
+
 The kernel swaps one runner's instance (:mod:`flowrt.kernel.swapping`); this resolves what
 the caller names (a kind, a class, params to validate, a module to re-import) and says
 what happened (a ``NodeSwapped`` event), or why not (:class:`SwapError`: the old instance
@@ -9,6 +12,7 @@ runs on).
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import importlib
 import sys
 from collections.abc import Mapping
@@ -64,16 +68,38 @@ async def swap(
         raise SwapError(f"{node}: {e}") from None
     except Exception as e:
         raise SwapError(f"{node}: kind {label!r}: import failed: {e!r}") from None
+    raw = dict(params or {})
+    if cls is runner.rnode.cls or label == old_kind:
+        # Merged into the running params, as written (a duration stays "200ms", a path
+        # relative to the graph file): a swap of one param keeps the port, the folder...
+        raw = merge_params(as_written(rt, runner), raw)
     if params is None and cls is runner.rnode.cls:
         model = runner.rnode.params
     else:
-        if params is None and label == old_kind:
-            params = runner.rnode.params.model_dump()
         try:
-            model = rt.graph.validate_params(cls, params or {})
+            model = rt.graph.validate_params(cls, raw)
         except ValidationError as e:
             raise SwapError(f"{node}: params for {label}: {validation_text(e)}") from None
     await _swap_to(rt, runner, cls, model, label, origin)
+    runner.rnode = dataclasses.replace(
+        runner.rnode, spec=runner.rnode.spec.model_copy(update={"params": raw})
+    )
+
+
+def as_written(rt: SwapHost, runner: NodeRunner) -> dict[str, Any]:
+    """The running params as a graph file writes them: the file's text where the running
+    value is still the file's (a duration stays "200ms", not seconds read again as ms), the
+    running value where something set it since (``flowrt run --display-port``)."""
+    raw = dict(runner.rnode.spec.params)
+    running = runner.rnode.params
+    try:
+        written = rt.graph.validate_params(runner.rnode.cls, raw)
+    except ValidationError:
+        return dict(running.model_dump())
+    for key, value in running.model_dump().items():
+        if getattr(written, key, None) != getattr(running, key, None):
+            raw[key] = value
+    return raw
 
 
 async def _swap_to(

@@ -227,6 +227,13 @@ class NodeContext:
             self._rtdb = RTDB.attach(self._rtdb_handle)
         return self._rtdb
 
+    @property
+    def graph(self) -> Any:
+        """The running graph (a :class:`flowrt.Graph`: every node's kind, class and params),
+        to read, never to change: for a node that adapts to what else runs (the live view
+        requires a token when the graph can drive from its page). Only on the event loop."""
+        raise RuntimeError("graph is only available to inline nodes on the event loop")
+
     def set_mode(self, mode: str) -> None:
         """Switch the runtime to a mode of the graph file; only on the event loop."""
         raise RuntimeError("set_mode() is only available to inline nodes on the event loop")
@@ -267,6 +274,15 @@ class NodeContext:
         """Leave the error state set by :meth:`set_error` (the device is back)."""
         raise RuntimeError("clear_error() is only available to inline nodes on the event loop")
 
+    def set_waiting(self, reason: str | None) -> None:
+        """Say the node waits for something outside the graph that is normal to be absent
+        (an operator yet to open the page that drives it); ``None``: it no longer waits.
+
+        Not an error: the table shows state ``waiting`` with ``reason``, and a run ending
+        while a node waits ends well. Only on the event loop.
+        """
+        raise RuntimeError("set_waiting() is only available to inline nodes on the event loop")
+
 
 class Node:
     """Base class of every node; subclasses declare ports as class attributes.
@@ -291,6 +307,13 @@ class Node:
     """Set to an ``Input`` to accept inputs of any name with that type (e.g. a display)."""
     inline_only: ClassVar[bool] = False
     """True for nodes that need the event loop (frame pools, servers): placement is checked."""
+    swappable: ClassVar[frozenset[str]] = frozenset()
+    """The params a swap over the control endpoint (``POST /swap``, ``flowrt ctl swap``) may
+    change: an algorithm's, never where data goes (an address, a device, a token, a folder).
+    Shown by ``flowrt kinds KIND``; none by default (:mod:`flowrt.swap_policy`)."""
+    swap_folders: ClassVar[Mapping[str, str]] = {}
+    """Path params in ``swappable`` -> the folder param each is confined to (a recorder's
+    ``session`` inside its ``path``): relative, without ``..``, resolved under that folder."""
     external: ClassVar[bool] = False
     """True for nodes whose outputs come from outside the graph although they have inputs (a
     CAN bus: frames received while it transmits its inputs). A deterministic recording stores

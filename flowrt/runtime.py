@@ -415,8 +415,10 @@ class Runtime:
 
         The new instance is set up beside the old one and takes over between two of the
         node's activations, with the old one's state (``get_state``/``set_state``); other
-        nodes see nothing. ``params`` default to the node's current ones when the kind is
-        unchanged, else to the new kind's defaults. Raises ``SwapError`` with the reason (an
+        nodes see nothing. ``params`` are merged into the node's current ones (as written in
+        the graph file) when the kind is unchanged, else over the new kind's defaults. A node
+        that owns a socket (a display's port) releases it before its replacement binds.
+        Raises ``SwapError`` with the reason (an
         unknown kind, an import error, bad params, a failing ``setup``): the old instance
         keeps running. ``resolved`` is ``kind``'s class when the caller imported it already
         (the control endpoint does, off the loop).

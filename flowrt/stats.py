@@ -114,8 +114,10 @@ class NodeStats(_Frozen):
     deadline_ms: float | None
     watchdog_ms: float | None = None
     enabled: bool
-    state: str = Field(description="idle, running, backoff, error, failed or disabled")
-    reason: str = Field(default="", description="why the node is in error or failed")
+    state: str = Field(description="idle, running, waiting, backoff, error, failed or disabled")
+    reason: str = Field(
+        default="", description="why the node is in error, failed or waiting (for an operator)"
+    )
     activations: int = Field(
         description="releases: ticks, timer expiries, inputs that asked for a run"
     )

@@ -56,6 +56,7 @@ STATE_STYLE = {
     "failed": "bold red",
     "error": "bold red",
     "backoff": "yellow",
+    "waiting": "cyan",
     "starting": "yellow",
     "disabled": "dim",
 }
@@ -213,7 +214,7 @@ def render(
 
 
 def _has_reason(n: NodeStats) -> bool:
-    return bool(n.reason) and n.state in ("error", "failed")
+    return bool(n.reason) and n.state in ("error", "failed", "waiting")
 
 
 def _fit_nodes(nodes: list[NodeStats], room: float) -> list[NodeStats]:

@@ -1,55 +1,83 @@
-"""What a caller of the control endpoint may not change with a swap: where data goes.
+"""What a caller of the control endpoint may change with a swap: an allow-list per kind.
 
 The endpoint lets a local caller change an algorithm (``POST /swap`` with new params), never
-an address, a path, a device or a token: those would move the live view to another address
-with a token the caller chose, or point a recorder at any folder. The rule is by param
-name, nested mappings and lists included (``where_keys``).
+where data goes: an address, a device, a token, a folder. A deny-list of such param names
+missed one (a recorder's ``session`` pointed it at any folder, issue 37 item 1), so each
+kind now says which of its params a swap may change, beside its ``Params``::
+
+    class Tracker(Node):
+        swappable = frozenset({"space", "bins", "colours", "object"})
+
+and ``flowrt kinds KIND`` shows the list. A kind that declares nothing may be swapped in (when
+the graph allows the kind) with its params as the graph file has them, none changed. A path
+param a kind allows is confined to a folder param of the same node (``swap_folders =
+{"session": "path"}``: a recorder's session inside its recordings folder): the value must be
+a relative path without ``..``, and it is resolved under that folder (symbolic links
+included). ``Runtime.swap`` from Python is the program's own code: it is not restricted.
 """
 
 from __future__ import annotations
 
+import os
+from collections.abc import Callable, Mapping
+from pathlib import Path
 from typing import Any
 
-__all__ = ["SwapRefused", "lookup", "where_keys"]
-
-# Param names that say where data goes or comes from: an address, a path, a token. A caller
-# of the endpoint may change an algorithm's params, never these (README: who can do what).
-_WHERE_KEYS = frozenset(
-    {"host", "port", "address", "addr", "url", "endpoint", "endpoints", "connect", "listen",
-     "path", "paths", "dir", "directory", "folder", "output", "file", "files", "token",
-     "dbc", "script", "source", "interface", "channel", "device", "key", "keys"}
-)  # fmt: skip
-_WHERE_SUFFIXES = ("_host", "_port", "_url", "_path", "_dir", "_file", "_token", "_address")
-
-
-def where_keys(params: Any, prefix: str = "") -> list[str]:
-    """The keys of ``params`` (nested) that name an address, a path or a token."""
-    found: list[str] = []
-    if isinstance(params, dict):
-        for k, v in params.items():
-            name = str(k).lower()
-            dotted = f"{prefix}{k}"
-            if name in _WHERE_KEYS or name.endswith(_WHERE_SUFFIXES):
-                found.append(dotted)
-            else:
-                found += where_keys(v, dotted + ".")
-    elif isinstance(params, list):
-        for i, v in enumerate(params):
-            found += where_keys(v, f"{prefix}{i}.")
-    return found
+__all__ = ["SwapRefused", "allowed", "check_params", "confined"]
 
 
 class SwapRefused(Exception):
-    """A swap the endpoint does not allow (403): a kind not allowed, a param that moves data."""
+    """A swap the endpoint does not allow (403): a kind not allowed, a param not swappable."""
 
 
-def lookup(tree: Any, dotted: str) -> Any:
-    """``tree["a"]["b"]`` for ``"a.b"`` (list indexes as numbers); None when absent."""
-    for part in dotted.split("."):
-        if isinstance(tree, dict):
-            tree = tree.get(part)
-        elif isinstance(tree, list) and part.isdigit() and int(part) < len(tree):
-            tree = tree[int(part)]
-        else:
-            return None
-    return tree
+def allowed(cls: type) -> frozenset[str]:
+    """The params of kind ``cls`` a swap over the endpoint may change (its ``swappable``)."""
+    return frozenset(getattr(cls, "swappable", frozenset()))
+
+
+def confined(cls: type) -> Mapping[str, str]:
+    """Path params of ``cls`` -> the folder param each is resolved under (``swap_folders``)."""
+    return dict(getattr(cls, "swap_folders", {}))
+
+
+def check_params(
+    kind: str,
+    cls: type,
+    given: Mapping[str, Any],
+    folder_of: Callable[[str], str],
+) -> dict[str, Any]:
+    """``given`` checked against the allow-list of ``cls``, path params resolved under their
+    folders (``folder_of(param)``: the folder param's absolute value for this swap).
+
+    Raises :class:`SwapRefused` naming every param refused and why, before anything changes.
+    """
+    allow = allowed(cls)
+    refused = sorted(k for k in given if k not in allow)
+    if refused:
+        shown = ", ".join(sorted(allow)) or "none"
+        raise SwapRefused(
+            f"{kind}: params {', '.join(refused)} may not be changed over the control endpoint "
+            f"(a swap may change: {shown}; see flowrt kinds {kind}); edit the graph file instead"
+        )
+    out = dict(given)
+    for param, folder_param in confined(cls).items():
+        if param in out and out[param] is not None:
+            out[param] = _under(kind, param, out[param], folder_of(folder_param))
+    return out
+
+
+def _under(kind: str, param: str, value: Any, folder: str) -> str:
+    """``folder/value`` when ``value`` is a plain relative path that stays inside ``folder``."""
+    if not isinstance(value, str) or not value.strip():
+        raise SwapRefused(f"{kind}: {param} must be a folder name inside {folder}")
+    parts = Path(value).parts
+    if os.path.isabs(value) or value.startswith("~") or ".." in parts:
+        raise SwapRefused(
+            f"{kind}: {param} {value!r} must be relative, without '..': it is resolved inside "
+            f"{folder} (absolute paths and '..' are refused over the control endpoint)"
+        )
+    base = Path(folder).resolve()
+    target = (base / value).resolve()  # a symbolic link inside may still point out
+    if not target.is_relative_to(base):
+        raise SwapRefused(f"{kind}: {param} {value!r} leads out of {folder}")
+    return str(base / value)

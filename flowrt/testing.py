@@ -30,6 +30,7 @@ class HarnessContext(NodeContext):
         self.published: list[tuple[str, Any]] = []
         self.events: list[Event] = []
         self.error: str | None = None  # what set_error() said, until clear_error()
+        self.waiting: str | None = None  # what set_waiting() said
         self.timer_period: float | None = None  # what ``period`` answers (seconds)
         # Publication time of each input's value, as an edge would stamp it: set by
         # NodeHarness.process (a new object = published now) or by the test directly.
@@ -53,6 +54,9 @@ class HarnessContext(NodeContext):
 
     def clear_error(self) -> None:
         self.error = None
+
+    def set_waiting(self, reason: str | None) -> None:
+        self.waiting = reason
 
     def new_frame(
         self, shape: tuple[int, ...], dtype: Any = np.uint8, pixel_format: str = "BGR"

@@ -79,6 +79,11 @@ class RobotSimParams(BaseModel):
 class RobotSim(Node):
     """Kinematic robot, arena, sensors; see the module docstring."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset(
+        {"rate_hz", "rays", "fov_deg", "max_range", "target_speed", "render_every"}
+    )
+
     Params = RobotSimParams
     command = Input(object, required=False, policy="latest", doc="{v, w}: m/s and rad/s")
     pose = Output(dict, doc="{x, y, heading, v, w, collisions}")
@@ -215,6 +220,8 @@ class BehaviourParams(BaseModel):
 
 class _Behaviour(Node):
     """Reads the RTDB blackboard; proposes ``{v, w, timestamp}`` or nothing."""
+
+    swappable = frozenset({"speed", "gain", "distance"})  # over the control endpoint: flowrt kinds
 
     Params = BehaviourParams
     command = Output(dict)

@@ -16,6 +16,7 @@ activation, never the last command repeated; a stop published once stays a stop.
         sources: {joystick: {priority: 100}, planner: {priority: 10, weight: 1.0}}
         locks: {estop: {heartbeat: 300ms}}   # or the list form: locks: [estop]
         zero: {vx: 0.0, vy: 0.0, w: 0.0}
+        limits: {vx: [-0.5, 1.5], vy: 0.5, w: 2.0}   # clamped (counted); default ±100
       inputs: {joystick: joy.command, planner: plan.command, estop: stop.output}
 
 Safety rules (proven by property tests on virtual time, tests/test_safety_arbiter.py):
@@ -30,6 +31,11 @@ Safety rules (proven by property tests on virtual time, tests/test_safety_arbite
 - **Heartbeat locks** (``locks: {estop: {heartbeat: 300ms}}``): the lock also engages when its
   source has published nothing for longer than ``heartbeat`` (a dead e-stop node stops the
   robot), and releases when it publishes a false value again.
+- **Commands are clamped to documented limits**: each key of a command within ``limits``
+  (``vx: [-1.5, 1.5]``, or ``vx: 1.5``), keys not named within ``±default_limit`` (100:
+  no robot command in SI units is near it, ``vx: 1e300`` is); a clamped command is counted
+  per source (``clamped`` in :meth:`Arbiter.report`) with one ``HealthAlert`` (kind
+  ``arbiter-clamped``) per burst.
 - **Invalid commands are refused**: a command with NaN/inf or a key of the wrong type is not a
   fresh command; the arbiter falls back to the next source (or zero), counts it per source
   (``invalid`` in :meth:`Arbiter.report`, so in the statistics' ``reports``) and raises one
@@ -122,6 +128,34 @@ class ArbiterParams(BaseModel):
         "name -> {heartbeat, initial}",
     )
     zero: dict[str, float] = Field(min_length=1)
+    limits: dict[str, tuple[float, float]] = Field(
+        default_factory=dict,
+        description="per command key: [min, max], or a number m for [-m, m]; a command "
+        "beyond them is clamped (counted). Keys not named: [-default_limit, default_limit]",
+    )
+    default_limit: float = Field(
+        default=100.0, gt=0, le=1e6, allow_inf_nan=False, description="see limits"
+    )
+
+    @field_validator("limits", mode="before")
+    @classmethod
+    def _symmetric(cls, v: Any) -> Any:
+        """``vx: 1.5`` is ``vx: [-1.5, 1.5]``."""
+        if isinstance(v, Mapping):
+            return {k: (-m, m) if finite_number(m) and m > 0 else m for k, m in v.items()}
+        return v
+
+    @field_validator("limits")
+    @classmethod
+    def _ordered(cls, v: dict[str, tuple[float, float]]) -> dict[str, tuple[float, float]]:
+        for key, (lo, hi) in v.items():
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+                raise ValueError(f"{key}: limits are [min, max], finite, min <= max")
+        return v
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        """The range a command's ``key`` is clamped to."""
+        return self.limits.get(key, (-self.default_limit, self.default_limit))
 
     @field_validator("timeout", mode="before")
     @classmethod
@@ -152,6 +186,11 @@ class ArbiterParams(BaseModel):
         both = set(self.sources) & set(self.locks)
         if both:
             raise ValueError(f"{sorted(both)} cannot be both a source and a lock")
+        outside = [
+            k for k, x in self.zero.items() if not self.bounds(k)[0] <= x <= self.bounds(k)[1]
+        ]
+        if outside:
+            raise ValueError(f"zero command outside its limits: {', '.join(outside)}")
         return self
 
 
@@ -164,20 +203,27 @@ def valid_command(value: Any, keys: list[str]) -> bool:
 
 
 class _SourceState:
-    """What the arbiter keeps per source: its refusals and stale activations."""
+    """What the arbiter keeps per source: its refusals, clamped commands, stale activations."""
 
-    __slots__ = ("refused", "stale")
+    __slots__ = ("clamped", "refused", "stale")
 
     def __init__(self, name: str) -> None:
         self.refused = Refusals(
             "arbiter-invalid",
             f"source {name}: a command with a non-finite or wrong-type value refused",
         )
+        self.clamped = Refusals(
+            "arbiter-clamped", f"source {name}: a command beyond the limits clamped"
+        )
         self.stale = 0  # activations where the source held a value older than timeout
 
 
 class Arbiter(Node):
     """Selects or blends the fresh command sources (see the module docstring)."""
+
+    # over the control endpoint (flowrt kinds): weights and priorities, as modes set them;
+    # never what keeps the robot safe (timeout, locks, zero, limits)
+    swappable = frozenset({"mode", "sources"})
 
     Params = ArbiterParams
     any_inputs = Input(object, required=False, policy="latest", doc="command sources and locks")
@@ -187,6 +233,7 @@ class Arbiter(Node):
     def setup(self) -> None:
         self.keys = list(self.params.zero)
         self.zero_values = [self.params.zero[k] for k in self.keys]
+        self.bounds = [self.params.bounds(k) for k in self.keys]
         self._size(list(self.params.sources))
         self.current: str | None = None
         self.switches = 0
@@ -200,6 +247,7 @@ class Arbiter(Node):
 
     def params_changed(self, old: Any) -> None:
         """A mode's weights arrive between activations; new sources need their slots."""
+        self.bounds = [self.params.bounds(k) for k in self.keys]
         if list(self.params.sources) != self.names:
             self._size(list(self.params.sources))
 
@@ -258,7 +306,7 @@ class Arbiter(Node):
                 value = inputs.get(name)
                 self.fresh[i] = self._fresh_valid(name, value)
                 if self.fresh[i]:
-                    self._filter(i, p.sources[name], value, dt)
+                    self._filter(i, p.sources[name], self._clamp(name, value), dt)
                 else:  # a source coming back starts from zero, not from its old filter state
                     self.filtered[i][:] = self.zero_values
             winner = self._priority() if p.mode == "priority" else self._blend()
@@ -279,11 +327,30 @@ class Arbiter(Node):
             "switches": self.switches,
             "locks": dict(self.engaged),
             "sources": {
-                name: {"invalid": st.refused.count, "stale": st.stale}
+                name: {"invalid": st.refused.count, "clamped": st.clamped.count, "stale": st.stale}
                 for name, st in self.sources.items()
             },
             "invalid": sum(st.refused.count for st in self.sources.values()),
+            "clamped": sum(st.clamped.count for st in self.sources.values()),
         }
+
+    def _clamp(self, name: str, value: Mapping[str, Any]) -> Mapping[str, Any]:
+        """``value`` within the limits; a clamp is counted once per publication of it."""
+        out: dict[str, Any] | None = None
+        for j, key in enumerate(self.keys):
+            if key in value:
+                lo, hi = self.bounds[j]
+                x = value[key]
+                if not lo <= x <= hi:
+                    if out is None:
+                        out = dict(value)
+                    out[key] = min(hi, max(lo, float(x)))
+        state = self.sources[name].clamped
+        if out is None:
+            state.accept()
+            return value
+        state.refuse(self.ctx, self.ctx.input_time(name))
+        return out
 
     def _filter(self, i: int, spec: SourceSpec, value: Mapping[str, Any], dt: float) -> None:
         out = self.filtered[i]

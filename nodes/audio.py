@@ -107,6 +107,9 @@ def beep_starts(t0: float, t1: float, p: AudioParams) -> list[float]:
 class Audio(Node):
     """Audio blocks from a device, a WAV file or a synthetic source (see the module doc)."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset({"tone_hz", "amplitude", "beep_on", "beep_period", "offset", "jitter"})
+
     Params = AudioParams
     audio = Output(AudioBlock, doc="blocks of samples, the first sample's time stamped")
 

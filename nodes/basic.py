@@ -16,6 +16,8 @@ from flowrt import Input, Node, Output
 class Counter(Node):
     """Emits 0, 1, 2, ... once per activation (give it a timer trigger)."""
 
+    swappable = frozenset({"start"})  # over the control endpoint: flowrt kinds
+
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
         start: int = 0
@@ -33,6 +35,8 @@ class Counter(Node):
 
 class Burn(Node):
     """Keeps the CPU busy for ``ms`` (not a sleep), then passes its input through."""
+
+    swappable = frozenset({"ms"})  # over the control endpoint: flowrt kinds
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
@@ -60,6 +64,8 @@ class Relay(Node):
 
 class Sink(Node):
     """Counts what arrives and optionally logs it."""
+
+    swappable = frozenset({"log"})  # over the control endpoint: flowrt kinds
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")

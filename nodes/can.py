@@ -241,6 +241,8 @@ class _Msg:
 class Can(Node):
     """A CAN bus: decoded messages out, messages to encode in (see the module docstring)."""
 
+    swappable = frozenset({"timeout_factor", "max_bad"})  # over the control endpoint: flowrt kinds
+
     Params = CanParams
     inline_only = True  # its reader thread hands frames to the event loop
     external = True  # received frames are recorded inputs: replay publishes them, sends nothing

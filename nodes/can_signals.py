@@ -39,6 +39,8 @@ class SignalSource(Node):
     ``count`` (0, 1, 2, ... modulo ``modulo``), with the runtime clock as time base.
     """
 
+    swappable = frozenset({"rate_ms"})  # over the control endpoint: flowrt kinds
+
     Params = SignalSourceParams
     values = Output(dict, doc="signal name -> value")
 

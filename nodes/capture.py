@@ -119,6 +119,20 @@ class Capture(Node):
     real sources). Runs inline: it needs the runtime's frame pool and event stream.
     """
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset(
+        {
+            "fps",
+            "clutter",
+            "flash_on",
+            "flash_period",
+            "grab_timeout",
+            "backoff",
+            "max_backoff",
+            "max_retries",
+        }
+    )
+
     Params = CaptureParams
     inline_only = True
 

@@ -52,6 +52,8 @@ class StoreParams(BaseModel):
 class Store(Node):
     """Writes each value that arrives into the RTDB (see the module docstring)."""
 
+    swappable = frozenset({"validity_ms"})  # over the control endpoint: flowrt kinds
+
     Params = StoreParams
     any_inputs = Input(object, required=False, doc="values to record (any input name)")
 
@@ -129,6 +131,9 @@ class DecisionParams(BaseModel):
 
 class Decision(Node):
     """Switches modes by a decision table over RTDB records (see the module docstring)."""
+
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset({"rules", "default", "interval_ms"})
 
     Params = DecisionParams
     mode = Output(str, doc="the mode chosen, published when it changes", rate_hz=None)

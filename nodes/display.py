@@ -36,7 +36,11 @@ computer can read the cameras (DNS rebinding: 421; cross-site WebSocket: 403). T
 other machines on purpose, give ``host`` (e.g. 0.0.0.0) and a ``token`` (required off
 loopback): clients send ``Authorization: Bearer TOKEN`` or open ``/?token=TOKEN`` once (a
 cookie keeps it). ``max_clients`` connections at once; one that sends no complete request
-within 10 s is closed.
+within 10 s is closed, and at the cap the one idle longest makes room. MJPEG streams and the
+pages' WebSockets take at most ``max_streams`` of them (half by default), MJPEG streams at most
+``max_streams_per_peer`` per client address;
+each has at most one frame queued in the server, and one that falls more than a second behind
+is dropped (counted ``stalled``): the page, ``/stats.json`` and the API always find a slot.
 
 Why neither the graph nor the cameras wait for a browser: the web server is a process of its
 own (:mod:`flowrt.nodes.display_server`, at nice 19), so HTTP work and JPEG encoding take
@@ -67,6 +71,7 @@ import contextlib
 import math
 import multiprocessing
 import pickle
+import secrets
 import socket
 import time
 from collections import deque
@@ -98,6 +103,21 @@ WEB_JOYSTICK = "joystick.web"  # RTDB record of the page's joystick (nodes/joyst
 SOURCE_WAIT = 3.0  # seconds a request for a source that has sent no frame yet waits for one
 HEADER_TIMEOUT = 10.0  # seconds a connection has to send a complete request
 START_TIMEOUT = 30.0  # seconds for the view's server process to start (spawn + imports)
+
+
+def _drivers(ctx: Any) -> list[str]:
+    """The nodes the page can drive through (a joystick with ``source: web``), by name."""
+    from .joystick import Joystick
+
+    try:
+        graph = ctx.graph
+    except RuntimeError:  # no runtime around the node (a bare test harness)
+        return []
+    return [
+        name
+        for name, n in graph.nodes.items()
+        if issubclass(n.cls, Joystick) and getattr(n.params, "source", None) == "web"
+    ]
 
 
 def _is_detection(value: Any) -> bool:
@@ -235,6 +255,19 @@ class Robot(BaseModel):
 class Display(Node):
     """Live web view of frames, detections and statistics; see the module docstring."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset(
+        {
+            "max_fps",
+            "jpeg_quality",
+            "draw_on",
+            "detection_ttl",
+            "refresh_ms",
+            "health_hz",
+            "health_keep_s",
+        }
+    )
+
     inline_only = True
     listens = True  # params host/port: `flowrt run --display-host/--display-port` set them
 
@@ -252,12 +285,28 @@ class Display(Node):
             min_length=8,
             description="required of every client (Bearer header, or ?token= once: a cookie)",
         )
+        token_required: bool | None = Field(
+            None,
+            description="None: required when the graph can drive from the page (a joystick "
+            "with source: web), one generated and printed unless token is given; true: always; "
+            "false: never, any local process may open the page and drive (an explicit opt-out)",
+        )
         allowed_hosts: list[str] = Field(
             default_factory=list,
             description="names besides loopback a browser may use in Host (without a token)",
         )
         max_clients: int = Field(
             32, ge=1, le=1000, description="open connections at once; more are closed at once"
+        )
+        max_streams: int | None = Field(
+            None,
+            ge=1,
+            le=1000,
+            description="MJPEG streams and page WebSockets at once (default: half of "
+            "max_clients): the other slots stay for the page, /stats.json and the API",
+        )
+        max_streams_per_peer: int = Field(
+            4, ge=1, le=1000, description="MJPEG streams one client address may hold at once"
         )
         max_fps: float | None = Field(
             None,
@@ -329,8 +378,17 @@ class Display(Node):
         self._proc: Any = None
         self._task: asyncio.Task[None] | None = None
         self._calls: set[asyncio.Task[None]] = set()  # the server's requests being answered
+        self._record_turn = asyncio.Lock()  # one start or stop of the recorders at a time
         host, port = self.params.host, self.params.port
         self.url = ""
+        self.open_url = ""  # the URL to open: with ?token= when the view has one
+        self.drivers = _drivers(self.ctx)
+        token = self.params.token
+        required = self.params.token_required
+        if required is None:
+            required = bool(self.drivers)
+        if required and not token:  # generated, as Jupyter does: printed as a URL to open
+            token = secrets.token_urlsafe(16)
         try:
             sock = _listen(host, port)
         except OSError as e:
@@ -347,10 +405,13 @@ class Display(Node):
         shown = f"[{host}]" if ":" in host else host
         self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '::', '') else shown}:{self.port}"
         page = PAGE.read_bytes().replace(b"__REFRESH_MS__", str(self.params.refresh_ms).encode())
+        self.open_url = f"{self.url}/?token={token}" if token else self.url
         settings = {
-            "token": self.params.token,
+            "token": token,
             "allowed_hosts": list(self.params.allowed_hosts),
             "max_clients": self.params.max_clients,
+            "max_streams": self.params.max_streams or max(1, self.params.max_clients // 2),
+            "max_streams_per_peer": self.params.max_streams_per_peer,
             "url": self.url,
             "page": page,
             "source_wait": SOURCE_WAIT,
@@ -383,7 +444,15 @@ class Display(Node):
         except (TimeoutError, ConnectionError, asyncio.IncompleteReadError) as e:
             await self.teardown()
             raise RuntimeError(f"display: the view's server did not start: {e!r}") from None
-        print(f"display: {self.url}", flush=True)  # once: scripts and tests read this line
+        if token and not self.params.token:
+            why = f"{', '.join(self.drivers)} can drive from the page" if self.drivers else ""
+            print(
+                f"display: {self.url} needs its token{': ' + why if why else ''}; open "
+                f"{self.open_url}",
+                flush=True,
+            )
+        else:
+            print(f"display: {self.url}", flush=True)  # once: scripts and tests read this line
 
     async def teardown(self) -> None:
         writer, task, proc = self._writer, self._task, self._proc
@@ -418,7 +487,9 @@ class Display(Node):
                 elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
                     self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
                 elif op == "record":  # the record panel: answered when the recorders have
-                    answer = operator_record.answer(self.ctx.rtdb, header, self._send)
+                    answer = operator_record.answer(
+                        self.ctx.rtdb, header, self._send, self._record_turn
+                    )
                     task = asyncio.get_running_loop().create_task(answer)
                     self._calls.add(task)
                     task.add_done_callback(self._calls.discard)

@@ -41,6 +41,7 @@ from urllib.parse import urlsplit
 
 from aiohttp import WSMsgType, web
 
+from flowrt.refusals import finite_number
 from flowrt.serving import (
     Conn,
     Refuse,
@@ -53,6 +54,7 @@ from flowrt.serving import (
 )
 
 from .display_render import Mark, render
+from .display_streams import MAX_BEHIND, MAX_PER_PEER, StreamSlots
 from .operator_station import Calls, Station
 
 STATS_MAX_AGE = 0.2  # seconds /stats.json is served from this process's cache
@@ -62,8 +64,7 @@ SNAPSHOT_WAIT = 0.5  # seconds a snapshot waits for a newer frame than the one c
 FIRST_WAIT = 5.0  # seconds a snapshot waits for a source's first encoded frame
 HEADER_TIMEOUT = 10.0  # seconds a connection has to send a request's headers
 CLOSE_TIMEOUT = 1.0  # seconds given to clients to close at the end
-STALL = 3.0  # seconds a streaming client may take nothing before it is dropped (counted)
-STREAM_SNDBUF = 256 << 10  # bytes buffered per MJPEG client: a few frames, then it must read
+STREAM_CHECK = 0.25  # seconds between two checks of how far behind a stream client is
 MAX_SESSIONS = 1024  # page sessions remembered (each page load makes one)
 COOKIE = "flowrt_view"  # holds the token once the page was opened with ?token=
 JPEG_PART = "Content-Type: image/jpeg\r\nContent-Length: "
@@ -118,11 +119,14 @@ class ViewServer:
         self.sources: dict[str, _Shown] = {}
         self.names: set[str] = set()  # inputs that have sent frames, as the node says
         self.clients: set[_Client] = set()
-        self.streams = 0
+        max_streams = int(settings.get("max_streams", max(1, self.max_clients // 2)))
+        per_peer = int(settings.get("max_streams_per_peer", MAX_PER_PEER))
+        self.streams = StreamSlots(max_streams, per_peer)
         self.conns: dict[asyncio.BaseTransport, Conn] = {}
         self.refused = 0
-        self.stalled = 0  # streaming clients dropped: their socket took nothing for STALL s
+        self.evicted = 0  # idle connections closed at the cap to make room for a new one
         self.refused_control = 0  # control messages from a WebSocket without a page session
+        self.refused_messages = 0  # WebSocket messages refused: not JSON, too deep, bad values
         self.sessions: dict[str, None] = {}  # secrets of the pages served (oldest first)
         self.any_change = asyncio.Event()
         self._asked: dict[str, int] = {}  # source -> the n a ``want`` was sent after
@@ -160,9 +164,17 @@ class ViewServer:
         assert server is not None
 
         def factory() -> asyncio.Protocol:
+            """At the cap, the connection idle longest (no request running) makes room:
+            streams are capped below the cap, so the page and the API always find one."""
             if len(self.conns) >= self.max_clients:
-                self.refused += 1
-                return Refuse()
+                idle = [c for c in self.conns.values() if not c.busy]
+                if not idle:
+                    self.refused += 1
+                    return Refuse()
+                oldest = min(idle, key=lambda c: c.deadline)
+                self.conns.pop(oldest.transport, None)
+                oldest.transport.close()
+                self.evicted += 1
             return Tracked(server(), self.conns, self.header_timeout)
 
         listener = await loop.create_server(factory, sock=sock)
@@ -199,10 +211,14 @@ class ViewServer:
                     display = {
                         **header["display"],
                         "clients": len(self.clients),
-                        "streams": self.streams,
+                        "streams": len(self.streams.clients),
                         "refused": self.refused,
-                        "stalled": self.stalled,
+                        "refused_streams": self.streams.refused,
+                        "stalled": self.streams.stalled,
+                        "evicted": self.evicted,
                         "refused_control": self.refused_control,
+                        "refused_messages": self.refused_messages,
+                        "refused_requests": self.station.records.refused,
                     }
                     data = b'{"runtime":' + body + b',"display":' + json.dumps(display).encode()
                     data += b"}"
@@ -404,6 +420,11 @@ class ViewServer:
         )
 
     async def _mjpeg(self, request: web.Request) -> web.StreamResponse:
+        """The newest frames as MJPEG, one queued at most; see :mod:`.display_streams`."""
+        peer = request.remote or "?"
+        refused = self.streams.refusal(peer, len(self.clients))
+        if refused is not None:
+            raise web.HTTPServiceUnavailable(text=refused + "\n")
         name, kind = await self._requested(request)
         resp = web.StreamResponse(
             headers={
@@ -411,41 +432,43 @@ class ViewServer:
                 "Cache-Control": "no-store",
             }
         )
-        sock = request.transport.get_extra_info("socket") if request.transport else None
-        if sock is not None:  # a small send buffer: a client that stops reading shows at once
-            with contextlib.suppress(OSError):
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, STREAM_SNDBUF)
-        await resp.prepare(request)
-        self.streams += 1
+        client = self.streams.open(peer, request.transport)
         sent = 0
         try:
-            while True:
-                src = await self.newer(name, sent, 60.0)
-                if src is None:
+            await resp.prepare(request)
+            while self.streams.check(client):
+                src = await self.newer(name, sent, STREAM_CHECK)
+                if src is None or not client.ready():
+                    if src is not None:  # the previous frame is still in our buffer
+                        client.skipped += 1
+                        sent = src.n
                     continue
                 sent = src.n
                 if src.failed:
                     continue
                 jpeg = src.raw if kind == "raw" else src.processed
-                head = f"--flowrtframe\r\n{JPEG_PART}{len(jpeg)}\r\n\r\n"
-                # write() waits for the socket to drain once its buffer is full: a slow reader
-                # holds this loop, and when it continues it gets the newest frame. A client
-                # that takes nothing for STALL seconds is dropped (counted): streaming
-                # connections must not hold the client slots for good.
-                try:
-                    await asyncio.wait_for(resp.write(head.encode() + jpeg + b"\r\n"), STALL)
-                except TimeoutError:
-                    self.stalled += 1
-                    if request.transport is not None:
-                        request.transport.abort()
-                    break
+                part = f"--flowrtframe\r\n{JPEG_PART}{len(jpeg)}\r\n\r\n".encode() + jpeg
+                client.wrote(len(part) + 2, time.monotonic())
+                # The buffer was empty: this returns at once, or waits for the kernel to take
+                # this one frame; a client that takes nothing is dropped by check() meanwhile.
+                await asyncio.wait_for(resp.write(part + b"\r\n"), MAX_BEHIND)
+        except TimeoutError:
+            self.streams.stalled += 1
+            if request.transport is not None:
+                request.transport.abort()
         except (ConnectionError, asyncio.CancelledError):
             pass
         finally:
-            self.streams -= 1
+            self.streams.close(client)
         return resp
 
     async def _websocket(self, request: web.Request) -> web.WebSocketResponse:
+        if len(self.clients) + len(self.streams.clients) >= self.streams.max_streams:
+            # a WebSocket holds its slot like a stream: together they leave the rest free
+            self.streams.refused += 1
+            raise web.HTTPServiceUnavailable(
+                text=f"{self.streams.max_streams} live connections already (max_streams)\n"
+            )
         ws = web.WebSocketResponse(
             heartbeat=10.0, compress=False, timeout=CLOSE_TIMEOUT, max_msg_size=1 << 16
         )
@@ -461,9 +484,12 @@ class ViewServer:
                 try:
                     data = json.loads(msg.data)
                     ack = data.get("ack")
-                except (ValueError, AttributeError):
+                except (ValueError, AttributeError, RecursionError):
+                    self.refused_messages += 1  # not a JSON object, or nested too deeply
                     continue
                 joy = _joystick(data.get("joy"))
+                if joy is None and data.get("joy") is not None:
+                    self.refused_messages += 1  # an axis not a finite number, a bad shape
                 if joy is not None and not may_control:
                     self.refused_control += 1  # a connection, not a page of this view
                 elif joy is not None:
@@ -533,7 +559,11 @@ def refusal(request: web.Request, token: str | None, allowed: list[str]) -> web.
 
 
 def _joystick(value: Any) -> dict[str, Any] | None:
-    """The page's joystick state, bounded and typed (a page is not trusted with more)."""
+    """The page's joystick state, bounded and typed (a page is not trusted with more).
+
+    None, the message refused whole, when an axis is not a finite number: a 401-digit
+    integer (beyond a float), NaN or a string is not a stick position, and guessing one
+    (0, or clamped to 1) would drive the robot on a value nobody sent."""
     if not isinstance(value, dict):
         return None
     axes, buttons = value.get("axes"), value.get("buttons")
@@ -541,9 +571,11 @@ def _joystick(value: Any) -> dict[str, Any] | None:
         return None
     out_axes: dict[str, float] = {}
     for k, v in list(axes.items())[:16]:
-        if isinstance(k, str) and len(k) <= 32 and isinstance(v, int | float):
-            x = float(v)
-            out_axes[k] = max(-1.0, min(1.0, x)) if x == x and abs(x) != float("inf") else 0.0
+        if not isinstance(k, str) or len(k) > 32:
+            continue
+        if not finite_number(v):
+            return None
+        out_axes[k] = max(-1.0, min(1.0, float(v)))
     out_buttons = {
         k: bool(v) for k, v in list(buttons.items())[:32] if isinstance(k, str) and len(k) <= 32
     }

@@ -151,6 +151,11 @@ class _State:
 class Health(Node):
     """Machine, stream and node health, with alerts (see the module docstring)."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset(
+        {"interval_ms", "expected_fps", "fps_drop", "miss_rate", "loop_lag_ms", "memory_percent"}
+    )
+
     Params = HealthParams
     external = True  # it reads the machine: its reports are recorded values, not recomputed
     any_inputs = Input(Frame, required=False, doc="frame streams to watch (any input name)")

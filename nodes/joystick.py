@@ -28,8 +28,10 @@ then drag the on-screen stick (axes ``x``, ``y``), or use the keyboard (arrows o
 axes; Enter = ``start``, Escape = ``stop``, space = ``a``, b = ``b``, Shift = ``deadman``), or
 the panel's buttons. The page sends its state at 20 Hz over its WebSocket (guarded like the
 view: Host, Origin, and the view's token off loopback) and the display writes it to the RTDB
-record ``joystick.web``, which this node reads. A page closed, hidden or silent for more than
-``web_timeout_ms`` is a lost device.
+record ``joystick.web``, which this node reads. Before a page sends, and once it is closed,
+hidden or silent for more than ``web_timeout_ms``, nothing is published (a consumer times out
+to zero) and the node is in state ``waiting`` (for an operator), not in error: a run without
+anyone at the page ends well.
 """
 
 from __future__ import annotations
@@ -131,6 +133,9 @@ def load_script(path: str | Path) -> list[tuple[float, dict[str, float], dict[st
 class Joystick(Node):
     """Publishes the joystick's state at a steady rate while the device is there."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset({"reopen_ms"})  # never a timeout: what keeps a lost link safe
+
     Params = JoystickParams
     output = Output(JoyState)
 
@@ -197,9 +202,15 @@ class Joystick(Node):
     def _web(self, now: float) -> JoyState | None:
         rec = self.ctx.rtdb.read("joystick.web")
         if rec is None or rec.age > self.params.web_timeout_ms / 1000:
-            self._lost("no live view page is sending (open the display page)")
+            # No operator at the page: nothing published (teleop gives zero), a state the
+            # table shows, not an error (issue 43 item 6: a headless station is normal).
+            self.ctx.set_waiting(
+                "waiting for an operator: open the live view and tick 'drive from this page'"
+                if rec is None
+                else "waiting for an operator: the page stopped sending (closed, hidden or cut)"
+            )
             return None
-        self._found()
+        self.ctx.set_waiting(None)
         value = rec.value if isinstance(rec.value, dict) else {}
         raw_axes = value.get("axes") or {}
         if not isinstance(raw_axes, dict) or not all(finite_number(v) for v in raw_axes.values()):

@@ -52,7 +52,8 @@ async function recordStart() {
     const a = await api("POST", "api/record/start", { name: q("#recname").value.trim() });
     op.starts += 1;
     op.session = a.session;
-    say(`recording ${a.session}`, "ok");
+    if (a.session == null) say(a.error, "warn");  // 202: the recorders start when they can
+    else say(`recording ${a.session}`, "ok");
     q("#recresult").replaceChildren();
   } catch (e) {
     op.error = e.message;
@@ -69,6 +70,11 @@ async function recordStop() {
     const a = await api("POST", "api/record/stop", {});
     op.stops += 1;
     op.lastStop = a;
+    if (a.finished === false) {  // 202: stopped, the files still being finished on a slow disk
+      say(`${a.session}: stopped; ${a.error}`, "warn");
+      pollSessions();
+      return;
+    }
     say(`${a.session}: ${secs(a.duration_s)}, ${a.lost} lost` + (a.error ? ` · ${a.error}` : ""), a.lost || a.error ? "bad" : "ok");
     showStopTable(a);
     pollSessions();

@@ -22,9 +22,10 @@ recorder's files while it writes them.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,9 +36,10 @@ from .operator_sessions import SESSION_FILE, session_length, valid_name
 COMMAND = "flowrt.record."  # nodes.recorder.COMMAND_RECORD
 STATUS = "flowrt.recording."  # nodes.recorder.STATUS_RECORD: the session folder, "" stopped
 FOLDER = "flowrt.recordings."  # nodes.recorder.FOLDER_RECORD: where its sessions go
-OBEY_WAIT = 10.0  # seconds for the recorders to say they started or stopped
+OBEY_WAIT = 20.0  # seconds for the recorders to say they started (a writer process to spawn)
 RATE_INTERVAL = 0.5  # seconds: the shortest interval a live rate is measured over
-REPORT_WAIT = 60.0  # seconds for a stopped session's files to be finished (a slow disk)
+STOP_WITHIN = 9.0  # seconds a stop is answered within, from its arrival (files finished or not)
+TURN_WAIT = 3.0  # seconds a start or stop waits for the one under way before it is refused
 
 Call = Callable[..., Awaitable[dict[str, Any]]]
 
@@ -69,9 +71,13 @@ def state(rtdb: Any) -> dict[str, Any]:
     return {"recording": rows, "recordings": folders}
 
 
-async def obey(rtdb: Any, action: str, name: Any) -> dict[str, Any]:
+async def obey(rtdb: Any, action: str, name: Any, wait: float = OBEY_WAIT) -> dict[str, Any]:
     """Start (``name``: the session's prefix) or stop every recorder, and wait until each says
-    it did. ``{"status": 200, "sessions": {node: folder}}`` or ``{"status", "error"}``."""
+    it did. ``{"status": 200, "sessions": {node: folder}}`` or ``{"status", "error"}``.
+
+    Callers are serialised by the display node (:func:`answer`); a command written meanwhile
+    by another client (``flowrt ctl record``) ends the wait with 409 and the state as it is,
+    never a wait for a state that will not come."""
     nodes = recorders(rtdb)
     if not nodes:
         return {
@@ -94,25 +100,55 @@ async def obey(rtdb: Any, action: str, name: Any) -> dict[str, Any]:
         command = "stop"  # type: ignore[assignment]
     else:
         return {"status": 400, "error": "action: start or stop"}
+    ours: dict[str, int] = {}
     for node in targets:
         rtdb.write(COMMAND + node, command)
+        rec = rtdb.read(COMMAND + node)
+        ours[node] = rec.seq if rec is not None else -1
     loop = asyncio.get_running_loop()
-    end = loop.time() + OBEY_WAIT
+    end = loop.time() + wait
     while True:
         now = {n: rtdb.value(STATUS + n, "") for n in targets}
         if all(bool(s) == (action == "start") for s in now.values()):
             break
+        others = [n for n in targets if _seq(rtdb, COMMAND + n) != ours[n]]
+        if others:
+            return {
+                "status": 409,
+                "error": f"another client changed the recording of {', '.join(others)} meanwhile",
+                "sessions": now,
+            }
         if loop.time() > end:
             late = [n for n, s in now.items() if bool(s) != (action == "start")]
-            return {"status": 504, "error": f"{', '.join(late)} did not {action} in time"}
+            # Not a gateway failure: the command stands and the recorder obeys when it can
+            # (its state is in GET /api/record); the caller is told, in time.
+            return {
+                "status": 409 if action == "stop" else 202,
+                "error": f"{', '.join(late)} did not {action} within {wait:g} s; it will",
+                "sessions": now,
+            }
         await asyncio.sleep(0.05)
     return {"status": 200, "sessions": now if action == "start" else current}
 
 
-async def answer(rtdb: Any, header: dict[str, Any], send: Callable[[dict[str, Any]], None]) -> None:
-    """The display node's answer to the server's ``record`` request (its ``id`` echoed)."""
+def _seq(rtdb: Any, name: str) -> int:
+    rec = rtdb.read(name)
+    return rec.seq if rec is not None else -1
+
+
+async def answer(
+    rtdb: Any,
+    header: dict[str, Any],
+    send: Callable[[dict[str, Any]], None],
+    turn: asyncio.Lock | None = None,
+) -> None:
+    """The display node's answer to the server's ``record`` request (its ``id`` echoed); one
+    at a time under ``turn`` (two operators, a double click in two tabs)."""
+    wait = header.get("wait")
+    wait = float(wait) if isinstance(wait, int | float) and 0 < wait <= OBEY_WAIT else OBEY_WAIT
     try:
-        result = await obey(rtdb, str(header.get("action")), header.get("name"))
+        async with turn if turn is not None else contextlib.nullcontext():
+            result = await obey(rtdb, str(header.get("action")), header.get("name"), wait)
     except Exception as e:  # an RTDB that cannot be written: the page says why
         result = {"status": 500, "error": f"{type(e).__name__}: {e}"}
     send({"op": "reply", "id": header.get("id"), "result": result})
@@ -130,6 +166,9 @@ class RecordApi:
         self.state: dict[str, Any] = {"recording": [], "recordings": []}
         self._edges: tuple[float, dict[str, int]] | None = None  # the previous statistics
         self.rates: dict[str, float] = {}
+        self.refused = 0  # requests refused for their body (not JSON, nested too deeply, ...)
+        self.busy = 0  # starts and stops refused: another one was under way for TURN_WAIT
+        self._lock = asyncio.Lock()
 
     def routes(self) -> list[web.RouteDef]:
         return [
@@ -167,11 +206,39 @@ class RecordApi:
             rows[node] = {"node": node, "session": folder, "since": 0.0}
         self.state = {**self.state, "recording": list(rows.values())}
 
+    async def _body(self, request: web.Request) -> dict[str, Any]:
+        try:
+            return await _body(request)
+        except web.HTTPException:
+            self.refused += 1
+            raise
+
+    @contextlib.asynccontextmanager
+    async def _turn(self) -> AsyncIterator[bool]:
+        """One start or stop at a time; False when the one under way took too long."""
+        try:
+            async with asyncio.timeout(TURN_WAIT):
+                await self._lock.acquire()
+        except TimeoutError:
+            self.busy += 1
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            self._lock.release()
+
     async def start(self, request: web.Request) -> web.Response:
-        body = await _body(request)
+        body = await self._body(request)
         name = body.get("name")
         if not isinstance(name, str) or not valid_name(name):
             return _error(400, "name: a session name, letters, digits, _ and - (at most 64)")
+        async with self._turn() as mine:
+            if not mine:
+                return _error(409, "another start or stop is under way: try again")
+            return await self._start(name)
+
+    async def _start(self, name: str) -> web.Response:
         answer = await self.call("record", action="start", name=name)
         if answer.get("status") != 200:
             return _error(int(answer.get("status", 500)), str(answer.get("error")))
@@ -186,16 +253,35 @@ class RecordApi:
         )
 
     async def stop(self, request: web.Request) -> web.Response:
-        await _body(request)
-        answer = await self.call("record", action="stop")
+        end = time.monotonic() + STOP_WITHIN
+        await self._body(request)
+        async with self._turn() as mine:
+            if not mine:
+                return _error(409, "another start or stop is under way: try again")
+            return await self._stop(end)
+
+    async def _stop(self, end: float) -> web.Response:
+        """Stopped, and the sessions' tables once their files are finished, by ``end``; a
+        file still being finished then is said (202): its table comes with the session."""
+        wait = max(0.5, (end - time.monotonic()) * 0.6)
+        answer = await self.call("record", action="stop", wait=wait)
         if answer.get("status") != 200:
             return _error(int(answer.get("status", 500)), str(answer.get("error")))
         self._now_recording(dict.fromkeys(answer["sessions"], ""))
         folders = [Path(f) for f in answer["sessions"].values()]
-        reports = await _reports(folders, REPORT_WAIT)
+        reports = await _reports(folders, max(0.0, end - time.monotonic()))
         if reports is None:
             names = ", ".join(f.name for f in folders)
-            return _error(504, f"{names}: the files were not finished in {REPORT_WAIT:g} s")
+            return _json(
+                {
+                    "session": folders[0].name,
+                    "sessions": [f.name for f in folders],
+                    "finished": False,
+                    "error": f"{names}: stopped; the files are still being finished (the "
+                    "per-stream table will be in the session's streams.json)",
+                },
+                status=202,
+            )
         streams = [s for r in reports for s in r.get("streams", [])]
         first = reports[0]
         return _json(
@@ -204,6 +290,7 @@ class RecordApi:
                 "sessions": [f.name for f in folders],
                 "start_time": first.get("start_time"),
                 "duration_s": session_length(first),
+                "finished": True,
                 "error": next((r["error"] for r in reports if r.get("error")), None),
                 "lost": sum(int(s.get("lost", 0)) for s in streams),
                 "streams": streams,
@@ -251,6 +338,8 @@ async def _body(request: web.Request) -> dict[str, Any]:
         body = json.loads(await request.text() or "{}")
     except ValueError:
         raise web.HTTPBadRequest(text="the body is not JSON\n") from None
+    except RecursionError:  # 100 000 nested [: refused, not a traceback
+        raise web.HTTPBadRequest(text="the body is nested too deeply\n") from None
     if not isinstance(body, dict):
         raise web.HTTPBadRequest(text="the body is a JSON object\n")
     return body
@@ -289,8 +378,9 @@ def _error(status: int, text: str) -> web.Response:
     )
 
 
-def _json(data: Any) -> web.Response:
+def _json(data: Any, status: int = 200) -> web.Response:
     return web.Response(
+        status=status,
         text=json.dumps(data),
         content_type="application/json",
         headers={"Cache-Control": "no-store"},

@@ -44,10 +44,12 @@ class Calls:
         answer: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
         self._waiting[n] = answer
         self.send({"op": op, "id": n, **args})
+        wait = args.get("wait")  # the node answers within it: a little more for the way back
+        wait = min(self.wait, float(wait) + 1.5) if isinstance(wait, int | float) else self.wait
         try:
-            return await asyncio.wait_for(answer, self.wait)
+            return await asyncio.wait_for(answer, wait)
         except TimeoutError:
-            return {"status": 504, "error": f"the runtime did not answer {op} in {self.wait:g} s"}
+            return {"status": 504, "error": f"the runtime did not answer {op} in {wait:g} s"}
         finally:
             self._waiting.pop(n, None)
 

@@ -53,6 +53,7 @@ list them for review.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import datetime as dt
 import os
 import time
@@ -109,6 +110,25 @@ FOLDER_RECORD = "flowrt.recordings."
 
 class Recorder(Node):
     """Records every input into ``path/NAME_NNN/NAME_NNN.mcap`` (or its parts); see above."""
+
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset(
+        {
+            "name",
+            "session",
+            "images",
+            "compression",
+            "chunk_size",
+            "flush_interval",
+            "max_frames",
+            "crc",
+            "split_size",
+            "split_duration",
+            "annotations",
+            "log_report",
+        }
+    )
+    swap_folders = {"session": "path"}  # a session only inside its recordings folder
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -503,6 +523,8 @@ class Recorder(Node):
             return
         if rec is None or rec.seq == self._command_seq:
             return
+        if self._task is not None and not self._task.done():
+            return  # a start or stop is under way: the command is read again after it
         self._command_seq = rec.seq
         cmd = rec.value
         if isinstance(cmd, dict):  # {"action": "start", "name": "drive"}: the live view's
@@ -535,6 +557,10 @@ class Recorder(Node):
             self._rtdb_ok = False
 
     async def teardown(self) -> None:
+        task = getattr(self, "_task", None)
+        if task is not None and not task.done():  # a session being opened is closed too
+            with contextlib.suppress(Exception):
+                await task
         writer = getattr(self, "writer", None)
         if writer is not None:
             await self._close()

@@ -67,6 +67,8 @@ class _Item:
 class ReplayBase(Node):
     """A replay source without ports of its own: see ``Replay`` and ``standing_in_for``."""
 
+    swappable = frozenset({"rate", "loop"})  # over the control endpoint: flowrt kinds
+
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
         path: str = Field(

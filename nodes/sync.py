@@ -77,6 +77,8 @@ def value_time(value: Any, published: float | None) -> float | None:
 class Sync(Node):
     """Joins its inputs into time-aligned sets (see the module docstring)."""
 
+    swappable = frozenset({"policy", "slop", "queue"})  # over the control endpoint: flowrt kinds
+
     Params = SyncParams
     any_inputs = Input(object, required=False, policy="queue", doc="streams to align")
     set = Output(dict, doc="{input: value, ..., stamp, spread_ms}")

@@ -138,6 +138,9 @@ def _field(value: Any, key: str) -> Any:
 class Teleop(Node):
     """Joystick -> speed command, with a safe-start state machine (see the module docstring)."""
 
+    # over the control endpoint (flowrt kinds); never timeouts, scaling or the safe start
+    swappable = frozenset({"centre_band"})
+
     Params = TeleopParams
     joy = Input(object, required=False, policy="latest", doc="joystick: axes, buttons, timestamp")
     state = Input(object, required=False, policy="latest", doc="measured robot state (locks)")

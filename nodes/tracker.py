@@ -173,6 +173,9 @@ class TrackerParams(BaseModel):
 class Tracker(Node):
     """Detects one object per activation in colour frames (see the module documentation)."""
 
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset({"space", "bins", "colours", "spec", "object"})
+
     Params = TrackerParams
 
     frame = Input(Frame, doc="BGR (or RGB) uint8 frames")

@@ -524,5 +524,5 @@ async def test_params_that_move_data_are_refused_over_the_endpoint(
         headers={"Authorization": f"Bearer {TOKEN}"},
     )
     assert status == 403, body
-    assert "where data goes" in body["error"]
+    assert "may not be changed over the control endpoint" in body["error"]
     assert rt_token.stats().node("slow").kind == "burn"

@@ -181,6 +181,36 @@ def test_invalid_commands_are_counted_once_per_publication_and_alerted_once_per_
     assert len(alerts) == 2
 
 
+def test_commands_are_clamped_to_their_limits_and_counted() -> None:
+    """Issue 37 item 10: ``vx: 1e300`` was forwarded to the actuator as it came."""
+    h = NodeHarness(
+        Arbiter,
+        {"sources": {"a": {}}, "zero": ZERO, "limits": {"vx": [-0.5, 1.5]}},
+        name="drive",
+    )
+    for k, vx in enumerate([1e300, 1e300, -7.0, 1.0]):
+        h.ctx.time = 0.02 * k
+        h.publish("a", {"vx": vx, "w": 1e6})
+        out = h.process(a={"vx": vx, "w": 1e6})
+        assert out["command"]["w"] == 100.0  # the default limit of a key not named
+        assert out["command"]["vx"] == min(1.5, max(-0.5, vx))
+    report = h.node.report()
+    assert report["clamped"] == 4  # every publication held a key past its limit
+    alerts = [e for e in h.ctx.events if getattr(e, "alert", "") == "arbiter-clamped"]
+    assert len(alerts) == 1  # one burst
+    with pytest.raises(ValueError, match="min <= max"):
+        Arbiter.Params.model_validate(
+            {"sources": {"a": {}}, "zero": ZERO, "limits": {"vx": [2, 1]}}
+        )
+    with pytest.raises(ValueError, match="zero command outside"):
+        Arbiter.Params.model_validate(
+            {"sources": {"a": {}}, "zero": ZERO, "limits": {"vx": [0.1, 1]}}
+        )
+    assert Arbiter.Params.model_validate(
+        {"sources": {"a": {}}, "zero": ZERO, "limits": {"vx": 2}}
+    ).bounds("vx") == (-2, 2)
+
+
 @pytest.mark.parametrize(
     "locks",
     [

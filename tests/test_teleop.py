@@ -401,3 +401,27 @@ def test_arbiter_params_refused(params: dict[str, object]) -> None:
     base.update(params)
     with pytest.raises(ValidationError):
         Arbiter.Params.model_validate(base)
+
+
+async def test_a_web_joystick_without_a_page_is_waiting_not_an_error() -> None:
+    """Issue 43 item 6: a headless station ended with ``node joy in error: no live view page
+    is sending``, exit 1. Waiting for an operator is a state, shown as such."""
+    from flowrt import GraphBuilder, Runtime, VirtualClock
+
+    g = GraphBuilder("station")
+    g.add("joy", "joystick", params={"source": "web", "web_timeout_ms": 100})
+    g.add("sink", "sink", inputs={"input": "joy.output"})
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(0.5)
+        node = rt.stats().node("joy")
+        assert (node.state, rt.failures()) == ("waiting", [])
+        assert "waiting for an operator" in node.reason
+        rt.rtdb.write("joystick.web", {"axes": {"x": 0.2}, "buttons": {}}, validity_ms=500)
+        await clock.advance(0.05)
+        assert rt.stats().node("joy").state in ("idle", "running")
+        await clock.advance(0.5)  # the page went silent
+        node = rt.stats().node("joy")
+        assert (node.state, rt.failures()) == ("waiting", [])
+        assert "stopped sending" in node.reason
+    assert node.errors == 0

@@ -129,7 +129,12 @@ def add_parsers(sub: Any) -> None:
     )
     sw.add_argument("node", help="the node to give a new instance")
     sw.add_argument("kind", help="a node kind: an entry-point name or package.module:Class")
-    sw.add_argument("--params", metavar="JSON", help="the new instance's params (a JSON object)")
+    sw.add_argument(
+        "--params",
+        metavar="JSON",
+        help="params to change (a JSON object), merged into the running ones; only those "
+        "`flowrt kinds KIND` lists as swappable",
+    )
     rl = what.add_parser("reload", help="re-import a node's module from disk and swap to it")
     rl.add_argument("node", help="the node whose module is re-imported")
     for name, parser in what.choices.items():

@@ -124,6 +124,9 @@ def describe(kind: str) -> dict[str, Any]:
         "inputs": inputs,
         "outputs": outputs,
         "params": params,
+        # what POST /swap (flowrt ctl swap) may change; path params confined to a folder
+        "swappable": sorted(getattr(cls, "swappable", ())),
+        "swap_folders": dict(getattr(cls, "swap_folders", {})),
     }
 
 
@@ -219,6 +222,11 @@ def _show(console: Console, info: dict[str, Any]) -> None:
         line(head, indent=2)
         if p["description"]:
             line(p["description"], "dim", indent=6)
+    line("")
+    swappable = info.get("swappable") or []
+    line("a swap over the control endpoint may change: " + (", ".join(swappable) or "none"), "bold")
+    for param, folder in (info.get("swap_folders") or {}).items():
+        line(f"{param}: a relative path, resolved inside {folder}", "dim", indent=6)
 
 
 def add_parsers(sub: Any) -> None:

@@ -22,6 +22,7 @@ class ContextRunner(Protocol):
     timing: Timing
     input_times: dict[str, float]
     error_reason: str | None
+    waiting_reason: str | None
     counts: Counters
 
     def new_frame(self, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame: ...
@@ -109,6 +110,20 @@ class RunnerContext(NodeContext):
         sched.emit(
             HealthAlert(sched.rel(sched.clock.now()), self.name, "node-error", reason, "error")
         )
+
+    @property
+    def graph(self) -> Any:
+        return self._runner.sched.graph
+
+    def set_waiting(self, reason: str | None) -> None:
+        runner = self._runner
+        if runner.waiting_reason == reason:
+            return
+        runner.waiting_reason = reason
+        if reason is not None:
+            sched = runner.sched
+            now = sched.rel(sched.clock.now())
+            sched.emit(HealthAlert(now, self.name, "node-waiting", reason, "info"))
 
     def clear_error(self) -> None:
         runner = self._runner

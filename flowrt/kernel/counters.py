@@ -56,6 +56,7 @@ def node_stats(
     error_reason: str | None,
     failed_reason: str,
     input_drops: int,
+    waiting_reason: str | None,
     granted: str,
     rel: Callable[[float], float],
 ) -> NodeStats:
@@ -75,6 +76,9 @@ def node_stats(
         shown = "disabled"
     elif error_reason is not None and not failed:
         shown = "error"
+    elif waiting_reason is not None and state in ("idle", "running"):
+        shown = "waiting"
+        error_reason = waiting_reason
     else:
         shown = state
     return NodeStats(

@@ -112,6 +112,7 @@ class NodeRunner:
         self._acts = 0  # activations begun: their ids
         self._loose: list[Frame] = []  # frames made outside an activation: the next one's
         self.error_reason: str | None = None  # set_error(): an error state the node reports
+        self.waiting_reason: str | None = None  # set_waiting(): waits for an operator
         self.deadlines = DeadlineWatch(
             self.name,
             self.timing,
@@ -460,6 +461,7 @@ class NodeRunner:
             self.error_reason,
             self.supervisor.failed_reason,
             sum(b.dropped for b in self.inputs.values()),
+            self.waiting_reason,
             self.executor.granted,
             self.sched.rel,
         )

@@ -43,6 +43,8 @@ class SwappedRunner(Protocol):
         self, rnode: ResolvedNode | None = None, reload: bool = False
     ) -> Executor: ...
 
+    def idle(self) -> None: ...
+
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -112,6 +114,9 @@ class Swapper:
             params=params,
             spec=r.rnode.spec.model_copy(update={"kind": kind}),
         )
+        if getattr(cls, "listens", False) or getattr(r.rnode.cls, "listens", False):
+            await self._swap_in_place(rnode, reload)
+            return
         new = r.make_executor(rnode, reload=reload)
         await new.start()  # raises: the old instance keeps running
         if r.busy:
@@ -133,6 +138,63 @@ class Swapper:
             await old.stop()
         except Exception as e:
             log.warning("node %s: teardown of the replaced instance failed: %s", r.name, e)
+
+    async def _swap_in_place(self, rnode: ResolvedNode, reload: bool) -> None:
+        """A node that owns a socket (``listens``: a display's port) cannot set its successor
+        up beside it, which would find the port taken: between two activations the old one
+        is torn down first (releases skipped meanwhile, as during a restart), then the new
+        one starts. If it cannot, an instance as before is started again and the swap fails.
+        """
+        r = self._r
+
+        def hold() -> Executor:  # synchronously: no release slips in before the teardown
+            r.state = RunState.starting
+            return r.executor
+
+        if r.busy:
+            loop = asyncio.get_running_loop()
+            self.waiter = loop.create_future()
+            self.pending = hold
+            try:
+                await asyncio.wait_for(self.waiter, SWAP_WAIT)
+            except TimeoutError:
+                self.pending = None
+                raise TimeoutError(
+                    f"{r.name}: still running after {SWAP_WAIT:g} s; not swapped"
+                ) from None
+        old = hold()
+        getter = getattr(getattr(old, "node", None), "get_state", None)
+        state = getter() if getter is not None else None
+        try:
+            await old.stop()
+        except Exception as e:
+            log.warning("node %s: teardown of the replaced instance failed: %s", r.name, e)
+        new = r.make_executor(rnode, reload=reload)
+        try:
+            await new.start()
+        except Exception:
+            again = r.make_executor()  # the old class and params: rnode not replaced yet
+            try:
+                await again.start()
+            except Exception as e:
+                r.executor = again
+                r.supervisor.failed(e, starting=True)
+                raise
+            r.executor, r.state = again, RunState.idle
+            self._give_state(again, state, getter is not None)
+            r.idle()
+            raise
+        r.executor, r.rnode, r.state = new, rnode, RunState.idle
+        self._give_state(new, state, getter is not None)
+        r.supervisor.succeeded()
+        r.counts.swaps += 1
+        r.idle()
+
+    @staticmethod
+    def _give_state(executor: Executor, state: object, has_state: bool) -> None:
+        setter = getattr(getattr(executor, "node", None), "set_state", None)
+        if has_state and setter is not None:
+            setter(state)
 
     def _take_over(self, new: Executor, rnode: ResolvedNode) -> Executor:
         """The new instance replaces the old one (synchronously: between two activations)."""
