@@ -77,7 +77,12 @@ def test_the_live_servers_own_channels_pass_too() -> None:
                     "p": {"type": "array", "prefixItems": [{"type": "number"}, {"type": "number"}]}
                 },
             },
-            {"type": "object", "properties": {"p": {"type": "array", "items": {"type": "number"}}}},
+            {
+                "type": "object",
+                "properties": {
+                    "p": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}
+                },
+            },
         ),
         (
             {

@@ -19,6 +19,7 @@ at 4x the CPU of the protobuf encoding for 1936x1216 BGR frames (see docs/DESIGN
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import struct
@@ -30,7 +31,7 @@ import numpy as np
 
 from ..frames import Frame
 from .gilfree import join
-from .jsonschema import app_schema
+from .jsonschema import app_schema, conform
 
 __all__ = [
     "ANNOTATIONS_SCHEMA",
@@ -439,10 +440,8 @@ def _value_schema(value: Any) -> dict[str, Any]:
     """The schema of one value of a plain mapping (its type, as the apps need it)."""
     if isinstance(value, bool):
         return {"type": "boolean"}
-    if isinstance(value, int | np.integer):
-        return {"type": "integer"}
-    if isinstance(value, float | np.floating):
-        return {"type": "number"}
+    if isinstance(value, int | float | np.integer | np.floating):
+        return {"type": "number"}  # a later value of an int field may be a float
     if isinstance(value, dict):
         return {
             "type": "object",
@@ -468,7 +467,13 @@ def encode_json(value: Any, schema: StreamSchema, epoch_offset: float | None = N
         ts = obj.get("timestamp")
         if isinstance(ts, float) and math.isfinite(ts):
             obj["timestamp"] = round((ts + epoch_offset) * 1e9)
+    obj = conform(obj, _parsed(schema.data))  # the value matches its schema: jsonschema.py
     return Encoded(schema, json.dumps(obj, separators=(",", ":")).encode())
+
+
+@functools.lru_cache(maxsize=512)
+def _parsed(data: bytes) -> Any:
+    return json.loads(data)
 
 
 class Decoder:
@@ -545,8 +550,11 @@ class Decoder:
         cls = self._type(schema_name)
         if cls is not None and isinstance(obj, dict):
             try:
-                names = {f.name for f in dataclasses.fields(cls)}
-                return cls(**{k: _tuples(v) for k, v in obj.items() if k in names})
+                fields = dataclasses.fields(cls)
+                kw = {f.name: None for f in fields if _required(f)}  # absent: was None
+                names = {f.name for f in fields}
+                kw.update({k: _tuples(v) for k, v in obj.items() if k in names})
+                return cls(**kw)
             except Exception:
                 return obj
         if isinstance(obj, dict) and set(obj) == {"value"}:
@@ -568,8 +576,15 @@ class Decoder:
         return cls
 
 
+def _required(f: dataclasses.Field[Any]) -> bool:
+    return f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+
+
 def _tuples(v: Any) -> Any:
-    """JSON has no tuples: give back fixed-size sequences (bbox, centroid) as tuples."""
+    """JSON has no tuples: give back fixed-size sequences (bbox, centroid) as tuples, and the
+    positional objects (``_0``, ``_1`` ...) a mixed tuple is written as (jsonschema.py)."""
     if isinstance(v, list):
         return tuple(_tuples(x) for x in v)
+    if isinstance(v, dict) and v and all(k == f"_{i}" for i, k in enumerate(v)):
+        return tuple(_tuples(x) for x in v.values())
     return v
