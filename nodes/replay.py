@@ -38,6 +38,7 @@ from flowrt.recording import Decoder
 from flowrt.recording.encoding import ANNOTATIONS_SCHEMA, AUDIO_SCHEMA
 from flowrt.recording.reader import Recording, iter_messages, iter_session
 from flowrt.recording.session import mcap_files
+from flowrt.recording.streams import join_set
 
 LEAD = 0.05
 """Seconds between the start of the runtime and the first replayed message."""
@@ -106,6 +107,7 @@ class ReplayBase(Node):
         self.read: list[Recording] = []  # every part read (the last one read says any damage)
         self.origin = _first_log_time(self.file)
         self.decoder = Decoder()
+        self.members: dict[str, Any] = {}  # a sync set's members (TOPIC/KEY), newest each
         self.cycle = 0.0  # seconds added per completed loop
         self.last_due = 0.0
         self.published = 0
@@ -139,14 +141,19 @@ class ReplayBase(Node):
                 continue  # drawn from the detections, which are replayed themselves
             image = self.decoder.is_image(name)
             port = self._port(m.topic, m.source, image)
-            if port is None:
+            parent, _, _ = m.topic.rpartition("/")
+            member = port is None and bool(parent) and self._port(parent, parent, False)
+            if port is None and not member:
                 continue
             if image:
                 value: Any = self.decoder.image(m.schema, m.data)
             elif name == AUDIO_SCHEMA:  # stamped in Unix time: moved to this run at publish
                 value = self.decoder.audio(m.schema, m.data, m.sequence, 0.0)
             else:
-                value = self.decoder.message(name, m.data)
+                value = join_set(m.topic, self.decoder.message(name, m.data), self.members)
+            if port is None:  # a member of a sync set: joined into the set's index later
+                self.members[m.topic] = value
+                continue
             yield _Item(port, m.log_time, m.sequence, value)
 
     def _prefetch(self) -> asyncio.Future[_Item | None]:

@@ -5,7 +5,8 @@ default) and serves every output (a node class's and those its params make: a ``
 node's messages) with the channels a recording has (one description per stream:
 :mod:`.streams`): frames as ``foxglove.CompressedImage`` (JPEG by default: a live view over a
 socket, not an archive; ``raw`` gives the recording's ``foxglove.RawImage``), audio as
-``foxglove.RawAudio``, every block in order, every other output as JSON (a detection also as ``foxglove.ImageAnnotations`` on its camera's
+``foxglove.RawAudio``, every block in order, a ``sync`` set as its members and index, every
+other output as JSON (a detection also as ``foxglove.ImageAnnotations`` on its camera's
 ``CAMERA/annotations/DETECTIONS``, stamped with its frame's time), the statistics table
 once a second on ``/flowrt/stats`` and events on ``/flowrt/events``. The Foxglove app shows
 a running graph as it shows a recording.
@@ -13,11 +14,11 @@ a running graph as it shows a recording.
 A viewer never slows the graph: the monitor reads each output through its own ``latest``
 buffer (the graph never waits on it), takes values off the loop only when some client is
 subscribed to that channel, encodes and sends on its own thread with at most one value per
-channel in flight (a newer one replaces it, counted) except audio and events, which wait in
-order in a bounded queue (``AUDIO_QUEUE``; beyond it counted in ``lost_audio``), and foxglove-sdk's server keeps a bounded
-queue per client (``BACKLOG`` messages) that drops the oldest when a client does not read.
-At stop, a client that does not read cannot hold the runtime: the server is given
-``STOP_WAIT`` to close.
+channel in flight (a newer one replaces it, counted), except audio and events, which wait in
+order in a bounded queue (``AUDIO_QUEUE``; beyond it counted in ``lost_audio``); and
+foxglove-sdk's server keeps a bounded queue per client (``BACKLOG`` messages) that drops the
+oldest when a client does not read. At stop, a client that does not read cannot hold the
+runtime: the server is given ``STOP_WAIT`` to close.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ from .encoding import (
     is_detection,
     to_jsonable,
 )
-from .streams import StreamBook
+from .streams import StreamBook, is_set, split_set
 
 if TYPE_CHECKING:
     from ..events import Event
@@ -238,6 +239,11 @@ class FoxgloveLive:
                 continue
             drawn = self._annotations.get(topic)
             watched = drawn is not None and drawn.has_sinks()
+            if ch is not None and not watched and not ch.has_sinks():  # a set's members
+                prefix = topic + "/"
+                watched = any(
+                    c.has_sinks() for t, c in self._channels.items() if t.startswith(prefix)
+                )
             if ch is not None and not ch.has_sinks() and not watched:
                 continue  # nobody watches: the latest buffer just keeps the newest value
             value = sub.take_held()
@@ -312,6 +318,12 @@ class FoxgloveLive:
             if isinstance(body.get("t"), float):
                 body["t"] = body["t"] + self._epoch  # Unix time, as every recorded time
             self._events_channel.log(encode_json(body, self._events_schema).data, log_time=ns)
+        elif is_set(value):  # a sync set: its members on channels of their own (streams.py)
+            index, members = split_set(topic, value)
+            for sub, member in members:
+                self._send(sub, member, member.timestamp + self._epoch)
+            self._send(topic, index, epoch_time)
+            return
         else:
             # the stream's one description (streams.py): the recorder's channel and bytes
             d = self._book.description(topic, value)

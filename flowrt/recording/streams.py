@@ -17,6 +17,13 @@ The shapes (see docs/recording.md, "Message shapes"):
 - anything else: JSON under the JSON schema of its type (:func:`.encoding.schema_for`), the
   value in the shape of its schema (:func:`.jsonschema.conform`).
 
+A *set* (a mapping holding frames or audio blocks: a ``sync`` node's output) is several
+streams (:func:`split_set`): each frame or block is a stream of its own, ``TOPIC/KEY``, with
+the shape above (so the app shows each camera of the set as an image), and ``TOPIC`` carries
+the set's index: ``{KEY: {"topic": "TOPIC/KEY", "seq": N}, ..., "timestamp": ...}`` with the
+set's other fields (``spread_ms``); a set's ``stamp`` is written as its ``timestamp``.
+:func:`join_set` puts a replayed set back together.
+
 The time base is Unix time for every stream: log times, and a value's own ``timestamp``
 (epoch nanoseconds in JSON, a ``Timestamp`` in protobuf).
 """
@@ -42,7 +49,15 @@ from .encoding import (
     schema_for,
 )
 
-__all__ = ["TIME_BASE", "StreamBook", "StreamDescription", "describe"]
+__all__ = [
+    "TIME_BASE",
+    "StreamBook",
+    "StreamDescription",
+    "describe",
+    "is_set",
+    "join_set",
+    "split_set",
+]
 
 TIME_BASE = "unix"
 """Every time a stream carries (log time, a value's ``timestamp``): since the Unix epoch."""
@@ -131,3 +146,46 @@ class StreamBook:
         if d.shape == "annotations":  # stamped like the frame: the same float, the same offset
             return encode_annotations(value.detection, value.detection.timestamp + off)
         return encode_json(value, d.schema, off)
+
+
+def is_set(value: Any) -> bool:
+    """True for a mapping that holds frames or audio blocks (a ``sync`` node's set)."""
+    return isinstance(value, dict) and any(
+        isinstance(v, Frame | AudioBlock) for v in value.values()
+    )
+
+
+def split_set(topic: str, value: dict[str, Any]) -> tuple[dict[str, Any], list[tuple[str, Any]]]:
+    """(the set's index, its members as ``(TOPIC/KEY, value)``): see the module docstring."""
+    index: dict[str, Any] = {}
+    members: list[tuple[str, Any]] = []
+    for key, v in value.items():
+        if isinstance(v, Frame | AudioBlock):
+            sub = f"{topic}/{key}"
+            members.append((sub, v))
+            index[str(key)] = {"topic": sub, "seq": int(v.seq)}
+        elif key == "stamp" and isinstance(v, float) and "timestamp" not in value:
+            index["timestamp"] = v  # the recording's time base, like every timestamp
+        else:
+            index[str(key)] = v
+    return index, members
+
+
+def join_set(topic: str, index: Any, members: dict[str, Any]) -> Any:
+    """A replayed set: the index's references replaced by the member values last read
+    (``members``: TOPIC/KEY -> value); ``timestamp`` back as ``stamp``. Anything else is
+    returned as it is."""
+    if not isinstance(index, dict):
+        return index
+    out: dict[str, Any] = {}
+    joined = False
+    for key, v in index.items():
+        ref = v.get("topic") if isinstance(v, dict) and set(v) == {"topic", "seq"} else None
+        if isinstance(ref, str) and ref == f"{topic}/{key}" and ref in members:
+            out[key] = members[ref]
+            joined = True
+        else:
+            out[key] = v
+    if joined and "timestamp" in out and "stamp" not in out:
+        out["stamp"] = out.pop("timestamp")
+    return out
