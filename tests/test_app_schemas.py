@@ -80,7 +80,12 @@ def test_the_live_servers_own_channels_pass_too() -> None:
             {
                 "type": "object",
                 "properties": {
-                    "p": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}
+                    "p": {
+                        "type": "array",
+                        "items": {"type": "number"},
+                        "minItems": 2,
+                        "maxItems": 2,
+                    }
                 },
             },
         ),

@@ -473,7 +473,14 @@ def cmd_replay(args: argparse.Namespace) -> int:
         by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
 
     replay_cls: Any = resolve_kind("replay")
-    common = {"path": str(path), "rate": args.rate, "start": args.start, "loop": args.loop}
+    # absolute: a path on the command line is relative to the working directory, never to
+    # the graph file (the replay node resolves relative params against the graph's folder)
+    common = {
+        "path": str(path.resolve()),
+        "rate": args.rate,
+        "start": args.start,
+        "loop": args.loop,
+    }
     kinds: dict[str, Any] = {}
     graph = _replay_target(args, info, path, err)
     if graph is _REFUSED:
