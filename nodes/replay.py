@@ -133,7 +133,9 @@ class ReplayBase(Node):
         """Decoded messages in file order (on the reader thread)."""
         skip_before = self.origin + round(self.params.start * 1e9)
         self.read = []
-        for m in iter_session(self.files, self.wanted, self.read, skip_before):
+        # every topic read (the filter is per message either way): _port picks, and a sync
+        # set's members (TOPIC/KEY) are wanted with their set
+        for m in iter_session(self.files, None, self.read, skip_before):
             if m.log_time < skip_before:
                 continue
             name = m.schema.name if m.schema is not None else ""
@@ -152,6 +154,9 @@ class ReplayBase(Node):
             else:
                 value = join_set(m.topic, self.decoder.message(name, m.data), self.members)
             if port is None:  # a member of a sync set: joined into the set's index later
+                if image:  # a heap frame, stamped with the set's time when it is published
+                    px, fmt = value
+                    value = Frame(px, source=m.topic, seq=m.sequence, pixel_format=fmt)
                 self.members[m.topic] = value
                 continue
             yield _Item(port, m.log_time, m.sequence, value)
@@ -213,7 +218,13 @@ class ReplayBase(Node):
             return value
         mapped = self.ctx.now() - max(0, item.log_time - ts) / 1e9 / self.params.rate
         if isinstance(value, dict):
-            return {**value, "timestamp": mapped}
+            out = {**value, "timestamp": mapped}
+            if "stamp" in value:  # a sync set's (streams.join_set): its frames at its time
+                out["stamp"] = mapped
+                for v in out.values():
+                    if isinstance(v, Frame) and v.timestamp == 0.0:
+                        v.timestamp = mapped
+            return out
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             return dataclasses.replace(value, timestamp=mapped)
         with contextlib.suppress(AttributeError, TypeError):

@@ -261,3 +261,27 @@ def test_ajv(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
     got = json.loads(r.stdout)
     assert got["json_messages"] > 0
     assert got["invalid"] == {}, got["invalid"]
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+async def test_a_replayed_sync_set_holds_its_frames(
+    recordings: dict[str, Path], scratch: Path
+) -> None:
+    """Issue 38 item 6: a set was recorded as repr strings; now its frames are streams of
+    their own and a replay of the set alone gives frames back, stamped on the replay's clock."""
+    import asyncio
+
+    import flowrt
+
+    session = record("graphs/avsync.yaml", recordings, scratch)
+    g = flowrt.GraphBuilder("sets")
+    g.add("rp", "replay", params={"path": str(session), "topics": ["pair.set"]})
+    async with flowrt.Runtime(g.build()) as rt:
+        value = await asyncio.wait_for(rt.subscribe("rp.message").get(), 20)
+        now = rt.clock.now()
+    assert isinstance(value["a"], flowrt.Frame)
+    assert isinstance(value["b"], flowrt.Frame)
+    assert value["a"].data.shape == (120, 160, 3)
+    assert 0 <= now - value["stamp"] < 5  # the replay's clock, not epoch nanoseconds
+    assert value["spread_ms"] <= 10

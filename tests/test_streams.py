@@ -131,7 +131,7 @@ def test_a_sync_set_is_streams_and_joins_back() -> None:
     joined = join_set("pair.set", index, dict(members))
     assert joined["a"] is a
     assert joined["m"] is block
-    assert joined["stamp"] == 10.0
+    assert joined["stamp"] == joined["timestamp"] == 10.0
 
 
 def test_one_description_per_stream_and_kind() -> None:

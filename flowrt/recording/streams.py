@@ -173,7 +173,7 @@ def split_set(topic: str, value: dict[str, Any]) -> tuple[dict[str, Any], list[t
 
 def join_set(topic: str, index: Any, members: dict[str, Any]) -> Any:
     """A replayed set: the index's references replaced by the member values last read
-    (``members``: TOPIC/KEY -> value); ``timestamp`` back as ``stamp``. Anything else is
+    (``members``: TOPIC/KEY -> value); ``timestamp`` also as ``stamp``. Anything else is
     returned as it is."""
     if not isinstance(index, dict):
         return index
@@ -187,5 +187,5 @@ def join_set(topic: str, index: Any, members: dict[str, Any]) -> Any:
         else:
             out[key] = v
     if joined and "timestamp" in out and "stamp" not in out:
-        out["stamp"] = out.pop("timestamp")
+        out["stamp"] = out["timestamp"]  # kept too: a replay maps both onto its clock
     return out
