@@ -3,7 +3,15 @@
 // line: {json_messages, channels, invalid: {topic: first error}}.
 import { McapIndexedReader } from "@mcap/core";
 import { open } from "node:fs/promises";
+import lz4 from "@foxglove/wasm-lz4";
+import zstd from "@foxglove/wasm-zstd";
 import Ajv2020 from "ajv/dist/2020.js";
+
+await Promise.all([lz4.isLoaded, zstd.isLoaded]);
+const decompressHandlers = {
+  lz4: (buffer, size) => lz4(buffer, Number(size)),
+  zstd: (buffer, size) => zstd.decompress(buffer, Number(size)),
+};
 
 const handle = await open(process.argv[2], "r");
 const readable = {
@@ -14,7 +22,7 @@ const readable = {
     return buf;
   },
 };
-const reader = await McapIndexedReader.Initialize({ readable });
+const reader = await McapIndexedReader.Initialize({ readable, decompressHandlers });
 const ajv = new Ajv2020({ strict: true, allErrors: false });
 const validators = new Map();
 const invalid = {};
