@@ -29,9 +29,6 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 
-pytestmark = [pytest.mark.subprocess, pytest.mark.timeout(600)]
-
-
 def command_list(text: str) -> list[str]:
     """The commands (comments and continuation lines dropped) of the block after
     "Other commands:"."""
@@ -171,6 +168,8 @@ def test_the_command_list_is_found_and_split() -> None:
     ]
 
 
+@pytest.mark.subprocess
+@pytest.mark.timeout(600)
 @pytest.mark.parametrize("place", ["root", "elsewhere"])
 def test_every_readme_command_runs(place: str, tmp_path: Path) -> None:
     where = ROOT if place == "root" else tmp_path / "elsewhere" / "deeper"
