@@ -29,6 +29,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 
+
 def command_list(text: str) -> list[str]:
     """The commands (comments and continuation lines dropped) of the block after
     "Other commands:"."""

@@ -144,3 +144,20 @@ def test_one_description_per_stream_and_kind() -> None:
     book = StreamBook()
     assert book.description("x.v", 1) is book.description("x.v", 2)
     assert len(book.streams()) == 1
+
+
+def test_a_plain_mapping_is_written_as_it_is_under_its_guessed_schema() -> None:
+    """The deterministic log's records: a schema guessed from the first sample must not
+    coerce later values (``["src", "value", 3]`` once became a string) nor drop a None the
+    reader needs where the guess has no type."""
+    first = {"node": "a", "inputs": {"x": None, "y": ["src", "value", 3]}, "t": 1.0}
+    schema = schema_for(first)
+    assert schema.guessed
+    parsed = json.loads(schema.data)
+    assert schema_problems(parsed) == []
+    assert "x" not in parsed["properties"]["inputs"]["properties"]  # unknown: unconstrained
+    later = {"node": "a", "inputs": {"x": ["src", "value", 4], "y": None}, "t": 2.0}
+    body = json.loads(encode_json(later, schema).data)
+    assert body["inputs"]["x"] == ["src", "value", 4]
+    jsonschema.Draft202012Validator(parsed).validate(body)
+    assert body["inputs"] == {"x": ["src", "value", 4], "y": None}  # y's guess had no type

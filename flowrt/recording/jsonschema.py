@@ -136,17 +136,20 @@ def _positional(items: list[dict[str, Any]]) -> dict[str, Any]:
     return {"type": "object", "properties": {f"_{i}": item for i, item in enumerate(items)}}
 
 
-def conform(value: Any, schema: Any) -> Any:
+def conform(value: Any, schema: Any, coerce: bool = True) -> Any:
     """``value`` (JSON-ready: :func:`flowrt.recording.encoding.to_jsonable`) in the shape of
     ``schema`` (an :func:`app_schema`): absent rather than ``null``, positional objects for
     the tuples that became objects, text where the schema says string. Decided by the
-    schema alone, so the recorder, the live server and Zenoh write the same bytes."""
+    schema alone, so the recorder, the live server and Zenoh write the same bytes.
+
+    ``coerce=False`` (a schema guessed from a sample, not derived from a type): only a
+    ``None`` where the schema has a typed field is left out; nothing else is changed."""
     if not isinstance(schema, dict):
         return value
     t = schema.get("type")
     if t == "object":
         props = schema.get("properties") or {}
-        if isinstance(value, list | tuple):
+        if isinstance(value, list | tuple) and coerce:
             if props and all(k.startswith("_") for k in props):
                 value = {f"_{i}": v for i, v in enumerate(value)}
             elif set(props) == {"values"}:
@@ -154,13 +157,15 @@ def conform(value: Any, schema: Any) -> Any:
         if not isinstance(value, dict):
             return value
         return {
-            k: conform(v, props.get(k))
+            k: conform(v, props.get(k), coerce)
             for k, v in value.items()
-            if v is not None and not (isinstance(v, float) and v != v)
+            if not (_null(v) and (coerce or k in props))
         }
     if t == "array" and isinstance(value, list | tuple):
         items = schema.get("items")
-        return [conform(v, items) for v in value]
+        return [conform(v, items, coerce) for v in value]
+    if not coerce:
+        return value
     if t == "string" and value is not None and not isinstance(value, str):
         import json
 
@@ -168,6 +173,10 @@ def conform(value: Any, schema: Any) -> Any:
     if t == "integer" and isinstance(value, float) and value.is_integer():
         return int(value)
     return value
+
+
+def _null(v: Any) -> bool:
+    return v is None or (isinstance(v, float) and v != v)
 
 
 def _enum(values: Any) -> dict[str, Any]:
