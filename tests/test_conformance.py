@@ -285,3 +285,22 @@ async def test_a_replayed_sync_set_holds_its_frames(
     assert value["a"].data.shape == (120, 160, 3)
     assert 0 <= now - value["stamp"] < 5  # the replay's clock, not epoch nanoseconds
     assert value["spread_ms"] <= 10
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_the_deterministic_log_validates_too(scratch: Path) -> None:
+    """Issue 38 item 5: ``/flowrt/det/activation`` held mixed tuples its schema refused."""
+    out = scratch / "deterministic"
+    r = _flowrt(
+        "record", "tests/graphs/matrix/basics.yaml", "--deterministic", "-o", str(out),
+        "--duration", "2",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    (path,) = out.glob("*/*.mcap")
+    channels = read_recording(path)
+    assert {"/flowrt/det/activation", "/flowrt/det/output"} <= set(channels)
+    bad = {t: c.invalid for t, c in channels.items() if c.invalid}
+    assert bad == {}, bad
+    rules = {t: c.problems for t, c in channels.items() if c.problems}
+    assert rules == {}, rules
