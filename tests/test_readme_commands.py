@@ -132,11 +132,15 @@ def run_list(where: Path, tmp: Path) -> list[str]:
                     stdout=subprocess.DEVNULL,
                     stderr=subprocess.DEVNULL,
                 )
-                _wait_for_port(control, 60)
+                _wait_for_control(control, 90)
             argv = adapt(cmd, where, tmp, control)
             r = subprocess.run(
                 argv, cwd=where, env=env, capture_output=True, text=True, timeout=120
             )
+            if r.returncode and "(timed out)" in r.stderr:  # a loaded machine: once more
+                r = subprocess.run(
+                    argv, cwd=where, env=env, capture_output=True, text=True, timeout=120
+                )
             tail = (r.stderr.strip().splitlines() or [""])[-1]
             # `check` answers 1 when the timing is not shown to hold: a verdict, which on a
             # loaded machine may be either (README: "Exit 0 when ..., 1 when ...")
@@ -150,14 +154,20 @@ def run_list(where: Path, tmp: Path) -> list[str]:
     return failures
 
 
-def _wait_for_port(port: int, timeout: float) -> None:
+def _wait_for_control(port: int, timeout: float) -> None:
+    """Until the running graph answers ``GET /stats`` (its loop is up, not just its port)."""
+    import urllib.request
+
     end = time.monotonic() + timeout
     while time.monotonic() < end:
-        with socket.socket() as s:
-            if s.connect_ex(("127.0.0.1", port)) == 0:
-                return
-        time.sleep(0.2)
-    raise AssertionError(f"the control endpoint on {port} did not come up")
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/stats", timeout=10) as r:
+                if r.status == 200:
+                    return
+        except OSError:
+            pass
+        time.sleep(0.5)
+    raise AssertionError(f"the control endpoint on {port} did not answer")
 
 
 def test_the_command_list_is_found_and_split() -> None:
