@@ -66,8 +66,8 @@ NOT_A_SOURCE: dict[str, str] = {
     "replay": "its outputs are recorded streams: it is the replay cell itself",
 }
 GRAPHS = list(MATRIX)
-RECORD_SECONDS = "3"
-LIVE_SECONDS = 4.0
+RECORD_SECONDS = "2"
+LIVE_SECONDS = 3.0
 AUDIO_BLOCK = 1024 / 48000  # graphs/avsync.yaml's mic
 
 

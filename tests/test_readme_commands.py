@@ -7,9 +7,9 @@ but for what a test cannot wait for or must not share: a run gets ``--duration``
 ports become free ones, ``--measure 20s`` becomes 2 s, outputs go to a temporary folder;
 ``a|b`` alternatives run each. From another folder, the repository's paths (``graphs/``,
 ``nodes/``) are given relative to that folder, as a user there would type them, and what a
-command writes (``recordings/``, ``stats.json``) lands in that folder. From the root, the
-``flowrt run`` variants after the first and ``flowrt ctl`` (which read no path) are left to
-the other folder's run, for the CI budget. A command added to the
+command writes (``recordings/``, ``stats.json``) lands in that folder. From the root, only the
+commands that name a path run, and of the ``flowrt run`` variants only the first (the rest
+read the same path): the other folder's run has them all, for the CI budget. A command added to the
 list that this file does not know how to run fails the test: say here how to run it.
 """
 
@@ -117,7 +117,12 @@ def run_list(where: Path, tmp: Path) -> list[str]:
     commands = [c for line in command_list(README.read_text()) for c in alternatives(line)]
     if where == ROOT:  # the CI budget: what does not read a path runs once, from elsewhere
         runs = [c for c in commands if c.startswith("flowrt run")]
-        commands = [c for c in commands if c not in runs[1:] and not c.startswith("flowrt ctl")]
+        paths = ("graphs/", "nodes/", "recordings", ".yaml", ".json")
+        commands = [
+            c
+            for c in commands
+            if c not in runs[1:] and not c.startswith("flowrt ctl") and any(x in c for x in paths)
+        ]
     server = None
     failures: list[str] = []
     try:
