@@ -680,6 +680,7 @@ class Can(Node):
             trace.written if trace else 0, trace.dropped if trace else 0,
             tuple((m, c, n) for (m, c), n in sorted(self.encode_causes.items())),
             tuple((c, i, e, n) for (c, i, e), n in sorted(self.id_counts.items())),
+            timestamp=now,  # recorded as Unix time, the recording's time base
         )  # fmt: skip
 
 

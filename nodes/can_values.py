@@ -99,6 +99,9 @@ class CanBusStatus:
     encode_errors: tuple[tuple[str, str, int], ...] = ()  # (message, cause, count)
     #: frames received per (channel, id, extended): the same id on two channels is two streams
     ids_by_channel: tuple[tuple[str, int, bool, int], ...] = ()
+    #: when the snapshot was taken (runtime clock; in a recording Unix time, as every
+    #: ``timestamp``: ``t`` stays seconds since the start, for the status table)
+    timestamp: float = 0.0
 
 
 #: Invalid messages a :class:`CanBusSummary` names (the first, in DBC order); the count is whole.

@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -220,6 +221,8 @@ class Capture(Node):
         fmt_in = p.input_format or "BGR"
         raw = encode_raw(img, fmt_in) if fmt_in != "BGR" else img
         frame = self._publishable(raw, fmt_in, None)
+        # stamped with its frame's time: recorded at it, in Unix time like the frame
+        truth = dataclasses.replace(truth, timestamp=frame.timestamp)
         return {"frame": frame, "truth": truth}
 
     def _publishable(self, raw: np.ndarray, fmt_in: str, dims: tuple[int, int] | None) -> Frame:

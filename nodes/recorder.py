@@ -94,6 +94,7 @@ from flowrt.recording.session import (
     session_metadata,
     timing_json,
 )
+from flowrt.recording.streams import is_set, split_set
 
 COMMAND_RECORD = "flowrt.record."
 """RTDB record ``flowrt.record.NODE`` = ``start`` | ``stop``: what ``flowrt ctl record`` writes."""
@@ -422,6 +423,10 @@ class Recorder(Node):
         overlay: bool = True,
     ) -> bool:
         """Queue one value for the writer (and its annotations); False when refused."""
+        if is_set(value):  # a sync set: each frame a stream of its own, then the index
+            value, members = split_set(topic, value)
+            for sub, member in members:
+                self._record(writer, sub, f"{source}/{sub.rpartition('/')[2]}", member, now)
         if topic not in writer.streams:
             writer.declare(topic, source)
         is_frame = isinstance(value, Frame)

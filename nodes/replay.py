@@ -39,6 +39,7 @@ from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.images import is_image_schema
 from flowrt.recording.reader import Recording, channel_schemas, iter_messages, iter_session
 from flowrt.recording.session import mcap_files
+from flowrt.recording.streams import join_set
 
 LEAD = 0.05
 """Seconds between the start of the runtime and the first replayed message."""
@@ -135,6 +136,7 @@ class ReplayBase(Node):
             why = self.decoder.why_not(*channels[topic])
             if why is not None:
                 self.left_out[topic] = [why, 0]
+        self.members: dict[str, Any] = {}  # a sync set's members (TOPIC/KEY), newest each
         self.cycle = 0.0  # seconds added per completed loop
         self.last_due = 0.0
         self.published = 0
@@ -165,14 +167,19 @@ class ReplayBase(Node):
         skip_before = self.origin + round(self.params.start * 1e9)
         self.read = []
         seqs: dict[str, int] = {}
-        for m in iter_session(self.files, self.wanted, self.read, skip_before):
+        # every topic read (the filter is per message either way): _port picks, and a sync
+        # set's members (TOPIC/KEY) are wanted with their set
+        for m in iter_session(self.files, None, self.read, skip_before):
             if m.log_time < skip_before:
                 continue
             name = m.schema.name if m.schema is not None else ""
             if name == ANNOTATIONS_SCHEMA:
                 continue  # drawn from the detections, which are replayed themselves
-            port = self._port(m.topic, m.source, is_image_schema(name))
-            if port is None:
+            image = is_image_schema(name)
+            port = self._port(m.topic, m.source, image)
+            parent, _, _ = m.topic.rpartition("/")
+            member = port is None and bool(parent) and self._port(parent, parent, False)
+            if port is None and not member:
                 continue
             if m.topic in self.left_out:
                 self.left_out[m.topic][1] += 1
@@ -184,8 +191,17 @@ class ReplayBase(Node):
                     value = _Pixels(d.value[0], d.value[1], d.stamp)
                 elif d.kind == "audio":  # stamped in Unix time: moved to this run at publish
                     value = self.decoder.own.audio(m.schema, m.data, m.sequence, 0.0)
+                else:
+                    value = join_set(m.topic, value, self.members)
             except Exception as e:
                 self.left_out[m.topic] = [str(e) or type(e).__name__, 1]
+                continue
+            if port is None:  # a member of a sync set: joined into the set's index later
+                if isinstance(value, _Pixels):  # a heap frame, stamped with the set's time
+                    value = Frame(
+                        value.data, source=m.topic, seq=m.sequence, pixel_format=value.format
+                    )
+                self.members[m.topic] = value
                 continue
             # A writer that numbers nothing (rosbag2: 0 for every message) gets 0, 1, 2 ...
             last = seqs.get(m.topic, -1)
@@ -267,7 +283,13 @@ class ReplayBase(Node):
             return value
         mapped = self.ctx.now() - max(0, item.log_time - ts) / 1e9 / self.params.rate
         if isinstance(value, dict):
-            return {**value, "timestamp": mapped}
+            out = {**value, "timestamp": mapped}
+            if "stamp" in value:  # a sync set's (streams.join_set): its frames at its time
+                out["stamp"] = mapped
+                for v in out.values():
+                    if isinstance(v, Frame) and v.timestamp == 0.0:
+                        v.timestamp = mapped
+            return out
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             return dataclasses.replace(value, timestamp=mapped)
         with contextlib.suppress(AttributeError, TypeError):

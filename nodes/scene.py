@@ -77,8 +77,10 @@ class SceneTruth:
     """
 
     index: int
-    time: float
+    time: float  # scene time: seconds into the synthetic scene (index / fps), not a clock
     objects: dict[str, ObjectTruth]
+    #: the frame's time (runtime clock; in a recording, Unix time as every timestamp there)
+    timestamp: float = 0.0
 
     def __getitem__(self, name: str) -> ObjectTruth:
         return self.objects[name]

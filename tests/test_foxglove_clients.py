@@ -59,3 +59,27 @@ async def test_foxglove_ws_protocol_client_receives_frames_at_the_source_rate(
     assert got["subprotocol"] == "foxglove.websocket.v1"  # the client's default
     assert "front_cam.frame" in got["channels"]
     assert got["messages"] >= 0.75 * 20 * got["seconds"]  # the camera's 20 fps
+
+
+@pytest.mark.slow
+@pytest.mark.node
+async def test_ws_protocol_client_gets_can_messages_that_ajv_validates(tmp_path: Path) -> None:
+    """Issue 38: a can node's per-message outputs were never advertised live, and messages did
+    not match their schemas; @foxglove/ws-protocol + ajv read every JSON channel."""
+    modules = os.environ.get("FLOWRT_NODE_MODULES")
+    node = shutil.which("node")
+    if not modules or node is None:
+        pytest.skip("needs Node.js and FLOWRT_NODE_MODULES with @foxglove/ws-protocol and ajv")
+    script = Path(modules).parent / "ws_client.mjs"
+    shutil.copyfile(REPO / "tests" / "js" / "ws_client.mjs", script)
+    live = FoxgloveLive(port=0)
+    async with flowrt.Runtime.from_file(REPO / "graphs" / "can.yaml", monitors=[live]):
+        proc = await asyncio.create_subprocess_exec(
+            node, str(script), f"ws://127.0.0.1:{live.port}", "json", "3",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        out, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode == 0, err.decode()
+    got = json.loads(out)
+    assert {"chassis.WheelSpeeds", "chassis.status", "/flowrt/stats"} <= set(got["json"])
+    assert got["invalid"] == {}

@@ -510,7 +510,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     for s in streams:
         by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
 
-    # absolute: a relative path would resolve beside --graph's file, not where this runs
+    # absolute: a path on the command line is relative to the working directory, never to
+    # the graph file (the replay node resolves relative params against the graph's folder)
     common = {
         "path": str(path.resolve()),
         "rate": args.rate,

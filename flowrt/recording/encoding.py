@@ -19,18 +19,19 @@ at 4x the CPU of the protobuf encoding for 1936x1216 BGR frames (see docs/DESIGN
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import struct
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..frames import Frame
 from .gilfree import join
-from .jsonschema import app_schema
+from .jsonschema import app_schema, conform
 
 __all__ = [
     "ANNOTATIONS_SCHEMA",
@@ -61,6 +62,9 @@ class StreamSchema:
     encoding: str  # schema encoding: protobuf | jsonschema
     data: bytes
     message_encoding: str  # protobuf | json
+    #: a JSON schema guessed from a sample (a plain mapping), not derived from a type: values
+    #: are then written as they are (never coerced to a guess), only ``None`` left out
+    guessed: bool = field(default=False, compare=False)
 
 
 @dataclass(frozen=True)
@@ -399,10 +403,10 @@ def schema_for(value: Any) -> StreamSchema:
     elif isinstance(value, dict):
         schema = {
             "type": "object",
-            "properties": {str(k): _value_schema(v) for k, v in value.items()},
+            "properties": _fields(value),
         }
     else:
-        schema = {"type": "object", "properties": {"value": _value_schema(value)}}
+        schema = {"type": "object", "properties": _fields({"value": value})}
     schema = app_schema(schema)  # what the Foxglove/Lichtblick apps can read (jsonschema.py)
     sample = to_jsonable(value)
     _fill_mappings(schema, sample)
@@ -413,7 +417,8 @@ def schema_for(value: Any) -> StreamSchema:
             "description": "nanoseconds since the Unix epoch (the recording's time base)",
         }
     schema.setdefault("title", name)
-    return StreamSchema(name, "jsonschema", json.dumps(schema).encode(), "json")
+    typed = dataclasses.is_dataclass(value) or hasattr(value, "model_json_schema")
+    return StreamSchema(name, "jsonschema", json.dumps(schema).encode(), "json", not typed)
 
 
 def _fill_mappings(schema: dict[str, Any], sample: Any) -> None:
@@ -430,28 +435,52 @@ def _fill_mappings(schema: dict[str, Any], sample: Any) -> None:
             and not sub.get("properties")
             and isinstance(sample[key], dict)
         ):
-            sub["properties"] = _value_schema(sample[key])["properties"]
+            sub["properties"] = _fields(sample[key])
         elif sub.get("type") == "object":
             _fill_mappings(sub, sample[key])
 
 
 def _value_schema(value: Any) -> dict[str, Any]:
-    """The schema of one value of a plain mapping (its type, as the apps need it)."""
+    """The schema of one value of a plain mapping (its type, as the apps need it), guessed
+    from a sample: see :func:`_fields`."""
     if isinstance(value, bool):
         return {"type": "boolean"}
-    if isinstance(value, int | np.integer):
-        return {"type": "integer"}
-    if isinstance(value, float | np.floating):
-        return {"type": "number"}
+    if isinstance(value, int | float | np.integer | np.floating):
+        return {"type": "number"}  # a later value of an int field may be a float
     if isinstance(value, dict):
-        return {
-            "type": "object",
-            "properties": {str(k): _value_schema(v) for k, v in value.items()},
-        }
+        return {"type": "object", "properties": _fields(value)}
     if isinstance(value, list | tuple | np.ndarray):
-        first = value[0] if len(value) else ""
-        return {"type": "array", "items": _value_schema(first)}
-    return {"type": "string"}
+        kinds = {_kind(v) for v in value}
+        if len(kinds) == 1 and (kind := kinds.pop()) in ("boolean", "number", "string"):
+            return {"type": "array", "items": {"type": kind}}
+        if kinds == {"object"}:
+            return {"type": "array", "items": _value_schema(value[0])}
+        return {}  # empty, mixed or nested: left unconstrained (not a field the apps plot)
+    if isinstance(value, str):
+        return {"type": "string"}
+    return {}  # None or an unknown type: unconstrained
+
+
+def _kind(v: Any) -> str:
+    if isinstance(v, bool):
+        return "boolean"
+    if isinstance(v, int | float | np.integer | np.floating):
+        return "number"
+    if isinstance(v, str):
+        return "string"
+    return "object" if isinstance(v, dict) else "other"
+
+
+def _fields(sample: dict[Any, Any]) -> dict[str, Any]:
+    """The typed fields of a plain mapping's sample; a field whose type a sample cannot tell
+    (None, a mixed or nested list) is left out of the schema, so that whatever it holds later
+    is valid and written unchanged (the apps do not offer it to plot)."""
+    out = {}
+    for k, v in sample.items():
+        sub = _value_schema(v)
+        if sub:
+            out[str(k)] = sub
+    return out
 
 
 def encode_json(value: Any, schema: StreamSchema, epoch_offset: float | None = None) -> Encoded:
@@ -468,7 +497,14 @@ def encode_json(value: Any, schema: StreamSchema, epoch_offset: float | None = N
         ts = obj.get("timestamp")
         if isinstance(ts, float) and math.isfinite(ts):
             obj["timestamp"] = round((ts + epoch_offset) * 1e9)
+    # the value in the shape of its schema (jsonschema.py); a guessed schema only drops None
+    obj = conform(obj, _parsed(schema.data), coerce=not schema.guessed)
     return Encoded(schema, json.dumps(obj, separators=(",", ":")).encode())
+
+
+@functools.lru_cache(maxsize=512)
+def _parsed(data: bytes) -> Any:
+    return json.loads(data)
 
 
 class Decoder:
@@ -545,8 +581,11 @@ class Decoder:
         cls = self._type(schema_name)
         if cls is not None and isinstance(obj, dict):
             try:
-                names = {f.name for f in dataclasses.fields(cls)}
-                return cls(**{k: _tuples(v) for k, v in obj.items() if k in names})
+                fields = dataclasses.fields(cls)
+                kw = {f.name: None for f in fields if _required(f)}  # absent: was None
+                names = {f.name for f in fields}
+                kw.update({k: _tuples(v) for k, v in obj.items() if k in names})
+                return cls(**kw)
             except Exception:
                 return obj
         if isinstance(obj, dict) and set(obj) == {"value"}:
@@ -568,8 +607,15 @@ class Decoder:
         return cls
 
 
+def _required(f: dataclasses.Field[Any]) -> bool:
+    return f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+
+
 def _tuples(v: Any) -> Any:
-    """JSON has no tuples: give back fixed-size sequences (bbox, centroid) as tuples."""
+    """JSON has no tuples: give back fixed-size sequences (bbox, centroid) as tuples, and the
+    positional objects (``_0``, ``_1`` ...) a mixed tuple is written as (jsonschema.py)."""
     if isinstance(v, list):
         return tuple(_tuples(x) for x in v)
+    if isinstance(v, dict) and v and all(k == f"_{i}" for i, k in enumerate(v)):
+        return tuple(_tuples(x) for x in v.values())
     return v

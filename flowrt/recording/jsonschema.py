@@ -10,10 +10,22 @@ signal could be plotted. :func:`app_schema` rewrites a schema into that subset:
 
 - ``$ref`` inlined from ``$defs`` (a recursive model is cut to an empty object);
 - ``anyOf``/``oneOf`` with ``null`` (an optional) becomes the other branch; a union of
-  several types becomes its first type (JSON carries the value whatever the schema says);
-- a tuple (``prefixItems``) becomes an array of its first item's schema;
+  numbers a number, a union of other types a string (the value written as JSON text);
+- a tuple (``prefixItems``) of numbers (or of strings, or of booleans) becomes a typed array
+  (``minItems``/``maxItems`` kept); a tuple of mixed types becomes an object whose fields are
+  named by position, ``_0``, ``_1`` ...; an array item that is itself an array (which the
+  apps refuse: ``Unsupported array item type: "array"``) becomes such an object too;
+- ``bytes`` (``"format": "binary"``) becomes a string with ``"contentEncoding": "base64"``,
+  which the apps show as bytes;
 - an object without ``properties`` (a free-form mapping) gets ``"properties": {}``;
 - a field with no type (``Any``) becomes a string, the one type every value can be shown as.
+
+Every message must then match its schema, for a validator (jsonschema, ajv) as for the apps:
+:func:`conform` gives a value the shape of its schema, decided by the schema alone: a field
+whose value is ``None`` (or a non-finite float) is left out rather than written ``null`` (no
+field is ``required``), a tuple that became an object is written as that object, a value under
+a ``string`` schema is written as text. docs/recording.md ("Message shapes") says the same for
+readers.
 
 The choice (docs/DESIGN-NOTES.md): JSON with such schemas rather than protobuf built from
 the models: the recording keeps one encoder for every value type, the apps plot the fields,
@@ -24,7 +36,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["app_schema", "schema_problems"]
+__all__ = ["app_schema", "conform", "schema_problems"]
 
 PRIMITIVES = ("boolean", "string", "number", "integer")
 
@@ -57,7 +69,13 @@ def _field(s: Any, defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any
             if key == "oneOf" and all(isinstance(b, dict) and "const" in b for b in branches):
                 return {**_enum(b["const"] for b in branches), **keep}
             real = [b for b in branches if not (isinstance(b, dict) and b.get("type") == "null")]
-            return {**_field(real[0] if real else {}, defs, seen), **keep}
+            shapes = [_field(b, defs, seen) for b in real] or [{"type": "string"}]
+            types = {b.get("type") for b in shapes}
+            if len(types) > 1 and types <= {"number", "integer"}:
+                return {"type": "number", **keep}
+            if len(types) > 1:  # int | str ...: written as text, the one type all can be
+                return {"type": "string", **keep}
+            return {**shapes[0], **keep}
     t = s.get("type")
     if isinstance(t, list):  # ["number", "null"]
         t = next((x for x in t if x != "null"), None)
@@ -69,13 +87,15 @@ def _field(s: Any, defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any
         out: dict[str, Any] = {"type": t, **keep}
         if "enum" in s:
             out["enum"] = s["enum"]
+        if t == "string" and (s.get("format") == "binary" or s.get("contentEncoding")):
+            out["contentEncoding"] = "base64"  # bytes: the apps decode them
         return out
     if t == "array" or "prefixItems" in s or "items" in s:
+        prefix = s.get("prefixItems")
+        if isinstance(prefix, list) and prefix and not s.get("items"):
+            return {**_tuple([_field(p, defs, seen) for p in prefix]), **keep}
         items = s.get("items")
-        if not isinstance(items, dict) or not items:
-            prefix = s.get("prefixItems") or [{}]
-            items = prefix[0] if isinstance(prefix, list) and prefix else {}
-        return {"type": "array", "items": _field(items, defs, seen), **keep}
+        return {**_array(_field(items if isinstance(items, dict) else {}, defs, seen)), **keep}
     if t == "object" or "properties" in s:
         props = s.get("properties") or {}
         return {
@@ -84,6 +104,79 @@ def _field(s: Any, defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any
             **keep,
         }
     return {"type": "string", **keep}  # Any: no type the apps could read
+
+
+def _tuple(items: list[dict[str, Any]]) -> dict[str, Any]:
+    """A fixed-size tuple: a typed array when its items share a primitive type (numbers and
+    integers together are numbers), else an object with one field per position."""
+    types = {i.get("type") for i in items}
+    if types <= {"number", "integer"} or (len(types) == 1 and types <= {"string", "boolean"}):
+        t = "integer" if types == {"integer"} else types.pop() if len(types) == 1 else "number"
+        if t == "string" and any("contentEncoding" in i for i in items):
+            return _positional(items)
+        n = len(items)
+        return {"type": "array", "items": {"type": t}, "minItems": n, "maxItems": n}
+    return _positional(items)
+
+
+def _array(item: dict[str, Any]) -> dict[str, Any]:
+    """An array of ``item``; an item that is an array itself (the apps read no array of
+    arrays) becomes an object: positional for a fixed size, else ``{"values": [...]}``."""
+    if item.get("type") == "array":
+        n = item.get("maxItems")
+        if isinstance(n, int) and item.get("minItems") == n:
+            item = _positional([item["items"]] * n)
+        else:
+            item = {"type": "object", "properties": {"values": item}}
+    return {"type": "array", "items": item}
+
+
+def _positional(items: list[dict[str, Any]]) -> dict[str, Any]:
+    """An object whose fields are a sequence's positions, ``_0``, ``_1`` ..."""
+    return {"type": "object", "properties": {f"_{i}": item for i, item in enumerate(items)}}
+
+
+def conform(value: Any, schema: Any, coerce: bool = True) -> Any:
+    """``value`` (JSON-ready: :func:`flowrt.recording.encoding.to_jsonable`) in the shape of
+    ``schema`` (an :func:`app_schema`): absent rather than ``null``, positional objects for
+    the tuples that became objects, text where the schema says string. Decided by the
+    schema alone, so the recorder, the live server and Zenoh write the same bytes.
+
+    ``coerce=False`` (a schema guessed from a sample, not derived from a type): only a
+    ``None`` where the schema has a typed field is left out; nothing else is changed."""
+    if not isinstance(schema, dict):
+        return value
+    t = schema.get("type")
+    if t == "object":
+        props = schema.get("properties") or {}
+        if isinstance(value, list | tuple) and coerce:
+            if props and all(k.startswith("_") for k in props):
+                value = {f"_{i}": v for i, v in enumerate(value)}
+            elif set(props) == {"values"}:
+                value = {"values": value}
+        if not isinstance(value, dict):
+            return value
+        return {
+            k: conform(v, props.get(k), coerce)
+            for k, v in value.items()
+            if not (_null(v) and (coerce or k in props))
+        }
+    if t == "array" and isinstance(value, list | tuple):
+        items = schema.get("items")
+        return [conform(v, items, coerce) for v in value]
+    if not coerce:
+        return value
+    if t == "string" and value is not None and not isinstance(value, str):
+        import json
+
+        return json.dumps(value, separators=(",", ":"))
+    if t == "integer" and isinstance(value, float) and value.is_integer():
+        return int(value)
+    return value
+
+
+def _null(v: Any) -> bool:
+    return v is None or (isinstance(v, float) and v != v)
 
 
 def _enum(values: Any) -> dict[str, Any]:
@@ -98,30 +191,46 @@ def _enum(values: Any) -> dict[str, Any]:
 
 
 def schema_problems(schema: Any, path: str = "") -> list[str]:
-    """Where ``schema`` breaks the apps' rules (empty: every field can be read); the same
-    walk as ``parseJsonSchema``: every field typed, arrays with items, objects with
-    properties, no ``$ref``/``anyOf``."""
-    problems: list[str] = []
+    """Where ``schema`` breaks the apps' rules (empty: the apps read every field).
+
+    A port of ``parseJsonSchema`` (``@lichtblick/mcap-support``; ``@foxglove/mcap-support``
+    the same, plus ``oneOf`` of numeric constants, which flowrt does not write): the root and
+    every nested object ``"type": "object"`` with ``properties``; each field ``boolean``,
+    ``string`` (no ``contentEncoding`` but ``base64``), ``number``/``integer``, ``object`` or
+    ``array``; an array's ``items`` one of ``boolean``, ``string`` (no ``contentEncoding``),
+    ``number``/``integer`` or ``object`` (no array of arrays). ``$ref``/``anyOf``/``oneOf``
+    are refused too: the parser ignores them and so would lose the field's type.
+    """
     if not isinstance(schema, dict):
         return [f"{path or '<root>'}: not a schema"]
     where = path or "<root>"
-    for key in ("$ref", "anyOf", "oneOf", "allOf", "prefixItems"):
-        if key in schema:
-            problems.append(f"{where}: {key}")
-    t = schema.get("type")
-    if t == "object":
-        props = schema.get("properties")
-        if not isinstance(props, dict):
-            problems.append(f"{where}: object without properties")
-        else:
-            for k, v in props.items():
-                problems += schema_problems(v, f"{path}.{k}" if path else str(k))
-    elif t == "array":
-        items = schema.get("items")
-        if not isinstance(items, dict):
-            problems.append(f"{where}: array without items")
-        else:
-            problems += schema_problems(items, f"{where}[]")
-    elif t not in PRIMITIVES:
-        problems.append(f"{where}: type {t!r}")
+    if schema.get("type") != "object":
+        return [f"{where}: expected type object, got {schema.get('type')!r}"]
+    props = schema.get("properties")
+    if not isinstance(props, dict):
+        return [f"{where}: object without properties"]
+    problems: list[str] = []
+    for name, field in props.items():
+        at = f"{path}.{name}" if path else str(name)
+        if not isinstance(field, dict):
+            problems.append(f"{at}: not a schema")
+            continue
+        problems += [f"{at}: {k}" for k in ("$ref", "anyOf", "oneOf", "allOf") if k in field]
+        t = field.get("type")
+        if t == "string":
+            if field.get("contentEncoding") not in (None, "base64"):
+                problems.append(f"{at}: contentEncoding {field['contentEncoding']!r}")
+        elif t == "object":
+            problems += schema_problems(field, at)
+        elif t == "array":
+            items = field.get("items")
+            it = items.get("type") if isinstance(items, dict) else None
+            if it == "object":
+                problems += schema_problems(items, f"{at}[]")
+            elif it == "string" and items.get("contentEncoding") is not None:  # type: ignore[union-attr]
+                problems.append(f"{at}[]: contentEncoding in an array item")
+            elif it not in ("boolean", "string", "number", "integer"):
+                problems.append(f"{at}: unsupported array item type {it!r}")
+        elif t not in ("boolean", "number", "integer"):
+            problems.append(f"{at}: unsupported type {t!r}")
     return problems

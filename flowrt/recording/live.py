@@ -1,9 +1,12 @@
 """The live Foxglove connection: a running graph's outputs served as Foxglove channels.
 
 ``flowrt run g.yaml --foxglove [PORT]`` starts foxglove-sdk's WebSocket server (loopback by
-default) and serves every output with the schemas a recording uses: frames as
-``foxglove.CompressedImage`` (JPEG: a live view over a socket, not an archive), every other
-output as JSON (a detection also as ``foxglove.ImageAnnotations`` on its camera's
+default) and serves every output (a node class's and those its params make: a ``can``
+node's messages) with the channels a recording has (one description per stream:
+:mod:`.streams`): frames as ``foxglove.CompressedImage`` (JPEG by default: a live view over a
+socket, not an archive; ``raw`` gives the recording's ``foxglove.RawImage``), audio as
+``foxglove.RawAudio``, every block in order, a ``sync`` set as its members and index, every
+other output as JSON (a detection also as ``foxglove.ImageAnnotations`` on its camera's
 ``CAMERA/annotations/DETECTIONS``, stamped with its frame's time), the statistics table
 once a second on ``/flowrt/stats`` and events on ``/flowrt/events``. The Foxglove app shows
 a running graph as it shows a recording.
@@ -11,10 +14,11 @@ a running graph as it shows a recording.
 A viewer never slows the graph: the monitor reads each output through its own ``latest``
 buffer (the graph never waits on it), takes values off the loop only when some client is
 subscribed to that channel, encodes and sends on its own thread with at most one value per
-channel in flight (a newer one replaces it, counted), and foxglove-sdk's server keeps a bounded
-queue per client (``BACKLOG`` messages) that drops the oldest when a client does not read.
-At stop, a client that does not read cannot hold the runtime: the server is given
-``STOP_WAIT`` to close.
+channel in flight (a newer one replaces it, counted), except audio and events, which wait in
+order in a bounded queue (``AUDIO_QUEUE``; beyond it counted in ``lost_audio``); and
+foxglove-sdk's server keeps a bounded queue per client (``BACKLOG`` messages) that drops the
+oldest when a client does not read. At stop, a client that does not read cannot hold the
+runtime: the server is given ``STOP_WAIT`` to close.
 """
 
 from __future__ import annotations
@@ -28,19 +32,20 @@ import time
 from collections import deque
 from typing import TYPE_CHECKING, Any
 
+from ..audio import AudioBlock
 from ..frames import Frame
 from .encoding import (
     StreamSchema,
     annotations_schema,
     annotations_topic,
+    audio_schema,
     encode_annotations,
-    encode_frame,
     encode_json,
     image_schema,
     is_detection,
-    schema_for,
     to_jsonable,
 )
+from .streams import StreamBook, is_set, split_set
 
 if TYPE_CHECKING:
     from ..events import Event
@@ -50,6 +55,9 @@ if TYPE_CHECKING:
 __all__ = ["FoxgloveLive"]
 
 PUMP_INTERVAL = 0.01  # s: how often the loop looks for new values (a few microseconds each)
+AUDIO_QUEUE = (
+    256  # audio blocks (and events) that may wait to be sent (5 s of 1024-sample blocks at 48 kHz)
+)
 BACKLOG = 32  # messages queued per client before the oldest is dropped (foxglove-sdk's queue)
 STOP_WAIT = 1.0  # s: at stop, how long to wait for the server to say goodbye to its clients
 
@@ -78,11 +86,15 @@ class FoxgloveLive:
         self._ctx: Any = None
         self._subs: dict[str, Subscription] = {}
         self._channels: dict[str, Any] = {}
-        self._schemas: dict[str, StreamSchema] = {}
         self._frame_topics: set[str] = set()
         self._cameras: dict[str, str] = {}  # node -> its first frame output's topic
         self._annotations: dict[str, Any] = {}  # detection topic -> its annotations channel
         self._pending: dict[str, tuple[Any, float]] = {}
+        # audio: every block, in order (a latest slot would lose a third of them)
+        self._queued: deque[tuple[str, Any, float]] = deque()
+        self._audio_topics: set[str] = set()
+        self._book = StreamBook(default_image_format=image_format)
+        self.lost_audio = 0  # blocks (or events) not sent: their queue was full (counted)
         self._cond = threading.Condition()
         self._done: deque[Frame] = deque()
         self._thread: threading.Thread | None = None
@@ -137,27 +149,43 @@ class FoxgloveLive:
         self._rt = rt
         self._loop = asyncio.get_running_loop()
         self._epoch = time.time() - rt.clock.now()
+        self._book.epoch_offset = self._epoch
         for name, node in rt.graph.nodes.items():
-            frames = set(node.cls.frame_ports())
-            for port in node.cls.outputs:
+            # every output: the class's and those its params make (a can node's messages)
+            outputs = {**node.cls.outputs, **node.cls.params_outputs(node.params)}
+            for port, out in outputs.items():
                 topic = f"{name}.{port}"
+                kind = out.type if isinstance(out.type, type) else object
+                if issubclass(kind, AudioBlock):
+                    # every block: a queue read each pump; counted if it overflows
+                    self._subs[topic] = rt.subscribe(topic, policy="queue", size=AUDIO_QUEUE)
+                    self._audio_topics.add(topic)
+                    self._channels[topic] = self._channel(topic, audio_schema())
+                    continue
                 # sampled: values nobody asked for are unread, not red drops in the table
                 self._subs[topic] = rt.subscribe(topic, policy="latest", size=1, sampled=True)
-                if port in frames:
+                if issubclass(kind, Frame):
                     self._frame_topics.add(topic)
                     self._cameras.setdefault(name, topic)
                     schema = image_schema(self.image_format != "raw")
                     self._channels[topic] = self._channel(topic, schema)
-        self._stats_channel = self._channel("/flowrt/stats", _json_schema("flowrt.RuntimeStats"))
-        self._events_channel = self._channel("/flowrt/events", _json_schema("flowrt.Event"))
+        self._stats_schema = _json_schema("flowrt.RuntimeStats")
+        self._events_schema = _json_schema("flowrt.Event")
+        self._stats_channel = self._channel("/flowrt/stats", self._stats_schema)
+        self._events_channel = self._channel("/flowrt/events", self._events_schema)
         self._thread = threading.Thread(target=self._send_loop, name="foxglove", daemon=True)
         self._thread.start()
         self._handle = self._loop.call_later(PUMP_INTERVAL, self._pump)
 
     def event(self, event: Event) -> None:
         ch = getattr(self, "_events_channel", None)
-        if ch is not None and ch.has_sinks():
-            self._offer("/flowrt/events", event, time.time())
+        if ch is not None and ch.has_sinks():  # every event, in order (not the newest only)
+            with self._cond:
+                if len(self._queued) >= AUDIO_QUEUE:
+                    self.lost_audio += 1
+                    return
+                self._queued.append(("/flowrt/events", event, time.time()))
+                self._cond.notify()
 
     def stopped(self, rt: Runtime) -> None:
         if self._handle is not None:
@@ -206,8 +234,16 @@ class FoxgloveLive:
         self._release_done()
         for topic, sub in self._subs.items():
             ch = self._channels.get(topic)
+            if topic in self._audio_topics:
+                self._pump_audio(topic, sub, ch)
+                continue
             drawn = self._annotations.get(topic)
             watched = drawn is not None and drawn.has_sinks()
+            if ch is not None and not watched and not ch.has_sinks():  # a set's members
+                prefix = topic + "/"
+                watched = any(
+                    c.has_sinks() for t, c in self._channels.items() if t.startswith(prefix)
+                )
             if ch is not None and not ch.has_sinks() and not watched:
                 continue  # nobody watches: the latest buffer just keeps the newest value
             value = sub.take_held()
@@ -221,6 +257,21 @@ class FoxgloveLive:
             self._next_stats = now + 1.0
             if self._stats_channel.has_sinks():
                 self._offer("/flowrt/stats", rt.stats(), time.time())
+
+    def _pump_audio(self, topic: str, sub: Subscription, ch: Any) -> None:
+        """Every block waiting, in order, when someone listens (else they are let go)."""
+        from ..edges import EMPTY
+
+        watched = ch.has_sinks()
+        while (value := sub.take_held()) is not EMPTY:
+            if not watched:
+                continue
+            with self._cond:
+                if len(self._queued) >= AUDIO_QUEUE:
+                    self.lost_audio += 1
+                    continue
+                self._queued.append((topic, value, value.timestamp + self._epoch))
+                self._cond.notify()
 
     def _offer(self, topic: str, value: Any, epoch_time: float) -> None:
         with self._cond:
@@ -240,12 +291,15 @@ class FoxgloveLive:
     def _send_loop(self) -> None:
         while True:
             with self._cond:
-                while not self._pending and not self._stopping:
+                while not self._pending and not self._queued and not self._stopping:
                     self._cond.wait()
                 if self._stopping:
                     return
-                topic = next(iter(self._pending))
-                value, epoch_time = self._pending.pop(topic)
+                if self._queued:
+                    topic, value, epoch_time = self._queued.popleft()
+                else:
+                    topic = next(iter(self._pending))
+                    value, epoch_time = self._pending.pop(topic)
             try:
                 self._send(topic, value, epoch_time)
             except Exception:  # a value that cannot be shown must not stop the others
@@ -257,21 +311,26 @@ class FoxgloveLive:
     def _send(self, topic: str, value: Any, epoch_time: float) -> None:
         ns = round(epoch_time * 1e9)
         if topic == "/flowrt/stats":
-            self._stats_channel.log(value.model_dump_json().encode(), log_time=ns)
+            data = encode_json(value, self._stats_schema).data
+            self._stats_channel.log(data, log_time=ns)
         elif topic == "/flowrt/events":
             body = {"kind": getattr(value, "kind", type(value).__name__), **to_jsonable(value)}
-            self._events_channel.log(json.dumps(body).encode(), log_time=ns)
-        elif isinstance(value, Frame):
-            enc = encode_frame(value, epoch_time, self.image_format)
-            self._channels[topic].log(enc.data, log_time=ns)
+            if isinstance(body.get("t"), float):
+                body["t"] = body["t"] + self._epoch  # Unix time, as every recorded time
+            self._events_channel.log(encode_json(body, self._events_schema).data, log_time=ns)
+        elif is_set(value):  # a sync set: its members on channels of their own (streams.py)
+            index, members = split_set(topic, value)
+            for sub, member in members:
+                self._send(sub, member, member.timestamp + self._epoch)
+            self._send(topic, index, epoch_time)
+            return
         else:
+            # the stream's one description (streams.py): the recorder's channel and bytes
+            d = self._book.description(topic, value)
             ch = self._channels.get(topic)
             if ch is None:  # a message channel is advertised with its first value's schema
-                self._schemas[topic] = schema_for(value)
-                ch = self._channels[topic] = self._channel(topic, self._schemas[topic])
-            # values' own timestamps as epoch ns too: one time base with the log times
-            data = encode_json(value, self._schemas[topic], self._epoch).data
-            ch.log(data, log_time=ns)
+                ch = self._channels[topic] = self._channel(topic, d.schema)
+            ch.log(self._book.encode(topic, value).data, log_time=ns)
             if is_detection(value):
                 self._draw(topic, value)
         self.sent += 1
@@ -308,7 +367,6 @@ def _stop_server(server: Any) -> None:
 def _json_schema(name: str) -> StreamSchema:
     """The statistics' schema from their model, events as an object of their common fields;
     both in the subset the apps read (flowrt.recording.jsonschema)."""
-    import json
 
     from ..stats import RuntimeStats
     from .jsonschema import app_schema

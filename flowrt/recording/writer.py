@@ -36,23 +36,14 @@ from typing import Any
 
 import numpy as np
 
-from ..audio import AudioBlock
 from ..frames import Frame
 from ..stats import Running
 from .directio import open_direct
-from .encoding import (
-    Encoded,
-    Overlay,
-    StreamSchema,
-    encode_annotations,
-    encode_audio,
-    encode_frame,
-    encode_json,
-    schema_for,
-)
+from .encoding import Encoded, StreamSchema
 from .gilfree import install
 from .ros2_profile import ros2_topic
 from .split import SplitPolicy, part_path
+from .streams import StreamBook
 
 __all__ = ["RecordingWriter", "StreamCounters", "count_written"]
 
@@ -539,30 +530,11 @@ def value_encoder(
     return _ValueEncoder(image_formats, epoch_offset, gil_free)
 
 
-class _ValueEncoder:
-    """A value to the bytes of its message: frames as images, audio, overlays, else JSON."""
+class _ValueEncoder(StreamBook):
+    """The writer's stream book (:mod:`.streams`): frames raw unless a topic says otherwise."""
 
     def __init__(self, image_formats: dict[str, str], epoch_offset: float, gil_free: bool) -> None:
-        self._formats = image_formats
-        self._offset = epoch_offset
-        self._gil_free = gil_free
-        self._json_schemas: dict[tuple[str, type], StreamSchema] = {}
-
-    def encode(self, topic: str, v: Any) -> Encoded:
-        if isinstance(v, Encoded):  # encoded by the recorder (a writer process's messages)
-            return v
-        if isinstance(v, Frame):
-            fmt = self._formats.get(topic, "raw")
-            return encode_frame(v, v.timestamp + self._offset, fmt, gil_free=self._gil_free)
-        if isinstance(v, AudioBlock):  # foxglove.RawAudio, its first sample's time
-            return encode_audio(v, v.timestamp + self._offset)
-        if isinstance(v, Overlay):  # stamped like the frame: the same float, the same offset
-            return encode_annotations(v.detection, v.detection.timestamp + self._offset)
-        key = (topic, type(v))
-        schema = self._json_schemas.get(key)
-        if schema is None:
-            schema = self._json_schemas[key] = schema_for(v)
-        return encode_json(v, schema, self._offset)
+        super().__init__(image_formats, epoch_offset, gil_free=gil_free)
 
 
 class _Channels:

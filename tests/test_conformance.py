@@ -1,0 +1,306 @@
+"""The conformance matrix (issue 38): every built-in stream crossed with every consumer.
+
+Rows: the streams of a graph per group of built-in kinds (:data:`MATRIX`), generated from the
+registry: every kind of the ``flowrt.nodes`` entry points must have a row (a graph that runs
+it with example params) or a written reason (:data:`NOT_A_SOURCE`), so a new kind without one
+fails here. Dynamic outputs (a ``can`` node's messages, a ``sync`` node's set) are rows too.
+
+Cells, each a test over every stream of a graph, with outside tools (tests/_conformance.py):
+
+- ``recorded``: ``flowrt record`` (one recording per graph, shared by the cells), read back
+  with the ``mcap`` reader; every JSON message valid against its own schema (``jsonschema``),
+  every JSON schema within the apps' ``parseJsonSchema`` rules, every protobuf message decoded
+  with the descriptors in the file; every output of the graph present.
+- ``live``: the graph served by ``FoxgloveLive`` (``raw`` images: the recording's channels)
+  and read by a ``foxglove.websocket.v1`` client: every recorded topic advertised with the
+  same schema name, encodings and schema; every live JSON message valid; audio as
+  ``foxglove.RawAudio`` with >= 95 % of its blocks.
+- ``replay``: the recording replayed into the same graph (``flowrt replay --graph``).
+- ``zenoh``: export and import over Zenoh, equal values: a hook (:func:`zenoh_cell`) for the
+  Zenoh work of issue 38 item 7.
+- ``ajv``: the JavaScript side, in tests/js/mcap_validate.mjs (``@mcap/core`` + ``ajv``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from _conformance import Channel, LiveClient, audio_times, blocks_delivered, read_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# graph -> the built-in kinds it is the example of (with their params in the file)
+MATRIX: dict[str, tuple[str, ...]] = {
+    "graphs/cambada.yaml": ("capture", "tracker"),
+    "graphs/can.yaml": ("can", "can-signals", "rtdb"),
+    "graphs/avsync.yaml": ("audio", "sync"),
+    "graphs/agent.yaml": (
+        "robot_sim",
+        "track_target",
+        "avoid_obstacles",
+        "follow_wall",
+        "arbiter",
+        "decision",
+    ),
+    "tests/graphs/matrix/basics.yaml": (
+        "counter",
+        "relay",
+        "burn",
+        "health",
+        "joystick",
+        "teleop",
+    ),
+}
+# kinds that publish no stream of their own: the reason each is no row
+NOT_A_SOURCE: dict[str, str] = {
+    "sink": "no outputs (it is in tests/graphs/matrix/basics.yaml)",
+    "display": "no outputs: a web view (in graphs/cambada.yaml; --no-display in the cells)",
+    "recorder": "no outputs: it is the recorded cell itself",
+    "replay": "its outputs are recorded streams: it is the replay cell itself",
+}
+GRAPHS = list(MATRIX)
+RECORD_SECONDS = "2"
+LIVE_SECONDS = 3.0
+AUDIO_BLOCK = 1024 / 48000  # graphs/avsync.yaml's mic
+
+
+def test_every_builtin_kind_has_a_row() -> None:
+    """A new kind fails here until it has a graph in MATRIX (or a reason)."""
+    from flowrt.registry import available_kinds
+
+    covered = {k for kinds in MATRIX.values() for k in kinds} | set(NOT_A_SOURCE)
+    missing = sorted(set(available_kinds()) - covered)
+    assert missing == [], f"built-in kinds without a conformance row: {missing}"
+    for graph, kinds in MATRIX.items():
+        text = (ROOT / graph).read_text()
+        for kind in kinds:
+            assert re.search(rf"kind: {re.escape(kind)}\b", text), (graph, kind)
+
+
+# --- one recording per graph ------------------------------------------------------------------
+
+_recordings: dict[str, Path] = {}
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    return _recordings
+
+
+def record(graph: str, recordings: dict[str, Path], tmp: Path) -> Path:
+    """The session folder of ``graph`` recorded for ``RECORD_SECONDS`` (once per module)."""
+    if graph not in recordings:
+        out = tmp / re.sub(r"\W", "_", graph)
+        stats = str(out) + ".stats.json"
+        r = _flowrt(
+            "record", graph, "-o", str(out), "--duration", RECORD_SECONDS, "--stats-json", stats
+        )
+        assert r.returncode == 0, r.stderr[-2000:]
+        (session,) = out.glob("rec_*")
+        recordings[graph] = session
+    return recordings[graph]
+
+
+def _flowrt(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "flowrt.cli", *args, "--no-ui", "--no-display"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=180,
+        env={**os.environ, "COLUMNS": "200"},
+    )
+
+
+@pytest.fixture(scope="module")
+def scratch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("matrix")
+
+
+def recorded(graph: str, recordings: dict[str, Path], scratch: Path) -> dict[str, Channel]:
+    session = record(graph, recordings, scratch)
+    (path,) = session.glob("*.mcap")
+    return read_recording(path)
+
+
+def _outputs(graph: str) -> list[str]:
+    """Every output of ``graph`` (declared and made by params), as ``node.port``."""
+    from flowrt.graph import Graph
+
+    g = Graph.from_file(ROOT / graph)
+    return [
+        f"{name}.{port}"
+        for name, n in g.nodes.items()
+        for port in {**n.cls.outputs, **n.cls.params_outputs(n.params)}
+    ]
+
+
+# --- the cells ---------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.parametrize("graph", GRAPHS)
+def test_recorded(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
+    channels = recorded(graph, recordings, scratch)
+    bad = {t: c.invalid for t, c in channels.items() if c.invalid}
+    assert bad == {}, bad
+    rules = {t: c.problems for t, c in channels.items() if c.problems}
+    assert rules == {}, rules
+    # every output that published is a stream of the recording (a set: its members too)
+    session = recordings[graph]
+    edges = json.loads(Path(str(session.parent) + ".stats.json").read_text())["edges"]
+    published = {
+        e["name"].split("->")[0]: e["published"] for e in edges if "->recorder." in e["name"]
+    }
+    assert set(published) >= set(_outputs(graph)) - {"recorder"}, "an output not recorded"
+    for out, n in published.items():
+        if n:
+            assert out in channels, f"{out} published {n} but is not in the recording"
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+@pytest.mark.parametrize("graph", GRAPHS)
+async def test_live(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
+    import flowrt
+    from flowrt.graph import Graph
+    from flowrt.recording.live import FoxgloveLive
+
+    channels = recorded(graph, recordings, scratch)
+    g = Graph.from_file(ROOT / graph)
+    for n in g.nodes.values():  # the web views on any free port
+        if getattr(n.cls, "listens", False):
+            n.params = n.params.model_validate({**n.params.model_dump(), "port": 0})
+    live = FoxgloveLive(port=0, image_format="raw")  # the recording's image channels
+    client = LiveClient("")
+    async with flowrt.Runtime(g, monitors=[live]):
+        client.url = f"ws://127.0.0.1:{live.port}/"
+        await client.run(LIVE_SECONDS)
+    assert client.subprotocol == "foxglove.websocket.v1"
+    seen = client.channels
+    missing = sorted(t for t in channels if t not in seen)
+    assert missing == [], f"recorded but not served live: {missing}"
+    for topic, rec in channels.items():
+        got = seen[topic]
+        same = (got.schema_name, got.schema_encoding, got.message_encoding)
+        assert same == (rec.schema_name, rec.schema_encoding, rec.message_encoding), topic
+        if rec.schema_encoding == "jsonschema":
+            assert json.loads(got.schema) == json.loads(rec.schema), topic
+        else:
+            assert got.schema == rec.schema, topic
+    bad = {t: c.invalid for t, c in seen.items() if c.invalid}
+    assert bad == {}, bad
+    rules = {t: c.problems for t, c in seen.items() if c.problems}
+    assert rules == {}, rules
+    for topic, ch in seen.items():
+        if ch.schema_name == "foxglove.RawAudio":
+            share = blocks_delivered(audio_times(ch.schema, client.arrivals[topic]), AUDIO_BLOCK)
+            assert share >= 0.95, f"{topic}: {share:.0%} of the audio blocks live"
+            assert len(client.arrivals[topic]) >= 0.5 * LIVE_SECONDS / AUDIO_BLOCK
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+@pytest.mark.parametrize("graph", GRAPHS)
+def test_replay(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
+    session = record(graph, recordings, scratch)
+    stats = scratch / ("replay_" + re.sub(r"\W", "_", graph) + ".json")
+    r = _flowrt(
+        "replay", str(session), "--graph", graph, "--duration", "2", "--stats-json", str(stats)
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "replaying" in r.stdout
+    nodes = {n["name"]: n for n in json.loads(stats.read_text())["nodes"]}
+    stood_in = [n for n, s in nodes.items() if s["kind"].startswith("replay-as-")]
+    assert stood_in, f"no source node replayed: {sorted(nodes)}"
+    for name in stood_in:
+        assert nodes[name]["completions"] > 0, name
+    failing = {n: s["reason"] for n, s in nodes.items() if s["state"] in ("error", "failed")}
+    assert failing == {}, failing
+
+
+def zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
+    """Export every stream of ``graph`` over Zenoh and import it back: equal values.
+
+    The hook for the Zenoh work of issue 38 (item 7, the "remote" engineer): fill in and the
+    cell below runs for every graph of the matrix.
+    """
+    pytest.skip("Zenoh export/import cell: not yet written (issue 38 item 7)")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("graph", GRAPHS)
+def test_zenoh(graph: str) -> None:
+    zenoh_cell(graph, {})
+
+
+@pytest.mark.slow
+@pytest.mark.node
+@pytest.mark.subprocess
+@pytest.mark.parametrize("graph", GRAPHS)
+def test_ajv(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
+    """The apps' own libraries: @mcap/core reads the file, ajv validates every JSON message."""
+    modules = os.environ.get("FLOWRT_NODE_MODULES")
+    node = shutil.which("node")
+    if not modules or node is None:
+        pytest.skip("needs Node.js and FLOWRT_NODE_MODULES with @mcap/core and ajv")
+    session = record(graph, recordings, scratch)
+    (path,) = session.glob("*.mcap")
+    script = Path(modules).parent / "mcap_validate.mjs"  # ES modules resolve beside them
+    shutil.copyfile(ROOT / "tests" / "js" / "mcap_validate.mjs", script)
+    r = subprocess.run([node, str(script), str(path)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = json.loads(r.stdout)
+    assert got["json_messages"] > 0
+    assert got["invalid"] == {}, got["invalid"]
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+async def test_a_replayed_sync_set_holds_its_frames(
+    recordings: dict[str, Path], scratch: Path
+) -> None:
+    """Issue 38 item 6: a set was recorded as repr strings; now its frames are streams of
+    their own and a replay of the set alone gives frames back, stamped on the replay's clock."""
+    import asyncio
+
+    import flowrt
+
+    session = record("graphs/avsync.yaml", recordings, scratch)
+    g = flowrt.GraphBuilder("sets")
+    g.add("rp", "replay", params={"path": str(session), "topics": ["pair.set"]})
+    async with flowrt.Runtime(g.build()) as rt:
+        value = await asyncio.wait_for(rt.subscribe("rp.message").get(), 20)
+        now = rt.clock.now()
+    assert isinstance(value["a"], flowrt.Frame)
+    assert isinstance(value["b"], flowrt.Frame)
+    assert value["a"].data.shape == (120, 160, 3)
+    assert 0 <= now - value["stamp"] < 5  # the replay's clock, not epoch nanoseconds
+    assert value["spread_ms"] <= 10
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_the_deterministic_log_validates_too(scratch: Path) -> None:
+    """Issue 38 item 5: ``/flowrt/det/activation`` held mixed tuples its schema refused."""
+    out = scratch / "deterministic"
+    r = _flowrt(
+        "record", "tests/graphs/matrix/basics.yaml", "--deterministic", "-o", str(out),
+        "--duration", "2",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    (path,) = out.glob("*/*.mcap")
+    channels = read_recording(path)
+    assert {"/flowrt/det/activation", "/flowrt/det/output"} <= set(channels)
+    bad = {t: c.invalid for t, c in channels.items() if c.invalid}
+    assert bad == {}, bad
+    rules = {t: c.problems for t, c in channels.items() if c.problems}
+    assert rules == {}, rules
