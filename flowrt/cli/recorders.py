@@ -7,6 +7,7 @@ producers are never dropped on.
 
 from __future__ import annotations
 
+import fnmatch
 from typing import Any
 
 RECORDER = "recorder"
@@ -37,3 +38,16 @@ def with_recorder(spec: Any, topics: list[str], params: dict[str, Any], size: in
         }
     )
     return spec.model_copy(update={"nodes": {**spec.nodes, name: node}})
+
+
+def split_patterns(text: str | None) -> list[str]:
+    return [p.strip() for p in (text or "").split(",") if p.strip()]
+
+
+def select_outputs(outputs: list[str], patterns: list[str]) -> tuple[list[str], list[str]]:
+    """(outputs matching any pattern, in graph order; the patterns that matched nothing)."""
+    if not patterns:
+        return outputs, []
+    chosen = [o for o in outputs if any(fnmatch.fnmatchcase(o, p) for p in patterns)]
+    unmatched = [p for p in patterns if not any(fnmatch.fnmatchcase(o, p) for o in outputs)]
+    return chosen, unmatched

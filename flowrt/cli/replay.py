@@ -1,0 +1,276 @@
+"""``flowrt replay PATH``: the recorded streams stand in for the graph's sources of the same
+names (``--graph``), or replay nodes publish them alone.
+
+Also where a path on the command line becomes its MCAP files (:func:`_files`), which
+``flowrt info`` shares.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from .common import (
+    EXIT_BAD_GRAPH,
+    EXIT_FAILED,
+    load,
+    printable,
+    stdout_console,
+)
+from .recorders import RECORDER, select_outputs, split_patterns
+from .run import run_graph
+
+
+def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
+    from ..recording.session import mcap_files
+
+    p = Path(path)
+    if not p.exists():
+        err.print(f"flowrt {cmd}: {path}: no such file or folder", markup=False)
+        return None
+    try:
+        files = mcap_files(p)
+    except ValueError as e:  # a rosbag2 folder flowrt cannot read (compressed): why
+        err.print(f"flowrt {cmd}: {e}", markup=False)
+        return None
+    if not files:
+        err.print(f"flowrt {cmd}: {path}: no .mcap file in this folder", markup=False)
+        return None
+    return files
+
+
+def _not_mcap(path: Path) -> bool:
+    """True for a file that is not MCAP; one cut inside its magic (killed at creation) is."""
+    from ..recording.rosbag2 import is_db3
+
+    if is_db3(path):  # a rosbag2 SQLite3 file: read through the same reader
+        return False
+    magic = b"\x89MCAP0\r\n"
+    with open(path, "rb") as f:
+        head = f.read(8)
+    return not magic.startswith(head) or (not head and path.suffix != ".mcap")
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    from ..graph import resolve
+    from ..recording.reader import scan_session
+
+    if args.deterministic:
+        from .deterministic import cmd_replay_deterministic
+
+        return cmd_replay_deterministic(args)
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
+    console = stdout_console()
+    if args.inline:
+        err.print("flowrt replay: --inline goes with --deterministic", markup=False)
+        return EXIT_BAD_GRAPH
+    if args.rate <= 0:
+        err.print("flowrt replay: --rate must be positive", markup=False)
+        return EXIT_BAD_GRAPH
+    files = _files(args.path, err, "replay")
+    if files is None:
+        return EXIT_BAD_GRAPH
+    for f in files:
+        if _not_mcap(f):
+            err.print(f"flowrt replay: {f}: not an MCAP file", markup=False)
+            return EXIT_BAD_GRAPH
+    path = Path(args.path)
+    info = scan_session(path)
+    if not info.messages:
+        why = info.damage or "no messages"
+        err.print(f"flowrt replay: {path}: nothing to replay ({why})", markup=False)
+        return EXIT_BAD_GRAPH
+    if not info.closed_cleanly:
+        _say_damage(info, path, err)
+    if args.start >= info.duration and info.duration > 0:
+        err.print(
+            f"flowrt replay: --start {args.start:g}s is past the end ({info.duration:.1f} s)",
+            markup=False,
+        )
+        return EXIT_BAD_GRAPH
+    streams = _chosen_streams(info, args.topics, err)
+    if streams is None:
+        return EXIT_BAD_GRAPH
+    left_out = _left_out(files, streams, err)
+    streams = [s for s in streams if s.topic not in left_out]
+    if not streams:
+        err.print(f"flowrt replay: {path}: nothing to replay (no stream decodes)", markup=False)
+        return EXIT_BAD_GRAPH
+    by_node: dict[str, list[str]] = {}
+    for s in streams:
+        by_node.setdefault((s.source or s.topic).split(".")[0], []).append(s.topic)
+
+    # absolute: a path on the command line is relative to the working directory, never to
+    # the graph file (the replay node resolves relative params against the graph's folder)
+    common = {
+        "path": str(path.resolve()),
+        "rate": args.rate,
+        "start": args.start,
+        "loop": args.loop,
+    }
+    graph = _replay_target(args, info, path, err)
+    if graph is _REFUSED:
+        return EXIT_BAD_GRAPH
+    built = _replay_spec(args, info, graph, by_node, common, err)
+    if built is None:
+        return EXIT_BAD_GRAPH
+    spec, kinds, into = built
+    try:
+        base = Path(args.graph).resolve().parent if args.graph else None
+        rgraph = resolve(spec, kinds=kinds, base_dir=base)
+    except Exception as e:
+        err.print(f"flowrt replay: {e}", markup=False)
+        return EXIT_BAD_GRAPH
+    parts = f", {len(files)} files" if len(files) > 1 else ""
+    console.print(
+        f"replaying {printable(str(path))} ({len(streams)} stream(s), "
+        f"{info.duration:.1f} s{parts}) at x{args.rate:g} into {printable(into)}",
+        highlight=False,
+        markup=False,
+    )
+    result = {"path": str(path), "streams": [s.topic for s in streams], "into": into}
+    code = run_graph(rgraph, args, err, prog="flowrt replay", kinds=kinds, result=result)
+    if not info.closed_cleanly or left_out:  # not everything asked for was replayed
+        return max(code, EXIT_FAILED)
+    return code
+
+
+def _replay_spec(
+    args: argparse.Namespace,
+    info: Any,
+    graph: Any,
+    by_node: dict[str, list[str]],
+    common: dict[str, Any],
+    err: Console,
+) -> tuple[Any, dict[str, Any], str] | None:  # the spec, the kinds it adds, what it replays into
+    """``--graph``'s graph with replay nodes for its sources, or replay nodes alone (None: no)."""
+    from ..registry import resolve_kind
+    from ..spec import GraphSpec, NodeSpec
+
+    kinds: dict[str, Any] = {}
+    replay_cls: Any = resolve_kind("replay")
+    if graph is not None:
+        graph_name = args.graph or "the recorded graph"
+        nodes = dict(graph.spec.nodes)
+        for name, nspec in graph.spec.nodes.items():
+            if nspec.kind == RECORDER or nspec.inputs or name not in by_node:
+                continue
+            kind = f"replay-as-{name}"
+            kinds[kind] = replay_cls.standing_in_for(graph.nodes[name].cls, name)
+            nodes[name] = NodeSpec(
+                kind=kind,
+                params={**common, "node": name, "topics": by_node[name]},
+                priority=nspec.priority,
+            )
+        if not kinds:
+            err.print(
+                f"flowrt replay: no source node of {graph_name} has recorded streams "
+                f"(recorded from: {', '.join(by_node)})",
+                markup=False,
+            )
+            return None
+        spec: Any = graph.spec.model_copy(update={"nodes": nodes})
+        replaced = sorted(k.removeprefix("replay-as-") for k in kinds)
+        into = f"{graph_name}, replacing its source node(s) {', '.join(replaced)}"
+    else:
+        # Only the recorded streams: node names and topics from the file are plain strings
+        # here; nothing the recording names is imported, served or sent to.
+        spec = GraphSpec(
+            name="replay",
+            nodes={
+                _safe_node_name(name): NodeSpec(kind="replay", params={**common, "topics": topics})
+                for name, topics in by_node.items()
+            },
+        )
+        into = "replay nodes publishing the recorded streams"
+        if info.graph:
+            err.print(
+                "flowrt replay: the recording holds a graph; it is not run (a recording is "
+                "data): give --graph FILE, or --trust-graph to run the recorded one",
+                markup=False,
+            )
+    return spec, kinds, into
+
+
+_REFUSED: Any = object()
+
+
+def _say_damage(info: Any, path: Path, err: Console) -> None:
+    """A session not closed cleanly replays up to its first damage, whichever file."""
+    before = 0
+    for part in info.files:
+        before += part.messages
+        if not part.closed_cleanly:
+            break
+    err.print(
+        f"flowrt replay: {path} was not closed cleanly ({info.damage}): "
+        f"replaying the {before} messages before the damage",
+        markup=False,
+    )
+
+
+def _left_out(files: list[Path], streams: list[Any], err: Console) -> dict[str, str]:
+    """The chosen streams no decoder reads, one line each on ``err``: left out of the replay."""
+    from ..recording.decoding import undecodable
+
+    left = undecodable(files, [s.topic for s in streams])
+    for topic, why in left.items():
+        err.print(
+            f"flowrt replay: {printable(topic)}: left out, cannot decode ({why})", markup=False
+        )
+    return left
+
+
+def _chosen_streams(info: Any, topics: Any, err: Console) -> list[Any] | None:
+    """The recorded streams to replay (``--topics``); None: refused, said on ``err``."""
+    from ..recording.encoding import ANNOTATIONS_SCHEMA
+
+    # annotations are drawn from the detections, which are replayed themselves
+    streams = [s for s in info.streams if s.schema_name != ANNOTATIONS_SCHEMA]
+    patterns = split_patterns(topics)
+    if not patterns:
+        return streams
+    names = [s.topic for s in streams]
+    chosen, unmatched = select_outputs(names, patterns)
+    if unmatched:
+        err.print(
+            f"flowrt replay: --topics {', '.join(map(repr, unmatched))} matches no "
+            f"recorded stream ({', '.join(names)})",
+            markup=False,
+        )
+        return None
+    return [s for s in streams if s.topic in chosen]
+
+
+def _replay_target(args: argparse.Namespace, info: Any, path: Path, err: Console) -> Any:
+    """The graph a replay runs: ``--graph``, the recorded one with ``--trust-graph``, or None
+    (the recorded streams alone). ``_REFUSED`` after one line on ``err``."""
+    from ..graph import Graph
+
+    if args.graph:
+        graph = load(args.graph, err)
+        return _REFUSED if graph is None else graph
+    if not args.trust_graph:
+        return None
+    if not info.graph:
+        err.print(f"flowrt replay: {path}: --trust-graph: no graph is recorded", markup=False)
+        return _REFUSED
+    try:
+        return Graph.from_text(info.graph, f"{path} (recorded graph)")
+    except Exception as e:  # a malformed stored graph: one line
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        err.print(
+            f"flowrt replay: the recorded graph is not valid: {printable(first)}", markup=False
+        )
+        return _REFUSED
+
+
+def _safe_node_name(name: str) -> str:
+    """A node name from a recording, made a valid identifier-like name (data, not code)."""
+    import re
+
+    clean = re.sub(r"[^A-Za-z0-9_]", "_", name)[:64] or "stream"
+    return clean if not clean[0].isdigit() else f"n{clean}"
