@@ -102,6 +102,7 @@ class Runtime:
         self.qos: OverloadController | None = None
         self._bridge: Any = None  # flowrt.remote.ZenohBridge when the graph spans machines
         self.started = False
+        self._starting: asyncio.Task[Any] | None = None  # the task in start(), while it runs
 
     @property
     def remote_session(self) -> Any:
@@ -124,8 +125,69 @@ class Runtime:
         await self.stop()
 
     async def start(self) -> None:
-        if self.started:
+        """Start workers and frames, set every node up, arm the triggers.
+
+        Cancelled (:meth:`interrupt` during set-up), it undoes what it did before the
+        ``CancelledError`` goes on: nodes torn down, workers ended, shared memory freed.
+        """
+        if self.started or self._starting is not None:
             return
+        self._starting = asyncio.current_task()
+        try:
+            await self._start()
+        except BaseException:
+            self._starting = None  # a second signal must not cancel the undoing
+            await self._abort_start()
+            raise
+        finally:
+            self._starting = None
+
+    async def _abort_start(self) -> None:
+        """What a failed or interrupted :meth:`start` leaves is undone, promptly."""
+        try:
+            if self._sched is not None:
+                await self._sched.abort()
+        finally:
+            was_started, self.started = self.started, False
+            if self.resources is not None:
+                await self.resources.stop_workers()
+                self.resources.close()
+            for m in self.monitors if was_started else ():
+                with contextlib.suppress(Exception):
+                    m.stopped(self)
+            if self._bridge is not None:
+                with contextlib.suppress(Exception):
+                    await self._bridge.close()
+                self._bridge = None
+            self._loop_share.restore()
+            gc.unfreeze()
+
+    def interrupt(self) -> str:
+        """A signal (Ctrl-C, SIGTERM, SIGHUP) arrived: act on it by phase, say what it cut.
+
+        During set-up the start is cancelled (:meth:`start` undoes it); while running the
+        run is asked to stop (the drain, then teardown); during the drain the drain is cut
+        short, what it leaves counted as dropped (reason ``interrupted``); during teardown
+        nothing more is done (teardown is bounded by each node's grace time). Call it on
+        the loop's thread; the words name the phase (and the nodes setting up).
+        """
+        sched = self._sched
+        if self._starting is not None:
+            self._starting.cancel()
+            if sched is None:
+                return "the start (starting the worker processes)"
+            waiting = [r.name for r in sched.runners.values() if r.state.value == "starting"]
+            return "set-up" + (f" (waiting for setup() of {', '.join(waiting)})" if waiting else "")
+        if not self.started or sched is None:
+            return "the start"
+        if not self._stop.is_set():
+            self.request_stop()
+            return "the run"
+        if sched.cut_drain():
+            return "the drain"
+        return "teardown"
+
+    async def _start(self) -> None:
         spec = self.graph.spec
         if spec.zenoh is not None or spec.exports or spec.imports:
             # First: a port in use or a bad endpoint fails here, before anything runs.
@@ -153,7 +215,7 @@ class Runtime:
         if any(n.spec.placement is not Placement.inline for n in self.graph.nodes.values()):
             from .workers import start_forkserver
 
-            await asyncio.to_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
+            await _in_daemon_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
         # Imported now, not at the first run-time change: an import on the loop at that moment
         # (tens of ms) would make the ticks around a `ctl timing` late.
         from .analysis import admission  # noqa: F401
@@ -465,3 +527,33 @@ def _freeze_heap() -> None:
     """
     gc.collect()
     gc.freeze()
+
+
+async def _in_daemon_thread(fn: Callable[[], None]) -> None:
+    """``fn`` in a daemon thread: unlike ``asyncio.to_thread``, an interrupted start does not
+    wait for it at the loop's close (starting the forkserver takes seconds on a busy
+    machine), and the process can exit while it runs."""
+    import threading
+
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[None] = loop.create_future()
+
+    def settle(exc: BaseException | None) -> None:
+        if done.done():
+            return
+        if exc is None:
+            done.set_result(None)
+        else:
+            done.set_exception(exc)
+
+    def target() -> None:
+        outcome: BaseException | None = None
+        try:
+            fn()
+        except BaseException as e:
+            outcome = e
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits any more
+            loop.call_soon_threadsafe(settle, outcome)
+
+    threading.Thread(target=target, name=fn.__name__, daemon=True).start()
+    await done

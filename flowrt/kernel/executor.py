@@ -45,7 +45,9 @@ class Executor(Protocol):
 
     def set_priority(self, priority: int) -> None: ...
 
-    async def stop(self) -> None: ...
+    async def stop(self, grace: float = 2.0) -> None:
+        """Tear the node down; a worker that does not exit within ``grace`` s is killed."""
+        ...
 
 
 class NoExecutor:
@@ -70,7 +72,7 @@ class NoExecutor:
     def set_priority(self, priority: int) -> None:
         pass
 
-    async def stop(self) -> None:
+    async def stop(self, grace: float = 2.0) -> None:
         pass
 
 
@@ -111,7 +113,7 @@ class InlineExecutor:
     def set_priority(self, priority: int) -> None:
         pass  # the loop's own priority: nothing to change per node
 
-    async def stop(self) -> None:
+    async def stop(self, grace: float = 2.0) -> None:
         node, self.node = self.node, None
         self.last_node = node
         if node is not None:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Mapping
 from typing import Any
 
 from ..clock import Handle, PeriodicTimer
@@ -36,6 +35,7 @@ from .counters import Counters, node_stats
 from .deadlines import DeadlineWatch
 from .executor import Executor, InlineExecutor, NoExecutor
 from .inputs import Inputs
+from .outputs import OutputCheck, OutputError
 from .pipeline import Pipeline
 from .ports import SchedulerPort
 from .state import RunState
@@ -97,6 +97,7 @@ class NodeRunner:
             p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
         }
         self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
+        self.out_check = OutputCheck(rnode, self.outputs)  # names and types, made once
         self.frame_key: str | None = None  # the frame clock this node is triggered by
         self.executor: Executor = NoExecutor()
         self.timer: PeriodicTimer | None = None
@@ -363,7 +364,17 @@ class NodeRunner:
         self.complete(act, result, self.sched.clock.now())
 
     def complete(self, act: Activation, result: Any, end: float) -> None:
-        """``act`` returned ``result`` at ``end``: count it, publish (or discard), close."""
+        """``act`` returned ``result`` at ``end``: count it, publish (or discard), close.
+
+        A result its outputs cannot carry (a port it does not have, a value of another type
+        than declared) is the node's failure, as if ``process`` had raised it."""
+        if result is not None:
+            try:
+                self.out_check.result(result)
+            except OutputError as e:
+                act.close()
+                self.supervisor.failed(e)
+                return
         c = self.counts
         c.completions += 1
         if self.supervisor.consecutive:
@@ -386,18 +397,13 @@ class NodeRunner:
         self.idle()
 
     def _publish_result(self, result: Any, t: float) -> None:
+        """Publish what :meth:`OutputCheck.result` accepted."""
         outs = self.outputs
         if len(outs) == 1:
             (port,) = outs
             self.publish(port, result, t)
             return
-        if not isinstance(result, Mapping):
-            raise TypeError(
-                f"{self.name}: a node with outputs {list(outs)} must return a mapping of them"
-            )
         for port, value in result.items():
-            if port not in outs:
-                raise TypeError(f"{self.name}: no output port {port!r}")
             if value is not None:
                 self.publish(port, value, t)
 

@@ -75,6 +75,8 @@ class Scheduler:
                 self.ticks.setdefault(key, 0)
         self.order: list[NodeRunner] = []
         self.resort()
+        # "setting up", "running", "draining", "tearing down": what a signal interrupts
+        self.stage = "setting up"
 
     def rel(self, t: float) -> float:
         """Seconds since the runtime's time origin."""
@@ -176,6 +178,7 @@ class Scheduler:
                 r.timer = self.clock.periodic(r.timing.timer, r.timing.timer_phase, r.release_timer)
             elif isinstance(r.rnode.trigger, LoopTrigger):
                 self.loop.call_soon(r.release, self.clock.now())
+        self.stage = "running"
 
     @property
     def drain_timeout(self) -> float:
@@ -185,9 +188,35 @@ class Scheduler:
         """See :meth:`flowrt.kernel.drain.Drain.run`."""
         return await self._drain.run(limit)
 
+    def cut_drain(self) -> bool:
+        """Cut a drain in progress short (a signal while draining): its leftovers are counted
+        as dropped, reason ``interrupted``. False when no drain is running."""
+        if self.stage != "draining":
+            return False
+        self._drain.cut = True
+        return True
+
+    async def abort(self, grace: float = 0.3) -> None:
+        """The set-up was interrupted: every node torn down at once, in parallel, its worker
+        killed if it does not exit within ``grace`` (a ``setup`` still running in it is not
+        waited for). Nothing has run yet, so there is nothing to drain."""
+        self.stage = "tearing down"
+        for r in self.runners.values():
+            r.stop_releasing()
+
+        async def one(r: NodeRunner) -> None:
+            try:
+                await asyncio.wait_for(r.executor.stop(grace), timeout=4 * grace + 1.0)
+            except Exception as e:
+                log.debug("node %s: stop at an interrupted set-up: %r", r.name, e)
+
+        await asyncio.gather(*(one(r) for r in self.runners.values()))
+
     async def stop(self, grace: float = 1.0) -> None:
         """Drain (bounded), stop releasing, cancel what still runs, tear every node down."""
+        self.stage = "draining"
         await self.drain()
+        self.stage = "tearing down"
         for r in self.runners.values():
             r.stop_releasing()
         pending = [
@@ -213,7 +242,7 @@ class Scheduler:
             try:
                 await asyncio.wait_for(r.executor.stop(), timeout=max(grace, 2.0))
             except Exception as e:
-                log.warning("node %s: teardown failed: %s", r.name, e)
+                r.supervisor.teardown_failed(e)
         for r in self.runners.values():
             r.supervisor.log.flush(self.clock.now())
 

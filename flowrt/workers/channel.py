@@ -124,9 +124,16 @@ class Worker:
             name=(WITH_MAIN if self.import_main else NO_MAIN) + self.name,
             daemon=True,
         )
+        started = asyncio.ensure_future(asyncio.to_thread(proc.start))
         try:
             # Blocking (talks to the forkserver, which may still be starting): off the loop.
-            await asyncio.to_thread(proc.start)
+            await asyncio.shield(started)
+        except asyncio.CancelledError:
+            # An interrupted set-up: the start goes on in its thread; the process it makes
+            # would be an orphan that ignores SIGTERM, so it is killed as soon as it exists.
+            parent.close()
+            started.add_done_callback(lambda f: _kill_started(proc, f))
+            raise
         except BaseException:
             parent.close()
             raise
@@ -426,6 +433,13 @@ class Worker:
             with contextlib.suppress(WorkerError, TimeoutError):
                 await asyncio.wait_for(self.request((OP_EXIT,), self.name, 1 << 30, grace), grace)
         await self.wait_exit(grace)
+
+
+def _kill_started(proc: Any, fut: asyncio.Future[Any]) -> None:
+    with contextlib.suppress(Exception):
+        fut.exception()  # seen: a start that failed has nothing to kill
+        if proc.pid is not None:
+            os.kill(proc.pid, signal.SIGKILL)
 
 
 def _retrieved(fut: asyncio.Future[Any]) -> None:
