@@ -176,9 +176,9 @@ class Runtime:
             self._starting.cancel()
             if sched is None:
                 return "the start (starting the worker processes)"
-            waiting = [r.name for r in sched.runners.values() if r.state.value == "starting"]
-            return "set-up" + (f" (waiting for setup() of {', '.join(waiting)})" if waiting else "")
-        if not self.started or sched is None:
+            waiting = sched.setting_up
+            return "set-up" + (f" (in setup() of {', '.join(waiting)})" if waiting else "")
+        if sched is None or sched.stage == "setting up":
             return "the start"
         if not self._stop.is_set():
             self.request_stop()

@@ -8,7 +8,6 @@ import contextlib
 import dataclasses
 import logging
 import os
-import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ from .common import (
     setup_logging,
     stdout_console,
 )
+from .signals import StopSignals
 
 
 def _warm_forkserver(path: str) -> None:
@@ -56,8 +56,11 @@ def _warm_forkserver(path: str) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from .. import _startup
+
     _warm_forkserver(args.file)
     err = Console(stderr=True)
+    _startup.phase = "loading the graph"
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
@@ -177,14 +180,20 @@ def run_graph(
         logging.getLogger("flowrt").info("foxglove: open %s in the Foxglove app", live.url)
         rt.monitors.append(live)
 
-    stop_signals = StopSignals(rt.request_stop)
+    stop_signals = StopSignals(rt.interrupt, prog)
     stop_signals.install()
 
     async def main() -> None:
         stop_signals.loop = asyncio.get_running_loop()
+        stop_signals.ran = True
+        if stop_signals.before_start is not None:
+            return  # a signal while loading: nothing starts
         try:
             async with rt, server or contextlib.nullcontext():
                 await _serve_run(rt, server, graph, args.duration)
+        except asyncio.CancelledError:
+            if stop_signals.in_setup is None:
+                raise  # not ours
         finally:
             stop_signals.loop = None
 
@@ -194,6 +203,8 @@ def run_graph(
         except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
             err.print(f"{prog}: {e}", markup=False, soft_wrap=True)
             return 1
+    if stop_signals.exit_code is not None:  # interrupted before the run: undone, no table
+        return stop_signals.exit_code
     if settle is not None:
         settle()
     stats = rt.stats()
@@ -249,58 +260,6 @@ def _verdict(failures: list[Any], err: Console, prog: str = "flowrt run") -> int
             soft_wrap=True,
         )
     return EXIT_FAILED if failures else EXIT_OK
-
-
-class StopSignals:
-    """SIGINT, SIGTERM and SIGHUP (terminal closed, ssh dropped) all stop a run in order.
-
-    The first one stops the runtime: every node torn down, workers stopped, shared memory
-    freed, the final table printed. A second one while that runs is noted and ignored, so
-    teardown finishes (it is bounded: each node's stop has a grace time, then its worker is
-    killed). A third forces the exit at once, with 128 + the signal's number; what it leaves
-    in /dev/shm is reclaimed at the next start.
-    """
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-    def __init__(self, stop: Callable[[], None]) -> None:
-        self.stop = stop
-        self.received: list[int] = []
-        self.loop: asyncio.AbstractEventLoop | None = None  # the run's loop, while it runs
-
-    def install(self) -> None:
-        """Plain ``signal.signal`` handlers, not the loop's: they also run while the loop is
-        blocked (an inline node's teardown that hangs), so a third signal can always force
-        the exit; and they stay until the process exits (the final table and the
-        interpreter's own clean-up come after the loop: a signal then killed it, rc -15)."""
-        for sig in self.SIGNALS:
-            signal.signal(sig, self._handler)
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        self(signum)
-
-    def __call__(self, sig: int) -> None:
-        self.received.append(sig)
-        if len(self.received) == 1:
-            loop = self.loop
-            if loop is not None and not loop.is_closed():
-                loop.call_soon_threadsafe(self.stop)  # wakes the loop; safe in a handler
-            else:
-                self.stop()  # before the loop runs: run() returns as soon as it starts
-        elif len(self.received) == 2:
-            _say(
-                f"flowrt run: {signal.Signals(sig).name}: still stopping (tearing the nodes "
-                "down); a third signal forces the exit"
-            )
-        else:
-            _say(f"flowrt run: {signal.Signals(sig).name}: forced exit")
-            os._exit(128 + sig)
-
-
-def _say(text: str) -> None:
-    """One line on stderr from a signal handler; a terminal that hung up is no error."""
-    with contextlib.suppress(OSError):
-        os.write(2, (text + "\n").encode())
 
 
 def _display_nodes(graph: Graph) -> list[str]:

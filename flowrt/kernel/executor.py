@@ -14,6 +14,12 @@ from typing import Any, Protocol
 
 from ..node import Node
 
+#: Seconds a node's ``setup()`` may take (README "Failures and exit codes"): in a worker the
+#: worker is then killed (``flowrt.workers.WorkerOptions.setup_timeout``), inline an async
+#: ``setup`` is cancelled; either is a failure at start-up. A synchronous inline ``setup``
+#: holds the loop and cannot be cut: keep it short, or make it async or ``placement: process``.
+SETUP_TIMEOUT_S = 60.0
+
 
 class Executor(Protocol):
     """Runs one node instance's ``setup``/``process``/``teardown`` somewhere.
@@ -94,7 +100,13 @@ class InlineExecutor:
         self.sync = not inspect.iscoroutinefunction(node.process)
         result = node.setup()
         if inspect.isawaitable(result):
-            await result
+            try:
+                await asyncio.wait_for(result, SETUP_TIMEOUT_S)
+            except TimeoutError:
+                raise TimeoutError(
+                    f"setup() did not return within {SETUP_TIMEOUT_S:g} s (the limit of a "
+                    "node's set-up)"
+                ) from None
 
     def call_sync(self, inputs: dict[str, Any]) -> Any:
         assert self.node is not None

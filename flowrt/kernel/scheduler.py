@@ -77,6 +77,7 @@ class Scheduler:
         self.resort()
         # "setting up", "running", "draining", "tearing down": what a signal interrupts
         self.stage = "setting up"
+        self.setting_up: list[str] = []  # nodes whose setup() runs now (what a signal cuts)
 
     def rel(self, t: float) -> float:
         """Seconds since the runtime's time origin."""
@@ -159,12 +160,15 @@ class Scheduler:
             r.state = RunState.starting
 
         async def start_one(r: NodeRunner) -> None:
+            self.setting_up.append(r.name)
             try:
                 await r.executor.start()
                 r.state = RunState.idle
             except Exception as e:
                 r.state = RunState.idle
                 r.supervisor.failed(e, starting=True)
+            finally:
+                self.setting_up.remove(r.name)
 
         inline = [r for r in self.runners.values() if r.rnode.spec.placement is Placement.inline]
         others = [
@@ -189,9 +193,10 @@ class Scheduler:
         return await self._drain.run(limit)
 
     def cut_drain(self) -> bool:
-        """Cut a drain in progress short (a signal while draining): its leftovers are counted
-        as dropped, reason ``interrupted``. False when no drain is running."""
-        if self.stage != "draining":
+        """Cut the drain short (a signal once the stop is asked for): in progress, or before
+        it begins; its leftovers are counted as dropped, reason ``interrupted``. False once
+        the teardown has begun."""
+        if self.stage not in ("running", "draining"):
             return False
         self._drain.cut = True
         return True

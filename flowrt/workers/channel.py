@@ -13,6 +13,7 @@ import pickle
 import select
 import signal
 import socket
+import threading
 import traceback
 from collections import deque
 from collections.abc import Callable
@@ -124,17 +125,15 @@ class Worker:
             name=(WITH_MAIN if self.import_main else NO_MAIN) + self.name,
             daemon=True,
         )
-        started = asyncio.ensure_future(asyncio.to_thread(proc.start))
+        abandoned = threading.Event()
         try:
-            # Blocking (talks to the forkserver, which may still be starting): off the loop.
-            await asyncio.shield(started)
-        except asyncio.CancelledError:
-            # An interrupted set-up: the start goes on in its thread; the process it makes
-            # would be an orphan that ignores SIGTERM, so it is killed as soon as it exists.
-            parent.close()
-            started.add_done_callback(lambda f: _kill_started(proc, f))
-            raise
+            # Blocking (talks to the forkserver, which may still be starting): off the loop,
+            # in a daemon thread that an interrupted set-up neither waits for nor leaks: the
+            # process it makes then is killed as soon as it exists (it ignores SIGTERM).
+            await _start_in_thread(proc, abandoned)
         except BaseException:
+            abandoned.set()
+            _kill_started(proc)
             parent.close()
             raise
         finally:
@@ -435,11 +434,33 @@ class Worker:
         await self.wait_exit(grace)
 
 
-def _kill_started(proc: Any, fut: asyncio.Future[Any]) -> None:
+def _kill_started(proc: Any) -> None:
     with contextlib.suppress(Exception):
-        fut.exception()  # seen: a start that failed has nothing to kill
         if proc.pid is not None:
             os.kill(proc.pid, signal.SIGKILL)
+
+
+async def _start_in_thread(proc: Any, abandoned: threading.Event) -> None:
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[None] = loop.create_future()
+
+    def settle(exc: BaseException | None) -> None:
+        if not done.done():
+            done.set_result(None) if exc is None else done.set_exception(exc)
+
+    def target() -> None:
+        outcome: BaseException | None = None
+        try:
+            proc.start()
+        except BaseException as e:
+            outcome = e
+        if abandoned.is_set():
+            _kill_started(proc)
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits any more
+            loop.call_soon_threadsafe(settle, outcome)
+
+    threading.Thread(target=target, name="worker-start", daemon=True).start()
+    await done
 
 
 def _retrieved(fut: asyncio.Future[Any]) -> None:
