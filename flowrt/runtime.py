@@ -162,30 +162,41 @@ class Runtime:
             self._loop_share.restore()
             gc.unfreeze()
 
-    def interrupt(self) -> str:
-        """A signal (Ctrl-C, SIGTERM, SIGHUP) arrived: act on it by phase, say what it cut.
-
-        During set-up the start is cancelled (:meth:`start` undoes it); while running the
-        run is asked to stop (the drain, then teardown); during the drain the drain is cut
-        short, what it leaves counted as dropped (reason ``interrupted``); during teardown
-        nothing more is done (teardown is bounded by each node's grace time). Call it on
-        the loop's thread; the words name the phase (and the nodes setting up).
-        """
+    def interruption(self) -> str:
+        """What a signal would interrupt now, in words: ``set-up (in setup() of cam)``,
+        ``the run``, ``the drain``, ``teardown``. Reads only: safe in a signal handler, which
+        says it at once even while the loop is held (an inline node's teardown)."""
         sched = self._sched
         if self._starting is not None:
-            self._starting.cancel()
             if sched is None:
-                return "the start (starting the worker processes)"
-            waiting = sched.setting_up
+                return "set-up (starting the worker processes)"
+            waiting = list(sched.setting_up)
             return "set-up" + (f" (in setup() of {', '.join(waiting)})" if waiting else "")
         if sched is None or sched.stage == "setting up":
             return "the start"
         if not self._stop.is_set():
-            self.request_stop()
             return "the run"
-        if sched.cut_drain():
+        if sched.stage in ("running", "draining") and not sched.drain_cut:
             return "the drain"
         return "teardown"
+
+    def interrupt(self) -> str:
+        """A signal (Ctrl-C, SIGTERM, SIGHUP) arrived: act on it by phase, say what it cut.
+
+        During set-up the start is cancelled (:meth:`start` undoes it); while running the
+        run is asked to stop (the drain, then teardown); once the stop is asked for the drain
+        is cut short, what it leaves counted as dropped (reason ``interrupted``); during
+        teardown nothing more is done (teardown is bounded by each node's grace time). Call
+        it on the loop's thread.
+        """
+        what = self.interruption()
+        if what.startswith("set-up") and self._starting is not None:
+            self._starting.cancel()
+        elif what == "the run":
+            self.request_stop()
+        elif what == "the drain" and self._sched is not None:
+            self._sched.cut_drain()
+        return what
 
     async def _start(self) -> None:
         spec = self.graph.spec

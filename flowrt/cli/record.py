@@ -13,7 +13,9 @@ The recorder and replay node classes are found through the node registry, like a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
+import errno
 import fnmatch
 import itertools
 from pathlib import Path
@@ -82,13 +84,21 @@ def _split_policy(args: argparse.Namespace) -> Any:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from ..graph import resolve
-    from ..recording import check_writable, new_session
-
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     graph = load(args.file, err)
     if graph is None:  # before the folder is made: a wrong path leaves nothing behind
         return EXIT_BAD_GRAPH
+    made = _missing_folders(Path(args.output))  # what a record that never starts removes
+    try:
+        return _record(args, graph, err)
+    finally:  # stopped before it began (a bad option, a taken port): nothing left behind
+        _remove_empty(made)
+
+
+def _record(args: argparse.Namespace, graph: Any, err: Console) -> int:
+    from ..graph import resolve
+    from ..recording import check_writable, new_session
+
     problem = check_writable(args.output)
     if problem is not None:
         err.print(f"flowrt record: {problem}", markup=False)
@@ -116,7 +126,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     try:
         session = new_session(args.output, args.name)
     except (ValueError, OSError) as e:
-        err.print(f"flowrt record: {e}", markup=False)
+        err.print(f"flowrt record: {_no_space(e)}", markup=False)
         return EXIT_BAD_GRAPH
     params = {
         # absolute: -o is relative to where the command runs, not to the graph file
@@ -140,27 +150,63 @@ def cmd_record(args: argparse.Namespace) -> int:
         base_dir = Path(args.file).resolve().parent
         rgraph = resolve(with_recorder(graph.spec, topics, params), base_dir=base_dir)
     except Exception as e:  # a recorder the graph cannot take: say so, leave no empty session
-        session.rmdir()
+        _remove_empty([session])
         err.print(f"flowrt record: {e}", markup=False)
         return EXIT_BAD_GRAPH
     rgraph.file = graph.file
     console = stdout_console()
-    console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
+
+    def started(run_console: Console) -> None:  # said once true: the recorder's file is open
+        run_console.print(
+            f"recording {len(topics)} stream(s) into {session}", highlight=False, soft_wrap=True
+        )
 
     def report(rt: Any) -> int:
         return _report(console, err, session)
 
     try:
         return run_graph(
-            rgraph, args, err, prog="flowrt record", settle=wait_for_writers, after=report
+            rgraph,
+            args,
+            err,
+            prog="flowrt record",
+            settle=wait_for_writers,
+            after=report,
+            started=started,
         )
-    finally:  # stopped before it began (a taken port, a bad option): no empty session left
-        if session.is_dir() and not any(session.iterdir()):
-            session.rmdir()
+    finally:  # stopped before it began (a taken port, a bad option): no empty session
+        _remove_empty([session])
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first."""
+    out: list[Path] = []
+    for p in [path, *path.absolute().parents]:
+        if p.exists():
+            break
+        out.append(p)
+    return out
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove each folder (deepest first) that exists and is empty: a record that never
+    started leaves nothing behind (issue 43 item 4)."""
+    for folder in folders:
+        with contextlib.suppress(OSError):
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+
+
+def _no_space(e: Exception) -> str:
+    if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"{e.filename or 'the output folder'}: no space left on device (the disk is full)"
+    return str(e)
 
 
 def _report(console: Console, err: Console, session: Path) -> int:
     """The per-stream table once the files are finished; exit 1 on any loss."""
+    if not session.is_dir():  # it never started (the reason is said): nothing to report
+        return EXIT_OK
     from ..recording import RecordingReport, report_table
     from ..recording.session import SESSION_FILE
 
@@ -168,7 +214,15 @@ def _report(console: Console, err: Console, session: Path) -> int:
     if not report_path.exists():
         err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
         return EXIT_FAILED
-    report = RecordingReport.model_validate_json(report_path.read_text())
+    try:
+        report = RecordingReport.model_validate_json(report_path.read_text())
+    except (OSError, ValueError) as e:  # a disk that filled up as it was written
+        err.print(
+            f"flowrt record: {session}: the recording's report is unreadable "
+            f"({_no_space(e) if isinstance(e, OSError) else 'not valid JSON'})",
+            markup=False,
+        )
+        return EXIT_FAILED
     console.print(report_table(report, console.width))
     if report.error:
         err.print(f"flowrt record: recording stopped early: {report.error}", markup=False)

@@ -111,6 +111,7 @@ def run_graph(
     settle: Callable[[], None] | None = None,
     after: Callable[[Any], int] | None = None,
     kinds: dict[str, Any] | None = None,
+    started: Callable[[Console], None] | None = None,
 ) -> int:
     """Run a loaded graph with every option of ``flowrt run`` (see :func:`add_run_options`).
 
@@ -119,6 +120,8 @@ def run_graph(
     with the runtime once it has stopped and the final table is printed; its exit code
     counts when it is worse than the run's own. ``settle`` runs first, before the final
     statistics are taken (a recorder's files finished, so its report is in them).
+    ``started`` is called with the run's console once every node is set up and none has
+    failed: what a command says only when it is true (``recording ... into ...``).
     """
     from ..runtime import Runtime
     from ..status import LiveTable, LogLines, render
@@ -180,7 +183,7 @@ def run_graph(
         logging.getLogger("flowrt").info("foxglove: open %s in the Foxglove app", live.url)
         rt.monitors.append(live)
 
-    stop_signals = StopSignals(rt.interrupt, prog)
+    stop_signals = StopSignals(rt.interruption, rt.interrupt, prog)
     stop_signals.install()
 
     async def main() -> None:
@@ -190,6 +193,8 @@ def run_graph(
             return  # a signal while loading: nothing starts
         try:
             async with rt, server or contextlib.nullcontext():
+                if started is not None and not rt.failures():
+                    started(console)
                 await _serve_run(rt, server, graph, args.duration)
         except asyncio.CancelledError:
             if stop_signals.in_setup is None:

@@ -34,8 +34,11 @@ class StopSignals:
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
-    def __init__(self, interrupt: Callable[[], str], prog: str = "flowrt run") -> None:
-        self.interrupt = interrupt  # Runtime.interrupt: acts by phase, says what it cut
+    def __init__(
+        self, phase: Callable[[], str], interrupt: Callable[[], str], prog: str = "flowrt run"
+    ) -> None:
+        self.phase = phase  # Runtime.interruption: what a signal cuts now (reads only)
+        self.interrupt = interrupt  # Runtime.interrupt: acts by phase, on the loop
         self.prog = prog
         self.received: list[int] = []
         self.loop: asyncio.AbstractEventLoop | None = None  # the run's loop, while it runs
@@ -57,6 +60,8 @@ class StopSignals:
         self(signum)
 
     def __call__(self, sig: int) -> None:
+        """Said at once, from the handler (the loop may be held by an inline teardown);
+        done on the loop (``call_soon_threadsafe`` is safe in a handler)."""
         self.received.append(sig)
         name = signal.Signals(sig).name
         if len(self.received) >= 3:
@@ -64,16 +69,17 @@ class StopSignals:
             os._exit(128 + sig)
         loop = self.loop
         if loop is not None and not loop.is_closed():
-            loop.call_soon_threadsafe(self._on_loop, sig)  # wakes the loop; safe in a handler
+            what = self.phase()
+            self._say_phase(name, sig, what)
+            if what != "teardown":
+                loop.call_soon_threadsafe(self.interrupt)
         elif not self.ran and self.before_start is None:
             self.before_start = sig  # the loop has not started: nothing will
             _say(f"{self.prog}: {name} before the start: exit {128 + sig}")
         else:
             _say(f"{self.prog}: {name}: still stopping; a third signal forces the exit")
 
-    def _on_loop(self, sig: int) -> None:
-        name = signal.Signals(sig).name
-        what = self.interrupt()
+    def _say_phase(self, name: str, sig: int, what: str) -> None:
         if what.startswith(("set-up", "the start")):
             if self.in_setup is None:
                 self.in_setup = sig

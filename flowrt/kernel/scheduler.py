@@ -192,6 +192,10 @@ class Scheduler:
         """See :meth:`flowrt.kernel.drain.Drain.run`."""
         return await self._drain.run(limit)
 
+    @property
+    def drain_cut(self) -> bool:
+        return self._drain.cut
+
     def cut_drain(self) -> bool:
         """Cut the drain short (a signal once the stop is asked for): in progress, or before
         it begins; its leftovers are counted as dropped, reason ``interrupted``. False once
