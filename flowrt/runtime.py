@@ -35,6 +35,7 @@ from .hotswap import SwapError as SwapError
 from .hotswap import reload as reload_node
 from .hotswap import set_params as set_node_params
 from .hotswap import swap as swap_node
+from .interruption import Interruptible, in_daemon_thread
 from .kernel import NodeRunner, Scheduler, Services
 from .loop_share import LoopShare
 from .node import Node
@@ -56,7 +57,7 @@ log = logging.getLogger("flowrt")
 T = TypeVar("T")
 
 
-class Runtime:
+class Runtime(Interruptible):
     """A graph, its scheduler and its resources, on the running event loop."""
 
     def __init__(
@@ -102,7 +103,6 @@ class Runtime:
         self.qos: OverloadController | None = None
         self._bridge: Any = None  # flowrt.remote.ZenohBridge when the graph spans machines
         self.started = False
-        self._starting: asyncio.Task[Any] | None = None  # the task in start(), while it runs
 
     @property
     def remote_session(self) -> Any:
@@ -123,80 +123,6 @@ class Runtime:
 
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
-
-    async def start(self) -> None:
-        """Start workers and frames, set every node up, arm the triggers.
-
-        Cancelled (:meth:`interrupt` during set-up), it undoes what it did before the
-        ``CancelledError`` goes on: nodes torn down, workers ended, shared memory freed.
-        """
-        if self.started or self._starting is not None:
-            return
-        self._starting = asyncio.current_task()
-        try:
-            await self._start()
-        except BaseException:
-            self._starting = None  # a second signal must not cancel the undoing
-            await self._abort_start()
-            raise
-        finally:
-            self._starting = None
-
-    async def _abort_start(self) -> None:
-        """What a failed or interrupted :meth:`start` leaves is undone, promptly."""
-        try:
-            if self._sched is not None:
-                await self._sched.abort()
-        finally:
-            was_started, self.started = self.started, False
-            if self.resources is not None:
-                await self.resources.stop_workers()
-                self.resources.close()
-            for m in self.monitors if was_started else ():
-                with contextlib.suppress(Exception):
-                    m.stopped(self)
-            if self._bridge is not None:
-                with contextlib.suppress(Exception):
-                    await self._bridge.close()
-                self._bridge = None
-            self._loop_share.restore()
-            gc.unfreeze()
-
-    def interruption(self) -> str:
-        """What a signal would interrupt now, in words: ``set-up (in setup() of cam)``,
-        ``the run``, ``the drain``, ``teardown``. Reads only: safe in a signal handler, which
-        says it at once even while the loop is held (an inline node's teardown)."""
-        sched = self._sched
-        if self._starting is not None:
-            if sched is None:
-                return "set-up (starting the worker processes)"
-            waiting = list(sched.setting_up)
-            return "set-up" + (f" (in setup() of {', '.join(waiting)})" if waiting else "")
-        if sched is None or sched.stage == "setting up":
-            return "the start"
-        if not self._stop.is_set():
-            return "the run"
-        if sched.stage in ("running", "draining") and not sched.drain_cut:
-            return "the drain"
-        return "teardown"
-
-    def interrupt(self) -> str:
-        """A signal (Ctrl-C, SIGTERM, SIGHUP) arrived: act on it by phase, say what it cut.
-
-        During set-up the start is cancelled (:meth:`start` undoes it); while running the
-        run is asked to stop (the drain, then teardown); once the stop is asked for the drain
-        is cut short, what it leaves counted as dropped (reason ``interrupted``); during
-        teardown nothing more is done (teardown is bounded by each node's grace time). Call
-        it on the loop's thread.
-        """
-        what = self.interruption()
-        if what.startswith("set-up") and self._starting is not None:
-            self._starting.cancel()
-        elif what == "the run":
-            self.request_stop()
-        elif what == "the drain" and self._sched is not None:
-            self._sched.cut_drain()
-        return what
 
     async def _start(self) -> None:
         spec = self.graph.spec
@@ -226,7 +152,7 @@ class Runtime:
         if any(n.spec.placement is not Placement.inline for n in self.graph.nodes.values()):
             from .workers import start_forkserver
 
-            await _in_daemon_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
+            await in_daemon_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
         # Imported now, not at the first run-time change: an import on the loop at that moment
         # (tens of ms) would make the ticks around a `ctl timing` late.
         from .analysis import admission  # noqa: F401
@@ -538,33 +464,3 @@ def _freeze_heap() -> None:
     """
     gc.collect()
     gc.freeze()
-
-
-async def _in_daemon_thread(fn: Callable[[], None]) -> None:
-    """``fn`` in a daemon thread: unlike ``asyncio.to_thread``, an interrupted start does not
-    wait for it at the loop's close (starting the forkserver takes seconds on a busy
-    machine), and the process can exit while it runs."""
-    import threading
-
-    loop = asyncio.get_running_loop()
-    done: asyncio.Future[None] = loop.create_future()
-
-    def settle(exc: BaseException | None) -> None:
-        if done.done():
-            return
-        if exc is None:
-            done.set_result(None)
-        else:
-            done.set_exception(exc)
-
-    def target() -> None:
-        outcome: BaseException | None = None
-        try:
-            fn()
-        except BaseException as e:
-            outcome = e
-        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits any more
-            loop.call_soon_threadsafe(settle, outcome)
-
-    threading.Thread(target=target, name=fn.__name__, daemon=True).start()
-    await done

@@ -55,6 +55,14 @@ class OutputCheck:
                 f"output {port!r} expects {self.names[port]}, got {type(value).__name__}"
             )
 
+    def problem(self, result: Any) -> OutputError | None:
+        """What is wrong with ``process``'s return value (see :meth:`result`), or None."""
+        try:
+            self.result(result)
+        except OutputError as e:
+            return e
+        return None
+
     def result(self, result: Any) -> None:
         """Raise :class:`OutputError` unless ``process``'s return value can be published.
 

@@ -35,7 +35,7 @@ from .counters import Counters, node_stats
 from .deadlines import DeadlineWatch
 from .executor import Executor, InlineExecutor, NoExecutor
 from .inputs import Inputs
-from .outputs import OutputCheck, OutputError
+from .outputs import OutputCheck
 from .pipeline import Pipeline
 from .ports import SchedulerPort
 from .state import RunState
@@ -364,17 +364,11 @@ class NodeRunner:
         self.complete(act, result, self.sched.clock.now())
 
     def complete(self, act: Activation, result: Any, end: float) -> None:
-        """``act`` returned ``result`` at ``end``: count it, publish (or discard), close.
-
-        A result its outputs cannot carry (a port it does not have, a value of another type
-        than declared) is the node's failure, as if ``process`` had raised it."""
-        if result is not None:
-            try:
-                self.out_check.result(result)
-            except OutputError as e:
-                act.close()
-                self.supervisor.failed(e)
-                return
+        """``act`` returned ``result`` at ``end``: count it, publish (or discard), close."""
+        if result is not None and (bad := self.out_check.problem(result)) is not None:
+            act.close()  # what its outputs cannot carry: the node's failure, as if raised
+            self.supervisor.failed(bad)
+            return
         c = self.counts
         c.completions += 1
         if self.supervisor.consecutive:
@@ -397,7 +391,6 @@ class NodeRunner:
         self.idle()
 
     def _publish_result(self, result: Any, t: float) -> None:
-        """Publish what :meth:`OutputCheck.result` accepted."""
         outs = self.outputs
         if len(outs) == 1:
             (port,) = outs
