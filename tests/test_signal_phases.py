@@ -213,3 +213,58 @@ def test_ctrl_c_in_a_slow_worker_setup_names_it(tmp_path: Path, start: object) -
     assert "never delivered" not in err
     assert took < LIMIT_S, f"exit took {took:.2f} s:\n{err}"
     _nothing_left(proc.pid)
+
+
+def test_kill_int_at_0_8_s_with_sigint_ignored_by_the_shell(tmp_path: Path) -> None:
+    """The regression of issue 37 item 4: ``flowrt run graphs/cambada.yaml &`` from a script
+    starts with SIGINT ignored (a non-interactive shell's background job); ``kill -INT`` at
+    0.8 s was lost until the run's own handlers came, and the run went on to its end, exit 0.
+    """
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), *sys.path])}
+    proc = subprocess.Popen(
+        [*FLOWRT, "run", str(_graph(tmp_path)), "--no-ui", "--duration", "30"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN),
+    )
+    try:
+        time.sleep(0.8)
+        code, err, took = _ended(proc, signal.SIGINT)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert code in (130, 0), err
+    assert "SIGINT" in err, err
+    assert took < LIMIT_S, f"exit took {took:.2f} s:\n{err}"
+    _nothing_left(proc.pid)
+
+
+def test_nohup_keeps_sighup_ignored(tmp_path: Path) -> None:
+    """``nohup flowrt run``: SIGHUP (the terminal closed) must not end the run."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), *sys.path])}
+    proc = subprocess.Popen(
+        [*FLOWRT, "run", str(_graph(tmp_path)), "--no-ui", "--duration", "30"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+        preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN),
+    )
+    try:
+        _wait_for(tmp_path / "sink.started", proc)
+        proc.send_signal(signal.SIGHUP)
+        time.sleep(1.0)
+        assert proc.poll() is None, "SIGHUP ended a run started under nohup"
+        code, err, _took = _ended(proc, signal.SIGTERM)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert code == 0, err
+    assert "SIGHUP" not in err
+    _nothing_left(proc.pid)
