@@ -205,8 +205,8 @@ def _no_space(e: Exception) -> str:
 
 def _report(console: Console, err: Console, session: Path) -> int:
     """The per-stream table once the files are finished; exit 1 on any loss."""
-    if not session.is_dir():  # it never started (the reason is said): nothing to report
-        return EXIT_OK
+    if not session.is_dir() or not any(session.iterdir()):  # it never started (the run's
+        return EXIT_OK  # verdict says why): nothing to report, and the folder goes
     from ..recording import RecordingReport, report_table
     from ..recording.session import SESSION_FILE
 
