@@ -34,10 +34,14 @@ MISTAKES = [
     ("SetupFails", "RuntimeError: cannot open the device", ("inline", "process")),
     ("AlwaysFails", "ValueError: boom", ("inline", "process")),
     ("WrongOutputName", "no output port 'scor' (its outputs: score, level)", ("inline", "process")),
-    ("WrongOutputType", "output 'score' expects float, got str", ("inline", "process")),
+    ("WrongOutputType", "output 'score' expects float, got str", ("inline", "process", "pool")),
     ("NotAMapping", "must return a mapping of them, not float", ("inline", "process")),
     ("PublishesWrongPort", "no output port 'nope'", ("inline",)),
-    ("TeardownFails", "teardown failed: OSError: cannot release the device", ("inline", "process")),
+    (
+        "TeardownFails",
+        "teardown failed: OSError: cannot release the device",
+        ("inline", "process", "pool"),
+    ),
 ]
 
 CASES = [
