@@ -5,7 +5,7 @@ Referenced from graph files as ``failkinds:Class`` (tests/ is on the path of the
 
 from __future__ import annotations
 
-from flowrt import FatalError, Node, Output
+from flowrt import FatalError, Input, Node, Output
 
 
 class AlwaysFails(Node):
@@ -99,3 +99,12 @@ class PublishesWrongPort(Node):
 
     def process(self) -> None:
         self.ctx.publish("nope", 1.0)
+
+
+class FailingSink(Node):
+    """A reader that fails at once: what its lossless edge holds will never be taken."""
+
+    value = Input(int)
+
+    def process(self, value: int) -> None:
+        raise ValueError("cannot write")

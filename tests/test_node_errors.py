@@ -134,3 +134,24 @@ def test_flowrt_run_exits_1_on_a_value_of_the_wrong_type(tmp_path: Path) -> None
     assert "node level failed" in r.stderr
     assert "output 'score' expects float, got str" in r.stderr
     assert "Traceback" not in r.stderr.split("given up")[-1]
+
+
+async def test_the_drain_does_not_wait_for_a_reader_that_failed() -> None:
+    """A producer held on a full lossless edge whose reader failed waited out the whole
+    drain (5 s of every ``flowrt record`` whose recorder could not start)."""
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("src", "counter", trigger={"timer": "10ms"})
+    g.add(
+        "sink",
+        failkinds.FailingSink,
+        inputs={"value": {"from": "src.value", "policy": "lossless", "size": 4}},
+        restart={"policy": "never"},
+    )
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(1.0)
+        assert rt.stats().node("sink").state == "failed"
+    alerts = [e for e in rt.events if isinstance(e, flowrt.HealthAlert)]
+    assert not [a for a in alerts if a.alert == "drain-timeout"], alerts
+    edge = next(e for e in rt.stats().edges if e.name.endswith("sink.value"))
+    assert edge.published == edge.delivered + edge.dropped

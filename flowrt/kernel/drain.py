@@ -97,6 +97,12 @@ class Drain:
         s = self._s
         left = []
         for r in s.runners.values():
+            if (
+                r.busy
+                and r.backpressure.blocked
+                and all(self._gone(buf) for buf, _, _ in r.backpressure.blocked)
+            ):
+                continue  # held for a reader that will take nothing more: counted at stop
             if r.busy:
                 left.append(
                     f"{r.name} waits on a full lossless edge"
@@ -116,6 +122,11 @@ class Drain:
             ):
                 left.append(f"{buf.name} holds {buf.pending()}")
         return left
+
+    def _gone(self, buf: Buffer) -> bool:
+        """The reader of ``buf`` failed or is disabled: it will take nothing more."""
+        reader = self._s.reader_of.get(id(buf))
+        return reader is not None and (reader.state is RunState.failed or not reader.timing.enabled)
 
     @staticmethod
     def _waits_for(r: NodeRunner) -> bool:
