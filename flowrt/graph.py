@@ -480,7 +480,13 @@ def _check_modes_and_qos(r: _Resolution) -> None:
                     classes[node].Params.model_validate(merged, context={PARAMS_BASE_DIR: base_dir})
                 except ValidationError as e:
                     at_params = (*path, "params")
-                    diags.extend(pydantic_diagnostics(e, locs, at_params, classes[node].Params))
+                    # A node whose own params are wrong is told so at the node: here only
+                    # what the mode sets (not the node's 'object' at the line of a mode that
+                    # sets 'min_area').
+                    only = None if node in r.params else set(o.params)
+                    diags.extend(
+                        pydantic_diagnostics(e, locs, at_params, classes[node].Params, only=only)
+                    )
     if spec.qos.overload is not None:
         for i, node in enumerate(spec.qos.overload.protect):
             if node not in names:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import types
 import typing
-from collections.abc import Iterable
+from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -379,15 +379,20 @@ def pydantic_diagnostics(
     locs: Locations,
     prefix: Path_ = (),
     model: type[BaseModel] = GraphSpec,
+    only: Collection[str] | None = None,
 ) -> list[Diagnostic]:
     """Turn pydantic's errors into located diagnostics, with 'did you mean' for unknown keys.
 
     ``model`` is the model that was validated and ``prefix`` where its data sits in the file
-    (a node's ``Params`` validated under ``("nodes", name, "params")``).
+    (a node's ``Params`` validated under ``("nodes", name, "params")``). ``only``: the
+    top-level fields whose errors are wanted (a mode's params merged into a node's: the
+    mode's own keys), None for all.
     """
     items: list[tuple[Path_, str]] = []
     suggested: set[Path_] = set()
     for err in exc.errors():
+        if only is not None and (not err["loc"] or str(err["loc"][0]) not in only):
+            continue
         rel, siblings = _walk(model, tuple(err["loc"]))
         path: Path_ = (*prefix, *rel)
         msg = err["msg"]

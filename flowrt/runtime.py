@@ -35,6 +35,7 @@ from .hotswap import SwapError as SwapError
 from .hotswap import reload as reload_node
 from .hotswap import set_params as set_node_params
 from .hotswap import swap as swap_node
+from .interruption import Interruptible, in_daemon_thread
 from .kernel import NodeRunner, Scheduler, Services
 from .loop_share import LoopShare
 from .node import Node
@@ -56,7 +57,7 @@ log = logging.getLogger("flowrt")
 T = TypeVar("T")
 
 
-class Runtime:
+class Runtime(Interruptible):
     """A graph, its scheduler and its resources, on the running event loop."""
 
     def __init__(
@@ -123,9 +124,7 @@ class Runtime:
     async def __aexit__(self, *exc: object) -> None:
         await self.stop()
 
-    async def start(self) -> None:
-        if self.started:
-            return
+    async def _start(self) -> None:
         spec = self.graph.spec
         if spec.zenoh is not None or spec.exports or spec.imports:
             # First: a port in use or a bad endpoint fails here, before anything runs.
@@ -153,7 +152,7 @@ class Runtime:
         if any(n.spec.placement is not Placement.inline for n in self.graph.nodes.values()):
             from .workers import start_forkserver
 
-            await asyncio.to_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
+            await in_daemon_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
         # Imported now, not at the first run-time change: an import on the loop at that moment
         # (tens of ms) would make the ticks around a `ctl timing` late.
         from .analysis import admission  # noqa: F401

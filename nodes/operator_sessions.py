@@ -210,8 +210,10 @@ class Sessions:
             t = float(request.query.get("t", "0"))
         except ValueError:
             raise web.HTTPBadRequest(text="t is seconds from the session's start\n") from None
-        if not math.isfinite(t):
-            raise web.HTTPBadRequest(text="t is seconds from the session's start\n")
+        if not math.isfinite(t) or abs(t) > MAX_T_S:  # 1e308 ns overflowed in the lookup
+            raise web.HTTPBadRequest(
+                text=f"t is seconds from the session's start, at most {MAX_T_S:g}\n"
+            )
         index = await self._index(path)
         stream = index.topics.get(topic)
         if stream is None or stream.schema_name not in IMAGE_SCHEMAS or not stream.times:
@@ -233,6 +235,8 @@ class Sessions:
 
 
 IMAGE_SCHEMAS = ("foxglove.RawImage", "foxglove.CompressedImage")
+#: The largest ``t`` of the frame API: about 31 years, far inside nanoseconds in an int64.
+MAX_T_S = 1e9
 
 
 def frame_jpeg(index: Any, topic: str, t: float) -> tuple[bytes, float, int]:

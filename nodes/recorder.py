@@ -55,6 +55,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import datetime as dt
+import errno
 import os
 import time
 from functools import partial
@@ -263,10 +264,25 @@ class Recorder(Node):
         """
         p = self.params
         session = Path(p.session) if p.session and not self.sessions else None
-        if session is not None:
-            session.mkdir(parents=True, exist_ok=True)
-        else:
-            session = new_session(p.path, self._prefix)
+        try:
+            made = session is None or not session.exists()
+            if session is not None:
+                session.mkdir(parents=True, exist_ok=True)
+            else:
+                session = new_session(p.path, self._prefix)
+        except OSError as e:
+            raise _cannot_start(e, session or Path(p.path)) from None
+        try:
+            self._open_in(session, stats)
+        except OSError as e:  # nothing half-made is left: a retry starts clean
+            with contextlib.suppress(OSError):
+                (session / f"{session.name}.mcap").unlink(missing_ok=True)
+                if made and not any(session.iterdir()):
+                    session.rmdir()
+            raise _cannot_start(e, session) from None
+
+    def _open_in(self, session: Path, stats: Any) -> None:
+        p = self.params
         self._started_wall = time.time()
         self._started_at = self.ctx.now()
         options: dict[str, Any] = {
@@ -367,7 +383,9 @@ class Recorder(Node):
         try:
             (session / SESSION_FILE).write_text(report.model_dump_json(indent=1))
         except OSError as e:
-            self.ctx.log.error("%s: %s not saved: %s", self.ctx.name, SESSION_FILE, e)
+            with contextlib.suppress(OSError):  # half a report reads as damage: none says
+                (session / SESSION_FILE).unlink(missing_ok=True)  # "did not finish", as it is
+            self.ctx.log.error("%s: %s not saved: %s", self.ctx.name, SESSION_FILE, _oserror(e))
         self.reports.append(report)
         if report.lost or report.error:
             text = report_text(report) if self.params.log_report else ""
@@ -569,3 +587,32 @@ class Recorder(Node):
         writer = getattr(self, "writer", None)
         if writer is not None:
             await self._close()
+
+
+class NoSpace(OSError):
+    """The disk is full: a recording cannot start (or go on) until space is freed, so a
+    restart cannot help (``fatal``: the recorder is given up with this one line, no
+    traceback; a second recording into the same full disk says the same, not the
+    ``FileExistsError`` of a half-made file)."""
+
+    fatal = True
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+_FULL = {errno.ENOSPC, errno.EDQUOT}
+
+
+def _oserror(e: OSError) -> str:
+    """An OSError in words, ENOSPC named: ``rec_001.mcap: no space left on device (ENOSPC)``."""
+    if e.errno in _FULL:
+        where = f"{e.filename}: " if e.filename else ""
+        return f"{where}no space left on device ({errno.errorcode[e.errno]})"
+    return str(e)
+
+
+def _cannot_start(e: OSError, where: Path) -> OSError:
+    if e.errno in _FULL or isinstance(e, NoSpace):
+        return NoSpace(f"cannot record into {where}: no space left on device (the disk is full)")
+    return e

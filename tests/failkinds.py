@@ -5,7 +5,7 @@ Referenced from graph files as ``failkinds:Class`` (tests/ is on the path of the
 
 from __future__ import annotations
 
-from flowrt import FatalError, Node, Output
+from flowrt import FatalError, Input, Node, Output
 
 
 class AlwaysFails(Node):
@@ -49,3 +49,62 @@ class GivesUp(Node):
 
     def process(self) -> int:
         raise FatalError("calibration file unusable")
+
+
+class TeardownFails(Node):
+    """Runs well, but ``teardown`` raises: the device it holds is not released."""
+
+    tick = Output(int)
+
+    def process(self) -> int:
+        return 1
+
+    def teardown(self) -> None:
+        raise OSError("cannot release the device")
+
+
+class WrongOutputName(Node):
+    """Returns a port it does not have (a typo: ``scor``)."""
+
+    score = Output(float)
+    level = Output(int)
+
+    def process(self) -> dict[str, float]:
+        return {"scor": 1.0}
+
+
+class WrongOutputType(Node):
+    """``score = Output(float)`` returning ``"high"``: the producer's error."""
+
+    score = Output(float)
+
+    def process(self) -> str:
+        return "high"
+
+
+class NotAMapping(Node):
+    """Two outputs, one bare value returned."""
+
+    score = Output(float)
+    level = Output(int)
+
+    def process(self) -> float:
+        return 0.5
+
+
+class PublishesWrongPort(Node):
+    """``ctx.publish`` on a port the node does not have."""
+
+    score = Output(float)
+
+    def process(self) -> None:
+        self.ctx.publish("nope", 1.0)
+
+
+class FailingSink(Node):
+    """A reader that fails at once: what its lossless edge holds will never be taken."""
+
+    value = Input(int)
+
+    def process(self, value: int) -> None:
+        raise ValueError("cannot write")

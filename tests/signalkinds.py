@@ -6,16 +6,18 @@ the nodes are running and when their teardown has begun or ended.
 
 from __future__ import annotations
 
+import asyncio
 import time
 from pathlib import Path
 
 from pydantic import BaseModel, ConfigDict
 
-from flowrt import Node, Output
+from flowrt import Input, Node, Output
 
 
 class Marked(Node):
-    """A counter that writes ``<name>.started``, ``<name>.teardown`` and ``<name>.done``."""
+    """A counter that writes ``<name>.started`` (set up), ``<name>.running`` (first
+    activation), ``<name>.teardown`` and ``<name>.done``."""
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -32,6 +34,8 @@ class Marked(Node):
         self._mark("started")
 
     def process(self) -> int:
+        if self.n == 0:  # every node is set up: the run runs (a signal now is a stop)
+            self._mark("running")
         self.n += 1
         return self.n
 
@@ -39,3 +43,39 @@ class Marked(Node):
         self._mark("teardown")
         time.sleep(self.params.teardown_s)
         self._mark("done")
+
+
+class SlowSink(Node):
+    """Takes ``delay_s`` per value and writes ``<name>.started`` at set-up: behind a fast
+    source on a lossless edge it holds a backlog that the drain at stop has to deliver."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        dir: str
+        delay_s: float = 0.02
+
+    value = Input(int)
+
+    def setup(self) -> None:
+        Path(self.params.dir, f"{self.ctx.name}.started").write_text(str(time.monotonic()))
+
+    async def process(self, value: int) -> None:
+        await asyncio.sleep(self.params.delay_s)
+
+
+class SlowSetup(Node):
+    """A worker node whose ``setup()`` takes ``setup_s`` (a camera that takes long to open)."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        dir: str
+        setup_s: float = 30.0
+
+    value = Output(int)
+
+    def setup(self) -> None:
+        Path(self.params.dir, f"{self.ctx.name}.setup").write_text(str(time.monotonic()))
+        time.sleep(self.params.setup_s)
+
+    def process(self) -> int:
+        return 1

@@ -5,6 +5,7 @@ on every run) against a copy whose ``ball_fr`` looks for another object."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -41,7 +42,9 @@ async def test_nodes_in_workers_replay_what_they_computed_inline(tmp_path: Path)
     assert report.compared == report.activations > 20
 
 
-KEYS = {"identical", "activations", "compared", "first_divergence", "wall_s", "recorded_s"}
+KEYS = {
+    "identical", "activations", "compared", "first_divergence", "wall_s", "recorded_s", "log_cut"
+}  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -111,6 +114,31 @@ def test_another_object_diverges_at_ball_fr_the_same_way_every_time(
     assert "diverged at ball_fr.detection seq 1" in r.stdout
     assert "recorded: " in r.stdout  # the recording holds ball_fr's detections
     assert '"object": "yellow_goal"' in r.stdout
+
+
+def test_a_cut_log_is_not_identical_and_says_how_much_was_compared(
+    session: Path, flowrt_cli: FlowrtCli, tmp_path: Path
+) -> None:
+    """A recording cut short (a killed run, a full disk) replayed with exit 0 and
+    "identical": what it lost was never compared (issue 37 item 10)."""
+    cut = tmp_path / session.name
+    shutil.copytree(session, cut)
+    mcap = next(cut.glob("*.mcap"))
+    data = mcap.read_bytes()
+    mcap.write_bytes(data[: len(data) * 2 // 3])
+    args = ("replay", str(cut), "--graph", "graphs/cambada.yaml", "--deterministic", "--check")
+    r = flowrt_cli(*args, "--json")
+    assert r.returncode == 1, r.stderr
+    result = json.loads(r.stdout)
+    assert result["identical"] is False
+    assert result["first_divergence"] is None
+    assert result["log_cut"]
+    assert result["compared"] > 0
+    r = flowrt_cli(*args)
+    assert r.returncode == 1
+    assert "not identical: the log was cut" in r.stdout
+    assert f"{result['compared']} outputs compared over the" in r.stdout
+    assert "identical: every" not in r.stdout
 
 
 @pytest.mark.parametrize(

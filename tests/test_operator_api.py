@@ -243,8 +243,11 @@ async def test_refusals(tmp_path: Path) -> None:
         async with http.get(f"{url}/api/sessions/ok_001/frame?topic=finder.detection") as r:
             assert r.status == 404
             assert "cam.frame" in await r.text()
-        async with http.get(f"{url}/api/sessions/ok_001/frame?topic=cam.frame&t=nan") as r:
-            assert r.status == 400
+        for t in ("nan", "1e308", "-1e308"):  # 1e308: 422 with a Python overflow message
+            async with http.get(f"{url}/api/sessions/ok_001/frame?topic=cam.frame&t={t}") as r:
+                assert r.status == 400, t
+                text = await r.text()
+                assert text.startswith("t is seconds from the session's start"), text
         async with http.get(f"{url}/api/health/history?seconds=-1") as r:
             assert r.status == 400
 

@@ -66,12 +66,16 @@ def _name_command(args: argparse.Namespace) -> None:
 
 
 def _main(argv: list[str]) -> int:
-    from .._startup import imports_done
+    import signal
+
+    from .. import _startup
 
     try:
-        imports_done()  # from here Ctrl-C is a KeyboardInterrupt, caught below
+        _startup.imports_done()  # from here a signal is a KeyboardInterrupt, caught below
+        _startup.phase = "reading the arguments"
         args = build_parser().parse_args(argv)
         _name_command(args)
+        _startup.phase = f"flowrt {args.command}"
         return int(args.func(args))
-    except KeyboardInterrupt:
-        return 130
+    except KeyboardInterrupt as e:  # one line naming the phase, exit 128 + N (130: Ctrl-C)
+        return _startup.say_interrupted(getattr(e, "signum", signal.SIGINT))

@@ -1,7 +1,8 @@
 """What every command shares: loading a graph with its diagnostics, exit codes, logging.
 
 Exit codes (documented in the README): 0 success, 1 a runtime failure (a node ended failed,
-the timing does not hold), 2 a bad graph file or bad arguments, 130 interrupted at start-up.
+the timing does not hold), 2 a bad graph file or bad arguments, 128 + N interrupted by signal N
+before the run ran (130 for Ctrl-C; :mod:`flowrt.cli.signals`).
 """
 
 from __future__ import annotations

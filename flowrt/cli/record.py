@@ -13,7 +13,9 @@ The recorder and replay node classes are found through the node registry, like a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime as dt
+import errno
 import fnmatch
 import itertools
 from pathlib import Path
@@ -72,13 +74,21 @@ def _split_policy(args: argparse.Namespace) -> Any:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
-    from ..graph import resolve
-    from ..recording import check_writable, new_session
-
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     graph = load(args.file, err)
     if graph is None:  # before the folder is made: a wrong path leaves nothing behind
         return EXIT_BAD_GRAPH
+    made = _missing_folders(Path(args.output))  # what a record that never starts removes
+    try:
+        return _record(args, graph, err)
+    finally:  # stopped before it began (a bad option, a taken port): nothing left behind
+        _remove_empty(made)
+
+
+def _record(args: argparse.Namespace, graph: Any, err: Console) -> int:
+    from ..graph import resolve
+    from ..recording import check_writable, new_session
+
     problem = check_writable(args.output)
     if problem is not None:
         err.print(f"flowrt record: {problem}", markup=False)
@@ -109,7 +119,7 @@ def cmd_record(args: argparse.Namespace) -> int:
     try:
         session = new_session(args.output, args.name)
     except (ValueError, OSError) as e:
-        err.print(f"flowrt record: {e}", markup=False)
+        err.print(f"flowrt record: {_no_space(e)}", markup=False)
         return EXIT_BAD_GRAPH
     params = {
         # absolute: -o is relative to where the command runs, not to the graph file
@@ -134,12 +144,16 @@ def cmd_record(args: argparse.Namespace) -> int:
         base_dir = Path(args.file).resolve().parent
         rgraph = resolve(with_recorder(graph.spec, topics, params), base_dir=base_dir)
     except Exception as e:  # a recorder the graph cannot take: say so, leave no empty session
-        session.rmdir()
+        _remove_empty([session])
         err.print(f"flowrt record: {e}", markup=False)
         return EXIT_BAD_GRAPH
     rgraph.file = graph.file
     console = stdout_console()
-    console.print(f"recording {len(topics)} stream(s) into {session}", highlight=False)
+
+    def started(run_console: Console) -> None:  # said once true: the recorder's file is open
+        run_console.print(
+            f"recording {len(topics)} stream(s) into {session}", highlight=False, soft_wrap=True
+        )
 
     result: dict[str, Any] = {"session": str(session)}
 
@@ -155,10 +169,35 @@ def cmd_record(args: argparse.Namespace) -> int:
             settle=wait_for_writers,
             after=report,
             result=result,
+            started=started,
         )
-    finally:  # stopped before it began (a taken port, a bad option): no empty session left
-        if session.is_dir() and not any(session.iterdir()):
-            session.rmdir()
+    finally:  # stopped before it began (a taken port, a bad option): no empty session
+        _remove_empty([session])
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first."""
+    out: list[Path] = []
+    for p in [path, *path.absolute().parents]:
+        if p.exists():
+            break
+        out.append(p)
+    return out
+
+
+def _remove_empty(folders: list[Path]) -> None:
+    """Remove each folder (deepest first) that exists and is empty: a record that never
+    started leaves nothing behind (issue 43 item 4)."""
+    for folder in folders:
+        with contextlib.suppress(OSError):
+            if folder.is_dir() and not any(folder.iterdir()):
+                folder.rmdir()
+
+
+def _no_space(e: Exception) -> str:
+    if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"{e.filename or 'the output folder'}: no space left on device (the disk is full)"
+    return str(e)
 
 
 def _report(
@@ -166,6 +205,8 @@ def _report(
 ) -> int:
     """The per-stream table once the files are finished; exit 1 on any loss. ``result``
     (the ``--json`` document) gets the report."""
+    if not session.is_dir() or not any(session.iterdir()):  # it never started (the run's
+        return EXIT_OK  # verdict says why): nothing to report, and the folder goes
     from ..recording import RecordingReport, report_table
     from ..recording.session import SESSION_FILE
 
@@ -173,7 +214,15 @@ def _report(
     if not report_path.exists():
         err.print(f"flowrt record: {session}: the recording did not finish", markup=False)
         return EXIT_FAILED
-    report = RecordingReport.model_validate_json(report_path.read_text())
+    try:
+        report = RecordingReport.model_validate_json(report_path.read_text())
+    except (OSError, ValueError) as e:  # a disk that filled up as it was written
+        err.print(
+            f"flowrt record: {session}: the recording's report is unreadable "
+            f"({_no_space(e) if isinstance(e, OSError) else 'not valid JSON'})",
+            markup=False,
+        )
+        return EXIT_FAILED
     if result is not None:
         result["recording"] = report.model_dump(mode="json")
     console.print(report_table(report, console.width))

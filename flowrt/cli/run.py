@@ -8,7 +8,6 @@ import contextlib
 import dataclasses
 import logging
 import os
-import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from .common import (
     setup_logging,
     stdout_console,
 )
+from .signals import StopSignals
 
 
 def _warm_forkserver(path: str) -> None:
@@ -57,8 +57,11 @@ def _warm_forkserver(path: str) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from .. import _startup
+
     _warm_forkserver(args.file)
     err = Console(stderr=True)
+    _startup.phase = "loading the graph"
     graph = load(args.file, err)
     if graph is None:
         return EXIT_BAD_GRAPH
@@ -111,6 +114,7 @@ def run_graph(
     kinds: dict[str, Any] | None = None,
     result: dict[str, Any] | None = None,
     measuring: bool = False,
+    started: Callable[[Console], None] | None = None,
 ) -> int:
     """Run a loaded graph with every option of ``flowrt run`` (see :func:`add_run_options`).
 
@@ -122,9 +126,11 @@ def run_graph(
     With ``--json`` the final statistics are the document, ``result`` (which ``after`` may
     fill in) beside them. ``measuring`` (``check --measure``): no start-up timing check and
     no table at the end; the check's own report follows.
+    ``started`` is called with the run's console once every node is set up and none has
+    failed: what a command says only when it is true (``recording ... into ...``).
     """
     from ..runtime import Runtime
-    from ..status import LiveTable, LogLines, render
+    from ..status import render
 
     console = stdout_console()
     as_json = getattr(args, "json", False)
@@ -164,6 +170,61 @@ def run_graph(
                 soft_wrap=True,
             )
             return EXIT_FAILED
+    if _add_monitors(rt, args, console, err, prog) is not None:
+        return EXIT_FAILED
+
+    stop_signals = StopSignals(rt.interruption, rt.interrupt, prog)
+    stop_signals.install()
+
+    async def main() -> None:
+        stop_signals.loop = asyncio.get_running_loop()
+        stop_signals.ran = True
+        if stop_signals.before_start is not None:
+            return  # a signal while loading: nothing starts
+        try:
+            async with rt, server or contextlib.nullcontext():
+                if started is not None and not rt.failures():
+                    started(console)
+                await _serve_run(rt, server, graph, args.duration)
+        except asyncio.CancelledError:
+            if stop_signals.in_setup is None:
+                raise  # not ours
+        finally:
+            stop_signals.loop = None
+
+    with asyncio.Runner(loop_factory=new_event_loop) as runner:
+        try:
+            runner.run(main())
+        except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
+            err.print(f"{prog}: {e}", markup=False, soft_wrap=True)
+            return 1
+    if stop_signals.exit_code is not None:  # interrupted before the run: undone, no table
+        return stop_signals.exit_code
+    if settle is not None:
+        settle()
+    stats = rt.stats()
+    with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
+        if not measuring:
+            console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
+    if args.stats_json:
+        Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
+        console.print(f"statistics written to {args.stats_json}")
+    code = _verdict(rt.failures(), err, prog)
+    code = code if after is None else max(code, after(rt))
+    if as_json:
+        from .json_output import emit
+
+        emit({**(result or {}), "exit_code": code, "stats": stats.model_dump(mode="json")})
+    return code
+
+
+def _add_monitors(
+    rt: Any, args: argparse.Namespace, console: Console, err: Console, prog: str
+) -> int | None:
+    """The run's monitors: the live table (or log lines) and the Foxglove server, started now
+    so that a taken port is one line before anything runs (EXIT_FAILED; None: all there)."""
+    from ..status import LiveTable, LogLines
+
     monitor: LogLines | LiveTable
     if args.no_ui:
         monitor = LogLines(args.log_every)
@@ -185,40 +246,7 @@ def run_graph(
             return EXIT_FAILED
         logging.getLogger("flowrt").info("foxglove: open %s in the Foxglove app", live.url)
         rt.monitors.append(live)
-
-    stop_signals = StopSignals(rt.request_stop)
-    stop_signals.install()
-
-    async def main() -> None:
-        stop_signals.loop = asyncio.get_running_loop()
-        try:
-            async with rt, server or contextlib.nullcontext():
-                await _serve_run(rt, server, graph, args.duration)
-        finally:
-            stop_signals.loop = None
-
-    with asyncio.Runner(loop_factory=new_event_loop) as runner:
-        try:
-            runner.run(main())
-        except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
-            err.print(f"{prog}: {e}", markup=False, soft_wrap=True)
-            return 1
-    if settle is not None:
-        settle()
-    stats = rt.stats()
-    with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
-        if not measuring:
-            console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
-    if args.stats_json:
-        Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
-        console.print(f"statistics written to {args.stats_json}")
-    code = _verdict(rt.failures(), err, prog)
-    code = code if after is None else max(code, after(rt))
-    if as_json:
-        from .json_output import emit
-
-        emit({**(result or {}), "exit_code": code, "stats": stats.model_dump(mode="json")})
-    return code
+    return None
 
 
 def startup_check(graph: Any) -> tuple[bool, list[str]]:
@@ -297,58 +325,6 @@ def _verdict(failures: list[Any], err: Console, prog: str = "flowrt run") -> int
             soft_wrap=True,
         )
     return EXIT_FAILED if failures else EXIT_OK
-
-
-class StopSignals:
-    """SIGINT, SIGTERM and SIGHUP (terminal closed, ssh dropped) all stop a run in order.
-
-    The first one stops the runtime: every node torn down, workers stopped, shared memory
-    freed, the final table printed. A second one while that runs is noted and ignored, so
-    teardown finishes (it is bounded: each node's stop has a grace time, then its worker is
-    killed). A third forces the exit at once, with 128 + the signal's number; what it leaves
-    in /dev/shm is reclaimed at the next start.
-    """
-
-    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-    def __init__(self, stop: Callable[[], None]) -> None:
-        self.stop = stop
-        self.received: list[int] = []
-        self.loop: asyncio.AbstractEventLoop | None = None  # the run's loop, while it runs
-
-    def install(self) -> None:
-        """Plain ``signal.signal`` handlers, not the loop's: they also run while the loop is
-        blocked (an inline node's teardown that hangs), so a third signal can always force
-        the exit; and they stay until the process exits (the final table and the
-        interpreter's own clean-up come after the loop: a signal then killed it, rc -15)."""
-        for sig in self.SIGNALS:
-            signal.signal(sig, self._handler)
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        self(signum)
-
-    def __call__(self, sig: int) -> None:
-        self.received.append(sig)
-        if len(self.received) == 1:
-            loop = self.loop
-            if loop is not None and not loop.is_closed():
-                loop.call_soon_threadsafe(self.stop)  # wakes the loop; safe in a handler
-            else:
-                self.stop()  # before the loop runs: run() returns as soon as it starts
-        elif len(self.received) == 2:
-            _say(
-                f"flowrt run: {signal.Signals(sig).name}: still stopping (tearing the nodes "
-                "down); a third signal forces the exit"
-            )
-        else:
-            _say(f"flowrt run: {signal.Signals(sig).name}: forced exit")
-            os._exit(128 + sig)
-
-
-def _say(text: str) -> None:
-    """One line on stderr from a signal handler; a terminal that hung up is no error."""
-    with contextlib.suppress(OSError):
-        os.write(2, (text + "\n").encode())
 
 
 def _display_nodes(graph: Graph) -> list[str]:

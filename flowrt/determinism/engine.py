@@ -519,7 +519,7 @@ def _report(self: ReplayEngine, wall_s: float) -> ReplayReport:
         for c in self.log.changes
     ]
     return ReplayReport(
-        identical=self.divergence is None,
+        identical=self.divergence is None and self.log.closed_cleanly,
         activations=self.activations,
         compared=self.compared,
         first_divergence=self.divergence,
@@ -528,6 +528,7 @@ def _report(self: ReplayEngine, wall_s: float) -> ReplayReport:
         nodes=nodes,
         changes=changes,
         stopped_early=self.stopped_early,
+        log_cut=None if self.log.closed_cleanly else (self.log.damage or "not closed"),
     )
 
 

@@ -3,7 +3,8 @@
 ``--json`` prints exactly :meth:`ReplayReport.summary`: ``identical``, ``activations`` (re-
 executed), ``compared`` (outputs whose digest was compared), ``first_divergence`` (``node``,
 ``port``, ``seq``, ``time`` in seconds since the run started, or null), ``wall_s`` and
-``recorded_s``. The per-node table and the values at the divergence are for people.
+``recorded_s``, and ``log_cut`` (why the log ends early, or null; then ``identical`` is false).
+The per-node table and the values at the divergence are for people.
 """
 
 from __future__ import annotations
@@ -47,6 +48,11 @@ class ReplayReport(BaseModel):
     nodes: list[NodeReplay] = Field(default_factory=list)
     changes: list[str] = Field(default_factory=list, description="recorded changes, as applied")
     stopped_early: bool = Field(default=False, description="stopped at the first divergence")
+    log_cut: str | None = Field(
+        default=None,
+        description="the log was not closed cleanly (a killed run, a full disk): what is wrong; "
+        "only what was recorded before it was compared, so the replay is not 'identical'",
+    )
 
     def summary(self) -> dict[str, Any]:
         """The ``--json`` object (its keys are the issue's, exactly)."""
@@ -60,6 +66,7 @@ class ReplayReport(BaseModel):
             else {"node": d.node, "port": d.port, "seq": d.seq, "time": d.time},
             "wall_s": round(self.wall_s, 3),
             "recorded_s": round(self.recorded_s, 3),
+            "log_cut": self.log_cut,
         }
 
 
@@ -88,7 +95,13 @@ def report_lines(report: ReplayReport) -> list[str]:
         f"in {report.wall_s:.2f} s ({report.recorded_s:.1f} s recorded, x{speed:.1f})"
     )
     d = report.first_divergence
-    if d is None:
+    if d is None and report.log_cut is not None:
+        lines.append(
+            f"not identical: the log was cut ({report.log_cut}); {report.compared} outputs "
+            f"compared over the {report.recorded_s:.1f} s recorded before the cut, what came "
+            "after it was never checked"
+        )
+    elif d is None:
         lines.append("identical: every compared output has its recorded digest")
     else:
         lines.append(

@@ -11,6 +11,7 @@ from ..frames import Frame
 from ..node import NodeContext
 from ..timing import Timing
 from .counters import Counters
+from .outputs import OutputCheck
 from .ports import SchedulerPort
 
 
@@ -26,6 +27,8 @@ class ContextRunner(Protocol):
     counts: Counters
 
     def new_frame(self, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame: ...
+
+    out_check: OutputCheck
 
     def publish(self, port: str, value: Any, t: float) -> None: ...
 
@@ -46,7 +49,11 @@ class RunnerContext(NodeContext):
         return self._runner.new_frame(shape, dtype, pixel_format)
 
     def publish(self, port: str, value: Any) -> None:
-        self._runner.publish(port, value, self._runner.sched.clock.now())
+        """Raises :class:`~flowrt.kernel.outputs.OutputError` (the node's failure, from its
+        ``process``) for a port it does not have or a value of another type than declared."""
+        runner = self._runner
+        runner.out_check.value(port, value)
+        runner.publish(port, value, runner.sched.clock.now())
 
     def emit(self, event: Event) -> None:
         """Publish a typed event (e.g. a HealthAlert) to the runtime's monitors."""

@@ -44,6 +44,7 @@ class Drain:
         self.timeout = timeout  # seconds the drain at stop may take (then reported)
         self.done = False
         self.left: list[str] = []  # what a timed-out drain left undone
+        self.cut = False  # cut short (a signal while draining): leftovers say "interrupted"
 
     async def run(self, limit: float | None = None) -> list[str]:
         """Stop the sources, then let the graph finish what it holds (at most ``limit`` s).
@@ -73,13 +74,17 @@ class Drain:
                     r.task.cancel()  # e.g. a capture waiting for its next frame
         while True:
             left = self.undrained()
-            if not left or loop.time() - t0 >= timeout:
+            if not left or loop.time() - t0 >= timeout or self.cut:
                 break
             for r in s.runners.values():
                 r.catch_up()
             await asyncio.sleep(0.002)
         self.left = left
-        if left:
+        if left and self.cut:
+            detail = "cut short by a signal: " + "; ".join(left)
+            log.warning("drain: %s", detail)
+            s.emit(HealthAlert(s.rel(s.clock.now()), None, "drain-interrupted", detail))
+        elif left:
             detail = f"not drained within {timeout:g} s: " + "; ".join(left)
             log.warning("drain: %s", detail)
             s.emit(HealthAlert(s.rel(s.clock.now()), None, "drain-timeout", detail))
@@ -92,6 +97,12 @@ class Drain:
         s = self._s
         left = []
         for r in s.runners.values():
+            if (
+                r.busy
+                and r.backpressure.blocked
+                and all(self._gone(buf) for buf, _, _ in r.backpressure.blocked)
+            ):
+                continue  # held for a reader that will take nothing more: counted at stop
             if r.busy:
                 left.append(
                     f"{r.name} waits on a full lossless edge"
@@ -112,6 +123,11 @@ class Drain:
                 left.append(f"{buf.name} holds {buf.pending()}")
         return left
 
+    def _gone(self, buf: Buffer) -> bool:
+        """The reader of ``buf`` failed or is disabled: it will take nothing more."""
+        reader = self._s.reader_of.get(id(buf))
+        return reader is not None and (reader.state is RunState.failed or not reader.timing.enabled)
+
     @staticmethod
     def _waits_for(r: NodeRunner) -> bool:
         """A restarting node the drain waits for: it has lossless values to deliver."""
@@ -120,7 +136,7 @@ class Drain:
     def discard_leftovers(self) -> None:
         """Count what a stop leaves undelivered on queue and lossless edges, with a reason."""
         s = self._s
-        late = "drain timeout" if self.left else "stop"
+        late = "interrupted" if self.cut and self.left else "drain timeout" if self.left else "stop"
         for r in s.runners.values():
             r.backpressure.abandon(late)
         for buf in s.buffers:

@@ -14,6 +14,12 @@ from typing import Any, Protocol
 
 from ..node import Node
 
+#: Seconds a node's ``setup()`` may take (README "Failures and exit codes"): in a worker the
+#: worker is then killed (``flowrt.workers.WorkerOptions.setup_timeout``), inline an async
+#: ``setup`` is cancelled; either is a failure at start-up. A synchronous inline ``setup``
+#: holds the loop and cannot be cut: keep it short, or make it async or ``placement: process``.
+SETUP_TIMEOUT_S = 60.0
+
 
 class Executor(Protocol):
     """Runs one node instance's ``setup``/``process``/``teardown`` somewhere.
@@ -45,7 +51,9 @@ class Executor(Protocol):
 
     def set_priority(self, priority: int) -> None: ...
 
-    async def stop(self) -> None: ...
+    async def stop(self, grace: float = 2.0) -> None:
+        """Tear the node down; a worker that does not exit within ``grace`` s is killed."""
+        ...
 
 
 class NoExecutor:
@@ -70,7 +78,7 @@ class NoExecutor:
     def set_priority(self, priority: int) -> None:
         pass
 
-    async def stop(self) -> None:
+    async def stop(self, grace: float = 2.0) -> None:
         pass
 
 
@@ -92,7 +100,13 @@ class InlineExecutor:
         self.sync = not inspect.iscoroutinefunction(node.process)
         result = node.setup()
         if inspect.isawaitable(result):
-            await result
+            try:
+                await asyncio.wait_for(result, SETUP_TIMEOUT_S)
+            except TimeoutError:
+                raise TimeoutError(
+                    f"setup() did not return within {SETUP_TIMEOUT_S:g} s (the limit of a "
+                    "node's set-up)"
+                ) from None
 
     def call_sync(self, inputs: dict[str, Any]) -> Any:
         assert self.node is not None
@@ -111,7 +125,7 @@ class InlineExecutor:
     def set_priority(self, priority: int) -> None:
         pass  # the loop's own priority: nothing to change per node
 
-    async def stop(self) -> None:
+    async def stop(self, grace: float = 2.0) -> None:
         node, self.node = self.node, None
         self.last_node = node
         if node is not None:

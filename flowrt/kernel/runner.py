@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Mapping
 from typing import Any
 
 from ..clock import Handle, PeriodicTimer
@@ -36,6 +35,7 @@ from .counters import Counters, node_stats
 from .deadlines import DeadlineWatch
 from .executor import Executor, InlineExecutor, NoExecutor
 from .inputs import Inputs
+from .outputs import OutputCheck
 from .pipeline import Pipeline
 from .ports import SchedulerPort
 from .state import RunState
@@ -97,6 +97,7 @@ class NodeRunner:
             p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
         }
         self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
+        self.out_check = OutputCheck(rnode, self.outputs)  # names and types, made once
         self.frame_key: str | None = None  # the frame clock this node is triggered by
         self.executor: Executor = NoExecutor()
         self.timer: PeriodicTimer | None = None
@@ -365,6 +366,10 @@ class NodeRunner:
 
     def complete(self, act: Activation, result: Any, end: float) -> None:
         """``act`` returned ``result`` at ``end``: count it, publish (or discard), close."""
+        if result is not None and (bad := self.out_check.problem(result)) is not None:
+            act.close()  # what its outputs cannot carry: the node's failure, as if raised
+            self.supervisor.failed(bad)
+            return
         c = self.counts
         c.completions += 1
         if self.supervisor.consecutive:
@@ -392,13 +397,7 @@ class NodeRunner:
             (port,) = outs
             self.publish(port, result, t)
             return
-        if not isinstance(result, Mapping):
-            raise TypeError(
-                f"{self.name}: a node with outputs {list(outs)} must return a mapping of them"
-            )
         for port, value in result.items():
-            if port not in outs:
-                raise TypeError(f"{self.name}: no output port {port!r}")
             if value is not None:
                 self.publish(port, value, t)
 

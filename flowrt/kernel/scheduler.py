@@ -75,6 +75,9 @@ class Scheduler:
                 self.ticks.setdefault(key, 0)
         self.order: list[NodeRunner] = []
         self.resort()
+        # "setting up", "running", "draining", "tearing down": what a signal interrupts
+        self.stage = "setting up"
+        self.setting_up: list[str] = []  # nodes whose setup() runs now (what a signal cuts)
 
     def rel(self, t: float) -> float:
         """Seconds since the runtime's time origin."""
@@ -157,12 +160,15 @@ class Scheduler:
             r.state = RunState.starting
 
         async def start_one(r: NodeRunner) -> None:
+            self.setting_up.append(r.name)
             try:
                 await r.executor.start()
                 r.state = RunState.idle
             except Exception as e:
                 r.state = RunState.idle
                 r.supervisor.failed(e, starting=True)
+            finally:
+                self.setting_up.remove(r.name)
 
         inline = [r for r in self.runners.values() if r.rnode.spec.placement is Placement.inline]
         others = [
@@ -176,6 +182,7 @@ class Scheduler:
                 r.timer = self.clock.periodic(r.timing.timer, r.timing.timer_phase, r.release_timer)
             elif isinstance(r.rnode.trigger, LoopTrigger):
                 self.loop.call_soon(r.release, self.clock.now())
+        self.stage = "running"
 
     @property
     def drain_timeout(self) -> float:
@@ -185,9 +192,40 @@ class Scheduler:
         """See :meth:`flowrt.kernel.drain.Drain.run`."""
         return await self._drain.run(limit)
 
+    @property
+    def drain_cut(self) -> bool:
+        return self._drain.cut
+
+    def cut_drain(self) -> bool:
+        """Cut the drain short (a signal once the stop is asked for): in progress, or before
+        it begins; its leftovers are counted as dropped, reason ``interrupted``. False once
+        the teardown has begun."""
+        if self.stage not in ("running", "draining"):
+            return False
+        self._drain.cut = True
+        return True
+
+    async def abort(self, grace: float = 0.3) -> None:
+        """The set-up was interrupted: every node torn down at once, in parallel, its worker
+        killed if it does not exit within ``grace`` (a ``setup`` still running in it is not
+        waited for). Nothing has run yet, so there is nothing to drain."""
+        self.stage = "tearing down"
+        for r in self.runners.values():
+            r.stop_releasing()
+
+        async def one(r: NodeRunner) -> None:
+            try:
+                await asyncio.wait_for(r.executor.stop(grace), timeout=4 * grace + 1.0)
+            except Exception as e:
+                log.debug("node %s: stop at an interrupted set-up: %r", r.name, e)
+
+        await asyncio.gather(*(one(r) for r in self.runners.values()))
+
     async def stop(self, grace: float = 1.0) -> None:
         """Drain (bounded), stop releasing, cancel what still runs, tear every node down."""
+        self.stage = "draining"
         await self.drain()
+        self.stage = "tearing down"
         for r in self.runners.values():
             r.stop_releasing()
         pending = [
@@ -213,7 +251,7 @@ class Scheduler:
             try:
                 await asyncio.wait_for(r.executor.stop(), timeout=max(grace, 2.0))
             except Exception as e:
-                log.warning("node %s: teardown failed: %s", r.name, e)
+                r.supervisor.teardown_failed(e)
         for r in self.runners.values():
             r.supervisor.log.flush(self.clock.now())
 

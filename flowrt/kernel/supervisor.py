@@ -89,7 +89,28 @@ class Supervisor:
         try:
             await self._r.executor.stop()
         except Exception as e:
-            log.warning("node %s: teardown failed: %s", self._r.name, e)
+            self.teardown_failed(e, final=False)
+
+    def teardown_failed(self, exc: BaseException, final: bool = True) -> None:
+        """``teardown`` raised (or did not return): the node's error, counted and logged with
+        its traceback. At the run's end (``final``) the node ends ``failed`` with that reason,
+        so the run exits 1: a device left unreleased is not a clean end."""
+        r = self._r
+        sched = r.sched
+        r.counts.errors += 1
+        if isinstance(exc, TimeoutError) and not str(exc):
+            error = "teardown did not return in time"
+        else:
+            error = getattr(exc, "summary", None) or f"{type(exc).__name__}: {exc}"
+        tb = getattr(exc, "traceback", None)
+        if not isinstance(tb, str):
+            tb = "".join(traceback.format_exception(exc))
+        now = sched.clock.now()
+        sched.emit(NodeFailed(sched.rel(now), r.name, f"teardown: {error}", tb))
+        log.error("node %s: teardown failed: %s\n%s", r.name, error, tb.rstrip())
+        if final and r.state is not RunState.failed:
+            r.state = RunState.failed
+            self.failed_reason = f"teardown failed: {failure_kind(error)}"
 
     async def _restart(self, backoff: float) -> None:
         r = self._r

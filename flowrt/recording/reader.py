@@ -155,8 +155,12 @@ def _describe(e: BaseException) -> str:
 
 
 # A recording is data from anywhere: a chunk is decompressed only up to the size it declares,
-# and never past this cap, so a 33 KB file cannot ask for gigabytes (a "chunk bomb").
-MAX_CHUNK_BYTES = int(os.environ.get("FLOWRT_MAX_CHUNK_BYTES", 512 * 1024 * 1024))
+# and never past this cap, so a 16 KB file cannot ask for gigabytes (a "chunk bomb"). The cap
+# sits near what writers produce: flowrt's writer and the mcap libraries close a chunk at
+# 1-4 MiB, and a message larger than that (a 4K BGR frame: 25 MB) is a chunk of its own; a
+# reader holds a chunk about three times over (compressed, inflated, its messages), so
+# 64 MiB keeps ``info`` and ``replay`` of any file under a few hundred MB.
+MAX_CHUNK_BYTES = int(os.environ.get("FLOWRT_MAX_CHUNK_BYTES", 64 * 1024 * 1024))
 
 
 class ChunkTooLarge(ValueError):
@@ -175,8 +179,9 @@ def chunk_data(chunk: Any, validate_crc: bool = True) -> bytes:
     declared = int(chunk.uncompressed_size)
     if declared > MAX_CHUNK_BYTES:
         raise ChunkTooLarge(
-            f"a chunk declares {declared} bytes, more than the {MAX_CHUNK_BYTES} a reader "
-            "holds (FLOWRT_MAX_CHUNK_BYTES)"
+            f"a chunk declares {_mib(declared)}, more than the {_mib(MAX_CHUNK_BYTES)} a "
+            "reader holds (writers make chunks of a few MiB; FLOWRT_MAX_CHUNK_BYTES raises "
+            "the cap for a file you trust)"
         )
     if chunk.compression == "zstd":
         data = _bounded_zstd(chunk.data, declared)
@@ -199,17 +204,29 @@ def chunk_data(chunk: Any, validate_crc: bool = True) -> bytes:
     return bytes(data)
 
 
-def _bounded_zstd(data: bytes, declared: int) -> bytes:
-    """At most ``declared + 1`` bytes out of a zstd stream, whatever its frames claim."""
+def _mib(n: int) -> str:
+    return f"{n / (1 << 20):.1f} MiB" if n >= 1 << 20 else f"{n} bytes"
+
+
+def _bounded_zstd(data: bytes, declared: int) -> bytes | bytearray:
+    """At most ``declared + 1`` bytes out of a zstd stream, whatever its frames claim.
+
+    Streamed into one buffer of that size (``readinto``): no intermediate copies, so the
+    peak is the declared size, never what the frames would inflate to.
+    """
     import zstandard
 
     reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(data))
-    out = reader.read(declared + 1)
-    while len(out) <= declared:
-        more = reader.read(declared + 1 - len(out))
-        if not more:
+    out = bytearray(declared + 1)
+    view = memoryview(out)
+    n = 0
+    while n <= declared:
+        got = reader.readinto(view[n:])
+        if not got:
             break
-        out += more
+        n += got
+    view.release()
+    del out[n:]
     return out
 
 

@@ -13,6 +13,7 @@ import pickle
 import select
 import signal
 import socket
+import threading
 import traceback
 from collections import deque
 from collections.abc import Callable
@@ -124,10 +125,15 @@ class Worker:
             name=(WITH_MAIN if self.import_main else NO_MAIN) + self.name,
             daemon=True,
         )
+        abandoned = threading.Event()
         try:
-            # Blocking (talks to the forkserver, which may still be starting): off the loop.
-            await asyncio.to_thread(proc.start)
+            # Blocking (talks to the forkserver, which may still be starting): off the loop,
+            # in a daemon thread that an interrupted set-up neither waits for nor leaks: the
+            # process it makes then is killed as soon as it exists (it ignores SIGTERM).
+            await _start_in_thread(proc, abandoned)
         except BaseException:
+            abandoned.set()
+            _kill_started(proc)
             parent.close()
             raise
         finally:
@@ -426,6 +432,35 @@ class Worker:
             with contextlib.suppress(WorkerError, TimeoutError):
                 await asyncio.wait_for(self.request((OP_EXIT,), self.name, 1 << 30, grace), grace)
         await self.wait_exit(grace)
+
+
+def _kill_started(proc: Any) -> None:
+    with contextlib.suppress(Exception):
+        if proc.pid is not None:
+            os.kill(proc.pid, signal.SIGKILL)
+
+
+async def _start_in_thread(proc: Any, abandoned: threading.Event) -> None:
+    loop = asyncio.get_running_loop()
+    done: asyncio.Future[None] = loop.create_future()
+
+    def settle(exc: BaseException | None) -> None:
+        if not done.done():
+            done.set_result(None) if exc is None else done.set_exception(exc)
+
+    def target() -> None:
+        outcome: BaseException | None = None
+        try:
+            proc.start()
+        except BaseException as e:
+            outcome = e
+        if abandoned.is_set():
+            _kill_started(proc)
+        with contextlib.suppress(RuntimeError):  # the loop closed: nobody waits any more
+            loop.call_soon_threadsafe(settle, outcome)
+
+    threading.Thread(target=target, name="worker-start", daemon=True).start()
+    await done
 
 
 def _retrieved(fut: asyncio.Future[Any]) -> None:

@@ -6,7 +6,6 @@ They implement the kernel's :class:`flowrt.kernel.Executor` directly.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import os
 from collections.abc import Callable
@@ -216,16 +215,24 @@ class ProcessExecutor(_NodeExecutor):
             if w is not None:
                 await w.wait_exit()  # a killed worker: let it go before its successor starts
             w = Worker(self.name, import_main=check_main_importable(self.name, self.factory))
+            self._worker = w  # from now on ``stop`` ends it, even in the middle of its set-up
             await w.spawn()
         await self._add_to(w)
 
     async def stop(self, grace: float = 2.0) -> None:
-        """Teardown in the worker, then join; kill after ``grace`` seconds. Never hangs."""
+        """Teardown in the worker, then join; kill after ``grace`` seconds. Never hangs.
+
+        A ``teardown`` that raised is raised here (a WorkerError of kind ``exception``), once
+        the worker is gone: it is the node's error, counted by its supervisor."""
         w, self._worker = self._worker, None
+        failure = None
         if w is not None:
+            failure = await _remove(w, self.nid, self.name, self.priority, grace)
             await w.stop(grace)
         if self.outputs is not None:
             self.outputs.reclaim(count=False)
+        if failure is not None:
+            raise failure
 
 
 class PoolExecutor:
@@ -321,13 +328,29 @@ class PoolNodeExecutor(_NodeExecutor):
     async def stop(self, grace: float = 2.0) -> None:
         """Tear this node down in its worker (the worker stays for the pool's other nodes)."""
         w, self._worker = self._worker, None
+        failure = None
         if w is not None and w.alive:
-            with contextlib.suppress(WorkerError, TimeoutError):
-                await asyncio.wait_for(
-                    w.request((OP_REMOVE, self.nid), self.name, self.priority, grace), grace
-                )
+            failure = await _remove(w, self.nid, self.name, self.priority, grace)
         if self.outputs is not None:
             self.outputs.reclaim(count=False)
+        if failure is not None:
+            raise failure
+
+
+async def _remove(
+    w: Worker, nid: int, name: str, priority: int, grace: float
+) -> WorkerError | None:
+    """Tear one node down in its worker: the error its ``teardown`` raised, else None (a
+    worker that died or does not answer within ``grace`` is its stop's business)."""
+    if not w.usable:
+        return None
+    try:
+        await asyncio.wait_for(w.request((OP_REMOVE, nid), name, priority, grace), grace)
+    except WorkerError as e:
+        return e if e.kind == "exception" else None
+    except TimeoutError:
+        return None
+    return None
 
 
 def _options(options: WorkerOptions | None, fields: dict[str, Any]) -> WorkerOptions:
