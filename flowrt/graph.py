@@ -432,8 +432,23 @@ def _resolve_triggers(r: _Resolution) -> None:
                     f"{', '.join(map(str, sorted(available)))}): {then}",
                     Severity.warning,
                 )
+        if ns.timing == "precise" and not isinstance(trig, TimerTrigger):
+            by = (
+                "its inputs"
+                if isinstance(trig, InputTrigger)
+                else "frames"
+                if isinstance(trig, FrameTrigger)
+                else "loop"
+            )
+            at(
+                ("nodes", name, "timing"),
+                "timing: precise applies to a timer-triggered node (trigger: {timer: ...}); "
+                f"this one is triggered by {by}",
+            )
         if ns.placement.value == "inline":
             for key in ("cpus", "spin"):
+                if key == "spin" and ns.timing == "precise":
+                    continue  # the release thread's spin (flowrt/kernel/precise.py)
                 if getattr(ns, key) is not None:
                     at(
                         ("nodes", name, key),

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..clock import Clock
+from ..clock import Clock, SystemClock
 from ..edges import Buffer, make_buffer
 from ..events import Event, TimingChanged
 from ..frames import Frame
@@ -172,10 +172,17 @@ class Scheduler:
         for r in inline:
             await start_one(r)
         for r in self.order:
-            if r.timing.timer is not None:
+            if r.timing.timer is not None and self._precise(r):
+                r.start_precise(_ms_s(r.rnode.spec.spin))
+            elif r.timing.timer is not None:
                 r.timer = self.clock.periodic(r.timing.timer, r.timing.timer_phase, r.release_timer)
             elif isinstance(r.rnode.trigger, LoopTrigger):
                 self.loop.call_soon(r.release, self.clock.now())
+
+    def _precise(self, r: NodeRunner) -> bool:
+        """``timing: precise`` on real time (virtual time has no instant to sleep to: the
+        clock's own timer releases the node there, by the same rules)."""
+        return r.rnode.spec.timing == "precise" and isinstance(self.clock, SystemClock)
 
     @property
     def drain_timeout(self) -> float:
@@ -190,6 +197,8 @@ class Scheduler:
         await self.drain()
         for r in self.runners.values():
             r.stop_releasing()
+        for r in self.runners.values():
+            await r.precise_stopped()  # a call in its thread ends before the teardown
         pending = [
             r.task for r in self.runners.values() if r.task is not None and not r.task.done()
         ]
@@ -279,6 +288,10 @@ class Scheduler:
             r.timer.reset(tm.timer, min(tm.timer_phase, tm.timer * 0.999))
         elif timer is not None:
             tm.timer = timer
+
+
+def _ms_s(ms: float | None) -> float:
+    return 0.0 if ms is None else ms / 1000
 
 
 def _ms(seconds: float | None) -> float | None:

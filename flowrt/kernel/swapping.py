@@ -43,6 +43,8 @@ class SwappedRunner(Protocol):
         self, rnode: ResolvedNode | None = None, reload: bool = False
     ) -> Executor: ...
 
+    def hold_releases(self, on: bool) -> None: ...
+
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -114,6 +116,19 @@ class Swapper:
         )
         new = r.make_executor(rnode, reload=reload)
         await new.start()  # raises: the old instance keeps running
+        r.hold_releases(True)  # a precise thread starts no call on the old instance
+        try:
+            old = await self._replace(new, rnode)
+        finally:
+            r.hold_releases(False)
+        try:
+            await old.stop()
+        except Exception as e:
+            log.warning("node %s: teardown of the replaced instance failed: %s", r.name, e)
+
+    async def _replace(self, new: Executor, rnode: ResolvedNode) -> Executor:
+        """Take over now, or inside idle() when the node is busy; the old executor."""
+        r = self._r
         if r.busy:
             # Take over inside idle(), before a loop or input trigger can release again.
             loop = asyncio.get_running_loop()
@@ -129,10 +144,7 @@ class Swapper:
                 ) from None
         else:
             old = self._take_over(new, rnode)
-        try:
-            await old.stop()
-        except Exception as e:
-            log.warning("node %s: teardown of the replaced instance failed: %s", r.name, e)
+        return old
 
     def _take_over(self, new: Executor, rnode: ResolvedNode) -> Executor:
         """The new instance replaces the old one (synchronously: between two activations)."""

@@ -1,0 +1,420 @@
+"""Precise release (``timing: precise``): a timer node released from a thread of its own.
+
+Why: the loop's timers (one timerfd per loop, :mod:`flowrt.clock`) wake the loop, and the
+loop wakes later than a thread sleeping to the instant, by whatever it was doing (an
+activation, a socket, a garbage collection): tens of microseconds idle, milliseconds under
+load. A node whose value is its instant (a CAN transmitter, a 1 kHz haptic loop) asks for a
+thread that sleeps to each release with an absolute ``clock_nanosleep`` (no drift, no
+accumulated latency), optionally spins the last ``spin`` of it, and then either
+
+- runs the activation there ("thread" mode: an inline node whose ``process`` is a plain
+  function, with no frame and no lossless edge: its inputs are taken and ``process`` is
+  called in the thread), the runner counting and publishing on the loop afterwards; or
+- hands the release to the loop ("loop" mode: a coroutine, a worker, frames, lossless
+  inputs, or a node whose calls turned out long), with the nominal release time kept.
+
+The cost, written where users read it (README, "Graph files / timing"): one thread per
+precise node; CPU for ``spin`` per release; while a precise thread runs, the interpreter's
+switch interval is lowered to :data:`SWITCH_INTERVAL` so that the thread gets the GIL within
+that of its instant when the loop is busy in Python (the default, 5 ms, would make it wait).
+
+Thread safety, what is shared and how:
+
+- the runner's fields, its counters, statistics, deadlines, supervisor and outputs: owned
+  by the loop. The thread never writes them: an activation's outcome (release, start, end,
+  result or exception) is handed over with ``call_soon_threadsafe``
+  (:meth:`NodeRunner.threaded_done`), and so is a release it could not run
+  (:meth:`NodeRunner.skipped_release`);
+- whether the thread may start a call: the runner's state (down: starting, backoff,
+  failed), its backpressure, and under :attr:`PreciseRelease.lock` the swap hold and
+  ``inflight``, the calls whose outcome the loop has not taken yet (the runner is busy
+  while there are any). The thread counts a call in when it starts it, the loop counts it
+  out (:meth:`PreciseRelease.landed`). The next call may start before the loop has taken
+  the previous outcome (the loop may be late: the thread is not), except after a call that
+  raised: then the thread waits until the loop has taken it (and the supervisor has put
+  the node in backoff), so a failed instance is never called again;
+- the node's input buffers: guarded by the same (re-entrant) lock on both sides
+  (:func:`guard`), since the thread takes from them while the loop's producers put;
+- the node instance: owned by the thread during a call; the loop never calls a
+  thread-mode node itself, and a swap or teardown waits for the call in flight;
+- ``ctx`` calls from the thread (publish, emit, set_error...): forwarded to the loop by
+  :class:`flowrt.kernel.context.RunnerContext`; ``ctx.new_frame`` is refused there;
+- the schedule (period, phase) and the stop flag: written by the loop under the lock,
+  read by the thread at each wake-up (at most :data:`SLICE` apart).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import ctypes
+import logging
+import math
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+from ..clock import next_release, spin_until
+from ..edges import Buffer, LosslessBuffer
+from ..graph import Graph
+from ..spec import Placement
+from ..timing import Timing
+from .backpressure import Backpressure
+from .executor import Executor
+from .inputs import Inputs
+from .state import RunState
+
+log = logging.getLogger("flowrt.scheduler")
+
+_DOWN = frozenset((RunState.starting, RunState.backoff, RunState.failed))
+SLICE = 0.05
+"""Longest single sleep (s): a stop or a new period is seen within this."""
+SWITCH_INTERVAL = 0.0001
+"""The interpreter's switch interval while a precise thread runs (``sys.setswitchinterval``)."""
+LONG_CALLS = 3
+"""Calls in a row longer than half the period after which a node leaves its thread."""
+
+
+class PreciseRunner(Protocol):
+    """What the release thread reads of its runner (the loop writes all of it)."""
+
+    name: str
+    timing: Timing
+    state: RunState
+    stopping: bool
+    executor: Executor
+    ins: Inputs
+    tick_ports: dict[str, str]
+    backpressure: Backpressure
+
+    def release_timer(self, t: float, missed: int) -> None: ...
+
+    def skipped_release(self, missed: int) -> None: ...
+
+    def threaded_done(
+        self,
+        t_release: float,
+        missed: int,
+        start: float,
+        end: float,
+        inputs: dict[str, Any] | None,
+        result: Any,
+        error: Exception | None,
+    ) -> None: ...
+
+
+# --- sleeping to an instant ---------------------------------------------------------------
+
+
+class _Timespec(ctypes.Structure):
+    _fields_ = [("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long)]
+
+
+_CLOCK_MONOTONIC = 1
+_TIMER_ABSTIME = 1
+
+
+def _libc_nanosleep() -> Callable[[float], None] | None:
+    """``clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)`` through ctypes (which releases the
+    GIL while it sleeps); None where there is none."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = libc.clock_nanosleep
+    except (OSError, AttributeError):
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(_Timespec), ctypes.c_void_p]
+
+    def sleep_until(when: float) -> None:
+        sec = math.floor(when)
+        ts = _Timespec(sec, min(999_999_999, round((when - sec) * 1e9)))
+        fn(_CLOCK_MONOTONIC, _TIMER_ABSTIME, ctypes.byref(ts), None)  # EINTR: woken early
+
+    return sleep_until
+
+
+def _relative_sleep(when: float) -> None:
+    delay = when - time.monotonic()
+    if delay > 0:
+        time.sleep(delay)
+
+
+def _sleeper() -> Callable[[float], None]:
+    native = getattr(time, "clock_nanosleep", None)  # not in CPython 3.11; kept if it comes
+    if native is not None:
+        clock = time.CLOCK_MONOTONIC
+        flags = getattr(time, "TIMER_ABSTIME", _TIMER_ABSTIME)
+        return lambda when: native(clock, flags, when)
+    return _libc_nanosleep() or _relative_sleep
+
+
+sleep_until: Callable[[float], None] = _sleeper()
+"""Sleep until ``when`` (monotonic seconds), absolute where the system allows (no drift)."""
+
+
+def due(next_t: float, period: float, now: float) -> tuple[float, int, float]:
+    """The release to serve at ``now`` (``>= next_t``), the releases passed unserved before
+    it, and the next one: a thread woken late serves the latest instant, never a burst."""
+    missed = max(0, math.floor((now - next_t) / period))
+    release = next_t + missed * period
+    return release, missed, release + period
+
+
+# --- which nodes run in the thread --------------------------------------------------------
+
+
+def why_not_thread(runner: PreciseRunner, graph: Graph) -> str | None:
+    """Why ``runner``'s activations are handed to the loop rather than run in its thread
+    (None: they run in the thread). Decided once the node is set up (``executor.sync``)."""
+    spec = graph.nodes[runner.name].spec
+    if spec.placement is not Placement.inline:
+        return f"placement {spec.placement.value}: its worker runs it"
+    if not runner.executor.sync:
+        return "its process is a coroutine: it runs on the loop"
+    if runner.tick_ports:
+        return "it publishes frames (the frame pool belongs to the loop)"
+    for e in graph.edges:
+        if e.dst != runner.name:
+            continue
+        src = graph.nodes.get(e.src)
+        if src is not None and e.src_port in src.cls.frame_ports():
+            return f"input {e.dst_port} carries frames (their links belong to the loop)"
+    if any(isinstance(b, LosslessBuffer) for b in runner.ins.buffers.values()):
+        return "a lossless input (its backlog is served from the loop)"
+    return None
+
+
+_GUARDED: dict[type[Buffer], type[Buffer]] = {}
+_GUARDED_METHODS = (
+    "put",
+    "take",
+    "take_new",
+    "pending",
+    "reader_skipped",
+    "clear",
+    "discard",
+    "abandon",
+    "stats",
+)
+
+
+def _guarded_class(cls: type[Buffer]) -> type[Buffer]:
+    g = _GUARDED.get(cls)
+    if g is None:
+        ns: dict[str, Any] = {}
+        for name in _GUARDED_METHODS:
+            base = getattr(cls, name, None)
+            if base is None:
+                continue
+
+            def method(self: Any, *args: Any, _base: Any = base) -> Any:
+                with self._guard:
+                    return _base(self, *args)
+
+            ns[name] = method
+        g = _GUARDED[cls] = type(f"Guarded{cls.__name__}", (cls,), ns)
+    return g
+
+
+def guard(buf: Buffer, lock: threading.RLock) -> None:
+    """Make ``buf``'s methods hold ``lock`` (the producer on the loop, the reader in the
+    thread). The same object: its producer keeps the reference it has."""
+    if not hasattr(buf, "_guard"):
+        buf._guard = lock  # type: ignore[attr-defined]
+        buf.__class__ = _guarded_class(type(buf))
+
+
+# --- the release thread -----------------------------------------------------------------
+
+_switch_users = 0
+_switch_saved = 0.005
+
+
+def _lower_switch_interval() -> None:
+    global _switch_users, _switch_saved
+    if _switch_users == 0:
+        _switch_saved = sys.getswitchinterval()
+        sys.setswitchinterval(min(_switch_saved, SWITCH_INTERVAL))
+    _switch_users += 1
+
+
+def _restore_switch_interval() -> None:
+    global _switch_users
+    _switch_users -= 1
+    if _switch_users == 0:
+        sys.setswitchinterval(_switch_saved)
+
+
+class PreciseRelease:
+    """The release thread of one ``timing: precise`` node (a :class:`PeriodicTimer`).
+
+    Invariants: ``inflight`` counts the calls started by the thread whose outcome the loop
+    has not taken, written under ``lock``; ``_after_error`` is true from a call that raised
+    to the loop taking it, and no call starts meanwhile; ``thread_mode`` is written by the
+    thread only (it leaves for the loop after :data:`LONG_CALLS` long calls, or a swap to a
+    coroutine, and never comes back).
+    """
+
+    def __init__(
+        self,
+        runner: PreciseRunner,
+        loop: asyncio.AbstractEventLoop,
+        origin: float,
+        period: float,
+        phase: float,
+        spin: float,
+        thread_mode: bool,
+    ) -> None:
+        self._r = runner
+        self._loop = loop
+        self._origin = origin
+        self.lock = threading.RLock()
+        self._period, self._phase, self._version = period, phase, 0
+        self.spin = spin
+        self.thread_mode = thread_mode
+        self.inflight = 0
+        self._after_error = False
+        self._held = False  # a swap is under way: no call starts
+        self._stopped = False
+        self._long = 0
+        self._exited: asyncio.Future[None] = loop.create_future()
+        if thread_mode:
+            for buf in runner.ins.buffers.values():
+                guard(buf, self.lock)
+        self._thread = threading.Thread(
+            target=self._main, name=f"flowrt-precise-{runner.name}", daemon=True
+        )
+        _lower_switch_interval()
+        self._thread.start()
+
+    # --- the loop's side --------------------------------------------------------------
+
+    def reset(self, period: float, phase: float) -> None:
+        """New period/phase from the next release on (``PeriodicTimer.reset``)."""
+        with self.lock:
+            self._period, self._phase = period, phase
+            self._version += 1
+
+    def cancel(self) -> None:
+        """No release after this; a call in flight still ends (await :meth:`stopped`)."""
+        with self.lock:
+            self._stopped = True
+
+    async def stopped(self) -> None:
+        """The thread has exited: nothing of it runs from now on (teardown may follow)."""
+        await asyncio.shield(self._exited)
+
+    def hold(self, on: bool) -> None:
+        """A swap is under way (on) or done (off): the thread starts no call meanwhile."""
+        with self.lock:
+            self._held = on
+
+    def landed(self) -> None:
+        """The loop has taken the outcome of the oldest call in flight."""
+        with self.lock:
+            self.inflight -= 1
+            self._after_error = False
+
+    # --- the thread -------------------------------------------------------------------
+
+    def _main(self) -> None:
+        try:
+            self._run()
+        except Exception:  # a bug here must not leave the node silently unreleased
+            log.exception("node %s: precise release thread failed", self._r.name)
+        finally:
+            self._post(self._exit)
+
+    def _exit(self) -> None:
+        _restore_switch_interval()
+        if not self._exited.done():
+            self._exited.set_result(None)
+
+    def _post(self, fn: Callable[..., None], *args: Any) -> bool:
+        try:
+            self._loop.call_soon_threadsafe(fn, *args)
+            return True
+        except RuntimeError:  # the loop is closed: nobody left to tell
+            return False
+
+    def _run(self) -> None:
+        version = -1
+        nxt = period = 0.0
+        now = time.monotonic
+        while True:
+            with self.lock:
+                if self._stopped:
+                    return
+                if version != self._version:
+                    version, period = self._version, self._period
+                    nxt, _ = next_release(self._origin, period, self._phase, now())
+            wake = nxt - self.spin
+            t = now()
+            if t < wake:
+                sleep_until(min(wake, t + SLICE))
+                continue
+            spin_until(nxt)
+            release, missed, nxt = due(nxt, period, now())
+            self.fire(release, missed)
+
+    def fire(self, release: float, missed: int) -> None:
+        """One release at its instant: run it here, or hand it to the loop."""
+        r = self._r
+        if self.thread_mode and not r.executor.sync:
+            self.thread_mode = False  # swapped for a coroutine: the loop runs it from now on
+        if not self.thread_mode:
+            self._post(r.release_timer, release, missed)
+            return
+        with self.lock:
+            go = (
+                not self._after_error
+                and not self._held
+                and not self._stopped
+                and r.state not in _DOWN
+                and not r.backpressure.blocked
+                and r.timing.enabled
+                and not r.stopping
+            )
+            if go:
+                self.inflight += 1
+        if go:
+            self._call(release, missed)
+        elif r.timing.enabled and not r.stopping:
+            self._post(r.skipped_release, missed)  # an overrun, or the node is down: counted
+
+    def _call(self, release: float, missed: int) -> None:
+        r = self._r
+        start = time.monotonic()
+        inputs: dict[str, Any] | None = None
+        result: Any = None
+        error: Exception | None = None
+        try:
+            inputs = r.ins.take()
+            if inputs is not None:
+                result = r.executor.call_sync(inputs)
+        except Exception as e:
+            error = e
+        end = time.monotonic()
+        with self.lock:
+            self._after_error = error is not None
+        if not self._post(r.threaded_done, release, missed, start, end, inputs, result, error):
+            return
+        with self.lock:
+            period = self._period
+        self._long = self._long + 1 if end - start > period / 2 else 0
+        if self._long >= LONG_CALLS:
+            self.thread_mode = False
+            self._post(_left_thread, r.name, (end - start) * 1000, period * 1000)
+
+
+def _left_thread(name: str, took_ms: float, period_ms: float) -> None:
+    log.warning(
+        "node %s: %d calls in a row took more than half its %g ms period (last %.2f ms): "
+        "released to the loop from now on (timing: precise runs short calls in its thread)",
+        name,
+        LONG_CALLS,
+        period_ms,
+        took_ms,
+    )
