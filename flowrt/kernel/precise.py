@@ -23,16 +23,17 @@ Thread safety, what is shared and how:
 - the runner's fields, its counters, statistics, deadlines, supervisor and outputs: owned
   by the loop. The thread never writes them: an activation's outcome (release, start, end,
   result or exception) is handed over with ``call_soon_threadsafe``
-  (:meth:`NodeRunner.threaded_done`), and so is a release it could not run
-  (:meth:`NodeRunner.skipped_release`);
-- whether the thread may start a call: the runner's state (down: starting, backoff,
-  failed), its backpressure, and under :attr:`PreciseRelease.lock` the swap hold and
-  ``inflight``, the calls whose outcome the loop has not taken yet (the runner is busy
-  while there are any). The thread counts a call in when it starts it, the loop counts it
-  out (:meth:`PreciseRelease.landed`). The next call may start before the loop has taken
-  the previous outcome (the loop may be late: the thread is not), except after a call that
-  raised: then the thread waits until the loop has taken it (and the supervisor has put
-  the node in backoff), so a failed instance is never called again;
+  (:meth:`PreciseNodeRunner.threaded_done`), and so is a release it could not run
+  (:meth:`PreciseNodeRunner.skipped_release`);
+- whether the thread may start a call: the runner's state (down: starting, backoff, failed),
+  its backpressure, a swap under way (``Swapper.swapping``: the swap sets it then reads
+  ``busy``, the thread counts its call in then reads it: one sees the other), and under
+  :attr:`PreciseRelease.lock` ``inflight``, the calls whose outcome the loop has not taken
+  yet (the runner is busy while there are any). The thread counts a call in when it starts
+  it, the loop counts it out (:meth:`PreciseRelease.landed`). The next call may start before
+  the loop has taken the previous outcome (the loop may be late: the thread is not), except
+  after a call that raised: then the thread waits until the loop has taken it (and the
+  supervisor has put the node in backoff), so a failed instance is never called again;
 - the node's input buffers: guarded by the same (re-entrant) lock on both sides
   (:func:`guard`), since the thread takes from them while the loop's producers put;
 - the node instance: owned by the thread during a call; the loop never calls a
@@ -53,16 +54,13 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 from ..clock import next_release, spin_until
 from ..edges import Buffer, LosslessBuffer
 from ..graph import Graph
 from ..spec import Placement
-from ..timing import Timing
-from .backpressure import Backpressure
-from .executor import Executor
-from .inputs import Inputs
+from .runner import NodeRunner
 from .state import RunState
 
 log = logging.getLogger("flowrt.scheduler")
@@ -74,34 +72,6 @@ SWITCH_INTERVAL = 0.0001
 """The interpreter's switch interval while a precise thread runs (``sys.setswitchinterval``)."""
 LONG_CALLS = 3
 """Calls in a row longer than half the period after which a node leaves its thread."""
-
-
-class PreciseRunner(Protocol):
-    """What the release thread reads of its runner (the loop writes all of it)."""
-
-    name: str
-    timing: Timing
-    state: RunState
-    stopping: bool
-    executor: Executor
-    ins: Inputs
-    tick_ports: dict[str, str]
-    backpressure: Backpressure
-
-    def release_timer(self, t: float, missed: int) -> None: ...
-
-    def skipped_release(self, missed: int) -> None: ...
-
-    def threaded_done(
-        self,
-        t_release: float,
-        missed: int,
-        start: float,
-        end: float,
-        inputs: dict[str, Any] | None,
-        result: Any,
-        error: Exception | None,
-    ) -> None: ...
 
 
 # --- sleeping to an instant ---------------------------------------------------------------
@@ -165,7 +135,7 @@ def due(next_t: float, period: float, now: float) -> tuple[float, int, float]:
 # --- which nodes run in the thread --------------------------------------------------------
 
 
-def why_not_thread(runner: PreciseRunner, graph: Graph) -> str | None:
+def why_not_thread(runner: NodeRunner, graph: Graph) -> str | None:
     """Why ``runner``'s activations are handed to the loop rather than run in its thread
     (None: they run in the thread). Decided once the node is set up (``executor.sync``)."""
     spec = graph.nodes[runner.name].spec
@@ -259,7 +229,7 @@ class PreciseRelease:
 
     def __init__(
         self,
-        runner: PreciseRunner,
+        runner: PreciseNodeRunner,
         loop: asyncio.AbstractEventLoop,
         origin: float,
         period: float,
@@ -276,7 +246,6 @@ class PreciseRelease:
         self.thread_mode = thread_mode
         self.inflight = 0
         self._after_error = False
-        self._held = False  # a swap is under way: no call starts
         self._stopped = False
         self._long = 0
         self._exited: asyncio.Future[None] = loop.create_future()
@@ -286,6 +255,9 @@ class PreciseRelease:
         self._thread = threading.Thread(
             target=self._main, name=f"flowrt-precise-{runner.name}", daemon=True
         )
+
+    def start(self) -> None:
+        """Start the thread (apart from construction: the release logic is tested without)."""
         _lower_switch_interval()
         self._thread.start()
 
@@ -304,12 +276,8 @@ class PreciseRelease:
 
     async def stopped(self) -> None:
         """The thread has exited: nothing of it runs from now on (teardown may follow)."""
-        await asyncio.shield(self._exited)
-
-    def hold(self, on: bool) -> None:
-        """A swap is under way (on) or done (off): the thread starts no call meanwhile."""
-        with self.lock:
-            self._held = on
+        if self._thread.ident is not None:  # started
+            await asyncio.shield(self._exited)
 
     def landed(self) -> None:
         """The loop has taken the outcome of the oldest call in flight."""
@@ -370,7 +338,6 @@ class PreciseRelease:
         with self.lock:
             go = (
                 not self._after_error
-                and not self._held
                 and not self._stopped
                 and r.state not in _DOWN
                 and not r.backpressure.blocked
@@ -379,6 +346,10 @@ class PreciseRelease:
             )
             if go:
                 self.inflight += 1
+        if go and r.swapper.swapping:  # counted in first: the swap saw it busy, or we see it
+            with self.lock:
+                self.inflight -= 1
+            go = False
         if go:
             self._call(release, missed)
         elif r.timing.enabled and not r.stopping:
@@ -418,3 +389,86 @@ def _left_thread(name: str, took_ms: float, period_ms: float) -> None:
         period_ms,
         took_ms,
     )
+
+
+class PreciseNodeRunner(NodeRunner):
+    """The runner of a ``timing: precise`` node: busy while its thread has calls in flight,
+    and the loop's side of what the thread hands over. On virtual time it has no thread and
+    is released by the clock's own timer, as any timer node."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.precise: PreciseRelease | None = None
+
+    @property
+    def busy(self) -> bool:
+        """An activation is running here or in the release thread (or values wait)."""
+        return self._busy or (self.precise is not None and self.precise.inflight > 0)
+
+    @busy.setter
+    def busy(self, value: bool) -> None:
+        NodeRunner.busy.fset(self, value)  # type: ignore[attr-defined]
+
+    def start_precise(self, spin: float, thread: bool = True) -> PreciseRelease:
+        """Release from a thread of its own; ``thread=False``: the release logic without its
+        thread (tests call ``fire``)."""
+        tm = self.timing
+        assert tm.timer is not None
+        why = why_not_thread(self, self.sched.graph)
+        if why is not None:
+            log.info("node %s: timing: precise, activations run on the loop: %s", self.name, why)
+        p = PreciseRelease(
+            self, self.sched.loop, self.sched.clock.origin, tm.timer, tm.timer_phase, spin,
+            thread_mode=why is None,
+        )  # fmt: skip
+        self.precise = p
+        self.timer = p
+        if thread:
+            p.start()
+        return p
+
+    async def precise_stopped(self) -> None:
+        """The release thread, if any, has exited (after ``stop_releasing``)."""
+        if self.precise is not None:
+            await self.precise.stopped()
+
+    def skipped_release(self, missed: int) -> None:
+        """A release the thread could not run (overrun, down, swap), as release() counts it."""
+        if not self.timing.enabled or self.stopping:
+            return
+        self.counts.activations += 1 + missed
+        self.counts.skipped += 1 + missed
+        for buf in self.inputs.values():
+            buf.reader_skipped()
+        if not self.busy and self.swapper.pending is not None:
+            self.swapper.take_pending()  # the swap waited for a call the thread gave up
+
+    def threaded_done(
+        self,
+        t_release: float,
+        missed: int,
+        start: float,
+        end: float,
+        inputs: dict[str, Any] | None,
+        result: Any,
+        error: Exception | None,
+    ) -> None:
+        """A call the thread made from ``start`` to ``end``: counted, published and
+        supervised here, on the loop, as ``run_sync`` does for a call on the loop."""
+        precise = self.precise
+        assert precise is not None
+        self._busy = True  # the call is the loop's now (landed() counts it out of the thread)
+        self.counts.activations += 1 + missed
+        self.counts.skipped += missed
+        act = self.begin(t_release, (start, inputs))  # None: skipped (a required input)
+        if act is None:
+            precise.landed()
+            self.idle()
+            return
+        if error is not None:
+            act.close()
+            self.supervisor.failed(error)  # in backoff before the thread may call again
+            precise.landed()
+            return
+        precise.landed()  # before idle(): a swap waits for the last call in flight
+        self.complete(act, result, end)

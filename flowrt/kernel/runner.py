@@ -38,7 +38,6 @@ from .executor import Executor, InlineExecutor, NoExecutor
 from .inputs import Inputs
 from .pipeline import Pipeline
 from .ports import SchedulerPort
-from .precise import PreciseRelease, why_not_thread
 from .state import RunState
 from .supervisor import Supervisor
 from .swapping import Swapper
@@ -101,7 +100,6 @@ class NodeRunner:
         self.frame_key: str | None = None  # the frame clock this node is triggered by
         self.executor: Executor = NoExecutor()
         self.timer: PeriodicTimer | None = None
-        self._precise: PreciseRelease | None = None  # timing: precise (kernel/precise.py)
         self.task: asyncio.Task[None] | None = None
         self.state = RunState.idle
         self._busy = False
@@ -133,7 +131,7 @@ class NodeRunner:
     @property
     def busy(self) -> bool:
         """An activation is running (or its producer waits on a full lossless edge)."""
-        return self._busy or (self._precise is not None and self._precise.inflight > 0)
+        return self._busy
 
     @busy.setter
     def busy(self, value: bool) -> None:
@@ -267,71 +265,6 @@ class NodeRunner:
             self.counts.skipped += missed
         self.release(t)
 
-    def start_precise(self, spin: float) -> None:
-        """Release from a thread of its own (``timing: precise``, :mod:`.precise`)."""
-        tm = self.timing
-        assert tm.timer is not None
-        why = why_not_thread(self, self.sched.graph)
-        if why is not None:
-            log.info("node %s: timing: precise, activations run on the loop: %s", self.name, why)
-        self._precise = PreciseRelease(
-            self, self.sched.loop, self.sched.clock.origin, tm.timer, tm.timer_phase, spin,
-            thread_mode=why is None,
-        )  # fmt: skip
-        self.timer = self._precise
-
-    async def precise_stopped(self) -> None:
-        """The release thread, if any, has exited (after ``stop_releasing``)."""
-        if self._precise is not None:
-            await self._precise.stopped()
-
-    def hold_releases(self, on: bool) -> None:
-        """A swap is under way (on) or done (off): a precise thread starts no call meanwhile."""
-        if self._precise is not None:
-            self._precise.hold(on)
-
-    def skipped_release(self, missed: int) -> None:
-        """A precise thread's release the node could not take (overrun, down), as release()
-        counts it."""
-        if not self.timing.enabled or self.stopping:
-            return
-        self.counts.activations += 1 + missed
-        self.counts.skipped += 1 + missed
-        for buf in self.inputs.values():
-            buf.reader_skipped()
-
-    def threaded_done(
-        self,
-        t_release: float,
-        missed: int,
-        start: float,
-        end: float,
-        inputs: dict[str, Any] | None,
-        result: Any,
-        error: Exception | None,
-    ) -> None:
-        """A call its precise thread made from ``start`` to ``end``: counted, published and
-        supervised here, on the loop, as ``run_sync`` does for a call on the loop."""
-        precise = self._precise
-        assert precise is not None
-        self._busy = True  # the call is the loop's now (landed() counts it out of the thread)
-        c = self.counts
-        c.activations += 1 + missed
-        c.skipped += missed
-        if inputs is None:  # a required input had no value (or a refused type)
-            c.skipped += 1
-            precise.landed()
-            self.idle()
-            return
-        act = self._started(t_release, start, inputs)
-        if error is not None:
-            act.close()
-            self.supervisor.failed(error)  # in backoff before the thread may call again
-            precise.landed()
-            return
-        precise.landed()  # before idle(): a swap waits for the last call in flight
-        self.complete(act, result, end)
-
     def input_arrived(self) -> None:
         if self.executor.pipelined and self.pipeline.window > 1:  # (inline: one attribute)
             self.pipeline.schedule_pump()
@@ -343,20 +276,16 @@ class NodeRunner:
 
     # --- one activation -----------------------------------------------------------------
 
-    def begin(self, t_release: float) -> Activation | None:
-        """Take the inputs of a released activation; None: skipped (counted)."""
-        now = self.sched.clock.now()
-        inputs = self.ins.take()
+    def begin(self, t_release: float, taken: tuple[float, Any] | None = None) -> Activation | None:
+        """Take the inputs of a released activation (``taken``: the start and inputs of a
+        precise thread's call, see kernel/precise.py); None: skipped (counted)."""
+        now, inputs = taken or (self.sched.clock.now(), self.ins.take())
         self.untaken = False
         if self._idle_waiters:
             self.readers_may_go()  # a paced source may publish the next frame now
         if inputs is None:
             self.counts.skipped += 1
             return None
-        return self._started(t_release, now, inputs)
-
-    def _started(self, t_release: float, now: float, inputs: dict[str, Any]) -> Activation:
-        """An activation that took ``inputs`` started at ``now``: its statistics, its id."""
         c = self.counts
         if c.interval_from is not None:
             c.interval.add(now - c.interval_from)

@@ -43,8 +43,6 @@ class SwappedRunner(Protocol):
         self, rnode: ResolvedNode | None = None, reload: bool = False
     ) -> Executor: ...
 
-    def hold_releases(self, on: bool) -> None: ...
-
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -60,6 +58,7 @@ class Swapper:
         # end (``waiter`` then receives the old executor from :meth:`take_pending`).
         self.pending: Callable[[], Executor] | None = None
         self.waiter: asyncio.Future[Executor] | None = None
+        self.swapping = False  # a swap is under way (kernel/precise.py: no call starts)
 
     def take_pending(self) -> None:
         """The runner is idle: a swap that waited for this moment takes over now."""
@@ -116,11 +115,11 @@ class Swapper:
         )
         new = r.make_executor(rnode, reload=reload)
         await new.start()  # raises: the old instance keeps running
-        r.hold_releases(True)  # a precise thread starts no call on the old instance
+        self.swapping = True  # set before busy is read: a precise thread sees one or the other
         try:
             old = await self._replace(new, rnode)
         finally:
-            r.hold_releases(False)
+            self.swapping = False
         try:
             await old.stop()
         except Exception as e:
