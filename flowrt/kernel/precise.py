@@ -68,7 +68,7 @@ log = logging.getLogger("flowrt.scheduler")
 _DOWN = frozenset((RunState.starting, RunState.backoff, RunState.failed))
 SLICE = 0.05
 """Longest single sleep (s): a stop or a new period is seen within this."""
-SWITCH_INTERVAL = 0.0001
+SWITCH_INTERVAL = 0.00002
 """The interpreter's switch interval while a precise thread runs (``sys.setswitchinterval``)."""
 LONG_CALLS = 3
 """Calls in a row longer than half the period after which a node leaves its thread."""
