@@ -14,6 +14,8 @@ keep the shared machine usable: ~3000 intervals per configuration):
 - ``flowrt-precise`` (``-rt``): the ``can`` node with ``timing: precise`` (its ticks released
   by a thread of its own sleeping to each instant, the node's ``process`` run there;
   flowrt/kernel/precise.py), at normal priority and with ``--realtime``;
+  ``flowrt-precise-offsets-rt``: with the offsets of ``flowrt-offsets`` too (the signal
+  nodes off the bus's instants: their work on the loop holds the GIL the thread needs);
 - with ``--kinds``, also ``flowrt-spin`` (``--spin 0.3ms``) and ``bare-loop`` /
   ``bare-thread``: no node at all, one sender of pre-built frames on flowrt's timerfd clock
   or in one thread sleeping to absolute deadlines (what a single sender per bus costs).
@@ -48,6 +50,7 @@ KINDS = [
     "flowrt-offsets",
     "flowrt-precise",
     "flowrt-precise-rt",
+    "flowrt-precise-offsets-rt",
     "send_periodic",
     "bare-loop",
     "bare-thread",
@@ -244,9 +247,9 @@ def one(kind: str, duration: float) -> None:
     else:
         stamps = run_flowrt(
             duration,
-            realtime=kind in ("flowrt-rt", "flowrt-precise-rt"),
+            realtime=kind.endswith("-rt"),
             spin=SPIN.get(kind, 0.0),
-            offsets=kind == "flowrt-offsets",
+            offsets="offsets" in kind,
             precise=kind.startswith("flowrt-precise"),
         )
     print(json.dumps({**summarise(stamps, periods), "per_message": per_message(stamps, periods)}))

@@ -362,7 +362,8 @@ class PreciseRelease:
         result: Any = None
         error: Exception | None = None
         try:
-            inputs = r.ins.take()
+            with self.lock:  # once for every input (re-entrant): one wait at most, not one each
+                inputs = r.ins.take()
             if inputs is not None:
                 result = r.executor.call_sync(inputs)
         except Exception as e:
