@@ -152,6 +152,36 @@ async def test_a_swap_holds_the_thread_and_disabled_releases_count_nothing() -> 
     assert (st.activations, st.skipped, st.completions) == (1, 1, 0)
 
 
+class CountFrom100(Count):
+    def setup(self) -> None:
+        super().setup()
+        self.n = 100
+
+
+async def test_a_swap_waits_for_the_call_the_loop_has_not_taken_yet(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    async with Runtime(graph().build(), clock=VirtualClock()) as rt:
+        r, p = precise(rt)
+        handed: list[tuple[Any, ...]] = []
+        monkeypatch.setattr(p, "_post", lambda *call: handed.append(call) or True)
+        p.fire(0.0, 0)  # called "in the thread"; its outcome not handed over yet
+        swap = asyncio.create_task(rt.swap("tick", CountFrom100))
+        await settle()
+        assert r.swapper.pending is not None  # it saw the call in flight: it waits for it
+        assert not swap.done()
+        monkeypatch.undo()
+        for fn, *args in handed:
+            fn(*args)  # what the loop does when the thread's call_soon_threadsafe comes
+        await settle()
+        assert swap.done()
+        swap.result()
+        p.fire(0.001, 0)
+        await settle()
+        assert node(rt, "keep").seen == [0, 100]  # the old instance's value, then the new one's
+        assert r.counts.swaps == 1
+
+
 async def test_a_coroutine_node_is_released_on_the_loop_with_its_time() -> None:
     async with Runtime(graph(AsyncCount).build(), clock=VirtualClock()) as rt:
         r, p = precise(rt)
