@@ -445,6 +445,14 @@ def _resolve_triggers(r: _Resolution) -> None:
                 "timing: precise applies to a timer-triggered node (trigger: {timer: ...}); "
                 f"this one is triggered by {by}",
             )
+        elif ns.timing == "precise" and ns.placement.value != "inline":
+            at(
+                ("nodes", name, "timing"),
+                f"timing: precise on a node at placement {ns.placement.value}: its release "
+                "thread hands each release to the loop, which sends it to the worker "
+                "(inline nodes are called in the thread itself)",
+                Severity.warning,
+            )
         if ns.placement.value == "inline":
             for key in ("cpus", "spin"):
                 if key == "spin" and ns.timing == "precise":

@@ -35,7 +35,9 @@ Thread safety, what is shared and how:
   after a call that raised: then the thread waits until the loop has taken it (and the
   supervisor has put the node in backoff), so a failed instance is never called again;
 - the node's input buffers: guarded by the same (re-entrant) lock on both sides
-  (:func:`guard`), since the thread takes from them while the loop's producers put;
+  (:func:`guard`), since the thread takes from them while the loop's producers put; the
+  exception: a value of a type the port refuses is counted (``errors``) by the thread,
+  the one counter it writes (``Inputs.take``; rare, and a lost increment at worst);
 - the node instance: owned by the thread during a call; the loop never calls a
   thread-mode node itself, and a swap or teardown waits for the call in flight;
 - ``ctx`` calls from the thread (publish, emit, set_error...): forwarded to the loop by
