@@ -289,6 +289,8 @@ async def test_a_real_graph_with_a_precise_node_fills_its_statistics() -> None:
     assert "flowrt-precise-tick" in names
     assert threading.main_thread().ident not in threads  # ran in its own thread
     tick = st.node("tick")
+    assert tick.granted == "precise thread"
+    assert st.node("slow").granted == "precise release"
     assert tick.activations > 100
     assert tick.completions > 100
     assert tick.completions + tick.skipped == tick.activations

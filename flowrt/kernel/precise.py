@@ -62,6 +62,7 @@ from ..clock import next_release, spin_until
 from ..edges import Buffer, LosslessBuffer
 from ..graph import Graph
 from ..spec import Placement
+from ..stats import NodeStats
 from .runner import NodeRunner
 from .state import RunState
 
@@ -429,6 +430,16 @@ class PreciseNodeRunner(NodeRunner):
         if thread:
             p.start()
         return p
+
+    def stats(self) -> NodeStats:
+        """As any node's, with how it is released where the table shows scheduling
+        (``inline precise thread``; ``precise release``: handed to the loop)."""
+        s = super().stats()
+        p = self.precise
+        if p is None:
+            return s
+        how = "precise thread" if p.thread_mode else "precise release"
+        return s.model_copy(update={"granted": f"{how}, {s.granted}" if s.granted else how})
 
     async def precise_stopped(self) -> None:
         """The release thread, if any, has exited (after ``stop_releasing``)."""
