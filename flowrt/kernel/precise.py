@@ -16,7 +16,8 @@ accumulated latency), optionally spins the last ``spin`` of it, and then either
 The cost, written where users read it (README, "Graph files / timing"): one thread per
 precise node; CPU for ``spin`` per release; while a precise thread runs, the interpreter's
 switch interval is lowered to :data:`SWITCH_INTERVAL` so that the thread gets the GIL within
-that of its instant when the loop is busy in Python (the default, 5 ms, would make it wait).
+that of its instant when the loop is busy in Python (the default, 5 ms, would make it wait),
+and the loop's timers due at a precise instant wait for its call (:func:`_timers_wait`).
 
 Thread safety, what is shared and how:
 
@@ -43,7 +44,10 @@ Thread safety, what is shared and how:
 - ``ctx`` calls from the thread (publish, emit, set_error...): forwarded to the loop by
   :class:`flowrt.kernel.context.RunnerContext`; ``ctx.new_frame`` is refused there;
 - the schedule (period, phase) and the stop flag: written by the loop under the lock,
-  read by the thread at each wake-up (at most :data:`SLICE` apart).
+  read by the thread at each wake-up (at most :data:`SLICE` apart);
+- the calls running in threads and each thread's next instant (``_calls``, ``_due``):
+  written by the threads under the ``_quiet`` condition, read there by the loop's timer
+  wheel (:func:`_timers_wait`), which waits on it with the GIL released.
 """
 
 from __future__ import annotations
