@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from types import SimpleNamespace
 from typing import Any
 
@@ -301,3 +302,30 @@ async def test_a_real_graph_with_a_precise_node_fills_its_statistics() -> None:
     assert st.node("slow").completions > 20  # handed to the loop
     assert len(seen) > 100
     assert not any(t.name.startswith("flowrt-precise") for t in threading.enumerate())
+
+
+@pytest.mark.realtime  # a 10 ms real-time delay, so that the call ends while the loop waits
+def test_the_loops_timers_wait_for_a_precise_call_in_flight(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from flowrt.kernel import precise as pr
+
+    pr._timers_wait()  # nothing precise: returns at once
+    monkeypatch.setattr(pr, "QUIET_MAX", 5.0)  # only the call's end may release the wait
+    pr._calls_begin(1, time.monotonic() + 10.0)
+    order: list[str] = []
+
+    def call() -> None:
+        order.append("call ends")
+        pr._calls_end()
+
+    t = threading.Timer(0.01, call)
+    t.start()
+    try:
+        pr._timers_wait()
+        order.append("timers fire")
+    finally:
+        t.join()
+        pr._due.clear()
+    assert order == ["call ends", "timers fire"]
+    pr._timers_wait()  # the next instant is 10 s away: no wait
