@@ -3,6 +3,7 @@
     python benchmarks/bench_haptic.py                 # 4 loop configurations x 5 s + walls
     python benchmarks/bench_haptic.py --duration 10   # longer runs
     python benchmarks/bench_haptic.py --walls-only    # the energy table alone (virtual time)
+    python benchmarks/bench_haptic.py --precise       # each row also with timing: precise
 
 1. **Loop timing and force age** (real time): ``flowrt run graphs/haptic.yaml --no-ui
    --no-display --duration S --stats-json F [--realtime]`` in a subprocess, idle and with
@@ -24,6 +25,7 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import multiprocessing
 import os
@@ -42,14 +44,31 @@ def _spin() -> None:
         pass
 
 
-def run_graph(duration: float, realtime: bool) -> dict[str, Any]:
+def _precise_graph(tmp: str) -> Path:
+    """graphs/haptic.yaml with ``timing: precise`` on the haptic node (same folder: its
+    relative paths resolve the same)."""
+    import yaml
+
+    data = yaml.safe_load(GRAPH.read_text())
+    data["nodes"]["haptic"]["timing"] = "precise"
+    path = GRAPH.parent / f".haptic-precise-{os.getpid()}-{Path(tmp).name}.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def run_graph(duration: float, realtime: bool, precise: bool = False) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         stats = Path(tmp) / "stats.json"
-        cmd = [sys.executable, "-m", "flowrt.cli", "run", str(GRAPH), "--no-ui", "--no-display"]
+        graph = _precise_graph(tmp) if precise else GRAPH
+        cmd = [sys.executable, "-m", "flowrt.cli", "run", str(graph), "--no-ui", "--no-display"]
         cmd += ["--duration", str(duration), "--stats-json", str(stats)]
         if realtime:
             cmd.append("--realtime")
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=duration + 120)
+        try:
+            r = subprocess.run(cmd, capture_output=True, text=True, timeout=duration + 120)
+        finally:
+            if precise:
+                graph.unlink()
         if r.returncode != 0:
             raise SystemExit(f"flowrt run failed ({r.returncode}): {r.stderr[-500:]}")
         s = json.loads(stats.read_text())
@@ -68,16 +87,20 @@ def run_graph(duration: float, realtime: bool) -> dict[str, Any]:
     }
 
 
-def loop_table(duration: float, burners: int) -> list[tuple[str, dict[str, Any]]]:
+def loop_table(
+    duration: float, burners: int, precise: bool = False
+) -> list[tuple[str, dict[str, Any]]]:
     rows = []
-    for load in (0, burners):
+    for load in (0, burners) if burners else (0,):
         procs = [multiprocessing.Process(target=_spin, daemon=True) for _ in range(load)]
         for p in procs:
             p.start()
         try:
-            for realtime in (False, True):
+            for realtime, exact in itertools.product((False, True), (False, True)[: 1 + precise]):
                 name = (f"{load} burners" if load else "no burners") + (" --realtime" * realtime)
-                rows.append((name, run_graph(duration, realtime)))
+                name += ", timing: precise" * exact
+                la = os.getloadavg()[0]
+                rows.append((name, {**run_graph(duration, realtime, exact), "loadavg": la}))
                 print(f"  {name}: {rows[-1][1]}", file=sys.stderr)
         finally:
             for p in procs:
@@ -130,19 +153,20 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=5.0)
     ap.add_argument("--burners", type=int, default=2)
     ap.add_argument("--walls-only", action="store_true")
+    ap.add_argument("--precise", action="store_true", help="each row also with timing: precise")
     args = ap.parse_args()
     load = Path("/proc/loadavg").read_text().split()[:3] if os.path.exists("/proc/loadavg") else []
     print(f"load average before: {' '.join(load)}")
     if not args.walls_only:
         print(f"\n### graphs/haptic.yaml, {args.duration:g} s per row (haptic node, 1 kHz)\n")
         print("| configuration | activations | done | std ms | p99 ms | max ms | misses "
-              "| force age p50 / p99 ms |")  # fmt: skip
-        print("|---|---|---|---|---|---|---|---|")
-        for name, r in loop_table(args.duration, args.burners):
+              "| force age p50 / p99 ms | load avg |")  # fmt: skip
+        print("|---|---|---|---|---|---|---|---|---|")
+        for name, r in loop_table(args.duration, args.burners, args.precise):
             print(
                 f"| {name} | {r['activations']} | {r['completions']} | {r['std_ms']:.3f} "
                 f"| {r['p99_ms']:.3f} | {r['max_ms']:.2f} | {r['misses']} "
-                f"| {r['age_p50_ms']} / {r['age_p99_ms']} |"
+                f"| {r['age_p50_ms']} / {r['age_p99_ms']} | {r['loadavg']:.2f} |"
             )
     print("\n### Virtual wall, simulated handle thrown at 0.2 m/s (virtual time, 1 kHz)\n")
     print("| stiffness N/m | contacts | energy out / in, worst contact | peak / at contact "

@@ -213,6 +213,8 @@ class _TimerfdWheel:
             first = self._top()
             if first < math.inf:
                 spin_until(first)
+        if before_timers is not None:
+            before_timers()  # a precise node's call at this instant goes first (kernel/precise)
         now = time.monotonic()
         due = _ns(now)
         heap = self._heap
@@ -300,6 +302,13 @@ class _LoopHandle:
 
     def cancel(self) -> None:
         self._handle.cancel()
+
+
+before_timers: Callable[[], None] | None = None
+"""Called by the loop's timerfd wheel before it fires due timers: set by
+:mod:`flowrt.kernel.precise` while precise nodes run, so that the loop's timers falling due
+at a precise node's instant wait for its call (bounded) instead of taking turns with it on
+the GIL."""
 
 
 def spin_until(when: float) -> None:

@@ -432,8 +432,31 @@ def _resolve_triggers(r: _Resolution) -> None:
                     f"{', '.join(map(str, sorted(available)))}): {then}",
                     Severity.warning,
                 )
+        if ns.timing == "precise" and not isinstance(trig, TimerTrigger):
+            by = (
+                "its inputs"
+                if isinstance(trig, InputTrigger)
+                else "frames"
+                if isinstance(trig, FrameTrigger)
+                else "loop"
+            )
+            at(
+                ("nodes", name, "timing"),
+                "timing: precise applies to a timer-triggered node (trigger: {timer: ...}); "
+                f"this one is triggered by {by}",
+            )
+        elif ns.timing == "precise" and ns.placement.value != "inline":
+            at(
+                ("nodes", name, "timing"),
+                f"timing: precise on a node at placement {ns.placement.value}: its release "
+                "thread hands each release to the loop, which sends it to the worker "
+                "(inline nodes are called in the thread itself)",
+                Severity.warning,
+            )
         if ns.placement.value == "inline":
             for key in ("cpus", "spin"):
+                if key == "spin" and ns.timing == "precise":
+                    continue  # the release thread's spin (flowrt/kernel/precise.py)
                 if getattr(ns, key) is not None:
                     at(
                         ("nodes", name, key),

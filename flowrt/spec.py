@@ -371,6 +371,11 @@ class NodeSpec(_Strict):
     priority: Priority = 10
     placement: Placement = Placement.inline
     enabled: bool = True
+    timing: Literal["normal", "precise"] = Field(
+        default="normal",
+        description="precise: released from a thread of its own sleeping to each instant "
+        "(timer-triggered nodes only; costs a thread, and CPU while spinning with spin:)",
+    )
     watchdog: WatchdogMs | None = None
     restart: RestartPolicy = RestartPolicy()
     inputs: dict[str, InputSpec] = Field(default_factory=dict)
@@ -379,7 +384,8 @@ class NodeSpec(_Strict):
     )
     spin: SpinMs | None = Field(
         default=None,
-        description="its worker busy-polls this long before (and after) each expected activation",
+        description="its worker busy-polls this long before (and after) each expected "
+        "activation; with timing: precise, its release thread spins this long before each",
     )
     pipeline: int | None = Field(
         default=None,

@@ -445,7 +445,7 @@ class Can(Node):
             if self.replay is not None:
                 self._replay(t)
         elif self.link.reopen_due():
-            self.link.open()
+            self.link.on_loop(self.link.open)
         self._supervise(now)
         if t - self.last_status >= self.params.status_ms / 1000:
             self.last_status = t

@@ -165,6 +165,7 @@ class CanLink:
         trace: TraceLog | None = None,
     ) -> None:
         self.loop = loop
+        self._loop_thread = threading.get_ident()  # made in setup(), on the loop
         self.name = name
         self.interface = interface
         self.kwargs = kwargs
@@ -284,11 +285,19 @@ class CanLink:
             try:
                 self.bus.send(msg)
             except Exception as exc:
-                self._send_failed(self.gen, exc)
+                self.on_loop(self._send_failed, self.gen, exc)
                 return False
         if self.trace is not None:
             self.trace.put(copy_frame(msg, channel=msg.channel, timestamp=time.time(), is_rx=False))
         return True
+
+    def on_loop(self, fn: Callable[..., Any], *args: Any) -> None:
+        """``fn(*args)`` on the loop: now when called there, else handed over (the node's
+        ``process`` runs in its release thread with ``timing: precise``)."""
+        if threading.get_ident() == self._loop_thread:
+            fn(*args)
+        else:
+            self.loop.call_soon_threadsafe(fn, *args)
 
     def _send_failed(self, gen: int, exc: BaseException) -> None:
         self.send_errors += 1

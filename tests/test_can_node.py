@@ -461,3 +461,40 @@ async def test_an_unchanged_periodic_value_is_not_encoded_again(
     assert sent[0] == pytest.approx(12.0)
     assert sent[-1] == pytest.approx(13.0)
     assert sorted(set(sent), key=sent.index) == pytest.approx([12.0, 13.0])
+
+
+@pytest.mark.realtime
+async def test_a_precise_can_node_sends_and_recovers_from_its_release_thread(
+    channel: str, peer: can.BusABC, flaky: type[FlakyBus]
+) -> None:
+    """``timing: precise``: ``process`` (the sends, a failed send, the reopen) runs in the
+    node's release thread; what the link does on the loop is handed over there."""
+    g = GraphBuilder()
+    signals = {"LeftSetpoint": {"value": 0.25}, "RightSetpoint": {"value": -1}}
+    g.add("ctl", "can-signals", params={"rate_ms": 20, "signals": signals})
+    p = {"interface": "flaky", "channel": channel, "dbc": DBC, "reopen_ms": 20, "reopen_max_ms": 40}
+    g.add("chassis", "can", params=p, inputs={"MotorSetpoints": "ctl.values"}, timing="precise")
+    got: list[can.Message] = []
+
+    def setpoints() -> int:
+        while (m := peer.recv(0)) is not None:
+            got.append(m)
+        return sum(m.arbitration_id == 0x80 for m in got)
+
+    async with Runtime(g.build()) as rt:
+        runner = rt.scheduler.runners["chassis"]
+        n = await opened(rt)
+        await until(lambda: setpoints() >= 5)
+        flaky.plugged = False
+        await until(lambda: n.link.lost_count == 1)
+        await until(
+            lambda: runner.error_reason is not None and "cannot open" in runner.error_reason
+        )
+        flaky.plugged = True
+        await until(lambda: n.bus is not None and runner.error_reason is None)
+        before = setpoints()
+        await until(lambda: setpoints() >= before + 5)
+        st = rt.stats().node("chassis")
+    assert st.granted == "precise thread"
+    assert runner.counts.errors == 0  # nothing raised out of the node
+    assert n.link.reopens == 1

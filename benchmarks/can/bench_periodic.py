@@ -11,6 +11,11 @@ keep the shared machine usable: ~3000 intervals per configuration):
   nodes; ``flowrt --realtime``: the same with SCHED_FIFO/nice for the loop where permitted;
 - ``send_periodic``: python-can's ``bus.send_periodic(msg, period)`` for each message (its
   thread-based cyclic tasks), the way python-can users do it;
+- ``flowrt-precise`` (``-rt``): the ``can`` node with ``timing: precise`` (its ticks released
+  by a thread of its own sleeping to each instant, the node's ``process`` run there;
+  flowrt/kernel/precise.py), at normal priority and with ``--realtime``;
+  ``flowrt-precise-offsets-rt``: with the offsets of ``flowrt-offsets`` too (the signal
+  nodes off the bus's instants: their work on the loop holds the GIL the thread needs);
 - with ``--kinds``, also ``flowrt-spin`` (``--spin 0.3ms``) and ``bare-loop`` /
   ``bare-thread``: no node at all, one sender of pre-built frames on flowrt's timerfd clock
   or in one thread sleeping to absolute deadlines (what a single sender per bus costs).
@@ -43,6 +48,9 @@ KINDS = [
     "flowrt-rt",
     "flowrt-spin",
     "flowrt-offsets",
+    "flowrt-precise",
+    "flowrt-precise-rt",
+    "flowrt-precise-offsets-rt",
     "send_periodic",
     "bare-loop",
     "bare-thread",
@@ -79,7 +87,7 @@ class Monitor:
 
 
 def run_flowrt(
-    duration: float, realtime: bool, spin: float = 0.0, offsets: bool = False
+    duration: float, realtime: bool, spin: float = 0.0, offsets: bool = False, precise: bool = False
 ) -> dict[int, list[float]]:
     import cantools
 
@@ -114,6 +122,7 @@ def run_flowrt(
         },
         inputs=inputs,
         priority=50,
+        **({"timing": "precise"} if precise else {}),
     )
     mon = Monitor(channel)
 
@@ -238,9 +247,10 @@ def one(kind: str, duration: float) -> None:
     else:
         stamps = run_flowrt(
             duration,
-            realtime=kind == "flowrt-rt",
+            realtime=kind.endswith("-rt"),
             spin=SPIN.get(kind, 0.0),
-            offsets=kind == "flowrt-offsets",
+            offsets="offsets" in kind,
+            precise=kind.startswith("flowrt-precise"),
         )
     print(json.dumps({**summarise(stamps, periods), "per_message": per_message(stamps, periods)}))
 
@@ -254,12 +264,14 @@ def main() -> None:
         "--kinds", nargs="+", choices=KINDS, default=["flowrt", "flowrt-rt", "send_periodic"]
     )
     ap.add_argument("--json", help="write all results here")
+    ap.add_argument("--rounds", type=int, default=1, help="interleaved rounds of the kinds")
     args = ap.parse_args()
     if args.one:
         one(args.one, args.duration)
         return
     rows = []
-    for load in ("idle", f"{args.burners} burners"):
+    loads = ("idle", f"{args.burners} burners") if args.burners else ("idle",)
+    for load in loads:
         burners = []
         if load != "idle":
             burners = [
@@ -269,7 +281,7 @@ def main() -> None:
                 b.start()
             time.sleep(1.0)
         try:
-            for kind in args.kinds:
+            for kind in [k for _ in range(args.rounds) for k in args.kinds]:
                 la = os.getloadavg()[0]
                 res = subprocess.run(
                     [sys.executable, __file__, "--one", kind, "--duration", str(args.duration)],
@@ -299,8 +311,8 @@ def main() -> None:
     print("\nPer message, |interval - period| p50/p99 ms:\n")
     for r in rows:
         print(f"- {r['load']}, {r['kind']}: {r['per_message']}")
-    for load in ("idle", f"{args.burners} burners"):
-        by = {r["kind"]: r for r in rows if r["load"] == load}
+    for load in loads:
+        by = {r["kind"]: r for r in rows if r["load"] == load}  # the last round
         if "send_periodic" in by:
             ratios = ", ".join(
                 f"{k} {by['send_periodic']['p99_ms'] / by[k]['p99_ms']:.1f}x"

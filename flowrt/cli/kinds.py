@@ -10,6 +10,7 @@ inputs and outputs (types, the edge policy a graph gets when it names none) and 
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import re
 from typing import Any
@@ -127,7 +128,17 @@ def describe(kind: str) -> dict[str, Any]:
         # what POST /swap (flowrt ctl swap) may change; path params confined to a folder
         "swappable": sorted(getattr(cls, "swappable", ())),
         "swap_folders": dict(getattr(cls, "swap_folders", {})),
+        "timing": _timing_note(cls),
     }
+
+
+def _timing_note(cls: Any) -> str:
+    """A kind released by a timer of its own (its default trigger) may ask for precise
+    release: said where a user looks for what a kind can do ("" for the others)."""
+    returns = str(inspect.signature(cls.default_trigger).return_annotation)
+    if "TimerTrigger" not in returns:
+        return ""
+    return "precise release: timing: precise (costs a thread; CPU while spinning)"
 
 
 def _annotation(t: Any) -> str:
@@ -203,6 +214,8 @@ def _show(console: Console, info: dict[str, Any]) -> None:
     line(f"{info['kind']}  ({info['class']})", "bold")
     if info["summary"]:
         line(info["summary"])
+    if info.get("timing"):
+        line(info["timing"], "dim")
     for title, rows in (("inputs", info["inputs"]), ("outputs", info["outputs"])):
         line("")
         line(f"{title}" + ("" if rows else ": none"), "bold")

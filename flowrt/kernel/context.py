@@ -1,7 +1,15 @@
-"""The context a node on the event loop gets: the runtime's clock, frames, publishing."""
+"""The context a node on the event loop gets: the runtime's clock, frames, publishing.
+
+A ``timing: precise`` node may be called from its release thread
+(:mod:`flowrt.kernel.precise`): what its ``ctx`` changes on the runtime's side (publish,
+emit, error state, modes, stop) is then handed to the loop with ``call_soon_threadsafe``,
+in call order; ``new_frame`` is refused there (the frame pool belongs to the loop).
+"""
 
 from __future__ import annotations
 
+import threading
+from collections.abc import Callable
 from typing import Any, Protocol
 
 import numpy as np
@@ -39,6 +47,14 @@ class RunnerContext(NodeContext):
     def __init__(self, runner: ContextRunner) -> None:
         super().__init__(runner.name)
         self._runner = runner
+        self._loop_thread = threading.get_ident()  # made on the loop (make_executor)
+
+    def _elsewhere(self, fn: Callable[..., Any], *args: Any) -> bool:
+        """Called from a precise release thread: ``fn(*args)`` is handed to the loop."""
+        if threading.get_ident() == self._loop_thread:
+            return False
+        self._runner.sched.loop.call_soon_threadsafe(fn, *args)
+        return True
 
     def now(self) -> float:
         return self._runner.sched.clock.now()
@@ -46,6 +62,8 @@ class RunnerContext(NodeContext):
     def new_frame(
         self, shape: tuple[int, ...], dtype: Any = np.uint8, pixel_format: str = "BGR"
     ) -> Frame:
+        if threading.get_ident() != self._loop_thread:
+            raise RuntimeError(f"{self.name}: ctx.new_frame is not available in a precise thread")
         return self._runner.new_frame(shape, dtype, pixel_format)
 
     def publish(self, port: str, value: Any) -> None:
@@ -53,11 +71,14 @@ class RunnerContext(NodeContext):
         ``process``) for a port it does not have or a value of another type than declared."""
         runner = self._runner
         runner.out_check.value(port, value)
-        runner.publish(port, value, runner.sched.clock.now())
+        t = runner.sched.clock.now()
+        if not self._elsewhere(runner.publish, port, value, t):
+            runner.publish(port, value, t)
 
     def emit(self, event: Event) -> None:
         """Publish a typed event (e.g. a HealthAlert) to the runtime's monitors."""
-        self._runner.sched.emit(event)
+        if not self._elsewhere(self._runner.sched.emit, event):
+            self._runner.sched.emit(event)
 
     def stats(self) -> Any:
         provider = self._runner.sched.services.stats
@@ -76,7 +97,8 @@ class RunnerContext(NodeContext):
         setter = self._runner.sched.services.set_mode
         if setter is None:
             raise RuntimeError("no modes outside a Runtime")
-        setter(mode, f"node {self.name}")
+        if not self._elsewhere(setter, mode, f"node {self.name}"):
+            setter(mode, f"node {self.name}")
 
     def elapsed(self) -> float:
         """Seconds since the runtime started: the time base of events and statistics."""
@@ -97,7 +119,7 @@ class RunnerContext(NodeContext):
     def request_stop(self) -> None:
         """Ask the runtime to stop (e.g. a video source at its end with on_eof: stop)."""
         stopper = self._runner.sched.services.request_stop
-        if stopper is not None:
+        if stopper is not None and not self._elsewhere(stopper):
             stopper()
 
     @property
@@ -108,6 +130,8 @@ class RunnerContext(NodeContext):
         return self._runner.input_times.get(name)
 
     def set_error(self, reason: str) -> None:
+        if self._elsewhere(self.set_error, reason):
+            return
         runner = self._runner
         if runner.error_reason == reason:
             return
@@ -123,6 +147,8 @@ class RunnerContext(NodeContext):
         return self._runner.sched.graph
 
     def set_waiting(self, reason: str | None) -> None:
+        if self._elsewhere(self.set_waiting, reason):
+            return
         runner = self._runner
         if runner.waiting_reason == reason:
             return
@@ -133,6 +159,8 @@ class RunnerContext(NodeContext):
             sched.emit(HealthAlert(now, self.name, "node-waiting", reason, "info"))
 
     def clear_error(self) -> None:
+        if self._elsewhere(self.clear_error):
+            return
         runner = self._runner
         if runner.error_reason is None:
             return

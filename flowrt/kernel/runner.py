@@ -278,10 +278,10 @@ class NodeRunner:
 
     # --- one activation -----------------------------------------------------------------
 
-    def begin(self, t_release: float) -> Activation | None:
-        """Take the inputs of a released activation; None: skipped (counted)."""
-        now = self.sched.clock.now()
-        inputs = self.ins.take()
+    def begin(self, t_release: float, taken: tuple[float, Any] | None = None) -> Activation | None:
+        """Take the inputs of a released activation (``taken``: the start and inputs of a
+        precise thread's call, see kernel/precise.py); None: skipped (counted)."""
+        now, inputs = taken or (self.sched.clock.now(), self.ins.take())
         self.untaken = False
         if self._idle_waiters:
             self.readers_may_go()  # a paced source may publish the next frame now
@@ -428,7 +428,7 @@ class NodeRunner:
         self.busy = False
         if self.state is _RUNNING:
             self.state = _IDLE
-        if self.swapper.pending is not None:
+        if self.swapper.pending is not None and not self.busy:  # (precise: calls in flight)
             self.swapper.take_pending()  # a swap waits for this moment
         if self.stopping:
             return

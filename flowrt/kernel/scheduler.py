@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from ..clock import Clock
+from ..clock import Clock, SystemClock
 from ..edges import Buffer, make_buffer
 from ..events import Event, TimingChanged
 from ..frames import Frame
@@ -31,6 +31,7 @@ from ..spec import LoopTrigger, Placement
 from ..timing import TimingChange
 from .drain import Drain
 from .executor import Executor
+from .precise import PreciseNodeRunner
 from .runner import NodeRunner
 from .services import Services
 from .state import RunState
@@ -52,7 +53,9 @@ class Scheduler:
         self.observer: Any = None  # set by ctx.observe (flowrt.determinism)
         self.runners: dict[str, NodeRunner] = {}
         for name in sorted(graph.nodes, key=lambda n: graph.nodes[n].order):
-            self.runners[name] = NodeRunner(self, graph.nodes[name])
+            rnode = graph.nodes[name]
+            precise = rnode.spec.timing == "precise"
+            self.runners[name] = (PreciseNodeRunner if precise else NodeRunner)(self, rnode)
         self.buffers: list[Buffer] = []
         self.reader_of: dict[int, NodeRunner] = {}  # id(edge buffer) -> the node reading it
         for edge in graph.edges:
@@ -178,11 +181,18 @@ class Scheduler:
         for r in inline:
             await start_one(r)
         for r in self.order:
-            if r.timing.timer is not None:
+            if isinstance(r, PreciseNodeRunner) and self._real_time_clock():
+                r.start_precise(_ms_s(r.rnode.spec.spin))
+            elif r.timing.timer is not None:
                 r.timer = self.clock.periodic(r.timing.timer, r.timing.timer_phase, r.release_timer)
             elif isinstance(r.rnode.trigger, LoopTrigger):
                 self.loop.call_soon(r.release, self.clock.now())
         self.stage = "running"
+
+    def _real_time_clock(self) -> bool:
+        """``timing: precise`` needs real time (virtual time has no instant to sleep to: the
+        clock's own timer releases the node there, by the same rules)."""
+        return isinstance(self.clock, SystemClock)
 
     @property
     def drain_timeout(self) -> float:
@@ -228,6 +238,9 @@ class Scheduler:
         self.stage = "tearing down"
         for r in self.runners.values():
             r.stop_releasing()
+        for r in self.runners.values():
+            if isinstance(r, PreciseNodeRunner):
+                await r.precise_stopped()  # a call in its thread ends before the teardown
         pending = [
             r.task for r in self.runners.values() if r.task is not None and not r.task.done()
         ]
@@ -317,6 +330,10 @@ class Scheduler:
             r.timer.reset(tm.timer, min(tm.timer_phase, tm.timer * 0.999))
         elif timer is not None:
             tm.timer = timer
+
+
+def _ms_s(ms: float | None) -> float:
+    return 0.0 if ms is None else ms / 1000
 
 
 def _ms(seconds: float | None) -> float | None:

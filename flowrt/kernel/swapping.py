@@ -60,6 +60,7 @@ class Swapper:
         # end (``waiter`` then receives the old executor from :meth:`take_pending`).
         self.pending: Callable[[], Executor] | None = None
         self.waiter: asyncio.Future[Executor] | None = None
+        self.swapping = False  # a swap is under way (kernel/precise.py: no call starts)
 
     def take_pending(self) -> None:
         """The runner is idle: a swap that waited for this moment takes over now."""
@@ -119,6 +120,19 @@ class Swapper:
             return
         new = r.make_executor(rnode, reload=reload)
         await new.start()  # raises: the old instance keeps running
+        self.swapping = True  # set before busy is read: a precise thread sees one or the other
+        try:
+            old = await self._replace(new, rnode)
+        finally:
+            self.swapping = False
+        try:
+            await old.stop()
+        except Exception as e:
+            log.warning("node %s: teardown of the replaced instance failed: %s", r.name, e)
+
+    async def _replace(self, new: Executor, rnode: ResolvedNode) -> Executor:
+        """Take over now, or inside idle() when the node is busy; the old executor."""
+        r = self._r
         if r.busy:
             # Take over inside idle(), before a loop or input trigger can release again.
             loop = asyncio.get_running_loop()
@@ -134,10 +148,7 @@ class Swapper:
                 ) from None
         else:
             old = self._take_over(new, rnode)
-        try:
-            await old.stop()
-        except Exception as e:
-            log.warning("node %s: teardown of the replaced instance failed: %s", r.name, e)
+        return old
 
     async def _swap_in_place(self, rnode: ResolvedNode, reload: bool) -> None:
         """A node that owns a socket (``listens``: a display's port) cannot set its successor
