@@ -513,7 +513,8 @@ def _with_imports(spec: GraphSpec, at: Any) -> GraphSpec:
         if name in spec.nodes:
             at(("import", name), f"import {name!r} has the name of a node; rename one of them")
             continue
-        params = {"key": im.key, "stale_after": im.stale_after, "size": im.size}
+        stale_after = None if im.stale_after == "never" else im.stale_after
+        params = {"key": im.key, "stale_after": stale_after, "size": im.size, "stale": im.stale}
         if im.period is not None:
             params["period_ms"] = im.period
         kind = REMOTE_FRAMES if im.frames else REMOTE_SOURCE

@@ -145,7 +145,8 @@ class ZenohBridge:
     def attach_imports(self) -> None:
         """Subscribers for the imports, bound to their nodes (once the nodes are set up)."""
         for name, im in self.spec.imports.items():
-            imp = ImportLink(self, name, im.key, im.period, im.stale_after, im.size)
+            stale_after = None if im.stale_after == "never" else im.stale_after
+            imp = ImportLink(self, name, im.key, im.period, stale_after, im.size, im.stale)
             imp.max_bytes, imp.max_pixels = im.byte_limit, im.max_pixels
             imp.zero_copy = not worker_downstream(self.spec, name)
             imp.plain = (

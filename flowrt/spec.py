@@ -662,8 +662,16 @@ class ImportSpec(_Strict):
     period: DurationMs | None = Field(
         default=None, gt=0, le=3_600_000, description="expected period; default: measured"
     )
-    stale_after: float = Field(
-        default=5.0, gt=0, le=1000, description="periods without a message: stale"
+    stale_after: Annotated[float, Field(gt=0, le=1000)] | Literal["never"] = Field(
+        default=5.0,
+        description="periods without a message: stale; never: a stream that may be silent "
+        "for any time (commands sent now and then)",
+    )
+    stale: Literal["error", "state"] = Field(
+        default="error",
+        description="what stale means: error (the import's node in error until it resumes; "
+        "a run that ends stale exits 1) or state (a link that drops: one alert per outage, "
+        "the time down counted in the node's report, the run unaffected)",
     )
     size: int = Field(default=16, ge=1, le=100_000, description="hand-over queue (messages)")
     frames: bool = Field(
