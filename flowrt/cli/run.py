@@ -28,6 +28,7 @@ from .common import (
     setup_logging,
     stdout_console,
 )
+from .zenoh_options import add_zenoh_options, apply_zenoh_options
 
 
 def _warm_forkserver(path: str) -> None:
@@ -123,7 +124,7 @@ def run_graph(
     console = stdout_console()
     if not _timing_holds(graph, args, err, prog):
         return EXIT_FAILED
-    problem = _display_options(graph, args)
+    problem = _display_options(graph, args) or apply_zenoh_options(graph, args)
     if problem:
         err.print(f"{prog}: {problem}", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
@@ -558,3 +559,4 @@ def add_run_options(run: argparse.ArgumentParser) -> None:
         help="keep the rest of the graph running when a node fails for good (default: stop at"
         " once); the exit code is 1 either way",
     )
+    add_zenoh_options(run)
