@@ -30,6 +30,13 @@ Safety rules (proven by property tests on virtual time, tests/test_safety_arbite
 - **Heartbeat locks** (``locks: {estop: {heartbeat: 300ms}}``): the lock also engages when its
   source has published nothing for longer than ``heartbeat`` (a dead e-stop node stops the
   robot), and releases when it publishes a false value again.
+- **A missed heartbeat may need a deliberate release** (``locks: {estop: {heartbeat: 300ms,
+  after_silence: hold}}``): a lock engaged because its source fell silent (a link cut, a dead
+  station) stays engaged when the source comes back still saying "released"; only a *new*
+  release frees it: a value whose ``release`` id differs from the one last heard before the
+  silence (the ``estop`` node gives every release by the operator an id of its own), or, for
+  a source of plain booleans, a false value after a true one. ``resume`` (the default)
+  releases on the first false value.
 - **Invalid commands are refused**: a command with NaN/inf or a key of the wrong type is not a
   fresh command; the arbiter falls back to the next source (or zero), counts it per source
   (``invalid`` in :meth:`Arbiter.report`, so in the statistics' ``reports``) and raises one
@@ -103,6 +110,11 @@ class LockSpec(BaseModel):
     )
     initial: Literal["engaged", "released"] = Field(
         default="engaged", description="the lock's state before its first value"
+    )
+    after_silence: Literal["resume", "hold"] = Field(
+        default="resume",
+        description="after a missed heartbeat: resume (a false value releases) or hold "
+        "(engaged until a new release: a new release id, or true then false)",
     )
 
     @field_validator("heartbeat", mode="before")
@@ -197,6 +209,12 @@ class Arbiter(Node):
         # the truth of the last value received (latched until a new one arrives).
         self.latched: dict[str, bool] = {}
         self.engaged: dict[str, bool] = {}
+        # after_silence: hold. Invariant: a lock is in ``held`` from a missed heartbeat until
+        # a new release; ``held[name]`` is the release id last heard before the silence, and
+        # ``armed`` says a true value came since (a plain boolean's false then releases).
+        self.release_id: dict[str, Any] = {}
+        self.held: dict[str, Any] = {}
+        self.armed: set[str] = set()
 
     def params_changed(self, old: Any) -> None:
         """A mode's weights arrive between activations; new sources need their slots."""
@@ -216,14 +234,31 @@ class Arbiter(Node):
     def _lock_engaged(self, name: str, spec: LockSpec, value: Any, now: float) -> bool:
         if value is not None:
             self.latched[name] = _truthy(value)
+            self._heard(name, value)
         engaged = self.latched.get(name, spec.initial == "engaged")
         if spec.heartbeat is not None and not engaged:
             age = self.ctx.input_age(name)
             if age is None:  # never heard: silent since the first activation
                 age = now - (self.started if self.started is not None else now)
             engaged = age > spec.heartbeat
+            if engaged and spec.after_silence == "hold" and name not in self.held:
+                self.held[name] = self.release_id.get(name)
+                self.armed.discard(name)
+        engaged = engaged or name in self.held
         self.engaged[name] = engaged
         return engaged
+
+    def _heard(self, name: str, value: Any) -> None:
+        """A value on a held lock: a new release (a new id, or false after true) frees it."""
+        rid = value.get("release") if isinstance(value, Mapping) else None
+        if name in self.held and not self.latched[name]:
+            if (rid is not None and rid != self.held[name]) or name in self.armed:
+                del self.held[name]
+                self.armed.discard(name)
+        elif name in self.held:
+            self.armed.add(name)
+        if rid is not None:
+            self.release_id[name] = rid
 
     # --- sources --------------------------------------------------------------------------
 
@@ -278,6 +313,7 @@ class Arbiter(Node):
             "selected": self.current,
             "switches": self.switches,
             "locks": dict(self.engaged),
+            "held": sorted(self.held),  # engaged by a missed heartbeat, waiting for a release
             "sources": {
                 name: {"invalid": st.refused.count, "stale": st.stale}
                 for name, st in self.sources.items()
