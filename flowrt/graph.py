@@ -510,6 +510,8 @@ def _with_imports(spec: GraphSpec, at: Any) -> GraphSpec:
         return spec
     extra: dict[str, NodeSpec] = {}
     for name, im in spec.imports.items():
+        if name in spec.nodes and spec.nodes[name].kind in (REMOTE_SOURCE, REMOTE_FRAMES):
+            continue  # a resolved graph's spec, resolved again (a recorder added to it)
         if name in spec.nodes:
             at(("import", name), f"import {name!r} has the name of a node; rename one of them")
             continue

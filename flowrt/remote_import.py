@@ -41,6 +41,8 @@ from .zenoh_wire import (
     check_frame,
     decode_frame,
     loads_wire,
+    own_timestamp,
+    set_timestamp,
 )
 
 __all__ = [
@@ -278,6 +280,10 @@ class ImportLink:
                 host.publish(self.name, "output", frame)
                 frame.release()
             else:
+                if self.plain is None and own_timestamp(value) is not None:
+                    # the exporter's monotonic stamp means nothing here: the capture time,
+                    # on its corrected clock, mapped onto ours (header.captured carries it)
+                    set_timestamp(value, captured_mono)
                 host.publish(self.name, "output", value)
                 records.append(value)
         if items:

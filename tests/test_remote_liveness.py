@@ -8,6 +8,8 @@ error state. The ImportLink is driven directly with fake samples and a hand-move
 
 from __future__ import annotations
 
+import json
+import time
 import types
 from typing import Any
 
@@ -18,7 +20,7 @@ from flowrt.events import HealthAlert
 from flowrt.graph import resolve
 from flowrt.loading import load_text
 from flowrt.remote_import import ImportLink
-from flowrt.zenoh_wire import PlainFormat
+from flowrt.zenoh_wire import Header, PlainFormat, own_timestamp
 
 
 class _Bytes:
@@ -165,3 +167,34 @@ nodes: {}
     assert graph.nodes["det"].params.stale == "state"
     with pytest.raises(GraphError, match="stale"):
         resolve(*load_text(text.replace("stale: state", "stale: maybe")))
+
+
+class _Sample:
+    def __init__(self, header: Header, payload: bytes) -> None:
+        self.attachment = _Bytes(header.encode())
+        self.payload = _Bytes(payload)
+
+
+def test_a_message_timestamp_is_mapped_onto_the_importer_clock() -> None:
+    """Issue 40 item 5: a detection's own timestamp (the exporter's monotonic clock) arrives
+    as the importer's monotonic time of the same instant, through the measured offset."""
+    imp, clock = _link(5.0)
+    clock.t = 1000.0
+    published: list[Any] = []
+    imp.bridge.host.publish = lambda node, port, value: published.append(value)  # type: ignore[attr-defined]
+    imp.bridge.offset = lambda zid: -5.0  # type: ignore[attr-defined]  # its clock 5 s behind
+    captured = time.time() - 5.0 - 0.010  # 10 ms ago, on the exporter's clock
+    header = Header("s", "z", 0, captured + 0.002, captured, "json")
+    payload = json.dumps({"__type__": "FrameDetection", "seq": 7, "timestamp": 42.0}).encode()
+    imp.on_sample(_Sample(header, payload))
+    imp.deliver()
+    (det,) = published
+    assert det.seq == 7
+    assert det.timestamp == pytest.approx(1000.0 - 0.010, abs=0.002)
+
+
+def test_the_exporter_sends_a_message_timestamp_as_its_capture_time() -> None:
+    assert own_timestamp({"v": 1.0, "timestamp": 12.5}) == 12.5
+    assert own_timestamp(types.SimpleNamespace(timestamp=3.0)) == 3.0
+    for none in ({"timestamp": 0.0}, {"timestamp": "x"}, 5, types.SimpleNamespace()):
+        assert own_timestamp(none) is None
