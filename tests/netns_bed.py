@@ -15,6 +15,7 @@ Run as a program, it is the operator's hand on the base's page (from inside the 
 namespace, where the page is)::
 
     ip netns exec BASE python tests/netns_bed.py estop release http://127.0.0.1:8751
+    ip netns exec BASE python tests/netns_bed.py wait-link http://127.0.0.1:8751 remote_drive 60
 """
 
 from __future__ import annotations
@@ -138,7 +139,11 @@ class Bed:
         """``flowrt ARGS`` in ``ns``, its output in ``log``."""
         out = log.open("wb")
         return self.start(
-            ns, [sys.executable, "-m", "flowrt.cli", *args], stdout=out, stderr=subprocess.STDOUT, **kw
+            ns,
+            [sys.executable, "-m", "flowrt.cli", *args],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            **kw,
         )
 
     def stop(self, p: subprocess.Popen[bytes], timeout: float = 30.0) -> int:
@@ -214,12 +219,37 @@ async def _estop(action: str, url: str, deadline: float) -> str:
         return aid
 
 
+async def _wait_link(url: str, node: str, deadline: float) -> float:
+    """Poll the page's statistics until import ``node`` hears its exporter; the time then."""
+    import aiohttp
+
+    async with aiohttp.ClientSession() as http:
+        while time.monotonic() < deadline:
+            try:
+                async with http.get(url + "/stats.json") as r:
+                    stats = await r.json()
+                reports = (stats.get("runtime") or {}).get("reports") or {}
+                report = reports.get(node) or {}
+                if report.get("last_contact") and not report.get("stale"):
+                    return time.time()
+            except (aiohttp.ClientError, ValueError):
+                pass
+            await asyncio.sleep(0.1)
+    raise TimeoutError(f"import {node} heard nothing")
+
+
 def main(argv: list[str]) -> int:
     if len(argv) == 3 and argv[0] == "estop" and argv[1] in ("stop", "release"):
         aid = asyncio.run(_estop(argv[1], argv[2].rstrip("/"), time.monotonic() + 45))
         print(aid, time.time())
         return 0
-    print("usage: netns_bed.py estop stop|release URL", file=sys.stderr)
+    if len(argv) == 4 and argv[0] == "wait-link":
+        limit = time.monotonic() + float(argv[3])
+        print(asyncio.run(_wait_link(argv[1].rstrip("/"), argv[2], limit)))
+        return 0
+    print(
+        "usage: netns_bed.py estop stop|release URL | wait-link URL NODE TIMEOUT", file=sys.stderr
+    )
     return 2
 
 
