@@ -193,7 +193,7 @@ class Bed:
 # --- the operator's hand on the base's page (run inside the base's namespace) ---------------
 
 
-async def _estop(action: str, url: str, deadline: float) -> str:
+async def _estop(action: str, url: str, deadline: float) -> tuple[str, float]:
     """Open the page (waiting for it), then send one e-stop action over its WebSocket."""
     import secrets
 
@@ -214,9 +214,10 @@ async def _estop(action: str, url: str, deadline: float) -> str:
             raise RuntimeError("no session in the page")
         aid = f"{action}-{secrets.token_hex(6)}"
         async with http.ws_connect(f"{url}/ws?session={m.group(1)}") as ws:
+            sent = time.time()
             await ws.send_json({"estop": {"action": action, "id": aid}})
             await asyncio.sleep(0.3)  # the display takes it before the socket closes
-        return aid
+        return aid, sent
 
 
 async def _wait_link(url: str, node: str, deadline: float) -> float:
@@ -240,8 +241,8 @@ async def _wait_link(url: str, node: str, deadline: float) -> float:
 
 def main(argv: list[str]) -> int:
     if len(argv) == 3 and argv[0] == "estop" and argv[1] in ("stop", "release"):
-        aid = asyncio.run(_estop(argv[1], argv[2].rstrip("/"), time.monotonic() + 45))
-        print(aid, time.time())
+        aid, sent = asyncio.run(_estop(argv[1], argv[2].rstrip("/"), time.monotonic() + 45))
+        print(aid, sent)  # the action's id, and when it was sent
         return 0
     if len(argv) == 4 and argv[0] == "wait-link":
         limit = time.monotonic() + float(argv[3])
