@@ -180,6 +180,9 @@ class ZenohBridge:
         """Exporter clock minus ours, seconds (0 until measured; same host: ~0)."""
         return self._clocks.offset(zid)
 
+    def clock_known(self, zid: str) -> bool:
+        return self._clocks.measured(zid)
+
     def clock_probe(self, zid: str) -> None:
         """From Zenoh's thread: measure an exporter's clock once, off the loop."""
         self._clocks.probe(zid)

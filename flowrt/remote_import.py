@@ -69,6 +69,8 @@ class ImportBridge(Protocol):
 
     def offset(self, zid: str) -> float: ...
 
+    def clock_known(self, zid: str) -> bool: ...
+
 
 class RemoteLinkStats(Buffer):
     """The network hop of an import, shown as an edge: published = what the exporter sent
@@ -265,6 +267,8 @@ class ImportLink:
                 self.arrivals.add(now - self.last_arrival)
             self.last_arrival = now
             captured_mono = now - max(0.0, wall_now - (header.captured - offset))
+            if header.zid and not self.bridge.clock_known(header.zid):
+                captured_mono = now  # its clock not measured yet: arrival beats a guess
             if header.kind == "frame":
                 if isinstance(value, Frame):  # made on Zenoh's thread
                     frame = value

@@ -80,7 +80,9 @@ def _link(stale_after: float | None, stale_is: str = "error") -> tuple[ImportLin
         publish=lambda *a: None,
         record=lambda *a: None,
     )
-    bridge = types.SimpleNamespace(host=host, clock_probe=lambda zid: None, offset=lambda z: 0.0)
+    bridge = types.SimpleNamespace(
+        host=host, clock_probe=lambda zid: None, offset=lambda z: 0.0, clock_known=lambda z: True
+    )
     imp = ImportLink(bridge, "cmd", "demo/cmd", 50.0, stale_after, 16, stale_is)  # type: ignore[arg-type]
     return imp, clock
 
@@ -198,3 +200,16 @@ def test_the_exporter_sends_a_message_timestamp_as_its_capture_time() -> None:
     assert own_timestamp(types.SimpleNamespace(timestamp=3.0)) == 3.0
     for none in ({"timestamp": 0.0}, {"timestamp": "x"}, 5, types.SimpleNamespace()):
         assert own_timestamp(none) is None
+
+
+def test_before_the_exporter_clock_is_measured_the_arrival_time_is_used() -> None:
+    """A guess of 0 offset would put a first detection 5 s off; its arrival is ms off."""
+    imp, clock = _link(5.0)
+    clock.t = 1000.0
+    published: list[Any] = []
+    imp.bridge.host.publish = lambda node, port, value: published.append(value)  # type: ignore[attr-defined]
+    imp.bridge.clock_known = lambda zid: False  # type: ignore[attr-defined]
+    header = Header("s", "z", 0, time.time() - 5.0, time.time() - 5.01, "json")
+    imp.on_sample(_Sample(header, json.dumps({"timestamp": 42.0, "v": 1.0}).encode()))
+    imp.deliver()
+    assert published[0]["timestamp"] == 1000.0
