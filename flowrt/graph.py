@@ -505,7 +505,7 @@ REMOTE_FRAMES = "flowrt.remote:RemoteFrameSource"
 
 
 def _with_imports(spec: GraphSpec, at: Any) -> GraphSpec:
-    """``import:`` entries become nodes (one output, ``output``) of the resolved graph."""
+    """``import:`` entries become nodes (outputs ``output`` and ``state``) of the resolved graph."""
     if not spec.imports:
         return spec
     extra: dict[str, NodeSpec] = {}

@@ -354,6 +354,7 @@ class ImportLink:
         self.outages += 1
         what = "no message yet" if self.last_arrival is None else "stale"
         reason = f"{what} on {self.key} for {since * 1000:.0f} ms (limit {limit * 1000:.0f} ms)"
+        self._publish_state(since)
         if self.stale_is == "error":
             ctx.set_error(reason)
         else:  # a state: one alert per outage, the node stays running
@@ -365,6 +366,7 @@ class ImportLink:
         down = 0.0 if self.stale_since is None else max(0.0, now - self.stale_since)
         self.down_s += down
         self.stale, self.stale_since = False, None
+        self._publish_state(down)
         if self.ctx is None:
             return
         if self.stale_is == "error":
@@ -375,6 +377,21 @@ class ImportLink:
                 HealthAlert(self.ctx.elapsed(), self.name, "import-resumed", detail, "info")
             )
             log.info("import %s: %s", self.name, detail)
+
+    def _publish_state(self, silent_s: float) -> None:
+        """The link's state on the import's ``state`` output, at each change: recorded like
+        any output, it marks a gap in the recording (stale from when, back after how long)."""
+        self.bridge.host.publish(
+            self.name,
+            "state",
+            {
+                "key": self.key,
+                "stale": self.stale,
+                "silent_s": round(silent_s, 3),  # since the last contact / the outage's length
+                "last_contact": self.last_contact_wall,
+                "outages": self.outages,
+            },
+        )
 
     def report(self) -> dict[str, Any]:
         """The link's state for the statistics' ``reports``: stale or not, outages, the time

@@ -38,6 +38,9 @@ class RemoteSource(Node):
 
     Params = RemoteSourceParams
     output: Output[Any] = Output(object, doc="the remote stream's values (frames: local pool)")
+    state: Output[dict[str, Any]] = Output(
+        dict, doc="the link's state at each change: {key, stale, silent_s, last_contact, outages}"
+    )
 
     @classmethod
     def default_trigger(cls, params: Any) -> TimerTrigger:

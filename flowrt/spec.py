@@ -656,7 +656,7 @@ class ExportSpec(_Strict):
 
 class ImportSpec(_Strict):
     """A remote stream used as a local output (``import: {name: key}``): a node named ``name``
-    with one output, ``output``."""
+    with the stream as output ``output`` (and the link's state changes as ``state``)."""
 
     key: str
     period: DurationMs | None = Field(

@@ -121,6 +121,8 @@ def _arrive(imp: ImportLink) -> None:
 def test_stale_as_a_state_is_one_alert_per_outage_and_counts_the_time_down() -> None:
     imp, clock = _link(5.0, "state")  # 50 ms period: stale after 250 ms
     imp.plain = PlainFormat("json", None, "uint8")
+    states: list[Any] = []
+    imp.bridge.host.publish = lambda node, port, v: port == "state" and states.append(v)  # type: ignore[attr-defined]
     ctx = _Ctx()
     _arrive(imp)
     for step in range(1, 41):  # 2 s of silence, checked every 50 ms
@@ -139,6 +141,8 @@ def test_stale_as_a_state_is_one_alert_per_outage_and_counts_the_time_down() -> 
     assert report["stale"] is False
     assert report["down_s"] == pytest.approx(2.0, abs=0.01)
     assert report["last_contact"] is not None
+    # the state output marks the gap in a recording: stale since the last contact, back after
+    assert [(st["stale"], st["silent_s"]) for st in states] == [(True, 0.3), (False, 2.0)]
 
 
 def test_stale_as_an_error_sets_and_clears_the_node_error() -> None:

@@ -10,7 +10,8 @@ link is cut for 6 s and restored, the operator releases again.
 - the robot drives before the cut; ``drive.command`` is exactly zero from cut + 0.5 s until
   the deliberate release after the link is back, and moves again after it;
 - the robot's recorder goes on through the cut (no silence in ``drive.command``, none lost);
-- the base records the robot's detections again within 5 s of the link coming back;
+- the base records the robot's detections again within 5 s of the link coming back, and its
+  recording marks the gap (the import's ``state`` output);
 - the same detection stamped on both sides agrees within 1 ms once the offset is corrected;
 - both runs exit 0; no namespace or link is left.
 """
@@ -89,7 +90,7 @@ def test_estop_across_a_cut_link_and_corrected_clocks(bed: Bed, tmp_path: Path, 
         bed.base,
         [
             "record", str(repo / "graphs/zenoh_base.yaml"), "-o", str(tmp_path / "base"),
-            "--topics", "remote_obstacle.output", "--no-ui",
+            "--topics", "remote_obstacle.output,remote_obstacle.state", "--no-ui",
             "--zenoh-connect", ROBOT_EP,
         ],
         tmp_path / "base.log",
@@ -134,6 +135,9 @@ def test_estop_across_a_cut_link_and_corrected_clocks(bed: Bed, tmp_path: Path, 
     assert back - restored < 5.0, when
     assert any(restored < t < restored + 5.0 for t, _ in base_dets)
     assert not any(cut + 1.0 < t < restored for t, _ in base_dets)  # nothing while cut
+    marks = [(t, m["stale"]) for t, m in _read(tmp_path / "base", "remote_obstacle.state")]
+    assert any(cut < t < cut + 1.0 and stale for t, stale in marks), marks  # the gap marked
+    assert any(restored < t < back + 1.0 and not stale for t, stale in marks), marks
 
     # one detection, stamped on both sides: the same instant within 1 ms once corrected
     robot_at = {d["seq"]: t - OFFSET for t, d in _read(tmp_path / "robot", "avoid_fr.detection")}
