@@ -39,7 +39,6 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 
-from mcap.reader import make_reader  # noqa: E402
 from netns_bed import BASE_IP, ROBOT_EP, ROBOT_IP, Bed, unavailable  # noqa: E402
 
 PAGE = "http://127.0.0.1:8751"
@@ -47,11 +46,21 @@ OBSTACLE_LINK = "zenoh:robot1/front/obstacle->remote_obstacle"
 
 
 def _read(folder: Path, topic: str) -> list[tuple[float, Any]]:
+    """Every session's messages of ``topic``; a killed process's unfinished file up to its
+    last complete chunk (a stream reader: no summary needed)."""
+    from mcap.stream_reader import StreamReader
+
     out: list[tuple[float, Any]] = []
     for path in sorted(folder.glob("*/*.mcap")):
-        with path.open("rb") as f:
-            for _, _, msg in make_reader(f).iter_messages(topics=[topic]):
-                out.append((msg.log_time / 1e9, json.loads(msg.data)))
+        channels: dict[int, str] = {}
+        with path.open("rb") as f, contextlib.suppress(Exception):
+            for record in StreamReader(f, skip_magic=False).records:
+                if type(record).__name__ == "Channel":
+                    channels[record.id] = record.topic
+                elif (
+                    type(record).__name__ == "Message" and channels.get(record.channel_id) == topic
+                ):
+                    out.append((record.log_time / 1e9, json.loads(record.data)))
     return sorted(out, key=lambda x: x[0])
 
 
