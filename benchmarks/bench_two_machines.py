@@ -20,6 +20,9 @@ namespaces joined by a veth pair (tests/netns_bed.py; root).
 - ``latency``: benchmarks/bench_zenoh.py's exporter and importer roles (flowrt over Zenoh)
   and its plain Zenoh publisher/subscriber, each side in its namespace, over the veth link;
   640x480 and 1920x1080 frames at 20 Hz, one-way from the sender's stamp (one host, one clock).
+  Zenoh finds the two processes on one host and passes frames through shared memory even
+  across namespaces; ``--no-shm`` turns that off, so the bytes cross the link as between two
+  machines.
 """
 
 from __future__ import annotations
@@ -256,6 +259,8 @@ def faults(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
 def latency(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
     """bench_zenoh's roles across the namespaces: flowrt's hop against plain Zenoh."""
     cmd = [sys.executable, "-m", "benchmarks.bench_zenoh", "--host", ROBOT_IP, "--rate", "20"]
+    if args.no_shm:  # the bytes through the link, as between two machines
+        cmd.append("--no-shm")
     rows = {}
     for payload in ("640x480", "1920x1080"):
         row: dict[str, Any] = {}
@@ -281,7 +286,8 @@ def latency(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
                 "p99_ms": round(values[int(len(values) * 0.99)] * 1000, 2) if values else None,
             }
         rows[payload] = row
-    return {"link": f"veth {ROBOT_IP} <-> {BASE_IP}", "rate_hz": 20, "rows": rows}
+    link = f"veth {ROBOT_IP} <-> {BASE_IP}" + (", no shared memory" if args.no_shm else "")
+    return {"link": link, "rate_hz": 20, "rows": rows}
 
 
 def main() -> int:
@@ -290,6 +296,9 @@ def main() -> int:
     ap.add_argument("--cuts", type=int, default=20)
     ap.add_argument("--down", type=float, default=1.5, help="estop: seconds each cut lasts")
     ap.add_argument("--seconds", type=float, default=10.0, help="latency: seconds per row")
+    ap.add_argument(
+        "--no-shm", action="store_true", help="latency: no Zenoh shared memory across the link"
+    )
     ap.add_argument("--out", type=Path)
     args = ap.parse_args()
     why = unavailable()
