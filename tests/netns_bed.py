@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import re
 import shutil
@@ -239,6 +240,16 @@ async def _wait_link(url: str, node: str, deadline: float) -> float:
     raise TimeoutError(f"import {node} heard nothing")
 
 
+async def _edge(url: str, name: str) -> dict[str, Any]:
+    """One edge's counters from the page's statistics (``{}`` when it has none)."""
+    import aiohttp
+
+    async with aiohttp.ClientSession() as http, http.get(url + "/stats.json") as r:
+        stats = await r.json()
+    edges = (stats.get("runtime") or {}).get("edges") or []
+    return next((e for e in edges if e.get("name") == name), {})
+
+
 def main(argv: list[str]) -> int:
     if len(argv) == 3 and argv[0] == "estop" and argv[1] in ("stop", "release"):
         aid, sent = asyncio.run(_estop(argv[1], argv[2].rstrip("/"), time.monotonic() + 45))
@@ -248,8 +259,12 @@ def main(argv: list[str]) -> int:
         limit = time.monotonic() + float(argv[3])
         print(asyncio.run(_wait_link(argv[1].rstrip("/"), argv[2], limit)))
         return 0
+    if len(argv) == 3 and argv[0] == "edge":
+        print(json.dumps(asyncio.run(_edge(argv[1].rstrip("/"), argv[2]))))
+        return 0
     print(
-        "usage: netns_bed.py estop stop|release URL | wait-link URL NODE TIMEOUT", file=sys.stderr
+        "usage: netns_bed.py estop stop|release URL | wait-link URL NODE TIMEOUT | edge URL NAME",
+        file=sys.stderr,
     )
     return 2
 
