@@ -15,8 +15,9 @@ namespaces joined by a veth pair (tests/netns_bed.py; root).
 - ``faults``: the link down 2 s and 10 s, flapped (down/up every 0.5 s for 5 s), the base
   killed (SIGKILL) and restarted, the robot restarted (its Zenoh session is new). Per fault:
   reconnection, the e-stop held, and the detections lost across it: those the robot recorded
-  that the base never received, against what the base counted as lost (``sequence gap`` on
-  its ``zenoh:robot1/front/obstacle`` link). Both should be the same number.
+  that the base never received, against what was counted as lost: by the base (``sequence
+  gap`` on its ``zenoh:robot1/front/obstacle`` link) and, for the whole run, by the robot
+  (drops at its export edge while the sender waited on the dead link). The sums should agree.
 - ``latency``: benchmarks/bench_zenoh.py's exporter and importer roles (flowrt over Zenoh)
   and its plain Zenoh publisher/subscriber, each side in its namespace, over the veth link;
   640x480 and 1920x1080 frames at 20 Hz, one-way from the sender's stamp (one host, one clock).
@@ -46,6 +47,7 @@ from netns_bed import BASE_IP, ROBOT_EP, ROBOT_IP, Bed, unavailable  # noqa: E40
 
 PAGE = "http://127.0.0.1:8751"
 OBSTACLE_LINK = "zenoh:robot1/front/obstacle->remote_obstacle"
+EXPORT_EDGE = "avoid_fr.detection->zenoh:robot1/front/obstacle"
 
 
 def _read(folder: Path, topic: str) -> list[tuple[float, Any]]:
@@ -88,6 +90,7 @@ class Pair:
                 "record", str(REPO / "graphs/zenoh_robot.yaml"), "-o", str(self.tmp / "robot"),
                 "--topics", "drive.command,avoid_fr.detection", "--no-ui",
                 "--zenoh-listen", ROBOT_EP,
+                "--stats-json", str(self.tmp / f"robot{self.n_robot}.json"),
             ],
             self.tmp / f"robot{self.n_robot}.log",
         )  # fmt: skip
@@ -128,6 +131,16 @@ def _held(drive: list[tuple[float, Any]], cut: float, until: float) -> dict[str,
         "engaged_ms": None if first_zero is None else round((first_zero - cut) * 1000, 1),
         "held": not moving,
     }
+
+
+def _export_drops(tmp: Path) -> int:
+    """Detections the robots dropped at their export edge (the sender blocked on a dead link)."""
+    n = 0
+    for path in tmp.glob("robot*.json"):
+        for edge in json.loads(path.read_text()).get("edges", []):
+            if edge.get("name") == EXPORT_EDGE:
+                n += int(edge.get("dropped", 0))
+    return n
 
 
 def _gaps(pair: Pair) -> int:
@@ -248,7 +261,8 @@ def faults(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
     return {
         "rows": rows,
         "detections_lost_link_faults": sum(missing.values()),
-        "detections_counted_lost_by_base": counted,
+        "detections_counted_lost_by_base": counted,  # sequence gaps
+        "detections_dropped_at_robot_export": _export_drops(tmp),  # the whole run
         "exit_codes": codes,
     }
 
