@@ -16,7 +16,8 @@ namespaces joined by a veth pair (tests/netns_bed.py; root).
   killed (SIGKILL) and restarted, the robot restarted (its Zenoh session is new). Per fault:
   reconnection, the e-stop held, and the detections lost across it: those the robot recorded
   that the base never received, against what was counted as lost: by the base (``sequence
-  gap`` on its ``zenoh:robot1/front/obstacle`` link) and, for the whole run, by the robot
+  gap``, ``hand-over overrun`` on its ``zenoh:robot1/front/obstacle`` link) and, for the
+  whole run, by the robot
   (drops at its export edge while the sender waited on the dead link). The sums should agree.
 - ``latency``: benchmarks/bench_zenoh.py's exporter and importer roles (flowrt over Zenoh)
   and its plain Zenoh publisher/subscriber, each side in its namespace, over the veth link;
@@ -143,10 +144,11 @@ def _export_drops(tmp: Path) -> int:
     return n
 
 
-def _gaps(pair: Pair) -> int:
-    """Detections the running base has counted as lost on the way (sequence gaps)."""
+def _gaps(pair: Pair) -> dict[str, int]:
+    """What the running base has counted as lost on the link, by reason (a sequence gap:
+    lost on the way; a hand-over overrun: a backlog arriving faster than the loop took it)."""
     edge = json.loads(pair.bed.page("edge", PAGE, OBSTACLE_LINK))
-    return int((edge.get("drop_reasons") or {}).get("sequence gap", 0))
+    return {str(k): int(v) for k, v in (edge.get("drop_reasons") or {}).items()}
 
 
 def _missing(tmp: Path, windows: list[tuple[float, float]]) -> dict[str, int]:
@@ -251,17 +253,21 @@ def faults(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
     drive = _read(tmp / "robot", "drive.command")
     link_faults = rows[:3]
     missing = _missing(tmp, [(r["cut"] - 0.5, r["back"] + 0.5) for r in link_faults])
-    counted = 0
+    counted: dict[str, int] = {}
     for i, r in enumerate(rows):
         r["reconnect_s"] = round(r["back"] - r["restored"], 2)
         if i < 3:
             r.update(_held(drive, r["cut"], r["released"]))
             r["detections_lost"] = missing[str(i)]  # recorded by the robot, never received
-            r["counted_lost"], counted = r["counted"] - counted, r["counted"]  # by the base
+            now = r.pop("counted")  # by the base, since the previous fault
+            r["counted_lost"] = {
+                k: v - counted.get(k, 0) for k, v in now.items() if v > counted.get(k, 0)
+            }
+            counted = now
     return {
         "rows": rows,
         "detections_lost_link_faults": sum(missing.values()),
-        "detections_counted_lost_by_base": counted,  # sequence gaps
+        "detections_counted_lost_by_base": counted,  # by reason
         "detections_dropped_at_robot_export": _export_drops(tmp),  # the whole run
         "exit_codes": codes,
     }
