@@ -584,6 +584,19 @@ def _export_key(v: str) -> str:
     return check_key_expr(v, wildcards=False)
 
 
+#: Zenoh config keys that only time the link (leases, reconnection): they reach no other peer.
+TIMING_KEYS = frozenset(
+    {
+        "transport/link/tx/lease",
+        "transport/link/tx/keep_alive",
+        "connect/retry",
+        "connect/timeout_ms",
+        "listen/retry",
+        "listen/timeout_ms",
+    }
+)
+
+
 class ZenohSpec(_Strict):
     """The Zenoh session of a graph that spans machines (``zenoh:`` in a graph file).
 
@@ -607,8 +620,11 @@ class ZenohSpec(_Strict):
 
     def beyond_loopback(self) -> bool:
         """Whether peers other than this host's may reach the session: a listen or connect
-        endpoint that is not loopback, scouting, or configuration flowrt does not read."""
-        if self.scouting or self.config or self.config_file:
+        endpoint that is not loopback, scouting, or configuration flowrt does not read (the
+        link's timing, :data:`TIMING_KEYS`, opens nothing and is read as harmless)."""
+        if self.scouting or self.config_file:
+            return True
+        if any(key not in TIMING_KEYS for key in self.config):
             return True
         for endpoint in (*self.listen, *self.connect):
             m = _ENDPOINT.match(endpoint)
