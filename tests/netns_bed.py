@@ -250,6 +250,18 @@ async def _edge(url: str, name: str) -> dict[str, Any]:
     return next((e for e in edges if e.get("name") == name), {})
 
 
+async def _post(url: str, body: str) -> tuple[int, str]:
+    """POST a JSON body to the page (its API): the status and the body's text."""
+    import aiohttp
+
+    timeout = aiohttp.ClientTimeout(total=60)
+    async with (
+        aiohttp.ClientSession(timeout=timeout) as http,
+        http.post(url, data=body, headers={"Content-Type": "application/json"}) as r,
+    ):
+        return r.status, (await r.text()).strip()
+
+
 def main(argv: list[str]) -> int:
     if len(argv) == 3 and argv[0] == "estop" and argv[1] in ("stop", "release"):
         aid, sent = asyncio.run(_estop(argv[1], argv[2].rstrip("/"), time.monotonic() + 45))
@@ -259,11 +271,16 @@ def main(argv: list[str]) -> int:
         limit = time.monotonic() + float(argv[3])
         print(asyncio.run(_wait_link(argv[1].rstrip("/"), argv[2], limit)))
         return 0
+    if len(argv) == 3 and argv[0] == "post":
+        status, text = asyncio.run(_post(argv[1], argv[2]))
+        print(status, text.replace("\n", " "))
+        return 0
     if len(argv) == 3 and argv[0] == "edge":
         print(json.dumps(asyncio.run(_edge(argv[1].rstrip("/"), argv[2]))))
         return 0
     print(
-        "usage: netns_bed.py estop stop|release URL | wait-link URL NODE TIMEOUT | edge URL NAME",
+        "usage: netns_bed.py estop stop|release URL | wait-link URL NODE TIMEOUT | edge URL NAME"
+        " | post URL JSON",
         file=sys.stderr,
     )
     return 2

@@ -14,6 +14,9 @@ page, the link is cut for 6 s and restored, the operator releases again; the lin
 - the base records the robot's detections again within 5 s of the link coming back, and its
   recording marks the gap (the import's ``state`` output);
 - the same detection stamped on both sides agrees within 1 ms once the offset is corrected;
+- the robot's recorder, started from the base's page, goes on through the cut (its table:
+  nothing lost); a recording started from the page while the link is down is refused with a
+  reason, never silently lost;
 - both runs exit 0; no namespace or link is left.
 """
 
@@ -35,6 +38,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.timeout(300)
 PAGE = "http://127.0.0.1:8751"
 OFFSET = -5.0  # the robot's wall clock against the host's, seconds
 CUT = 6.0
+TOKEN = "two-machines-token"
 
 
 def _faketime() -> dict[str, str] | None:
@@ -77,12 +81,23 @@ def test_estop_across_a_cut_link_and_corrected_clocks(bed: Bed, tmp_path: Path, 
     fake = _faketime()
     if fake is None:
         pytest.skip("libfaketime (pip install libfaketime) puts the robot's clock off")
+    # the base's page reaches the robot's recorder through its control channel (a token:
+    # the robot listens beyond loopback)
+    base_graph = tmp_path / "zenoh_base.yaml"
+    text = (repo / "graphs/zenoh_base.yaml").read_text()
+    base_graph.write_text(
+        text.replace("robot1/flowrt/control}", f"robot1/flowrt/control, token: {TOKEN}}}")
+    )
+    robot_graph = tmp_path / "zenoh_robot.yaml"  # its recorder's sessions land beside it
+    frames = "      front_cam.frame: {from: front_cam.frame, policy: lossless, size: 16}\n"
+    text = (repo / "graphs/zenoh_robot.yaml").read_text()
+    assert frames in text
+    robot_graph.write_text(text.replace(frames, ""))  # raw frames: a disk test, not this one
     robot = bed.flowrt(
         bed.robot,
         [
-            "record", str(repo / "graphs/zenoh_robot.yaml"), "-o", str(tmp_path / "robot"),
-            "--topics", "drive.command,avoid_fr.detection", "--no-ui",
-            "--zenoh-listen", ROBOT_EP,
+            "run", str(robot_graph), "--no-ui",
+            "--zenoh-listen", ROBOT_EP, "--token", TOKEN,
         ],
         tmp_path / "robot.log",
         env=fake,
@@ -90,18 +105,24 @@ def test_estop_across_a_cut_link_and_corrected_clocks(bed: Bed, tmp_path: Path, 
     base = bed.flowrt(
         bed.base,
         [
-            "record", str(repo / "graphs/zenoh_base.yaml"), "-o", str(tmp_path / "base"),
+            "record", str(base_graph), "-o", str(tmp_path / "base"),
             "--topics", "remote_obstacle.output,remote_obstacle.state", "--no-ui",
             "--zenoh-connect", ROBOT_EP,
         ],
         tmp_path / "base.log",
     )  # fmt: skip
+    record = f"{PAGE}/api/robots/robot1/record"
     try:
         bed.page("wait-link", PAGE, "remote_drive", "120", timeout=150)
+        # the robot's own recorder, started from the base's page: it goes on through the cut
+        started = bed.page("post", f"{record}/start", '{"name": "drive"}', timeout=90)
         released = float(bed.page("estop", "release", PAGE).split()[1])
         time.sleep(3.0)
         cut = bed.cut()
-        time.sleep(CUT)
+        time.sleep(1.0)
+        # a recording started from the base's page while the link is down: refused, a reason
+        refused = bed.page("post", f"{record}/start", '{"name": "cut"}', timeout=90)
+        time.sleep(max(0.0, cut + CUT - time.time()))
         restored = bed.restore()
         back = float(bed.page("wait-link", PAGE, "remote_drive", "30", timeout=60))
         time.sleep(0.5)
@@ -115,6 +136,7 @@ def test_estop_across_a_cut_link_and_corrected_clocks(bed: Bed, tmp_path: Path, 
         time.sleep(0.5)
         released_last = float(bed.page("estop", "release", PAGE).split()[1])
         time.sleep(2.0)
+        stopped = bed.page("post", f"{record}/stop", "{}", timeout=90)  # its table: 0 lost
     finally:
         base_code, robot_code = bed.stop(base), bed.stop(robot)
     logs = (
@@ -124,8 +146,16 @@ def test_estop_across_a_cut_link_and_corrected_clocks(bed: Bed, tmp_path: Path, 
     assert robot_code == 0, logs
     assert base_code == 0, logs
 
+    assert started.startswith("200 "), started
+    assert '"drive_001"' in started
+    assert refused.split()[0] in ("502", "504"), refused  # refused, never silently lost
+    assert "robot1" in refused
+    assert stopped.startswith("200 "), stopped
+    assert json.loads(stopped.split(" ", 1)[1])["lost"] == 0  # the robot lost nothing
+    rec = tmp_path / "recordings"  # beside the robot's graph
+
     # the robot's own stamps are on its clock, OFFSET off: back onto the host's
-    drive = [(t - OFFSET, cmd) for t, cmd in _read(tmp_path / "robot", "drive.command")]
+    drive = [(t - OFFSET, cmd) for t, cmd in _read(rec, "drive.command")]
     assert any(not _zero(c) for t, c in drive if released + 1.0 < t < cut)  # it drove
     held = [c for t, c in drive if cut + 0.5 <= t < released_again]
     when = f"cut {cut:.2f} restored {restored:.2f} back {back:.2f} released {released_again:.2f}"
@@ -152,7 +182,7 @@ def test_estop_across_a_cut_link_and_corrected_clocks(bed: Bed, tmp_path: Path, 
     assert any(restored < t < back + 1.0 and not stale for t, stale in marks), marks
 
     # one detection, stamped on both sides: the same instant within 1 ms once corrected
-    robot_at = {d["seq"]: t - OFFSET for t, d in _read(tmp_path / "robot", "avoid_fr.detection")}
+    robot_at = {d["seq"]: t - OFFSET for t, d in _read(rec, "avoid_fr.detection")}
     base_at = {d["seq"]: t for t, d in base_dets}
     both = sorted(set(robot_at) & set(base_at))
     assert len(both) > 20
