@@ -49,6 +49,8 @@ from netns_bed import BASE_IP, ROBOT_EP, ROBOT_IP, Bed, unavailable  # noqa: E40
 PAGE = "http://127.0.0.1:8751"
 OBSTACLE_LINK = "zenoh:robot1/front/obstacle->remote_obstacle"
 EXPORT_EDGE = "avoid_fr.detection->zenoh:robot1/front/obstacle"
+FRAME_LINK = "zenoh:robot1/front/frame->remote_cam"
+FRAME_EXPORT = "front_cam.frame->zenoh:robot1/front/frame"
 
 
 def _read(folder: Path, topic: str) -> list[tuple[float, Any]]:
@@ -134,14 +136,25 @@ def _held(drive: list[tuple[float, Any]], cut: float, until: float) -> dict[str,
     }
 
 
-def _export_drops(tmp: Path) -> int:
-    """Detections the robots dropped at their export edge (the sender blocked on a dead link)."""
-    n = 0
+def _export_drops(tmp: Path, name: str = EXPORT_EDGE) -> dict[str, int]:
+    """An export edge of the robots, over their runs: published into it, sent (delivered),
+    dropped and unread (a ``latest`` edge keeps the newest frame while the sender waits)."""
+    out = {"published": 0, "delivered": 0, "dropped": 0, "unread": 0}
     for path in tmp.glob("robot*.json"):
         for edge in json.loads(path.read_text()).get("edges", []):
-            if edge.get("name") == EXPORT_EDGE:
-                n += int(edge.get("dropped", 0))
-    return n
+            if edge.get("name") == name:
+                for k in out:
+                    out[k] += int(edge.get(k, 0) or 0)
+    return out
+
+
+def _frame_link(pair: Pair) -> dict[str, int]:
+    """The base's frame link counters now: published (by sequence number), delivered, and
+    drops by reason."""
+    edge = json.loads(pair.bed.page("edge", PAGE, FRAME_LINK))
+    out = {"published": int(edge.get("published", 0)), "delivered": int(edge.get("delivered", 0))}
+    out.update({str(k): int(v) for k, v in (edge.get("drop_reasons") or {}).items()})
+    return out
 
 
 def _gaps(pair: Pair) -> dict[str, int]:
@@ -224,7 +237,8 @@ def faults(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
             released = pair.release()
             time.sleep(1.0)  # what arrives late is not lost: counted a second later
             rows.append({"fault": name, "cut": cut, "restored": restored, "back": back,
-                         "released": released, "counted": _gaps(pair)})  # fmt: skip
+                         "released": released, "counted": _gaps(pair),
+                         "frames": _frame_link(pair)})  # fmt: skip
         time.sleep(2.0)
         assert pair.base is not None
         cut = time.time()
@@ -254,6 +268,7 @@ def faults(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
     link_faults = rows[:3]
     missing = _missing(tmp, [(r["cut"] - 0.5, r["back"] + 0.5) for r in link_faults])
     counted: dict[str, int] = {}
+    frames: dict[str, int] = {}
     for i, r in enumerate(rows):
         r["reconnect_s"] = round(r["back"] - r["restored"], 2)
         if i < 3:
@@ -264,11 +279,15 @@ def faults(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
                 k: v - counted.get(k, 0) for k, v in now.items() if v > counted.get(k, 0)
             }
             counted = now
+            f = r.pop("frames")  # the base's frame link over this fault
+            r["frames"] = {k: v - frames.get(k, 0) for k, v in f.items()}
+            frames = f
     return {
         "rows": rows,
         "detections_lost_link_faults": sum(missing.values()),
         "detections_counted_lost_by_base": counted,  # by reason
-        "detections_dropped_at_robot_export": _export_drops(tmp),  # the whole run
+        "detections_robot_export": _export_drops(tmp),  # the whole run
+        "frames_robot_export": _export_drops(tmp, FRAME_EXPORT),  # the whole run
         "exit_codes": codes,
     }
 
