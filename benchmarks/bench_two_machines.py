@@ -271,8 +271,8 @@ def faults(args: argparse.Namespace, bed: Bed, tmp: Path) -> dict[str, Any]:
     frames: dict[str, int] = {}
     for i, r in enumerate(rows):
         r["reconnect_s"] = round(r["back"] - r["restored"], 2)
+        r.update(_held(drive, r["cut"], r["released"]))  # a restart: zero until released too
         if i < 3:
-            r.update(_held(drive, r["cut"], r["released"]))
             r["detections_lost"] = missing[str(i)]  # recorded by the robot, never received
             now = r.pop("counted")  # by the base, since the previous fault
             r["counted_lost"] = {
