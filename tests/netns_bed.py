@@ -68,11 +68,24 @@ def leftovers() -> list[str]:
 
 
 def _sweep() -> None:
-    """Delete namespaces of earlier runs whose process is gone."""
+    """Delete namespaces of earlier runs whose process is gone, with what still runs in them
+    (their children die with them, :func:`_die_with_parent`; this is for the rest)."""
     for ns in leftovers():
         m = re.search(r"-(\d+)$", ns)
         if m and not Path(f"/proc/{m.group(1)}").exists():
+            for pid in _ip("netns", "pids", ns, check=False).stdout.split():
+                with contextlib.suppress(ProcessLookupError, ValueError):
+                    os.kill(int(pid), signal.SIGKILL)
             _ip("netns", "del", ns, check=False)
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: SIGKILL when the process that started it dies (a killed
+    pytest leaves no flowrt running in a namespace; kept across ``ip netns exec``'s exec)."""
+    import ctypes
+
+    libc = ctypes.CDLL("libc.so.6", use_errno=True)
+    libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
 class Bed:
@@ -132,7 +145,9 @@ class Bed:
     ) -> subprocess.Popen[bytes]:
         """Start ``argv`` inside namespace ``ns`` (``ip netns exec`` execs it: same pid)."""
         full_env = {**os.environ, **(env or {})}
-        p = subprocess.Popen(["ip", "netns", "exec", ns, *argv], env=full_env, **kw)
+        p = subprocess.Popen(
+            ["ip", "netns", "exec", ns, *argv], env=full_env, preexec_fn=_die_with_parent, **kw
+        )
         self.procs.append(p)
         return p
 
