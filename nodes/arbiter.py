@@ -35,8 +35,10 @@ Safety rules (proven by property tests on virtual time, tests/test_safety_arbite
   station) stays engaged when the source comes back still saying "released"; only a *new*
   release frees it: a value whose ``release`` id differs from the one last heard before the
   silence (the ``estop`` node gives every release by the operator an id of its own), or, for
-  a source of plain booleans, a false value after a true one. ``resume`` (the default)
-  releases on the first false value.
+  a source of plain booleans, a false value after a true one. The same holds from the start:
+  a release the arbiter did not see being made (the first value it hears already says
+  released: a restarted robot, a station released long ago) does not free it. ``resume``
+  (the default) releases on the first false value.
 - **Invalid commands are refused**: a command with NaN/inf or a key of the wrong type is not a
   fresh command; the arbiter falls back to the next source (or zero), counts it per source
   (``invalid`` in :meth:`Arbiter.report`, so in the statistics' ``reports``) and raises one
@@ -212,8 +214,15 @@ class Arbiter(Node):
         # after_silence: hold. Invariant: a lock is in ``held`` from a missed heartbeat until
         # a new release; ``held[name]`` is the release id last heard before the silence, and
         # ``armed`` says a true value came since (a plain boolean's false then releases).
+        # A held lock starts held (``_FIRST``): the first value heard sets the release id it
+        # waits to see change; a release from before this start (a restarted robot hearing a
+        # station released long ago) is not one.
         self.release_id: dict[str, Any] = {}
-        self.held: dict[str, Any] = {}
+        self.held: dict[str, Any] = {
+            name: _FIRST
+            for name, spec in self.params.locks.items()
+            if spec.after_silence == "hold" and spec.initial == "engaged"
+        }
         self.armed: set[str] = set()
 
     def params_changed(self, old: Any) -> None:
@@ -251,7 +260,11 @@ class Arbiter(Node):
     def _heard(self, name: str, value: Any) -> None:
         """A value on a held lock: a new release (a new id, or false after true) frees it."""
         rid = value.get("release") if isinstance(value, Mapping) else None
-        if name in self.held and not self.latched[name]:
+        if name in self.held and self.held[name] is _FIRST:  # the first value: the baseline
+            self.held[name] = rid
+            if self.latched[name]:
+                self.armed.add(name)
+        elif name in self.held and not self.latched[name]:
             if (rid is not None and rid != self.held[name]) or name in self.armed:
                 del self.held[name]
                 self.armed.discard(name)
@@ -374,6 +387,9 @@ class Arbiter(Node):
                 "info",
             )
         )
+
+
+_FIRST = object()  # a held lock before its first value (see Arbiter.setup)
 
 
 def _truthy(value: Any) -> bool:

@@ -335,8 +335,10 @@ async def test_after_silence_hold_needs_a_new_release(kind: str) -> None:
     async with Runtime(drive_graph(locks).build(), clock=clock) as rt:
         sub = rt.subscribe("drive.command", size=1000)
         joy = {"vx": 1.0, "w": 0.0}
+        engaged = {"active": True, "release": None} if kind == "release-id" else True
         released = {"active": False, "release": "r1"} if kind == "release-id" else False
-        await _beat(rt, clock, released, joy, 10)
+        await _beat(rt, clock, engaged, joy, 5)  # the station engaged when first heard
+        await _beat(rt, clock, released, joy, 10)  # then the operator's release
         assert sub.drain()[-1] == joy
         await _beat(rt, clock, None, joy, 25)  # the link is cut for 0.5 s
         assert sub.drain()[-1] == ZERO
@@ -353,3 +355,17 @@ async def test_after_silence_hold_needs_a_new_release(kind: str) -> None:
             await _beat(rt, clock, False, joy, 5)
         assert sub.drain()[-1] == joy
         assert rt.stats().reports["drive"]["held"] == []
+
+
+async def test_after_silence_hold_a_release_from_before_the_start_does_not_count() -> None:
+    """A restarted robot hears a station released long ago: it stays at zero until the
+    operator releases again (a new id)."""
+    clock = VirtualClock()
+    locks = {"estop": {"heartbeat": "300ms", "after_silence": "hold"}}
+    async with Runtime(drive_graph(locks).build(), clock=clock) as rt:
+        sub = rt.subscribe("drive.command", size=1000)
+        joy = {"vx": 1.0, "w": 0.0}
+        await _beat(rt, clock, {"active": False, "release": "old"}, joy, 20)
+        assert all(c == ZERO for c in sub.drain())
+        await _beat(rt, clock, {"active": False, "release": "new"}, joy, 5)
+        assert sub.drain()[-1] == joy
