@@ -84,5 +84,6 @@ def _follow_robots(graph: Graph, old: list[str], new: list[str]) -> str | None:
 def _one_line(e: BaseException) -> str:
     errors = getattr(e, "errors", None)
     if callable(errors):
-        return "; ".join(str(err.get("msg", err)) for err in errors())
+        msgs = (str(err.get("msg", err)).removeprefix("Value error, ") for err in errors())
+        return "; ".join(msgs)
     return str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
