@@ -120,20 +120,34 @@ def _port() -> int:
         return int(s.getsockname()[1])
 
 
-def exporter_graph(payload: str, rate: float, port: int | None, critical: bool) -> Any:
+def exporter_graph(
+    payload: str,
+    rate: float,
+    port: int | None,
+    critical: bool,
+    host: str = "127.0.0.1",
+    config: dict[str, Any] | None = None,
+) -> Any:
     g = flowrt.GraphBuilder("exporter")
     g.add("src", PayloadSource, params={"payload": payload, "rate": rate})
     if critical:
         g.add("crit", Critical, trigger={"timer": "50ms"}, priority=90)
     if port is not None:
-        g.zenoh(listen=[f"tcp/127.0.0.1:{port}"])
+        g.zenoh(listen=[f"tcp/{host}:{port}"], config=config or {})
         g.export("bench/x", "src.out" if SIZES[payload] is None else "src.frame")
     return g.build()
 
 
-def importer_graph(payload: str, port: int, out: str, rate: float) -> Any:
+def importer_graph(
+    payload: str,
+    port: int,
+    out: str,
+    rate: float,
+    host: str = "127.0.0.1",
+    config: dict[str, Any] | None = None,
+) -> Any:
     g = flowrt.GraphBuilder("importer")
-    g.zenoh(listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    g.zenoh(listen=[], connect=[f"tcp/{host}:{port}"], config=config or {})
     frames = SIZES[payload] is not None
     g.import_("rx", {"key": "bench/x", "frames": frames, "period": 1000 / rate})
     g.add("sink", LatencySink, params={"out": out}, inputs={"value": {"from": "rx.output"}})
@@ -150,10 +164,14 @@ async def _run(spec: Any, seconds: float) -> dict[str, Any]:
 
 def role_main(args: argparse.Namespace) -> None:
     if args.role == "exporter":
-        spec = exporter_graph(args.payload, args.rate, args.port, args.critical)
+        spec = exporter_graph(
+            args.payload, args.rate, args.port, args.critical, args.host, _no_shm(args)
+        )
         Path(args.result).write_text(json.dumps(flowrt.run(_run(spec, args.seconds))))
     elif args.role == "importer":
-        spec = importer_graph(args.payload, args.port, args.lat, args.rate)
+        spec = importer_graph(
+            args.payload, args.port, args.lat, args.rate, args.host, _no_shm(args)
+        )
         Path(args.result).write_text(json.dumps(flowrt.run(_run(spec, args.seconds))))
     elif args.role == "raw_pub":
         raw_pub(args)
@@ -161,10 +179,18 @@ def role_main(args: argparse.Namespace) -> None:
         raw_sub(args)
 
 
-def _zenoh(listen: list[str], connect: list[str]) -> Any:
+def _no_shm(args: argparse.Namespace) -> dict[str, Any]:
+    """``--no-shm``: bytes through the socket, as between two machines (one host's processes,
+    even in two network namespaces, would otherwise share memory)."""
+    return {"transport/shared_memory/enabled": False} if args.no_shm else {}
+
+
+def _zenoh(listen: list[str], connect: list[str], no_shm: bool = False) -> Any:
     import zenoh
 
     c = zenoh.Config()
+    if no_shm:
+        c.insert_json5("transport/shared_memory/enabled", "false")
     c.insert_json5("mode", '"peer"')
     c.insert_json5("listen/endpoints", json.dumps(listen))
     c.insert_json5("connect/endpoints", json.dumps(connect))
@@ -174,7 +200,7 @@ def _zenoh(listen: list[str], connect: list[str]) -> Any:
 
 
 def raw_pub(args: argparse.Namespace) -> None:
-    s = _zenoh([f"tcp/127.0.0.1:{args.port}"], [])
+    s = _zenoh([f"tcp/{args.host}:{args.port}"], [], args.no_shm)
     pub = s.declare_publisher("bench/raw")
     shape = SIZES[args.payload]
     frame = None if shape is None else np.zeros(shape, np.uint8)
@@ -201,7 +227,7 @@ def raw_sub(args: argparse.Namespace) -> None:
     handing each sample to a uvloop loop (``call_soon_threadsafe``): what a user's own asyncio
     program pays to get a sample onto its loop."""
     lat: list[float] = []
-    s = _zenoh([], [f"tcp/127.0.0.1:{args.port}"])
+    s = _zenoh([], [f"tcp/{args.host}:{args.port}"], args.no_shm)
     if not args.asyncio:
 
         def on(sample: Any) -> None:
@@ -388,6 +414,8 @@ def main() -> None:
     ap.add_argument("--payload", default="8B")
     ap.add_argument("--rate", type=float, default=20.0)
     ap.add_argument("--port", type=int)
+    ap.add_argument("--host", default="127.0.0.1", help="the exporter's address (a role)")
+    ap.add_argument("--no-shm", action="store_true", help="no Zenoh shared memory (a role)")
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--result")
     ap.add_argument("--lat", default="")

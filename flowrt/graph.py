@@ -534,15 +534,18 @@ REMOTE_FRAMES = "flowrt.remote:RemoteFrameSource"
 
 
 def _with_imports(spec: GraphSpec, at: Any) -> GraphSpec:
-    """``import:`` entries become nodes (one output, ``output``) of the resolved graph."""
+    """``import:`` entries become nodes (outputs ``output`` and ``state``) of the resolved graph."""
     if not spec.imports:
         return spec
     extra: dict[str, NodeSpec] = {}
     for name, im in spec.imports.items():
+        if name in spec.nodes and spec.nodes[name].kind in (REMOTE_SOURCE, REMOTE_FRAMES):
+            continue  # a resolved graph's spec, resolved again (a recorder added to it)
         if name in spec.nodes:
             at(("import", name), f"import {name!r} has the name of a node; rename one of them")
             continue
-        params = {"key": im.key, "stale_after": im.stale_after, "size": im.size}
+        stale_after = None if im.stale_after == "never" else im.stale_after
+        params = {"key": im.key, "stale_after": stale_after, "size": im.size, "stale": im.stale}
         if im.period is not None:
             params["period_ms"] = im.period
         kind = REMOTE_FRAMES if im.frames else REMOTE_SOURCE

@@ -145,7 +145,8 @@ class ZenohBridge:
     def attach_imports(self) -> None:
         """Subscribers for the imports, bound to their nodes (once the nodes are set up)."""
         for name, im in self.spec.imports.items():
-            imp = ImportLink(self, name, im.key, im.period, im.stale_after, im.size)
+            stale_after = None if im.stale_after == "never" else im.stale_after
+            imp = ImportLink(self, name, im.key, im.period, stale_after, im.size, im.stale)
             imp.max_bytes, imp.max_pixels = im.byte_limit, im.max_pixels
             imp.zero_copy = not worker_downstream(self.spec, name)
             imp.plain = (
@@ -178,6 +179,9 @@ class ZenohBridge:
     def offset(self, zid: str) -> float:
         """Exporter clock minus ours, seconds (0 until measured; same host: ~0)."""
         return self._clocks.offset(zid)
+
+    def clock_known(self, zid: str) -> bool:
+        return self._clocks.measured(zid)
 
     def clock_probe(self, zid: str) -> None:
         """From Zenoh's thread: measure an exporter's clock once, off the loop."""

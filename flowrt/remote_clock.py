@@ -47,6 +47,10 @@ class ClockOffsets:
         got = self._offsets.get(zid)
         return 0.0 if got is None else got[0]
 
+    def measured(self, zid: str) -> bool:
+        """Whether the exporter's clock is known (until then, :meth:`offset` is a guess)."""
+        return zid in self._offsets
+
     def probe(self, zid: str) -> None:
         """From Zenoh's thread: measure an exporter's clock once, off the loop."""
         if zid in self._offsets or zid in self._probing or self._session() is None:

@@ -21,7 +21,7 @@ from typing import Any
 from .edges import EMPTY, Buffer
 from .frames import Frame
 from .remote_host import BridgeHost
-from .zenoh_wire import Header, encode_frame, payload_encoding, to_wire
+from .zenoh_wire import Header, encode_frame, own_timestamp, payload_encoding, to_wire
 
 __all__ = ["Export", "ExportSender"]
 
@@ -102,7 +102,9 @@ class ExportSender:
                     )
                 else:
                     payload = json.dumps(to_wire(value), separators=(",", ":")).encode()
-                    header = Header(self.stream, self.zid, exp.seq, now_wall, now_wall, "json")
+                    stamp = own_timestamp(value)  # a detection: its frame's capture time
+                    captured = wall0 + (stamp - mono0) if stamp is not None else now_wall
+                    header = Header(self.stream, self.zid, exp.seq, now_wall, captured, "json")
                 exp.seq += 1
                 encoding = exp.encodings.get(header.kind)
                 if encoding is None:  # one per kind: a Zenoh object made once, not per put

@@ -26,6 +26,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from .edges import Buffer
+from .events import HealthAlert
 from .frames import Frame
 from .remote_host import BridgeHost
 from .spec import GraphSpec, Placement
@@ -40,6 +41,8 @@ from .zenoh_wire import (
     check_frame,
     decode_frame,
     loads_wire,
+    own_timestamp,
+    set_timestamp,
 )
 
 __all__ = [
@@ -65,6 +68,8 @@ class ImportBridge(Protocol):
     def clock_probe(self, zid: str) -> None: ...
 
     def offset(self, zid: str) -> float: ...
+
+    def clock_known(self, zid: str) -> bool: ...
 
 
 class RemoteLinkStats(Buffer):
@@ -102,14 +107,16 @@ class ImportLink:
         name: str,
         key: str,
         period_ms: float | None,
-        stale_after: float,
+        stale_after: float | None,
         size: int,
+        stale_is: str = "error",
     ) -> None:
         self.bridge = bridge
         self.name = name
         self.key = key
         self.period = None if period_ms is None else period_ms / 1000
-        self.stale_after = stale_after
+        self.stale_after = stale_after  # None: never stale
+        self.stale_is = stale_is  # "error": the node's error state; "state": a counted state
         self.lock = threading.Lock()
         self.pending: deque[tuple[Header, Any]] = deque()
         self.size = size
@@ -121,6 +128,10 @@ class ImportLink:
         self.last_arrival: float | None = None  # loop clock
         self.started = bridge.host.now_mono()
         self.stale = False
+        self.stale_since: float | None = None  # loop clock, while stale
+        self.outages = 0  # times the import went stale (each one alert)
+        self.down_s = 0.0  # time spent stale, over finished outages
+        self.last_contact_wall: float | None = None  # our wall clock at the last arrival
         self.decode_errors = 0
         self.restarts = 0  # sequence jumps taken as a restart of the exporter (counted)
         self.max_bytes = 1 << 20  # set from the ImportSpec: larger messages are refused
@@ -143,8 +154,9 @@ class ImportLink:
         try:
             raw_att = sample.attachment
             if self.plain is not None:  # a plain program's payload: the header is made here
+                # its sequence number is taken once the payload is accepted (below): a refused
+                # sample is counted once, as refused, never again as a gap
                 header = self.plain.header(self.key, self.plain_seq)
-                self.plain_seq += 1
             elif raw_att is None:
                 raise Refused(
                     "undecodable",
@@ -174,6 +186,8 @@ class ImportLink:
                 self.link.lost(reason)
             self._warn(reason, f"import {self.name}: {reason} message on {self.key}: {e}")
             return
+        if self.plain is not None:
+            self.plain_seq += 1
         self.bridge.clock_probe(header.zid)
         with self.lock:
             if header.stream != self.stream:
@@ -253,6 +267,8 @@ class ImportLink:
                 self.arrivals.add(now - self.last_arrival)
             self.last_arrival = now
             captured_mono = now - max(0.0, wall_now - (header.captured - offset))
+            if header.zid and not self.bridge.clock_known(header.zid):
+                captured_mono = now  # its clock not measured yet: arrival beats a guess
             if header.kind == "frame":
                 if isinstance(value, Frame):  # made on Zenoh's thread
                     frame = value
@@ -268,8 +284,14 @@ class ImportLink:
                 host.publish(self.name, "output", frame)
                 frame.release()
             else:
+                if self.plain is None and own_timestamp(value) is not None:
+                    # the exporter's monotonic stamp means nothing here: the capture time,
+                    # on its corrected clock, mapped onto ours (header.captured carries it)
+                    set_timestamp(value, captured_mono)
                 host.publish(self.name, "output", value)
                 records.append(value)
+        if items:
+            self.last_contact_wall = time.time()
         if self.stale and items:
             self._resumed()
         if records:  # after the readers' activations: an RTDB write is ~0.1 ms (a lock)
@@ -313,10 +335,14 @@ class ImportLink:
 
     def _validity_ms(self) -> float | None:
         p = self._period()
-        return None if p is None else p * self.stale_after * 1000
+        if p is None or self.stale_after is None:
+            return None
+        return p * self.stale_after * 1000
 
     def check_liveness(self, ctx: Any) -> None:
         self.ctx = ctx
+        if self.stale_after is None:  # stale_after: never
+            return
         now = self.bridge.host.now_mono()
         p = self._period()
         limit = max(0.1, (p if p is not None else 0.2) * self.stale_after)
@@ -324,14 +350,63 @@ class ImportLink:
         if since <= limit or self.stale:
             return
         self.stale = True
+        self.stale_since = now - since  # down since the last contact (or the start)
+        self.outages += 1
         what = "no message yet" if self.last_arrival is None else "stale"
         reason = f"{what} on {self.key} for {since * 1000:.0f} ms (limit {limit * 1000:.0f} ms)"
-        ctx.set_error(reason)
+        self._publish_state(since)
+        if self.stale_is == "error":
+            ctx.set_error(reason)
+        else:  # a state: one alert per outage, the node stays running
+            ctx.emit(HealthAlert(ctx.elapsed(), self.name, "import-stale", reason))
+            log.warning("import %s: %s", self.name, reason)
 
     def _resumed(self) -> None:
-        self.stale = False
-        if self.ctx is not None:
+        now = self.bridge.host.now_mono()
+        down = 0.0 if self.stale_since is None else max(0.0, now - self.stale_since)
+        self.down_s += down
+        self.stale, self.stale_since = False, None
+        self._publish_state(down)
+        if self.ctx is None:
+            return
+        if self.stale_is == "error":
             self.ctx.clear_error()
+        else:
+            detail = f"{self.key} back after {down:.1f} s"
+            self.ctx.emit(
+                HealthAlert(self.ctx.elapsed(), self.name, "import-resumed", detail, "info")
+            )
+            log.info("import %s: %s", self.name, detail)
+
+    def _publish_state(self, silent_s: float) -> None:
+        """The link's state on the import's ``state`` output, at each change: recorded like
+        any output, it marks a gap in the recording (stale from when, back after how long)."""
+        self.bridge.host.publish(
+            self.name,
+            "state",
+            {
+                "key": self.key,
+                "stale": self.stale,
+                "silent_s": round(silent_s, 3),  # since the last contact / the outage's length
+                "last_contact": self.last_contact_wall,
+                "outages": self.outages,
+            },
+        )
+
+    def report(self) -> dict[str, Any]:
+        """The link's state for the statistics' ``reports``: stale or not, outages, the time
+        down (the current outage included) and the last contact (Unix time, our clock)."""
+        down = self.down_s
+        if self.stale and self.stale_since is not None:
+            down += max(0.0, self.bridge.host.now_mono() - self.stale_since)
+        return {
+            "key": self.key,
+            "stale": self.stale,
+            "stale_is": self.stale_is,
+            "outages": self.outages,
+            "down_s": round(down, 3),
+            "last_contact": self.last_contact_wall,
+        }
 
 
 def worker_downstream(spec: GraphSpec, source: str) -> bool:

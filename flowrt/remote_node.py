@@ -8,7 +8,7 @@ activations only check the stream is alive.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -24,7 +24,8 @@ class RemoteSourceParams(BaseModel):
     model_config = ConfigDict(extra="forbid")
     key: str
     period_ms: float | None = Field(default=None, gt=0)
-    stale_after: float = Field(default=5.0, gt=0)
+    stale_after: float | None = Field(default=5.0, gt=0, description="None: never stale")
+    stale: Literal["error", "state"] = "error"
     size: int = Field(default=16, ge=1)
 
 
@@ -37,6 +38,9 @@ class RemoteSource(Node):
 
     Params = RemoteSourceParams
     output: Output[Any] = Output(object, doc="the remote stream's values (frames: local pool)")
+    state: Output[dict[str, Any]] = Output(
+        dict, doc="the link's state at each change: {key, stale, silent_s, last_contact, outages}"
+    )
 
     @classmethod
     def default_trigger(cls, params: Any) -> TimerTrigger:
@@ -48,6 +52,10 @@ class RemoteSource(Node):
     def process(self) -> None:
         if self.link is not None:
             self.link.check_liveness(self.ctx)
+
+    def report(self) -> Any:
+        """The link's liveness (stale, outages, time down, last contact) for ``reports``."""
+        return None if self.link is None else self.link.report()
 
 
 class RemoteFrameSource(RemoteSource):

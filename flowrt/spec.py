@@ -590,6 +590,19 @@ def _export_key(v: str) -> str:
     return check_key_expr(v, wildcards=False)
 
 
+#: Zenoh config keys that only time the link (leases, reconnection): they reach no other peer.
+TIMING_KEYS = frozenset(
+    {
+        "transport/link/tx/lease",
+        "transport/link/tx/keep_alive",
+        "connect/retry",
+        "connect/timeout_ms",
+        "listen/retry",
+        "listen/timeout_ms",
+    }
+)
+
+
 class ZenohSpec(_Strict):
     """The Zenoh session of a graph that spans machines (``zenoh:`` in a graph file).
 
@@ -613,8 +626,11 @@ class ZenohSpec(_Strict):
 
     def beyond_loopback(self) -> bool:
         """Whether peers other than this host's may reach the session: a listen or connect
-        endpoint that is not loopback, scouting, or configuration flowrt does not read."""
-        if self.scouting or self.config or self.config_file:
+        endpoint that is not loopback, scouting, or configuration flowrt does not read (the
+        link's timing, :data:`TIMING_KEYS`, opens nothing and is read as harmless)."""
+        if self.scouting or self.config_file:
+            return True
+        if any(key not in TIMING_KEYS for key in self.config):
             return True
         for endpoint in (*self.listen, *self.connect):
             m = _ENDPOINT.match(endpoint)
@@ -662,14 +678,22 @@ class ExportSpec(_Strict):
 
 class ImportSpec(_Strict):
     """A remote stream used as a local output (``import: {name: key}``): a node named ``name``
-    with one output, ``output``."""
+    with the stream as output ``output`` (and the link's state changes as ``state``)."""
 
     key: str
     period: DurationMs | None = Field(
         default=None, gt=0, le=3_600_000, description="expected period; default: measured"
     )
-    stale_after: float = Field(
-        default=5.0, gt=0, le=1000, description="periods without a message: stale"
+    stale_after: Annotated[float, Field(gt=0, le=1000)] | Literal["never"] = Field(
+        default=5.0,
+        description="periods without a message: stale; never: a stream that may be silent "
+        "for any time (commands sent now and then)",
+    )
+    stale: Literal["error", "state"] = Field(
+        default="error",
+        description="what stale means: error (the import's node in error until it resumes; "
+        "a run that ends stale exits 1) or state (a link that drops: one alert per outage, "
+        "the time down counted in the node's report, the run unaffected)",
     )
     size: int = Field(default=16, ge=1, le=100_000, description="hand-over queue (messages)")
     frames: bool = Field(

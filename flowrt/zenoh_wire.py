@@ -52,6 +52,23 @@ def to_wire(value: Any) -> Any:
     return repr(value)
 
 
+def own_timestamp(value: Any) -> float | None:
+    """A message's own ``timestamp`` (the runtime's monotonic clock, seconds), when it has a
+    positive finite one: an attribute (a detection: its frame's capture time) or a key."""
+    stamp = value.get("timestamp") if isinstance(value, dict) else getattr(value, "timestamp", None)
+    if isinstance(stamp, float) and math.isfinite(stamp) and stamp > 0:
+        return stamp
+    return None
+
+
+def set_timestamp(value: Any, stamp: float) -> None:
+    """Put ``stamp`` (the importer's monotonic clock) where :func:`own_timestamp` found one."""
+    if isinstance(value, dict):
+        value["timestamp"] = stamp
+    else:
+        value.timestamp = stamp
+
+
 def from_wire(data: Any) -> Any:
     """Marked mappings come back as attribute objects (``det.found``), the rest as JSON gives."""
     if isinstance(data, dict):

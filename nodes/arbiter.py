@@ -36,6 +36,15 @@ Safety rules (proven by property tests on virtual time, tests/test_safety_arbite
   no robot command in SI units is near it, ``vx: 1e300`` is); a clamped command is counted
   per source (``clamped`` in :meth:`Arbiter.report`) with one ``HealthAlert`` (kind
   ``arbiter-clamped``) per burst.
+- **A missed heartbeat may need a deliberate release** (``locks: {estop: {heartbeat: 300ms,
+  after_silence: hold}}``): a lock engaged because its source fell silent (a link cut, a dead
+  station) stays engaged when the source comes back still saying "released"; only a *new*
+  release frees it: a value whose ``release`` id differs from the one last heard before the
+  silence (the ``estop`` node gives every release by the operator an id of its own), or, for
+  a source of plain booleans, a false value after a true one. The same holds from the start:
+  a release the arbiter did not see being made (the first value it hears already says
+  released: a restarted robot, a station released long ago) does not free it. ``resume``
+  (the default) releases on the first false value.
 - **Invalid commands are refused**: a command with NaN/inf or a key of the wrong type is not a
   fresh command; the arbiter falls back to the next source (or zero), counts it per source
   (``invalid`` in :meth:`Arbiter.report`, so in the statistics' ``reports``) and raises one
@@ -109,6 +118,11 @@ class LockSpec(BaseModel):
     )
     initial: Literal["engaged", "released"] = Field(
         default="engaged", description="the lock's state before its first value"
+    )
+    after_silence: Literal["resume", "hold"] = Field(
+        default="resume",
+        description="after a missed heartbeat: resume (a false value releases) or hold "
+        "(engaged until a new release: a new release id, or true then false)",
     )
 
     @field_validator("heartbeat", mode="before")
@@ -244,6 +258,19 @@ class Arbiter(Node):
         # the truth of the last value received (latched until a new one arrives).
         self.latched: dict[str, bool] = {}
         self.engaged: dict[str, bool] = {}
+        # after_silence: hold. Invariant: a lock is in ``held`` from a missed heartbeat until
+        # a new release; ``held[name]`` is the release id last heard before the silence, and
+        # ``armed`` says a true value came since (a plain boolean's false then releases).
+        # A held lock starts held (``_FIRST``): the first value heard sets the release id it
+        # waits to see change; a release from before this start (a restarted robot hearing a
+        # station released long ago) is not one.
+        self.release_id: dict[str, Any] = {}
+        self.held: dict[str, Any] = {
+            name: _FIRST
+            for name, spec in self.params.locks.items()
+            if spec.after_silence == "hold" and spec.initial == "engaged"
+        }
+        self.armed: set[str] = set()
 
     def params_changed(self, old: Any) -> None:
         """A mode's weights arrive between activations; new sources need their slots."""
@@ -264,14 +291,35 @@ class Arbiter(Node):
     def _lock_engaged(self, name: str, spec: LockSpec, value: Any, now: float) -> bool:
         if value is not None:
             self.latched[name] = _truthy(value)
+            self._heard(name, value)
         engaged = self.latched.get(name, spec.initial == "engaged")
         if spec.heartbeat is not None and not engaged:
             age = self.ctx.input_age(name)
             if age is None:  # never heard: silent since the first activation
                 age = now - (self.started if self.started is not None else now)
             engaged = age > spec.heartbeat
+            if engaged and spec.after_silence == "hold" and name not in self.held:
+                self.held[name] = self.release_id.get(name)
+                self.armed.discard(name)
+        engaged = engaged or name in self.held
         self.engaged[name] = engaged
         return engaged
+
+    def _heard(self, name: str, value: Any) -> None:
+        """A value on a held lock: a new release (a new id, or false after true) frees it."""
+        rid = value.get("release") if isinstance(value, Mapping) else None
+        if name in self.held and self.held[name] is _FIRST:  # the first value: the baseline
+            self.held[name] = rid
+            if self.latched[name]:
+                self.armed.add(name)
+        elif name in self.held and not self.latched[name]:
+            if (rid is not None and rid != self.held[name]) or name in self.armed:
+                del self.held[name]
+                self.armed.discard(name)
+        elif name in self.held:
+            self.armed.add(name)
+        if rid is not None:
+            self.release_id[name] = rid
 
     # --- sources --------------------------------------------------------------------------
 
@@ -326,6 +374,7 @@ class Arbiter(Node):
             "selected": self.current,
             "switches": self.switches,
             "locks": dict(self.engaged),
+            "held": sorted(self.held),  # engaged by a missed heartbeat, waiting for a release
             "sources": {
                 name: {"invalid": st.refused.count, "clamped": st.clamped.count, "stale": st.stale}
                 for name, st in self.sources.items()
@@ -405,6 +454,9 @@ class Arbiter(Node):
                 "info",
             )
         )
+
+
+_FIRST = object()  # a held lock before its first value (see Arbiter.setup)
 
 
 def _truthy(value: Any) -> bool:

@@ -100,6 +100,7 @@ PAGE = Path(__file__).with_name("display.html")
 FPS_WINDOW = 2.0  # seconds of arrivals over which a source's rate is measured
 STATS_MAX_AGE = 0.2  # seconds: the runtime's statistics are serialised at most 5 times a second
 WEB_JOYSTICK = "joystick.web"  # RTDB record of the page's joystick (nodes/joystick.py reads it)
+WEB_ESTOP = "estop.web"  # RTDB record of the page's last e-stop action (nodes/estop.py reads it)
 SOURCE_WAIT = 3.0  # seconds a request for a source that has sent no frame yet waits for one
 HEADER_TIMEOUT = 10.0  # seconds a connection has to send a complete request
 START_TIMEOUT = 30.0  # seconds for the view's server process to start (spawn + imports)
@@ -486,6 +487,8 @@ class Display(Node):
                     self._send_stats()
                 elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
                     self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
+                elif op == "estop":  # the page's e-stop panel: for an `estop` node
+                    self.ctx.rtdb.write(WEB_ESTOP, header["value"])
                 elif op == "record":  # the record panel: answered when the recorders have
                     answer = operator_record.answer(
                         self.ctx.rtdb, header, self._send, self._record_turn

@@ -494,6 +494,11 @@ class ViewServer:
                     self.refused_control += 1  # a connection, not a page of this view
                 elif joy is not None:
                     self._send({"op": "joy", "value": joy})  # the node writes the RTDB
+                estop = _estop(data.get("estop"))
+                if estop is not None and not may_control:
+                    self.refused_control += 1
+                elif estop is not None:
+                    self._send({"op": "estop", "value": estop})
                 if isinstance(ack, str):
                     client.waiting_ack.discard(ack)
                     self.any_change.set()
@@ -580,6 +585,16 @@ def _joystick(value: Any) -> dict[str, Any] | None:
         k: bool(v) for k, v in list(buttons.items())[:32] if isinstance(k, str) and len(k) <= 32
     }
     return {"axes": out_axes, "buttons": out_buttons}
+
+
+def _estop(value: Any) -> dict[str, str] | None:
+    """The page's e-stop action, ``{"action": "stop"|"release", "id": str}``, or None."""
+    if not isinstance(value, dict):
+        return None
+    action, aid = value.get("action"), value.get("id")
+    if action not in ("stop", "release") or not isinstance(aid, str) or not 0 < len(aid) <= 64:
+        return None
+    return {"action": action, "id": aid}
 
 
 def _render(header: dict[str, Any], frame: bytes) -> tuple[bytes, bytes]:

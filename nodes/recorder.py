@@ -423,8 +423,9 @@ class Recorder(Node):
             return
         if self._observer is None:  # deterministic: the observer hands them over (value())
             for topic, value in inputs.items():
-                if value is not None:
-                    self._record(writer, topic, self._source_of(topic), value, now, False)
+                if value is not None:  # a value without a stamp: when it was published
+                    t = self.ctx.input_time(topic) or now  # (a loaded recorder runs late)
+                    self._record(writer, topic, self._source_of(topic), value, t, False)
             if self.params.annotations:  # after the frames: their cameras are known then
                 for topic, value in inputs.items():
                     if value is not None and not isinstance(value, Frame) and is_detection(value):

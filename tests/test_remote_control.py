@@ -146,7 +146,18 @@ def test_ctl_zenoh_unreachable_and_bad_arguments_are_one_line() -> None:
         ({"listen": ["tcp/0.0.0.0:7447"]}, True),
         ({"listen": [], "connect": ["tls/robot.example:7447"]}, True),
         ({"scouting": True}, True),
-        ({"config": {"transport/link/tx/lease": 5000}}, True),  # flowrt cannot tell
+        ({"config": {"transport/link/tx/lease": 5000}}, False),  # times the link only
+        ({"config": {"connect/retry": {"period_max_ms": 1000}}}, False),
+        (
+            {
+                "config": {
+                    "transport/link/tx/lease": 5000,
+                    "routing/router/peers_failover_brokering": True,
+                }
+            },
+            True,
+        ),
+        ({"config": {"transport/shared_memory/enabled": False}}, True),  # flowrt cannot tell
     ],
 )
 def test_zenoh_session_beyond_loopback(zenoh: dict[str, Any], beyond: bool) -> None:

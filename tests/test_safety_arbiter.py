@@ -346,3 +346,56 @@ async def test_a_nan_command_is_never_passed_on_and_the_next_source_is_used() ->
         assert set(sel.drain()) == {"plan"}
         report = rt.stats().reports["drive"]
         assert report["sources"]["joy"]["invalid"] == 20
+
+
+async def _beat(rt: Runtime, clock: VirtualClock, estop: Any, joy: Any, n: int) -> None:
+    for _ in range(n):
+        if estop is not None:
+            rt.publish("estop.out", estop)
+        rt.publish("joy.out", joy)
+        await clock.advance(0.02)
+
+
+@pytest.mark.parametrize("kind", ["release-id", "boolean"])
+async def test_after_silence_hold_needs_a_new_release(kind: str) -> None:
+    """Issue 40: a link cut engages the lock; the station coming back still saying
+    "released" does not free it: only a new release does (a new id, or true then false)."""
+    clock = VirtualClock()
+    locks = {"estop": {"heartbeat": "300ms", "after_silence": "hold"}}
+    async with Runtime(drive_graph(locks).build(), clock=clock) as rt:
+        sub = rt.subscribe("drive.command", size=1000)
+        joy = {"vx": 1.0, "w": 0.0}
+        engaged = {"active": True, "release": None} if kind == "release-id" else True
+        released = {"active": False, "release": "r1"} if kind == "release-id" else False
+        await _beat(rt, clock, engaged, joy, 5)  # the station engaged when first heard
+        await _beat(rt, clock, released, joy, 10)  # then the operator's release
+        assert sub.drain()[-1] == joy
+        await _beat(rt, clock, None, joy, 25)  # the link is cut for 0.5 s
+        assert sub.drain()[-1] == ZERO
+        await _beat(rt, clock, released, joy, 50)  # back, still "released": held at zero
+        held = sub.drain()
+        assert len(held) >= 45
+        assert all(c == ZERO for c in held)
+        assert rt.stats().reports["drive"]["held"] == ["estop"]
+        if kind == "release-id":  # the operator releases again: a release of its own
+            await _beat(rt, clock, {"active": False, "release": "r2"}, joy, 5)
+        else:
+            await _beat(rt, clock, True, joy, 2)
+            assert sub.drain()[-1] == ZERO
+            await _beat(rt, clock, False, joy, 5)
+        assert sub.drain()[-1] == joy
+        assert rt.stats().reports["drive"]["held"] == []
+
+
+async def test_after_silence_hold_a_release_from_before_the_start_does_not_count() -> None:
+    """A restarted robot hears a station released long ago: it stays at zero until the
+    operator releases again (a new id)."""
+    clock = VirtualClock()
+    locks = {"estop": {"heartbeat": "300ms", "after_silence": "hold"}}
+    async with Runtime(drive_graph(locks).build(), clock=clock) as rt:
+        sub = rt.subscribe("drive.command", size=1000)
+        joy = {"vx": 1.0, "w": 0.0}
+        await _beat(rt, clock, {"active": False, "release": "old"}, joy, 20)
+        assert all(c == ZERO for c in sub.drain())
+        await _beat(rt, clock, {"active": False, "release": "new"}, joy, 5)
+        assert sub.drain()[-1] == joy

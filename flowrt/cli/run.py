@@ -29,6 +29,7 @@ from .common import (
     stdout_console,
 )
 from .signals import StopSignals
+from .zenoh_options import add_zenoh_options, apply_zenoh_options
 
 
 def _warm_forkserver(path: str) -> None:
@@ -138,7 +139,7 @@ def run_graph(
         args.no_ui = True  # a live table on stderr would be noise around the log lines
     if not measuring and not _timing_holds(graph, args, err, prog):
         return EXIT_FAILED
-    problem = _display_options(graph, args)
+    problem = _display_options(graph, args) or apply_zenoh_options(graph, args)
     if problem:
         err.print(f"{prog}: {problem}", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
@@ -604,3 +605,4 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         help="keep the rest of the graph running when a node fails for good (default: stop at"
         " once); the exit code is 1 either way",
     )
+    add_zenoh_options(run)

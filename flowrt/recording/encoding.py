@@ -24,6 +24,7 @@ import json
 import math
 import struct
 import sys
+import types
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -364,6 +365,8 @@ def to_jsonable(value: Any) -> Any:
         return value.item()
     if isinstance(value, dict):
         return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, types.SimpleNamespace):  # a typed value received over Zenoh
+        return {k: to_jsonable(v) for k, v in vars(value).items() if not k.startswith("_")}
     if isinstance(value, list | tuple):
         return [to_jsonable(v) for v in value]
     if isinstance(value, float) and not math.isfinite(value):
@@ -390,6 +393,9 @@ def schema_for(value: Any) -> StreamSchema:
     Foxglove, which plots fields of objects, can plot it.
     """
     name = _type_name(value)
+    if isinstance(value, types.SimpleNamespace):  # received over Zenoh: its fields, as a dict
+        name = str(getattr(value, "_type", "") or name)
+        value = to_jsonable(value)
     schema: dict[str, Any]
     if (dataclasses.is_dataclass(value) and not isinstance(value, type)) or hasattr(
         value, "model_json_schema"
