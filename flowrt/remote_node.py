@@ -37,9 +37,14 @@ class RemoteSource(Node):
     """
 
     Params = RemoteSourceParams
-    output: Output[Any] = Output(object, doc="the remote stream's values (frames: local pool)")
+    # rate_hz=None: at the remote producer's rate / on a change, not at this node's tick
+    output: Output[Any] = Output(
+        object, doc="the remote stream's values (frames: local pool)", rate_hz=None
+    )
     state: Output[dict[str, Any]] = Output(
-        dict, doc="the link's state at each change: {key, stale, silent_s, last_contact, outages}"
+        dict,
+        doc="the link's state at each change: {key, stale, silent_s, last_contact, outages}",
+        rate_hz=None,
     )
 
     @classmethod
