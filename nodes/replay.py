@@ -58,6 +58,10 @@ class _Pixels:
     stamp: int | None
 
 
+#: Output types a replayed value has exactly (everything else comes back as plain values).
+_REPLAYED_AS_IS: tuple[Any, ...] = (Frame, AudioBlock, int, float, str, bool, bytes, list, dict)
+
+
 class _Item:
     __slots__ = ("log_time", "port", "seq", "value")
 
@@ -102,8 +106,17 @@ class ReplayBase(Node):
 
     @classmethod
     def standing_in_for(cls, node_cls: type[Node], name: str) -> type[ReplayBase]:
-        """A replay kind with ``node_cls``'s output ports, to take its place in a graph."""
-        ports = {p: Output(o.type, doc=o.doc) for p, o in node_cls.outputs.items()}
+        """A replay kind with ``node_cls``'s output ports, to take its place in a graph.
+
+        A port keeps its declared type where replay gives that type back (frames, audio,
+        plain values); a class of the node's own (``JoyState``) comes back as the plain
+        value it was recorded as (a recording never names code to import), so that port
+        is declared ``object``: the producer's type check must not refuse what replay is.
+        """
+        ports = {
+            p: Output(o.type if o.type in _REPLAYED_AS_IS else object, doc=o.doc)
+            for p, o in node_cls.outputs.items()
+        }
         sub = type(f"ReplayAs{node_cls.__name__}", (ReplayBase,), ports)
         sub.__module__ = __name__
         sub.stands_in_for = name
@@ -242,7 +255,8 @@ class ReplayBase(Node):
         if wait > 0:
             await asyncio.sleep(wait)
         self.published += 1
-        return {item.port: self._value(item)}
+        value = self._value(item)
+        return value if len(self.outputs) == 1 else {item.port: value}  # one port: bare
 
     def _value(self, item: _Item) -> Any:
         if not isinstance(item.value, _Pixels):

@@ -56,7 +56,9 @@ MATRIX: dict[str, tuple[str, ...]] = {
         "health",
         "joystick",
         "teleop",
+        "estop",
     ),
+    "graphs/haptic.yaml": ("haptic", "vision_force", "haptic_view"),
 }
 # kinds that publish no stream of their own: the reason each is no row
 NOT_A_SOURCE: dict[str, str] = {
