@@ -1,6 +1,6 @@
 """The QoS manager: run-time timing changes, modes, and the overload controller.
 
-Timing changes themselves are :meth:`flowrt.Runtime.set_timing` (applied between ticks: the
+Timing changes themselves are :meth:`flowrt.Runtime.apply_timing` (applied between ticks: the
 loop runs one callback at a time, so a tick sees either the old timing or the new one, never
 half of it) and modes are :meth:`flowrt.Runtime.set_mode`. This module holds what decides
 *which* changes to make:
@@ -10,9 +10,9 @@ half of it) and modes are :meth:`flowrt.Runtime.set_mode`. This module holds wha
 - :class:`OverloadController`: CAMBADA's resource manager. When the loop lags, the CPU is
   saturated or deadlines are missed, it sheds the lowest-priority work — first a longer
   period, then disabled — one step per evaluation, and restores it, last step first, once
-  the load has stayed low for a while. Critical nodes are never touched. Every change goes
-  through ``Runtime.set_timing(origin="qos")``, so it is a timestamped ``TimingChanged``
-  event like any other change.
+  the load has stayed low for a while. Critical nodes are never touched. Every change is a
+  ``TimingChange`` through ``Runtime.apply_timing(node, change, origin="qos")``, so it is
+  checked and becomes a timestamped ``TimingChanged`` event like any other change.
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[st
                 if nominal.phase is not None and nominal.phase < values["period"]
                 else 0
             )
-        plan[name] = TimingChange.unchecked(TimingOverride(**values))
+        plan[name] = TimingChange.of(**values)  # the graph's values: checked when applied
     return plan
 
 
@@ -111,17 +111,8 @@ class QosHost(Protocol):
     @property
     def scheduler(self) -> Runners: ...
 
-    def set_timing(
-        self,
-        node: str,
-        *,
-        period: int | None = None,
-        phase: int | None = None,
-        timer: float | None = None,
-        deadline: float | None = None,
-        priority: int | None = None,
-        enabled: bool | None = None,
-        origin: str = "api",
+    def apply_timing(
+        self, node: str, change: TimingChange, *, origin: str = "api", force: bool = False
     ) -> str: ...
 
     def qos_status(self) -> QosStatus: ...
@@ -427,7 +418,7 @@ class OverloadController:
         if disable:
             self._steps.append(_Step(r.name, True, base.slowdown))
             base.disabled = True
-            self._apply(r.name, enabled=False)
+            self._apply(r.name, TimingChange(enabled=False))
         else:
             self._steps.append(_Step(r.name, False, base.slowdown))
             base.slowdown *= 2
@@ -440,7 +431,7 @@ class OverloadController:
         base = self._base[step.node]
         if step.disabled:
             base.disabled = False
-            self._apply(step.node, enabled=True)
+            self._apply(step.node, TimingChange(enabled=True))
         else:
             base.slowdown = step.previous
             self._apply_slowdown(step.node, base)
@@ -449,14 +440,14 @@ class OverloadController:
 
     def _apply_slowdown(self, node: str, base: _Base) -> None:
         if base.timer_ms is not None:
-            self._apply(node, timer=base.timer_ms * base.slowdown)
+            self._apply(node, TimingChange(timer_ms=base.timer_ms * base.slowdown))
         else:
-            self._apply(node, period=base.period * base.slowdown)
+            self._apply(node, TimingChange(period=base.period * base.slowdown))
 
-    def _apply(self, node: str, **change: Any) -> None:
+    def _apply(self, node: str, change: TimingChange) -> None:
         assert self.rt is not None
         try:
-            self.rt.set_timing(node, origin="qos", **change)
+            self.rt.apply_timing(node, change, origin="qos")
         except (KeyError, ValueError) as e:  # e.g. a phase an operator set meanwhile
             log.warning("qos: cannot change %s: %s", node, e)
 

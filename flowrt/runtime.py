@@ -45,7 +45,8 @@ from .spec import GraphSpec, Placement
 from .stats import NodeStats, Running, RuntimeStats
 from .subscription import Subscription
 from .timing_control import set_mode as switch_mode
-from .timing_control import set_timing as change_timing
+from .timing import TimingChange
+from .timing_control import apply_plan
 
 if TYPE_CHECKING:
     from .oscheduling import FairShare
@@ -381,16 +382,31 @@ class Runtime:
         steps (origin ``qos``) are not admission-checked: they act on measured load.
         Returns what changed, in words (also a ``TimingChanged`` event).
         """
-        given = {
-            "period": period,
-            "phase": phase,
-            "timer": timer,
-            "timer_phase": timer_phase,
-            "deadline": deadline,
-            "priority": priority,
-            "enabled": enabled,
-        }
-        return change_timing(self, node, origin, force, given)
+        change = TimingChange.parse(
+            node,
+            period=period,
+            phase=phase,
+            timer=timer,
+            timer_phase=timer_phase,
+            deadline=deadline,
+            priority=priority,
+            enabled=enabled,
+        )
+        return self.apply_timing(node, change, origin=origin, force=force)
+
+    def apply_timing(
+        self, node: str, change: TimingChange, *, origin: str = "api", force: bool = False
+    ) -> str:
+        """Apply ``change`` to ``node`` between ticks: the one door of every run-time timing
+        change (the control endpoint's ``TimingRequest.change()``, :meth:`set_timing`, the
+        overload controller, modes through the same check).
+
+        Checked once here, whole (:meth:`TimingChange.problems`), then by admission control
+        unless ``force`` or ``origin == "qos"``; refused with ValueError (KeyError for an
+        unknown node) and nothing changed. Returns what changed, in words.
+        """
+        admitted = force or origin == "qos"
+        return apply_plan(self, {node: change}, origin=origin, admitted=admitted)[0]
 
     def set_mode(self, mode: str, origin: str = "api", force: bool = False) -> None:
         """Apply a named mode of the graph file: all of its overrides in one step.
