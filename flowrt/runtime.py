@@ -44,9 +44,9 @@ from .runtime_stats import runtime_stats
 from .spec import GraphSpec, Placement
 from .stats import NodeStats, Running, RuntimeStats
 from .subscription import Subscription
-from .timing_control import set_mode as switch_mode
 from .timing import TimingChange
 from .timing_control import apply_plan
+from .timing_control import set_mode as switch_mode
 
 if TYPE_CHECKING:
     from .oscheduling import FairShare
@@ -372,39 +372,22 @@ class Runtime:
         force: bool = False,
         timer_phase: float | None = None,
     ) -> str:
-        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
-
-        The whole change is checked first (the ranges of graph files: finite, in range, a
-        phase below its period; ``force`` does not skip this) and applied at once, or refused
-        with ValueError and nothing changed. Then admission control
-        (:mod:`flowrt.analysis.admission`) refuses, the same way, a change that would make a
-        node with a deadline unschedulable, unless ``force``. The overload controller's own
-        steps (origin ``qos``) are not admission-checked: they act on measured load.
-        Returns what changed, in words (also a ``TimingChanged`` event).
-        """
-        change = TimingChange.parse(
-            node,
-            period=period,
-            phase=phase,
-            timer=timer,
-            timer_phase=timer_phase,
-            deadline=deadline,
-            priority=priority,
-            enabled=enabled,
-        )
+        """Change a node's timing between ticks (``timer``, ``deadline`` in ms, or
+        ``"80ms"`` as in a graph file): :meth:`apply_timing` with the change these name."""
+        given = dict(period=period, phase=phase, timer=timer, timer_phase=timer_phase)
+        given.update(deadline=deadline, priority=priority, enabled=enabled)
+        change = TimingChange.parse(node, **given)
         return self.apply_timing(node, change, origin=origin, force=force)
 
     def apply_timing(
         self, node: str, change: TimingChange, *, origin: str = "api", force: bool = False
     ) -> str:
-        """Apply ``change`` to ``node`` between ticks: the one door of every run-time timing
-        change (the control endpoint's ``TimingRequest.change()``, :meth:`set_timing`, the
-        overload controller, modes through the same check).
-
-        Checked once here, whole (:meth:`TimingChange.problems`), then by admission control
-        unless ``force`` or ``origin == "qos"``; refused with ValueError (KeyError for an
-        unknown node) and nothing changed. Returns what changed, in words.
-        """
+        """The one door of every run-time timing change (``TimingRequest.change()`` of the
+        control endpoint, :meth:`set_timing`, the overload controller; modes by the same
+        ``apply_plan``), applied between ticks. Checked once, here, whole: the graph files'
+        ranges (``force`` does not skip them), then admission control unless ``force`` or
+        origin ``qos`` (which acts on measured load). Refused: ValueError (KeyError for an
+        unknown node), nothing changed. Returns what changed (a ``TimingChanged`` event)."""
         admitted = force or origin == "qos"
         return apply_plan(self, {node: change}, origin=origin, admitted=admitted)[0]
 
