@@ -18,7 +18,7 @@ half of it) and modes are :meth:`flowrt.Runtime.set_mode`. This module holds wha
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -35,7 +35,7 @@ from .timing import TimingChange
 
 if TYPE_CHECKING:
     from .graph import Graph, ResolvedNode
-    from .kernel import NodeRunner
+    from .kernel import NodeView
 
 log = logging.getLogger("flowrt.qos")
 
@@ -91,11 +91,10 @@ def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[st
     return plan
 
 
-class Runners(Protocol):
-    """What the controller reads of the scheduler: its node runners by name."""
+class NodeReads(Protocol):
+    """What the controller reads of the scheduler: snapshots of its nodes, never a runner."""
 
-    @property
-    def runners(self) -> Mapping[str, NodeRunner]: ...
+    def node_views(self) -> list[NodeView]: ...
 
 
 class QosHost(Protocol):
@@ -109,7 +108,7 @@ class QosHost(Protocol):
     def started(self) -> bool: ...
 
     @property
-    def scheduler(self) -> Runners: ...
+    def scheduler(self) -> NodeReads: ...
 
     def apply_timing(
         self, node: str, change: TimingChange, *, origin: str = "api", force: bool = False
@@ -216,16 +215,17 @@ class OverloadController:
 
     def started(self, rt: QosHost) -> None:
         self.rt = rt
-        runners = rt.scheduler.runners
+        views = rt.scheduler.node_views()
+        names = [v.name for v in views]
         for name in self.spec.protect:
-            if name not in runners:
+            if name not in names:
                 from .diagnostics import did_you_mean
 
-                hint = did_you_mean(name, runners)
+                hint = did_you_mean(name, names)
                 log.warning("qos.overload.protect: unknown node %r%s (ignored)", name, hint)
-        candidates = [r for r in runners.values() if self._kind_sheddable(r)]
+        candidates = [v for v in views if self._kind_sheddable(v)]
         self._protect_priority = self.spec.protect_priority or max(
-            (r.rnode.spec.priority for r in candidates), default=99
+            (v.node.spec.priority for v in candidates), default=99
         )
         self._window = self._new_window()
         interval = self.spec.interval / 1000
@@ -262,18 +262,18 @@ class OverloadController:
             if b.slowdown > 1 or b.disabled
         )
 
-    def protected(self, runner: NodeRunner) -> bool:
+    def protected(self, view: NodeView) -> bool:
         """Never shed: not slowable/disableable by kind, listed, or at the critical priority."""
         return (
-            not self._kind_sheddable(runner)
-            or runner.name in self.spec.protect
-            or runner.timing.priority >= self._protect_priority
+            not self._kind_sheddable(view)
+            or view.name in self.spec.protect
+            or view.timing.priority >= self._protect_priority
         )
 
     @staticmethod
-    def _kind_sheddable(r: NodeRunner) -> bool:
-        trig = r.rnode.trigger
-        return isinstance(trig, FrameTrigger | TimerTrigger) and not r.rnode.cls.frame_ports()
+    def _kind_sheddable(v: NodeView) -> bool:
+        trig = v.node.trigger
+        return isinstance(trig, FrameTrigger | TimerTrigger) and not v.node.cls.frame_ports()
 
     # --- measuring ------------------------------------------------------------------------
 
@@ -292,23 +292,22 @@ class OverloadController:
     def _new_window(self) -> _Window:
         assert self.rt is not None
         self._window_start = self.rt.clock.now()
-        counters = {
-            name: (r.counts.activations, r.counts.misses)
-            for name, r in self.rt.scheduler.runners.items()
-        }
+        counters = {v.name: (v.activations, v.misses) for v in self.rt.scheduler.node_views()}
         return _Window(counters=counters)
 
     def _measure_window(self) -> LoadSample:
         assert self.rt is not None
         old = self._window
-        self._window = self._new_window()
+        views = self.rt.scheduler.node_views()
+        self._window_start = self.rt.clock.now()
+        self._window = _Window(counters={v.name: (v.activations, v.misses) for v in views})
         acts = misses = 0
-        for name, r in self.rt.scheduler.runners.items():
-            if r.timing.deadline is None or not r.timing.enabled:
+        for v in views:
+            if v.timing.deadline is None or not v.timing.enabled:
                 continue
-            a0, m0 = old.counters.get(name, (0, 0))
-            acts += r.counts.activations - a0
-            misses += r.counts.misses - m0
+            a0, m0 = old.counters.get(v.name, (0, 0))
+            acts += v.activations - a0
+            misses += v.misses - m0
         cpu: float | None = None
         if self.spec.cpu_percent is not None:
             import psutil
@@ -386,19 +385,19 @@ class OverloadController:
         else:
             self._calm_since = None
 
-    def _pick(self, slow: bool) -> NodeRunner | None:
+    def _pick(self, slow: bool) -> NodeView | None:
         assert self.rt is not None
-        best: NodeRunner | None = None
-        for r in self.rt.scheduler.runners.values():
-            if self.protected(r) or not r.timing.enabled:
+        best: NodeView | None = None
+        for v in self.rt.scheduler.node_views():
+            if self.protected(v) or not v.timing.enabled:
                 continue
             if slow:
-                base = self._base.get(r.name)
+                base = self._base.get(v.name)
                 if (base.slowdown if base else 1) * 2 > self.spec.max_slowdown:
                     continue
-            key = (r.timing.priority, -r.rnode.order)
-            if best is None or key < (best.timing.priority, -best.rnode.order):
-                best = r
+            key = (v.timing.priority, -v.node.order)
+            if best is None or key < (best.timing.priority, -best.node.order):
+                best = v
         return best
 
     def _shed_one(self, reason: str) -> bool:

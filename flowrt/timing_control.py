@@ -9,7 +9,6 @@ from typing import Any, Protocol
 
 from .events import ModeChanged
 from .hotswap import SwapHost, apply_mode_params
-from .kernel import NodeRunner
 from .spec import FrameTrigger
 from .timing import TimingChange
 
@@ -22,12 +21,17 @@ class TimingHost(SwapHost, Protocol):
     def record_state(self, name: str, value: Any) -> None: ...
 
 
-def check_plan(runners: Mapping[str, NodeRunner], plan: Mapping[str, TimingChange]) -> None:
-    """Raise ValueError, before anything is applied, if any change of ``plan`` is invalid."""
+def check_plan(rt: TimingHost, plan: Mapping[str, TimingChange]) -> None:
+    """Raise ValueError, before anything is applied, if any change of ``plan`` is invalid
+    (KeyError for a node the graph does not have)."""
     problems = []
     for name, change in plan.items():
-        r = runners[name]
-        problems += change.problems(name, r.timing, isinstance(r.rnode.trigger, FrameTrigger))
+        if name not in rt.graph.nodes:
+            from .diagnostics import did_you_mean
+
+            raise KeyError(f"unknown node {name!r}" + did_you_mean(name, rt.graph.nodes))
+        is_frame = isinstance(rt.graph.nodes[name].trigger, FrameTrigger)
+        problems += change.problems(name, rt.scheduler.timing_of(name), is_frame)
     if problems:
         raise ValueError("; ".join(problems))
 
@@ -41,13 +45,7 @@ def apply_plan(
     The one door of run-time timing: ``Runtime.apply_timing`` (the control endpoint, the
     API, the overload controller) and modes. Nothing is applied when any change is refused.
     """
-    runners = rt.scheduler.runners
-    for node in plan:
-        if node not in runners:
-            from .diagnostics import did_you_mean
-
-            raise KeyError(f"unknown node {node!r}" + did_you_mean(node, runners))
-    check_plan(runners, plan)
+    check_plan(rt, plan)
     if not admitted:
         admit(rt, plan)
     return [rt.scheduler.apply_timing(node, change, origin) for node, change in plan.items()]

@@ -15,6 +15,7 @@ Activation semantics (the CAMBADA process manager):
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -28,12 +29,13 @@ from ..frames import Frame
 from ..graph import Graph, ResolvedNode
 from ..node import NodeFactory
 from ..spec import LoopTrigger, Placement
-from ..timing import TimingChange
+from ..timing import Timing, TimingChange
 from .drain import Drain
 from .executor import Executor
 from .runner import NodeRunner
 from .services import Services
 from .state import RunState
+from .views import NodeView, view_of
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -216,6 +218,16 @@ class Scheduler:
                 log.warning("node %s: teardown failed: %s", r.name, e)
         for r in self.runners.values():
             r.supervisor.log.flush(self.clock.now())
+
+    # --- reads from outside the kernel (flowrt.kernel.views) ----------------------------
+
+    def timing_of(self, node: str) -> Timing:
+        """A copy of ``node``'s timing now (KeyError: no such node)."""
+        return dataclasses.replace(self.runners[node].timing)
+
+    def node_views(self) -> list[NodeView]:
+        """Every node as of now, in the graph's order."""
+        return [view_of(r) for r in self.runners.values()]
 
     # --- run-time changes ---------------------------------------------------------------
 

@@ -1,0 +1,33 @@
+"""What a node looks like from outside the kernel: the scheduler's read API.
+
+The overload controller, the timing checks and monitors read a node through a
+:class:`NodeView` (a snapshot taken at the call) or :meth:`Scheduler.timing_of` (a copy),
+never through its runner: the runner's fields stay the kernel's to change, and what a
+reader holds cannot change under it or change the node.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from ..graph import ResolvedNode
+from ..timing import Timing
+from .runner import NodeRunner
+
+
+@dataclass(frozen=True)
+class NodeView:
+    """One node as of the read: its place in the graph, its timing, its two load counters."""
+
+    name: str
+    node: ResolvedNode  # the graph's node (trigger, kind, declared priority, order)
+    timing: Timing  # a copy: changing it changes nothing (``Runtime.apply_timing`` does)
+    activations: int  # since the start
+    misses: int  # deadline misses since the start
+
+
+def view_of(r: NodeRunner) -> NodeView:
+    return NodeView(
+        r.name, r.rnode, dataclasses.replace(r.timing), r.counts.activations, r.counts.misses
+    )
