@@ -209,8 +209,7 @@ async def checked_swap(server: Answering, req: SwapRequest) -> None:
             f"{', '.join(sorted(allowed))}; more with --control-allow-kinds or the graph's "
             "control_allow_kinds)"
         )
-    runner = rt.scheduler.runners.get(req.node)
-    if runner is None:
+    if req.node not in rt.graph.nodes:
         raise KeyError(f"unknown node {req.node!r}")
     try:
         cls = await asyncio.to_thread(resolve_kind, req.kind, None)
@@ -222,8 +221,8 @@ async def checked_swap(server: Answering, req: SwapRequest) -> None:
     if params is not None:
         from .hotswap import as_written
 
-        same = req.kind == runner.rnode.spec.kind
-        base = as_written(rt, runner) if same else {}
+        same = req.kind == rt.scheduler.node_view(req.node).node.spec.kind  # as swapped
+        base = as_written(rt, rt.runner(req.node)) if same else {}
         paths = confined(cls)
         plain = {k: v for k, v in params.items() if k not in paths}
 

@@ -9,11 +9,16 @@ reader holds cannot change under it or change the node.
 from __future__ import annotations
 
 import dataclasses
+import logging
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from ..graph import ResolvedNode
 from ..timing import Timing
 from .runner import NodeRunner
+
+log = logging.getLogger("flowrt")
 
 
 @dataclass(frozen=True)
@@ -31,3 +36,23 @@ def view_of(r: NodeRunner) -> NodeView:
     return NodeView(
         r.name, r.rnode, dataclasses.replace(r.timing), r.counts.activations, r.counts.misses
     )
+
+
+def reports_of(runners: Iterable[NodeRunner]) -> dict[str, Any]:
+    """Each inline node's optional ``report()`` (also after stop: its last instance's)."""
+    out: dict[str, Any] = {}
+    for r in runners:
+        name = r.name
+        ex = r.executor
+        node = getattr(ex, "node", None) or getattr(ex, "last_node", None)
+        hook = getattr(node, "report", None)
+        if not callable(hook):
+            continue
+        try:
+            value = hook()
+        except Exception as e:  # a report must never break the statistics
+            log.warning("node %s: report() failed: %s", name, e)
+            continue
+        if value is not None:
+            out[name] = value
+    return out
