@@ -403,25 +403,25 @@ class OverloadController:
     def _shed_one(self, reason: str) -> bool:
         """One step of shedding; False when there is nothing left to shed."""
         assert self.rt is not None
-        r = self._pick(slow=True)
+        v = self._pick(slow=True)
         disable = False
-        if r is None and self.spec.disable:
-            r = self._pick(slow=False)
+        if v is None and self.spec.disable:
+            v = self._pick(slow=False)
             disable = True
-        if r is None:
+        if v is None:
             return False
-        tm = r.timing
+        tm = v.timing
         base = self._base.setdefault(
-            r.name, _Base(period=tm.period, timer_ms=None if tm.timer is None else tm.timer * 1000)
+            v.name, _Base(period=tm.period, timer_ms=None if tm.timer is None else tm.timer * 1000)
         )
         if disable:
-            self._steps.append(_Step(r.name, True, base.slowdown))
+            self._steps.append(_Step(v.name, True, base.slowdown))
             base.disabled = True
-            self._apply(r.name, TimingChange(enabled=False))
+            self._apply(v.name, TimingChange(enabled=False))
         else:
-            self._steps.append(_Step(r.name, False, base.slowdown))
+            self._steps.append(_Step(v.name, False, base.slowdown))
             base.slowdown *= 2
-            self._apply_slowdown(r.name, base)
+            self._apply_slowdown(v.name, base)
         log.info("qos: shed %s (%s)", self._steps[-1].node, reason)
         return True
 
