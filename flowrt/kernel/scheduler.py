@@ -35,7 +35,7 @@ from .executor import Executor
 from .runner import NodeRunner
 from .services import Services
 from .state import RunState
-from .views import NodeView, copy_of, reports_of, view_of
+from .views import NodeView, reports_of, view_of
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -223,7 +223,7 @@ class Scheduler:
 
     def timing_of(self, node: str) -> Timing:
         """A copy of ``node``'s timing now (KeyError: no such node)."""
-        return copy_of(self.runners[node].timing)
+        return self.runners[node].timing.copy()
 
     def node_views(self) -> list[NodeView]:
         """Every node as of now, in the graph's order."""

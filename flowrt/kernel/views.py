@@ -32,15 +32,7 @@ class NodeView:
 
 
 def view_of(r: NodeRunner) -> NodeView:
-    return NodeView(r.name, r.rnode, copy_of(r.timing), r.counts.activations, r.counts.misses)
-
-
-def copy_of(tm: Timing) -> Timing:
-    """A copy by the constructor: a fifth of ``copy.copy``'s time (the overload controller
-    takes a view of every node each window: 300 nodes, ~0.2 ms)."""
-    return Timing(
-        tm.period, tm.phase, tm.timer, tm.timer_phase, tm.deadline, tm.priority, tm.enabled
-    )
+    return NodeView(r.name, r.rnode, r.timing.copy(), r.counts.activations, r.counts.misses)
 
 
 def reports_of(runners: Iterable[NodeRunner]) -> dict[str, Any]:
