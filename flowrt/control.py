@@ -25,9 +25,10 @@ quiet gap between timer releases (:meth:`flowrt.Runtime.quiet_delay`); reads are
 ``READ_MAX_AGE`` and shared by every client asking meanwhile, so 200 clients polling
 ``/stats`` cost the loop what one client polling 5 times a second costs; and a connection
 that asks again sooner than that is answered when the cache may hold news (its client waits
-rather than spins). Changes are checked
-completely (:meth:`flowrt.timing.TimingChange.parse`, the ranges of graph files) before any of it is
-applied, and applied between ticks, at once. Limits: ``MAX_CONNECTIONS`` at once (more are
+rather than spins). The routes are one table (:mod:`flowrt.control_routes`); a body
+is refused here unless its request model accepts it, and a timing change is checked once
+more, whole, against its node (``Runtime.apply_timing``) before any of it is applied, then
+applied between ticks, at once. Limits: ``MAX_CONNECTIONS`` at once (more are
 closed as they arrive), a request's headers within ``REQUEST_TIMEOUT`` of the connection or
 of its previous request, a whole request within ``REQUEST_TIMEOUT``, bodies up to
 ``MAX_BODY``.
@@ -56,22 +57,15 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from pydantic import BaseModel, ValidationError
+from pydantic import ValidationError
 
 from .control_client import DEFAULT_PORT as DEFAULT_PORT  # the client's, re-exported
 from .control_client import DEFAULT_URL as DEFAULT_URL
 from .control_client import ControlClient as ControlClient
 from .control_client import ControlError as ControlError
-from .control_wire import (
-    RECORD_COMMAND,
-    ModeRequest,
-    RecordRequest,
-    ReloadRequest,
-    SwapRequest,
-    TimingRequest,
-    event_json,
-    jsonable,
-)
+from .control_routes import ENDPOINTS as ENDPOINTS  # what GET / lists
+from .control_routes import ROUTES, Route, answer, one_line
+from .control_routes import dumps as _dumps
 from .serving import (
     Conn,
     Refuse,
@@ -83,8 +77,6 @@ from .serving import (
     stop_server,
     unpack,
 )
-from .spec import merge_params
-from .swap_policy import SwapRefused, check_params, confined
 
 if TYPE_CHECKING:
     from aiohttp import web
@@ -267,11 +259,7 @@ class ControlServer:
                 if self.rt.started:
                     # Serialising the statistics holds the loop ~1 ms: between ticks.
                     await asyncio.sleep(self.rt.quiet_delay(0.0))
-                op = str(header.get("op"))
-                if op in ("swap", "reload"):  # set up beside the running node: awaited
-                    status, data = await self.answer_swap(op, body)
-                else:
-                    status, data = self.answer(op, body)
+                status, data = await answer(self, str(header.get("op")), body)
                 self.answered += 1
                 writer = self._writer
                 if writer is None:
@@ -284,19 +272,6 @@ class ControlServer:
             elif self.rt.started and self._writer is not None:
                 log.warning("control endpoint: its server process ended; %s is gone", self.url)
 
-    def answer(self, op: str, body: bytes) -> tuple[int, bytes]:
-        """(HTTP status, JSON body) for one request the server forwarded; never raises."""
-        try:
-            args = json.loads(body) if body else {}
-            return self._answer(op, args)
-        except KeyError as e:
-            return 404, _dumps({"error": str(e.args[0] if e.args else e)})
-        except (ValueError, ValidationError) as e:
-            return 400, _dumps({"error": str(e)})
-        except Exception as e:  # a bug: one line for the client, the traceback in the log
-            log.exception("control endpoint: %s failed", op)
-            return 500, _dumps({"error": f"{type(e).__name__}: {e}"})
-
     def allowed_kinds(self) -> set[str]:
         """What ``POST /swap`` may name: the graph's kinds, the graph's and the config's list."""
         spec = self.rt.graph.spec
@@ -305,146 +280,6 @@ class ControlServer:
             *spec.control_allow_kinds,
             *self.config.allow_kinds,
         }
-
-    async def _checked_swap(self, req: SwapRequest) -> None:
-        """The endpoint's rules, then ``Runtime.swap`` with the class imported off the loop.
-
-        An import may run anything at module level (``unittest.__main__`` calls
-        ``sys.exit``): it happens in a thread, and a ``BaseException`` from it is an error for
-        the caller, never the end of the runtime.
-        """
-        from .registry import resolve_kind
-        from .runtime import SwapError
-
-        allowed = self.allowed_kinds()
-        if req.kind not in allowed:
-            raise SwapRefused(
-                f"kind {req.kind!r} is not allowed over the control endpoint (allowed: "
-                f"{', '.join(sorted(allowed))}; more with --control-allow-kinds or the graph's "
-                "control_allow_kinds)"
-            )
-        runner = self.rt.scheduler.runners.get(req.node)
-        if runner is None:
-            raise KeyError(f"unknown node {req.node!r}")
-        try:
-            cls = await asyncio.to_thread(resolve_kind, req.kind, None)
-        except asyncio.CancelledError:
-            raise
-        except BaseException as e:  # SystemExit from an import is contained
-            raise SwapError(f"{req.node}: kind {req.kind!r}: import failed: {e!r}") from None
-        params = req.params
-        if params is not None:
-            from .hotswap import as_written
-
-            same = req.kind == runner.rnode.spec.kind
-            base = as_written(self.rt, runner) if same else {}
-            paths = confined(cls)
-            plain = {k: v for k, v in params.items() if k not in paths}
-
-            def folder_of(param: str) -> str:
-                model = self.rt.graph.validate_params(cls, merge_params(base, plain))
-                return str(getattr(model, param))
-
-            params = check_params(req.kind, cls, params, folder_of)
-        await self.rt.swap(req.node, req.kind, params, origin="control", resolved=cls)
-
-    async def answer_swap(self, op: str, body: bytes) -> tuple[int, bytes]:
-        """``swap`` and ``reload``: the new instance is set up while the graph runs."""
-        from .runtime import SwapError
-
-        try:
-            args = json.loads(body) if body else {}
-            if op == "swap":
-                req = SwapRequest.model_validate(args)
-                await self._checked_swap(req)
-                kind = req.kind
-            else:
-                node = ReloadRequest.model_validate(args).node
-                await self.rt.reload(node, origin="control")
-                req_node = node
-                kind = self.rt.graph.spec.nodes[req_node].kind
-            name = args.get("node")
-            return 200, _dumps({"node": name, "kind": kind, "op": op})
-        except KeyError as e:
-            return 404, _dumps({"error": str(e.args[0] if e.args else e)})
-        except SwapRefused as e:
-            return 403, _dumps({"error": str(e)})
-        except (SwapError, ValueError, ValidationError) as e:
-            said = _one_line(e) if isinstance(e, ValidationError) else str(e)  # no pydantic URL
-            return 409 if isinstance(e, SwapError) else 400, _dumps({"error": said})
-        except Exception as e:
-            log.exception("control endpoint: %s failed", op)
-            return 500, _dumps({"error": f"{type(e).__name__}: {e}"})
-
-    def _answer(self, op: str, args: dict[str, Any]) -> tuple[int, bytes]:
-        rt = self.rt
-        if not rt.started:
-            return 503, _dumps({"error": "the runtime is stopping"})
-        if op == "index":
-            return 200, _dumps({"graph": rt.graph.spec.name, "endpoints": ENDPOINTS})
-        if op == "stats":
-            return 200, rt.stats().model_dump_json().encode()
-        if op == "events":
-            n = int(args.get("n", 50))
-            events = list(rt.events)[-n:] if n > 0 else []
-            return 200, _dumps([event_json(e) for e in events])
-        if op == "modes":
-            return 200, _dumps({"modes": list(rt.graph.spec.modes), "current": rt.mode})
-        if op == "mode":
-            mode = ModeRequest.model_validate(args)
-            rt.set_mode(mode.mode, origin="control", force=mode.force)
-            return 200, _dumps({"mode": rt.mode})
-        if op == "timing":
-            req = TimingRequest.model_validate(args)
-            fields = req.model_dump(exclude={"node"})
-            change = rt.set_timing(req.node, origin="control", **fields)
-            return 200, _dumps({"node": req.node, "change": change})
-        if op == "qos":
-            status = rt.qos_status()
-            return 200, _dumps({**jsonable(status), "summary": status.describe()})
-        if op == "rtdb":
-            return 200, _dumps([jsonable(r) for r in rt.rtdb.records()])
-        if op == "record":
-            rec = RecordRequest.model_validate(args)
-            nodes = rt.graph.spec.nodes
-            recorders = [n for n, spec in nodes.items() if spec.kind == "recorder"]
-            if rec.node is not None and rec.node not in recorders:
-                raise KeyError(f"{rec.node!r} is not a recorder node (recorders: {recorders})")
-            targets = [rec.node] if rec.node is not None else recorders
-            if not targets:
-                raise KeyError("the graph has no recorder node (add one, or use flowrt record)")
-            command: Any = rec.action
-            if rec.action == "start" and rec.name is not None:
-                command = {"action": "start", "name": rec.name}
-            for name in targets:
-                rt.rtdb.write(RECORD_COMMAND + name, command)
-            return 200, _dumps({"action": rec.action, "nodes": targets})
-        if op == "rtdb_record":
-            name = str(args.get("name", ""))
-            records = rt.rtdb.history(name, int(args.get("n", 1)))
-            if not records:
-                return 404, _dumps({"error": f"no record {name!r}"})
-            return 200, _dumps([jsonable(r) for r in records])
-        return 404, _dumps({"error": f"unknown operation {op!r}"})
-
-
-ENDPOINTS = [
-    "GET /stats",
-    "GET /events?n=50",
-    "GET /modes",
-    "POST /mode",
-    "POST /timing",
-    "GET /qos",
-    "GET /rtdb",
-    "GET /rtdb/{name}?n=8",
-    "POST /record",
-    "POST /swap",
-    "POST /reload",
-]
-
-
-def _dumps(data: Any) -> bytes:
-    return json.dumps(data, allow_nan=False).encode()
 
 
 # --- the server's process -----------------------------------------------------------------
@@ -484,22 +319,7 @@ class _Gateway:
         loop = asyncio.get_running_loop()
         reader, self._writer = await asyncio.open_unix_connection(sock=channel)
         app = web.Application(middlewares=[self._guard], client_max_size=MAX_BODY)
-        app.add_routes(
-            [
-                web.get("/", self._get("index")),
-                web.get("/stats", self._get("stats")),
-                web.get("/events", self._events),
-                web.get("/modes", self._get("modes")),
-                web.post("/mode", self._post("mode")),
-                web.post("/timing", self._post("timing")),
-                web.get("/qos", self._get("qos")),
-                web.get("/rtdb", self._get("rtdb")),
-                web.get("/rtdb/{name}", self._rtdb_record),
-                web.post("/record", self._post("record")),
-                web.post("/swap", self._post("swap")),
-                web.post("/reload", self._post("reload")),
-            ]
-        )
+        app.add_routes([web.route(r.method, r.path, self._handler(r)) for r in ROUTES])
         runner = web.AppRunner(
             app, access_log=None, handle_signals=False, keepalive_timeout=self.timeout
         )
@@ -654,54 +474,35 @@ class _Gateway:
 
         return guard
 
-    def _get(self, op: str) -> Callable[[web.Request], Awaitable[web.Response]]:
-        async def handler(request: web.Request) -> web.Response:
-            return _reply(*await self.read(op, {}))
+    def _handler(self, route: Route) -> Callable[[web.Request], Awaitable[web.Response]]:
+        """A POST's body is refused here unless its request model accepts it (the runtime
+        then trusts it); a GET reads its path and integer query parameters."""
+        model = route.body
+        if model is not None:
 
-        return handler
+            async def post(request: web.Request) -> web.Response:
+                try:
+                    data = json.loads(await request.read(), parse_constant=_no_constant)
+                    body = model.model_validate(data)
+                except RecursionError:
+                    return _error(400, "bad request body: nested too deeply")
+                except (ValueError, ValidationError) as e:  # JSONDecodeError is a ValueError
+                    return _error(400, f"bad request body: {one_line(e)}")
+                return _reply(*await self.change(route.op, body.model_dump(mode="json")))
 
-    def _post(self, op: str) -> Callable[[web.Request], Awaitable[web.Response]]:
-        models: dict[str, type[BaseModel]] = {
-            "timing": TimingRequest,
-            "mode": ModeRequest,
-            "record": RecordRequest,
-            "swap": SwapRequest,
-            "reload": ReloadRequest,
-        }
-        model = models[op]
+            return post
 
-        async def handler(request: web.Request) -> web.Response:
-            try:
-                data = json.loads(await request.read(), parse_constant=_no_constant)
-                body = model.model_validate(data)
-            except RecursionError:
-                return _error(400, "bad request body: nested too deeply")
-            except (ValueError, ValidationError) as e:  # JSONDecodeError is a ValueError
-                return _error(400, f"bad request body: {_one_line(e)}")
-            return _reply(*await self.change(op, body.model_dump(mode="json")))
+        async def get(request: web.Request) -> web.Response:
+            args: dict[str, Any] = dict(request.match_info)
+            for key, default in route.query:
+                args[key] = _int_query(request, key, default)
+            return _reply(*await self.read(route.op, args))
 
-        return handler
-
-    async def _events(self, request: web.Request) -> web.Response:
-        n = _int_query(request, "n", 50)
-        return _reply(*await self.read("events", {"n": n}))
-
-    async def _rtdb_record(self, request: web.Request) -> web.Response:
-        n = _int_query(request, "n", 1)
-        name = request.match_info["name"]
-        return _reply(*await self.read("rtdb_record", {"name": name, "n": n}))
+        return get
 
 
 def _no_constant(name: str) -> Any:
     raise ValueError(f"{name} is not a number here")
-
-
-def _one_line(e: Exception) -> str:
-    if isinstance(e, ValidationError):
-        return "; ".join(
-            f"{'.'.join(str(x) for x in err['loc']) or 'body'}: {err['msg']}" for err in e.errors()
-        )
-    return str(e).splitlines()[0] if str(e) else type(e).__name__
 
 
 def _int_query(request: web.Request, key: str, default: int) -> int:

@@ -14,19 +14,24 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .events import Event, NodeFailed
 from .spec import TimingOverride
+from .timing import TimingChange
 
 
 class TimingRequest(TimingOverride):
     """Body of ``POST /timing``: the node and the fields to change (ms for timer/deadline).
 
     The graph file's own model (:class:`flowrt.spec.TimingOverride`), so a request obeys the
-    same rules as a mode in a graph file; the ranges are checked again where the change is
-    applied (:meth:`flowrt.timing.TimingChange.parse`). ``force`` passes admission control
-    (never the ranges).
+    same rules as a mode in a graph file, and is refused whole by the endpoint's server
+    process before the runtime sees it. ``force`` passes admission control (never the
+    ranges, which ``Runtime.apply_timing`` checks against the node).
     """
 
     node: str = Field(max_length=256)
     force: bool = False  # past admission control
+
+    def change(self) -> TimingChange:
+        """The one value the runtime applies (``Runtime.apply_timing(node, change)``)."""
+        return TimingChange.unchecked(self)
 
 
 class ModeRequest(BaseModel):
@@ -49,11 +54,6 @@ class ReloadRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     node: str = Field(max_length=256)
-
-
-RECORD_COMMAND = "flowrt.record."
-"""RTDB record ``flowrt.record.NODE`` (start|stop) that a ``recorder`` node obeys; the node
-answers in ``flowrt.recording.NODE`` (its session folder, "" when stopped)."""
 
 
 class RecordRequest(BaseModel):

@@ -1,6 +1,6 @@
 """The QoS manager: run-time timing changes, modes, and the overload controller.
 
-Timing changes themselves are :meth:`flowrt.Runtime.set_timing` (applied between ticks: the
+Timing changes themselves are :meth:`flowrt.Runtime.apply_timing` (applied between ticks: the
 loop runs one callback at a time, so a tick sees either the old timing or the new one, never
 half of it) and modes are :meth:`flowrt.Runtime.set_mode`. This module holds what decides
 *which* changes to make:
@@ -10,15 +10,15 @@ half of it) and modes are :meth:`flowrt.Runtime.set_mode`. This module holds wha
 - :class:`OverloadController`: CAMBADA's resource manager. When the loop lags, the CPU is
   saturated or deadlines are missed, it sheds the lowest-priority work — first a longer
   period, then disabled — one step per evaluation, and restores it, last step first, once
-  the load has stayed low for a while. Critical nodes are never touched. Every change goes
-  through ``Runtime.set_timing(origin="qos")``, so it is a timestamped ``TimingChanged``
-  event like any other change.
+  the load has stayed low for a while. Critical nodes are never touched. Every change is a
+  ``TimingChange`` through ``Runtime.apply_timing(node, change, origin="qos")``, so it is
+  checked and becomes a timestamped ``TimingChanged`` event like any other change.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -35,7 +35,7 @@ from .timing import TimingChange
 
 if TYPE_CHECKING:
     from .graph import Graph, ResolvedNode
-    from .kernel import NodeRunner
+    from .kernel import NodeView
 
 log = logging.getLogger("flowrt.qos")
 
@@ -87,15 +87,14 @@ def mode_plan(graph: Graph, previous: ModeSpec | None, new: ModeSpec) -> dict[st
                 if nominal.phase is not None and nominal.phase < values["period"]
                 else 0
             )
-        plan[name] = TimingChange.unchecked(TimingOverride(**values))
+        plan[name] = TimingChange.of(**values)  # the graph's values: checked when applied
     return plan
 
 
-class Runners(Protocol):
-    """What the controller reads of the scheduler: its node runners by name."""
+class NodeReads(Protocol):
+    """What the controller reads of the scheduler: snapshots of its nodes, never a runner."""
 
-    @property
-    def runners(self) -> Mapping[str, NodeRunner]: ...
+    def node_views(self) -> list[NodeView]: ...
 
 
 class QosHost(Protocol):
@@ -109,19 +108,10 @@ class QosHost(Protocol):
     def started(self) -> bool: ...
 
     @property
-    def scheduler(self) -> Runners: ...
+    def scheduler(self) -> NodeReads: ...
 
-    def set_timing(
-        self,
-        node: str,
-        *,
-        period: int | None = None,
-        phase: int | None = None,
-        timer: float | None = None,
-        deadline: float | None = None,
-        priority: int | None = None,
-        enabled: bool | None = None,
-        origin: str = "api",
+    def apply_timing(
+        self, node: str, change: TimingChange, *, origin: str = "api", force: bool = False
     ) -> str: ...
 
     def qos_status(self) -> QosStatus: ...
@@ -225,16 +215,17 @@ class OverloadController:
 
     def started(self, rt: QosHost) -> None:
         self.rt = rt
-        runners = rt.scheduler.runners
+        views = rt.scheduler.node_views()
+        names = [v.name for v in views]
         for name in self.spec.protect:
-            if name not in runners:
+            if name not in names:
                 from .diagnostics import did_you_mean
 
-                hint = did_you_mean(name, runners)
+                hint = did_you_mean(name, names)
                 log.warning("qos.overload.protect: unknown node %r%s (ignored)", name, hint)
-        candidates = [r for r in runners.values() if self._kind_sheddable(r)]
+        candidates = [v for v in views if self._kind_sheddable(v)]
         self._protect_priority = self.spec.protect_priority or max(
-            (r.rnode.spec.priority for r in candidates), default=99
+            (v.node.spec.priority for v in candidates), default=99
         )
         self._window = self._new_window()
         interval = self.spec.interval / 1000
@@ -271,18 +262,18 @@ class OverloadController:
             if b.slowdown > 1 or b.disabled
         )
 
-    def protected(self, runner: NodeRunner) -> bool:
+    def protected(self, view: NodeView) -> bool:
         """Never shed: not slowable/disableable by kind, listed, or at the critical priority."""
         return (
-            not self._kind_sheddable(runner)
-            or runner.name in self.spec.protect
-            or runner.timing.priority >= self._protect_priority
+            not self._kind_sheddable(view)
+            or view.name in self.spec.protect
+            or view.timing.priority >= self._protect_priority
         )
 
     @staticmethod
-    def _kind_sheddable(r: NodeRunner) -> bool:
-        trig = r.rnode.trigger
-        return isinstance(trig, FrameTrigger | TimerTrigger) and not r.rnode.cls.frame_ports()
+    def _kind_sheddable(v: NodeView) -> bool:
+        trig = v.node.trigger
+        return isinstance(trig, FrameTrigger | TimerTrigger) and not v.node.cls.frame_ports()
 
     # --- measuring ------------------------------------------------------------------------
 
@@ -301,23 +292,22 @@ class OverloadController:
     def _new_window(self) -> _Window:
         assert self.rt is not None
         self._window_start = self.rt.clock.now()
-        counters = {
-            name: (r.counts.activations, r.counts.misses)
-            for name, r in self.rt.scheduler.runners.items()
-        }
+        counters = {v.name: (v.activations, v.misses) for v in self.rt.scheduler.node_views()}
         return _Window(counters=counters)
 
     def _measure_window(self) -> LoadSample:
         assert self.rt is not None
         old = self._window
-        self._window = self._new_window()
+        views = self.rt.scheduler.node_views()
+        self._window_start = self.rt.clock.now()
+        self._window = _Window(counters={v.name: (v.activations, v.misses) for v in views})
         acts = misses = 0
-        for name, r in self.rt.scheduler.runners.items():
-            if r.timing.deadline is None or not r.timing.enabled:
+        for v in views:
+            if v.timing.deadline is None or not v.timing.enabled:
                 continue
-            a0, m0 = old.counters.get(name, (0, 0))
-            acts += r.counts.activations - a0
-            misses += r.counts.misses - m0
+            a0, m0 = old.counters.get(v.name, (0, 0))
+            acts += v.activations - a0
+            misses += v.misses - m0
         cpu: float | None = None
         if self.spec.cpu_percent is not None:
             import psutil
@@ -395,43 +385,43 @@ class OverloadController:
         else:
             self._calm_since = None
 
-    def _pick(self, slow: bool) -> NodeRunner | None:
+    def _pick(self, slow: bool) -> NodeView | None:
         assert self.rt is not None
-        best: NodeRunner | None = None
-        for r in self.rt.scheduler.runners.values():
-            if self.protected(r) or not r.timing.enabled:
+        best: NodeView | None = None
+        for v in self.rt.scheduler.node_views():
+            if self.protected(v) or not v.timing.enabled:
                 continue
             if slow:
-                base = self._base.get(r.name)
+                base = self._base.get(v.name)
                 if (base.slowdown if base else 1) * 2 > self.spec.max_slowdown:
                     continue
-            key = (r.timing.priority, -r.rnode.order)
-            if best is None or key < (best.timing.priority, -best.rnode.order):
-                best = r
+            key = (v.timing.priority, -v.node.order)
+            if best is None or key < (best.timing.priority, -best.node.order):
+                best = v
         return best
 
     def _shed_one(self, reason: str) -> bool:
         """One step of shedding; False when there is nothing left to shed."""
         assert self.rt is not None
-        r = self._pick(slow=True)
+        v = self._pick(slow=True)
         disable = False
-        if r is None and self.spec.disable:
-            r = self._pick(slow=False)
+        if v is None and self.spec.disable:
+            v = self._pick(slow=False)
             disable = True
-        if r is None:
+        if v is None:
             return False
-        tm = r.timing
+        tm = v.timing
         base = self._base.setdefault(
-            r.name, _Base(period=tm.period, timer_ms=None if tm.timer is None else tm.timer * 1000)
+            v.name, _Base(period=tm.period, timer_ms=None if tm.timer is None else tm.timer * 1000)
         )
         if disable:
-            self._steps.append(_Step(r.name, True, base.slowdown))
+            self._steps.append(_Step(v.name, True, base.slowdown))
             base.disabled = True
-            self._apply(r.name, enabled=False)
+            self._apply(v.name, TimingChange(enabled=False))
         else:
-            self._steps.append(_Step(r.name, False, base.slowdown))
+            self._steps.append(_Step(v.name, False, base.slowdown))
             base.slowdown *= 2
-            self._apply_slowdown(r.name, base)
+            self._apply_slowdown(v.name, base)
         log.info("qos: shed %s (%s)", self._steps[-1].node, reason)
         return True
 
@@ -440,7 +430,7 @@ class OverloadController:
         base = self._base[step.node]
         if step.disabled:
             base.disabled = False
-            self._apply(step.node, enabled=True)
+            self._apply(step.node, TimingChange(enabled=True))
         else:
             base.slowdown = step.previous
             self._apply_slowdown(step.node, base)
@@ -449,14 +439,14 @@ class OverloadController:
 
     def _apply_slowdown(self, node: str, base: _Base) -> None:
         if base.timer_ms is not None:
-            self._apply(node, timer=base.timer_ms * base.slowdown)
+            self._apply(node, TimingChange(timer_ms=base.timer_ms * base.slowdown))
         else:
-            self._apply(node, period=base.period * base.slowdown)
+            self._apply(node, TimingChange(period=base.period * base.slowdown))
 
-    def _apply(self, node: str, **change: Any) -> None:
+    def _apply(self, node: str, change: TimingChange) -> None:
         assert self.rt is not None
         try:
-            self.rt.set_timing(node, origin="qos", **change)
+            self.rt.apply_timing(node, change, origin="qos")
         except (KeyError, ValueError) as e:  # e.g. a phase an operator set meanwhile
             log.warning("qos: cannot change %s: %s", node, e)
 

@@ -47,6 +47,16 @@ from typing import Any
 
 __all__ = ["RTDB", "Record", "RtdbHandle"]
 
+#: The records through which a ``recorder`` node is commanded and answers, each followed by
+#: the node's name; owned here, where the control endpoint, ``flowrt ctl record``, the
+#: operator's page and the node itself (any node could) all find them.
+RECORD_COMMAND = "flowrt.record."
+"""``flowrt.record.NODE`` = ``"start"`` | ``"stop"`` | ``{"action": "start", "name": N}``."""
+RECORDING_SESSION = "flowrt.recording."
+"""``flowrt.recording.NODE``: the recorder's current session folder, "" when stopped."""
+RECORDING_FOLDER = "flowrt.recordings."
+"""``flowrt.recordings.NODE``: the folder the recorder creates its sessions in."""
+
 _MAGIC = b"FLOWRTDB"
 _VERSION = 1
 _PAGE = 4096

@@ -45,8 +45,9 @@ from .runtime_stats import runtime_stats
 from .spec import GraphSpec, Placement
 from .stats import NodeStats, Running, RuntimeStats
 from .subscription import Subscription
+from .timing import TimingChange
+from .timing_control import apply_plan
 from .timing_control import set_mode as switch_mode
-from .timing_control import set_timing as change_timing
 
 if TYPE_CHECKING:
     from .oscheduling import FairShare
@@ -370,26 +371,24 @@ class Runtime(Interruptible):
         force: bool = False,
         timer_phase: float | None = None,
     ) -> str:
-        """Change a node's timing between ticks. ``timer`` and ``deadline`` are in ms.
+        """Change a node's timing between ticks (``timer``, ``deadline`` in ms, or
+        ``"80ms"`` as in a graph file): :meth:`apply_timing` with the change these name."""
+        given = dict(period=period, phase=phase, timer=timer, timer_phase=timer_phase)
+        given.update(deadline=deadline, priority=priority, enabled=enabled)
+        change = TimingChange.parse(node, **given)
+        return self.apply_timing(node, change, origin=origin, force=force)
 
-        The whole change is checked first (the ranges of graph files: finite, in range, a
-        phase below its period; ``force`` does not skip this) and applied at once, or refused
-        with ValueError and nothing changed. Then admission control
-        (:mod:`flowrt.analysis.admission`) refuses, the same way, a change that would make a
-        node with a deadline unschedulable, unless ``force``. The overload controller's own
-        steps (origin ``qos``) are not admission-checked: they act on measured load.
-        Returns what changed, in words (also a ``TimingChanged`` event).
-        """
-        given = {
-            "period": period,
-            "phase": phase,
-            "timer": timer,
-            "timer_phase": timer_phase,
-            "deadline": deadline,
-            "priority": priority,
-            "enabled": enabled,
-        }
-        return change_timing(self, node, origin, force, given)
+    def apply_timing(
+        self, node: str, change: TimingChange, *, origin: str = "api", force: bool = False
+    ) -> str:
+        """The one door of every run-time timing change (``TimingRequest.change()`` of the
+        control endpoint, :meth:`set_timing`, the overload controller; modes by the same
+        ``apply_plan``), applied between ticks. Checked once, here, whole: the graph files'
+        ranges (``force`` does not skip them), then admission control unless ``force`` or
+        origin ``qos`` (which acts on measured load). Refused: ValueError (KeyError for an
+        unknown node), nothing changed. Returns what changed (a ``TimingChanged`` event)."""
+        admitted = force or origin == "qos"
+        return apply_plan(self, {node: change}, origin=origin, admitted=admitted)[0]
 
     def set_mode(self, mode: str, origin: str = "api", force: bool = False) -> None:
         """Apply a named mode of the graph file: all of its overrides in one step.

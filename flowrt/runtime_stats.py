@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-import logging
 from typing import Any
 
-from .kernel import NodeRunner, Scheduler
+from .kernel import Scheduler
 from .resources import RunResources
 from .stats import LoopStats, Running, RuntimeStats
-
-log = logging.getLogger("flowrt")
 
 
 def runtime_stats(
@@ -23,7 +20,7 @@ def runtime_stats(
     """``head`` (the run's name, uptime, mode, scheduling) with every figure of the run."""
     return RuntimeStats(
         **head,
-        nodes=[r.stats() for r in sched.runners.values()],
+        nodes=sched.node_stats(),
         edges=[b.stats() for b in sched.buffers],
         loop=LoopStats(
             lag=lag.summary(),
@@ -33,24 +30,5 @@ def runtime_stats(
         frames=[] if res is None else res.frame_stats(),
         worker_frames=[] if res is None else res.worker_frame_stats(),
         events=event_count,
-        reports=node_reports(sched.runners),
+        reports=sched.node_reports(),
     )
-
-
-def node_reports(runners: dict[str, NodeRunner]) -> dict[str, Any]:
-    """Each inline node's optional ``report()`` (also after stop: its last instance's)."""
-    out: dict[str, Any] = {}
-    for name, r in runners.items():
-        ex = r.executor
-        node = getattr(ex, "node", None) or getattr(ex, "last_node", None)
-        hook = getattr(node, "report", None)
-        if not callable(hook):
-            continue
-        try:
-            value = hook()
-        except Exception as e:  # a report must never break the statistics
-            log.warning("node %s: report() failed: %s", name, e)
-            continue
-        if value is not None:
-            out[name] = value
-    return out

@@ -1,11 +1,11 @@
 """A node's run-time timing, and the one value that changes it.
 
-Every run-time timing change (the API's ``Runtime.set_timing``, ``flowrt ctl timing``, a
-mode switch, the overload controller's shedding, admission control's what-if) is one
-:class:`TimingChange`: fields in the units their names say, validated once by
-:meth:`TimingChange.parse` (the graph files' own ranges, :class:`flowrt.spec.TimingOverride`)
-and :meth:`TimingChange.problems` (against the node it is for), then applied by the kernel
-without a second check (:meth:`flowrt.kernel.Scheduler.apply_timing`).
+Every run-time timing change (the API's ``Runtime.set_timing``, ``flowrt ctl timing``'s
+``TimingRequest.change()``, a mode switch, the overload controller's shedding, admission
+control's what-if) is one :class:`TimingChange`, fields in the units their names say. It is
+checked once, by :meth:`TimingChange.problems` (the graph files' ranges and the node's
+trigger) in ``Runtime.apply_timing``, the one door for every origin, then applied by the
+kernel without a second check (:meth:`flowrt.kernel.Scheduler.apply_timing`).
 """
 
 from __future__ import annotations
@@ -44,6 +44,20 @@ class Timing:
     priority: int
     enabled: bool
 
+    def copy(self) -> Timing:
+        """A copy for a reader outside the kernel (``Scheduler.timing_of``, node views): by
+        the constructor, a fifth of ``copy.copy``'s time (the overload controller takes a
+        view of every node each window: 300 nodes, ~0.2 ms)."""
+        return Timing(
+            self.period,
+            self.phase,
+            self.timer,
+            self.timer_phase,
+            self.deadline,
+            self.priority,
+            self.enabled,
+        )
+
     def describe_period(self) -> str:
         """As the table shows it: ``66.67ms``, ``100ms +5ms``; frames as ``flowrt graph``
         does: ``each``, ``1/4``, ``1/4 +3`` (every 4th frame, 3 frames late)."""
@@ -72,13 +86,25 @@ MAX_PERIOD = MAX_FRAME_PERIOD
 PRIORITY = (MIN_PRIORITY, MAX_PRIORITY)
 
 
+#: The graph file's name of each field of :class:`TimingChange` (what users write, in ms).
+GRAPH_NAMES = {
+    "period": "period",
+    "phase": "phase",
+    "timer": "timer_ms",
+    "timer_phase": "timer_phase_ms",
+    "deadline": "deadline_ms",
+    "priority": "priority",
+    "enabled": "enabled",
+}
+
+
 @dataclass(frozen=True)
 class TimingChange:
     """A change to one node's timing; None leaves a field as it is.
 
     Units are in the names: frames for ``period``/``phase`` (frame triggers), milliseconds
     for the rest. The graph file's names (``timer``, ``timer_phase``, ``deadline``, in ms)
-    are what users write; :meth:`parse` maps them.
+    are what users write; :meth:`of` maps them.
     """
 
     period: int | None = None
@@ -90,8 +116,17 @@ class TimingChange:
     enabled: bool | None = None
 
     @classmethod
+    def of(cls, **graph_names: Any) -> TimingChange:
+        """The change the graph file's names describe (``timer=80`` is ``timer_ms=80``);
+        None and absent names leave a field as it is. Nothing is checked here: that is
+        :meth:`problems`, once, where the change is applied (``Runtime.apply_timing``)."""
+        return cls(**{GRAPH_NAMES[k]: v for k, v in graph_names.items() if v is not None})
+
+    @classmethod
     def parse(cls, node: str, **given: Any) -> TimingChange:
-        """The change the graph file's names describe (ms), validated by the graph model.
+        """The change the keywords of ``Runtime.set_timing`` describe, parsed by the graph
+        model as a graph file's are (``"80ms"``, whole floats for frames): the API's edge,
+        as the ``TimingRequest`` body is the control wire's.
 
         Raises ValueError naming the node and every bad field.
         """
@@ -107,17 +142,8 @@ class TimingChange:
 
     @classmethod
     def unchecked(cls, o: TimingOverride) -> TimingChange:
-        """A change from a model already validated (a mode of the graph file) or built by
-        ``model_construct`` (then :meth:`problems` still checks the ranges)."""
-        return cls(
-            period=o.period,
-            phase=o.phase,
-            timer_ms=o.timer,
-            timer_phase_ms=o.timer_phase,
-            deadline_ms=o.deadline,
-            priority=o.priority,
-            enabled=o.enabled,
-        )
+        """A change from a model of the graph file (a mode, a ``TimingRequest``)."""
+        return cls.of(**{name: getattr(o, name) for name in GRAPH_NAMES})
 
     def problems(self, name: str, timing: Timing, is_frame: bool) -> list[str]:
         """What makes this change wrong for node ``name`` with ``timing`` ([] when none)."""

@@ -9,7 +9,6 @@ from typing import Any, Protocol
 
 from .events import ModeChanged
 from .hotswap import SwapHost, apply_mode_params
-from .kernel import NodeRunner
 from .spec import FrameTrigger
 from .timing import TimingChange
 
@@ -22,28 +21,34 @@ class TimingHost(SwapHost, Protocol):
     def record_state(self, name: str, value: Any) -> None: ...
 
 
-def check_plan(runners: Mapping[str, NodeRunner], plan: Mapping[str, TimingChange]) -> None:
-    """Raise ValueError, before anything is applied, if any change of ``plan`` is invalid."""
+def check_plan(rt: TimingHost, plan: Mapping[str, TimingChange]) -> None:
+    """Raise ValueError, before anything is applied, if any change of ``plan`` is invalid
+    (KeyError for a node the graph does not have)."""
     problems = []
     for name, change in plan.items():
-        r = runners[name]
-        problems += change.problems(name, r.timing, isinstance(r.rnode.trigger, FrameTrigger))
+        if name not in rt.graph.nodes:
+            from .diagnostics import did_you_mean
+
+            raise KeyError(f"unknown node {name!r}" + did_you_mean(name, rt.graph.nodes))
+        is_frame = isinstance(rt.graph.nodes[name].trigger, FrameTrigger)
+        problems += change.problems(name, rt.scheduler.timing_of(name), is_frame)
     if problems:
         raise ValueError("; ".join(problems))
 
 
-def set_timing(rt: TimingHost, node: str, origin: str, force: bool, given: dict[str, Any]) -> str:
-    """See :meth:`flowrt.Runtime.set_timing` (``given``: the graph file's names, ms)."""
-    runners = rt.scheduler.runners
-    if node not in runners:
-        from .diagnostics import did_you_mean
+def apply_plan(
+    rt: TimingHost, plan: Mapping[str, TimingChange], *, origin: str, admitted: bool
+) -> list[str]:
+    """Check every change of ``plan`` once (ranges and triggers, then admission control
+    unless ``admitted``), then apply them all between ticks; what changed, node by node.
 
-        raise KeyError(f"unknown node {node!r}" + did_you_mean(node, runners))
-    change = TimingChange.parse(node, **given)
-    check_plan(runners, {node: change})
-    if not force and origin != "qos":
-        admit(rt, {node: change})
-    return rt.scheduler.apply_timing(node, change, origin)
+    The one door of run-time timing: ``Runtime.apply_timing`` (the control endpoint, the
+    API, the overload controller) and modes. Nothing is applied when any change is refused.
+    """
+    check_plan(rt, plan)
+    if not admitted:
+        admit(rt, plan)
+    return [rt.scheduler.apply_timing(node, change, origin) for node, change in plan.items()]
 
 
 def set_mode(rt: TimingHost, mode: str, origin: str, force: bool) -> None:
@@ -57,11 +62,8 @@ def set_mode(rt: TimingHost, mode: str, origin: str, force: bool) -> None:
 
     previous_spec = rt.graph.spec.modes.get(rt.mode) if rt.mode else None
     plan = mode_plan(rt.graph, previous_spec, spec)
-    check_plan(rt.scheduler.runners, plan)  # all or nothing
-    if not force and origin != "graph":  # the initial mode is the graph's own choice
-        admit(rt, plan)
-    for node, change in plan.items():
-        rt.scheduler.apply_timing(node, change, f"mode {mode}")
+    # all or nothing; the initial mode is the graph's own choice (not admission-checked)
+    apply_plan(rt, plan, origin=f"mode {mode}", admitted=force or origin == "graph")
     apply_mode_params(rt, previous_spec, spec)
     previous, rt.mode = rt.mode, mode
     rt.emit(ModeChanged(rt.now(), None, mode, previous, origin))

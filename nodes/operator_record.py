@@ -31,11 +31,13 @@ from typing import Any
 
 from aiohttp import web
 
+from flowrt.rtdb import RECORD_COMMAND, RECORDING_FOLDER, RECORDING_SESSION
+
 from .operator_sessions import SESSION_FILE, session_length, valid_name
 
-COMMAND = "flowrt.record."  # nodes.recorder.COMMAND_RECORD
-STATUS = "flowrt.recording."  # nodes.recorder.STATUS_RECORD: the session folder, "" stopped
-FOLDER = "flowrt.recordings."  # nodes.recorder.FOLDER_RECORD: where its sessions go
+COMMAND = RECORD_COMMAND  # the recorder obeys it
+STATUS = RECORDING_SESSION  # the session folder, "" stopped
+FOLDER = RECORDING_FOLDER  # where its sessions go
 OBEY_WAIT = 20.0  # seconds for the recorders to say they started (a writer process to spawn)
 RATE_INTERVAL = 0.5  # seconds: the shortest interval a live rate is measured over
 STOP_WITHIN = 9.0  # seconds a stop is answered within, from its arrival (files finished or not)

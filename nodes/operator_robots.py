@@ -34,6 +34,8 @@ from typing import Any
 
 from aiohttp import web
 
+from flowrt.rtdb import RECORDING_SESSION
+
 from .operator_record import _body, _error, _json
 from .operator_sessions import valid_name
 
@@ -83,9 +85,9 @@ class _Robot:
             return {"name": self.name, "reachable": False, "error": str(e), "at": time.time()}
         values = {r.get("name"): r.get("value") for r in records}
         recording = {
-            k.removeprefix("flowrt.recording."): v
+            k.removeprefix(RECORDING_SESSION): v
             for k, v in values.items()
-            if isinstance(k, str) and k.startswith("flowrt.recording.")
+            if isinstance(k, str) and k.startswith(RECORDING_SESSION)
         }
         health = values.get("health")
         machine = health.get("machine") if isinstance(health, dict) else None

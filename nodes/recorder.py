@@ -96,18 +96,15 @@ from flowrt.recording.session import (
     timing_json,
 )
 from flowrt.recording.streams import is_set, split_set
+from flowrt.rtdb import RECORD_COMMAND as COMMAND_RECORD
+from flowrt.rtdb import RECORDING_FOLDER as FOLDER_RECORD
+from flowrt.rtdb import RECORDING_SESSION as STATUS_RECORD
 
-COMMAND_RECORD = "flowrt.record."
-"""RTDB record ``flowrt.record.NODE`` = ``start`` | ``stop``: what ``flowrt ctl record`` writes."""
 FINISH_WAIT = 1.0
 """Seconds a stop waits for the file to be finished before leaving it to the writer thread."""
 LET_GO_WAIT = 2.0
 """Seconds a stop waits for the writer to let go of the frames' slots (a process: a round trip)."""
 AnyWriter = RecordingWriter | ProcessRecordingWriter
-STATUS_RECORD = "flowrt.recording."
-"""RTDB record ``flowrt.recording.NODE``: the current session folder, or "" when stopped."""
-FOLDER_RECORD = "flowrt.recordings."
-"""RTDB record ``flowrt.recordings.NODE``: the folder this recorder creates its sessions in."""
 
 
 class Recorder(Node):

@@ -28,13 +28,15 @@ from ..frames import Frame
 from ..graph import Graph, ResolvedNode
 from ..node import NodeFactory
 from ..spec import LoopTrigger, Placement
-from ..timing import TimingChange
+from ..stats import NodeStats
+from ..timing import Timing, TimingChange
 from .drain import Drain
 from .executor import Executor
 from .precise import PreciseNodeRunner
 from .runner import NodeRunner
 from .services import Services
 from .state import RunState
+from .views import NodeView, reports_of, view_of
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -267,6 +269,28 @@ class Scheduler:
                 r.supervisor.teardown_failed(e)
         for r in self.runners.values():
             r.supervisor.log.flush(self.clock.now())
+
+    # --- reads from outside the kernel (flowrt.kernel.views) ----------------------------
+
+    def timing_of(self, node: str) -> Timing:
+        """A copy of ``node``'s timing now (KeyError: no such node)."""
+        return self.runners[node].timing.copy()
+
+    def node_views(self) -> list[NodeView]:
+        """Every node as of now, in the graph's order."""
+        return [view_of(r) for r in self.runners.values()]
+
+    def node_view(self, node: str) -> NodeView:
+        """``node`` as of now (KeyError: no such node)."""
+        return view_of(self.runners[node])
+
+    def node_stats(self) -> list[NodeStats]:
+        """Every node's row of the statistics table, in the graph's order."""
+        return [r.stats() for r in self.runners.values()]
+
+    def node_reports(self) -> dict[str, Any]:
+        """Each inline node's optional ``report()`` (also after stop: its last instance's)."""
+        return reports_of(self.runners.values())
 
     # --- run-time changes ---------------------------------------------------------------
 

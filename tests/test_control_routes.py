@@ -1,0 +1,163 @@
+"""One shape per change: the control endpoint's one route table, ``TimingRequest.change()``
+and ``Runtime.apply_timing``, the one door of run-time timing (issue 39, step 3).
+
+The runtime's side of the endpoint is driven here without its server process (that is
+tests/test_control.py): ``control_routes.answer`` is what the runtime runs for each request
+the server process forwards.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import flowrt
+from flowrt import GraphBuilder, Runtime, VirtualClock
+from flowrt.control_routes import BY_OP, ENDPOINTS, ROUTES, answer
+from flowrt.control_wire import TimingRequest
+from flowrt.events import TimingChanged
+from flowrt.rtdb import RECORD_COMMAND
+from flowrt.timing import TimingChange
+
+
+class Server:
+    """What a handler asks of the control server: its runtime and the kinds a swap may name."""
+
+    def __init__(self, rt: Runtime) -> None:
+        self.rt = rt
+
+    def allowed_kinds(self) -> set[str]:
+        return {"burn", "counter"}
+
+
+def graph() -> flowrt.Graph:
+    g = GraphBuilder("routes")
+    g.add("src", "counter", trigger={"timer": "50ms"})
+    g.add("slow", "burn", params={"ms": 0.1}, trigger={"timer": "100ms"}, priority=20)
+    g.mode("attack", slow={"timer": "50ms", "priority": 40})
+    return g.build()
+
+
+@pytest.fixture
+async def server() -> AsyncIterator[Server]:
+    async with Runtime(graph(), clock=VirtualClock()) as rt:
+        yield Server(rt)
+
+
+async def ask(server: Server, op: str, body: dict[str, Any] | None = None) -> tuple[int, Any]:
+    status, data = await answer(server, op, json.dumps(body).encode() if body else b"")
+    return status, json.loads(data)
+
+
+def test_the_index_lists_the_endpoints_users_know() -> None:
+    """Scripts read ``GET /``: the list is the one it always was, in its order."""
+    assert ENDPOINTS == [
+        "GET /stats",
+        "GET /events?n=50",
+        "GET /modes",
+        "POST /mode",
+        "POST /timing",
+        "GET /qos",
+        "GET /rtdb",
+        "GET /rtdb/{name}?n=8",
+        "POST /record",
+        "POST /swap",
+        "POST /reload",
+    ]
+    assert len(BY_OP) == len(ROUTES)  # one route per operation
+    assert all((r.method == "POST") == (r.body is not None) for r in ROUTES)
+
+
+def test_a_timing_request_is_one_timing_change() -> None:
+    req = TimingRequest.model_validate({"node": "a", "timer": "80ms", "deadline": 5, "force": 1})
+    assert req.change() == TimingChange(timer_ms=80.0, deadline_ms=5.0)
+
+
+async def test_timing_is_answered_through_apply_timing(server: Server) -> None:
+    status, reply = await ask(server, "timing", {"node": "slow", "timer": 200, "priority": 30})
+    assert status == 200
+    assert reply == {"node": "slow", "change": "timer_ms 100.0 -> 200.0, priority 20 -> 30"}
+    changed = [e for e in server.rt.events if isinstance(e, TimingChanged)]
+    assert [(e.node, e.origin) for e in changed] == [("slow", "control")]
+
+
+@pytest.mark.parametrize(
+    ("body", "status", "error"),
+    [
+        ({"node": "slwo", "priority": 30}, 404, "unknown node 'slwo'"),
+        ({"node": "slow", "period": 2}, 400, "slow: period/phase in frames apply to frame"),
+        # what the server process would have refused is still refused whole here
+        ({"node": "slow", "priority": 30, "timer": float("nan")}, 400, "slow: timer must be"),
+        ({"node": "slow", "priority": "high"}, 400, "slow: priority must be an integer"),
+    ],
+)
+async def test_a_refused_timing_change_changes_nothing(
+    server: Server, body: dict[str, Any], status: int, error: str
+) -> None:
+    got, reply = await ask(server, "timing", body)
+    assert (got, reply["error"][: len(error)]) == (status, error)
+    assert server.rt.scheduler.runners["slow"].timing.priority == 20
+
+
+async def test_the_runtime_side_does_not_validate_the_body_again(
+    server: Server, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The server process accepted the body with the request model: the change is checked
+    once more only against its node (``Runtime.apply_timing``), not by a second model pass."""
+
+    def second_pass(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("TimingRequest validated twice")
+
+    monkeypatch.setattr(TimingRequest, "model_validate", second_pass)
+    status, reply = await ask(server, "timing", {"node": "slow", "deadline": 20.0})
+    assert (status, reply["change"]) == (200, "deadline_ms None -> 20.0")
+
+
+async def test_every_origin_goes_through_apply_timing(
+    server: Server, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    rt = server.rt
+    seen: list[tuple[str, str]] = []
+    door = Runtime.apply_timing
+
+    def spy(self: Runtime, node: str, change: TimingChange, **kw: Any) -> str:
+        seen.append((node, kw["origin"]))
+        return door(self, node, change, **kw)
+
+    monkeypatch.setattr(Runtime, "apply_timing", spy)
+    rt.set_timing("slow", priority=25)  # the API's keywords
+    await ask(server, "timing", {"node": "slow", "priority": 26})  # the control endpoint
+    assert seen == [("slow", "api"), ("slow", "control")]
+
+
+async def test_routes_answer_reads_and_unknown_operations(server: Server) -> None:
+    status, index = await ask(server, "index")
+    assert (status, index) == (200, {"graph": "routes", "endpoints": ENDPOINTS})
+    assert (await ask(server, "modes"))[1] == {"modes": ["attack"], "current": None}
+    assert (await ask(server, "mode", {"mode": "attack"}))[1] == {"mode": "attack"}
+    status, reply = await ask(server, "rtdb_record", {"name": "nothing", "n": 1})
+    assert (status, reply) == (404, {"error": "no record 'nothing'"})
+    status, reply = await ask(server, "record", {"action": "start"})
+    assert status == 404
+    assert "no recorder node" in reply["error"]
+    assert (await ask(server, "nope"))[0] == 404
+
+
+def test_one_module_owns_the_recorders_command_key() -> None:
+    """``flowrt.record.NODE`` is spelled once, in flowrt.rtdb; the control endpoint, the
+    recorder node and the operator's page take it from there."""
+    from flowrt.nodes import operator_record, recorder
+
+    assert recorder.COMMAND_RECORD is RECORD_COMMAND is operator_record.COMMAND
+    root = Path(flowrt.__file__).parent
+    spelled = [
+        str(p.relative_to(root.parent))
+        for folder in (root, root.parent / "nodes")
+        for p in folder.rglob("*.py")
+        if '"flowrt.record."' in p.read_text()
+    ]
+    assert spelled == ["flowrt/rtdb.py"]
