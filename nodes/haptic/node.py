@@ -142,11 +142,11 @@ class Haptic(Node):
         p = self.params
         options: Any = {"sim": p.sim.model_dump(), "evdev": p.evdev.model_dump()}
         kind = "sim" if p.device == "sim" else p.device.partition(":")[0]
+        self.info: DeviceInfo | None = None  # before the device: teardown runs if it fails
         try:
             self.device: HapticDevice = make_device(p.device, options.get(kind, p.device_options))
         except (ValueError, TypeError) as e:
             raise FatalError(str(e)) from None
-        self.info: DeviceInfo | None = None
         self.reopen_at = 0.0
         self.reopens = 0
         self.device_errors = 0
@@ -205,9 +205,10 @@ class Haptic(Node):
 
     def teardown(self) -> None:
         """Zero force, then close: a handle left pushing would move the operator's hand."""
-        if self.info is not None:
-            with contextlib.suppress(Exception):
-                self.device.apply_force((0.0,) * len(self.axes), self.ctx.now())
+        if getattr(self, "info", None) is None:
+            return  # never opened (or its device never made): nothing to zero or close
+        with contextlib.suppress(Exception):
+            self.device.apply_force((0.0,) * len(self.axes), self.ctx.now())
         with contextlib.suppress(Exception):
             self.device.close()
 
