@@ -51,8 +51,12 @@ def _metadata(folder: Path) -> dict[str, Any] | None:
         return None
     try:
         doc = yaml.safe_load(meta.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise BagError(f"{meta}: not readable: {e}") from None
+    except OSError as e:
+        raise BagError(f"{meta}: not readable: {e.strerror or e}") from None
+    except yaml.YAMLError as e:  # one line: pyyaml's message spans five, with a caret
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        raise BagError(f"{meta}: not YAML: {getattr(e, 'problem', None) or e}{where}") from None
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     return info if isinstance(info, dict) else None
 

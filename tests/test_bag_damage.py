@@ -1,0 +1,85 @@
+"""Damaged rosbag2 folders as a new user meets them: one line and a nonzero exit each.
+
+Found by the new-user audit: a truncated ``.db3`` was a traceback (``BagError``) from
+``flowrt info`` and ``flowrt replay``; ``info --repair`` renamed it ``.damaged.mcap`` and put
+an empty MCAP file in its place; a ``metadata.yaml`` that is not YAML printed pyyaml's five
+lines with a caret. The bags are written by rosbags itself, then damaged.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ros_data import write_bag
+
+from flowrt.cli import main
+
+
+@pytest.fixture
+def db3_bag(tmp_path: Path) -> Path:
+    frames = [np.full((24, 32, 3), i, np.uint8) for i in range(3)]
+    return write_bag(tmp_path / "bag", "sqlite3", frames)
+
+
+def _run(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _truncate(bag: Path) -> Path:
+    (db3,) = bag.glob("*.db3")
+    db3.write_bytes(db3.read_bytes()[:5000])  # the header page and a little more
+    return db3
+
+
+def test_info_of_a_truncated_db3_is_a_damaged_file(
+    db3_bag: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _truncate(db3_bag)
+    code, out, err = _run(capsys, "info", str(db3_bag))
+    assert code == 1
+    assert "Traceback" not in out + err
+    assert "malformed" in out
+    why = "not closed cleanly (damaged or the recorder was killed)"
+    assert err.strip().splitlines() == [f"flowrt info: {db3_bag}/bag.db3 {why}"]
+
+
+def test_replay_of_a_truncated_db3_says_nothing_to_replay(
+    db3_bag: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _truncate(db3_bag)
+    code, out, err = _run(capsys, "replay", str(db3_bag), "--no-ui", "--no-display")
+    assert code == 2
+    assert out == ""
+    assert err.strip().splitlines() == [
+        f"flowrt replay: {db3_bag}: nothing to replay (bag.db3: database disk image is malformed)"
+    ]
+
+
+def test_repair_refuses_a_db3_and_leaves_it_as_it_was(
+    db3_bag: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    db3 = _truncate(db3_bag)
+    before = db3.read_bytes()
+    code, _, err = _run(capsys, "info", "--repair", str(db3_bag))
+    assert code == 1
+    assert "flowrt repairs MCAP files only (the original is untouched)" in err
+    assert sorted(p.name for p in db3_bag.iterdir()) == ["bag.db3", "metadata.yaml"]
+    assert db3.read_bytes() == before
+
+
+@pytest.mark.parametrize("command", ["info", "replay"])
+def test_metadata_that_is_not_yaml_is_one_line(
+    db3_bag: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    (db3_bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [oops\n")
+    code, out, err = _run(capsys, command, str(db3_bag))
+    assert code == 2
+    assert out == ""
+    assert err.strip().splitlines() == [
+        f"flowrt {command}: {db3_bag}/metadata.yaml: not YAML: expected ',' or ']', "
+        "but got '<stream end>' (line 2, column 1)"
+    ]
