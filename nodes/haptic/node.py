@@ -41,7 +41,7 @@ import math
 from dataclasses import replace
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from flowrt import FatalError, Input, Node, Output, TimerTrigger, parse_duration_ms
 from flowrt.refusals import Refusals
@@ -52,7 +52,7 @@ from .fixtures import Fixture, fixture_force
 from .follow import Follower, scale
 from .messages import Buttons, Force, HandleState, Target
 from .safety import ForceLimiter, parse_force
-from .sim import SimParams
+from .sim import AXES, SimParams
 
 __all__ = ["Haptic", "HapticParams"]
 
@@ -105,12 +105,21 @@ class HapticParams(BaseModel):
                 raise ValueError(f"actuator.{axis}: a finite range [lo, hi] with lo != hi")
         return v
 
-    @model_validator(mode="after")
-    def _device(self) -> HapticParams:
-        _kind, _, rest = self.device.partition(":")
-        if self.device != "sim" and not rest:
-            raise ValueError("device: sim, evdev:PATH, evdev:NAME or package.module:Class")
-        return self
+    @field_validator("device")
+    @classmethod
+    def _device(cls, v: str) -> str:
+        if v != "sim" and not v.partition(":")[2]:
+            raise ValueError(f"unknown device {v!r}: sim, evdev:PATH, evdev:NAME or module:Class")
+        return v
+
+    @field_validator("actuator", "lock")
+    @classmethod
+    def _sim_axes(cls, v: Any, info: ValidationInfo) -> Any:
+        # the sim's axes are known now: a misspelt axis is a graph error, not a failed run
+        unknown = sorted(set(v) - set(AXES)) if info.data.get("device") == "sim" else []
+        if unknown:
+            raise ValueError(f"{', '.join(unknown)}: not an axis of the sim device (x, y, z)")
+        return v
 
 
 class Haptic(Node):
