@@ -301,6 +301,25 @@ def test_kinds_summaries_stand_alone_and_bounds_are_said_once(
     assert params["flash_on"]["range"] == "> 0, <= 3600000.0"
 
 
+def test_kinds_at_80_columns_and_nested_defaults(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A nested params model's default is its fields (it was a Python repr in a JSON string),
+    and a wrapped line continues indented under its own: at column 0 it read as a new row."""
+    monkeypatch.setenv("COLUMNS", "80")
+    assert main(["kinds", "haptic", "--json"]) == 0
+    params = {p["name"]: p for p in json.loads(capsys.readouterr().out)["params"]}
+    assert params["sim"]["default"]["hand"]["target"] == [60.0, 0.0, 0.0]
+    assert main(["kinds", "haptic"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert max(len(x) for x in lines) <= 80
+    assert not [x for x in lines if x != x.rstrip()]
+    sim = next(i for i, x in enumerate(lines) if x.startswith("  sim: SimParams = {"))
+    assert lines[sim + 1].startswith("    [-100.0, 100.0]")  # the default, continued
+    rows = [x for x in lines[sim + 1 :] if x.startswith("  ") and not x.startswith("   ")]
+    assert rows[0].startswith("  evdev: EvdevParams = {")  # the next param, nothing between
+
+
 def test_an_images_glob_matching_nothing_fails_validation(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
