@@ -3,7 +3,9 @@
 Found by the new-user audit: a truncated ``.db3`` was a traceback (``BagError``) from
 ``flowrt info`` and ``flowrt replay``; ``info --repair`` renamed it ``.damaged.mcap`` and put
 an empty MCAP file in its place; a ``metadata.yaml`` that is not YAML printed pyyaml's five
-lines with a caret. The bags are written by rosbags itself, then damaged.
+lines with a caret. The ``replay`` node: a path that is not there was a traceback and three
+restarts at run time, a damaged bag or a misspelt topic a traceback and restarts. The bags
+are written by rosbags itself, then damaged.
 """
 
 from __future__ import annotations
@@ -12,9 +14,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from flowrt.nodes.replay import Replay
 from ros_data import write_bag
 
+from flowrt import FatalError
 from flowrt.cli import main
+from flowrt.testing import NodeHarness
 
 
 @pytest.fixture
@@ -83,3 +88,35 @@ def test_metadata_that_is_not_yaml_is_one_line(
         f"flowrt {command}: {db3_bag}/metadata.yaml: not YAML: expected ',' or ']', "
         "but got '<stream end>' (line 2, column 1)"
     ]
+
+
+def test_a_replay_path_that_is_not_there_is_a_graph_error_at_its_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    graph = tmp_path / "g.yaml"
+    graph.write_text("nodes:\n  cam:\n    kind: replay\n    params: {path: bags/drive}\n")
+    code, _, err = _run(capsys, "validate", str(graph))
+    assert code == 2
+    assert err.splitlines()[0] == (
+        f"{graph}:4:14: error: nodes.cam.params.path: no such file or folder: {tmp_path}/bags/drive"
+    )
+
+
+@pytest.mark.parametrize(
+    ("damage", "said"),
+    [
+        ("truncate", "bag.db3: database disk image is malformed"),
+        ("metadata", "metadata.yaml: not YAML"),
+        ("topic", "no topic '/nope' (recorded: /camera/compressed, /camera/image_raw"),
+    ],
+)
+def test_a_replay_node_that_cannot_start_is_given_up_in_one_line(
+    db3_bag: Path, damage: str, said: str
+) -> None:
+    params = {"path": str(db3_bag), "topic": "/nope" if damage == "topic" else None}
+    if damage == "truncate":
+        _truncate(db3_bag)
+    elif damage == "metadata":
+        (db3_bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [oops\n")
+    with pytest.raises(FatalError, match=said.replace("(", r"\(")):
+        NodeHarness(Replay, params, name="cam")
