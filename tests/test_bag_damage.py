@@ -10,6 +10,7 @@ are written by rosbags itself, then damaged.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -120,3 +121,17 @@ def test_a_replay_node_that_cannot_start_is_given_up_in_one_line(
         (db3_bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [oops\n")
     with pytest.raises(FatalError, match=said.replace("(", r"\(")):
         NodeHarness(Replay, params, name="cam")
+
+
+@pytest.mark.parametrize("command", ["info", pytest.param("replay", marks=pytest.mark.realtime)])
+def test_a_bag_named_by_its_metadata_file_is_the_bag(
+    db3_bag: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    """A shell completes ``bag/`` to ``bag/metadata.yaml``: that was 'not an MCAP file'."""
+    argv = [command, str(db3_bag / "metadata.yaml")]
+    code, out, err = _run(
+        capsys, *argv, *(["--json"] if command == "info" else ["--no-ui", "--no-display"])
+    )
+    assert (code, err) == (0, "")
+    if command == "info":
+        assert json.loads(out)["messages"] == 4 * 3  # four topics of three messages
