@@ -187,6 +187,12 @@ class Haptic(Node):
         unknown = sorted((set(p.actuator) | set(p.lock)) - set(info.axes))
         if unknown:
             raise FatalError(f"axes {unknown} are not the device's {list(info.axes)}")
+        if p.enable_button is not None and p.enable_button not in info.buttons:
+            # a deadman that cannot be held: the force would be zero for ever, unexplained
+            raise FatalError(
+                f"enable_button {p.enable_button!r} is not a button of the device "
+                f"({', '.join(info.buttons) or 'it has none'})"
+            )
         limit = p.max_force if info.max_force is None else min(p.max_force, info.max_force)
         self.has_force = info.max_force is not None
         old = getattr(self, "limiter", None)
