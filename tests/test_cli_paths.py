@@ -320,6 +320,50 @@ def test_kinds_at_80_columns_and_nested_defaults(
     assert rows[0].startswith("  evdev: EvdevParams = {")  # the next param, nothing between
 
 
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_ctl_takes_url_before_or_after_its_command(
+    where: str, closed_port: int, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README lists ``flowrt ctl stats ... --url``: after the command it was refused."""
+    url = ["--url", f"http://127.0.0.1:{closed_port}"]
+    argv = ["ctl", *url, "stats"] if where == "before" else ["ctl", "stats", *url]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(
+        f"flowrt ctl: cannot reach the runtime at http://127.0.0.1:{closed_port} "
+    )
+
+
+def test_ctl_at_something_else_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    """Not a URL, or a server whose reply is not JSON (the live view's port): were tracebacks."""
+    import http.server
+    import threading
+
+    class Page(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            self.send_response(200)
+            self.end_headers()
+            self.wfile.write(b"<html>the live view</html>")
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), Page)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}"
+        assert main(["ctl", "stats", "--url", url]) == 1
+        got = capsys.readouterr().err.splitlines()
+        assert got == [f"flowrt ctl: {url}: not a flowrt control endpoint (its reply is not JSON)"]
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert main(["ctl", "stats", "--url", "nonsense"]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        "flowrt ctl: nonsense: not a URL (http://HOST:PORT)"
+    ]
+
+
 def test_an_images_glob_matching_nothing_fails_validation(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
