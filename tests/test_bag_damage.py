@@ -135,3 +135,27 @@ def test_a_bag_named_by_its_metadata_file_is_the_bag(
     assert (code, err) == (0, "")
     if command == "info":
         assert json.loads(out)["messages"] == 4 * 3  # four topics of three messages
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "said"),
+    [
+        ("relative_file_paths", 5, "relative_file_paths: expected a list of file names"),
+        ("relative_file_paths", [None], "relative_file_paths: expected a list of file names"),
+        ("compression_mode", 7, "compression_mode: expected a name"),
+        ("storage_identifier", ["mcap"], "storage_identifier: expected a name"),
+    ],
+)
+def test_metadata_with_a_field_of_the_wrong_type_is_one_line(
+    db3_bag: Path, capsys: pytest.CaptureFixture[str], key: str, value: object, said: str
+) -> None:
+    """A hand-edited metadata.yaml was a TypeError or AttributeError traceback."""
+    import yaml
+
+    meta = db3_bag / "metadata.yaml"
+    doc = yaml.safe_load(meta.read_text())
+    doc["rosbag2_bagfile_information"][key] = value
+    meta.write_text(yaml.safe_dump(doc))
+    code, out, err = _run(capsys, "info", str(db3_bag))
+    assert (code, out) == (2, "")
+    assert err.splitlines() == [f"flowrt info: {meta}: {said}"]

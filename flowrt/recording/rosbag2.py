@@ -70,6 +70,18 @@ def bag_files(folder: Path) -> list[Path] | None:
     if info is None:
         db3 = sorted(folder.glob("*.db3"))
         return db3 or None  # a bag without metadata (killed recorder); MCAP ones: a session
+    paths = info.get("relative_file_paths") or []
+    for key, ok, what in (
+        ("compression_mode", isinstance(info.get("compression_mode") or "", str), "a name"),
+        ("storage_identifier", isinstance(info.get("storage_identifier", ""), str), "a name"),
+        (
+            "relative_file_paths",
+            isinstance(paths, list) and all(isinstance(p, str) for p in paths),
+            "a list of file names",
+        ),
+    ):
+        if not ok:  # a hand-edited file: said, not a TypeError from the lines below
+            raise BagError(f"{folder / METADATA_FILE}: {key}: expected {what}")
     if (info.get("compression_mode") or "none").lower() not in ("", "none"):
         raise BagError(
             f"{folder}: a {info.get('compression_format') or '?'}-compressed bag "
@@ -78,7 +90,7 @@ def bag_files(folder: Path) -> list[Path] | None:
     storage = info.get("storage_identifier", "")
     if storage not in ("mcap", "sqlite3"):
         raise BagError(f"{folder}: storage {storage!r} (flowrt reads mcap and sqlite3)")
-    names = [Path(str(p)).name for p in info.get("relative_file_paths") or []]
+    names = [Path(p).name for p in paths]
     files = [folder / n for n in names if (folder / n).is_file()]
     if not files:  # paths that do not match the folder's (renamed): what is there
         files = sorted(folder.glob("*.mcap" if storage == "mcap" else "*.db3"))
