@@ -143,3 +143,18 @@ def test_a_degenerate_image_mapping_is_refused(params: dict[str, object]) -> Non
 
     with pytest.raises(ValidationError, match=next(iter(params))):
         VisionForceParams.model_validate(params)
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"actuator": [[0.0, 0.0], [0.0, 0.2]]},  # was a ZeroDivisionError every frame
+        {"workspace": [[-100, 100], [float("inf"), 100]]},
+    ],
+)
+def test_a_view_range_of_zero_width_is_refused(params: dict[str, object]) -> None:
+    from flowrt.nodes.haptic.view import HapticViewParams
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="with lo != hi"):
+        HapticViewParams.model_validate(params)
