@@ -159,3 +159,18 @@ def test_metadata_with_a_field_of_the_wrong_type_is_one_line(
     code, out, err = _run(capsys, "info", str(db3_bag))
     assert (code, out) == (2, "")
     assert err.splitlines() == [f"flowrt info: {meta}: {said}"]
+
+
+def test_streams_whose_names_clean_to_one_get_a_node_each() -> None:
+    """``/a/b`` and ``/a_b`` were both node ``_a_b``: one stream was silently not replayed."""
+    from flowrt.cli.common import safe_node_names
+
+    got = safe_node_names(["/a/b", "/a_b", "/a_b_2", "/1x", "/ü", ""])
+    assert got == {
+        "/a/b": "_a_b",
+        "/a_b": "_a_b_2",
+        "/a_b_2": "_a_b_2_2",
+        "/1x": "_1x",
+        "/ü": "__",
+        "": "stream",
+    }

@@ -9,7 +9,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import sys
+from collections.abc import Iterable
 
 from rich.console import Console
 
@@ -124,3 +126,18 @@ def positive_float_arg(text: str) -> float:
     if not math.isfinite(x) or x <= 0:
         raise argparse.ArgumentTypeError("must be more than 0")
     return x
+
+
+def safe_node_names(names: Iterable[str]) -> dict[str, str]:
+    """Node names for the sources a recording names (data, not code): identifier-like and
+    distinct. ``/a/b`` and ``/a_b`` were one node, and one of the streams was not replayed."""
+    out: dict[str, str] = {}
+    for name in names:
+        clean = re.sub(r"[^A-Za-z0-9_]", "_", name)[:64] or "stream"
+        clean = clean if not clean[0].isdigit() else f"n{clean}"
+        unique, n = clean, 1
+        while unique in out.values():
+            n += 1
+            unique = f"{clean}_{n}"
+        out[name] = unique
+    return out
