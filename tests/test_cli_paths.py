@@ -364,6 +364,23 @@ def test_ctl_at_something_else_is_one_line(capsys: pytest.CaptureFixture[str]) -
     ]
 
 
+@pytest.mark.parametrize("command", ["run", "record"])
+def test_a_stats_json_that_cannot_be_written_is_refused_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    """It was written after the run: a traceback, and the run's statistics lost."""
+    graph = tmp_path / "g.yaml"
+    graph.write_text(GRAPH)
+    for path, said in ((tmp_path / "no" / "s.json", f"no folder {tmp_path}/no"),
+                       (tmp_path, f"{tmp_path} is a folder")):  # fmt: skip
+        with pytest.raises(SystemExit) as exited:
+            main([command, str(graph), "--duration", "1", "--stats-json", str(path)])
+        assert exited.value.code == 2
+        err = capsys.readouterr().err
+        assert err.splitlines()[-1].startswith(f"flowrt {command}: error: argument --stats-json")
+        assert err.rstrip().endswith(said)
+
+
 def test_an_images_glob_matching_nothing_fails_validation(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -23,6 +23,7 @@ from .common import (
     EXIT_FAILED,
     EXIT_OK,
     load,
+    output_file_arg,
     plain_handler,
     positive_float_arg,
     positive_seconds_arg,
@@ -209,10 +210,15 @@ def run_graph(
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
         if not measuring:
             console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
+    code = EXIT_OK
     if args.stats_json:
-        Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
-        console.print(f"statistics written to {args.stats_json}")
-    code = _verdict(rt.failures(), err, prog)
+        try:  # checked at the start; a disk may still fill up or the folder go
+            Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
+            console.print(f"statistics written to {args.stats_json}")
+        except OSError as e:
+            err.print(f"{prog}: --stats-json {args.stats_json}: {e.strerror or e}", markup=False)
+            code = EXIT_FAILED
+    code = max(code, _verdict(rt.failures(), err, prog))
     code = code if after is None else max(code, after(rt))
     if as_json:
         from .json_output import emit
@@ -538,7 +544,10 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         "--no-ui", action="store_true", help="periodic log lines instead of the live table"
     )
     run.add_argument(
-        "--stats-json", metavar="PATH", help="write final statistics (flowrt schema stats)"
+        "--stats-json",
+        metavar="PATH",
+        type=output_file_arg,
+        help="write final statistics (flowrt schema stats)",
     )
     run.add_argument(
         "--realtime", action="store_true", help="SCHED_FIFO for the loop process where permitted"
