@@ -210,14 +210,7 @@ def run_graph(
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
         if not measuring:
             console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
-    code = EXIT_OK
-    if args.stats_json:
-        try:  # checked at the start; a disk may still fill up or the folder go
-            Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
-            console.print(f"statistics written to {args.stats_json}")
-        except OSError as e:
-            err.print(f"{prog}: --stats-json {args.stats_json}: {e.strerror or e}", markup=False)
-            code = EXIT_FAILED
+    code = _write_stats(args.stats_json, stats, console, err, prog) if args.stats_json else 0
     code = max(code, _verdict(rt.failures(), err, prog))
     code = code if after is None else max(code, after(rt))
     if as_json:
@@ -225,6 +218,18 @@ def run_graph(
 
         emit({**(result or {}), "exit_code": code, "stats": stats.model_dump(mode="json")})
     return code
+
+
+def _write_stats(path: str, stats: Any, console: Console, err: Console, prog: str) -> int:
+    """``--stats-json``: checked as the option is parsed, but a disk may still fill up or the
+    folder go during the run; then one line and exit 1, not a traceback."""
+    try:
+        Path(path).write_text(stats.model_dump_json(indent=2))
+    except OSError as e:
+        err.print(f"{prog}: --stats-json {path}: {e.strerror or e}", markup=False)
+        return EXIT_FAILED
+    console.print(f"statistics written to {path}")
+    return EXIT_OK
 
 
 def startup_check(graph: Any) -> tuple[bool, list[str]]:
@@ -529,7 +534,6 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         run.add_argument(
             "--duration",
             type=positive_seconds_arg,
-            default=None,
             metavar="S",
             help="stop after S seconds of running, counted once every node is set up "
             "(start-up, e.g. starting worker processes, and teardown come on top)",
