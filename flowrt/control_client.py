@@ -30,28 +30,41 @@ class ControlClient:
 
     def request(self, method: str, path: str, body: Any = None) -> Any:
         data = None if body is None else json.dumps(body).encode()
-        req = urllib.request.Request(self.url + path, data=data, method=method)
+        try:
+            req = urllib.request.Request(self.url + path, data=data, method=method)
+        except ValueError:  # "nonsense", "http://[::1": urllib's traceback otherwise
+            raise ControlError(f"{self.url}: not a URL (http://HOST:PORT)") from None
         if data is not None:
             req.add_header("Content-Type", "application/json")
         if self.token:
             req.add_header("Authorization", f"Bearer {self.token}")
         try:
             with urllib.request.urlopen(req, timeout=self.timeout) as resp:
-                return json.loads(resp.read() or b"null")
+                reply = resp.read()
         except urllib.error.HTTPError as e:
-            try:
-                message = json.loads(e.read()).get("error", e.reason)
-            except (ValueError, AttributeError):
-                message = e.reason
-            if e.code == 401:
-                message = f"{message} (give --token or set FLOWRT_TOKEN)"
-            raise ControlError(f"{e.code}: {message}") from None
+            raise ControlError(self._refused(e)) from None
         except (urllib.error.URLError, OSError) as e:
             reason = getattr(e, "reason", e)
             raise ControlError(
                 f"cannot reach the runtime at {self.url} ({reason}); "
                 "is `flowrt run --control` running?"
             ) from None
+        try:
+            return json.loads(reply or b"null")
+        except ValueError:  # the live view's port given for the control endpoint's, say
+            raise ControlError(
+                f"{self.url}: not a flowrt control endpoint (its reply is not JSON)"
+            ) from None
+
+    @staticmethod
+    def _refused(e: urllib.error.HTTPError) -> str:
+        try:
+            message = json.loads(e.read()).get("error", e.reason)
+        except (ValueError, AttributeError):
+            message = e.reason
+        if e.code == 401:
+            message = f"{message} (give --token or set FLOWRT_TOKEN)"
+        return f"{e.code}: {message}"
 
     def get(self, path: str) -> Any:
         return self.request("GET", path)

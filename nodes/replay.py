@@ -33,7 +33,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
-from flowrt import AudioBlock, Frame, LoopTrigger, Node, Output, resolve_path
+from flowrt import AudioBlock, FatalError, Frame, LoopTrigger, Node, Output, resolve_path
 from flowrt.recording.decoding import MessageDecoder
 from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.images import is_image_schema
@@ -83,7 +83,10 @@ class ReplayBase(Node):
         @field_validator("path", mode="after")
         @classmethod
         def _beside_the_graph(cls, v: str, info: ValidationInfo) -> str:
-            return resolve_path(v, info)
+            path = resolve_path(v, info)
+            if not Path(path).exists():  # a graph error at its line, not a node failing
+                raise ValueError(f"no such file or folder: {path}")
+            return path
 
         topics: list[str] | None = Field(default=None, description="streams to publish")
         topic: str | None = Field(default=None, description="one stream (same as topics: [x])")
@@ -125,6 +128,12 @@ class ReplayBase(Node):
     # --- lifecycle ---------------------------------------------------------------------
 
     def setup(self) -> None:
+        try:
+            self._open()
+        except (OSError, ValueError) as e:  # no bag, a damaged one, a misspelt topic
+            raise FatalError(str(e)) from None  # one line, given up: a restart cannot help
+
+    def _open(self) -> None:
         p = self.params
         files = mcap_files(p.path)
         if not files or not files[0].exists():

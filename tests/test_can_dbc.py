@@ -99,6 +99,24 @@ def test_strict_refusals_are_named_warnings_once(tmp_path: Path) -> None:
     ]
 
 
+@pytest.mark.parametrize(
+    ("name", "text", "said"),
+    [
+        ("g.yaml", "nodes: {}\n", "but got 'yaml'"),  # the closing quote was cut
+        ("k.dbc", 'VERSION ""\nBO_ 4000 X: 8 E\n', 'more than 11 bits in message X."'),
+    ],
+)
+def test_a_quoted_word_at_the_end_of_a_reason_keeps_its_quote(
+    tmp_path: Path, name: str, text: str, said: str
+) -> None:
+    path = tmp_path / name
+    path.write_text(text)
+    rc, _, err = _run("can", "analyse", str(path))
+    assert rc == 2
+    (line,) = err.strip().splitlines()
+    assert line.endswith(said)
+
+
 def test_unparsable_database_is_one_line_with_its_line_number(tmp_path: Path) -> None:
     path = write(tmp_path, FD_DBC.replace("BO_ 257 Fd12: 12 ECU", "BO_ 257 12Fd: 12 ECU"))
     rc, _, err = _run("can", "analyse", path)

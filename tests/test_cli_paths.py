@@ -301,6 +301,86 @@ def test_kinds_summaries_stand_alone_and_bounds_are_said_once(
     assert params["flash_on"]["range"] == "> 0, <= 3600000.0"
 
 
+def test_kinds_at_80_columns_and_nested_defaults(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A nested params model's default is its fields (it was a Python repr in a JSON string),
+    and a wrapped line continues indented under its own: at column 0 it read as a new row."""
+    monkeypatch.setenv("COLUMNS", "80")
+    assert main(["kinds", "haptic", "--json"]) == 0
+    params = {p["name"]: p for p in json.loads(capsys.readouterr().out)["params"]}
+    assert params["sim"]["default"]["hand"]["target"] == [60.0, 0.0, 0.0]
+    assert main(["kinds", "haptic"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert max(len(x) for x in lines) <= 80
+    assert not [x for x in lines if x != x.rstrip()]
+    sim = next(i for i, x in enumerate(lines) if x.startswith("  sim: SimParams = {"))
+    assert lines[sim + 1].startswith("    [-100.0, 100.0]")  # the default, continued
+    rows = [x for x in lines[sim + 1 :] if x.startswith("  ") and not x.startswith("   ")]
+    assert rows[0].startswith("  evdev: EvdevParams = {")  # the next param, nothing between
+
+
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_ctl_takes_url_before_or_after_its_command(
+    where: str, closed_port: int, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README lists ``flowrt ctl stats ... --url``: after the command it was refused."""
+    url = ["--url", f"http://127.0.0.1:{closed_port}"]
+    argv = ["ctl", *url, "stats"] if where == "before" else ["ctl", "stats", *url]
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(
+        f"flowrt ctl: cannot reach the runtime at http://127.0.0.1:{closed_port} "
+    )
+
+
+def test_ctl_at_something_else_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    """Not a URL, or a server whose reply is not JSON (the live view's port): were tracebacks."""
+    import http.server
+    import threading
+
+    class Page(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            self.send_response(200)
+            self.end_headers()
+            self.wfile.write(b"<html>the live view</html>")
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), Page)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}"
+        assert main(["ctl", "stats", "--url", url]) == 1
+        got = capsys.readouterr().err.splitlines()
+        assert got == [f"flowrt ctl: {url}: not a flowrt control endpoint (its reply is not JSON)"]
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert main(["ctl", "stats", "--url", "nonsense"]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        "flowrt ctl: nonsense: not a URL (http://HOST:PORT)"
+    ]
+
+
+@pytest.mark.parametrize("command", ["run", "record"])
+def test_a_stats_json_that_cannot_be_written_is_refused_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    """It was written after the run: a traceback, and the run's statistics lost."""
+    graph = tmp_path / "g.yaml"
+    graph.write_text(GRAPH)
+    for path, said in ((tmp_path / "no" / "s.json", f"no folder {tmp_path}/no"),
+                       (tmp_path, f"{tmp_path} is a folder")):  # fmt: skip
+        with pytest.raises(SystemExit) as exited:
+            main([command, str(graph), "--duration", "1", "--stats-json", str(path)])
+        assert exited.value.code == 2
+        err = capsys.readouterr().err
+        assert err.splitlines()[-1].startswith(f"flowrt {command}: error: argument --stats-json")
+        assert err.rstrip().endswith(said)
+
+
 def test_an_images_glob_matching_nothing_fails_validation(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

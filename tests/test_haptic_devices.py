@@ -14,7 +14,8 @@ from flowrt.nodes.haptic import DeviceError, Haptic, SimDevice, make_device
 from flowrt.nodes.haptic.evdev_device import EvdevDevice, EvdevParams
 from flowrt.nodes.haptic.sim import SimParams
 
-from flowrt.testing import NodeHarness
+from flowrt import FatalError
+from flowrt.testing import HarnessContext, NodeHarness
 
 
 def _run(dev: SimDevice, seconds: float, force: tuple[float, float, float] = (0, 0, 0)) -> Any:
@@ -62,6 +63,25 @@ def test_the_device_limit_caps_what_the_motors_give() -> None:
 def test_a_dotted_path_device_that_does_not_import_is_one_clear_error() -> None:
     with pytest.raises(ValueError, match="no_such_module"):
         make_device("no_such_module:Arm", {})
+
+
+def test_a_device_that_does_not_import_fails_setup_and_tears_down_quietly() -> None:
+    """The runtime tears a node down after a failed setup: no AttributeError on top."""
+    from flowrt.node import make_node
+
+    node = make_node(Haptic, {"device": "no_such_module:Arm"}, HarnessContext("haptic"))
+    with pytest.raises(FatalError, match="no_such_module"):
+        node.setup()
+    node.teardown()
+
+
+def test_an_enable_button_the_device_lacks_is_refused_at_setup() -> None:
+    """A misspelt deadman would hold the force at zero for ever, with no error."""
+    sim = {"buttons": [[0.010, "stylus", True]]}
+    with pytest.raises(FatalError, match=r"enable_button 'stylis' is not a button .*\(stylus\)"):
+        NodeHarness(Haptic, {"sim": sim, "enable_button": "stylis"}, name="haptic")
+    with pytest.raises(FatalError, match="it has none"):
+        NodeHarness(Haptic, {"enable_button": "stylus"}, name="haptic")
 
 
 def test_buttons_are_click_events() -> None:

@@ -127,3 +127,34 @@ def test_the_wall_at_the_readme_stiffness_gives_no_energy_back() -> None:
     assert entered is not None, "the handle never reached the wall"
     assert left is not None, "the handle never came back out"
     assert 0 < left < entered
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"u_range": [5, 5]},  # the wall at one place whatever the camera sees
+        {"v_range": [float("nan"), 1]},  # NaN reached the haptic loop
+        {"image_size": [0, 240]},
+    ],
+)
+def test_a_degenerate_image_mapping_is_refused(params: dict[str, object]) -> None:
+    from flowrt.nodes.haptic.vision import VisionForceParams
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=next(iter(params))):
+        VisionForceParams.model_validate(params)
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"actuator": [[0.0, 0.0], [0.0, 0.2]]},  # was a ZeroDivisionError every frame
+        {"workspace": [[-100, 100], [float("inf"), 100]]},
+    ],
+)
+def test_a_view_range_of_zero_width_is_refused(params: dict[str, object]) -> None:
+    from flowrt.nodes.haptic.view import HapticViewParams
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match="with lo != hi"):
+        HapticViewParams.model_validate(params)

@@ -56,7 +56,10 @@ class DatabaseWarning:
 
 
 def _one_line(e: BaseException) -> str:
-    return " ".join(str(e).split()).strip("'\"") or type(e).__name__
+    text = " ".join(str(e).split())
+    if len(text) > 1 and text[0] == text[-1] and text[0] in "'\"":  # a KeyError's quotes
+        text = text[1:-1]  # only a pair: "... got 'yaml'" keeps the quote closing 'yaml'
+    return text or type(e).__name__
 
 
 def load_database(path: str | Path, strict: bool = False) -> tuple[Any, list[DatabaseWarning]]:

@@ -32,7 +32,6 @@ __all__ = ["CanDatabaseError", "load_database", "parse_bitrate", "trace_stats"]
 
 #: Names (and strict-loading warnings) shown in a long list; ``--json`` has them all.
 SHOWN = 5
-QUOTES = "'\""
 
 #: Longest period, deadline, jitter or inter-arrival time taken (an hour): past it a busy
 #: period is not worth computing (``--jitter X=1e9`` took hours).
@@ -96,9 +95,9 @@ def cmd_analyse(args: argparse.Namespace) -> int:
             raise CanDatabaseError(f"{source} {data_rate} is below --bitrate {bitrate}")
         result = analyse_bus(timings, bitrate, data_rate)
     except (CanDatabaseError, KeyError, ValueError) as e:
-        err.print(
-            f"flowrt can analyse: {str(e).strip(QUOTES)}", style="red", markup=False, soft_wrap=True
-        )
+        # a KeyError's str() is quoted; stripping quotes off any message cut "got 'yaml'"
+        why = e.args[0] if isinstance(e, KeyError) and e.args else e
+        err.print(f"flowrt can analyse: {why}", style="red", markup=False, soft_wrap=True)
         return EXIT_BAD_GRAPH
     if args.json:
         doc = result.to_json()

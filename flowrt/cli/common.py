@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import sys
+from collections.abc import Iterable
 
 from rich.console import Console
 
@@ -125,3 +127,33 @@ def positive_float_arg(text: str) -> float:
     if not math.isfinite(x) or x <= 0:
         raise argparse.ArgumentTypeError("must be more than 0")
     return x
+
+
+def output_file_arg(text: str) -> str:
+    """A file written when the command ends (``--stats-json``): refused before the run when
+    it cannot be written, not after it with a traceback and the statistics lost."""
+    from pathlib import Path
+
+    p = Path(text).expanduser()
+    if p.is_dir():
+        raise argparse.ArgumentTypeError(f"{text or '.'} is a folder")
+    if not p.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: no folder {p.parent}")
+    if not os.access(p.parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise argparse.ArgumentTypeError(f"{text}: not writable")
+    return str(p)
+
+
+def safe_node_names(names: Iterable[str]) -> dict[str, str]:
+    """Node names for the sources a recording names (data, not code): identifier-like and
+    distinct. ``/a/b`` and ``/a_b`` were one node, and one of the streams was not replayed."""
+    out: dict[str, str] = {}
+    for name in names:
+        clean = re.sub(r"[^A-Za-z0-9_]", "_", name)[:64] or "stream"
+        clean = clean if not clean[0].isdigit() else f"n{clean}"
+        unique, n = clean, 1
+        while unique in out.values():
+            n += 1
+            unique = f"{clean}_{n}"
+        out[name] = unique
+    return out

@@ -44,31 +44,43 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def add_parsers(sub: Any) -> None:
-    """Register ``flowrt ctl`` on the CLI's subcommands."""
-    ctl = sub.add_parser("ctl", help="talk to a running runtime's control endpoint")
-    ctl.add_argument(
+def _connection_options(parser: argparse.ArgumentParser, after: bool = False) -> None:
+    """Where the runtime is: before the command (``ctl --url U stats``) or, as the README's
+    list and users write them, after it (``ctl stats --url U``; then not defaulted, so the
+    one given before the command stands)."""
+
+    def default(value: Any) -> Any:
+        return argparse.SUPPRESS if after else value
+
+    parser.add_argument(
         "--url",
-        default=os.environ.get("FLOWRT_URL", DEFAULT_URL),
-        help="default $FLOWRT_URL or %(default)s",
+        default=default(os.environ.get("FLOWRT_URL", DEFAULT_URL)),
+        help=f"default $FLOWRT_URL or {DEFAULT_URL}",
     )
-    ctl.add_argument(
+    parser.add_argument(
         "--token",
-        default=os.environ.get("FLOWRT_TOKEN"),
+        default=default(os.environ.get("FLOWRT_TOKEN")),
         help="bearer token (default $FLOWRT_TOKEN)",
     )
-    ctl.add_argument(
+    parser.add_argument(
         "--zenoh",
         metavar="ENDPOINT",
         action="append",
+        default=default(None),
         help="reach the runtime through Zenoh at ENDPOINT (e.g. tcp/10.0.0.2:7447; repeat "
         "for more), on the key of its graph's zenoh.control (--key)",
     )
-    ctl.add_argument(
+    parser.add_argument(
         "--key",
-        default=os.environ.get("FLOWRT_CONTROL_KEY"),
+        default=default(os.environ.get("FLOWRT_CONTROL_KEY")),
         help="with --zenoh: the graph's zenoh.control key (default $FLOWRT_CONTROL_KEY)",
     )
+
+
+def add_parsers(sub: Any) -> None:
+    """Register ``flowrt ctl`` on the CLI's subcommands."""
+    ctl = sub.add_parser("ctl", help="talk to a running runtime's control endpoint")
+    _connection_options(ctl)
     what = ctl.add_subparsers(dest="ctl_command", required=True)
     st = what.add_parser("stats", help="the status table of the running graph")
     st.add_argument("--json", action="store_true", help="raw RuntimeStats JSON")
@@ -138,6 +150,7 @@ def add_parsers(sub: Any) -> None:
     rl = what.add_parser("reload", help="re-import a node's module from disk and swap to it")
     rl.add_argument("node", help="the node whose module is re-imported")
     for name, parser in what.choices.items():
+        _connection_options(parser, after=True)
         if "--json" not in parser._option_string_actions:  # stats: its own help
             parser.add_argument(
                 "--json", action="store_true", help=f"the endpoint's reply to {name} as JSON"

@@ -13,6 +13,7 @@ import argparse
 import inspect
 import json
 import re
+import textwrap
 from typing import Any
 
 from rich.console import Console
@@ -162,6 +163,10 @@ def _annotation(t: Any) -> str:
 
 
 def _jsonable(v: Any) -> Any:
+    from pydantic import BaseModel
+
+    if isinstance(v, BaseModel):  # a nested params model (haptic's sim): its fields, not a repr
+        return v.model_dump(mode="json")
     try:
         json.dumps(v, allow_nan=False)
         return v
@@ -209,7 +214,13 @@ def _show(console: Console, info: dict[str, Any]) -> None:
     from rich.text import Text
 
     def line(text: str, style: str = "", indent: int = 0) -> None:
-        console.print(Text(" " * indent + text, style=style), soft_wrap=False, overflow="fold")
+        # wrapped here, continuation lines indented under their first: rich's own wrap
+        # starts them at column 0, where they read as the next port or param
+        pad = " " * indent
+        for part in textwrap.wrap(
+            text, console.width, initial_indent=pad, subsequent_indent=pad + "  " * bool(indent)
+        ) or [""]:
+            console.print(Text(part, style=style), soft_wrap=True)
 
     line(f"{info['kind']}  ({info['class']})", "bold")
     if info["summary"]:

@@ -18,6 +18,7 @@ from .common import (
     EXIT_FAILED,
     load,
     printable,
+    safe_node_names,
     stdout_console,
 )
 from .recorders import RECORDER, select_outputs, split_patterns
@@ -181,8 +182,8 @@ def _replay_spec(
         spec = GraphSpec(
             name="replay",
             nodes={
-                _safe_node_name(name): NodeSpec(kind="replay", params={**common, "topics": topics})
-                for name, topics in by_node.items()
+                node: NodeSpec(kind="replay", params={**common, "topics": by_node[name]})
+                for name, node in safe_node_names(by_node).items()
             },
         )
         into = "replay nodes publishing the recorded streams"
@@ -266,11 +267,3 @@ def _replay_target(args: argparse.Namespace, info: Any, path: Path, err: Console
             f"flowrt replay: the recorded graph is not valid: {printable(first)}", markup=False
         )
         return _REFUSED
-
-
-def _safe_node_name(name: str) -> str:
-    """A node name from a recording, made a valid identifier-like name (data, not code)."""
-    import re
-
-    clean = re.sub(r"[^A-Za-z0-9_]", "_", name)[:64] or "stream"
-    return clean if not clean[0].isdigit() else f"n{clean}"

@@ -22,6 +22,7 @@ from .common import (
     EXIT_FAILED,
     EXIT_OK,
     load,
+    output_file_arg,
     plain_handler,
     positive_float_arg,
     positive_seconds_arg,
@@ -207,10 +208,8 @@ def run_graph(
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
         if not measuring:
             console.print(render(stats, list(rt.events)[-5:], rt.qos_status(), width=console.width))
-    if args.stats_json:
-        Path(args.stats_json).write_text(stats.model_dump_json(indent=2))
-        console.print(f"statistics written to {args.stats_json}")
-    code = _verdict(rt.failures(), err, prog)
+    code = _write_stats(args.stats_json, stats, console, err, prog) if args.stats_json else 0
+    code = max(code, _verdict(rt.failures(), err, prog))
     code = code if after is None else max(code, after(rt))
     if as_json:
         from .json_output import emit
@@ -248,6 +247,18 @@ def _add_monitors(
         logging.getLogger("flowrt").info("foxglove: open %s in the Foxglove app", live.url)
         rt.monitors.append(live)
     return None
+
+
+def _write_stats(path: str, stats: Any, console: Console, err: Console, prog: str) -> int:
+    """``--stats-json``: checked as the option is parsed, but a disk may still fill up or the
+    folder go during the run; then one line and exit 1, not a traceback."""
+    try:
+        Path(path).write_text(stats.model_dump_json(indent=2))
+    except OSError as e:
+        err.print(f"{prog}: --stats-json {path}: {e.strerror or e}", markup=False)
+        return EXIT_FAILED
+    console.print(f"statistics written to {path}")
+    return EXIT_OK
 
 
 def startup_check(graph: Any) -> tuple[bool, list[str]]:
@@ -500,7 +511,6 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         run.add_argument(
             "--duration",
             type=positive_seconds_arg,
-            default=None,
             metavar="S",
             help="stop after S seconds of running, counted once every node is set up "
             "(start-up, e.g. starting worker processes, and teardown come on top)",
@@ -515,7 +525,10 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         "--no-ui", action="store_true", help="periodic log lines instead of the live table"
     )
     run.add_argument(
-        "--stats-json", metavar="PATH", help="write final statistics (flowrt schema stats)"
+        "--stats-json",
+        metavar="PATH",
+        type=output_file_arg,
+        help="write final statistics (flowrt schema stats)",
     )
     run.add_argument(
         "--realtime", action="store_true", help="SCHED_FIFO for the loop process where permitted"

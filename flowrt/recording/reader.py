@@ -19,6 +19,7 @@ boundaries), and :func:`iter_session` gives the messages of every part in order.
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import itertools
 import json
@@ -31,7 +32,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from .rosbag2 import db3_messages, db3_topics, is_db3
+from .rosbag2 import BagError, db3_messages, db3_topics, is_db3
 
 __all__ = [
     "FileInfo",
@@ -406,7 +407,22 @@ def _scan(path: str | Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
 def _scan_db3(p: Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
     """A rosbag2 SQLite3 file described as an MCAP file is (:mod:`.rosbag2`)."""
     named = []
-    for top in db3_topics(p).values():
+    try:
+        topics = db3_topics(p)
+    except BagError as e:  # a damaged database: a damaged file, as an MCAP one is
+        return FileInfo(
+            path=str(p),
+            size=p.stat().st_size,
+            closed_cleanly=False,
+            damage=str(e).removeprefix(f"{p}: "),
+            start=None,
+            end=None,
+            duration=0.0,
+            messages=0,
+            chunks=0,
+            streams=[],
+        ), []
+    for top in topics.values():
         c = _Chan(top.name, top.schema.id, top.encoding, {}, top.times, top.bytes)
         named.append((c, top.type))
     streams = [_stream_info(c, name) for c, name in named]
@@ -673,6 +689,8 @@ def repair(path: str | Path) -> tuple[Path, int, Path]:
     folder, a full disk) leaves the original untouched and no partial file behind.
     """
     p = Path(path)
+    if is_db3(p):  # it would be renamed .damaged.mcap and replaced by an empty MCAP file
+        raise OSError(errno.EINVAL, "a rosbag2 SQLite3 file: flowrt repairs MCAP files only")
     rec = Recording(p)
     tmp = p.with_name(p.stem + ".repairing.mcap")
     try:

@@ -51,8 +51,12 @@ def _metadata(folder: Path) -> dict[str, Any] | None:
         return None
     try:
         doc = yaml.safe_load(meta.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise BagError(f"{meta}: not readable: {e}") from None
+    except OSError as e:
+        raise BagError(f"{meta}: not readable: {e.strerror or e}") from None
+    except yaml.YAMLError as e:  # one line: pyyaml's message spans five, with a caret
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        raise BagError(f"{meta}: not YAML: {getattr(e, 'problem', None) or e}{where}") from None
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     return info if isinstance(info, dict) else None
 
@@ -66,6 +70,18 @@ def bag_files(folder: Path) -> list[Path] | None:
     if info is None:
         db3 = sorted(folder.glob("*.db3"))
         return db3 or None  # a bag without metadata (killed recorder); MCAP ones: a session
+    paths = info.get("relative_file_paths") or []
+    for key, ok, what in (
+        ("compression_mode", isinstance(info.get("compression_mode") or "", str), "a name"),
+        ("storage_identifier", isinstance(info.get("storage_identifier", ""), str), "a name"),
+        (
+            "relative_file_paths",
+            isinstance(paths, list) and all(isinstance(p, str) for p in paths),
+            "a list of file names",
+        ),
+    ):
+        if not ok:  # a hand-edited file: said, not a TypeError from the lines below
+            raise BagError(f"{folder / METADATA_FILE}: {key}: expected {what}")
     if (info.get("compression_mode") or "none").lower() not in ("", "none"):
         raise BagError(
             f"{folder}: a {info.get('compression_format') or '?'}-compressed bag "
@@ -74,7 +90,7 @@ def bag_files(folder: Path) -> list[Path] | None:
     storage = info.get("storage_identifier", "")
     if storage not in ("mcap", "sqlite3"):
         raise BagError(f"{folder}: storage {storage!r} (flowrt reads mcap and sqlite3)")
-    names = [Path(str(p)).name for p in info.get("relative_file_paths") or []]
+    names = [Path(p).name for p in paths]
     files = [folder / n for n in names if (folder / n).is_file()]
     if not files:  # paths that do not match the folder's (renamed): what is there
         files = sorted(folder.glob("*.mcap" if storage == "mcap" else "*.db3"))

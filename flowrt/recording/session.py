@@ -21,7 +21,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from .rosbag2 import bag_files
+from .rosbag2 import METADATA_FILE, bag_files
 
 __all__ = [
     "SESSION_FILE",
@@ -84,6 +84,8 @@ def mcap_files(path: str | Path) -> list[Path]:
     --repair`` kept (``*.damaged.mcap``) and its unfinished output are not parts.
     """
     p = Path(path)
+    if p.name == METADATA_FILE and p.is_file():  # a bag named by its metadata: the folder
+        p = p.parent
     if not p.is_dir():
         return [p]
     bag = bag_files(p)  # a rosbag2 folder: its files, as metadata.yaml lists them

@@ -41,7 +41,7 @@ import math
 from dataclasses import replace
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from flowrt import FatalError, Input, Node, Output, TimerTrigger, parse_duration_ms
 from flowrt.refusals import Refusals
@@ -52,7 +52,7 @@ from .fixtures import Fixture, fixture_force
 from .follow import Follower, scale
 from .messages import Buttons, Force, HandleState, Target
 from .safety import ForceLimiter, parse_force
-from .sim import SimParams
+from .sim import AXES, SimParams
 
 __all__ = ["Haptic", "HapticParams"]
 
@@ -105,12 +105,21 @@ class HapticParams(BaseModel):
                 raise ValueError(f"actuator.{axis}: a finite range [lo, hi] with lo != hi")
         return v
 
-    @model_validator(mode="after")
-    def _device(self) -> HapticParams:
-        _kind, _, rest = self.device.partition(":")
-        if self.device != "sim" and not rest:
-            raise ValueError("device: sim, evdev:PATH, evdev:NAME or package.module:Class")
-        return self
+    @field_validator("device")
+    @classmethod
+    def _device(cls, v: str) -> str:
+        if v != "sim" and not v.partition(":")[2]:
+            raise ValueError(f"unknown device {v!r}: sim, evdev:PATH, evdev:NAME or module:Class")
+        return v
+
+    @field_validator("actuator", "lock")
+    @classmethod
+    def _sim_axes(cls, v: Any, info: ValidationInfo) -> Any:
+        # the sim's axes are known now: a misspelt axis is a graph error, not a failed run
+        unknown = sorted(set(v) - set(AXES)) if info.data.get("device") == "sim" else []
+        if unknown:
+            raise ValueError(f"{', '.join(unknown)}: not an axis of the sim device (x, y, z)")
+        return v
 
 
 class Haptic(Node):
@@ -142,11 +151,11 @@ class Haptic(Node):
         p = self.params
         options: Any = {"sim": p.sim.model_dump(), "evdev": p.evdev.model_dump()}
         kind = "sim" if p.device == "sim" else p.device.partition(":")[0]
+        self.info: DeviceInfo | None = None  # before the device: teardown runs if it fails
         try:
             self.device: HapticDevice = make_device(p.device, options.get(kind, p.device_options))
         except (ValueError, TypeError) as e:
             raise FatalError(str(e)) from None
-        self.info: DeviceInfo | None = None
         self.reopen_at = 0.0
         self.reopens = 0
         self.device_errors = 0
@@ -178,6 +187,12 @@ class Haptic(Node):
         unknown = sorted((set(p.actuator) | set(p.lock)) - set(info.axes))
         if unknown:
             raise FatalError(f"axes {unknown} are not the device's {list(info.axes)}")
+        if p.enable_button is not None and p.enable_button not in info.buttons:
+            # a deadman that cannot be held: the force would be zero for ever, unexplained
+            raise FatalError(
+                f"enable_button {p.enable_button!r} is not a button of the device "
+                f"({', '.join(info.buttons) or 'it has none'})"
+            )
         limit = p.max_force if info.max_force is None else min(p.max_force, info.max_force)
         self.has_force = info.max_force is not None
         old = getattr(self, "limiter", None)
@@ -205,9 +220,10 @@ class Haptic(Node):
 
     def teardown(self) -> None:
         """Zero force, then close: a handle left pushing would move the operator's hand."""
-        if self.info is not None:
-            with contextlib.suppress(Exception):
-                self.device.apply_force((0.0,) * len(self.axes), self.ctx.now())
+        if getattr(self, "info", None) is None:
+            return  # never opened (or its device never made): nothing to zero or close
+        with contextlib.suppress(Exception):
+            self.device.apply_force((0.0,) * len(self.axes), self.ctx.now())
         with contextlib.suppress(Exception):
             self.device.close()
 

@@ -9,11 +9,12 @@ vision node's wall (a line) or spring point. Connect its ``view`` output to a ``
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from flowrt import Frame, Input, Node, Output, TimerTrigger
 
@@ -33,6 +34,15 @@ class HapticViewParams(BaseModel):
         default=None, description="the haptic node's actuator x, y ranges (default workspace)"
     )
     px_per_newton: float = Field(default=30.0, gt=0, le=10_000)
+
+    @field_validator("workspace", "actuator")
+    @classmethod
+    def _spans(cls, v: Any) -> Any:
+        # each range is divided by its width: equal ends were a ZeroDivisionError per frame
+        for lo, hi in v or ():
+            if not (math.isfinite(lo) and math.isfinite(hi)) or lo == hi:
+                raise ValueError("x, y ranges [lo, hi], finite, with lo != hi")
+        return v
 
 
 class HapticView(Node):

@@ -51,6 +51,21 @@ class VisionForceParams(BaseModel):
     image_size: tuple[int, int] = Field(default=(320, 240), description="when not in detection")
     normal: tuple[float, float] = Field(default=(-1.0, 0.0), description="the wall's free side")
 
+    @field_validator("u_range", "v_range")
+    @classmethod
+    def _span(cls, v: tuple[float, float]) -> Any:
+        # equal ends put the wall at one place whatever the camera sees; NaN reached the loop
+        if not all(math.isfinite(x) for x in v) or v[0] == v[1]:
+            raise ValueError("a finite range [mm at one edge, mm at the other] of two values")
+        return v
+
+    @field_validator("image_size")
+    @classmethod
+    def _size(cls, v: tuple[int, int]) -> Any:
+        if min(v) < 1:  # pixels are divided by it
+            raise ValueError("[width, height] in pixels, each at least 1")
+        return v
+
     @field_validator("normal")
     @classmethod
     def _unit(cls, v: tuple[float, float]) -> Any:
