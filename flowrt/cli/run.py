@@ -558,6 +558,25 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         metavar="S",
         help="--no-ui summary period",
     )
+    _add_serving_options(run)
+    if not measuring:
+        run.add_argument(
+            "--check",
+            action="store_true",
+            help="refuse to start when flowrt check shows a node missing its deadline "
+            "(declared wcet:)",
+        )
+    run.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="keep the rest of the graph running when a node fails for good (default: stop at"
+        " once); the exit code is 1 either way",
+    )
+    add_zenoh_options(run)
+
+
+def _add_serving_options(run: argparse._ArgumentGroup) -> None:
+    """The run options of what a run serves: the control endpoint, Foxglove, the live view."""
     run.add_argument(
         "--control",
         nargs="?",
@@ -605,17 +624,3 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
     run.add_argument(
         "--no-display", action="store_true", help="run without the graph's display nodes"
     )
-    if not measuring:
-        run.add_argument(
-            "--check",
-            action="store_true",
-            help="refuse to start when flowrt check shows a node missing its deadline "
-            "(declared wcet:)",
-        )
-    run.add_argument(
-        "--keep-going",
-        action="store_true",
-        help="keep the rest of the graph running when a node fails for good (default: stop at"
-        " once); the exit code is 1 either way",
-    )
-    add_zenoh_options(run)
