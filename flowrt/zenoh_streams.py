@@ -21,12 +21,14 @@ flowrt's own).
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import functools
 import importlib
 import json
 import sys
 import types
+import typing
 from typing import Any
 
 from .audio import AudioBlock
@@ -71,18 +73,94 @@ def decode_json(payload: bytes, schema_name: str) -> Any:
         obj["timestamp"] = ts / 1e9  # (the import puts its capture time on its clock here)
     cls = _resolve(schema_name)
     module = schema_name.rpartition(".")[0]
-    typed = cls is not None or (module and module.split(".")[0] not in _PLAIN_MODULES)
-    if not typed:
-        if set(obj) == {"value"} and schema_name != "builtins.dict":
-            return _tuples(obj["value"], None)
-        return {k: _tuples(v, None) for k, v in obj.items()}
-    schema = _type_schema(cls) if cls is not None else None
-    props = schema.get("properties", {}) if schema else {}
-    fields: dict[str, Any] = {k: None for k in props}  # left out on the wire: None
-    fields.update({k: _tuples(v, props.get(k)) for k, v in obj.items()})
+    if cls is not None:
+        return _typed(obj, cls)
+    if module and module.split(".")[0] not in _PLAIN_MODULES:  # a type not known here
+        ns = types.SimpleNamespace(**{k: _restore(v, None) for k, v in obj.items()})
+        ns.__dict__["_type"] = schema_name
+        return ns
+    if set(obj) == {"value"} and schema_name != "builtins.dict":
+        return _restore(obj["value"], None)
+    return _restore(obj, None)
+
+
+def _typed(obj: dict[str, Any], cls: type) -> types.SimpleNamespace:
+    """A typed value as an attribute object: every field of ``cls`` (absent: ``None``),
+    each restored by its type hint (nested typed values, tuples, bytes)."""
+    hints = _hints(cls)
+    fields: dict[str, Any] = {k: None for k in hints}
+    fields.update({k: _restore(v, hints.get(k)) for k, v in obj.items()})
     ns = types.SimpleNamespace(**fields)
-    ns.__dict__["_type"] = schema_name
+    ns.__dict__["_type"] = f"{cls.__module__}.{cls.__qualname__}"
     return ns
+
+
+def _restore(v: Any, hint: Any) -> Any:
+    """``v`` as JSON gave it, back in the shape of ``hint`` (a field's type; None: unknown):
+    a tuple from an array or a positional object (``_0``, ``_1`` ..., always a tuple), a
+    typed value from an object, bytes from base64 text."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        branches = [a for a in typing.get_args(hint) if a is not type(None)]
+        hint = next((a for a in branches if _fits(v, a)), None)
+        origin = typing.get_origin(hint)
+    if v is None:
+        return None
+    if isinstance(v, dict) and v and all(k == f"_{i}" for i, k in enumerate(v)):
+        v = list(v.values())
+        if origin is not tuple:
+            hint, origin = None, tuple
+    if isinstance(hint, type) and isinstance(v, dict) and _is_typed(hint):
+        return _typed(v, hint)
+    if hint is bytes and isinstance(v, str):
+        try:
+            return base64.b64decode(v, validate=True)
+        except ValueError:
+            return v
+    args = typing.get_args(hint)
+    if isinstance(v, dict):
+        sub = args[1] if origin is dict and len(args) == 2 else None
+        return {k: _restore(x, sub) for k, x in v.items()}
+    if isinstance(v, list):
+        if origin is tuple:
+            if len(args) == 2 and args[1] is Ellipsis:
+                args = (args[0],) * len(v)
+            subs = args if len(args) == len(v) else (None,) * len(v)
+            return tuple(_restore(x, a) for x, a in zip(v, subs, strict=True))
+        sub = args[0] if origin in (list, set, frozenset) and args else None
+        return [_restore(x, sub) for x in v]
+    return v
+
+
+def _fits(v: Any, hint: Any) -> bool:
+    """Whether the JSON value ``v`` can be a value of ``hint`` (a union's branch)."""
+    t = typing.get_origin(hint) or hint
+    if isinstance(v, dict):
+        return t is dict or (isinstance(t, type) and _is_typed(t)) or t is tuple
+    if isinstance(v, list):
+        return t in (tuple, list, set, frozenset)
+    if isinstance(v, str):
+        return t in (str, bytes)
+    return isinstance(t, type) and isinstance(v, t)
+
+
+def _is_typed(t: type) -> bool:
+    return dataclasses.is_dataclass(t) or hasattr(t, "model_json_schema")
+
+
+@functools.lru_cache(maxsize=256)
+def _hints(cls: type) -> dict[str, Any]:
+    """The fields of a dataclass or pydantic model and their types (``Any`` when a hint does
+    not resolve)."""
+    if dataclasses.is_dataclass(cls):
+        names = [f.name for f in dataclasses.fields(cls)]
+    else:
+        names = list(getattr(cls, "model_fields", {}))
+    try:
+        hints = typing.get_type_hints(cls)
+    except Exception:
+        hints = {}
+    return {n: hints.get(n) for n in names}
 
 
 def decode_audio(payload: bytes, seq: int, epoch_offset: float) -> AudioBlock:
@@ -114,24 +192,6 @@ def _marked(d: dict[str, Any]) -> Any:
     return ns
 
 
-def _tuples(v: Any, schema: Any) -> Any:
-    """Tuples back: a positional object (``_0``, ``_1`` ...) always, a fixed-size array when
-    the schema says so (``minItems == maxItems``); nested objects by their own schema."""
-    s = schema if isinstance(schema, dict) else {}
-    if isinstance(v, dict):
-        if v and all(k == f"_{i}" for i, k in enumerate(v)):
-            props = s.get("properties") or {}
-            return tuple(_tuples(x, props.get(k)) for k, x in v.items())
-        props = s.get("properties") or {}
-        return {k: _tuples(x, props.get(k)) for k, x in v.items()}
-    if isinstance(v, list):
-        items = s.get("items")
-        out = [_tuples(x, items) for x in v]
-        n = s.get("maxItems")
-        return tuple(out) if isinstance(n, int) and s.get("minItems") == n else out
-    return v
-
-
 def _resolve(name: str) -> type | None:
     """The dataclass or pydantic model named ``name``: from a module already imported here,
     or from flowrt's own package (installed code); a peer never makes this import anything
@@ -146,21 +206,6 @@ def _resolve(name: str) -> type | None:
         except Exception:
             return None
     cls = getattr(mod, qual, None) if mod is not None else None
-    if isinstance(cls, type) and (
-        dataclasses.is_dataclass(cls) or hasattr(cls, "model_json_schema")
-    ):
+    if isinstance(cls, type) and _is_typed(cls):
         return cls
     return None
-
-
-@functools.lru_cache(maxsize=256)
-def _type_schema(cls: type) -> dict[str, Any] | None:
-    """The app schema of ``cls`` (what the recorder's schema is made from), for its fields."""
-    from pydantic import TypeAdapter
-
-    from .recording.jsonschema import app_schema
-
-    try:
-        return app_schema(TypeAdapter(cls).json_schema())
-    except Exception:
-        return None

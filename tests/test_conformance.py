@@ -229,10 +229,6 @@ def test_replay(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
 
 
 ZENOH_SECONDS = 3.0
-# streams a Zenoh import cannot give back as they were published, each with the reason
-ZENOH_NOT_EXACT: dict[str, str] = {
-    "pair.set": "a set goes as its index (the recording's TOPIC channel): frames not sent",
-}
 
 
 def zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
@@ -290,7 +286,7 @@ async def _zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
 
     def on_sample(sample: Any) -> None:  # a plain program: docs/zenoh.md alone
         out = by_key.get(str(sample.key_expr))
-        if out is not None and str(sample.encoding).startswith("application/json"):
+        if out is not None and out not in frames:
             plain[out].append((str(sample.encoding), sample.payload.to_bytes()))
 
     published: dict[str, list[Any]] = {o: [] for o in outputs}
@@ -299,25 +295,25 @@ async def _zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    subs: list[tuple[Any, list[Any]]] = []
+    subs: list[tuple[Any, list[Any], str]] = []
 
     async def keep() -> None:  # frames copied and released at once: no pool slot pinned
         while True:
             await asyncio.sleep(0.02)
-            for sub, into in subs:
+            for sub, into, topic in subs:
                 while (v := sub.take_held()) is not flowrt.edges.EMPTY:
-                    into.append(_kept(v))
+                    into.append(_kept(v, topic))
 
     keeper = asyncio.create_task(keep())
     try:
         async with flowrt.Runtime(ex) as ex_rt:
-            subs += [(ex_rt.subscribe(o, size=4096), published[o]) for o in outputs]
+            subs += [(ex_rt.subscribe(o, size=4096), published[o], o) for o in outputs]
             session = await asyncio.to_thread(zenoh.open, conf)
             try:
                 session.declare_subscriber("m/**", on_sample)
                 async with flowrt.Runtime(im) as im_rt:
                     subs += [
-                        (im_rt.subscribe(f"{names[o]}.output", size=4096), imported[o])
+                        (im_rt.subscribe(f"{names[o]}.output", size=4096), imported[o], o)
                         for o in outputs
                     ]
                     await asyncio.sleep(ZENOH_SECONDS)
@@ -332,7 +328,7 @@ async def _zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
         if not imported[o]:
             problems.append(f"{o}: published {len(published[o])}, none imported")
             continue
-        if o not in ZENOH_NOT_EXACT and (why := _subsequence(imported[o], published[o])):
+        if why := _subsequence(imported[o], published[o]):
             problems.append(f"{o}: {why}")
         if o not in frames:
             problems += _plain_is_recorded(o, plain[o], channels.get(o))
@@ -355,10 +351,17 @@ def _with_free_ports(g: Any) -> Any:
     return g
 
 
-def _kept(v: Any) -> Any:
-    """A received value kept for the comparison: a frame as (seq, pixels), its slot freed."""
+def _kept(v: Any, topic: str) -> Any:
+    """A received value kept for the comparison: a frame as (seq, pixels), its slot freed; a
+    set as its index (what goes over Zenoh, as in a recording: its frames are streams)."""
     import flowrt
+    from flowrt.recording.streams import is_set, split_set
 
+    if is_set(v):
+        for m in v.values():
+            if isinstance(m, flowrt.Frame):
+                m.release()
+        return split_set(topic, v)[0]
     if isinstance(v, flowrt.Frame):
         kept = ("frame", int(v.seq), v.pixel_format, v.data.copy())
         v.release()
@@ -459,13 +462,16 @@ def _plain_is_recorded(out: str, got: list[tuple[str, bytes]], rec: Channel | No
     import jsonschema
 
     if not got:
-        return [f"{out}: no JSON sample for the plain subscriber"]
+        return [f"{out}: no sample for the plain subscriber"]
     if rec is None:
         return []  # not in the 2 s recording (a slow output): its schema is not known here
     problems = []
     names = {enc.partition(";")[2] for enc, _ in got}
     if names != {rec.schema_name}:
         problems.append(f"{out}: Zenoh encoding names {names}, recorded {rec.schema_name!r}")
+    if rec.schema_encoding == "protobuf":  # audio: decoded with the recording's descriptors
+        times = audio_times(rec.schema, [p for _, p in got])
+        return problems + ([] if all(t > 1e9 for t in times) else [f"{out}: not Unix times"])
     validator = jsonschema.Draft202012Validator(json.loads(rec.schema))
     for _, payload in got[:200]:
         for err in validator.iter_errors(json.loads(payload)):
