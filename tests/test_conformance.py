@@ -16,8 +16,10 @@ Cells, each a test over every stream of a graph, with outside tools (tests/_conf
   same schema name, encodings and schema; every live JSON message valid; audio as
   ``foxglove.RawAudio`` with >= 95 % of its blocks.
 - ``replay``: the recording replayed into the same graph (``flowrt replay --graph``).
-- ``zenoh``: export and import over Zenoh, equal values: a hook (:func:`zenoh_cell`) for the
-  Zenoh work of issue 38 item 7.
+- ``zenoh``: every output exported over Zenoh and imported back (two runtimes in this process,
+  127.0.0.1, no scouting) and read by a plain Zenoh subscriber: every imported value one the
+  exporter published, in order (tuples, typed values, frames, audio); every plain payload the
+  recording's message (the recorded schema's name, valid against it). See :func:`zenoh_cell`.
 - ``ajv``: the JavaScript side, in tests/js/mcap_validate.mjs (``@mcap/core`` + ``ajv``).
 """
 
@@ -231,15 +233,7 @@ def test_replay(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
 ZENOH_SECONDS = 3.0
 
 
-def zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
-    """Export every output of ``graph`` over Zenoh and import it back (asyncio.run, so the
-    runtimes' loops are this cell's own)."""
-    import asyncio
-
-    asyncio.run(asyncio.wait_for(_zenoh_cell(graph, channels), 120))
-
-
-async def _zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
+async def zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
     """One exporting runtime (every output under ``m/NODE/PORT``, listening on a free
     127.0.0.1 port, no scouting), one importing runtime (an import per output) and a plain
     Zenoh subscriber, for ``ZENOH_SECONDS``. Equal values: every imported value is one the
@@ -389,7 +383,7 @@ def _same(a: Any, b: Any) -> bool:
 
 
 def _why(a: Any, b: Any, path: str = "") -> str:
-    """'' when the imported ``a`` equals the published ``b`` (see :func:`_zenoh_cell`)."""
+    """'' when the imported ``a`` equals the published ``b`` (see :func:`zenoh_cell`)."""
     import dataclasses
     import math
     import types
@@ -482,9 +476,10 @@ def _plain_is_recorded(out: str, got: list[tuple[str, bytes]], rec: Channel | No
 
 @pytest.mark.slow
 @pytest.mark.realtime
+@pytest.mark.subprocess
 @pytest.mark.parametrize("graph", GRAPHS)
-def test_zenoh(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
-    zenoh_cell(graph, recorded(graph, recordings, scratch))
+async def test_zenoh(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
+    await zenoh_cell(graph, recorded(graph, recordings, scratch))
 
 
 @pytest.mark.slow
