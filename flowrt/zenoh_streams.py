@@ -11,12 +11,14 @@ and validates it against the same schema.
 
 Back in a flowrt import (:func:`decode_json`) the value is what the exporter published, as
 far as a network peer can say: a typed value (a dataclass, a pydantic model) as an attribute
-object (``SimpleNamespace``, its schema name in ``_type``), a fixed-size array or positional
-object back as a tuple, a field left out back as ``None`` (when the importer knows the type:
-its module is imported here, or is flowrt's own), a plain value unwrapped from
-``{"value": ...}``. The ``timestamp`` is set by the import from the header's capture time
-(:mod:`flowrt.remote_import`). Never pickle, never import a module a peer names (but
-flowrt's own).
+object (``SimpleNamespace``, its schema name in ``_type``), a plain value unwrapped from
+``{"value": ...}``, a positional object always back as a tuple. When the importer knows the
+type (its module is imported here, or is flowrt's own) each field is restored by its type
+hint: nested typed values as attribute objects, tuples, bytes from base64, a field left out
+as ``None``; why hints and not the schema: the schema says "array" for a tuple and a list
+alike, and loses which object was a nested dataclass. The ``timestamp`` is set by the
+import from the header's capture time (:mod:`flowrt.remote_import`). Never pickle, never
+import a module a peer names (but flowrt's own).
 """
 
 from __future__ import annotations
