@@ -2,15 +2,15 @@
 
 A buffer on the exported output (the edge's own policy: ``latest`` for frames, ``queue`` for
 messages, counted like any edge) hands one value at a time to the sender thread, which
-encodes it (:mod:`flowrt.zenoh_wire`) and puts it on the export's Zenoh publisher; when that
-send is done the next value is taken. A slow network therefore drops at the edge, where it is
-counted, and never slows the producer, and no network I/O runs on the event loop.
+encodes it (frames: :mod:`flowrt.zenoh_wire`; messages: by the stream's description, as
+the recorder does, :mod:`flowrt.zenoh_streams`) and puts it on the export's Zenoh publisher;
+when that send is done the next value is taken. A slow network therefore drops at the edge,
+where it is counted, and never slows the producer, and no network I/O runs on the event loop.
 """
 
 from __future__ import annotations
 
 import asyncio
-import json
 import logging
 import queue
 import threading
@@ -20,8 +20,10 @@ from typing import Any
 
 from .edges import EMPTY, Buffer
 from .frames import Frame
+from .recording.streams import StreamBook, is_set, split_set
 from .remote_host import BridgeHost
-from .zenoh_wire import Header, encode_frame, own_timestamp, payload_encoding, to_wire
+from .zenoh_streams import encoding_of
+from .zenoh_wire import Header, encode_frame, own_timestamp, payload_encoding
 
 __all__ = ["Export", "ExportSender"]
 
@@ -44,7 +46,7 @@ class Export:
     seq: int = 0
     busy: bool = False
     errors: int = 0
-    encodings: dict[str, Any] = field(default_factory=dict)  # header kind -> Zenoh encoding
+    encodings: dict[str, Any] = field(default_factory=dict)  # kind/schema -> Zenoh encoding
 
 
 class ExportSender:
@@ -87,6 +89,7 @@ class ExportSender:
 
     def _run(self) -> None:
         mono0, wall0 = time.monotonic(), time.time()
+        book = StreamBook(epoch_offset=wall0 - mono0)  # the recorder's descriptions; ours
         while True:
             job = self._jobs.get()
             if job is None:
@@ -100,15 +103,26 @@ class ExportSender:
                     header = Header(
                         self.stream, self.zid, exp.seq, now_wall, captured, "frame", meta
                     )
+                    zkey = "frame"
                 else:
-                    payload = json.dumps(to_wire(value), separators=(",", ":")).encode()
+                    topic = f"{exp.node}.{exp.port}"
+                    # a set: its index, as the recording's TOPIC channel (members not sent)
+                    shown = split_set(topic, value)[0] if is_set(value) else value
+                    msg = book.encode(topic, shown)  # the recording's message, byte for byte
+                    payload = msg.data
                     stamp = own_timestamp(value)  # a detection: its frame's capture time
                     captured = wall0 + (stamp - mono0) if stamp is not None else now_wall
-                    header = Header(self.stream, self.zid, exp.seq, now_wall, captured, "json")
+                    kind = "json" if msg.schema.message_encoding == "json" else "protobuf"
+                    header = Header(self.stream, self.zid, exp.seq, now_wall, captured, kind)
+                    zkey = msg.schema.name
                 exp.seq += 1
-                encoding = exp.encodings.get(header.kind)
-                if encoding is None:  # one per kind: a Zenoh object made once, not per put
-                    encoding = exp.encodings[header.kind] = payload_encoding(header)
+                encoding = exp.encodings.get(zkey)
+                if encoding is None:  # one per schema: a Zenoh object made once, not per put
+                    encoding = exp.encodings[zkey] = (
+                        payload_encoding(header)
+                        if zkey == "frame"
+                        else encoding_of(msg.schema.message_encoding, zkey)
+                    )
                 exp.publisher.put(payload, attachment=header.encode(), encoding=encoding)
             except Exception as e:
                 exp.errors += 1

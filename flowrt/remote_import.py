@@ -17,6 +17,7 @@ hears nothing for ``stale_after`` periods puts its node in the error state until
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import threading
 import time
@@ -25,12 +26,14 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from .audio import AudioBlock
 from .edges import Buffer
 from .events import HealthAlert
 from .frames import Frame
 from .remote_host import BridgeHost
 from .spec import GraphSpec, Placement
 from .stats import EdgeStats, Running
+from .zenoh_streams import AUDIO_SCHEMA, decode_audio, decode_json, schema_of_sample
 from .zenoh_wire import (
     MAX_HEADER_BYTES,
     MAX_SEQ_JUMP,
@@ -40,7 +43,6 @@ from .zenoh_wire import (
     Refused,
     check_frame,
     decode_frame,
-    loads_wire,
     own_timestamp,
     set_timestamp,
 )
@@ -176,8 +178,13 @@ class ImportLink:
                 value: Any = self._frame(header.frame, decode_frame(header.frame, payload))
             elif header.kind == "bytes":
                 value = payload
-            else:
-                value = loads_wire(payload)
+            elif header.kind == "protobuf":  # the recording's protobuf message (audio)
+                schema = schema_of_sample(sample)
+                if schema != AUDIO_SCHEMA:
+                    raise Refused("undecodable", f"a protobuf message of schema {schema!r}")
+                value = decode_audio(payload, header.seq, 0.0)  # its time: set on delivery
+            else:  # the recording's JSON message; typed by the schema its encoding names
+                value = decode_json(payload, "" if self.plain else schema_of_sample(sample))
         except Exception as e:
             reason = e.reason if isinstance(e, Refused) else "undecodable"
             with self.lock:
@@ -287,7 +294,10 @@ class ImportLink:
                 if self.plain is None and own_timestamp(value) is not None:
                     # the exporter's monotonic stamp means nothing here: the capture time,
                     # on its corrected clock, mapped onto ours (header.captured carries it)
-                    set_timestamp(value, captured_mono)
+                    if isinstance(value, AudioBlock):  # frozen: a copy with its time
+                        value = dataclasses.replace(value, timestamp=captured_mono)
+                    else:
+                        set_timestamp(value, captured_mono)
                 host.publish(self.name, "output", value)
                 records.append(value)
         if items:

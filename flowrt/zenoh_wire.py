@@ -89,7 +89,7 @@ def from_wire(data: Any) -> Any:
 #: height, width, channels (0: a 2-D frame), 4 pad bytes, dtype, pixel format.
 HEADER = struct.Struct("<4sBBBB16s32sQddQIII4x8s8s")
 MAGIC = b"FLRT"
-KINDS = ("json", "frame", "bytes")  # the kind byte indexes this
+KINDS = ("json", "frame", "bytes", "protobuf")  # the kind byte indexes this
 ENCODINGS = ("raw", "jpeg", "png")  # the encoding byte indexes this
 _KIND = {k: i for i, k in enumerate(KINDS)}
 _ENC = {e: i for i, e in enumerate(ENCODINGS)}
@@ -130,7 +130,7 @@ class Header:
     seq: int
     sent: float  # exporter's wall clock, seconds
     captured: float  # exporter's wall clock at capture (frames) or publication
-    kind: str  # "json", "frame" or "bytes"
+    kind: str  # "json", "frame", "bytes" or "protobuf" (audio: foxglove.RawAudio)
     frame: dict[str, Any] = field(default_factory=dict)
 
     def encode(self) -> bytes:

@@ -16,8 +16,10 @@ Cells, each a test over every stream of a graph, with outside tools (tests/_conf
   same schema name, encodings and schema; every live JSON message valid; audio as
   ``foxglove.RawAudio`` with >= 95 % of its blocks.
 - ``replay``: the recording replayed into the same graph (``flowrt replay --graph``).
-- ``zenoh``: export and import over Zenoh, equal values: a hook (:func:`zenoh_cell`) for the
-  Zenoh work of issue 38 item 7.
+- ``zenoh``: every output exported over Zenoh and imported back (two runtimes in this process,
+  127.0.0.1, no scouting) and read by a plain Zenoh subscriber: every imported value one the
+  exporter published, in order (tuples, typed values, frames, audio); every plain payload the
+  recording's message (the recorded schema's name, valid against it). See :func:`zenoh_cell`.
 - ``ajv``: the JavaScript side, in tests/js/mcap_validate.mjs (``@mcap/core`` + ``ajv``).
 """
 
@@ -30,6 +32,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from _conformance import Channel, LiveClient, audio_times, blocks_delivered, read_recording
@@ -229,19 +232,256 @@ def test_replay(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
     assert failing == {}, failing
 
 
-def zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
-    """Export every stream of ``graph`` over Zenoh and import it back: equal values.
+ZENOH_SECONDS = 3.0
 
-    The hook for the Zenoh work of issue 38 (item 7, the "remote" engineer): fill in and the
-    cell below runs for every graph of the matrix.
-    """
-    pytest.skip("Zenoh export/import cell: not yet written (issue 38 item 7)")
+
+async def zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
+    """One exporting runtime (every output under ``m/NODE/PORT``, listening on a free
+    127.0.0.1 port, no scouting), one importing runtime (an import per output) and a plain
+    Zenoh subscriber, for ``ZENOH_SECONDS``. Equal values: every imported value is one the
+    exporter published, in order (tuples as tuples, a typed value's fields by name, frames
+    pixel for pixel, audio sample for sample, a ``timestamp`` rebased within 0.25 s); every
+    JSON payload the plain subscriber reads is the recording's message: its schema named in
+    the Zenoh encoding as the recorded channel's, valid against that channel's schema."""
+    import asyncio
+    import socket
+
+    import yaml
+    import zenoh
+
+    import flowrt
+    from flowrt.graph import Graph
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    endpoint = f"tcp/127.0.0.1:{port}"
+    outputs = [o for o in _outputs(graph) if not o.startswith("recorder.")]
+    base = Graph.from_file(ROOT / graph)
+    frames = {o for o in outputs if getattr(_output(base, o), "type", None) is flowrt.Frame}
+    doc = yaml.safe_load((ROOT / graph).read_text())
+    doc["zenoh"] = {"listen": [endpoint]}
+    doc["export"] = {_key(o): {"from": o, "size": 1024} for o in outputs}
+    ex = _with_free_ports(
+        Graph.from_text(yaml.safe_dump(doc), graph, base_dir=(ROOT / graph).parent)
+    )
+    names = {o: f"zi{i}" for i, o in enumerate(outputs)}
+    im_doc = {
+        "name": "zenoh-cell",
+        "nodes": {},
+        "zenoh": {"listen": [], "connect": [endpoint]},
+        "import": {
+            names[o]: {"key": _key(o), "stale_after": "never", "size": 1024, "frames": o in frames}
+            for o in outputs
+        },
+    }
+    im = Graph.from_text(yaml.safe_dump(im_doc), "zenoh-cell.yaml")
+
+    plain: dict[str, list[tuple[str, bytes]]] = {o: [] for o in outputs}
+    by_key = {_key(o): o for o in outputs}
+
+    def on_sample(sample: Any) -> None:  # a plain program: docs/zenoh.md alone
+        out = by_key.get(str(sample.key_expr))
+        if out is not None and out not in frames:
+            plain[out].append((str(sample.encoding), sample.payload.to_bytes()))
+
+    published: dict[str, list[Any]] = {o: [] for o in outputs}
+    imported: dict[str, list[Any]] = {o: [] for o in outputs}
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    subs: list[tuple[Any, list[Any], str]] = []
+
+    async def keep() -> None:  # frames copied and released at once: no pool slot pinned
+        while True:
+            await asyncio.sleep(0.02)
+            for sub, into, topic in subs:
+                while (v := sub.take_held()) is not flowrt.edges.EMPTY:
+                    into.append(_kept(v, topic))
+
+    keeper = asyncio.create_task(keep())
+    try:
+        async with flowrt.Runtime(ex) as ex_rt:
+            subs += [(ex_rt.subscribe(o, size=4096), published[o], o) for o in outputs]
+            session = await asyncio.to_thread(zenoh.open, conf)
+            try:
+                session.declare_subscriber("m/**", on_sample)
+                async with flowrt.Runtime(im) as im_rt:
+                    subs += [
+                        (im_rt.subscribe(f"{names[o]}.output", size=4096), imported[o], o)
+                        for o in outputs
+                    ]
+                    await asyncio.sleep(ZENOH_SECONDS)
+            finally:
+                await asyncio.to_thread(session.close)
+    finally:
+        keeper.cancel()
+    problems: list[str] = []
+    for o in outputs:
+        if not published[o]:
+            continue  # an output that did not publish in the time (a CAN status: 1 s)
+        if not imported[o]:
+            problems.append(f"{o}: published {len(published[o])}, none imported")
+            continue
+        if why := _subsequence(imported[o], published[o]):
+            problems.append(f"{o}: {why}")
+        if o not in frames:
+            problems += _plain_is_recorded(o, plain[o], channels.get(o))
+    assert problems == [], problems
+
+
+def _key(output: str) -> str:
+    return "m/" + output.replace(".", "/")
+
+
+def _output(g: Any, output: str) -> Any:
+    node, port = output.split(".")
+    return g.nodes[node].cls.outputs.get(port)
+
+
+def _with_free_ports(g: Any) -> Any:
+    for n in g.nodes.values():  # the web views on any free port
+        if getattr(n.cls, "listens", False):
+            n.params = n.params.model_validate({**n.params.model_dump(), "port": 0})
+    return g
+
+
+def _kept(v: Any, topic: str) -> Any:
+    """A received value kept for the comparison: a frame as (seq, pixels), its slot freed; a
+    set as its index (what goes over Zenoh, as in a recording: its frames are streams)."""
+    import flowrt
+    from flowrt.recording.streams import is_set, split_set
+
+    if is_set(v):
+        for m in v.values():
+            if isinstance(m, flowrt.Frame):
+                m.release()
+        return split_set(topic, v)[0]
+    if isinstance(v, flowrt.Frame):
+        kept = ("frame", int(v.seq), v.pixel_format, v.data.copy())
+        v.release()
+        return kept
+    return v
+
+
+def _subsequence(got: list[Any], sent: list[Any]) -> str:
+    """'' when ``got`` is, in order, a subsequence of ``sent`` (equal values), else why not."""
+    i = 0
+    for n, g in enumerate(got):
+        start = i
+        while i < len(sent) and not _same(g, sent[i]):
+            i += 1
+        if i == len(sent):
+            near = [w for s in sent[start:] if not (w := _why(g, s)).startswith(("index:", "t:"))]
+            near = near[:3] or [_why(g, s) for s in sent[start : start + 3]]
+            return f"imported value {n} of {len(got)} was never published: {near}"
+        i += 1
+    return ""
+
+
+def _same(a: Any, b: Any) -> bool:
+    return _why(a, b) == ""
+
+
+def _why(a: Any, b: Any, path: str = "") -> str:
+    """'' when the imported ``a`` equals the published ``b`` (see :func:`zenoh_cell`)."""
+    import dataclasses
+    import math
+    import types
+
+    import numpy as np
+
+    import flowrt
+
+    at = path or "<value>"
+    if isinstance(b, flowrt.AudioBlock):
+        if not isinstance(a, flowrt.AudioBlock) or a.rate != b.rate:
+            return f"{at}: {a!r:.60} is not the audio block"
+        ok = np.allclose(a.samples, np.asarray(b.samples, np.float32).reshape(a.samples.shape),
+                         atol=2 / 32768)  # fmt: skip
+        return "" if ok and abs(a.timestamp - b.timestamp) < 0.25 else f"{at}: other samples"
+    if isinstance(b, tuple) and b[:1] == ("frame",):
+        same = a[:3] == b[:3] and np.array_equal(a[3], b[3])
+        return "" if same else f"{at}: frame {a[:3]} is not {b[:3]}"
+    if (dataclasses.is_dataclass(b) and not isinstance(b, type)) or hasattr(b, "model_dump"):
+        name = f"{type(b).__module__}.{type(b).__qualname__}"
+        if not isinstance(a, types.SimpleNamespace) or getattr(a, "_type", "") != name:
+            return f"{at}: {type(a).__name__} {getattr(a, '_type', '')!r}, sent a {name}"
+        fields = (
+            {f.name: getattr(b, f.name) for f in dataclasses.fields(b)}
+            if dataclasses.is_dataclass(b)
+            else dict(b)
+        )
+        got = {k: v for k, v in vars(a).items() if not k.startswith("_")}
+        return _why(got, fields, path)
+    if isinstance(b, dict):  # a None field may be left out
+        keys, valued = {str(k) for k in b}, {str(k) for k in b if _value(b[k])}
+        if not isinstance(a, dict) or set(a) - keys or valued - set(a):
+            return f"{at}: {a!r:.80}, sent keys {sorted(keys)}"
+        for k, v in b.items():
+            if k == "timestamp" and isinstance(v, float):  # rebased on the importer's clock
+                if not isinstance(a.get(k), float) or abs(a[k] - v) > 0.25:
+                    return f"{at}.timestamp: {a.get(k)!r} for {v!r}"
+                continue
+            if why := _why(a.get(str(k)), v, f"{path}.{k}" if path else str(k)):
+                return why
+        return ""
+    if isinstance(b, float) and not math.isfinite(b):
+        return "" if a is None else f"{at}: {a!r} for {b!r}"
+    if isinstance(b, np.ndarray | np.generic):
+        b = b.tolist()
+    if isinstance(b, bytes):
+        return "" if a == b else f"{at}: {a!r:.60} for bytes"
+    if isinstance(b, tuple | list):
+        if type(a) is not type(b) or len(a) != len(b):
+            return f"{at}: {type(a).__name__} {a!r:.60} for {type(b).__name__} {b!r:.60}"
+        for n, (x, y) in enumerate(zip(a, b, strict=True)):
+            if why := _why(x, y, f"{at}[{n}]"):
+                return why
+        return ""
+    if isinstance(b, float) and isinstance(a, int | float):
+        return "" if math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-12) else f"{at}: {a} for {b}"
+    if a != b or type(a) is not type(b):
+        return f"{at}: {type(a).__name__} {a!r:.60} for {type(b).__name__} {b!r:.60}"
+    return ""
+
+
+def _value(v: Any) -> bool:
+    import math
+
+    return not (v is None or (isinstance(v, float) and not math.isfinite(v)))
+
+
+def _plain_is_recorded(out: str, got: list[tuple[str, bytes]], rec: Channel | None) -> list[str]:
+    """What a plain subscriber read of ``out`` is the recording's message (see above)."""
+    import jsonschema
+
+    if not got:
+        return [f"{out}: no sample for the plain subscriber"]
+    if rec is None:
+        return []  # not in the 2 s recording (a slow output): its schema is not known here
+    problems = []
+    names = {enc.partition(";")[2] for enc, _ in got}
+    if names != {rec.schema_name}:
+        problems.append(f"{out}: Zenoh encoding names {names}, recorded {rec.schema_name!r}")
+    if rec.schema_encoding == "protobuf":  # audio: decoded with the recording's descriptors
+        times = audio_times(rec.schema, [p for _, p in got])
+        return problems + ([] if all(t > 1e9 for t in times) else [f"{out}: not Unix times"])
+    validator = jsonschema.Draft202012Validator(json.loads(rec.schema))
+    for _, payload in got[:200]:
+        for err in validator.iter_errors(json.loads(payload)):
+            problems.append(f"{out}: {err.message[:120]}")
+            return problems
+    return problems
 
 
 @pytest.mark.slow
+@pytest.mark.realtime
+@pytest.mark.subprocess
 @pytest.mark.parametrize("graph", GRAPHS)
-def test_zenoh(graph: str) -> None:
-    zenoh_cell(graph, {})
+async def test_zenoh(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
+    await zenoh_cell(graph, recorded(graph, recordings, scratch))
 
 
 @pytest.mark.slow

@@ -49,10 +49,11 @@ async def test_plain_programs_read_an_export_and_feed_an_import() -> None:
     assert pub.returncode == 0, perr.decode()
     read = json.loads(out)
     assert len(read) == 5
-    assert all(r["encoding"] == "application/json" for r in read)  # set right on the wire
+    # set right on the wire, with the recording's schema name: a plain value as {"value": N}
+    assert all(r["encoding"] == "application/json;builtins.int" for r in read)
     seqs = [r["seq"] for r in read]
     assert seqs == list(range(seqs[0], seqs[0] + 5))
-    assert [r["value"] for r in read] == seqs  # the counter's values, in order
+    assert [r["value"] for r in read] == [{"value": n} for n in seqs]  # counted, in order
     assert len(got) >= 18  # header-less JSON from a plain program, into the graph
     assert got[-1] == {"vx": pytest.approx(1.9), "w": 0.0}
     assert link.dropped == 0
