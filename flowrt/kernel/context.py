@@ -24,7 +24,8 @@ from .ports import SchedulerPort
 
 
 class ContextRunner(Protocol):
-    """What a node's ``ctx`` reads and changes of its runner."""
+    """What a node's ``ctx`` reads of its runner, and the runner's methods for what the
+    node reports of itself (an error, a wait for an operator)."""
 
     name: str
     sched: SchedulerPort
@@ -39,6 +40,10 @@ class ContextRunner(Protocol):
     out_check: OutputCheck
 
     def publish(self, port: str, value: Any, t: float) -> None: ...
+
+    def set_error_reason(self, reason: str | None) -> None: ...
+
+    def set_waiting_reason(self, reason: str | None) -> None: ...
 
 
 class RunnerContext(NodeContext):
@@ -135,7 +140,7 @@ class RunnerContext(NodeContext):
         runner = self._runner
         if runner.error_reason == reason:
             return
-        runner.error_reason = reason
+        runner.set_error_reason(reason)
         runner.counts.error_reports += 1
         sched = runner.sched
         sched.emit(
@@ -152,7 +157,7 @@ class RunnerContext(NodeContext):
         runner = self._runner
         if runner.waiting_reason == reason:
             return
-        runner.waiting_reason = reason
+        runner.set_waiting_reason(reason)
         if reason is not None:
             sched = runner.sched
             now = sched.rel(sched.clock.now())
@@ -164,7 +169,7 @@ class RunnerContext(NodeContext):
         runner = self._runner
         if runner.error_reason is None:
             return
-        runner.error_reason = None
+        runner.set_error_reason(None)
         sched = runner.sched
         sched.emit(
             HealthAlert(sched.rel(sched.clock.now()), self.name, "node-recovered", "", "info")

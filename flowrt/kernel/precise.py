@@ -505,7 +505,7 @@ class PreciseNodeRunner(NodeRunner):
             thread_mode=why is None,
         )  # fmt: skip
         self.precise = p
-        self.timer = p
+        self.arm(p)
         if thread:
             p.start()
         return p
@@ -550,7 +550,7 @@ class PreciseNodeRunner(NodeRunner):
         supervised here, on the loop, as ``run_sync`` does for a call on the loop."""
         precise = self.precise
         assert precise is not None
-        self._busy = True  # the call is the loop's now (landed() counts it out of the thread)
+        self.started()  # the call is the loop's now (landed() counts it out of the thread)
         self.counts.activations += 1 + missed
         self.counts.skipped += missed
         act = self.begin(t_release, (start, inputs))  # None: skipped (a required input)
@@ -560,7 +560,7 @@ class PreciseNodeRunner(NodeRunner):
             return
         if error is not None:
             act.close()
-            self.supervisor.failed(error)  # in backoff before the thread may call again
+            self.fail(error)  # in backoff before the thread may call again
             precise.landed()
             return
         precise.landed()  # before idle(): a swap waits for the last call in flight
