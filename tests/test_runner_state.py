@@ -159,8 +159,9 @@ def test_the_walk_sees_writes() -> None:
 
 
 def test_supervision_returns_a_decision_and_changes_nothing() -> None:
-    """A failure gives ``Restart(backoff)`` while the policy allows, then ``GiveUp``; the
-    supervisor never writes its runner (a read-only view here: a write would raise)."""
+    """A failure gives ``Restart(backoff)`` while the policy allows, then ``GiveUp``,
+    announced once the runner applied it; the supervisor never writes its runner (a
+    read-only view here: a write would raise)."""
     from types import SimpleNamespace
 
     from flowrt.kernel.counters import Counters
@@ -195,6 +196,7 @@ def test_supervision_returns_a_decision_and_changes_nothing() -> None:
     assert isinstance(second, GiveUp)
     assert "boom again" in second.reason
     assert second.reason == sup.failed_reason
+    sup.gave_up(second)  # what the runner calls once it is failed
     assert view.counts.errors == 2
     assert [type(e).__name__ for e in view.events] == ["NodeFailed", "NodeFailed", "NodeGaveUp"]
 

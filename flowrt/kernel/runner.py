@@ -261,6 +261,7 @@ class NodeRunner(RunnerFields):
         self.busy = False
         if isinstance(decision, GiveUp):
             self.move(RunState.failed)
+            self.supervisor.gave_up(decision)
             self.sched.loop.create_task(self.supervisor.stop_executor(self.executor))
         else:
             self.move(RunState.backoff)

@@ -97,11 +97,17 @@ class Supervisor:
         if why is not None:
             last = failure_kind(error)
             self.failed_reason = last if fatal else f"{why}; last error: {last}"
-            self.log.flush(now)
-            log.error("node %s given up: %s", r.name, self.failed_reason)
-            sched.emit(NodeGaveUp(sched.rel(now), r.name, self.failed_reason))
             return GiveUp(self.failed_reason)
         return Restart(backoff_s(policy, self.consecutive))
+
+    def gave_up(self, decision: GiveUp) -> None:
+        """Say it, once the runner is ``failed``: whoever hears ``NodeGaveUp`` (a run that
+        stops on a failure, a monitor) sees the node failed."""
+        r = self._r
+        now = r.sched.clock.now()
+        self.log.flush(now)
+        log.error("node %s given up: %s", r.name, decision.reason)
+        r.sched.emit(NodeGaveUp(r.sched.rel(now), r.name, decision.reason))
 
     async def stop_executor(self, executor: Executor) -> None:
         """Tear the failed instance down; a teardown that fails is counted and logged."""
