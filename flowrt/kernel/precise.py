@@ -550,9 +550,15 @@ class PreciseNodeRunner(NodeRunner):
         supervised here, on the loop, as ``run_sync`` does for a call on the loop."""
         precise = self.precise
         assert precise is not None
-        self.started()  # the call is the loop's now (landed() counts it out of the thread)
         self.counts.activations += 1 + missed
         self.counts.skipped += missed
+        if self.state in _DOWN:  # an earlier call failed (its output) after this one began:
+            self.counts.aborted += 1  # lost with that instance, as a pipelined call is
+            precise.landed()
+            if not self.busy and self.swapper.pending is not None:
+                self.swapper.take_pending()
+            return
+        self.started()  # the call is the loop's now (landed() counts it out of the thread)
         act = self.begin(t_release, (start, inputs))  # None: skipped (a required input)
         if act is None:
             precise.landed()

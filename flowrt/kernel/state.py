@@ -34,6 +34,8 @@ MOVES: dict[RunState, frozenset[RunState]] = {
     _S.failed: frozenset((_S.idle, _S.starting)),
 }
 """Allowed moves, from each state. Staying in a state is not a move (always allowed)."""
+STAY_OR_MOVE: dict[RunState, frozenset[RunState]] = {s: MOVES[s] | {s} for s in MOVES}
+"""What :meth:`NodeRunner.move` checks: one lookup, as it runs twice per activation."""
 
 
 class StateError(RuntimeError):
