@@ -343,15 +343,16 @@ class NodeRunner(RunnerFields):
         """A trigger fired: run now unless disabled, down, or still running (overrun)."""
         if not self.timing.enabled or self.stopping:
             return
-        if (self.busy or self.state in _WAITING) and self.backlog():
+        busy = self.busy  # (read once: a property; the two moves below cost as much)
+        if (busy or self.state in _WAITING) and self.backlog():
             return  # not skipped: the lossless value waits, and idle() runs the node for it
         self.counts.activations += 1
-        if self.busy or self.state in _DOWN:
+        if busy or self.state in _DOWN:
             self.counts.skipped += 1
             for buf in self.inputs.values():
                 buf.reader_skipped()  # the value it was due to read is lost if replaced
             return
-        self.busy = True
+        self._busy = True  # (the setter acts on False only)
         self.untaken = True
         loop = self.sched.loop
         if self.executor.sync:
