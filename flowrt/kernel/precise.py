@@ -479,6 +479,8 @@ class PreciseNodeRunner(NodeRunner):
     and the loop's side of what the thread hands over. On virtual time it has no thread and
     is released by the clock's own timer, as any timer node."""
 
+    precise: PreciseRelease | None  # set once by start_precise() (real time); also the timer
+
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.precise: PreciseRelease | None = None

@@ -111,7 +111,7 @@ class RunnerFields:
     deferred: float | None  # at most one release of a paced source (defer()), taken by
     # idle() or the pipeline
     untaken: bool  # released, inputs not taken yet (the run is scheduled); implies busy
-    more_input: bool
+    more_input: bool  # set, never read (dead code, removed with issue 39 step 5)
     stopping: bool  # no release from now on; never returns to false
     act: Activation | None  # the inline activation in progress (None between activations
     # and for pipelined nodes, whose activations belong to their tasks)
