@@ -24,20 +24,29 @@ from .ports import SchedulerPort
 
 
 class ContextRunner(Protocol):
-    """What a node's ``ctx`` reads of its runner, and the runner's methods for what the
-    node reports of itself (an error, a wait for an operator)."""
+    """What a node's ``ctx`` reads of its runner (read-only: mypy refuses a write through
+    it), and the runner's methods for what the node reports of itself (an error, a wait
+    for an operator)."""
 
-    name: str
-    sched: SchedulerPort
-    timing: Timing
-    input_times: dict[str, float]
-    error_reason: str | None
-    waiting_reason: str | None
-    counts: Counters
+    @property
+    def name(self) -> str: ...
+    @property
+    def sched(self) -> SchedulerPort: ...
+    @property
+    def timing(self) -> Timing: ...
+    @property
+    def input_times(self) -> dict[str, float]: ...
+    @property
+    def error_reason(self) -> str | None: ...
+    @property
+    def waiting_reason(self) -> str | None: ...
+    @property
+    def counts(self) -> Counters: ...
 
     def new_frame(self, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame: ...
 
-    out_check: OutputCheck
+    @property
+    def out_check(self) -> OutputCheck: ...
 
     def publish(self, port: str, value: Any, t: float) -> None: ...
 

@@ -30,24 +30,40 @@ from .swapping import Swapper
 
 
 class PipelinedRunner(Protocol):
-    """What the pipeline reads of its runner, and the runner's methods that apply what it
-    decides (a deferred tick, a pipelined call's task, a failure)."""
+    """What the pipeline reads of its runner (read-only: mypy refuses a write through it),
+    and the runner's methods that apply what it decides (a deferred tick, a pipelined
+    call's task, a failure)."""
 
-    executor: Executor
-    rnode: ResolvedNode
-    trigger_inputs: list[str]
-    inputs: dict[str, Buffer]
-    frame_key: str | None
-    timing: Timing
-    sched: SchedulerPort
-    deferred: float | None
-    busy: bool
-    stopping: bool
-    state: RunState
-    counts: Counters
-    backpressure: Backpressure
-    swapper: Swapper
-    deadlines: DeadlineWatch
+    @property
+    def executor(self) -> Executor: ...
+    @property
+    def rnode(self) -> ResolvedNode: ...
+    @property
+    def trigger_inputs(self) -> list[str]: ...
+    @property
+    def inputs(self) -> dict[str, Buffer]: ...
+    @property
+    def frame_key(self) -> str | None: ...
+    @property
+    def timing(self) -> Timing: ...
+    @property
+    def sched(self) -> SchedulerPort: ...
+    @property
+    def deferred(self) -> float | None: ...
+    @property
+    def busy(self) -> bool: ...
+    @property
+    def stopping(self) -> bool: ...
+    @property
+    def state(self) -> RunState: ...
+    @property
+    def counts(self) -> Counters: ...
+    @property
+    def backpressure(self) -> Backpressure: ...
+    @property
+    def swapper(self) -> Swapper: ...
+    @property
+    def deadlines(self) -> DeadlineWatch: ...
 
     def begin(self, t_release: float) -> Activation | None: ...
 

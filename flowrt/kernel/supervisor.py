@@ -24,7 +24,7 @@ from .state import RunState
 
 
 class SupervisedRunner(Protocol):
-    """What supervision reads of its runner (read-only: it changes nothing there)."""
+    """What supervision reads of its runner (read-only: mypy refuses a write through it)."""
 
     @property
     def name(self) -> str: ...

@@ -26,19 +26,30 @@ from .supervisor import Supervisor
 
 
 class SwappedRunner(Protocol):
-    """What a swap reads of its runner, and the runner's methods that apply what it decides
-    (the new instance, set up: :meth:`install`; the state: :meth:`move`)."""
+    """What a swap reads of its runner (read-only: mypy refuses a write through it), and
+    the runner's methods that apply what it decides (the new instance, set up:
+    :meth:`install`; the state: :meth:`move`)."""
 
-    name: str
-    rnode: ResolvedNode
-    inputs: dict[str, Buffer]
-    outputs: dict[str, list[Buffer]]
-    executor: Executor
-    busy: bool
-    state: RunState
-    counts: Counters
-    supervisor: Supervisor
-    sched: SchedulerPort
+    @property
+    def name(self) -> str: ...
+    @property
+    def rnode(self) -> ResolvedNode: ...
+    @property
+    def inputs(self) -> dict[str, Buffer]: ...
+    @property
+    def outputs(self) -> dict[str, list[Buffer]]: ...
+    @property
+    def executor(self) -> Executor: ...
+    @property
+    def busy(self) -> bool: ...
+    @property
+    def state(self) -> RunState: ...
+    @property
+    def counts(self) -> Counters: ...
+    @property
+    def supervisor(self) -> Supervisor: ...
+    @property
+    def sched(self) -> SchedulerPort: ...
 
     def make_executor(
         self, rnode: ResolvedNode | None = None, reload: bool = False
