@@ -81,9 +81,8 @@ async def swap(
         except ValidationError as e:
             raise SwapError(f"{node}: params for {label}: {validation_text(e)}") from None
     await _swap_to(rt, runner, cls, model, label, origin)
-    runner.rnode = dataclasses.replace(
-        runner.rnode, spec=runner.rnode.spec.model_copy(update={"params": raw})
-    )
+    spec = runner.rnode.spec.model_copy(update={"params": raw})
+    runner.install(runner.executor, dataclasses.replace(runner.rnode, spec=spec))
 
 
 def as_written(rt: SwapHost, runner: NodeRunner) -> dict[str, Any]:

@@ -138,6 +138,36 @@ async def test_no_call_on_a_failed_instance_until_the_loop_has_taken_the_failure
     assert (st.activations, st.errors, st.skipped, st.completions) == (3, 1, 2, 0)
 
 
+class BadFirstOutput(Node):
+    """Its first call returns what its output cannot carry (the node's failure, found on the
+    loop), without raising: the thread does not wait for the loop before its next call."""
+
+    value = Output(int)
+
+    def setup(self) -> None:
+        self.calls = 0
+
+    def process(self) -> Any:
+        self.calls += 1
+        return "not an int" if self.calls == 1 else self.calls
+
+
+async def test_a_call_in_flight_when_an_earlier_output_fails_the_node_is_lost_with_it() -> None:
+    g = graph(BadFirstOutput, restart={"backoff": "1000ms"})
+    async with Runtime(g.build(), clock=VirtualClock()) as rt:
+        r, p = precise(rt)
+        p.fire(0.0, 0)
+        p.fire(0.001, 0)  # the loop has not taken the first outcome: both in flight
+        assert p.inflight == 2
+        await settle()
+        assert p.inflight == 0  # both landed: the thread is not held by a lost call
+        assert r.state is RunState.backoff  # not "running" on an instance given up
+        assert not r.busy
+        assert node(rt, "keep").seen == []  # nothing published by the lost instance
+        st = rt.stats().node("tick")
+    assert (st.activations, st.errors, st.aborted, st.completions) == (2, 1, 1, 0)
+
+
 async def test_a_swap_holds_the_thread_and_disabled_releases_count_nothing() -> None:
     async with Runtime(graph().build(), clock=VirtualClock()) as rt:
         r, p = precise(rt)

@@ -24,21 +24,35 @@ from .ports import SchedulerPort
 
 
 class ContextRunner(Protocol):
-    """What a node's ``ctx`` reads and changes of its runner."""
+    """What a node's ``ctx`` reads of its runner (read-only: mypy refuses a write through
+    it), and the runner's methods for what the node reports of itself (an error, a wait
+    for an operator)."""
 
-    name: str
-    sched: SchedulerPort
-    timing: Timing
-    input_times: dict[str, float]
-    error_reason: str | None
-    waiting_reason: str | None
-    counts: Counters
+    @property
+    def name(self) -> str: ...
+    @property
+    def sched(self) -> SchedulerPort: ...
+    @property
+    def timing(self) -> Timing: ...
+    @property
+    def input_times(self) -> dict[str, float]: ...
+    @property
+    def error_reason(self) -> str | None: ...
+    @property
+    def waiting_reason(self) -> str | None: ...
+    @property
+    def counts(self) -> Counters: ...
 
     def new_frame(self, shape: tuple[int, ...], dtype: Any, pixel_format: str) -> Frame: ...
 
-    out_check: OutputCheck
+    @property
+    def out_check(self) -> OutputCheck: ...
 
     def publish(self, port: str, value: Any, t: float) -> None: ...
+
+    def set_error_reason(self, reason: str | None) -> None: ...
+
+    def set_waiting_reason(self, reason: str | None) -> None: ...
 
 
 class RunnerContext(NodeContext):
@@ -135,7 +149,7 @@ class RunnerContext(NodeContext):
         runner = self._runner
         if runner.error_reason == reason:
             return
-        runner.error_reason = reason
+        runner.set_error_reason(reason)
         runner.counts.error_reports += 1
         sched = runner.sched
         sched.emit(
@@ -152,7 +166,7 @@ class RunnerContext(NodeContext):
         runner = self._runner
         if runner.waiting_reason == reason:
             return
-        runner.waiting_reason = reason
+        runner.set_waiting_reason(reason)
         if reason is not None:
             sched = runner.sched
             now = sched.rel(sched.clock.now())
@@ -164,7 +178,7 @@ class RunnerContext(NodeContext):
         runner = self._runner
         if runner.error_reason is None:
             return
-        runner.error_reason = None
+        runner.set_error_reason(None)
         sched = runner.sched
         sched.emit(
             HealthAlert(sched.rel(sched.clock.now()), self.name, "node-recovered", "", "info")

@@ -26,32 +26,54 @@ from .deadlines import DeadlineWatch
 from .executor import Executor
 from .ports import SchedulerPort
 from .state import RunState
-from .supervisor import Supervisor
 from .swapping import Swapper
 
 
 class PipelinedRunner(Protocol):
-    """What the pipeline reads and changes of its runner."""
+    """What the pipeline reads of its runner (read-only: mypy refuses a write through it),
+    and the runner's methods that apply what it decides (a deferred tick, a pipelined
+    call's task, a failure)."""
 
-    executor: Executor
-    rnode: ResolvedNode
-    trigger_inputs: list[str]
-    inputs: dict[str, Buffer]
-    frame_key: str | None
-    timing: Timing
-    sched: SchedulerPort
-    deferred: float | None
-    busy: bool
-    stopping: bool
-    state: RunState
-    counts: Counters
-    task: asyncio.Task[None] | None
-    backpressure: Backpressure
-    swapper: Swapper
-    supervisor: Supervisor
-    deadlines: DeadlineWatch
+    @property
+    def executor(self) -> Executor: ...
+    @property
+    def rnode(self) -> ResolvedNode: ...
+    @property
+    def trigger_inputs(self) -> list[str]: ...
+    @property
+    def inputs(self) -> dict[str, Buffer]: ...
+    @property
+    def frame_key(self) -> str | None: ...
+    @property
+    def timing(self) -> Timing: ...
+    @property
+    def sched(self) -> SchedulerPort: ...
+    @property
+    def deferred(self) -> float | None: ...
+    @property
+    def busy(self) -> bool: ...
+    @property
+    def stopping(self) -> bool: ...
+    @property
+    def state(self) -> RunState: ...
+    @property
+    def counts(self) -> Counters: ...
+    @property
+    def backpressure(self) -> Backpressure: ...
+    @property
+    def swapper(self) -> Swapper: ...
+    @property
+    def deadlines(self) -> DeadlineWatch: ...
 
     def begin(self, t_release: float) -> Activation | None: ...
+
+    def move(self, to: RunState) -> None: ...
+
+    def defer(self, t: float | None) -> float | None: ...
+
+    def started(self, task: asyncio.Task[None] | None = None) -> None: ...
+
+    def fail(self, exc: BaseException, starting: bool = False) -> None: ...
 
     def release(self, t_release: float) -> None: ...
 
@@ -131,7 +153,7 @@ class Pipeline:
         if r.deferred is None and self._may_pipe():
             self._start(t_release)
         elif r.deferred is None and r.busy and r.timing.enabled and not r.stopping:
-            r.deferred = t_release
+            r.defer(t_release)
         else:
             r.release(t_release)  # down, disabled or stopping: counted as release() does
         r.counts.lead_max = max(r.counts.lead_max, self.inflight + (r.deferred is not None))
@@ -158,8 +180,9 @@ class Pipeline:
         r = self._r
         self._pump_soon = False
         while self._may_pipe():
-            if r.deferred is not None:  # a paced source's frame waits for room
-                t_release, r.deferred = r.deferred, None
+            deferred = r.defer(None)  # a paced source's frame waits for room
+            if deferred is not None:
+                t_release = deferred
             elif any(r.inputs[p].pending() for p in r.trigger_inputs):
                 t_release = r.sched.clock.now()
             else:
@@ -175,23 +198,22 @@ class Pipeline:
         act = r.begin(t_release)
         if act is None:  # a required input is missing: counted as skipped
             if self.inflight == 0:
-                r.state = RunState.idle
+                r.move(RunState.idle)
             return False
         act.gen = self.gen
-        r.busy = True
         try:
             fut = r.executor.submit(act.inputs, window)
         except Exception as e:
             act.close()
             if self.inflight == 0:
                 self.gen += 1
-                r.supervisor.failed(e)
+                r.fail(e)
             else:
                 r.counts.aborted += 1  # the worker is gone: the calls in flight report it
             return False
         self.inflight += 1
         r.deadlines.arm(act)
-        r.task = r.sched.loop.create_task(self._finish(act, fut))
+        r.started(r.sched.loop.create_task(self._finish(act, fut)))
         return True
 
     async def _finish(self, act: Activation, fut: asyncio.Future[Any]) -> None:
@@ -212,7 +234,7 @@ class Pipeline:
                 r.counts.aborted += 1  # lost with the instance that failed under an earlier call
                 return
             self.gen += 1
-            r.supervisor.failed(e)
+            r.fail(e)
             return
         finally:
             r.deadlines.disarm(act)

@@ -479,6 +479,8 @@ class PreciseNodeRunner(NodeRunner):
     and the loop's side of what the thread hands over. On virtual time it has no thread and
     is released by the clock's own timer, as any timer node."""
 
+    precise: PreciseRelease | None  # set once by start_precise() (real time); also the timer
+
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.precise: PreciseRelease | None = None
@@ -505,7 +507,7 @@ class PreciseNodeRunner(NodeRunner):
             thread_mode=why is None,
         )  # fmt: skip
         self.precise = p
-        self.timer = p
+        self.arm(p)
         if thread:
             p.start()
         return p
@@ -550,9 +552,15 @@ class PreciseNodeRunner(NodeRunner):
         supervised here, on the loop, as ``run_sync`` does for a call on the loop."""
         precise = self.precise
         assert precise is not None
-        self._busy = True  # the call is the loop's now (landed() counts it out of the thread)
         self.counts.activations += 1 + missed
         self.counts.skipped += missed
+        if self.state in _DOWN:  # an earlier call failed (its output) after this one began:
+            self.counts.aborted += 1  # lost with that instance, as a pipelined call is
+            precise.landed()
+            if not self.busy and self.swapper.pending is not None:
+                self.swapper.take_pending()
+            return
+        self.started()  # the call is the loop's now (landed() counts it out of the thread)
         act = self.begin(t_release, (start, inputs))  # None: skipped (a required input)
         if act is None:
             precise.landed()
@@ -560,7 +568,7 @@ class PreciseNodeRunner(NodeRunner):
             return
         if error is not None:
             act.close()
-            self.supervisor.failed(error)  # in backoff before the thread may call again
+            self.fail(error)  # in backoff before the thread may call again
             precise.landed()
             return
         precise.landed()  # before idle(): a swap waits for the last call in flight

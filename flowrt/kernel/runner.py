@@ -38,8 +38,8 @@ from .inputs import Inputs
 from .outputs import OutputCheck
 from .pipeline import Pipeline
 from .ports import SchedulerPort
-from .state import RunState
-from .supervisor import Supervisor
+from .state import STAY_OR_MOVE, RunState, StateError
+from .supervisor import GiveUp, Restart, Supervisor
 from .swapping import Swapper
 
 log = logging.getLogger("flowrt.scheduler")
@@ -65,70 +65,98 @@ def _timing_of(rnode: ResolvedNode) -> Timing:
     )
 
 
-class NodeRunner:
-    """One node: when it runs, what it takes and what it publishes.
+class RunnerFields:
+    """A runner's fields, each with its invariant, and the methods that change them on what a
+    collaborator decided: the runner is the one writer of its state (issue 39).
 
-    Invariants (each kept by the one method named):
-    - ``busy`` is true exactly while an activation is released and not ended, pipelined calls
-      are in flight, or the node holds values for full lossless readers (``release`` sets it,
-      ``idle`` clears it; ``Supervisor.failed`` clears it with the activation lost);
-    - ``state is running`` implies ``busy``; ``untaken`` (released, inputs not taken yet)
-      implies ``busy``;
-    - ``act`` is the inline activation in progress (None between activations and for
-      pipelined nodes, whose activations belong to their tasks);
-    - ``deferred`` holds at most one release of a paced source, taken by ``idle`` or the
-      pipeline;
-    - ``stopping`` never returns to false.
+    Collaborators (supervisor, pipeline, swapper, context, scheduler) read these fields and
+    return what is to change: a supervisor's :data:`~flowrt.kernel.supervisor.Decision`, a
+    swap's executor, a pipelined call's task; the runner applies it here. The state changes
+    by :meth:`move` only, along :data:`~flowrt.kernel.state.MOVES`
+    (``tests/test_runner_state.py`` holds both: the table, and no assignment elsewhere).
+    Readiness, which these fields decide, is read here too (``busy``, ``ready_for_frame``).
     """
 
-    def __init__(self, sched: SchedulerPort, rnode: ResolvedNode) -> None:
-        self.sched = sched
-        self.rnode = rnode
-        self.name = rnode.name
-        self.timing = _timing_of(rnode)
-        self.counts = Counters()
-        self.ins = Inputs(self.name, rnode, self.counts)
-        self.inputs = self.ins.buffers  # by port (the same dict: read by the runtime)
-        self.input_times = self.ins.times  # NodeContext.input_time/input_age
-        self.trigger_inputs = self.ins.triggers
-        self.lossless = self.ins.lossless
-        self.frame_seqs: dict[str, int] = {}  # next sequence of unstamped frames, per port
-        self.outputs: dict[str, list[Buffer]] = {
-            p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
-        }
-        self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
-        self.out_check = OutputCheck(rnode, self.outputs)  # names and types, made once
-        self.frame_key: str | None = None  # the frame clock this node is triggered by
-        self.executor: Executor = NoExecutor()
-        self.timer: PeriodicTimer | None = None
-        self.task: asyncio.Task[None] | None = None
-        self.state = RunState.idle
-        self._busy = False
-        self._idle_waiters: list[asyncio.Future[None]] = []
-        self.deferred: float | None = None  # a paced source's tick that came while busy
-        self.untaken = False  # released, inputs not yet taken (the run is scheduled)
-        self.more_input = False
-        self.stopping = False
-        self.act: Activation | None = None
-        self._acts = 0  # activations begun: their ids
-        self._loose: list[Frame] = []  # frames made outside an activation: the next one's
-        self.error_reason: str | None = None  # set_error(): an error state the node reports
-        self.waiting_reason: str | None = None  # set_waiting(): waits for an operator
-        self.deadlines = DeadlineWatch(
-            self.name,
-            self.timing,
-            self.counts,
-            sched.clock,
-            lambda e: sched.emit(e),  # late-bound: an observer may tee the scheduler's emit
-            sched.rel,
-            lambda: self.rnode.spec.miss_policy,
-        )
-        self.pipeline = Pipeline(self)
-        self.backpressure = Backpressure(sched.loop, self.idle)
-        self.supervisor = Supervisor(self)
-        self.swapper = Swapper(self)
+    # Fixed at construction (wiring):
+    sched: SchedulerPort
+    name: str
+    counts: Counters
+    ins: Inputs
+    inputs: dict[str, Buffer]  # by port: ``ins.buffers`` (the same dict, read by the runtime)
+    input_times: dict[str, float]  # ``ins.times``: NodeContext.input_time/input_age
+    trigger_inputs: list[str]
+    lossless: list[LosslessBuffer]  # the lossless input edges (a backlog may wait there)
+    frame_seqs: dict[str, int]  # next sequence of unstamped frames, per port
+    outputs: dict[str, list[Buffer]]  # readers by port; filled while the graph is wired
+    tick_ports: dict[str, str]  # frame port -> its frame clock's key
+    out_check: OutputCheck  # output names and types, made once
+    frame_key: str | None  # the frame clock this node is triggered by (None: not frame)
+    timing: Timing  # one object for the run: the QoS manager changes its fields
+    deadlines: DeadlineWatch
+    pipeline: Pipeline
+    backpressure: Backpressure
+    supervisor: Supervisor
+    swapper: Swapper
+    # Changed by the methods below only:
+    rnode: ResolvedNode  # install(): a swap's class and params, new params
+    executor: Executor  # install(): set up at start, a restart, a swap; NoExecutor before
+    timer: PeriodicTimer | None  # arm(); cancelled and None from stop_releasing()
+    state: RunState  # move() only, along MOVES; ``running`` implies ``busy``
+    # Changed by the runner's own releases and activations:
+    task: asyncio.Task[None] | None  # the last activation's task (a pipelined one: started())
+    _busy: bool  # exactly while an activation is released and not ended, pipelined calls
+    # are in flight, or values wait for full lossless readers (release() sets, idle() clears;
+    # fail() clears it with the activation lost)
+    _idle_waiters: list[asyncio.Future[None]]  # paced sources waiting for this reader
+    deferred: float | None  # at most one release of a paced source (defer()), taken by
+    # idle() or the pipeline
+    untaken: bool  # released, inputs not taken yet (the run is scheduled); implies busy
+    more_input: bool  # set, never read (dead code, removed with issue 39 step 5)
+    stopping: bool  # no release from now on; never returns to false
+    act: Activation | None  # the inline activation in progress (None between activations
+    # and for pipelined nodes, whose activations belong to their tasks)
+    _acts: int  # activations begun: their ids
+    _loose: list[Frame]  # frames made outside an activation: the next one's
+    error_reason: str | None  # ctx.set_error/clear_error: an error state the node reports
+    waiting_reason: str | None  # ctx.set_waiting: the node waits for an operator
 
-    # --- readiness ----------------------------------------------------------------------
+    def move(self, to: RunState, _may: dict[RunState, frozenset[RunState]] = STAY_OR_MOVE) -> None:
+        """The one place the state changes; a move the table refuses raises (a kernel bug).
+        (``_may`` bound once: this runs twice per activation, ~40 ns each.)"""
+        if to not in _may[self.state]:
+            raise StateError(f"node {self.name}: no move from {self.state} to {to}")
+        self.state = to
+
+    def install(self, executor: Executor, rnode: ResolvedNode | None = None) -> Executor:
+        """``executor`` (and ``rnode``) are the node's from now on; the one replaced."""
+        old, self.executor = self.executor, executor
+        if rnode is not None:
+            self.rnode = rnode
+        return old
+
+    def arm(self, timer: PeriodicTimer) -> None:
+        """The node's release timer (a precise release thread is one too)."""
+        self.timer = timer
+
+    def defer(self, t: float | None) -> float | None:
+        """Keep a paced source's tick at ``t`` for later (None: take it); the one kept."""
+        kept, self.deferred = self.deferred, t
+        return kept
+
+    def started(self, task: asyncio.Task[None] | None = None) -> None:
+        """An activation begun outside release(): a pipelined call (its task, from the
+        pipeline), or a call a precise thread made, the loop's from now on (None)."""
+        self._busy = True
+        if task is not None:
+            self.task = task
+
+    def set_error_reason(self, reason: str | None) -> None:
+        self.error_reason = reason
+
+    def set_waiting_reason(self, reason: str | None) -> None:
+        self.waiting_reason = reason
+
+    # --- readiness (what a paced source waits for) ---------------------------------------
 
     @property
     def busy(self) -> bool:
@@ -173,6 +201,92 @@ class NodeRunner:
         self._idle_waiters.append(fut)
         await fut
 
+
+class NodeRunner(RunnerFields):
+    """One node: when it runs, what it takes and what it publishes (its fields and their
+    invariants: :class:`RunnerFields`)."""
+
+    def __init__(self, sched: SchedulerPort, rnode: ResolvedNode) -> None:
+        self.sched = sched
+        self.rnode = rnode
+        self.name = rnode.name
+        self.timing = _timing_of(rnode)
+        self.counts = Counters()
+        self.ins = Inputs(self.name, rnode, self.counts)
+        self.inputs = self.ins.buffers
+        self.input_times = self.ins.times
+        self.trigger_inputs = self.ins.triggers
+        self.lossless = self.ins.lossless
+        self.frame_seqs = {}
+        self.outputs = {
+            p: [] for p in [*rnode.cls.outputs, *rnode.cls.params_outputs(rnode.params)]
+        }
+        self.tick_ports = {p: f"{self.name}.{p}" for p in rnode.cls.frame_ports()}
+        self.out_check = OutputCheck(rnode, self.outputs)
+        src = rnode.frame_source
+        self.frame_key = sched.graph.frame_port(src) if src is not None else None
+        self.executor = NoExecutor()
+        self.timer = None
+        self.task = None
+        self.state = RunState.idle
+        self._busy = False
+        self._idle_waiters = []
+        self.deferred = None
+        self.untaken = False
+        self.more_input = False
+        self.stopping = False
+        self.act = None
+        self._acts = 0
+        self._loose = []
+        self.error_reason = None
+        self.waiting_reason = None
+        self.deadlines = DeadlineWatch(
+            self.name,
+            self.timing,
+            self.counts,
+            sched.clock,
+            lambda e: sched.emit(e),  # late-bound: an observer may tee the scheduler's emit
+            sched.rel,
+            lambda: self.rnode.spec.miss_policy,
+        )
+        self.pipeline = Pipeline(self)
+        self.backpressure = Backpressure(sched.loop, self.idle)
+        self.supervisor = Supervisor(self)
+        self.swapper = Swapper(self)
+
+    # --- failures (supervision decides, the runner applies) ------------------------------
+
+    def fail(self, exc: BaseException, starting: bool = False) -> None:
+        """The node raised (or could not start): restart after a back-off, or give up."""
+        decision = self.supervisor.failed(exc, starting)
+        self.busy = False
+        if isinstance(decision, GiveUp):
+            self.move(RunState.failed)
+            self.supervisor.gave_up(decision)
+            self.sched.loop.create_task(self.supervisor.stop_executor(self.executor))
+        else:
+            self.move(RunState.backoff)
+            self.sched.loop.create_task(self._restart(decision))
+
+    async def _restart(self, decision: Restart) -> None:
+        if not await self.supervisor.backoff(decision, self.executor):
+            return
+        self.install(self.make_executor())  # before its setup: a stop meanwhile tears it down
+        try:
+            await self.executor.start()
+        except Exception as e:
+            self.fail(e, starting=True)
+            return
+        self.move(RunState.idle)
+        self.idle()
+
+    def teardown_failed(self, exc: BaseException) -> None:
+        """``teardown`` failed at the run's end: the node ends ``failed`` (the run exits 1)."""
+        if self.supervisor.teardown_failed(exc) is not None:
+            self.move(RunState.failed)
+
+    # --- readiness ----------------------------------------------------------------------
+
     def cancelled(self, task: asyncio.Task[None]) -> None:
         """A task cancelled before its first step never ran ``run_async``'s own clean-up."""
         if task is self.task and task.cancelled() and self.busy and not self.backpressure.blocked:
@@ -180,7 +294,7 @@ class NodeRunner:
             self.untaken = False
             self.busy = False
             if self.state is RunState.running:
-                self.state = RunState.idle
+                self.move(RunState.idle)
 
     def backlog(self) -> bool:
         """A lossless input holds values not yet delivered."""
@@ -229,15 +343,16 @@ class NodeRunner:
         """A trigger fired: run now unless disabled, down, or still running (overrun)."""
         if not self.timing.enabled or self.stopping:
             return
-        if (self.busy or self.state in _WAITING) and self.backlog():
+        busy = self.busy  # (read once: a property; the two moves below cost as much)
+        if (busy or self.state in _WAITING) and self.backlog():
             return  # not skipped: the lossless value waits, and idle() runs the node for it
         self.counts.activations += 1
-        if self.busy or self.state in _DOWN:
+        if busy or self.state in _DOWN:
             self.counts.skipped += 1
             for buf in self.inputs.values():
                 buf.reader_skipped()  # the value it was due to read is lost if replaced
             return
-        self.busy = True
+        self._busy = True  # (the setter acts on False only)
         self.untaken = True
         loop = self.sched.loop
         if self.executor.sync:
@@ -292,7 +407,7 @@ class NodeRunner:
         if c.interval_from is not None:
             c.interval.add(now - c.interval_from)
         c.interval_from = c.last_start = now
-        self.state = _RUNNING
+        self.move(_RUNNING)  # (pipelined: it may be running already)
         if (obs := self.sched.observer) is not None:
             held = {p: b.taken_seq for p, b in self.inputs.items()}
             obs.activation(self.name, t_release, now, held, self.rnode)
@@ -323,7 +438,7 @@ class NodeRunner:
         except Exception as e:
             self.act = None
             act.close()
-            self.supervisor.failed(e)
+            self.fail(e)
             return
         self.act = None
         end = self.sched.clock.now()
@@ -350,11 +465,11 @@ class NodeRunner:
                 self.idle()
                 raise
             wd = self.rnode.spec.watchdog or 0
-            self.supervisor.failed(TimeoutError(f"watchdog: no return within {wd:g} ms ({e})"))
+            self.fail(TimeoutError(f"watchdog: no return within {wd:g} ms ({e})"))
             return
         except Exception as e:
             act.close()
-            self.supervisor.failed(e)
+            self.fail(e)
             return
         finally:
             self.act = None
@@ -368,7 +483,7 @@ class NodeRunner:
         """``act`` returned ``result`` at ``end``: count it, publish (or discard), close."""
         if result is not None and (bad := self.out_check.problem(result)) is not None:
             act.close()  # what its outputs cannot carry: the node's failure, as if raised
-            self.supervisor.failed(bad)
+            self.fail(bad)
             return
         c = self.counts
         c.completions += 1
@@ -427,7 +542,7 @@ class NodeRunner:
             return
         self.busy = False
         if self.state is _RUNNING:
-            self.state = _IDLE
+            self.move(_IDLE)
         if self.swapper.pending is not None and not self.busy:  # (precise: calls in flight)
             self.swapper.take_pending()  # a swap waits for this moment
         if self.stopping:

@@ -72,10 +72,8 @@ class Scheduler:
         self.ticks: dict[str, int] = {}
         self.readers: dict[str, list[NodeRunner]] = {}
         for r in self.runners.values():
-            src = r.rnode.frame_source
-            if src is not None:
-                key = graph.frame_port(src)
-                r.frame_key = key
+            key = r.frame_key  # the runner's frame clock, from the same graph
+            if key is not None:
                 self.readers.setdefault(key, []).append(r)
                 self.ticks.setdefault(key, 0)
         self.order: list[NodeRunner] = []
@@ -161,17 +159,16 @@ class Scheduler:
     async def start(self) -> None:
         """Set every node up (workers in parallel), then arm triggers."""
         for r in self.runners.values():
-            r.executor = r.make_executor()
-            r.state = RunState.starting
+            r.install(r.make_executor())
+            r.move(RunState.starting)
 
         async def start_one(r: NodeRunner) -> None:
             self.setting_up.append(r.name)
             try:
                 await r.executor.start()
-                r.state = RunState.idle
+                r.move(RunState.idle)
             except Exception as e:
-                r.state = RunState.idle
-                r.supervisor.failed(e, starting=True)
+                r.fail(e, starting=True)
             finally:
                 self.setting_up.remove(r.name)
 
@@ -186,7 +183,7 @@ class Scheduler:
             if isinstance(r, PreciseNodeRunner) and self._real_time_clock():
                 r.start_precise(_ms_s(r.rnode.spec.spin))
             elif r.timing.timer is not None:
-                r.timer = self.clock.periodic(r.timing.timer, r.timing.timer_phase, r.release_timer)
+                r.arm(self.clock.periodic(r.timing.timer, r.timing.timer_phase, r.release_timer))
             elif isinstance(r.rnode.trigger, LoopTrigger):
                 self.loop.call_soon(r.release, self.clock.now())
         self.stage = "running"
@@ -266,7 +263,7 @@ class Scheduler:
             try:
                 await asyncio.wait_for(r.executor.stop(), timeout=max(grace, 2.0))
             except Exception as e:
-                r.supervisor.teardown_failed(e)
+                r.teardown_failed(e)
         for r in self.runners.values():
             r.supervisor.log.flush(self.clock.now())
 

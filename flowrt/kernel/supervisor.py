@@ -1,13 +1,17 @@
-"""A node that raised: count, log (rate-limited), restart after a back-off, or give up.
+"""A node that raised: count, log (rate-limited), and decide: restart after a back-off, or give up.
 
 The one supervision rule of :mod:`flowrt.supervision` (Erlang/OTP's restart intensity, in
-the words of a graph file's ``restart:``), applied to one runner.
+the words of a graph file's ``restart:``), for one runner. The supervisor never changes its
+runner: it returns a :data:`Decision` that the runner applies (:meth:`NodeRunner.fail`), as
+copper-rs's monitors return a ``Decision`` for its runtime to apply, so that the runner's
+state has one writer.
 """
 
 from __future__ import annotations
 
 import logging
 import traceback
+from dataclasses import dataclass
 from typing import Protocol
 
 from ..events import NodeFailed, NodeGaveUp, NodeRestarted
@@ -20,20 +24,37 @@ from .state import RunState
 
 
 class SupervisedRunner(Protocol):
-    """What supervision reads and changes of its runner."""
+    """What supervision reads of its runner (read-only: mypy refuses a write through it)."""
 
-    name: str
-    rnode: ResolvedNode
-    counts: Counters
-    state: RunState
-    busy: bool
-    executor: Executor
-    stopping: bool
-    sched: SchedulerPort
+    @property
+    def name(self) -> str: ...
+    @property
+    def rnode(self) -> ResolvedNode: ...
+    @property
+    def counts(self) -> Counters: ...
+    @property
+    def state(self) -> RunState: ...
+    @property
+    def stopping(self) -> bool: ...
+    @property
+    def sched(self) -> SchedulerPort: ...
 
-    def make_executor(self) -> Executor: ...
 
-    def idle(self) -> None: ...
+@dataclass(frozen=True, slots=True)
+class Restart:
+    """Restart the node after ``backoff`` seconds (state ``backoff`` meanwhile)."""
+
+    backoff: float
+
+
+@dataclass(frozen=True, slots=True)
+class GiveUp:
+    """Give the node up (state ``failed``, final until a swap), for ``reason``."""
+
+    reason: str
+
+
+Decision = Restart | GiveUp
 
 
 log = logging.getLogger("flowrt.scheduler")
@@ -51,7 +72,8 @@ class Supervisor:
     def succeeded(self) -> None:
         self.consecutive = 0
 
-    def failed(self, exc: BaseException, starting: bool = False) -> None:
+    def failed(self, exc: BaseException, starting: bool = False) -> Decision:
+        """Count, log and report ``exc``; what the runner is to do about it."""
         r = self._r
         sched = r.sched
         r.counts.errors += 1
@@ -67,31 +89,34 @@ class Supervisor:
         if not fatal:  # a fatal error is said once, below
             self.log.failed(now, error, tb)
         sched.emit(NodeFailed(sched.rel(now), r.name, error, tb))
-        r.busy = False
         policy = r.rnode.spec.restart
         # Out of descriptors/processes/memory: the machine's failure, retried without a bound.
         counted = 0 if out_of_resources(exc) else self.consecutive
         never_started = starting and r.counts.completions == 0
         why = give_up_reason(policy, counted, r.counts.restarts, fatal, never_started)
         if why is not None:
-            r.state = RunState.failed
             last = failure_kind(error)
             self.failed_reason = last if fatal else f"{why}; last error: {last}"
-            self.log.flush(now)
-            log.error("node %s given up: %s", r.name, self.failed_reason)
-            sched.emit(NodeGaveUp(sched.rel(now), r.name, self.failed_reason))
-            sched.loop.create_task(self.stop_executor())
-            return
-        r.state = RunState.backoff
-        sched.loop.create_task(self._restart(backoff_s(policy, self.consecutive)))
+            return GiveUp(self.failed_reason)
+        return Restart(backoff_s(policy, self.consecutive))
 
-    async def stop_executor(self) -> None:
+    def gave_up(self, decision: GiveUp) -> None:
+        """Say it, once the runner is ``failed``: whoever hears ``NodeGaveUp`` (a run that
+        stops on a failure, a monitor) sees the node failed."""
+        r = self._r
+        now = r.sched.clock.now()
+        self.log.flush(now)
+        log.error("node %s given up: %s", r.name, decision.reason)
+        r.sched.emit(NodeGaveUp(r.sched.rel(now), r.name, decision.reason))
+
+    async def stop_executor(self, executor: Executor) -> None:
+        """Tear the failed instance down; a teardown that fails is counted and logged."""
         try:
-            await self._r.executor.stop()
+            await executor.stop()
         except Exception as e:
             self.teardown_failed(e, final=False)
 
-    def teardown_failed(self, exc: BaseException, final: bool = True) -> None:
+    def teardown_failed(self, exc: BaseException, final: bool = True) -> GiveUp | None:
         """``teardown`` raised (or did not return): the node's error, counted and logged with
         its traceback. At the run's end (``final``) the node ends ``failed`` with that reason,
         so the run exits 1: a device left unreleased is not a clean end."""
@@ -109,25 +134,20 @@ class Supervisor:
         sched.emit(NodeFailed(sched.rel(now), r.name, f"teardown: {error}", tb))
         log.error("node %s: teardown failed: %s\n%s", r.name, error, tb.rstrip())
         if final and r.state is not RunState.failed:
-            r.state = RunState.failed
             self.failed_reason = f"teardown failed: {failure_kind(error)}"
+            return GiveUp(self.failed_reason)
+        return None
 
-    async def _restart(self, backoff: float) -> None:
+    async def backoff(self, restart: Restart, executor: Executor) -> bool:
+        """Tear the failed instance down and wait out the back-off; False: the run stops
+        meanwhile (no restart). True: the restart is counted, the runner starts a new one."""
         r = self._r
         sched = r.sched
-        await self.stop_executor()
-        await sched.sleep(backoff)
+        await self.stop_executor(executor)
+        await sched.sleep(restart.backoff)
         if r.stopping:
-            return
+            return False
         r.counts.restarts += 1
-        sched.emit(
-            NodeRestarted(sched.rel(sched.clock.now()), r.name, r.counts.restarts, backoff * 1000)
-        )
-        r.executor = r.make_executor()
-        try:
-            await r.executor.start()
-        except Exception as e:
-            self.failed(e, starting=True)
-            return
-        r.state = RunState.idle
-        r.idle()
+        ms = restart.backoff * 1000
+        sched.emit(NodeRestarted(sched.rel(sched.clock.now()), r.name, r.counts.restarts, ms))
+        return True

@@ -26,24 +26,42 @@ from .supervisor import Supervisor
 
 
 class SwappedRunner(Protocol):
-    """What a swap reads and changes of its runner."""
+    """What a swap reads of its runner (read-only: mypy refuses a write through it), and
+    the runner's methods that apply what it decides (the new instance, set up:
+    :meth:`install`; the state: :meth:`move`)."""
 
-    name: str
-    rnode: ResolvedNode
-    inputs: dict[str, Buffer]
-    outputs: dict[str, list[Buffer]]
-    executor: Executor
-    busy: bool
-    state: RunState
-    counts: Counters
-    supervisor: Supervisor
-    sched: SchedulerPort
+    @property
+    def name(self) -> str: ...
+    @property
+    def rnode(self) -> ResolvedNode: ...
+    @property
+    def inputs(self) -> dict[str, Buffer]: ...
+    @property
+    def outputs(self) -> dict[str, list[Buffer]]: ...
+    @property
+    def executor(self) -> Executor: ...
+    @property
+    def busy(self) -> bool: ...
+    @property
+    def state(self) -> RunState: ...
+    @property
+    def counts(self) -> Counters: ...
+    @property
+    def supervisor(self) -> Supervisor: ...
+    @property
+    def sched(self) -> SchedulerPort: ...
 
     def make_executor(
         self, rnode: ResolvedNode | None = None, reload: bool = False
     ) -> Executor: ...
 
     def idle(self) -> None: ...
+
+    def install(self, executor: Executor, rnode: ResolvedNode | None = None) -> Executor: ...
+
+    def move(self, to: RunState) -> None: ...
+
+    def fail(self, exc: BaseException, starting: bool = False) -> None: ...
 
 
 log = logging.getLogger("flowrt.scheduler")
@@ -79,7 +97,7 @@ class Swapper:
         node is swapped for a new instance with them (``swap``), in the background.
         """
         r = self._r
-        r.rnode = dataclasses.replace(r.rnode, params=params)
+        r.install(r.executor, dataclasses.replace(r.rnode, params=params))
         ex = r.executor
         if isinstance(ex, InlineExecutor) and ex.node is not None:
             node = ex.node
@@ -159,7 +177,7 @@ class Swapper:
         r = self._r
 
         def hold() -> Executor:  # synchronously: no release slips in before the teardown
-            r.state = RunState.starting
+            r.move(RunState.starting)
             return r.executor
 
         if r.busy:
@@ -188,14 +206,16 @@ class Swapper:
             try:
                 await again.start()
             except Exception as e:
-                r.executor = again
-                r.supervisor.failed(e, starting=True)
+                r.install(again)
+                r.fail(e, starting=True)
                 raise
-            r.executor, r.state = again, RunState.idle
+            r.install(again)
+            r.move(RunState.idle)
             self._give_state(again, state, getter is not None)
             r.idle()
             raise
-        r.executor, r.rnode, r.state = new, rnode, RunState.idle
+        r.install(new, rnode)
+        r.move(RunState.idle)
         self._give_state(new, state, getter is not None)
         r.supervisor.succeeded()
         r.counts.swaps += 1
@@ -214,9 +234,9 @@ class Swapper:
         getter, setter = getattr(old_node, "get_state", None), getattr(new_node, "set_state", None)
         if getter is not None and setter is not None:
             setter(getter())
-        old, r.executor, r.rnode = r.executor, new, rnode
+        old = r.install(new, rnode)
         if r.state in (RunState.failed, RunState.backoff):
-            r.state = RunState.idle
+            r.move(RunState.idle)
         r.supervisor.succeeded()
         r.counts.swaps += 1
         return old
