@@ -1,21 +1,29 @@
-"""An offline run over a real video: frames tracked and frames/s, tracker inline vs in a worker.
+"""An offline run over a real video: frames/s of flowrt against a plain OpenCV loop.
 
 graphs/video.yaml as it is (capture -> candle tracker -> display), with the capture switched to
 ``pacing: fast`` and ``on_eof: exit`` (process the file once, as fast as the graph consumes it)
-and the display on a free port. The tracker's placement alternates between ``inline`` and
-``process`` in the same run, ``--reps`` times each (which goes first alternates too; one
-uncounted warm-up run of each before), so that the ratio is measured under the same load.
-Time is from the runtime's start (workers up) to the source's end of stream; every frame of
-the file must be tracked in both placements.
+and the display on a free port. The reference (``plain``) is the loop a user would write
+without flowrt: ``cv2.VideoCapture.read()`` and the same tracker object (the ``candle``
+:class:`ObjectTracker` the node builds) called on every frame, in this process. The three
+(``plain``, the tracker ``inline`` and in a ``process``) alternate in the same run, ``--reps``
+times each (the order reverses every round; one uncounted warm-up run of each before), so that
+the ratios are measured under the same load. Time is from opening the file (flowrt: the
+runtime's start, workers up) to the end of stream; every frame of the file must be tracked.
 
 Run from the repository root:
 python benchmarks/bench_video.py [--reps 3] [--video PATH] [--realtime] [--unpipelined]
+
+Without ``--video``: ../shared/data/sample_720x528.avi when present, else a 720x528 clip of
+graphs/make_sample_video.py's scene rendered into a temporary folder.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
+import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -34,6 +42,50 @@ CANDIDATES = (
 
 
 UNPIPELINED = "process-1"  # --unpipelined: the tracker in a worker with pipeline: 1
+PLAIN = "plain"  # the reference: an OpenCV loop calling the same tracker, no flowrt
+
+
+def render_clip(folder: Path, size: tuple[int, int] = (720, 528)) -> Path:
+    """graphs/make_sample_video.py's scene at ``size`` (the benchmark needs no shared data)."""
+    sys.path.insert(0, str(REPO / "graphs"))
+    from make_sample_video import FPS, SECONDS, frame  # type: ignore[import-not-found]
+
+    path = folder / f"sample_{size[0]}x{size[1]}.avi"
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), FPS, size)
+    for k in range(FPS * SECONDS):
+        out.write(cv2.resize(frame(k), size, interpolation=cv2.INTER_LINEAR))
+    out.release()
+    return path
+
+
+def plain_run(video: Path) -> dict[str, Any]:
+    """What the graph does, written as one loop: decode a frame, track it, next."""
+    from flowrt.nodes.colour import ObjectTracker
+    from flowrt.nodes.tracker import TrackerParams
+
+    data = yaml.safe_load((REPO / "graphs/video.yaml").read_text())
+    p = TrackerParams.model_validate(data["nodes"]["lamp"]["params"])
+    tracker = ObjectTracker(p.object_spec(), p.table(), name=p.object)
+    t0 = time.perf_counter()
+    cap = cv2.VideoCapture(str(video))
+    n = 0
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        tracker.track(img)
+        n += 1
+    cap.release()
+    elapsed = time.perf_counter() - t0
+    return {
+        "placement": PLAIN,
+        "published": n,
+        "tracked": n,
+        "skipped": 0,
+        "seconds": elapsed,
+        "exec_p50": float("nan"),
+        "cam_p50": float("nan"),
+    }
 
 
 def frames_in(path: Path) -> int:
@@ -54,6 +106,12 @@ def spec_for(video: Path, placement: str) -> GraphSpec:
         data["nodes"]["lamp"]["pipeline"] = 1
     data["nodes"]["view"]["params"]["port"] = 0  # a free port: nothing else is disturbed
     return GraphSpec.model_validate(data)
+
+
+def one(video: Path, placement: str, realtime: bool) -> dict[str, Any]:
+    if placement == PLAIN:
+        return plain_run(video)
+    return flowrt.run(one_run(video, placement, realtime))
 
 
 async def one_run(video: Path, placement: str, realtime: bool = False) -> dict[str, Any]:
@@ -93,18 +151,23 @@ def main() -> None:
         "ahead: the behaviour before paced readers were pipelined), alternating with the others",
     )
     args = ap.parse_args()
-    video = args.video or next((p for p in CANDIDATES if p.exists()), None)
-    if video is None:
-        raise SystemExit("sample video not found in ../shared/data; pass --video PATH")
+    with tempfile.TemporaryDirectory(prefix="flowrt-bench-video-") as tmp:
+        video = args.video or next((p for p in CANDIDATES if p.exists()), None)
+        if video is None:
+            video = render_clip(Path(tmp))
+        bench(video, args)
+
+
+def bench(video: Path, args: argparse.Namespace) -> None:
     total = frames_in(video)
-    runs: dict[str, list[dict[str, Any]]] = {"inline": [], "process": []}
+    runs: dict[str, list[dict[str, Any]]] = {PLAIN: [], "inline": [], "process": []}
     if args.unpipelined:
         runs[UNPIPELINED] = []
     for placement in runs:  # warm-up, not counted: the forkserver, OpenCV's first decode
-        flowrt.run(one_run(video, placement, args.realtime))
+        one(video, placement, args.realtime)
     for rep in range(args.reps):
         for placement in sorted(runs, reverse=rep % 2 == 1):  # alternate which goes first
-            r = flowrt.run(one_run(video, placement, args.realtime))
+            r = one(video, placement, args.realtime)
             runs[placement].append(r)
             print(
                 f"{placement:9s} tracked {r['tracked']}/{total} (published {r['published']}, "
@@ -116,6 +179,7 @@ def main() -> None:
     print()
     mode = "--realtime (SCHED_FIFO)" if args.realtime else "fair scheduler (nice levels)"
     print(f"video: {video.name}, {total} frames; {args.reps} runs per placement; {mode}")
+    print("load average: " + " ".join(f"{x:.2f}" for x in os.getloadavg()))
     print(
         "| placement | frames tracked / in file | frames/s (median) | min-max "
         "| tracker call p50 ms | capture activation p50 ms |"
@@ -132,7 +196,9 @@ def main() -> None:
             f"| {placement} | {tracked}/{total} | {fps[placement]:.1f} | "
             f"{min(rates):.1f}-{max(rates):.1f} | {call:.2f} | {cam:.2f} |"
         )
-    print(f"\nprocess / inline throughput: {fps['process'] / fps['inline']:.2f}")
+    print(f"\ninline / plain throughput: {fps['inline'] / fps[PLAIN]:.2f}x")
+    print(f"process / plain throughput: {fps['process'] / fps[PLAIN]:.2f}x")
+    print(f"process / inline throughput: {fps['process'] / fps['inline']:.2f}")
     if args.unpipelined:
         print(f"process pipeline: 1 / inline: {fps[UNPIPELINED] / fps['inline']:.2f}")
 
