@@ -20,6 +20,7 @@ graphs/make_sample_video.py's scene rendered into a temporary folder.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import statistics
 import sys
@@ -32,6 +33,7 @@ import cv2
 import yaml
 
 import flowrt
+from flowrt.oscheduling import lowest_nice
 from flowrt.spec import GraphSpec
 
 REPO = Path(__file__).resolve().parents[1]
@@ -42,6 +44,7 @@ CANDIDATES = (
 
 
 UNPIPELINED = "process-1"  # --unpipelined: the tracker in a worker with pipeline: 1
+DISPLAY = False  # --display: keep graphs/video.yaml's display node (its server process)
 PLAIN = "plain"  # the reference: an OpenCV loop calling the same tracker, no flowrt
 
 
@@ -58,8 +61,27 @@ def render_clip(folder: Path, size: tuple[int, int] = (720, 528)) -> Path:
     return path
 
 
-def plain_run(video: Path) -> dict[str, Any]:
-    """What the graph does, written as one loop: decode a frame, track it, next."""
+def plain_run(video: Path, realtime: bool = False) -> dict[str, Any]:
+    """What the graph does, written as one loop: decode a frame, track it, next.
+
+    At the nice level flowrt's loop takes (the lowest permitted), or with ``realtime`` at its
+    SCHED_FIFO priority, so that the ratio measures flowrt's work and not its priority on a
+    loaded machine."""
+    before = os.getpriority(os.PRIO_PROCESS, 0)
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, 0, lowest_nice())
+        if realtime:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(90))  # flowrt's loop's
+    try:
+        return _plain_loop(video)
+    finally:
+        with contextlib.suppress(OSError):
+            os.sched_setscheduler(0, policy, param)
+            os.setpriority(os.PRIO_PROCESS, 0, before)
+
+
+def _plain_loop(video: Path) -> dict[str, Any]:
     from flowrt.nodes.colour import ObjectTracker
     from flowrt.nodes.tracker import TrackerParams
 
@@ -104,13 +126,16 @@ def spec_for(video: Path, placement: str) -> GraphSpec:
     data["nodes"]["lamp"]["placement"] = "process" if placement.startswith("process") else placement
     if placement == UNPIPELINED:  # one call at a time: the worker as before it was pipelined
         data["nodes"]["lamp"]["pipeline"] = 1
-    data["nodes"]["view"]["params"]["port"] = 0  # a free port: nothing else is disturbed
+    if DISPLAY:
+        data["nodes"]["view"]["params"]["port"] = 0  # a free port: nothing else is disturbed
+    else:  # what the plain loop does: decode and track, nothing shown
+        del data["nodes"]["view"]
     return GraphSpec.model_validate(data)
 
 
 def one(video: Path, placement: str, realtime: bool) -> dict[str, Any]:
     if placement == PLAIN:
-        return plain_run(video)
+        return plain_run(video, realtime)
     return flowrt.run(one_run(video, placement, realtime))
 
 
@@ -150,7 +175,15 @@ def main() -> None:
         help="also run the worker with pipeline: 1 (one call at a time, the source one frame "
         "ahead: the behaviour before paced readers were pipelined), alternating with the others",
     )
+    ap.add_argument(
+        "--display",
+        action="store_true",
+        help="keep graphs/video.yaml's display node (a server process, an activation per "
+        "frame) in the graph; by default the graph does what the plain loop does",
+    )
     args = ap.parse_args()
+    global DISPLAY
+    DISPLAY = args.display
     with tempfile.TemporaryDirectory(prefix="flowrt-bench-video-") as tmp:
         video = args.video or next((p for p in CANDIDATES if p.exists()), None)
         if video is None:
