@@ -370,7 +370,9 @@ class Capture(Node):
         return frame
 
     def _unhold(self) -> None:
-        """The frame published last time has its readers' links now: drop the node's."""
+        """The frame returned last time is held by its readers now (and by nobody if it was
+        discarded: the activation took a link of its own on it, given back at its end): drop
+        the node's link."""
         if self._held is not None:
             self._held.release()
             self._held = None

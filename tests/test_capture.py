@@ -466,6 +466,35 @@ async def test_a_file_is_decoded_straight_into_the_frames_slots(
     assert (pool.slots_in_use, pool.dropped) == (0, 0)
 
 
+async def test_frames_decoded_in_place_and_discarded_at_a_firm_deadline_are_freed_once(
+    tmp_path: Path,
+) -> None:
+    """A capture whose results are discarded (a firm deadline it always misses) gives every
+    slot back exactly once: neither leaked (held by the node for good) nor released twice
+    (which would fail the node)."""
+    clip = tmp_path / "clip.avi"
+    _write_video(clip, 12)
+    g = flowrt.GraphBuilder("firm-capture")
+    g.add(
+        "cam",
+        "capture",
+        params={"source": str(clip), "pacing": "fast", "on_eof": "exit"},
+        deadline="0.01ms",
+        miss_policy="discard",
+    )
+    events: list[Any] = []
+    rt = flowrt.Runtime(g.build())
+    rt.on_event(events.append)
+    async with rt:
+        await rt.run(10.0)
+    cam = rt.stats().node("cam")
+    assert cam.discarded >= 10  # the path under test was taken
+    assert cam.errors == 0
+    assert not [e for e in events if isinstance(e, NodeFailed)]
+    (pool,) = [p for p in rt.stats().frames if p.owner == "cam"]
+    assert pool.slots_in_use == 0
+
+
 def _frames(cap: Any) -> list[np.ndarray]:
     out = []
     while True:
