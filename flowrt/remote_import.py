@@ -37,8 +37,7 @@ from .zenoh_wire import (
     Header,
     PlainFormat,
     Refused,
-    check_frame,
-    decode_frame,
+    frame_decoder,
     loads_wire,
 )
 
@@ -158,14 +157,13 @@ class ImportLink:
             zbytes = sample.payload
             if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
                 raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
-            payload = zbytes.to_bytes()
-            if header.kind == "frame":
-                check_frame(header.frame, payload, self.max_pixels)
-                value: Any = self._frame(header.frame, decode_frame(header.frame, payload))
+            if header.kind == "frame":  # checked before the copy (see frame_decoder)
+                pixels = frame_decoder(header.frame, len(zbytes), self.max_pixels)
+                value: Any = self._frame(header.frame, pixels(zbytes.to_bytes()))
             elif header.kind == "bytes":
-                value = payload
+                value = zbytes.to_bytes()
             else:
-                value = loads_wire(payload)
+                value = loads_wire(zbytes.to_bytes())
         except Exception as e:
             reason = e.reason if isinstance(e, Refused) else "undecodable"
             with self.lock:
