@@ -29,7 +29,7 @@ from typing import Any
 from .edges import EMPTY, Buffer
 from .frames import Frame
 from .remote_host import BridgeHost
-from .zenoh_wire import Header, encode_frame, payload_encoding, to_wire
+from .zenoh_wire import Header, encode_frame, frame_meta, payload_encoding, to_wire
 
 __all__ = ["Export", "ExportSender"]
 
@@ -112,8 +112,13 @@ class ExportSender:
         a failure is counted and logged, never raised."""
         try:
             now_wall = time.time()
+            raw = isinstance(value, Frame) and exp.encoding == "raw"
             if isinstance(value, Frame):
-                meta, payload = encode_frame(value, exp.encoding, exp.quality)
+                # Raw pixels are copied last (below): whatever follows that copy runs cold.
+                if raw:
+                    meta, payload = frame_meta(value, "raw"), b""
+                else:
+                    meta, payload = encode_frame(value, exp.encoding, exp.quality)
                 mono0, wall0 = self._clock0
                 captured = wall0 + (value.timestamp - mono0) if value.timestamp else now_wall
                 header = Header(self.stream, self.zid, exp.seq, now_wall, captured, "frame", meta)
@@ -124,7 +129,10 @@ class ExportSender:
             encoding = exp.encodings.get(header.kind)
             if encoding is None:  # one per kind: a Zenoh object made once, not per put
                 encoding = exp.encodings[header.kind] = payload_encoding(header)
-            exp.publisher.put(payload, attachment=header.encode(), encoding=encoding)
+            attachment = header.encode()
+            if raw:
+                payload = value.data.tobytes()  # Zenoh takes bytes: the one copy on this side
+            exp.publisher.put(payload, attachment=attachment, encoding=encoding)
         except Exception as e:
             exp.errors += 1
             log.warning("export %s: %s", exp.key, e)

@@ -236,15 +236,20 @@ def payload_encoding(header: Header) -> Any:
     return zenoh.Encoding.APPLICATION_OCTET_STREAM
 
 
-def encode_frame(frame: Frame, encoding: str, quality: int) -> tuple[dict[str, Any], bytes]:
-    """Header fields and payload of a frame: raw pixels, or JPEG/PNG when the export asks."""
-    meta = {
+def frame_meta(frame: Frame, encoding: str) -> dict[str, Any]:
+    """A frame's header fields (what :meth:`Header.encode` reads from ``Header.frame``)."""
+    return {
         "shape": list(frame.shape),
         "dtype": str(frame.dtype),
         "pf": frame.pixel_format,
         "seq": frame.seq,
         "enc": encoding,
     }
+
+
+def encode_frame(frame: Frame, encoding: str, quality: int) -> tuple[dict[str, Any], bytes]:
+    """Header fields and payload of a frame: raw pixels, or JPEG/PNG when the export asks."""
+    meta = frame_meta(frame, encoding)
     if encoding == "raw":
         return meta, frame.data.tobytes()
     import cv2
