@@ -345,19 +345,17 @@ class Capture(Node):
         are decoded (same format, same size): it decodes the next frames into them."""
         p: CaptureParams = self.params
         fmt = p.input_format or "BGR"
+        if self._kind != "file" or img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            return
         h, w = img.shape[:2]
-        if (
-            self._kind != "file"
-            or fmt != p.pixel_format
-            or fmt not in ("BGR", "RGB")
-            or img.dtype != np.uint8
-            or img.shape != (h, w, 3)
-            or (p.size is not None and tuple(p.size) != (w, h))
-        ):
+        if fmt != p.pixel_format or fmt not in ("BGR", "RGB"):
+            return
+        if p.size is not None and tuple(p.size) != (w, h):
             return
         while reader.lent < LEND:
+            # A pool at its bound counts this as a dropped frame, as it would the next one.
             frame = self.ctx.new_frame(img.shape, np.uint8, p.pixel_format)
-            if not frame.shared:  # no pool (or every slot held): decoded then copied
+            if not frame.shared:  # no pool, or every slot held: decoded then copied
                 return
             frame.acquire()  # the node's link: the activation lets go of its own at its end
             reader.lend(frame.data, frame)
