@@ -2,6 +2,10 @@
 critical node while frames are exported.
 
     python -m benchmarks.bench_zenoh [--duration 10] [--sustained 60] [--out FILE.json]
+        [--rounds 3] [--payloads 8B,640x480,1920x1080]
+
+``--rounds``: every latency variant that many times, interleaved; ``--sustained 0`` skips the
+30 fps run.
 
 Rows, each measured in the same run:
 
@@ -276,9 +280,8 @@ def _summ(lat: list[float]) -> dict[str, float]:
     }
 
 
-def latency_row(payload: str, seconds: float, tmp: Path) -> dict[str, Any]:
-    row: dict[str, Any] = {"payload": payload}
-    # local: one process, inline edge
+def _local(payload: str, seconds: float, tmp: Path) -> dict[str, float]:
+    """One process, an inline edge."""
     g = flowrt.GraphBuilder("local")
     g.add("src", PayloadSource, params={"payload": payload, "rate": 20.0})
     port = "out" if SIZES[payload] is None else "frame"
@@ -289,8 +292,10 @@ def latency_row(payload: str, seconds: float, tmp: Path) -> dict[str, Any]:
         inputs={"value": {"from": f"src.{port}"}},
     )
     flowrt.run(_run(g.build(), seconds))
-    row["local"] = _summ(json.loads((tmp / "local.json").read_text()))
-    # flowrt over Zenoh
+    return _summ(json.loads((tmp / "local.json").read_text()))
+
+
+def _flowrt_zenoh(payload: str, seconds: float, tmp: Path) -> dict[str, float]:
     p = _port()
     exp = _spawn(
         "exporter", payload=payload, rate=20, port=p, seconds=seconds + 3, result=tmp / "exp.json"
@@ -307,31 +312,49 @@ def latency_row(payload: str, seconds: float, tmp: Path) -> dict[str, Any]:
     )
     imp.wait()
     exp.wait()
-    row["flowrt_zenoh"] = _summ(json.loads((tmp / "remote.json").read_text()))
-    # raw Zenoh
+    return _summ(json.loads((tmp / "remote.json").read_text()))
+
+
+def _raw_zenoh(payload: str, seconds: float, tmp: Path, aio: bool = False) -> dict[str, float]:
+    """Zenoh's own publisher and subscriber (``aio``: the callback hands each sample to a
+    uvloop loop: informative)."""
     p = _port()
     pub = _spawn("raw_pub", payload=payload, rate=20, port=p, seconds=seconds + 1)
     time.sleep(0.5)
-    sub = _spawn("raw_sub", payload=payload, rate=20, port=p, seconds=seconds, lat=tmp / "raw.json")
+    out = tmp / ("raw_aio.json" if aio else "raw.json")
+    sub = _spawn("raw_sub", payload=payload, rate=20, port=p, seconds=seconds, lat=out, asyncio=aio)
     sub.wait()
     pub.wait()
-    row["raw_zenoh"] = _summ(json.loads((tmp / "raw.json").read_text()))
-    # raw Zenoh handing each sample to an asyncio (uvloop) loop: informative
-    p = _port()
-    pub = _spawn("raw_pub", payload=payload, rate=20, port=p, seconds=seconds + 1)
-    time.sleep(0.5)
-    sub = _spawn(
-        "raw_sub",
-        payload=payload,
-        rate=20,
-        port=p,
-        seconds=seconds,
-        lat=tmp / "raw_aio.json",
-        asyncio=True,
-    )
-    sub.wait()
-    pub.wait()
-    row["raw_zenoh_asyncio"] = _summ(json.loads((tmp / "raw_aio.json").read_text()))
+    return _summ(json.loads(out.read_text()))
+
+
+VARIANTS = {
+    "local": _local,
+    "flowrt_zenoh": _flowrt_zenoh,
+    "raw_zenoh": _raw_zenoh,
+    "raw_zenoh_asyncio": lambda payload, seconds, tmp: _raw_zenoh(payload, seconds, tmp, True),
+}
+
+
+def latency_row(payload: str, seconds: float, tmp: Path, rounds: int = 1) -> dict[str, Any]:
+    """Every variant ``rounds`` times, interleaved (the order reverses every round): each
+    figure is the median over the rounds of that round's p50 and p99, and ``ratios`` the
+    per-round flowrt / raw p50 (the two measured minutes apart at most)."""
+    runs: dict[str, list[dict[str, float]]] = {k: [] for k in VARIANTS}
+    for r in range(rounds):
+        for name in list(VARIANTS) if r % 2 == 0 else list(VARIANTS)[::-1]:
+            runs[name].append(VARIANTS[name](payload, seconds, tmp))
+    row: dict[str, Any] = {"payload": payload, "rounds": rounds}
+    for name, rs in runs.items():
+        row[name] = {
+            "n": sum(x["n"] for x in rs),
+            "p50_ms": float(np.median([x["p50_ms"] for x in rs])),
+            "p99_ms": float(np.median([x["p99_ms"] for x in rs])),
+        }
+    row["ratios"] = [
+        f["p50_ms"] / r["p50_ms"]
+        for f, r in zip(runs["flowrt_zenoh"], runs["raw_zenoh"], strict=True)
+    ]
     return row
 
 
@@ -383,7 +406,7 @@ def report(res: dict[str, Any]) -> str:
         f"load average {res['loadavg_start']} at the start, {res['loadavg_end']} at the end",
         "",
         "| payload | local p50/p99 ms | flowrt over Zenoh p50/p99 ms | raw Zenoh p50/p99 ms "
-        "| raw Zenoh -> asyncio p50/p99 ms | flowrt / raw (p50) |",
+        "| raw Zenoh -> asyncio p50/p99 ms | flowrt / raw (p50, median of rounds) |",
         "|---|---|---|---|---|---|",
     ]
     for r in res["latency"]:
@@ -391,9 +414,14 @@ def report(res: dict[str, Any]) -> str:
             f"{r[k]['p50_ms']:.2f} / {r[k]['p99_ms']:.2f}"
             for k in ("local", "flowrt_zenoh", "raw_zenoh", "raw_zenoh_asyncio")
         ]
-        ratio = r["flowrt_zenoh"]["p50_ms"] / r["raw_zenoh"]["p50_ms"]
-        lines.append(f"| {r['payload']} | " + " | ".join(cells) + f" | {ratio:.2f} |")
+        ratio = float(np.median(r["ratios"]))
+        per = " ".join(f"{x:.2f}" for x in r["ratios"])
+        lines.append(
+            f"| {r['payload']} | " + " | ".join(cells) + f" | {ratio:.2f} (rounds: {per}) |"
+        )
     s = res["sustained"]
+    if s is None:  # --sustained 0
+        return "\n".join(lines)
     lines.append("")
     lines.append(
         f"sustained 640x480x3 @ 30 fps, {s['seconds']:g} s: exported {s['export_edge']}, "
@@ -422,6 +450,12 @@ def main() -> None:
     ap.add_argument("--critical", action="store_true")
     ap.add_argument("--asyncio", action="store_true")
     ap.add_argument("--sustained", type=float, help="seconds of the 30 fps run (default 3x)")
+    ap.add_argument(
+        "--rounds", type=int, default=1, help="interleaved rounds of every latency variant"
+    )
+    ap.add_argument(
+        "--payloads", default=",".join(SIZES), help=f"latency rows (of {', '.join(SIZES)})"
+    )
     args = ap.parse_args()
     if args.role:
         role_main(args)
@@ -430,8 +464,12 @@ def main() -> None:
     tmp.mkdir(exist_ok=True)
     start_load = os.getloadavg()
     res = {
-        "latency": [latency_row(p, args.duration, tmp) for p in SIZES],
-        "sustained": sustained(args.sustained or args.duration * 3, tmp),
+        "latency": [
+            latency_row(p, args.duration, tmp, args.rounds) for p in args.payloads.split(",")
+        ],
+        "sustained": (
+            sustained(args.sustained or args.duration * 3, tmp) if args.sustained != 0 else None
+        ),
         "loadavg_start": start_load,
         "loadavg_end": os.getloadavg(),
     }

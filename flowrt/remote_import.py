@@ -41,8 +41,7 @@ from .zenoh_wire import (
     Header,
     PlainFormat,
     Refused,
-    check_frame,
-    decode_frame,
+    frame_decoder,
     own_timestamp,
     set_timestamp,
 )
@@ -172,19 +171,22 @@ class ImportLink:
             zbytes = sample.payload
             if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
                 raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
-            payload = zbytes.to_bytes()
-            if header.kind == "frame":
-                check_frame(header.frame, payload, self.max_pixels)
-                value: Any = self._frame(header.frame, decode_frame(header.frame, payload))
+            if header.kind == "frame":  # checked before the copy (see frame_decoder)
+                pixels = frame_decoder(header.frame, len(zbytes), self.max_pixels)
+                value: Any = self._frame(header.frame, pixels(zbytes.to_bytes()))
             elif header.kind == "bytes":
-                value = payload
+                value = zbytes.to_bytes()
             elif header.kind == "protobuf":  # the recording's protobuf message (audio)
                 schema = schema_of_sample(sample)
                 if schema != AUDIO_SCHEMA:
                     raise Refused("undecodable", f"a protobuf message of schema {schema!r}")
-                value = decode_audio(payload, header.seq, 0.0)  # its time: set on delivery
+                value = decode_audio(
+                    zbytes.to_bytes(), header.seq, 0.0
+                )  # its time: set on delivery
             else:  # the recording's JSON message; typed by the schema its encoding names
-                value = decode_json(payload, "" if self.plain else schema_of_sample(sample))
+                value = decode_json(
+                    zbytes.to_bytes(), "" if self.plain else schema_of_sample(sample)
+                )
         except Exception as e:
             reason = e.reason if isinstance(e, Refused) else "undecodable"
             with self.lock:

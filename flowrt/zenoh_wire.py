@@ -14,6 +14,7 @@ import json
 import math
 import struct
 import types
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any
 
@@ -252,15 +253,20 @@ def payload_encoding(header: Header) -> Any:
     return zenoh.Encoding.APPLICATION_OCTET_STREAM
 
 
-def encode_frame(frame: Frame, encoding: str, quality: int) -> tuple[dict[str, Any], bytes]:
-    """Header fields and payload of a frame: raw pixels, or JPEG/PNG when the export asks."""
-    meta = {
+def frame_meta(frame: Frame, encoding: str) -> dict[str, Any]:
+    """A frame's header fields (what :meth:`Header.encode` reads from ``Header.frame``)."""
+    return {
         "shape": list(frame.shape),
         "dtype": str(frame.dtype),
         "pf": frame.pixel_format,
         "seq": frame.seq,
         "enc": encoding,
     }
+
+
+def encode_frame(frame: Frame, encoding: str, quality: int) -> tuple[dict[str, Any], bytes]:
+    """Header fields and payload of a frame: raw pixels, or JPEG/PNG when the export asks."""
+    meta = frame_meta(frame, encoding)
     if encoding == "raw":
         return meta, frame.data.tobytes()
     import cv2
@@ -349,6 +355,33 @@ def check_frame(meta: dict[str, Any], payload: bytes, max_pixels: int) -> None:
         raise Refused("undecodable", "not a PNG or JPEG image")
     if size[0] * size[1] > max_pixels or size[0] < 1 or size[1] < 1:
         raise Refused("bad frame", f"a {size[0]} x {size[1]} image: more than {max_pixels}")
+
+
+def frame_decoder(
+    meta: dict[str, Any], nbytes: int, max_pixels: int
+) -> Callable[[bytes], np.ndarray]:
+    """Check a frame before its payload is copied out of Zenoh; return what makes the pixels.
+
+    Everything that needs only the header and the payload's length (shape, dtype, for raw
+    pixels the size) is done first: the copy of a large payload (6 MB at 1080p) evicts the
+    CPU's caches, and every line of Python after it runs cold (measured on Zenoh's thread:
+    0.16 ms after the copy before, 0.05 ms with the work moved ahead of it, at 1080p).
+    Raises :class:`Refused` (or ``ValueError``: a raw payload of the wrong size) as
+    :func:`check_frame` and :func:`decode_frame` do.
+    """
+    if meta.get("enc", "raw") != "raw":  # JPEG/PNG: the size is in the image's own header
+        return lambda payload: _checked_decode(meta, payload, max_pixels)
+    check_frame(meta, b"", max_pixels)
+    shape = tuple(int(x) for x in meta["shape"])
+    dtype = np.dtype(meta["dtype"])
+    if nbytes != math.prod(shape) * dtype.itemsize:
+        raise ValueError(f"frame payload of {nbytes} bytes for shape {shape} {dtype}")
+    return lambda payload: np.frombuffer(payload, dtype=dtype).reshape(shape)
+
+
+def _checked_decode(meta: dict[str, Any], payload: bytes, max_pixels: int) -> np.ndarray:
+    check_frame(meta, payload, max_pixels)
+    return decode_frame(meta, payload)
 
 
 def decode_frame(meta: dict[str, Any], payload: bytes) -> np.ndarray:

@@ -33,6 +33,9 @@ BGR/RGB/GRAY); for the synthetic scene the rendered image is first encoded to it
 simulates a raw camera. Decoded files and images are BGR (``RGB`` declares channel-swapped
 content, ``GRAY`` reads images as grey). Conversion and resizing happen once, at capture,
 straight into the published frame (a shared-memory slot when the runtime provides a pool).
+A video file whose frames need neither (BGR or RGB as published, at its own size) is decoded
+straight into its slot by the reader thread (a few slots are lent to it ahead, at most
+``LEND``): the loop publishes the frame without copying a pixel.
 
 Stalls and errors never block the runtime nor raise a traceback. Devices and decoders are
 read by a daemon thread each (which alone opens, reads and releases its device, so a hung
@@ -102,6 +105,7 @@ from .scene import SceneTruth
 
 __all__ = [
     "INPUT_FORMATS",
+    "LEND",
     "OUTPUT_FORMATS",
     "Capture",
     "CaptureParams",
@@ -110,6 +114,12 @@ __all__ = [
     "encode_raw",
     "parse_source",
 ]
+
+
+LEND = 3
+"""Slots lent to a file's reader thread to decode into: its read-ahead (2 frames) plus the one
+it decodes while the loop takes a frame, so a blank is always there (else it decodes into an
+array of its own, copied once into a slot by the loop)."""
 
 
 class Capture(Node):
@@ -166,6 +176,7 @@ class Capture(Node):
         self._abandoned: list[Reader] = []
         self._recovery = SourceRecovery(self.ctx, p)
         self._position = 0  # where a reopened file or image sequence resumes
+        self._held: Frame | None = None  # a frame decoded in its slot, published: its link
         if self._kind == "synthetic" and p.kind()[1] == "flash":
             from .calibration import FlashScene
 
@@ -181,6 +192,7 @@ class Capture(Node):
         if self._scene is None and self._seq == 0:  # the run's verdict: this source failed
             with contextlib.suppress(RuntimeError):
                 self.ctx.set_error(self._recovery.never_delivered())
+        self._unhold()
         readers = [*self._abandoned, *([self._reader] if self._reader else [])]
         self._reader = None
         self._abandoned = []
@@ -192,6 +204,8 @@ class Capture(Node):
             if not any(r.thread.is_alive() for r in readers):
                 break
             await asyncio.sleep(0.01)
+        for r in readers:
+            _release(r.unused())  # a thread still stuck keeps its blanks: it may write them
         stuck = [r.thread.name for r in readers if r.thread.is_alive()]
         if stuck:
             self.ctx.log.warning(
@@ -201,6 +215,7 @@ class Capture(Node):
             )
 
     async def process(self) -> dict[str, Any] | None:
+        self._unhold()
         out = self._synthetic() if self._scene is not None else await self._grab()
         if out is not None and self.params.pacing == "fast" and self._kind != "camera":
             # Offline: every period-1 frame reader (inline or in a worker) takes every frame.
@@ -230,11 +245,7 @@ class Capture(Node):
         w, h = p.size or raw_size(raw, fmt_in, dims)
         frame = self.ctx.new_frame(output_shape(w, h, p.pixel_format), np.uint8, p.pixel_format)
         convert_into(raw, fmt_in, p.pixel_format, frame.data, dims)
-        frame.seq = self._seq
-        frame.timestamp = self.ctx.now()
-        frame.source = self.ctx.name
-        self._seq += 1
-        return frame
+        return self._stamped(frame)
 
     # -- real sources
 
@@ -265,6 +276,8 @@ class Capture(Node):
             self._reader.stop()
             self._abandoned.append(self._reader)
             self._reader = None
+        for r in self._abandoned:
+            _release(r.unused())
         self._abandoned = [r for r in self._abandoned if r.thread.is_alive()]
 
     def _failed(self, alert: str, detail: str) -> None:
@@ -327,12 +340,60 @@ class Capture(Node):
         value = await self._next_frame(reader, first=reader.delivered == 0)
         if value is None:
             return None
-        img, dims, self._position = value
+        img, dims, self._position, blank = value
         recovery.frame_read()
+        lent: Frame | None = reader.reclaim(blank)
         try:
-            frame = self._publishable(img, p.input_format or "BGR", dims)
+            if lent is not None and img is lent.data:  # decoded in its slot: no copy
+                frame = self._stamped(lent)
+                self._held = lent  # the node's link, given back once it is published
+            else:
+                _release([lent])
+                frame = self._publishable(img, p.input_format or "BGR", dims)
         except SourceError as e:
             self._failed("source-error", str(e))
             return None
+        self._lend(reader, img)
         recovery.frame_published(first=frame.seq == 0)
         return {"frame": frame}
+
+    def _lend(self, reader: Reader, img: np.ndarray) -> None:
+        """Keep ``LEND`` slots with the reader of a file whose frames are published as they
+        are decoded (same format, same size): it decodes the next frames into them."""
+        p: CaptureParams = self.params
+        fmt = p.input_format or "BGR"
+        if self._kind != "file" or img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            return
+        h, w = img.shape[:2]
+        if fmt != p.pixel_format or fmt not in ("BGR", "RGB"):
+            return
+        if p.size is not None and tuple(p.size) != (w, h):
+            return
+        while reader.lent < LEND:
+            # A pool at its bound counts this as a dropped frame, as it would the next one.
+            frame = self.ctx.new_frame(img.shape, np.uint8, p.pixel_format)
+            if not frame.shared:  # no pool, or every slot held: decoded then copied
+                return
+            frame.acquire()  # the node's link: the activation lets go of its own at its end
+            reader.lend(frame.data, frame)
+
+    def _stamped(self, frame: Frame) -> Frame:
+        frame.seq = self._seq
+        frame.timestamp = self.ctx.now()
+        frame.source = self.ctx.name
+        self._seq += 1
+        return frame
+
+    def _unhold(self) -> None:
+        """The frame returned last time is held by its readers now (and by nobody if it was
+        discarded: the activation took a link of its own on it, given back at its end): drop
+        the node's link."""
+        if self._held is not None:
+            self._held.release()
+            self._held = None
+
+
+def _release(frames: list[Any]) -> None:
+    for frame in frames:
+        if frame is not None:
+            frame.release()

@@ -2,9 +2,16 @@
 
 A driver call can block for seconds or for good (an unplugged camera, a stalled network
 share). The node's event loop therefore never calls a device: a daemon thread per device
-does, and hands items to the loop through a deque -- ``("frame", (image, dims, position))``,
-``("eof", None)``, ``("error", message)``, ``("alert", (alert, detail))`` or
+does, and hands items to the loop through a deque -- ``("frame", (image, dims, position,
+blank))``, ``("eof", None)``, ``("error", message)``, ``("alert", (alert, detail))`` or
 ``("log", lines)`` (what the C libraries printed while the device opened).
+
+Blanks: the loop may :meth:`Reader.lend` the thread arrays to decode into (the pixels of
+frames in shared-memory slots), each with a token of its own; a frame item names the blank it
+was decoded into (or None) and :meth:`Reader.reclaim` gives its token back. A decoded frame is
+then already in its slot: the loop publishes it without copying a pixel. Tokens of blanks the
+thread never used come back from :meth:`Reader.unused` once it has ended (never while it may
+still be writing into one).
 """
 
 from __future__ import annotations
@@ -15,6 +22,8 @@ import threading
 from collections import deque
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from .capture_sources import Device, SourceError
 from .capture_stderr import native_stderr
@@ -59,6 +68,8 @@ class Reader:
         self._cond = threading.Condition()
         self._waiter: asyncio.Future[None] | None = None
         self._stop = False
+        self._blanks: deque[np.ndarray] = deque()
+        self._lent: dict[int, tuple[np.ndarray, Any]] = {}  # id(blank) -> (blank, token)
         self.delivered = 0
         self.thread = threading.Thread(target=self._run, name=f"flowrt-capture-{name}", daemon=True)
         self.thread.start()
@@ -105,8 +116,14 @@ class Reader:
         try:
             dev = self._open(self._start)
             while self._room():
-                img = dev.read()
+                try:
+                    blank: np.ndarray | None = self._blanks.popleft()
+                except IndexError:
+                    blank = None
+                img = dev.read() if blank is None else dev.read(blank)
                 if img is None:
+                    if blank is not None:
+                        self._blanks.appendleft(blank)
                     if not (self._rewind and dev.rewindable):
                         self._push(EOF, None)
                         return
@@ -114,7 +131,7 @@ class Reader:
                     dev = None
                     dev = self._open(0)
                     continue
-                self._push(FRAME, (img, dev.dims, dev.position))
+                self._push(FRAME, (img, dev.dims, dev.position, blank))
         except SourceError as e:
             self._push(ERROR, str(e))
         except Exception as e:  # a driver or decoder error: report it, never kill silently
@@ -125,6 +142,33 @@ class Reader:
                     dev.release()
 
     # -- loop side
+
+    @property
+    def lent(self) -> int:
+        """How many blanks are out: lent and not yet reclaimed."""
+        return len(self._lent)
+
+    def lend(self, blank: np.ndarray, token: Any) -> None:
+        """Give the thread ``blank`` to decode a frame into; ``token`` comes back with it."""
+        self._lent[id(blank)] = (blank, token)
+        self._blanks.append(blank)
+
+    def reclaim(self, blank: np.ndarray | None) -> Any:
+        """The token of the blank a frame item names (None for none)."""
+        if blank is None:
+            return None
+        entry = self._lent.pop(id(blank), None)
+        return None if entry is None else entry[1]
+
+    def unused(self) -> list[Any]:
+        """Once the thread has ended: the tokens of the blanks it never handed back (the
+        rest: the frame items dropped by :meth:`stop`, or blanks never used)."""
+        if self.thread.is_alive():
+            return []
+        tokens = [token for _, token in self._lent.values()]
+        self._lent.clear()
+        self._blanks.clear()
+        return tokens
 
     def take(self) -> tuple[str, Any] | None:
         with self._cond:

@@ -40,13 +40,15 @@ class Device:
 
     ``position`` is the index in the stream of the next frame ``read()`` returns, so that a
     reopened file or image sequence resumes where it stalled instead of starting over.
+    ``into``: an array to decode into when the device can (its shape and type match the
+    frame); the returned array is then that very array, else a new one.
     """
 
     dims: tuple[int, int] | None = None
     rewindable = False
     position = 0
 
-    def read(self) -> np.ndarray | None:
+    def read(self, into: np.ndarray | None = None) -> np.ndarray | None:
         raise NotImplementedError
 
     def release(self) -> None:
@@ -116,8 +118,10 @@ class VideoDevice(Device):
             cap.set(cv2.CAP_PROP_POS_FRAMES, start)
             self.frames = self.position = start
 
-    def read(self) -> np.ndarray | None:
-        ok, img = self.cap.read()
+    def read(self, into: np.ndarray | None = None) -> np.ndarray | None:
+        # OpenCV writes into ``into`` when its shape and type fit (a frame's shared-memory
+        # slot: no copy on the loop), else it allocates.
+        ok, img = self.cap.read() if into is None else self.cap.read(into)
         if not ok or img is None:
             if self.kind == "camera":
                 raise SourceError(
@@ -153,7 +157,7 @@ class ImageDevice(Device):
         self.index = min(start, len(self.files))
         self.good = self.index  # resuming: the files before were read already
 
-    def read(self) -> np.ndarray | None:
+    def read(self, into: np.ndarray | None = None) -> np.ndarray | None:
         while self.index < len(self.files):
             path = self.files[self.index]
             self.index += 1

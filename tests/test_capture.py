@@ -19,7 +19,7 @@ from typing import Any, ClassVar
 import cv2
 import numpy as np
 import pytest
-from flowrt.nodes import capture_sources, capture_stderr
+from flowrt.nodes import capture, capture_sources, capture_stderr
 from flowrt.nodes.capture import (
     Capture,
     CaptureParams,
@@ -64,6 +64,7 @@ class Recorder(Node):
             "source": frame.source,
             "timestamp": frame.timestamp,
             "digest": hashlib.blake2b(frame.data.tobytes(), digest_size=8).hexdigest(),
+            "shared": frame.shared,
         }
         if len(self.rows) < self.params.keep:
             row["data"] = frame.data.copy()
@@ -81,6 +82,7 @@ class Run:
         self.stats = stats
         self.truths = truths
         self.verdict: list[tuple[str, str, str]] = []
+        self.pools: list[Any] = []  # the frame pools' figures after the run (teardown done)
 
     def alerts(self, name: str | None = None) -> list[HealthAlert]:
         """The source's own alerts (all but the node-state ones), or those named ``name``."""
@@ -159,6 +161,7 @@ async def run_capture(
         truths.extend(sub.drain())
     run = Run(Recorder.store.pop(key, []), events, stats, truths)
     run.verdict = [(n.name, n.state, n.reason) for n in rt.failures()]  # after teardown
+    run.pools = rt.stats().frames
     return run
 
 
@@ -432,6 +435,76 @@ async def test_real_video_frames_and_tracker() -> None:
     assert all(d.source == "cam" for d in got)
 
 
+async def test_a_file_is_decoded_straight_into_the_frames_slots(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Offline, a video published as decoded (same format, same size) is decoded by the reader
+    thread into slots lent to it: the loop copies only the frames read before the first lend,
+    every frame arrives intact and in order, and no slot is still held after the run."""
+    clip = tmp_path / "clip.avi"
+    _write_video(clip, 30)
+    cap = cv2.VideoCapture(str(clip))
+    decoded = [hashlib.blake2b(img.tobytes(), digest_size=8).hexdigest() for img in _frames(cap)]
+    copies: list[int] = []
+    real = capture.convert_into
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        copies.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(capture, "convert_into", counted)
+    run = await run_capture(
+        {"source": str(clip), "pacing": "fast"},
+        10.0,
+        until=lambda r: bool(r.alerts("end-of-stream")),
+    )
+    assert [r["seq"] for r in run.rows] == list(range(30))
+    assert [r["digest"] for r in run.rows] == decoded
+    assert all(r["shared"] for r in run.rows)
+    assert 1 <= len(copies) <= capture.LEND  # the read-ahead before the first lend
+    (pool,) = [p for p in run.pools if p.owner == "cam"]
+    assert (pool.slots_in_use, pool.dropped) == (0, 0)
+
+
+async def test_frames_decoded_in_place_and_discarded_at_a_firm_deadline_are_freed_once(
+    tmp_path: Path,
+) -> None:
+    """A capture whose results are discarded (a firm deadline it always misses) gives every
+    slot back exactly once: neither leaked (held by the node for good) nor released twice
+    (which would fail the node)."""
+    clip = tmp_path / "clip.avi"
+    _write_video(clip, 12)
+    g = flowrt.GraphBuilder("firm-capture")
+    g.add(
+        "cam",
+        "capture",
+        params={"source": str(clip), "pacing": "fast", "on_eof": "exit"},
+        deadline="0.01ms",
+        miss_policy="discard",
+    )
+    events: list[Any] = []
+    rt = flowrt.Runtime(g.build())
+    rt.on_event(events.append)
+    async with rt:
+        await rt.run(10.0)
+    cam = rt.stats().node("cam")
+    assert cam.discarded >= 10  # the path under test was taken
+    assert cam.errors == 0
+    assert not [e for e in events if isinstance(e, NodeFailed)]
+    (pool,) = [p for p in rt.stats().frames if p.owner == "cam"]
+    assert pool.slots_in_use == 0
+
+
+def _frames(cap: Any) -> list[np.ndarray]:
+    out = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            cap.release()
+            return out
+        out.append(img)
+
+
 async def test_the_repository_clip_through_a_file_source_and_tracker() -> None:
     """graphs/sample.avi (what graphs/video.yaml plays): every frame read, the lamp found."""
 
@@ -679,10 +752,10 @@ async def test_slow_file_is_reported_then_resumed(
         original_init(self, *args, **kwargs)
         opened.append(self)
 
-    def read(self: Any) -> Any:
+    def read(self: Any, into: Any = None) -> Any:
         if self is opened[0] and self.frames == 3:
             release.wait(10)  # the first device hangs after three frames
-        return original_read(self)
+        return original_read(self, into)
 
     monkeypatch.setattr(capture_sources.VideoDevice, "__init__", init)
     monkeypatch.setattr(capture_sources.VideoDevice, "read", read)

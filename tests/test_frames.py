@@ -272,3 +272,39 @@ def test_no_segment_outlives_the_process(mode: str) -> None:
         FrameStore.reclaim_orphans()
         left = [n for n in os.listdir(SHM_DIR) if n.startswith(prefix)]
     assert left == []
+
+
+def _resident_pages(frame: Frame) -> int:
+    """How many pages of ``frame``'s slot are in memory (mincore), without touching them."""
+    import ctypes
+    import mmap
+
+    assert frame._slot is not None
+    mm = frame._slot.mm
+    pages = (len(mm) + mmap.PAGESIZE - 1) // mmap.PAGESIZE
+    vec = (ctypes.c_ubyte * pages)()
+    buf = ctypes.c_char.from_buffer(mm)
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        assert libc.mincore(ctypes.c_void_p(ctypes.addressof(buf)), len(mm), vec) == 0
+    finally:
+        del buf
+    return sum(v & 1 for v in vec)
+
+
+def test_fresh_slots_get_their_pages_untouched_and_keep_what_was_written(
+    store: FrameStore,
+) -> None:
+    """A new slot's pages are allocated before anyone writes it (by the prefault thread:
+    the producer does not pay them on its first write), and populating never changes a byte
+    already written."""
+    from flowrt.frames import prefault
+
+    pool = store.pool("cam", initial_slots=3)
+    first = pool.reserve((512, 512, 3))
+    assert first is not None
+    first.data[:] = 7  # written at once: before or while its pages are populated
+    others = [pool.reserve((512, 512, 3)) for _ in range(2)]  # the initial slots, untouched
+    assert prefault.settled()
+    assert all(f is not None and _resident_pages(f) * 4096 >= f.nbytes for f in others)
+    assert int(first.data.min()) == int(first.data.max()) == 7

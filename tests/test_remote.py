@@ -426,8 +426,17 @@ def _png_header(w: int, h: int) -> bytes:
             "bad frame",
         ),
         ({"shape": [4, 4, 3], "dtype": "uint8", "enc": "raw"}, bytes(2 << 20), "too large"),
+        ({"shape": [2, 2, 3], "dtype": "uint8", "enc": "raw"}, bytes(11), "undecodable"),
     ],
-    ids=["empty", "5-channels", "dtype", "huge-declared", "png-header-huge", "over-byte-limit"],
+    ids=[
+        "empty",
+        "5-channels",
+        "dtype",
+        "huge-declared",
+        "png-header-huge",
+        "over-byte-limit",
+        "raw-size-mismatch",
+    ],
 )
 def test_an_import_refuses_what_is_not_an_image_before_decoding(
     meta: dict[str, Any], payload: bytes, reason: str

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from .frame import ALIGN, HEADER, NAME_RE, SHM_DIR, SHM_PREFIX, Frame, occupants
+from .prefault import prefault
 
 # --------------------------------------------------------------------------------------------
 # Slots and pools
@@ -49,9 +50,9 @@ class Slot:
             os.unlink(path)
             raise
         os.close(fd)
-        # Touch every page now (pre-allocated buffers): the first frame written into a fresh
-        # slot must not pay tmpfs page allocation on the capture path.
-        np.frombuffer(self.mm, dtype=np.uint8)[:] = 0
+        # Pre-allocated buffers: the first frame written into a fresh slot must not pay tmpfs
+        # page allocation on the capture path; a thread has the pages allocated meanwhile.
+        prefault(self.mm)
 
     def view(self, shape: tuple[int, ...], dtype: np.dtype[Any]) -> np.ndarray:
         n = math.prod(shape) if shape else 1
