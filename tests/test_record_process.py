@@ -359,7 +359,7 @@ def _refuse(*_: Any) -> None:
 def test_a_priority_the_system_refuses_is_said_not_dropped(
     monkeypatch: pytest.MonkeyPatch, priority: str, setter: Any, said: str | None
 ) -> None:
-    from flowrt.recording.writerproc import _set_priority
+    from flowrt.recording.writer.child import _set_priority
 
     monkeypatch.setattr(os, "sched_setscheduler", setter)
     note = _set_priority(priority)

@@ -9,95 +9,52 @@ import gc
 import inspect
 import itertools
 import math
-import os
 import pickle
 import select
-import signal
 import socket
-import sys
 import time
 import traceback
 from typing import Any
 
 from ..frames.lending import WorkerSlots, lazy_report
+from ..ipc import PICKLE, BlockingConn
 from ..oscheduling import WorkerScheduling, apply_scheduling
-from .wire import (
-    HDR,
-    OP_ADD,
-    OP_CALL,
-    OP_EXIT,
-    OP_PRIORITY,
-    OP_REMOVE,
-    PICKLE,
-    R_ERR,
-    R_FATAL,
-    R_OK,
-)
+from .forkserver import tied_to_runtime
+from .wire import OP_ADD, OP_CALL, OP_EXIT, OP_PRIORITY, OP_REMOVE, R_ERR, R_FATAL, R_OK
 
 
-class _BlockingConn:
-    """Length-prefixed messages over the worker's end of the socketpair."""
+def _spin(conn: BlockingConn, start: float, end: float) -> None:
+    """Sleep until ``start`` (or data), then poll without sleeping until ``end`` (or data).
 
-    def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
-        self.buf = bytearray()
+    A process blocked in recv is woken by the sender through the scheduler, and a CPU that
+    went idle meanwhile has to come out of its sleep state first (tens to hundreds of
+    microseconds, more in a VM, different every time). Polling keeps the CPU awake and the
+    worker running at the instant the call arrives.
+    """
+    sock, now = conn.sock, time.monotonic
+    wait = start - now()
+    if wait > 0:
+        poller = select.poll()
+        poller.register(sock, select.POLLIN)
+        if poller.poll(math.ceil(wait * 1000)):
+            return
+    while now() < end:
+        try:
+            chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            continue
+        except ConnectionResetError:
+            return  # left for recv to see
+        if chunk:
+            conn.buf += chunk
+        return  # data, or EOF (left for recv to see)
 
-    def recv(self, spin: tuple[float, float] | None = None) -> bytes | None:
-        """The next message; with ``spin`` = (start, end), busy-poll for it in that window."""
-        buf = self.buf
-        if spin is not None and not self._complete():
-            self._spin(*spin)
-        while True:
-            if len(buf) >= 4:
-                (n,) = HDR.unpack_from(buf)
-                if len(buf) >= 4 + n:
-                    msg = bytes(buf[4 : 4 + n])
-                    del buf[: 4 + n]
-                    return msg
-                want = 4 + n - len(buf)
-            else:
-                want = 4
-            try:
-                chunk = self.sock.recv(max(want, 1 << 16))
-            except ConnectionResetError:  # the runtime is gone (killed): as EOF
-                return None
-            if not chunk:
-                return None
-            buf += chunk
 
-    def send(self, payload: bytes) -> None:
-        with contextlib.suppress(BrokenPipeError, ConnectionResetError):  # runtime gone: the
-            self.sock.sendall(HDR.pack(len(payload)) + payload)  # next recv sees EOF
-
-    def _complete(self) -> bool:
-        buf = self.buf
-        return len(buf) >= 4 and len(buf) >= 4 + HDR.unpack_from(buf)[0]
-
-    def _spin(self, start: float, end: float) -> None:
-        """Sleep until ``start`` (or data), then poll without sleeping until ``end`` (or data).
-
-        A process blocked in recv is woken by the sender through the scheduler, and a CPU that
-        went idle meanwhile has to come out of its sleep state first (tens to hundreds of
-        microseconds, more in a VM, different every time). Polling keeps the CPU awake and the
-        worker running at the instant the call arrives.
-        """
-        sock, now = self.sock, time.monotonic
-        wait = start - now()
-        if wait > 0:
-            poller = select.poll()
-            poller.register(sock, select.POLLIN)
-            if poller.poll(math.ceil(wait * 1000)):
-                return
-        while now() < end:
-            try:
-                chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
-            except BlockingIOError:
-                continue
-            except ConnectionResetError:
-                return  # left for recv to see
-            if chunk:
-                self.buf += chunk
-            return  # data, or EOF (left for recv to see)
+def _next_request(conn: BlockingConn, spin: tuple[float, float] | None) -> bytes | None:
+    """The next request; with ``spin`` = (start, end), busy-poll for it in that window."""
+    if spin is not None and not conn.complete():
+        _spin(conn, *spin)
+    return conn.recv()
 
 
 class Anticipation:
@@ -142,35 +99,8 @@ class Anticipation:
         return best
 
 
-def _set_pdeathsig() -> None:
-    """Ask the kernel to SIGKILL this worker when its parent (the forkserver) dies."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
-def tied_to_runtime(main_pid: int) -> bool:
-    """Start of a process the runtime forks (a worker, a recording writer): Ctrl-C and
-    SIGTERM are the runtime's to handle, and the process dies with its parent; False when
-    the runtime is already gone (it died while this process was being forked)."""
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_IGN)
-    _set_pdeathsig()
-    try:
-        os.kill(main_pid, 0)
-    except ProcessLookupError:
-        return False
-    return True
-
-
 def _reply(
-    conn: _BlockingConn,
+    conn: BlockingConn,
     status: int,
     payload: Any,
     seconds: float,
@@ -197,7 +127,7 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     if not tied_to_runtime(main_pid):
         return  # nothing to serve
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
-    conn = _BlockingConn(sock)
+    conn = BlockingConn(sock)
     nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
     outputs: dict[int, WorkerSlots] = {}  # each node's output slots (flowrt.frames.lending)
     current: WorkerScheduling | None = None
@@ -220,7 +150,7 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
             run(entry[1].teardown())
 
     for index in itertools.count():
-        raw = conn.recv(expected.window(time.monotonic()) if expected.spin else None)
+        raw = _next_request(conn, expected.window(time.monotonic()) if expected.spin else None)
         if raw is None:
             break
         t0 = time.perf_counter()
