@@ -122,33 +122,80 @@ def _reply(
     conn.send(data)
 
 
+class _Nodes:
+    """What a worker serves: its nodes, their output slots, the scheduling in force, the loop
+    that runs their coroutines. One method per request (workers/wire.py)."""
+
+    def __init__(self) -> None:
+        self.nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
+        self.outputs: dict[int, WorkerSlots] = {}  # each node's slots (flowrt.frames.lending)
+        self.current: WorkerScheduling | None = None
+        self.expected = Anticipation()
+        self.loop: asyncio.AbstractEventLoop | None = None
+
+    def run(self, value: Any) -> Any:
+        if inspect.isawaitable(value):
+            if self.loop is None:
+                self.loop = asyncio.new_event_loop()
+            return self.loop.run_until_complete(_await(value))
+        return value
+
+    def call(self, nid: int, inputs: dict[str, Any], grants: Any) -> tuple[Any, WorkerSlots]:
+        """OP_CALL: the node's ``process``; its output slots, told of the reply after."""
+        self.expected.called(nid, time.monotonic())
+        _, node, sched = self.nodes[nid]
+        if self.current != sched:
+            apply_scheduling(sched)
+            self.current = sched
+        slots = self.outputs.get(nid)
+        if slots is None:
+            slots = self.outputs[nid] = WorkerSlots()
+        slots.begin(grants)
+        return self.run(node.process(**inputs)), slots
+
+    def add(self, nid: int, node_name: str, factory: Any, sched: WorkerScheduling) -> str:
+        """OP_ADD: a node set up here; the scheduling the kernel granted."""
+        self.teardown(nid)  # a restart in a live worker: the old instance goes first
+        granted = apply_scheduling(sched)
+        self.current = sched
+        self.expected.configure(nid, sched.spin)
+        node = factory()
+        if hasattr(node, "setup"):
+            self.run(node.setup())
+        self.nodes[nid] = (node_name, node, sched)
+        gc.freeze()  # the node's setup, too: never walked at a call (no collect first:
+        # walking the inherited objects would copy their shared pages)
+        return granted
+
+    def priority(self, nid: int, sched: WorkerScheduling) -> str:
+        """OP_PRIORITY: the node's new scheduling, applied now (and at each of its calls)."""
+        node_name, node, _ = self.nodes[nid]
+        self.nodes[nid] = (node_name, node, sched)
+        granted = apply_scheduling(sched)
+        self.current = sched
+        return granted
+
+    def teardown(self, nid: int) -> None:
+        entry = self.nodes.pop(nid, None)
+        self.outputs.pop(nid, None)  # the main side takes its grants back (reclaim)
+        self.expected.configure(nid, 0.0)
+        if entry is not None and hasattr(entry[1], "teardown"):
+            self.run(entry[1].teardown())
+
+    def teardown_all(self) -> None:
+        for nid in list(self.nodes):
+            with contextlib.suppress(Exception):
+                self.teardown(nid)
+
+
 def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     """Entry point of a worker process: serve requests until EXIT or EOF."""
     if not tied_to_runtime(main_pid):
         return  # nothing to serve
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
     conn = BlockingConn(sock)
-    nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
-    outputs: dict[int, WorkerSlots] = {}  # each node's output slots (flowrt.frames.lending)
-    current: WorkerScheduling | None = None
-    expected = Anticipation()
-    loop: asyncio.AbstractEventLoop | None = None
-
-    def run(value: Any) -> Any:
-        nonlocal loop
-        if inspect.isawaitable(value):
-            if loop is None:
-                loop = asyncio.new_event_loop()
-            return loop.run_until_complete(_await(value))
-        return value
-
-    def teardown(nid: int) -> None:
-        entry = nodes.pop(nid, None)
-        outputs.pop(nid, None)  # the main side takes its grants back (OutputGrants.reclaim)
-        expected.configure(nid, 0.0)
-        if entry is not None and hasattr(entry[1], "teardown"):
-            run(entry[1].teardown())
-
+    w = _Nodes()
+    expected = w.expected
     for index in itertools.count():
         raw = _next_request(conn, expected.window(time.monotonic()) if expected.spin else None)
         if raw is None:
@@ -159,42 +206,16 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
             msg = pickle.loads(raw)
             op = msg[0]
             if op == OP_CALL:
-                _, nid, inputs, grants = msg
-                expected.called(nid, time.monotonic())
-                _, node, sched = nodes[nid]
-                if current != sched:
-                    apply_scheduling(sched)
-                    current = sched
-                slots = outputs.get(nid)
-                if slots is None:
-                    slots = outputs[nid] = WorkerSlots()
-                slots.begin(grants)
-                result = run(node.process(**inputs))
+                result, slots = w.call(*msg[1:])
             elif op == OP_ADD:
-                _, nid, node_name, factory, sched = msg
-                teardown(nid)  # a restart in a live worker: the old instance goes first
-                result = apply_scheduling(sched)
-                current = sched
-                expected.configure(nid, sched.spin)
-                node = factory()
-                if hasattr(node, "setup"):
-                    run(node.setup())
-                nodes[nid] = (node_name, node, sched)
-                gc.freeze()  # the node's setup, too: never walked at a call (no collect first:
-                # walking the inherited objects would copy their shared pages)
+                result = w.add(*msg[1:])
             elif op == OP_PRIORITY:
-                _, nid, sched = msg
-                node_name, node, _ = nodes[nid]
-                nodes[nid] = (node_name, node, sched)
-                result = apply_scheduling(sched)
-                current = sched
+                result = w.priority(*msg[1:])
             elif op == OP_REMOVE:
-                teardown(msg[1])
+                w.teardown(msg[1])
                 result = None
             elif op == OP_EXIT:
-                for nid in list(nodes):
-                    with contextlib.suppress(Exception):
-                        teardown(nid)
+                w.teardown_all()
                 _reply(conn, R_OK, None, time.perf_counter() - t0, index)
                 break
             else:
@@ -206,8 +227,8 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
             _reply(conn, R_OK, result, time.perf_counter() - t0, index, slots)
         if slots is not None:
             slots.end()
-    if loop is not None:
-        loop.close()
+    if w.loop is not None:
+        w.loop.close()
     sock.close()
 
 
