@@ -106,7 +106,6 @@ class NodeRunner:
         self._idle_waiters: list[asyncio.Future[None]] = []
         self.deferred: float | None = None  # a paced source's tick that came while busy
         self.untaken = False  # released, inputs not yet taken (the run is scheduled)
-        self.more_input = False
         self.stopping = False
         self.act: Activation | None = None
         self._acts = 0  # activations begun: their ids
@@ -270,8 +269,7 @@ class NodeRunner:
             self.pipeline.schedule_pump()
             return
         if self.busy or self.state is not _IDLE or self.stopping or not self.timing.enabled:
-            self.more_input = True
-            return
+            return  # the pending input is taken when the run ends (see the end of a run)
         self.release(self.sched.clock.now())
 
     # --- one activation -----------------------------------------------------------------
@@ -441,7 +439,6 @@ class NodeRunner:
         if isinstance(self.rnode.trigger, LoopTrigger):
             self.sched.loop.call_soon(self.release, self.sched.clock.now())
         elif self.trigger_inputs:
-            self.more_input = False
             buffers = self.inputs
             for p in self.trigger_inputs:
                 if buffers[p].pending():

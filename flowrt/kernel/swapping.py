@@ -145,7 +145,6 @@ class Swapper:
         if r.state in (RunState.failed, RunState.backoff):
             r.state = RunState.idle
         r.supervisor.succeeded()
-        r.counts.swaps += 1
         return old
 
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import io
 import itertools
-import json
 import os
 import statistics
 from collections.abc import Iterator
@@ -654,7 +653,3 @@ def _write_repaired(p: Path, rec: Any, tmp: Path, header_profile: str) -> int:
         f.flush()
         os.fsync(f.fileno())
     return kept
-
-
-def info_json(info: FileInfo) -> str:
-    return json.dumps(info.model_dump(mode="json"), indent=1)

@@ -175,11 +175,6 @@ class Worker:
             and all(c.node == call.node and c.window > 1 for c in inflight)
         )
 
-    @property
-    def in_flight(self) -> int:
-        """Calls written to the worker and not answered yet."""
-        return len(self._inflight)
-
     def _send(self, call: _Call) -> None:
         assert self._transport is not None
         call.index = next(self._wire)
