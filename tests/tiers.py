@@ -7,10 +7,12 @@ process, nothing long) and everything (CI). A test is ``slow`` when it carries a
 1. *Derived* (collection): a test's code, the fixtures it requests and the helpers of tests/
    they call (followed transitively, through classes too) are read for what starts a process:
    the ``subprocess`` and ``multiprocessing`` modules, asyncio's ``create_subprocess_*``,
-   flowrt's worker and writer processes (``flowrt.workers``, ``ProcessRecordingWriter``):
-   ``subprocess``; Chromium (a ``chromium`` executable named in the code): ``browser``; and
-   any helper decorated with :func:`uses`. A new test that calls ``flowrt_cli`` is slow
-   without anyone remembering to say so.
+   flowrt's worker and writer processes (``flowrt.workers``, ``ProcessRecordingWriter``),
+   the servers that run in a process of their own (``ControlServer``, the ``Display``
+   node), a graph that the test runs (``Runtime``, ``run``) and that names ``process`` or
+   ``pool`` (a placement) or ``recorder``: ``subprocess``; Chromium (a ``chromium``
+   executable named in the code): ``browser``; and any helper decorated with :func:`uses`.
+   A new test that calls ``flowrt_cli`` is slow without anyone remembering to say so.
 2. *Declared* (``pytest.mark.realtime`` and the like, or ``pytestmark`` in a file): what
    cannot be read from the code, a test that measures real time or whose graph places a node
    in a worker process (the graph file says so, not the test's code).
@@ -60,8 +62,18 @@ PROCESS_OBJECTS = frozenset(
         "flowrt.workers.executors.ProcessExecutor",
         "flowrt.workers.forkserver.start_forkserver",
         "flowrt.recording.writer.channel.ProcessRecordingWriter",
+        "flowrt.control.ControlServer",  # serves from a process of its own
+        "flowrt.nodes.display.Display",  # its view server: a process of its own
     }
 )
+# String constants that put a process in a test's graph: a node placed in a worker or the
+# pool, a recorder (its writer is a process by default). Exact values, in the test's code or
+# its parameters (``@pytest.mark.parametrize("placement", ["process", "inline"])``).
+PROCESS_STRINGS = frozenset({"process", "pool", "recorder"})
+# ...which matter only when the test runs a graph (a test of validation or of the status
+# table names placements without starting anything).
+RUNNERS = frozenset({"Runtime", "run", "replay"})
+_NAMES_A_PROCESS, _RUNS = "?process-string", "?runs"  # clues, combined by derive()
 PROCESS_NAMES = frozenset(
     {"create_subprocess_exec", "create_subprocess_shell", "Popen", "ProcessRecordingWriter"}
 )
@@ -130,8 +142,13 @@ def tiers_used(fn: Any, seen: set[int] | None = None) -> set[str]:
         return found
     glob = getattr(fn, "__globals__", {})
     for c in _codes(code):
-        if any(isinstance(k, str) and "chromium" in k for k in c.co_consts):
+        strings = [k for k in c.co_consts if isinstance(k, str)]
+        if any("chromium" in k for k in strings):
             found.add("browser")
+        if PROCESS_STRINGS.intersection(strings):
+            found.add(_NAMES_A_PROCESS)
+        if RUNNERS.intersection(c.co_names):
+            found.add(_RUNS)
         for name in c.co_names:
             if name in PROCESS_NAMES or name in PROCESS_MODULES:  # (imported in a function too)
                 found.add("subprocess")
@@ -163,11 +180,18 @@ def derive(items: list[pytest.Item]) -> None:
         fn = getattr(item, "obj", None)
         if fn is not None:
             found |= tiers_used(fn)
+        callspec = getattr(item, "callspec", None)
+        if callspec is not None and any(
+            isinstance(v, str) and v in PROCESS_STRINGS for v in callspec.params.values()
+        ):
+            found.add(_NAMES_A_PROCESS)
         info = getattr(item, "_fixtureinfo", None)
         for defs in info.name2fixturedefs.values() if info is not None else ():
             for fixturedef in defs:
                 found |= tiers_used(fixturedef.func)
-        for tier in sorted(found):
+        if {_NAMES_A_PROCESS, _RUNS} <= found:
+            found.add("subprocess")
+        for tier in sorted(found - {_NAMES_A_PROCESS, _RUNS}):
             if item.get_closest_marker(tier) is None:
                 item.add_marker(getattr(pytest.mark, tier))
         if any(item.get_closest_marker(t) is not None for t in TIERS):
