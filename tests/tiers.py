@@ -23,9 +23,12 @@ process, nothing long) and everything (CI). A test is ``slow`` when it carries a
 The 1 s rule on a loaded machine: the guard measures the *CPU time* of the test's process
 (every thread), which a busy machine does not inflate: a test given 0.3 s of CPU still uses
 0.3 s when it waits twice as long for it. Real sleeps use no CPU, so the wall clock is checked
-too, with a generous factor: ``FAST_SECONDS`` x max(3, load average / CPUs), 3 s on an idle
-machine and 25 s at a load of 16 on 2 cores (what a heavily shared runner sees): it catches a
-test that sleeps for seconds, never one that a busy machine merely slowed.
+too, twice generously: the test fails only when it took more than ``FAST_SECONDS`` x max(3,
+load average / CPUs) (3 s on an idle machine, 25 s at a load of 16 on 2 cores) *and* its
+thread slept more than 3 x ``FAST_SECONDS`` of it: the wall clock minus what the kernel says
+the thread ran and waited on the run queue (``/proc/self/task/TID/schedstat``), so waiting
+for a CPU that other programs hold is not taken for sleeping. A test that sleeps for seconds
+is caught; one that a busy machine merely slowed is not.
 ``FLOWRT_FAST_SECONDS`` changes the limit (0: no timing check; processes are always checked).
 """
 
@@ -38,6 +41,7 @@ import multiprocessing.process
 import multiprocessing.util
 import os
 import subprocess
+import threading
 import time
 import types
 from collections.abc import Callable, Iterable
@@ -49,6 +53,7 @@ import pytest
 TESTS = Path(__file__).resolve().parent
 TIERS = ("browser", "subprocess", "realtime", "node")
 FAST_SECONDS = float(os.environ.get("FLOWRT_FAST_SECONDS", "1"))
+SLEEP_FACTOR = 3.0  # of FAST_SECONDS: asleep on the real clock
 
 # What in a test's code starts a process. Modules by name; flowrt's own process owners by the
 # module they come from; names that are distinctive wherever they appear (an attribute:
@@ -250,6 +255,16 @@ def install_guard() -> None:
     os.register_at_fork(before=lambda: _note("a fork"))
 
 
+def _scheduled() -> float | None:
+    """Seconds this thread has run or waited for a CPU (Linux schedstat), else None."""
+    try:
+        with open(f"/proc/self/task/{threading.get_native_id()}/schedstat") as f:
+            run_ns, wait_ns, _ = f.read().split()
+    except (OSError, ValueError):
+        return None
+    return (int(run_ns) + int(wait_ns)) / 1e9
+
+
 def _wall_limit() -> float:
     try:
         load = os.getloadavg()[0] / (os.cpu_count() or 1)
@@ -265,7 +280,7 @@ def is_slow(item: pytest.Item) -> bool:
 def start(item: pytest.Item) -> None:
     global _started
     _started = []
-    item.stash[_clock] = (time.process_time(), time.monotonic())
+    item.stash[_clock] = (time.process_time(), time.monotonic(), _scheduled())
 
 
 def stop() -> None:
@@ -273,7 +288,7 @@ def stop() -> None:
     _started = None
 
 
-_clock = pytest.StashKey[tuple[float, float]]()
+_clock = pytest.StashKey[tuple[float, float, float | None]]()
 
 
 def verdict(item: pytest.Item) -> str | None:
@@ -288,7 +303,7 @@ def verdict(item: pytest.Item) -> str | None:
         )
     if FAST_SECONDS <= 0:
         return None
-    cpu0, wall0 = item.stash[_clock]
+    cpu0, wall0, sched0 = item.stash[_clock]
     cpu, wall = time.process_time() - cpu0, time.monotonic() - wall0
     if cpu > FAST_SECONDS:
         return (
@@ -296,9 +311,14 @@ def verdict(item: pytest.Item) -> str | None:
             "smaller, or mark it slow"
         )
     limit = _wall_limit()
-    if wall > limit:
+    if wall <= limit:
+        return None
+    sched1 = _scheduled()
+    slept = wall if sched0 is None or sched1 is None else wall - (sched1 - sched0)
+    if slept > SLEEP_FACTOR * FAST_SECONDS:
         return (
-            f"a fast-tier test took {wall:.1f} s (limit {limit:.1f} s at this load, CPU "
-            f"{cpu:.1f} s: it waits on the real clock): mark it @pytest.mark.realtime"
+            f"a fast-tier test took {wall:.1f} s (limit {limit:.1f} s at this load), "
+            f"{slept:.1f} s of it asleep (CPU {cpu:.1f} s): it waits on the real clock: mark "
+            "it @pytest.mark.realtime"
         )
     return None
