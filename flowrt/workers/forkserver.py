@@ -28,6 +28,10 @@ PRELOAD_MODULES = [
     "flowrt.oscheduling",
     "flowrt.workers",
     "flowrt.workers.child",
+    # The node author's API and pydantic under it: what a worker imports when it unpickles a
+    # node (import flowrt is lazy, so naming flowrt.workers no longer brings it along).
+    "flowrt.node",
+    "flowrt.events",
     "flowrt._forkserver_signals",  # SIGTERM/SIGHUP ignored, inherited by every worker
     "flowrt._forkserver_freeze",  # last: freezes all of the above before any fork
 ]
