@@ -35,12 +35,14 @@ is caught; one that a busy machine merely slowed is not.
 from __future__ import annotations
 
 import asyncio
+import functools
 import inspect
 import multiprocessing
 import multiprocessing.process
 import multiprocessing.util
 import os
 import subprocess
+import sys
 import threading
 import time
 import types
@@ -101,9 +103,17 @@ def uses(*tiers: str) -> Callable[[F], F]:
 # -- derived at collection --------------------------------------------------------------------
 
 
+_TESTS_PREFIX = str(TESTS) + os.sep
+
+
+@functools.cache
+def _file_in_tests(filename: str) -> bool:
+    return os.path.abspath(filename).startswith(_TESTS_PREFIX)
+
+
 def _in_tests(obj: Any) -> bool:
     code = getattr(obj, "__code__", None)
-    return code is not None and Path(code.co_filename).resolve().is_relative_to(TESTS)
+    return code is not None and _file_in_tests(code.co_filename)
 
 
 def _codes(code: types.CodeType) -> Iterable[types.CodeType]:
@@ -169,22 +179,35 @@ def tiers_used(fn: Any, seen: set[int] | None = None) -> set[str]:
 
 
 def _test_modules() -> set[str]:
-    import sys
+    global _modules
+    if _modules is None:
+        _modules = {
+            name
+            for name, mod in list(sys.modules.items())
+            if (f := getattr(mod, "__file__", None)) and _file_in_tests(f)
+        }
+    return _modules
 
-    return {
-        name
-        for name, mod in list(sys.modules.items())
-        if (f := getattr(mod, "__file__", None)) and Path(f).resolve().is_relative_to(TESTS)
-    }
+
+_modules: set[str] | None = None  # the modules of tests/, once collection has imported them
 
 
 def derive(items: list[pytest.Item]) -> None:
     """Mark each test with the tiers its code and fixtures use; every tier implies slow."""
+    global _modules
+    _modules = None
+    known: dict[int, set[str]] = {}  # a test function or fixture read once, however often used
+
+    def read(fn: Any) -> set[str]:
+        if id(fn) not in known:
+            known[id(fn)] = tiers_used(fn)
+        return known[id(fn)]
+
     for item in items:
         found: set[str] = set()
         fn = getattr(item, "obj", None)
         if fn is not None:
-            found |= tiers_used(fn)
+            found |= read(fn)
         callspec = getattr(item, "callspec", None)
         if callspec is not None and any(
             isinstance(v, str) and v in PROCESS_STRINGS for v in callspec.params.values()
@@ -193,7 +216,7 @@ def derive(items: list[pytest.Item]) -> None:
         info = getattr(item, "_fixtureinfo", None)
         for defs in info.name2fixturedefs.values() if info is not None else ():
             for fixturedef in defs:
-                found |= tiers_used(fixturedef.func)
+                found |= read(fixturedef.func)
         if {_NAMES_A_PROCESS, _RUNS} <= found:
             found.add("subprocess")
         for tier in sorted(found - {_NAMES_A_PROCESS, _RUNS}):
