@@ -44,14 +44,3 @@ def enable_realtime(priority: int = 90) -> tuple[bool, str]:
     except (OSError, AttributeError):
         pass
     return True, f"SCHED_FIFO {priority}{locked}"
-
-
-def current_policy() -> str:
-    if not hasattr(os, "sched_getscheduler"):
-        return "unknown"
-    policy = os.sched_getscheduler(0)
-    names = {os.SCHED_OTHER: "SCHED_OTHER", os.SCHED_FIFO: "SCHED_FIFO", os.SCHED_RR: "SCHED_RR"}
-    name = names.get(policy, str(policy))
-    if policy in (os.SCHED_FIFO, os.SCHED_RR):
-        return f"{name} {os.sched_getparam(0).sched_priority}"
-    return f"{name} nice {os.getpriority(os.PRIO_PROCESS, 0)}"

@@ -119,7 +119,6 @@ class FailureLog:
         self._seen: dict[str, str] = {}  # kind key -> the first such error, as shown
         self._pending: dict[str, _Repeats] = {}
         self._window_start: float | None = None
-        self.suppressed = 0  # failures counted rather than logged in full, in all
 
     def failed(self, now: float, error: str, traceback: str) -> None:
         """Log a failure in full if its kind is new, else count it for the next summary."""
@@ -131,7 +130,6 @@ class FailureLog:
             else:
                 log.error("node %s failed: %s", self.node, error)
             return
-        self.suppressed += 1
         if self._window_start is None:
             self._window_start = now
         rep = self._pending.setdefault(key, _Repeats(since=now))

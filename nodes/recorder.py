@@ -12,7 +12,7 @@ their source, ``node.port``). Inputs should be ``lossless`` edges: the producer 
 dropped on, and since ``process`` only queues (frames by reference, holding their
 shared-memory slot), the producer does not wait either unless the disk falls behind. Writing
 happens in a process of its own (``writer: process``, the default:
-:mod:`flowrt.recording.procwriter`), which reads each frame from its shared-memory slot, so
+:mod:`flowrt.recording.writer.channel`), which reads each frame from its shared-memory slot, so
 neither the disk nor the writer's CPU work touches the event loop or its GIL; ``writer:
 thread`` writes on threads of the runtime's process instead (:mod:`flowrt.recording.writer`).
 
@@ -79,6 +79,7 @@ from flowrt.recording import (
     ProcessRecordingWriter,
     RecordingWriter,
     SplitPolicy,
+    Writer,
     build_report,
     new_session,
     nominal_rates,
@@ -104,7 +105,7 @@ FINISH_WAIT = 1.0
 """Seconds a stop waits for the file to be finished before leaving it to the writer thread."""
 LET_GO_WAIT = 2.0
 """Seconds a stop waits for the writer to let go of the frames' slots (a process: a round trip)."""
-AnyWriter = RecordingWriter | ProcessRecordingWriter
+AnyWriter = Writer  # either writer: the recorder never asks which
 
 
 class Recorder(Node):

@@ -4,11 +4,12 @@ Tiers (markers registered in pyproject.toml): a test that drives headless Chromi
 (``browser``), starts flowrt or another program as a process (``subprocess``), measures real
 time (``realtime``) or runs Node.js (``node``) is also ``slow``, so that::
 
-    python -m pytest -q -m "not slow"     # the inner loop: seconds, no processes, no browser
+    python -m pytest -q -m "not slow"     # the inner loop: no process, no browser, < 2 min
     python -m pytest -q                   # everything (CI)
 
-A test file is marked as a whole by ``pytestmark``; the files below, whose every test starts
-processes, are marked here so that a new test in them is tiered too.
+The markers are derived from what a test uses (its code, its fixtures and the helpers they
+call) and a guard fails a fast-tier test that starts a process or takes too long anyway:
+see tests/tiers.py.
 """
 
 from __future__ import annotations
@@ -20,46 +21,40 @@ import re
 import signal
 import subprocess
 import sys
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Generator
 from pathlib import Path
 
 import pytest
+import tiers
 
 REPO = Path(__file__).resolve().parents[1]
-TIERS = ("browser", "subprocess", "realtime", "node")
+TIERS = tiers.TIERS
 
-# Files whose tests start flowrt (or workers, or Chromium) for real: measured as the slow part
-# of the suite. A file here does not need its own pytestmark.
-SLOW_FILES = {
-    "test_chunk_bomb.py": ("subprocess",),
-    "test_cli.py": ("subprocess",),
-    "test_cli_json.py": ("subprocess",),
-    "test_cli_status.py": ("subprocess",),
-    "test_display.py": ("browser", "realtime"),
-    "test_drain.py": ("subprocess",),
-    "test_readme.py": ("subprocess",),
-    "test_record.py": ("subprocess",),
-    "test_record_crash.py": ("subprocess",),
-    "test_record_process.py": ("subprocess",),
-    "test_record_split.py": ("subprocess", "realtime"),
-    "test_remote.py": ("realtime",),
-    "test_remote_control.py": ("realtime",),
-    "test_signals.py": ("subprocess",),
-    "test_special_files.py": ("subprocess",),
-    "test_untrusted_recordings.py": ("subprocess",),
-    "test_user_files.py": ("subprocess",),
-    "test_watchdog.py": ("realtime",),
-    "test_web_joystick.py": ("browser",),
-    "test_workers.py": ("subprocess",),
-}
+
+def pytest_configure(config: pytest.Config) -> None:
+    tiers.install_guard()
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    for item in items:
-        for tier in SLOW_FILES.get(item.path.name, ()):
-            item.add_marker(getattr(pytest.mark, tier))
-        if any(item.get_closest_marker(t) is not None for t in TIERS):
-            item.add_marker(pytest.mark.slow)
+    tiers.derive(items)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Generator[None]:
+    tiers.start(item)
+    try:
+        yield
+    finally:
+        tiers.stop()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Generator[None]:
+    outcome = yield
+    report = outcome.get_result()  # type: ignore[attr-defined]
+    if call.when == "call" and report.passed and (why := tiers.verdict(item)) is not None:
+        report.outcome = "failed"
+        report.longrepr = why
 
 
 @pytest.fixture
@@ -129,6 +124,7 @@ class FlowrtRun:
 
 
 @contextlib.asynccontextmanager
+@tiers.uses("subprocess")
 async def flowrt_running(*args: str, cwd: Path | None = None) -> AsyncIterator[FlowrtRun]:
     """``python -m flowrt.cli ARGS`` in the background; killed on the way out if still running
     (the body calls ``stop()`` for a clean end it checks)."""

@@ -248,6 +248,7 @@ def test_the_node_loads_what_cantools_loads_and_strict_refuses(
         g.build()
 
 
+@pytest.mark.slow  # over 1 s of CPU (hypothesis)
 @settings(max_examples=60, deadline=None)
 @given(
     flag=st.sampled_from(["--jitter", "--period", "--deadline", "--sporadic"]),

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from flowrt.nodes import display as display_module
 from flowrt.nodes.display import Display, Mark, render
+from tiers import uses
 
 import flowrt
 from flowrt import Frame, Input, Node, Output
@@ -93,6 +94,7 @@ def demo_graph(**display: Any) -> flowrt.Graph:
 
 
 @contextlib.asynccontextmanager
+@uses("subprocess")  # the display's view server process
 async def running(
     capsys: pytest.CaptureFixture[str], **display: Any
 ) -> AsyncIterator[tuple[flowrt.Runtime, str]]:
@@ -456,6 +458,7 @@ class BadCam(Node):
         return Frame(np.zeros((H, W, 2), np.uint8), source="bad")
 
 
+@pytest.mark.subprocess  # the display's view server process
 async def test_an_unshowable_source_does_not_stop_the_others(
     capsys: pytest.CaptureFixture[str],
 ) -> None:

@@ -117,6 +117,7 @@ def check_lossless(stats: object, expect_dropped: int = 0) -> None:
             assert e.dropped == expect_dropped, e
 
 
+@pytest.mark.subprocess  # a worker (or writer) process, from its graph
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize(("placement", "period"), [(p, 1) for p in PLACEMENTS] + [("process", 3)])
 async def test_lossless_edge_delivers_everything_through_the_drain(
@@ -208,6 +209,7 @@ def frames_in(path: Path) -> int:
     return n
 
 
+@pytest.mark.subprocess  # a worker (or writer) process, from its graph
 @pytest.mark.skipif(VIDEO is None, reason="graphs/sample.avi is missing")
 @pytest.mark.timeout(90)
 @pytest.mark.parametrize(

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from tiers import uses
 
 import flowrt
 from flowrt.cli.record import wait_for_writers
@@ -72,6 +73,7 @@ def small_graph(rec_params: dict[str, Any], seconds_fps: int = 20) -> flowrt.Gra
     return g
 
 
+@uses("subprocess")  # the recorder's writer process
 async def record(tmp: Path, seconds: float, **params: Any) -> None:
     g = small_graph({"path": str(tmp), "name": "drive", **params})
     async with flowrt.Runtime(g.build()) as rt:
@@ -501,6 +503,7 @@ def test_info_and_replay_bad_input(tmp_path: Path, args: list[str], message: str
 # --- flowrt ctl record start|stop -------------------------------------------------------------
 
 
+@pytest.mark.subprocess  # a worker (or writer) process, from its graph
 async def test_ctl_record_starts_and_stops_sessions(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

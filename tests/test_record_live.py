@@ -117,6 +117,7 @@ def graph() -> Any:
     return g.build()
 
 
+@pytest.mark.realtime
 async def test_live_frames_reach_a_viewer_and_a_stuck_viewer_slows_nothing() -> None:
     live = FoxgloveLive(port=0, image_format="raw")
     async with flowrt.Runtime(graph(), monitors=[live]) as rt:

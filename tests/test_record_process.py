@@ -80,6 +80,7 @@ def session_of(tmp: Path) -> tuple[Path, RecordingReport]:
     return session, report
 
 
+@pytest.mark.subprocess  # a worker (or writer) process, from its graph
 async def test_the_runtime_process_holds_no_writer_thread_and_the_file_is_whole(
     tmp_path: Path,
 ) -> None:
@@ -306,6 +307,7 @@ def _messages(path: Path) -> list[Any]:
         return [M(c.topic, m.data) for _s, c, m in make_reader(f).iter_messages()]
 
 
+@pytest.mark.subprocess  # a worker (or writer) process, from its graph
 @pytest.mark.parametrize(
     ("priority", "policy"), [("normal", os.SCHED_OTHER), ("idle", os.SCHED_IDLE)]
 )
@@ -359,7 +361,7 @@ def _refuse(*_: Any) -> None:
 def test_a_priority_the_system_refuses_is_said_not_dropped(
     monkeypatch: pytest.MonkeyPatch, priority: str, setter: Any, said: str | None
 ) -> None:
-    from flowrt.recording.writerproc import _set_priority
+    from flowrt.recording.writer.child import _set_priority
 
     monkeypatch.setattr(os, "sched_setscheduler", setter)
     note = _set_priority(priority)

@@ -30,6 +30,7 @@ from test_record_replay import (
     replay,
     stand_in,
 )
+from tiers import uses
 
 import flowrt
 from flowrt.cli.record import wait_for_writers
@@ -43,6 +44,7 @@ PART = 200 << 10  # bytes: a 320x240 BGR frame is 230 KB, so about one frame per
 SIZE = "600KiB"  # ...so: a few frames (and their detections) per part
 
 
+@uses("subprocess")  # the recorder's writer process
 async def _record(tmp: Path, seconds: float, **params: Any) -> Any:
     g = build(dict(CAPTURE, params=dict(CAPTURE["params"])), {"path": str(tmp), **params})
     async with flowrt.Runtime(g.build()) as rt:

@@ -297,6 +297,7 @@ class Pattern(Node):
         return f
 
 
+@pytest.mark.subprocess  # a worker (or writer) process, from its graph
 @pytest.mark.parametrize("placement", ["process", "inline"])
 async def test_frames_arrive_intact_in_the_pool_and_go_back_to_it(placement: str) -> None:
     """Frames a worker reads are copied into the importer's pool on Zenoh's thread (a spare

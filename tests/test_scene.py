@@ -55,6 +55,7 @@ def test_invalid_arguments() -> None:
         SoccerScene().render(-1)
 
 
+@pytest.mark.slow  # over 1 s of CPU at 640x480
 @pytest.mark.parametrize(("width", "height"), [(320, 240), (640, 480)])
 def test_truth_is_consistent(width: int, height: int) -> None:
     scene = SoccerScene(width, height, seed=3, clutter=0.3)

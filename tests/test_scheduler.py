@@ -336,6 +336,7 @@ async def test_restart_never_leaves_node_failed_but_runtime_running() -> None:
     assert any(isinstance(e, flowrt.NodeGaveUp) for e in rt.events)
 
 
+@pytest.mark.realtime
 async def test_overrun_is_skipped_and_counted() -> None:
     clock = VirtualClock()
     Gate.gates["busy"] = asyncio.Event()

@@ -1,5 +1,7 @@
-"""The kernel's shape, held by CI: no class over 400 lines, no module over 800, no function
-over 120 in flowrt/ (issue 25; trio's ``_core`` and starlette stay readable the same way)."""
+"""The house's shape, held by CI: no class over 400 lines, no module over 800, no function
+over 120 in flowrt/ and nodes/ (issues 25 and 39; trio's ``_core`` and starlette stay
+readable the same way). The built-in nodes are held to it too: they are what a node author
+reads first."""
 
 from __future__ import annotations
 
@@ -11,14 +13,23 @@ import pytest
 import flowrt
 
 ROOT = Path(flowrt.__file__).parent
+REPO = ROOT.parent
+NODES = REPO / "nodes"
 LIMITS = {"module": 800, "class": 400, "function": 120}
+# Over the limit, for now: each entry names who splits it. Both files were being changed on
+# other branches when the limit came to nodes/ (issue 39); the lead removes the entries after
+# the merge, and the split follows (a test below fails once an entry is no longer needed).
+ALLOWED = {
+    "nodes/recorder.py:Recorder": 430,  # ros2 branch editing it: split after the merge
+    "nodes/can.py:Can": 420,  # can branch editing it: split after the merge
+}
 
 
 def _sizes() -> list[tuple[str, str, int]]:
     found = []
-    for path in sorted(ROOT.rglob("*.py")):
+    for path in sorted([*ROOT.rglob("*.py"), *NODES.rglob("*.py")]):
         src = path.read_text()
-        rel = str(path.relative_to(ROOT.parent))
+        rel = str(path.relative_to(REPO))
         found.append(("module", rel, len(src.splitlines())))
         for node in ast.walk(ast.parse(src)):
             if isinstance(node, ast.ClassDef):
@@ -34,8 +45,21 @@ def _sizes() -> list[tuple[str, str, int]]:
 
 @pytest.mark.parametrize("kind", sorted(LIMITS))
 def test_no_part_of_flowrt_is_too_long(kind: str) -> None:
-    too_long = [f"{name} ({n} lines)" for k, name, n in _sizes() if k == kind and n > LIMITS[kind]]
+    too_long = [
+        f"{name} ({n} lines)"
+        for k, name, n in _sizes()
+        if k == kind and n > ALLOWED.get(name, LIMITS[kind])
+    ]
     assert not too_long, f"{kind}s over {LIMITS[kind]} lines: " + ", ".join(too_long)
+
+
+def test_the_allowances_are_still_needed() -> None:
+    """An entry of ALLOWED whose part shrank under the limit (or is gone) is removed."""
+    sizes = {name: (k, n) for k, name, n in _sizes()}
+    stale = [
+        name for name in ALLOWED if name not in sizes or sizes[name][1] <= LIMITS[sizes[name][0]]
+    ]
+    assert not stale, f"no longer over the limit: remove from ALLOWED: {stale}"
 
 
 def test_the_measure_sees_the_kernel() -> None:
@@ -43,3 +67,4 @@ def test_the_measure_sees_the_kernel() -> None:
     names = {name for _, name, _ in _sizes()}
     assert "flowrt/kernel/runner.py:NodeRunner" in names
     assert "flowrt/kernel/scheduler.py" in names
+    assert "nodes/recorder.py:Recorder" in names

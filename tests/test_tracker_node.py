@@ -138,6 +138,7 @@ nodes:
 # ---------------------------------------------------------------- accuracy and identity
 
 
+@pytest.mark.slow  # over 1 s of CPU
 async def test_accuracy_on_the_synthetic_scene() -> None:
     """>= 99% of the frames where the object is visible detected, median error <= 2 px."""
     objects = [*SCORED, "obstacle", "line"]

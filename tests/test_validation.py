@@ -393,6 +393,7 @@ def graphs_with_a_bad_value(draw: st.DrawFn) -> str:
     return yaml.safe_dump(data, sort_keys=False)
 
 
+@pytest.mark.slow  # over 1 s of CPU (hypothesis)
 @_FAST
 @given(graphs_with_a_bad_value())
 def test_graphs_with_a_bad_value_never_crash(text: str) -> None:

@@ -221,6 +221,7 @@ def _run_briefly(graph: Graph, text: str) -> None:
     assert not tracebacks, [r.getMessage() for r in tracebacks]
 
 
+@pytest.mark.subprocess  # runs graphs placing nodes in workers
 @pytest.mark.timeout(240)
 @settings(
     max_examples=12, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]

@@ -140,6 +140,7 @@ def graph(node: type[Node], n: int = 1, watchdog: str = "300ms") -> Any:
     return g.build()
 
 
+@pytest.mark.subprocess  # a worker (or writer) process, from its graph
 @pytest.mark.timeout(30)
 @pytest.mark.parametrize("node", [Forever, Sleeper])
 async def test_a_hung_worker_is_still_killed(node: type[Node]) -> None:

@@ -39,7 +39,7 @@ Responses are reported from the node's release (its activation, as the runtime m
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 from .rta import Response, Task, global_response_time, response_times
@@ -109,6 +109,54 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
     """Worst-case response time of every enabled node of ``timing`` on ``cpus`` CPUs."""
     nodes = [t for t in timing.values() if t.enabled]
     nodes.sort(key=lambda t: (-t.priority, t.order))
+    streams, notes, idle = _streams_of(timing, nodes)
+    by_name = {t.name: t for t in nodes}
+    budget: dict[str, float] = {}
+    for n in streams:
+        b = by_name[n].budget
+        assert b is not None  # nodes without a budget have no stream
+        budget[n] = b.ms
+    inline = [n for n in streams if by_name[n].placement == "inline"]
+    loop_block = max((budget[n] for n in inline), default=0.0)
+
+    arrival_r: dict[str, float] = dict.fromkeys(streams, 0.0)  # R from arrival, per node
+    release_r: dict[str, float] = {}
+    jit: dict[tuple[str, int], float] = {}
+    blocking: dict[str, float] = {}
+    stable = False
+    for _ in range(MAX_PASSES):
+        new_jit = _jitters(timing, streams, by_name, arrival_r, loop_block)
+        if new_jit == jit:
+            stable = True
+            break
+        jit = new_jit
+        arrival_r, release_r, blocking = _pass(streams, by_name, budget, jit, inline, cpus)
+    verdicts = []
+    for t in nodes:
+        n = t.name
+        period = interval_ms(timing, n)
+        dl = t.deadline_ms if t.deadline_ms is not None else period
+        v = NodeVerdict(
+            n, _resource(t), t.priority, t.budget, period, dl, t.deadline_ms is not None
+        )
+        if n in streams:
+            r = release_r[n] if stable else math.inf
+            j = max(jit.get((n, k), 0.0) for k in range(len(streams[n])))
+            v = _judged(v, r, j, budget[n], blocking.get(n, 0.0))
+        elif n in idle:
+            v = replace(v, schedulable=True, note="never activated: every producer is disabled")
+        else:
+            v = replace(v, note=notes.get(n, ""))
+        verdicts.append(v)
+    util = sum(budget[n] / s.period for n, ss in streams.items() for s in ss)
+    return GraphVerdict(verdicts, util)
+
+
+def _streams_of(
+    timing: Mapping[str, NodeTiming], nodes: list[NodeTiming]
+) -> tuple[dict[str, list[_Stream]], dict[str, str], set[str]]:
+    """Each analysable node's activation streams (one per producer for an input trigger);
+    why the others are not analysed; and the nodes never activated."""
     notes: dict[str, str] = {}
     idle: set[str] = set()  # never activated: nothing to miss
     streams: dict[str, list[_Stream]] = {}
@@ -131,74 +179,46 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
                 streams[t.name].append(_Stream(t.name, pi, p))
         else:
             streams[t.name] = [_Stream(t.name, period, t.source if t.trigger == "frame" else None)]
-    by_name = {t.name: t for t in nodes}
-    budget: dict[str, float] = {}
-    for n in streams:
-        b = by_name[n].budget
-        assert b is not None  # nodes without a budget have no stream
-        budget[n] = b.ms
-    inline = [n for n in streams if by_name[n].placement == "inline"]
-    loop_block = max((budget[n] for n in inline), default=0.0)
+    return streams, notes, idle
 
-    arrival_r: dict[str, float] = dict.fromkeys(streams, 0.0)  # R from arrival, per node
-    release_r: dict[str, float] = {}
-    jit: dict[tuple[str, int], float] = {}
-    blocking: dict[str, float] = {}
-    stable = False
-    for _ in range(MAX_PASSES):
-        new_jit = {}
-        for n, ss in streams.items():
-            for k, s in enumerate(ss):
-                j = 0.0
-                if s.producer in arrival_r:
-                    j = arrival_r[s.producer]
-                    if timing[s.producer].trigger != "input":
-                        # completes at most once per own tick (overruns are skipped)
-                        j = min(j, streams[s.producer][0].period)
-                fed_by_loop = s.producer is not None and timing[s.producer].placement == "inline"
-                if by_name[n].placement != "inline" and not fed_by_loop:
-                    j += loop_block  # the loop may be in an inline node when it should release
-                new_jit[(n, k)] = j
-        if new_jit == jit:
-            stable = True
-            break
-        jit = new_jit
-        arrival_r, release_r, blocking = _pass(streams, by_name, budget, jit, inline, cpus)
-    verdicts = []
-    for t in nodes:
-        n = t.name
-        period = interval_ms(timing, n)
-        dl = t.deadline_ms if t.deadline_ms is not None else period
-        v = NodeVerdict(
-            n, _resource(t), t.priority, t.budget, period, dl, t.deadline_ms is not None
+
+def _jitters(
+    timing: Mapping[str, NodeTiming],
+    streams: Mapping[str, list[_Stream]],
+    by_name: Mapping[str, NodeTiming],
+    arrival_r: Mapping[str, float],
+    loop_block: float,
+) -> dict[tuple[str, int], float]:
+    """Each stream's release jitter from its producer's response of the last pass."""
+    new_jit = {}
+    for n, ss in streams.items():
+        for k, s in enumerate(ss):
+            j = 0.0
+            p = s.producer
+            if p is not None and p in arrival_r:
+                j = arrival_r[p]
+                if timing[p].trigger != "input":
+                    # completes at most once per own tick (overruns are skipped)
+                    j = min(j, streams[p][0].period)
+            fed_by_loop = s.producer is not None and timing[s.producer].placement == "inline"
+            if by_name[n].placement != "inline" and not fed_by_loop:
+                j += loop_block  # the loop may be in an inline node when it should release
+            new_jit[(n, k)] = j
+    return new_jit
+
+
+def _judged(v: NodeVerdict, r: float, j: float, own: float, bl: float) -> NodeVerdict:
+    """The verdict of an analysed node: its response ``r`` against its deadline, and why."""
+    dl = v.deadline_ms
+    ok = math.isfinite(r) and dl is not None and r <= dl + 1e-6
+    note = "" if math.isfinite(r) else "no fixed point: overloaded"
+    if math.isfinite(r) and dl is not None and not ok:
+        note = (
+            f"MISS: response {r:.4g} > deadline {dl:g} ms = own budget {own:.4g} + "
+            f"blocking {bl:.4g} + interference of higher priorities "
+            f"{max(0.0, r - own - bl):.4g}"
         )
-        if n in streams:
-            r = release_r[n] if stable else math.inf
-            j = max(jit.get((n, k), 0.0) for k in range(len(streams[n])))
-            ok = math.isfinite(r) and dl is not None and r <= dl + 1e-6
-            note = "" if math.isfinite(r) else "no fixed point: overloaded"
-            if math.isfinite(r) and dl is not None and not ok:
-                own, bl = budget[n], blocking.get(n, 0.0)
-                note = (
-                    f"MISS: response {r:.4g} > deadline {dl:g} ms = own budget {own:.4g} + "
-                    f"blocking {bl:.4g} + interference of higher priorities "
-                    f"{max(0.0, r - own - bl):.4g}"
-                )
-            v = replace(
-                v,
-                jitter_ms=j,
-                blocking_ms=blocking.get(n, 0.0),
-                response_ms=r,
-                schedulable=ok,
-                note=note,
-            )
-        elif n in idle:
-            v = replace(v, schedulable=True, note="never activated: every producer is disabled")
-        else:
-            v = replace(v, note=notes.get(n, ""))
-        verdicts.append(v)
-    util = sum(budget[n] / s.period for n, ss in streams.items() for s in ss)
-    return GraphVerdict(verdicts, util)
+    return replace(v, jitter_ms=j, blocking_ms=bl, response_ms=r, schedulable=ok, note=note)
 
 
 def _pass(
@@ -237,42 +257,59 @@ def _pass(
             lower = [budget[m] for m in inline if by_name[m].priority < by_name[n].priority]
             blocking[n] = max(lower, default=0.0)
     # workers and the pool: preemptive fixed priority per CPU, the loop on top
-    for n, ss in streams.items():
-        me = by_name[n]
-        if me.placement == "inline":
-            continue
-        b = 0.0
-        if me.placement == "pool":
-            b = max(
-                (
-                    budget[m]
-                    for m in streams
-                    if by_name[m].placement == "pool" and by_name[m].priority < me.priority
-                ),
-                default=0.0,
+    for n in streams:
+        if by_name[n].placement != "inline":
+            blocking[n], results[n] = _worker_responses(
+                n, streams, by_name, budget, own, as_loop, task, cpus
             )
-        blocking[n] = b
-        for k in range(len(ss)):
-            mine = task(n, k, me.priority, b) if b else own[(n, k)]
-            others: list[Task | None] = []
-            for other, oss in streams.items():
-                o = by_name[other]
-                if o.placement == "inline":
-                    others += [as_loop[(other, i)] for i in range(len(oss))]
-                elif _overlap(me, o) and o.priority >= me.priority:
-                    others += [own[(other, i)] for i in range(len(oss)) if (other, i) != (n, k)]
-            if mine is None or any(o is None for o in others):
-                results.setdefault(n, []).append(None)
-                continue
-            hp = [o for o in others if o is not None]
-            m = len(me.cpus) if me.cpus else cpus
-            if m >= 2:
-                results.setdefault(n, []).append(global_response_time(mine, hp, m))
-            else:
-                results.setdefault(n, []).append(response_times([mine, *hp], only=0)[0])
     arrival: dict[str, float] = {}
     release: dict[str, float] = {}
     for n, rs in results.items():
         arrival[n] = max((r.response if r else math.inf) for r in rs)
         release[n] = max((r.release_response if r else math.inf) for r in rs)
     return arrival, release, blocking
+
+
+def _worker_responses(
+    n: str,
+    streams: Mapping[str, list[_Stream]],
+    by_name: Mapping[str, NodeTiming],
+    budget: Mapping[str, float],
+    own: Mapping[tuple[str, int], Task | None],
+    as_loop: Mapping[tuple[str, int], Task | None],
+    task: Callable[[str, int, float, float], Task | None],
+    cpus: int,
+) -> tuple[float, list[Response | None]]:
+    """A node in a worker or the pool: its blocking, and each stream's response (None:
+    unbounded) under preemptive fixed priority on its CPUs, the event loop above it."""
+    me = by_name[n]
+    b = 0.0
+    if me.placement == "pool":  # a pool worker runs a lower-priority call to its end
+        b = max(
+            (
+                budget[m]
+                for m in streams
+                if by_name[m].placement == "pool" and by_name[m].priority < me.priority
+            ),
+            default=0.0,
+        )
+    out: list[Response | None] = []
+    for k in range(len(streams[n])):
+        mine = task(n, k, me.priority, b) if b else own[(n, k)]
+        others: list[Task | None] = []
+        for other, oss in streams.items():
+            o = by_name[other]
+            if o.placement == "inline":
+                others += [as_loop[(other, i)] for i in range(len(oss))]
+            elif _overlap(me, o) and o.priority >= me.priority:
+                others += [own[(other, i)] for i in range(len(oss)) if (other, i) != (n, k)]
+        if mine is None or any(o is None for o in others):
+            out.append(None)
+            continue
+        hp = [o for o in others if o is not None]
+        m = len(me.cpus) if me.cpus else cpus
+        if m >= 2:
+            out.append(global_response_time(mine, hp, m))
+        else:
+            out.append(response_times([mine, *hp], only=0)[0])
+    return b, out

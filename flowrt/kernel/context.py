@@ -150,7 +150,6 @@ class RunnerContext(NodeContext):
         if runner.error_reason == reason:
             return
         runner.set_error_reason(reason)
-        runner.counts.error_reports += 1
         sched = runner.sched
         sched.emit(
             HealthAlert(sched.rel(sched.clock.now()), self.name, "node-error", reason, "error")

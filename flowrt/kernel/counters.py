@@ -32,9 +32,7 @@ class Counters:
     aborted: int = 0  # activations in flight lost with their worker (or its instance)
     errors: int = 0  # exceptions, and values of a refused type
     restarts: int = 0
-    swaps: int = 0
     lead_max: int = 0  # most frames of a paced source published and not yet processed
-    error_reports: int = 0  # ctx.set_error() calls that changed the reason
     last_start: float | None = None
     last_finish: float | None = None
     interval_from: float | None = None  # None after a timing change: a new series

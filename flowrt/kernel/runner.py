@@ -111,7 +111,6 @@ class RunnerFields:
     deferred: float | None  # at most one release of a paced source (defer()), taken by
     # idle() or the pipeline
     untaken: bool  # released, inputs not taken yet (the run is scheduled); implies busy
-    more_input: bool  # set, never read (dead code, removed with issue 39 step 5)
     stopping: bool  # no release from now on; never returns to false
     act: Activation | None  # the inline activation in progress (None between activations
     # and for pipelined nodes, whose activations belong to their tasks)
@@ -233,7 +232,6 @@ class NodeRunner(RunnerFields):
         self._idle_waiters = []
         self.deferred = None
         self.untaken = False
-        self.more_input = False
         self.stopping = False
         self.act = None
         self._acts = 0
@@ -387,8 +385,7 @@ class NodeRunner(RunnerFields):
             self.pipeline.schedule_pump()
             return
         if self.busy or self.state is not _IDLE or self.stopping or not self.timing.enabled:
-            self.more_input = True
-            return
+            return  # the pending input is taken when the run ends (see the end of a run)
         self.release(self.sched.clock.now())
 
     # --- one activation -----------------------------------------------------------------
@@ -556,7 +553,6 @@ class NodeRunner(RunnerFields):
         if isinstance(self.rnode.trigger, LoopTrigger):
             self.sched.loop.call_soon(self.release, self.sched.clock.now())
         elif self.trigger_inputs:
-            self.more_input = False
             buffers = self.inputs
             for p in self.trigger_inputs:
                 if buffers[p].pending():

@@ -218,7 +218,6 @@ class Swapper:
         r.move(RunState.idle)
         self._give_state(new, state, getter is not None)
         r.supervisor.succeeded()
-        r.counts.swaps += 1
         r.idle()
 
     @staticmethod
@@ -238,7 +237,6 @@ class Swapper:
         if r.state in (RunState.failed, RunState.backoff):
             r.move(RunState.idle)
         r.supervisor.succeeded()
-        r.counts.swaps += 1
         return old
 
 

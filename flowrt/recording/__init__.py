@@ -1,9 +1,8 @@
 """Recording and replay: MCAP sessions that Foxglove and the ``mcap`` tools open.
 
 - :mod:`.encoding`: values to messages and back (foxglove RawImage/CompressedImage, JSON)
-- :mod:`.writer`: the writer thread and its per-stream counters
-- :mod:`.procwriter`, :mod:`.writerproc`, :mod:`.writer_wire`: the same writer in a process of
-  its own (the recorder's default), its process, and what they say to each other
+- :mod:`.writer`: the writer (a :class:`Writer`): its threads and per-stream counters, and
+  the same writer in a process of its own (the recorder's default), laid out like ``workers/``
 - :mod:`.split`: when a recording starts a new file (``--split-size``, ``--split-duration``)
 - :mod:`.session`: session folders and the metadata a recording carries
 - :mod:`.report`: the per-stream table after a recording
@@ -17,7 +16,6 @@ The runtime never imports this package; the ``recorder`` and ``replay`` nodes an
 """
 
 from .encoding import Decoder as Decoder
-from .procwriter import ProcessRecordingWriter as ProcessRecordingWriter
 from .report import RecordingReport as RecordingReport
 from .report import StreamReport as StreamReport
 from .report import build_report as build_report
@@ -28,8 +26,10 @@ from .session import new_session as new_session
 from .split import SplitPolicy as SplitPolicy
 from .split import parse_duration as parse_duration
 from .split import parse_size as parse_size
+from .writer import ProcessRecordingWriter as ProcessRecordingWriter
 from .writer import RecordingWriter as RecordingWriter
 from .writer import StreamCounters as StreamCounters
+from .writer import Writer as Writer
 
 __all__ = [
     "Decoder",
@@ -39,6 +39,7 @@ __all__ = [
     "SplitPolicy",
     "StreamCounters",
     "StreamReport",
+    "Writer",
     "build_report",
     "check_writable",
     "new_session",

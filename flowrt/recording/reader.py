@@ -22,7 +22,6 @@ import contextlib
 import errno
 import io
 import itertools
-import json
 import os
 import statistics
 from collections.abc import Iterator
@@ -757,7 +756,3 @@ def _write_repaired(p: Path, rec: Any, tmp: Path, header_profile: str) -> int:
         f.flush()
         os.fsync(f.fileno())
     return kept
-
-
-def info_json(info: FileInfo) -> str:
-    return json.dumps(info.model_dump(mode="json"), indent=1)

@@ -22,6 +22,7 @@ from typing import Any
 
 from ..frames import release_handoffs
 from ..frames.lending import Grant, OutputGrants
+from ..ipc import PICKLE, Framer, frame
 from .child import worker_main
 from .errors import WorkerError, WorkerKind
 from .forkserver import (
@@ -33,7 +34,7 @@ from .forkserver import (
     unguarded_main_message,
 )
 from .watchdog import proc_forget, progress_of, state_of
-from .wire import HDR, OP_EXIT, PICKLE, R_ERR, R_FATAL, R_OK, SIGNALS_KILLED
+from .wire import OP_EXIT, R_ERR, R_FATAL, R_OK, SIGNALS_KILLED
 
 
 @dataclass(order=True)
@@ -56,17 +57,10 @@ class _Protocol(asyncio.Protocol):
 
     def __init__(self, worker: Worker) -> None:
         self.worker = worker
-        self.buf = bytearray()
+        self.framer = Framer()
 
     def data_received(self, data: bytes) -> None:
-        buf = self.buf
-        buf += data
-        while len(buf) >= 4:
-            (n,) = HDR.unpack_from(buf)
-            if len(buf) < 4 + n:
-                break
-            msg = bytes(buf[4 : 4 + n])
-            del buf[: 4 + n]
+        for msg in self.framer.feed(data):
             self.worker._on_reply(msg)
 
     def connection_lost(self, exc: Exception | None) -> None:
@@ -187,16 +181,11 @@ class Worker:
             and all(c.node == call.node and c.window > 1 for c in inflight)
         )
 
-    @property
-    def in_flight(self) -> int:
-        """Calls written to the worker and not answered yet."""
-        return len(self._inflight)
-
     def _send(self, call: _Call) -> None:
         assert self._transport is not None
         call.index = next(self._wire)
         self._inflight.append(call)
-        self._transport.write(HDR.pack(len(call.payload)) + call.payload)
+        self._transport.write(frame(call.payload))
         if len(self._inflight) == 1:
             self._arm(call)
 

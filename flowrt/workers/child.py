@@ -9,95 +9,52 @@ import gc
 import inspect
 import itertools
 import math
-import os
 import pickle
 import select
-import signal
 import socket
-import sys
 import time
 import traceback
 from typing import Any
 
 from ..frames.lending import WorkerSlots, lazy_report
+from ..ipc import PICKLE, BlockingConn
 from ..oscheduling import WorkerScheduling, apply_scheduling
-from .wire import (
-    HDR,
-    OP_ADD,
-    OP_CALL,
-    OP_EXIT,
-    OP_PRIORITY,
-    OP_REMOVE,
-    PICKLE,
-    R_ERR,
-    R_FATAL,
-    R_OK,
-)
+from .forkserver import tied_to_runtime
+from .wire import OP_ADD, OP_CALL, OP_EXIT, OP_PRIORITY, OP_REMOVE, R_ERR, R_FATAL, R_OK
 
 
-class _BlockingConn:
-    """Length-prefixed messages over the worker's end of the socketpair."""
+def _spin(conn: BlockingConn, start: float, end: float) -> None:
+    """Sleep until ``start`` (or data), then poll without sleeping until ``end`` (or data).
 
-    def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
-        self.buf = bytearray()
+    A process blocked in recv is woken by the sender through the scheduler, and a CPU that
+    went idle meanwhile has to come out of its sleep state first (tens to hundreds of
+    microseconds, more in a VM, different every time). Polling keeps the CPU awake and the
+    worker running at the instant the call arrives.
+    """
+    sock, now = conn.sock, time.monotonic
+    wait = start - now()
+    if wait > 0:
+        poller = select.poll()
+        poller.register(sock, select.POLLIN)
+        if poller.poll(math.ceil(wait * 1000)):
+            return
+    while now() < end:
+        try:
+            chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            continue
+        except ConnectionResetError:
+            return  # left for recv to see
+        if chunk:
+            conn.buf += chunk
+        return  # data, or EOF (left for recv to see)
 
-    def recv(self, spin: tuple[float, float] | None = None) -> bytes | None:
-        """The next message; with ``spin`` = (start, end), busy-poll for it in that window."""
-        buf = self.buf
-        if spin is not None and not self._complete():
-            self._spin(*spin)
-        while True:
-            if len(buf) >= 4:
-                (n,) = HDR.unpack_from(buf)
-                if len(buf) >= 4 + n:
-                    msg = bytes(buf[4 : 4 + n])
-                    del buf[: 4 + n]
-                    return msg
-                want = 4 + n - len(buf)
-            else:
-                want = 4
-            try:
-                chunk = self.sock.recv(max(want, 1 << 16))
-            except ConnectionResetError:  # the runtime is gone (killed): as EOF
-                return None
-            if not chunk:
-                return None
-            buf += chunk
 
-    def send(self, payload: bytes) -> None:
-        with contextlib.suppress(BrokenPipeError, ConnectionResetError):  # runtime gone: the
-            self.sock.sendall(HDR.pack(len(payload)) + payload)  # next recv sees EOF
-
-    def _complete(self) -> bool:
-        buf = self.buf
-        return len(buf) >= 4 and len(buf) >= 4 + HDR.unpack_from(buf)[0]
-
-    def _spin(self, start: float, end: float) -> None:
-        """Sleep until ``start`` (or data), then poll without sleeping until ``end`` (or data).
-
-        A process blocked in recv is woken by the sender through the scheduler, and a CPU that
-        went idle meanwhile has to come out of its sleep state first (tens to hundreds of
-        microseconds, more in a VM, different every time). Polling keeps the CPU awake and the
-        worker running at the instant the call arrives.
-        """
-        sock, now = self.sock, time.monotonic
-        wait = start - now()
-        if wait > 0:
-            poller = select.poll()
-            poller.register(sock, select.POLLIN)
-            if poller.poll(math.ceil(wait * 1000)):
-                return
-        while now() < end:
-            try:
-                chunk = sock.recv(1 << 16, socket.MSG_DONTWAIT)
-            except BlockingIOError:
-                continue
-            except ConnectionResetError:
-                return  # left for recv to see
-            if chunk:
-                self.buf += chunk
-            return  # data, or EOF (left for recv to see)
+def _next_request(conn: BlockingConn, spin: tuple[float, float] | None) -> bytes | None:
+    """The next request; with ``spin`` = (start, end), busy-poll for it in that window."""
+    if spin is not None and not conn.complete():
+        _spin(conn, *spin)
+    return conn.recv()
 
 
 class Anticipation:
@@ -142,35 +99,8 @@ class Anticipation:
         return best
 
 
-def _set_pdeathsig() -> None:
-    """Ask the kernel to SIGKILL this worker when its parent (the forkserver) dies."""
-    if not sys.platform.startswith("linux"):
-        return
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
-
-
-def tied_to_runtime(main_pid: int) -> bool:
-    """Start of a process the runtime forks (a worker, a recording writer): Ctrl-C and
-    SIGTERM are the runtime's to handle, and the process dies with its parent; False when
-    the runtime is already gone (it died while this process was being forked)."""
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, signal.SIG_IGN)
-    _set_pdeathsig()
-    try:
-        os.kill(main_pid, 0)
-    except ProcessLookupError:
-        return False
-    return True
-
-
 def _reply(
-    conn: _BlockingConn,
+    conn: BlockingConn,
     status: int,
     payload: Any,
     seconds: float,
@@ -192,35 +122,82 @@ def _reply(
     conn.send(data)
 
 
+class _Nodes:
+    """What a worker serves: its nodes, their output slots, the scheduling in force, the loop
+    that runs their coroutines. One method per request (workers/wire.py)."""
+
+    def __init__(self) -> None:
+        self.nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
+        self.outputs: dict[int, WorkerSlots] = {}  # each node's slots (flowrt.frames.lending)
+        self.current: WorkerScheduling | None = None
+        self.expected = Anticipation()
+        self.loop: asyncio.AbstractEventLoop | None = None
+
+    def run(self, value: Any) -> Any:
+        if inspect.isawaitable(value):
+            if self.loop is None:
+                self.loop = asyncio.new_event_loop()
+            return self.loop.run_until_complete(_await(value))
+        return value
+
+    def call(self, nid: int, inputs: dict[str, Any], grants: Any) -> tuple[Any, WorkerSlots]:
+        """OP_CALL: the node's ``process``; its output slots, told of the reply after."""
+        self.expected.called(nid, time.monotonic())
+        _, node, sched = self.nodes[nid]
+        if self.current != sched:
+            apply_scheduling(sched)
+            self.current = sched
+        slots = self.outputs.get(nid)
+        if slots is None:
+            slots = self.outputs[nid] = WorkerSlots()
+        slots.begin(grants)
+        return self.run(node.process(**inputs)), slots
+
+    def add(self, nid: int, node_name: str, factory: Any, sched: WorkerScheduling) -> str:
+        """OP_ADD: a node set up here; the scheduling the kernel granted."""
+        self.teardown(nid)  # a restart in a live worker: the old instance goes first
+        granted = apply_scheduling(sched)
+        self.current = sched
+        self.expected.configure(nid, sched.spin)
+        node = factory()
+        if hasattr(node, "setup"):
+            self.run(node.setup())
+        self.nodes[nid] = (node_name, node, sched)
+        gc.freeze()  # the node's setup, too: never walked at a call (no collect first:
+        # walking the inherited objects would copy their shared pages)
+        return granted
+
+    def priority(self, nid: int, sched: WorkerScheduling) -> str:
+        """OP_PRIORITY: the node's new scheduling, applied now (and at each of its calls)."""
+        node_name, node, _ = self.nodes[nid]
+        self.nodes[nid] = (node_name, node, sched)
+        granted = apply_scheduling(sched)
+        self.current = sched
+        return granted
+
+    def teardown(self, nid: int) -> None:
+        entry = self.nodes.pop(nid, None)
+        self.outputs.pop(nid, None)  # the main side takes its grants back (reclaim)
+        self.expected.configure(nid, 0.0)
+        if entry is not None and hasattr(entry[1], "teardown"):
+            self.run(entry[1].teardown())
+
+    def teardown_all(self) -> None:
+        for nid in list(self.nodes):
+            with contextlib.suppress(Exception):
+                self.teardown(nid)
+
+
 def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     """Entry point of a worker process: serve requests until EXIT or EOF."""
     if not tied_to_runtime(main_pid):
         return  # nothing to serve
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
-    conn = _BlockingConn(sock)
-    nodes: dict[int, tuple[str, Any, WorkerScheduling]] = {}
-    outputs: dict[int, WorkerSlots] = {}  # each node's output slots (flowrt.frames.lending)
-    current: WorkerScheduling | None = None
-    expected = Anticipation()
-    loop: asyncio.AbstractEventLoop | None = None
-
-    def run(value: Any) -> Any:
-        nonlocal loop
-        if inspect.isawaitable(value):
-            if loop is None:
-                loop = asyncio.new_event_loop()
-            return loop.run_until_complete(_await(value))
-        return value
-
-    def teardown(nid: int) -> None:
-        entry = nodes.pop(nid, None)
-        outputs.pop(nid, None)  # the main side takes its grants back (OutputGrants.reclaim)
-        expected.configure(nid, 0.0)
-        if entry is not None and hasattr(entry[1], "teardown"):
-            run(entry[1].teardown())
-
+    conn = BlockingConn(sock)
+    w = _Nodes()
+    expected = w.expected
     for index in itertools.count():
-        raw = conn.recv(expected.window(time.monotonic()) if expected.spin else None)
+        raw = _next_request(conn, expected.window(time.monotonic()) if expected.spin else None)
         if raw is None:
             break
         t0 = time.perf_counter()
@@ -229,42 +206,16 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
             msg = pickle.loads(raw)
             op = msg[0]
             if op == OP_CALL:
-                _, nid, inputs, grants = msg
-                expected.called(nid, time.monotonic())
-                _, node, sched = nodes[nid]
-                if current != sched:
-                    apply_scheduling(sched)
-                    current = sched
-                slots = outputs.get(nid)
-                if slots is None:
-                    slots = outputs[nid] = WorkerSlots()
-                slots.begin(grants)
-                result = run(node.process(**inputs))
+                result, slots = w.call(*msg[1:])
             elif op == OP_ADD:
-                _, nid, node_name, factory, sched = msg
-                teardown(nid)  # a restart in a live worker: the old instance goes first
-                result = apply_scheduling(sched)
-                current = sched
-                expected.configure(nid, sched.spin)
-                node = factory()
-                if hasattr(node, "setup"):
-                    run(node.setup())
-                nodes[nid] = (node_name, node, sched)
-                gc.freeze()  # the node's setup, too: never walked at a call (no collect first:
-                # walking the inherited objects would copy their shared pages)
+                result = w.add(*msg[1:])
             elif op == OP_PRIORITY:
-                _, nid, sched = msg
-                node_name, node, _ = nodes[nid]
-                nodes[nid] = (node_name, node, sched)
-                result = apply_scheduling(sched)
-                current = sched
+                result = w.priority(*msg[1:])
             elif op == OP_REMOVE:
-                teardown(msg[1])
+                w.teardown(msg[1])
                 result = None
             elif op == OP_EXIT:
-                for nid in list(nodes):
-                    with contextlib.suppress(Exception):
-                        teardown(nid)
+                w.teardown_all()
                 _reply(conn, R_OK, None, time.perf_counter() - t0, index)
                 break
             else:
@@ -276,8 +227,8 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
             _reply(conn, R_OK, result, time.perf_counter() - t0, index, slots)
         if slots is not None:
             slots.end()
-    if loop is not None:
-        loop.close()
+    if w.loop is not None:
+        w.loop.close()
     sock.close()
 
 

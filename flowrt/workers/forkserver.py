@@ -10,13 +10,14 @@ import multiprocessing
 import multiprocessing.context
 import os
 import pickle
+import signal
 import sys
 import threading
 from collections.abc import Mapping
 from typing import Any
 
+from ..ipc import PICKLE
 from .errors import WorkerError
-from .wire import PICKLE
 
 #: Modules imported once by the forkserver, so every worker shares their pages.
 PRELOAD_MODULES = [
@@ -27,6 +28,10 @@ PRELOAD_MODULES = [
     "flowrt.oscheduling",
     "flowrt.workers",
     "flowrt.workers.child",
+    # The node author's API and pydantic under it: what a worker imports when it unpickles a
+    # node (import flowrt is lazy, so naming flowrt.workers no longer brings it along).
+    "flowrt.node",
+    "flowrt.events",
     "flowrt._forkserver_signals",  # SIGTERM/SIGHUP ignored, inherited by every worker
     "flowrt._forkserver_freeze",  # last: freezes all of the above before any fork
 ]
@@ -174,3 +179,30 @@ def start_forkserver() -> None:
 
 
 # --------------------------------------------------------------------------------------------
+
+
+def _set_pdeathsig() -> None:
+    """Ask the kernel to SIGKILL this process when its parent (the forkserver) dies."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def tied_to_runtime(main_pid: int) -> bool:
+    """Start of a process the runtime forks (a worker, a recording writer): Ctrl-C and
+    SIGTERM are the runtime's to handle, and the process dies with its parent; False when
+    the runtime is already gone (it died while this process was being forked)."""
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_IGN)
+    _set_pdeathsig()
+    try:
+        os.kill(main_pid, 0)
+    except ProcessLookupError:
+        return False
+    return True

@@ -1,17 +1,14 @@
-"""The wire between the loop and a worker: length-prefixed pickles, one reply per request.
+"""What the loop and a worker say to each other: one reply per request.
 
-Requests and replies are tuples whose first item says what they are (below); frames travel
-as descriptors of their shared-memory slot (:mod:`flowrt.frames`).
+The messages travel on the process wire (:mod:`flowrt.ipc`: length-prefixed pickles, shared
+with the recording writer process). Requests and replies are tuples whose first item says
+what they are (below); frames travel as descriptors of their shared-memory slot
+(:mod:`flowrt.frames`).
 """
 
 from __future__ import annotations
 
-import pickle
 import signal
-import struct
-
-HDR = struct.Struct("<I")
-PICKLE = pickle.HIGHEST_PROTOCOL
 
 # Requests (main -> worker); every request gets exactly one reply.
 OP_ADD = 0  # (op, node_id, node_name, factory, WorkerScheduling) -> granted: str

@@ -5,9 +5,9 @@ Why a process: the writer's work is CPU (a copy of each frame's pixels, the chun
 runtime's process shares the GIL with the event loop, so a timer due on the loop waits for
 the writer thread's turn (measured: +0.4 ms at p99 of a 1 kHz timer at 320x240, the writer
 at 19-30 % of the disk's direct-I/O rate; benchmarks/RESULTS.md). Here the same
-:class:`~.writer.RecordingWriter` (its encoder and disk threads) runs in a process of its own,
+:class:`~.threads.RecordingWriter` (its encoder and disk threads) runs in a process of its own,
 started by the workers' forkserver; the recorder sends it small messages
-(:mod:`.writer_wire`) and the process maps each frame's shared-memory slot to read the pixels
+(:mod:`.wire`) and the process maps each frame's shared-memory slot to read the pixels
 where the camera put them.
 
 A frame's slot stays held by the recorder (one link) until this process says it has copied
@@ -31,9 +31,10 @@ import time
 from collections import deque
 from typing import Any
 
-from ..frames import Frame
-from .writer import RecordingWriter
-from .writer_wire import (
+from ...frames import Frame
+from ...ipc import BlockingConn
+from .threads import RecordingWriter
+from .wire import (
     ACKS,
     ATTACH,
     CLOSE,
@@ -45,9 +46,6 @@ from .writer_wire import (
     MESSAGE,
     OPEN,
     OPENED,
-    Framer,
-    recv_message,
-    send_message,
 )
 
 __all__ = ["writer_main"]
@@ -60,7 +58,7 @@ ATTACH_WAIT = 60.0
 
 def writer_main(sock: socket.socket, main_pid: int) -> None:
     """Entry point of a writer process: one session (a file or its parts), then exit."""
-    from ..workers.child import tied_to_runtime
+    from ...workers.forkserver import tied_to_runtime
 
     if tied_to_runtime(main_pid):
         _Session(sock).serve()
@@ -94,8 +92,8 @@ class _Acks:
     recorder reads ``DRAINED`` only after every result.
     """
 
-    def __init__(self, sock: socket.socket) -> None:
-        self._sock = sock
+    def __init__(self, conn: BlockingConn) -> None:
+        self._conn = conn
         self._cond = threading.Condition()
         self._released: list[int] = []
         self._results: list[tuple[int, int, int]] = []
@@ -146,12 +144,12 @@ class _Acks:
                 error = None
                 if self._error is not None and not self._said_error:
                     error, self._said_error = self._error, True
-            if (released or results or error) and not send_message(
-                self._sock, (ACKS, released, results, error)
+            if (released or results or error) and not self._conn.send_message(
+                (ACKS, released, results, error)
             ):
                 return
             for msg in controls:
-                if not send_message(self._sock, msg):
+                if not self._conn.send_message(msg):
                     return
 
 
@@ -159,10 +157,8 @@ class _Session:
     """One writer's life: open, messages, detach, close; the ids matched to results."""
 
     def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
-        self.framer = Framer()
-        self.pending: list[bytes] = []
-        self.acks = _Acks(sock)
+        self.conn = BlockingConn(sock)  # read here, written by the acks thread once open
+        self.acks = _Acks(self.conn)
         self.lock = threading.Lock()
         # Invariant: ``ids`` holds the ids of the messages the writer accepted and has not
         # reported, in the order it reports them (one encoder, one disk thread, FIFO);
@@ -175,12 +171,8 @@ class _Session:
         self.writer: RecordingWriter | None = None
         self.unreadable: set[str] = set()
 
-    def recv(self) -> tuple[Any, ...] | None:
-        raw = recv_message(self.sock, self.framer, self.pending)
-        return None if raw is None else pickle.loads(raw)
-
     def serve(self) -> None:
-        first = self.recv()
+        first = self.conn.recv_message()
         if first is None or first[0] != OPEN:
             return
         _, config, metadata, attachments = first
@@ -197,13 +189,13 @@ class _Session:
         try:
             w.open(metadata, attachments)
         except OSError as e:
-            send_message(self.sock, (OPENED, (e.errno, e.strerror or str(e), e.filename)))
+            self.conn.send_message((OPENED, (e.errno, e.strerror or str(e), e.filename)))
             return
-        if not send_message(self.sock, (OPENED, None)):
+        if not self.conn.send_message((OPENED, None)):
             os._exit(0)
         self.acks.start()
         while True:
-            msg = self.recv()
+            msg = self.conn.recv_message()
             if msg is None:
                 if not self.finished:
                     os._exit(0)  # the runtime is gone: stop as its writer thread would

@@ -3,14 +3,14 @@
 The recorder node hands each message to :meth:`RecordingWriter.submit`, which only appends to
 a bounded queue (frames by reference: the node holds a link on the shared-memory slot, so no
 pixel is copied on the loop). Two threads follow: the *encoder* turns each message into its
-bytes (see :mod:`.encoding`; for a frame that is the one copy of its pixels, after which the
+bytes (see :mod:`..encoding`; for a frame that is the one copy of its pixels, after which the
 slot goes back to its pool) and the *disk* thread writes them through the official ``mcap``
 writer. Encoded messages may wait up to ``max_bytes``, so a disk that stalls for a moment
 holds memory, not the camera's pool slots. The disk thread finishes a chunk at least every
 ``flush_interval`` seconds: after a ``kill -9`` the file is readable up to the last finished
 chunk, so at most ``flush_interval`` (1 s by default) or one chunk is lost.
 
-With a :class:`~.split.SplitPolicy` the disk thread also starts a new file, a *part*, when
+With a :class:`~..split.SplitPolicy` the disk thread also starts a new file, a *part*, when
 the current one reaches the size or duration: it finishes the part (summary, indexes: a
 complete file) and opens the next with the same metadata and attachments, between two
 messages, so no message is dropped or held by the loop; every part is a standalone MCAP.
@@ -36,14 +36,14 @@ from typing import Any
 
 import numpy as np
 
-from ..frames import Frame
-from ..stats import Running
-from .directio import open_direct
-from .encoding import Encoded, StreamSchema
-from .gilfree import install
-from .ros2_profile import ros2_topic
-from .split import SplitPolicy, part_path
-from .streams import StreamBook
+from ...frames import Frame
+from ...stats import Running
+from ..directio import open_direct
+from ..encoding import Encoded, StreamSchema
+from ..gilfree import install
+from ..ros2_profile import ros2_topic
+from ..split import SplitPolicy, part_path
+from ..streams import StreamBook
 
 __all__ = ["RecordingWriter", "StreamCounters", "count_written"]
 
@@ -104,7 +104,7 @@ class RecordingWriter:
         max_messages: other messages that may wait, all streams together.
         max_bytes: encoded messages that may wait for the disk (256 MiB by default: more
             than a second of two 1936x1216 cameras at 20 fps).
-        direct_io: write with ``O_DIRECT`` (see :mod:`.directio`), where the file system
+        direct_io: write with ``O_DIRECT`` (see :mod:`..directio`), where the file system
             allows it.
         crc: chunk CRCs, so that damage inside a chunk is found (``info``, ``replay``); they
             cost as much CPU as the rest of the writing (zlib's CRC-32, ~12 ms per 7 MB frame
@@ -113,7 +113,7 @@ class RecordingWriter:
             give its link back on the event loop.
         on_result: called from the disk thread with each message's topic, its bytes (-1: not
             written) and its part's index (a writer process reports these to the recorder).
-        gil_free: the large copies of the writing with the GIL released (:mod:`.gilfree`);
+        gil_free: the large copies of the writing with the GIL released (:mod:`..gilfree`);
             False only to measure against ``mcap``'s own buffers (the benchmark's baseline).
         profile: ``flowrt`` (protobuf images, JSON) or ``ros2`` (CDR, :mod:`.ros2_profile`).
     """
@@ -524,7 +524,7 @@ def value_encoder(
 ) -> Any:
     """The encoder of a profile: flowrt's own (:class:`_ValueEncoder`) or ROS 2's."""
     if profile == "ros2":
-        from .ros2_profile import Ros2Encoder
+        from ..ros2_profile import Ros2Encoder
 
         return Ros2Encoder(image_formats, epoch_offset)
     return _ValueEncoder(image_formats, epoch_offset, gil_free)
@@ -573,7 +573,7 @@ def _part_record(split: SplitPolicy | None, base: Path, files: list[Path]) -> di
 
 
 def _library() -> str:
-    from ..version import __version__
+    from ...version import __version__
 
     try:
         from importlib.metadata import version

@@ -2,7 +2,7 @@
 
 :class:`ProcessRecordingWriter` is what the ``recorder`` node holds by default (``writer:
 process``): ``submit`` on the event loop only counts, and queues a small message for the
-writer process (:mod:`.writerproc`) on a non-blocking socket, sent once per loop iteration.
+writer process (:mod:`.child`) on a non-blocking socket, sent once per loop iteration.
 A frame in a shared-memory slot goes as the descriptor of its slot, and the recorder's link
 on it is given back (through :attr:`done`, as with the thread) when the process says it has
 copied the pixels; any other value is encoded here, a few microseconds (the writer process
@@ -35,24 +35,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from ..frames import Frame
-from .split import SplitPolicy, part_path
-from .writer import THREAD_PREFIX, StreamCounters, _ValueEncoder, count_written, value_encoder
-from .writer_wire import (
-    ACKS,
-    ATTACH,
-    CLOSE,
-    DECLARE,
-    DETACH,
-    DRAINED,
-    FINISHED,
-    MESSAGE,
-    OPEN,
-    PICKLE,
-    Framer,
-    pack,
-    recv_message,
-)
+from ...frames import Frame
+from ...ipc import PICKLE, BlockingConn, Framer, pack
+from ..split import SplitPolicy, part_path
+from .threads import THREAD_PREFIX, StreamCounters, _ValueEncoder, count_written, value_encoder
+from .wire import ACKS, ATTACH, CLOSE, DECLARE, DETACH, DRAINED, FINISHED, MESSAGE, OPEN
 
 __all__ = ["ProcessRecordingWriter"]
 
@@ -72,12 +59,12 @@ class ProcessRecordingWriter:
 
     Args:
         loop: the event loop that calls :meth:`submit` (its thread does every send).
-        options: the writer process's :class:`~.writer.RecordingWriter` keyword arguments
+        options: the writer process's :class:`~.threads.RecordingWriter` keyword arguments
             (``image_formats``, ``epoch_offset``, ``chunk_size``, ``compression``, ``crc``,
             ``flush_interval``, ``max_bytes``, ``direct_io``), and ``priority``: ``normal``
             or ``idle`` (the process runs only on CPU time nobody else wants: it never delays
-            the loop's timers, but falls behind under load; :func:`.writerproc._set_priority`).
-        The others: as :class:`~.writer.RecordingWriter`.
+            the loop's timers, but falls behind under load; :func:`.child._set_priority`).
+        The others: as :class:`~.threads.RecordingWriter`.
     """
 
     def __init__(
@@ -147,13 +134,12 @@ class ProcessRecordingWriter:
         Blocking (the process starts, the file is created): call it off the loop.
         """
         parent, proc = self._sock, self._proc = _start_process(self.base.name)
-        try:
-            parent.settimeout(OPEN_TIMEOUT)
-            parent.sendall(pack((OPEN, self._config, dict(metadata), list(attachments))))
-            raw = recv_message(parent, self._framer, [])
-        except OSError:
-            raw = None
-        reply = pickle.loads(raw) if raw is not None else None
+        parent.settimeout(OPEN_TIMEOUT)
+        conn = BlockingConn(parent)
+        reply = None
+        if conn.send_message((OPEN, self._config, dict(metadata), list(attachments))):
+            reply = conn.recv_message()
+        self._framer = Framer(bytes(conn.buf))  # (nothing comes before the first message)
         if reply is None or reply[1] is not None:
             parent.close()
             proc.join(5)
@@ -368,14 +354,13 @@ class ProcessRecordingWriter:
             sock.setblocking(True)
             out = [*self._outbox, pack((DETACH,)), pack((CLOSE,))]
             self._outbox = []
-            pending: list[bytes] = []
+            conn = BlockingConn(sock, self._framer.rest())
             try:
                 sock.sendall(b"".join(out))
                 while not self._finished.is_set():
-                    raw = recv_message(sock, self._framer, pending)
-                    if raw is None:
+                    msg = conn.recv_message()
+                    if msg is None:
                         break
-                    msg = pickle.loads(raw)
                     if msg[0] == DRAINED:
                         sock.sendall(pack((ATTACH, self._end_attachments())))
                     else:
@@ -471,8 +456,8 @@ class ProcessRecordingWriter:
 
 def _start_process(name: str) -> tuple[socket.socket, Any]:
     """A writer process from the workers' forkserver, and the recorder's end of its socket."""
-    from ..workers.forkserver import NO_MAIN, context
-    from .writerproc import writer_main
+    from ...workers.forkserver import NO_MAIN, context
+    from .child import writer_main
 
     parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
     proc = context().Process(
@@ -493,7 +478,7 @@ def _start_process(name: str) -> tuple[socket.socket, Any]:
 
 def _in_files(paths: list[Path]) -> tuple[dict[str, list[int]], list[int]]:
     """Messages and bytes per topic that a reader finds in ``paths``; messages per file."""
-    from .reader import scan
+    from ..reader import scan
 
     found: dict[str, list[int]] = {}
     messages = []
