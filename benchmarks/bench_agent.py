@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import flowrt
-from flowrt.graph import resolve
+from flowrt.graph._resolve import resolve
 
 REPO = Path(__file__).resolve().parents[1]
 PHASES = ("nominal", "wall disabled", "wall enabled", "track swapped")

@@ -37,7 +37,7 @@ from flowrt.analysis.load import load_tables  # noqa: E402
 from flowrt.analysis.phases import advise  # noqa: E402
 from flowrt.analysis.schedulability import analyse  # noqa: E402
 from flowrt.analysis.timing import NodeTiming, apply_changes, graph_timing  # noqa: E402
-from flowrt.spec import TimingOverride  # noqa: E402
+from flowrt.graph.spec import TimingOverride  # noqa: E402
 from flowrt.stats import RuntimeStats  # noqa: E402
 
 

@@ -141,7 +141,7 @@ async def scenario(
         proc = echo_proc = None
         ctx = multiprocessing.get_context("spawn")
         if name == "echo":
-            from flowrt.control import READ_MAX_AGE, listen
+            from flowrt.control.server import READ_MAX_AGE, listen
 
             sock = listen("127.0.0.1", 0)
             echo_port = sock.getsockname()[1]

@@ -35,7 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from flowrt.oscheduling import request_short_slice  # noqa: E402
+from flowrt.system._priorities import request_short_slice  # noqa: E402
 
 
 def task(nice: int, slice_us: int, burst_ms: float, offset: float, periods: int) -> None:

@@ -204,7 +204,7 @@ async def callsoon_run(
 
 
 def uvloop_factory() -> asyncio.AbstractEventLoop:
-    from flowrt.eventloop import new_event_loop
+    from flowrt.system._eventloop import new_event_loop
 
     loop = new_event_loop()
     if type(loop).__module__.split(".")[0] != "uvloop":
@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
 
     granted = "not requested (SCHED_OTHER)"
     if args.realtime:
-        from flowrt.realtime import enable_realtime
+        from flowrt.system._realtime import enable_realtime
 
         ok, granted = enable_realtime()
         if not ok:

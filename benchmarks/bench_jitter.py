@@ -172,11 +172,11 @@ async def _baseline_loop(duration: float, mode: str) -> list[float]:
 
 
 def baseline_child(args: argparse.Namespace) -> int:
-    from flowrt.eventloop import new_event_loop
+    from flowrt.system._eventloop import new_event_loop
 
     granted = ""
     if args.realtime:
-        from flowrt.realtime import enable_realtime
+        from flowrt.system._realtime import enable_realtime
 
         ok, granted = enable_realtime()
         if not ok:
@@ -421,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from importlib.metadata import version
 
-    from flowrt.eventloop import new_event_loop
+    from flowrt.system._eventloop import new_event_loop
 
     loop = new_event_loop()
     loop_name = type(loop).__module__

@@ -555,7 +555,7 @@ async def _lateness_once(
 
 def _writer_elsewhere(seconds: float, folder: Path, shape: tuple[int, ...]) -> None:
     """The writer condition's work in another process: tells CPU contention from the GIL."""
-    from flowrt.eventloop import new_event_loop
+    from flowrt.system._eventloop import new_event_loop
 
     loop = new_event_loop()
     try:
@@ -566,7 +566,7 @@ def _writer_elsewhere(seconds: float, folder: Path, shape: tuple[int, ...]) -> N
 
 def lateness(args: argparse.Namespace) -> None:
     """Interleaved conditions in one process: no writer, mcap's buffers, GIL-free; intervals."""
-    from flowrt.eventloop import new_event_loop
+    from flowrt.system._eventloop import new_event_loop
 
     shape = (args.height, args.width, 3)
     every = {

@@ -33,8 +33,8 @@ import cv2
 import yaml
 
 import flowrt
-from flowrt.oscheduling import lowest_nice
-from flowrt.spec import GraphSpec
+from flowrt.graph.spec import GraphSpec
+from flowrt.system._priorities import lowest_nice
 
 REPO = Path(__file__).resolve().parents[1]
 CANDIDATES = (

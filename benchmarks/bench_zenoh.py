@@ -241,7 +241,7 @@ def raw_sub(args: argparse.Namespace) -> None:
         sub = s.declare_subscriber("bench/raw", on)
         time.sleep(args.seconds)
     else:
-        from flowrt.eventloop import new_event_loop
+        from flowrt.system._eventloop import new_event_loop
 
         loop = new_event_loop()
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-import flowrt.remote_import as remote
+import flowrt.remote._importer as remote
 from benchmarks import bench_zenoh as bench
 
 STEPS = (

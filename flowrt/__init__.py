@@ -16,16 +16,12 @@ from . import _startup  # noqa: F401  (first: Ctrl-C while the flowrt command im
 
 if TYPE_CHECKING:  # what type checkers and editors see; at run time: __getattr__ below
     from .audio import AudioBlock as AudioBlock
-    from .builder import GraphBuilder as GraphBuilder
     from .clock import Clock as Clock
     from .clock import SystemClock as SystemClock
     from .clock import VirtualClock as VirtualClock
-    from .control import ControlConfig as ControlConfig
-    from .control import ControlServer as ControlServer
+    from .control.server import ControlConfig as ControlConfig
+    from .control.server import ControlServer as ControlServer
     from .determinism.api import replay as replay
-    from .diagnostics import Diagnostic as Diagnostic
-    from .diagnostics import GraphError as GraphError
-    from .eventloop import run as run
     from .events import DeadlineMissed as DeadlineMissed
     from .events import Event as Event
     from .events import HealthAlert as HealthAlert
@@ -37,46 +33,50 @@ if TYPE_CHECKING:  # what type checkers and editors see; at run time: __getattr_
     from .events import NodeSwapped as NodeSwapped
     from .events import TimingChanged as TimingChanged
     from .frames import Frame as Frame
-    from .graph import Graph as Graph
-    from .graph import resolve_path as resolve_path
+    from .graph._builder import GraphBuilder as GraphBuilder
+    from .graph._resolve import Graph as Graph
+    from .graph._resolve import resolve_path as resolve_path
+    from .graph.diagnostics import Diagnostic as Diagnostic
+    from .graph.diagnostics import GraphError as GraphError
+    from .graph.spec import DurationMs as DurationMs
+    from .graph.spec import FrameTrigger as FrameTrigger
+    from .graph.spec import GraphSpec as GraphSpec
+    from .graph.spec import InputTrigger as InputTrigger
+    from .graph.spec import LoopTrigger as LoopTrigger
+    from .graph.spec import TimerMs as TimerMs
+    from .graph.spec import TimerTrigger as TimerTrigger
+    from .graph.spec import parse_duration_ms as parse_duration_ms
     from .node import FatalError as FatalError
     from .node import Input as Input
     from .node import Node as Node
     from .node import NodeContext as NodeContext
     from .node import Output as Output
-    from .qos import QosStatus as QosStatus
     from .rtdb import RTDB as RTDB
     from .rtdb import Record as Record
-    from .runtime import Monitor as Monitor
-    from .runtime import Runtime as Runtime
-    from .runtime import SwapError as SwapError
-    from .spec import DurationMs as DurationMs
-    from .spec import FrameTrigger as FrameTrigger
-    from .spec import GraphSpec as GraphSpec
-    from .spec import InputTrigger as InputTrigger
-    from .spec import LoopTrigger as LoopTrigger
-    from .spec import TimerMs as TimerMs
-    from .spec import TimerTrigger as TimerTrigger
-    from .spec import parse_duration_ms as parse_duration_ms
+    from .runtime._qos import QosStatus as QosStatus
+    from .runtime._runtime import Monitor as Monitor
+    from .runtime._runtime import Runtime as Runtime
+    from .runtime._runtime import SwapError as SwapError
+    from .runtime._subscription import Subscription as Subscription
     from .stats import EdgeStats as EdgeStats
     from .stats import NodeStats as NodeStats
     from .stats import RuntimeStats as RuntimeStats
-    from .subscription import Subscription as Subscription
+    from .system._eventloop import run as run
     from .version import __version__ as __version__
 
 # name -> (module, attribute): imported on first use
 _LAZY: dict[str, tuple[str, str]] = {
     "AudioBlock": (".audio", "AudioBlock"),
-    "GraphBuilder": (".builder", "GraphBuilder"),
+    "GraphBuilder": (".graph._builder", "GraphBuilder"),
     "Clock": (".clock", "Clock"),
     "SystemClock": (".clock", "SystemClock"),
     "VirtualClock": (".clock", "VirtualClock"),
-    "ControlConfig": (".control", "ControlConfig"),
-    "ControlServer": (".control", "ControlServer"),
+    "ControlConfig": (".control.server", "ControlConfig"),
+    "ControlServer": (".control.server", "ControlServer"),
     "replay": (".determinism.api", "replay"),
-    "Diagnostic": (".diagnostics", "Diagnostic"),
-    "GraphError": (".diagnostics", "GraphError"),
-    "run": (".eventloop", "run"),
+    "Diagnostic": (".graph.diagnostics", "Diagnostic"),
+    "GraphError": (".graph.diagnostics", "GraphError"),
+    "run": (".system._eventloop", "run"),
     "DeadlineMissed": (".events", "DeadlineMissed"),
     "Event": (".events", "Event"),
     "HealthAlert": (".events", "HealthAlert"),
@@ -88,31 +88,31 @@ _LAZY: dict[str, tuple[str, str]] = {
     "NodeSwapped": (".events", "NodeSwapped"),
     "TimingChanged": (".events", "TimingChanged"),
     "Frame": (".frames", "Frame"),
-    "Graph": (".graph", "Graph"),
-    "resolve_path": (".graph", "resolve_path"),
+    "Graph": (".graph._resolve", "Graph"),
+    "resolve_path": (".graph._resolve", "resolve_path"),
     "FatalError": (".node", "FatalError"),
     "Input": (".node", "Input"),
     "Node": (".node", "Node"),
     "NodeContext": (".node", "NodeContext"),
     "Output": (".node", "Output"),
-    "QosStatus": (".qos", "QosStatus"),
+    "QosStatus": (".runtime._qos", "QosStatus"),
     "RTDB": (".rtdb", "RTDB"),
     "Record": (".rtdb", "Record"),
-    "Monitor": (".runtime", "Monitor"),
-    "Runtime": (".runtime", "Runtime"),
-    "SwapError": (".runtime", "SwapError"),
-    "DurationMs": (".spec", "DurationMs"),
-    "FrameTrigger": (".spec", "FrameTrigger"),
-    "GraphSpec": (".spec", "GraphSpec"),
-    "InputTrigger": (".spec", "InputTrigger"),
-    "LoopTrigger": (".spec", "LoopTrigger"),
-    "TimerMs": (".spec", "TimerMs"),
-    "TimerTrigger": (".spec", "TimerTrigger"),
-    "parse_duration_ms": (".spec", "parse_duration_ms"),
+    "Monitor": (".runtime._runtime", "Monitor"),
+    "Runtime": (".runtime._runtime", "Runtime"),
+    "SwapError": (".runtime._runtime", "SwapError"),
+    "DurationMs": (".graph.spec", "DurationMs"),
+    "FrameTrigger": (".graph.spec", "FrameTrigger"),
+    "GraphSpec": (".graph.spec", "GraphSpec"),
+    "InputTrigger": (".graph.spec", "InputTrigger"),
+    "LoopTrigger": (".graph.spec", "LoopTrigger"),
+    "TimerMs": (".graph.spec", "TimerMs"),
+    "TimerTrigger": (".graph.spec", "TimerTrigger"),
+    "parse_duration_ms": (".graph.spec", "parse_duration_ms"),
     "EdgeStats": (".stats", "EdgeStats"),
     "NodeStats": (".stats", "NodeStats"),
     "RuntimeStats": (".stats", "RuntimeStats"),
-    "Subscription": (".subscription", "Subscription"),
+    "Subscription": (".runtime._subscription", "Subscription"),
     "__version__": (".version", "__version__"),
 }
 

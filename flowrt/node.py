@@ -40,8 +40,8 @@ from .frames import worker_frame
 
 if TYPE_CHECKING:
     from .frames import Frame
+    from .graph.spec import Trigger
     from .rtdb import RTDB, RtdbHandle
-    from .spec import Trigger
 
 T = TypeVar("T")
 
@@ -310,7 +310,7 @@ class Node:
     swappable: ClassVar[frozenset[str]] = frozenset()
     """The params a swap over the control endpoint (``POST /swap``, ``flowrt ctl swap``) may
     change: an algorithm's, never where data goes (an address, a device, a token, a folder).
-    Shown by ``flowrt kinds KIND``; none by default (:mod:`flowrt.swap_policy`)."""
+    Shown by ``flowrt kinds KIND``; none by default (:mod:`flowrt.control._swap_policy`)."""
     swap_folders: ClassVar[Mapping[str, str]] = {}
     """Path params in ``swappable`` -> the folder param each is confined to (a recorder's
     ``session`` inside its ``path``): relative, without ``..``, resolved under that folder."""

@@ -31,7 +31,7 @@ import logging
 import re
 from dataclasses import dataclass
 
-from .spec import RestartPolicy
+from .graph.spec import RestartPolicy
 
 log = logging.getLogger("flowrt.scheduler")
 

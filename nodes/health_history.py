@@ -1,6 +1,6 @@
 """Health over time: the machine and each camera stream, sampled into a ring buffer.
 
-The live view's server process (:mod:`flowrt.nodes.display_server`) samples once a second
+The live view's server process (:mod:`flowrt.nodes.station.server`) samples once a second
 (``health_hz``) and keeps ``health_keep_s`` seconds (15 minutes by default), as the
 acquisition system the operator's station comes from plotted its machines and sensors over
 a campaign: CPU per core, memory, swap, disk use and write rate, network, and per stream its

@@ -11,7 +11,7 @@ import pytest
 from flowrt.nodes.agent import ARENA, OBSTACLES, cast
 
 from flowrt import Graph, ModeChanged, Runtime, VirtualClock
-from flowrt.graph import resolve
+from flowrt.graph._resolve import resolve
 
 REPO = Path(__file__).resolve().parents[1]
 

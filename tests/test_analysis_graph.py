@@ -20,7 +20,7 @@ from flowrt.analysis.phases import advise, snippet  # noqa: E402
 from flowrt.analysis.rta import Task, global_response_time  # noqa: E402
 from flowrt.analysis.schedulability import analyse  # noqa: E402
 from flowrt.analysis.timing import Budget, NodeTiming, apply_changes, graph_timing  # noqa: E402
-from flowrt.timing import TimingChange  # noqa: E402
+from flowrt.kernel.timing import TimingChange  # noqa: E402
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -205,7 +205,7 @@ def test_phase_search_finds_the_least_heaviest_tick(items: list[tuple[int, int, 
 
 
 def test_wcet_must_be_finite_and_positive() -> None:
-    from flowrt.diagnostics import GraphError
+    from flowrt.graph.diagnostics import GraphError
 
     for bad in ("0ms", "-1ms", ".inf"):
         with pytest.raises(GraphError, match="wcet"):

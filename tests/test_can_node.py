@@ -20,7 +20,7 @@ import cantools
 import pytest
 from can.interfaces import BACKENDS
 from can.interfaces.virtual import VirtualBus
-from flowrt.nodes.can import Can, CanMessage, checksum
+from flowrt.nodes.can.node import Can, CanMessage, checksum
 
 from flowrt import GraphBuilder, GraphError, HealthAlert, Runtime, VirtualClock
 
@@ -433,7 +433,7 @@ async def test_an_unchanged_periodic_value_is_not_encoded_again(
     """Issue 31: a periodic message without counter or checksum is encoded once per new
     value, not at every send (the encode sat between the timer's release and bus.send);
     a new value goes out from the next send on."""
-    import flowrt.nodes.can as can_node
+    import flowrt.nodes.can.node as can_node
 
     encodes: list[dict[str, Any]] = []
     real = can_node.encode_signals

@@ -17,7 +17,7 @@ from typing import Any
 import can
 import pytest
 from _can_dbcs import FD_DBC, write
-from flowrt.nodes.can import Can
+from flowrt.nodes.can.node import Can
 
 from flowrt import GraphBuilder, Runtime, VirtualClock, cli
 from flowrt.analysis.can_frames import fd_frame_bits, frame_bits

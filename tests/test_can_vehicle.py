@@ -22,9 +22,9 @@ import cantools
 import pytest
 from _can_dbcs import VEHICLE_DBCS, opendbc
 from cantools.database.can import Message
-from flowrt.nodes.can import Can, CanBusStatus, CanBusSummary, CanMessage
-from flowrt.nodes.can_dbc import load_dbc, message_is_fd
-from flowrt.nodes.can_values import SUMMARY_NAMES, MessageStatus, summarise
+from flowrt.nodes.can.dbc import load_dbc, message_is_fd
+from flowrt.nodes.can.node import Can, CanBusStatus, CanBusSummary, CanMessage
+from flowrt.nodes.can.values import SUMMARY_NAMES, MessageStatus, summarise
 
 from flowrt import GraphBuilder, Runtime, VirtualClock
 from flowrt.analysis.can_frames import fd_payload_length

@@ -200,7 +200,7 @@ def test_stats_of_a_short_trace_say_no_busiest_second(
 
 def test_the_can_example_graph_has_no_warning() -> None:
     """Issue 43: graphs/can.yaml warned about its own deadline (10 ms over a 5 ms tick)."""
-    from flowrt.graph import Graph
+    from flowrt.graph._resolve import Graph
 
     graph = Graph.from_file(Path(__file__).resolve().parent.parent / "graphs" / "can.yaml")
     assert graph.warnings == []

@@ -14,8 +14,8 @@ import can
 import cantools
 import pytest
 from _can_dbcs import FD_DBC, write
-from flowrt.nodes.can import Can, CanMessage
-from flowrt.nodes.can_dbc import EncodeProblem, encode_signals
+from flowrt.nodes.can.dbc import EncodeProblem, encode_signals
+from flowrt.nodes.can.node import Can, CanMessage
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -257,7 +257,7 @@ async def test_node_statistics_keep_ids_per_channel(channel: str, dbc: str) -> N
 
 
 def test_params_know_the_node_outputs() -> None:
-    from flowrt.nodes.can_params import NODE_OUTPUTS
+    from flowrt.nodes.can.params import NODE_OUTPUTS
 
     assert set(Can.outputs) == NODE_OUTPUTS  # no DBC message may shadow them
 

@@ -19,8 +19,10 @@ from typing import Any, ClassVar
 import cv2
 import numpy as np
 import pytest
-from flowrt.nodes import capture, capture_sources, capture_stderr
-from flowrt.nodes.capture import (
+from flowrt.nodes.capture import node as capture
+from flowrt.nodes.capture import sources as capture_sources
+from flowrt.nodes.capture import stderr as capture_stderr
+from flowrt.nodes.capture.node import (
     Capture,
     CaptureParams,
     SourceError,

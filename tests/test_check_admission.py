@@ -13,8 +13,8 @@ import flowrt
 from flowrt import GraphBuilder, Runtime, VirtualClock
 from flowrt.analysis.admission import AdmissionRefused, admit, current_timing
 from flowrt.cli import main
-from flowrt.control import ControlConfig, ControlServer
-from flowrt.timing import TimingChange
+from flowrt.control.server import ControlConfig, ControlServer
+from flowrt.kernel.timing import TimingChange
 
 pytestmark = pytest.mark.timeout(60)
 

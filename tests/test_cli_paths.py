@@ -396,7 +396,7 @@ def test_an_images_glob_matching_nothing_fails_validation(
 def test_a_session_has_one_length_first_message_to_last() -> None:
     """Issue 43: POST /api/record/stop said 6.0 s (start to stop) for a session the sessions
     API and the player give as 4.95 s (first message to last): both read the report's span."""
-    from flowrt.nodes.operator_sessions import session_length
+    from flowrt.nodes.station.sessions import session_length
 
     from flowrt.recording import RecordingReport
 

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from flowrt import GraphBuilder, Node, Output, Runtime, VirtualClock
-from flowrt.control import ControlConfig, ControlServer
+from flowrt.control.server import ControlConfig, ControlServer
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -78,7 +78,7 @@ AUDIO_BLOCK = 1024 / 48000  # graphs/avsync.yaml's mic
 
 def test_every_builtin_kind_has_a_row() -> None:
     """A new kind fails here until it has a graph in MATRIX (or a reason)."""
-    from flowrt.registry import available_kinds
+    from flowrt.graph._registry import available_kinds
 
     covered = {k for kinds in MATRIX.values() for k in kinds} | set(NOT_A_SOURCE)
     missing = sorted(set(available_kinds()) - covered)
@@ -137,7 +137,7 @@ def recorded(graph: str, recordings: dict[str, Path], scratch: Path) -> dict[str
 
 def _outputs(graph: str) -> list[str]:
     """Every output of ``graph`` (declared and made by params), as ``node.port``."""
-    from flowrt.graph import Graph
+    from flowrt.graph._resolve import Graph
 
     g = Graph.from_file(ROOT / graph)
     return [
@@ -176,7 +176,7 @@ def test_recorded(graph: str, recordings: dict[str, Path], scratch: Path) -> Non
 @pytest.mark.parametrize("graph", GRAPHS)
 async def test_live(graph: str, recordings: dict[str, Path], scratch: Path) -> None:
     import flowrt
-    from flowrt.graph import Graph
+    from flowrt.graph._resolve import Graph
     from flowrt.recording.live import FoxgloveLive
 
     channels = recorded(graph, recordings, scratch)
@@ -250,7 +250,7 @@ async def zenoh_cell(graph: str, channels: dict[str, Channel]) -> None:
     import zenoh
 
     import flowrt
-    from flowrt.graph import Graph
+    from flowrt.graph._resolve import Graph
 
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

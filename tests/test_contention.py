@@ -25,7 +25,7 @@ import aiohttp
 import pytest
 
 from flowrt import GraphBuilder, Runtime
-from flowrt.control import ControlConfig, ControlServer
+from flowrt.control.server import ControlConfig, ControlServer
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -14,8 +14,8 @@ import pytest
 
 import flowrt
 from flowrt import GraphBuilder, Runtime, VirtualClock
-from flowrt.control import ControlConfig, ControlServer
-from flowrt.serving import is_loopback
+from flowrt.control.server import ControlConfig, ControlServer
+from flowrt.control.serving import is_loopback
 
 TOKEN = "s3cret-token"
 

@@ -17,11 +17,11 @@ import pytest
 
 import flowrt
 from flowrt import GraphBuilder, Runtime, VirtualClock
-from flowrt.control_routes import BY_OP, ENDPOINTS, ROUTES, answer
-from flowrt.control_wire import TimingRequest
+from flowrt.control.routes import BY_OP, ENDPOINTS, ROUTES, answer
+from flowrt.control.wire import TimingRequest
 from flowrt.events import TimingChanged
+from flowrt.kernel.timing import TimingChange
 from flowrt.rtdb import RECORD_COMMAND
-from flowrt.timing import TimingChange
 
 
 class Server:
@@ -150,7 +150,8 @@ async def test_routes_answer_reads_and_unknown_operations(server: Server) -> Non
 def test_one_module_owns_the_recorders_command_key() -> None:
     """``flowrt.record.NODE`` is spelled once, in flowrt.rtdb; the control endpoint, the
     recorder node and the operator's page take it from there."""
-    from flowrt.nodes import operator_record, recorder
+    from flowrt.nodes import recorder
+    from flowrt.nodes.station import record as operator_record
 
     assert recorder.COMMAND_RECORD is RECORD_COMMAND is operator_record.COMMAND
     root = Path(flowrt.__file__).parent

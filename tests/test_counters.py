@@ -29,8 +29,8 @@ from test_status_table import FAILING, cambada_stats
 
 import flowrt
 from flowrt import GraphBuilder, Runtime, VirtualClock
+from flowrt.monitors.status import render
 from flowrt.stats import RuntimeStats
-from flowrt.status import render
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -182,7 +182,7 @@ console.log(JSON.stringify({ nodes: rows("#stats tbody"), edges: rows("#edges tb
 
 def web_view(stats: RuntimeStats) -> dict[str, Any]:
     """The page's tables as the page's own script renders them from ``/stats.json``."""
-    html = (ROOT / "nodes" / "display.html").read_text()
+    html = (ROOT / "nodes" / "station" / "display.html").read_text()
     script = html[html.index("<script>") + len("<script>") : html.index("</script>")]
     script = script.replace("__REFRESH_MS__", "500").replace("__FLOWRT_STATS__", "null")
     # the page's start-up (joystick, first statistics, WebSocket, polling) is not run here
@@ -196,7 +196,7 @@ def web_view(stats: RuntimeStats) -> dict[str, Any]:
 
 
 def headers(html_table: str) -> list[str]:
-    html = (ROOT / "nodes" / "display.html").read_text()
+    html = (ROOT / "nodes" / "station" / "display.html").read_text()
     part = html[html.index(f'id="{html_table}"') :]
     part = part[: part.index("</thead>")]
     return [re.sub(r"<[^>]+>", "", h).strip() for h in re.findall(r"<th[^>]*>.*?</th>", part)]

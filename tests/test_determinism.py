@@ -312,7 +312,7 @@ async def test_a_changed_param_diverges_at_that_node_the_same_way_every_time(
     graph, session = await record(tmp_path, case_frame_phases)
     node = graph.spec.nodes["p4ph3"].model_copy(update={"params": {"factor": 5}})
     spec = graph.spec.model_copy(update={"nodes": {**graph.spec.nodes, "p4ph3": node}})
-    changed = flowrt.graph.resolve(spec, kinds={"Acc": Acc, "Cam": Cam})  # the same wiring
+    changed = flowrt.graph._resolve.resolve(spec, kinds={"Acc": Acc, "Cam": Cam})  # the same wiring
     firsts = []
     for _ in range(2):
         async with flowrt.replay(session, changed, inline=True, stop_at_divergence=True) as rp:

@@ -23,8 +23,8 @@ async def test_nodes_in_workers_replay_what_they_computed_inline(tmp_path: Path)
     from test_determinism import Acc, Pair, Ticker, case_timers, record
 
     import flowrt
-    from flowrt.graph import resolve
-    from flowrt.spec import Placement
+    from flowrt.graph._resolve import resolve
+    from flowrt.graph.spec import Placement
 
     graph, session = await record(tmp_path, case_timers)
     spec = graph.spec

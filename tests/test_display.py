@@ -20,8 +20,8 @@ import aiohttp
 import cv2
 import numpy as np
 import pytest
-from flowrt.nodes import display as display_module
-from flowrt.nodes.display import Display, Mark, render
+from flowrt.nodes.station import display as display_module
+from flowrt.nodes.station.display import Display, Mark, render
 from tiers import uses
 
 import flowrt
@@ -764,7 +764,7 @@ async def test_a_websocket_without_the_page_session_cannot_drive(
 )
 def test_labels_stay_inside_the_image(x: int, y: int) -> None:
     """Issue 24: a label near an edge was drawn past it, cut off."""
-    from flowrt.nodes.display_render import label_origin
+    from flowrt.nodes.station.render import label_origin
 
     w, h, tw, th, base = 160, 120, 70, 9, 3
     lx, ty = label_origin(x, y, tw, th, base, w, h)

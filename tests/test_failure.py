@@ -22,7 +22,7 @@ import pytest
 
 import flowrt
 from flowrt import GraphBuilder, Runtime, VirtualClock
-from flowrt.spec import RestartPolicy
+from flowrt.graph.spec import RestartPolicy
 from flowrt.supervision import SUMMARY_INTERVAL, backoff_s, give_up_reason
 
 TESTS = Path(__file__).resolve().parent

@@ -11,8 +11,8 @@ from typing import Any
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from flowrt.graph import Edge, _check_cycles, _components
-from flowrt.spec import EdgePolicy
+from flowrt.graph._resolve import Edge, _check_cycles, _components
+from flowrt.graph.spec import EdgePolicy
 
 
 def _edges(pairs: list[tuple[int, int]]) -> list[Edge]:

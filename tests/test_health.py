@@ -24,7 +24,7 @@ from flowrt import (
     TimerTrigger,
     VirtualClock,
 )
-from flowrt.status import render
+from flowrt.monitors.status import render
 
 
 class Source(Node):

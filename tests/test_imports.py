@@ -18,8 +18,8 @@ ROOT = Path(__file__).resolve().parent.parent
 PACKAGE = ROOT / "flowrt"
 
 #: What the runtime core must never import: its users (monitors, the CLI) and the nodes.
-RUNTIME_CORE = ("flowrt.runtime", "flowrt.kernel", "flowrt.qos", "flowrt.workers")
-USERS = ("flowrt.control", "flowrt.status", "flowrt.cli", "flowrt.nodes")
+RUNTIME_CORE = ("flowrt.runtime._runtime", "flowrt.kernel", "flowrt.runtime._qos", "flowrt.workers")
+USERS = ("flowrt.control.server", "flowrt.monitors.status", "flowrt.cli", "flowrt.nodes")
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:

@@ -11,7 +11,7 @@ from typing import Any
 import psutil
 import pytest
 
-from flowrt.oscheduling import FairShare, lowest_nice
+from flowrt.system._priorities import FairShare, lowest_nice
 from flowrt.workers import PoolExecutor, ProcessExecutor
 from flowrt.workers.child import Anticipation
 

@@ -72,7 +72,7 @@ def test_every_public_name_resolves_and_is_listed_by_dir() -> None:
     for name in [*PUBLIC, "__version__"]:
         assert getattr(flowrt, name) is not None, name
         assert name in dir(flowrt)
-    assert flowrt.Runtime.__module__ == "flowrt.runtime"
+    assert flowrt.Runtime.__module__ == "flowrt.runtime._runtime"
 
 
 def test_an_unknown_name_is_an_attribute_error() -> None:
@@ -84,10 +84,10 @@ def test_import_flowrt_loads_neither_the_runtime_nor_the_http_server() -> None:
     """In a fresh interpreter: the face is lazy, the control server comes only when named."""
     probe = (
         "import sys, flowrt\n"
-        "print(sorted(m for m in ('flowrt.runtime', 'flowrt.control', 'aiohttp') "
+        "print(sorted(m for m in ('flowrt.runtime._runtime', 'flowrt.control.server', 'aiohttp') "
         "if m in sys.modules))\n"
         "flowrt.Runtime\n"
-        "print('flowrt.control' in sys.modules, 'aiohttp' in sys.modules)\n"
+        "print('flowrt.control.server' in sys.modules, 'aiohttp' in sys.modules)\n"
     )
     out = subprocess.run(
         [sys.executable, "-c", probe], capture_output=True, text=True, timeout=120, check=True

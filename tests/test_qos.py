@@ -12,9 +12,9 @@ import pytest
 
 import flowrt
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime, TimerTrigger, VirtualClock
-from flowrt.graph import Graph, resolve
-from flowrt.qos import LoadSample
-from flowrt.spec import Placement, QosSpec
+from flowrt.graph._resolve import Graph, resolve
+from flowrt.graph.spec import Placement, QosSpec
+from flowrt.runtime._qos import LoadSample
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -290,7 +290,7 @@ async def test_overload_sheds_lowest_priority_first_then_restores_in_reverse() -
         status = rt.qos_status()
         assert [s.describe() for s in status.shed] == ["low_a off", "low_b off", "mid off"]
         assert "shed: low_a off" in status.describe()
-        recorded = rt.rtdb.read("flowrt.qos")  # the QoS state is in the RTDB too
+        recorded = rt.rtdb.read("flowrt.runtime._qos")  # the QoS state is in the RTDB too
         assert recorded is not None
         assert recorded.value.shed == status.shed
         s = rt.stats()

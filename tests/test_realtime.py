@@ -13,7 +13,7 @@ pytestmark = pytest.mark.subprocess  # SCHED_FIFO and mlockall: in a process of 
 PROBE = textwrap.dedent(
     """
     import mmap, sys
-    from flowrt.realtime import enable_realtime
+    from flowrt.system._realtime import enable_realtime
 
     ok, what = enable_realtime()
     if not ok or "memory locked" not in what:

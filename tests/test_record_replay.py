@@ -16,9 +16,9 @@ from mcap.reader import make_reader
 
 import flowrt
 from flowrt.cli.record import wait_for_writers
+from flowrt.graph._registry import resolve_kind
 from flowrt.recording.encoding import Decoder, to_jsonable
 from flowrt.recording.reader import scan
-from flowrt.registry import resolve_kind
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -70,7 +70,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def stand_in(path: Path, **params: Any) -> dict[str, Any]:
     """The capture replaced by a replay node with the capture's own ports."""
-    from flowrt.nodes.capture import Capture
+    from flowrt.nodes.capture.node import Capture
 
     cls = resolve_kind("replay").standing_in_for(Capture, "cam")  # type: ignore[attr-defined]
     return {"kind": cls, "params": {"path": str(path), "node": "cam", **params}}

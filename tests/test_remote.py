@@ -21,8 +21,8 @@ import pytest
 
 from flowrt import Frame, Graph, GraphBuilder, GraphError, Node, Output, Runtime
 from flowrt.edges import EMPTY
-from flowrt.remote_import import FRAME_BACKLOG, ImportLink
-from flowrt.zenoh_wire import HEADER, Header, decode_frame, encode_frame, from_wire, to_wire
+from flowrt.remote._importer import FRAME_BACKLOG, ImportLink
+from flowrt.remote.wire import HEADER, Header, decode_frame, encode_frame, from_wire, to_wire
 
 pytestmark = pytest.mark.timeout(90)
 

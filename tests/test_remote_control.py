@@ -20,9 +20,9 @@ import pytest
 from rich.console import Console
 
 from flowrt.cli.run import _control_config
-from flowrt.control import ControlClient, ControlError
-from flowrt.remote_control import ZenohControl, ZenohControlClient
-from flowrt.spec import ZenohSpec
+from flowrt.control.server import ControlClient, ControlError
+from flowrt.graph.spec import ZenohSpec
+from flowrt.remote.control import ZenohControl, ZenohControlClient
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -15,12 +15,12 @@ from typing import Any
 
 import pytest
 
-from flowrt.diagnostics import GraphError
 from flowrt.events import HealthAlert
-from flowrt.graph import resolve
-from flowrt.loading import load_text
-from flowrt.remote_import import ImportLink
-from flowrt.zenoh_wire import Header, PlainFormat, own_timestamp
+from flowrt.graph._loading import load_text
+from flowrt.graph._resolve import resolve
+from flowrt.graph.diagnostics import GraphError
+from flowrt.remote._importer import ImportLink
+from flowrt.remote.wire import Header, PlainFormat, own_timestamp
 
 
 class _Bytes:

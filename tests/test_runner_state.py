@@ -177,8 +177,8 @@ def test_supervision_returns_a_decision_and_changes_nothing() -> None:
     read-only view here: a write would raise)."""
     from types import SimpleNamespace
 
+    from flowrt.graph.spec import RestartPolicy
     from flowrt.kernel.counters import Counters
-    from flowrt.spec import RestartPolicy
 
     class View:
         """Read-only: no setter, so an assignment by the supervisor raises."""

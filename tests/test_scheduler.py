@@ -386,7 +386,7 @@ async def test_loop_process_asks_the_fair_scheduler_for_a_short_slice() -> None:
     import ctypes
     import platform
 
-    from flowrt.oscheduling import _SchedAttr, lowest_nice
+    from flowrt.system._priorities import _SchedAttr, lowest_nice
 
     g = GraphBuilder()
     g.add("a", Count, trigger={"timer": "50ms"})

@@ -205,7 +205,7 @@ def test_segments_of_a_killed_run_are_reclaimed_with_one_line(
     proc.communicate()
     # Any runtime started on this machine now reclaims them (other test runs too): so the
     # start-up below is checked in this process, at once, on a segment of a dead pid.
-    from flowrt.resources import frame_store
+    from flowrt.runtime._resources import frame_store
 
     orphan = Path("/dev/shm", f"flowrt_{proc.pid}_0_cam_99")
     orphan.write_bytes(bytes(64))

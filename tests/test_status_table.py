@@ -15,9 +15,9 @@ import pytest
 from rich.console import Console
 
 from flowrt.events import DeadlineMissed, Event
-from flowrt.graph import Graph
+from flowrt.graph._resolve import Graph
+from flowrt.monitors.status import EDGE_COLUMNS, NODE_COLUMNS, render
 from flowrt.stats import EdgeStats, FramePoolStats, LoopStats, NodeStats, RuntimeStats, Summary
-from flowrt.status import EDGE_COLUMNS, NODE_COLUMNS, render
 
 pytestmark = pytest.mark.timeout(30)
 

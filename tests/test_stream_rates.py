@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from flowrt.nodes.can import Can
+from flowrt.nodes.can.node import Can
 
 from flowrt import GraphBuilder, Node, Output, Runtime, TimerTrigger, VirtualClock
 from flowrt.recording import build_report, nominal_rates

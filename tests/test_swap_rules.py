@@ -12,14 +12,14 @@ from typing import Any
 
 import aiohttp
 import pytest
-from flowrt.nodes.display import Display
 from flowrt.nodes.recorder import Recorder
+from flowrt.nodes.station.display import Display
 from pydantic import BaseModel
 
 from flowrt import GraphBuilder, Input, Node, Output, Runtime, SwapError, VirtualClock
 from flowrt.cli.kinds import describe
-from flowrt.control import ControlConfig, ControlServer
-from flowrt.swap_policy import SwapRefused, check_params
+from flowrt.control._swap_policy import SwapRefused, check_params
+from flowrt.control.server import ControlConfig, ControlServer
 
 # --- the allow-list, alone -----------------------------------------------------------------
 

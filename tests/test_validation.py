@@ -28,7 +28,7 @@ if str(TESTS) not in sys.path:  # for the typed test kinds, `graphkinds:FrameSou
 from graphkinds import FrameReader, FrameSource  # noqa: E402
 
 from flowrt import FrameTrigger, Graph, GraphBuilder, GraphError  # noqa: E402
-from flowrt.diagnostics import Diagnostic, Severity  # noqa: E402
+from flowrt.graph.diagnostics import Diagnostic, Severity  # noqa: E402
 
 GRAPHS = TESTS / "graphs"
 INVALID = sorted(GRAPHS.glob("invalid-*.yaml"))
@@ -406,7 +406,7 @@ _BAD_PARAM_VALUES = [None, [1, 2], {"a": 1}, 10**400, "x", -1, 1e308, float("nan
 
 
 def _kind_fields() -> list[tuple[str, str]]:
-    from flowrt.registry import available_kinds, resolve_kind
+    from flowrt.graph._registry import available_kinds, resolve_kind
 
     out = []
     for kind in available_kinds():

@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 from pydantic import ValidationError
 
 from flowrt import Frame, Graph, GraphBuilder, GraphError, Input, Node, Output, Runtime
-from flowrt import spec as S
-from flowrt.spec import TimingOverride
+from flowrt.graph import spec as S
+from flowrt.graph.spec import TimingOverride
 
 
 @pytest.mark.parametrize(
@@ -100,7 +100,7 @@ async def test_a_wrong_type_is_one_counted_error(caplog: pytest.LogCaptureFixtur
 def test_a_float_input_takes_ints_and_numpy_numbers() -> None:
     import numpy as np
 
-    from flowrt.graph import checked_type
+    from flowrt.graph._resolve import checked_type
 
     real = checked_type(float)
     assert real is not None
@@ -199,7 +199,7 @@ def _run_briefly(graph: Graph, text: str) -> None:
     """Run 0.6 s: no exception, no traceback logged, no node error or failure."""
     import asyncio
 
-    from flowrt.eventloop import new_event_loop
+    from flowrt.system._eventloop import new_event_loop
 
     async def main() -> None:
         async with Runtime(graph) as rt:

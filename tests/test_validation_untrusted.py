@@ -15,7 +15,7 @@ import pytest
 
 from flowrt import Graph, GraphError
 from flowrt.cli import main
-from flowrt.loading import MAX_FILE_BYTES, parse_yaml, read_graph_file
+from flowrt.graph._loading import MAX_FILE_BYTES, parse_yaml, read_graph_file
 
 _MODULE = """
 from pathlib import Path

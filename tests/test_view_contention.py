@@ -1,6 +1,6 @@
 """The live view's server under hostile and careless clients (issue 37 items 5 and 8).
 
-The server (:class:`flowrt.nodes.display_server.ViewServer`) runs here in the test's own
+The server (:class:`flowrt.nodes.station.server.ViewServer`) runs here in the test's own
 event loop on a real socket on 127.0.0.1; the display node's side of its channel is played
 by :class:`FakeNode`, which answers statistics and the record panel's calls, and frames are
 put in the server's cache directly (JPEG bytes): no runtime, no process.
@@ -17,9 +17,9 @@ from typing import Any
 
 import aiohttp
 import pytest
-from flowrt.nodes.display_server import ViewServer, _joystick
+from flowrt.nodes.station.server import ViewServer, _joystick
 
-from flowrt.serving import pack, unpack
+from flowrt.control.serving import pack, unpack
 
 
 class FakeNode:

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import aiohttp
 import pytest
-from flowrt.nodes.display import _drivers
+from flowrt.nodes.station.display import _drivers
 
 from flowrt import GraphBuilder, Runtime
 

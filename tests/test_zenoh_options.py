@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from flowrt.cli.zenoh_options import add_zenoh_options, apply_zenoh_options
-from flowrt.graph import Graph
+from flowrt.graph._resolve import Graph
 
 
 def _args(*argv: str) -> argparse.Namespace:

@@ -1,4 +1,4 @@
-"""A stream's values over Zenoh (flowrt/zenoh_streams.py): the payload is the recording's
+"""A stream's values over Zenoh (flowrt/remote/_streams.py): the payload is the recording's
 message, a flowrt import gets the value back. No Zenoh session: the bytes an exporter puts."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import pytest
 
 from flowrt import AudioBlock
 from flowrt.recording.streams import StreamBook
-from flowrt.zenoh_streams import decode_audio, decode_json, encoding_of, schema_of_sample
+from flowrt.remote._streams import decode_audio, decode_json, encoding_of, schema_of_sample
 
 
 @dataclass

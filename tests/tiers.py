@@ -69,8 +69,8 @@ PROCESS_OBJECTS = frozenset(
         "flowrt.workers.executors.ProcessExecutor",
         "flowrt.workers.forkserver.start_forkserver",
         "flowrt.recording.writer.channel.ProcessRecordingWriter",
-        "flowrt.control.ControlServer",  # serves from a process of its own
-        "flowrt.nodes.display.Display",  # its view server: a process of its own
+        "flowrt.control.server.ControlServer",  # serves from a process of its own
+        "flowrt.nodes.station.display.Display",  # its view server: a process of its own
     }
 )
 # String constants that put a process in a test's graph: a node placed in a worker or the

@@ -31,8 +31,8 @@ import numpy as np
 from flowrt.nodes.scene import SoccerScene
 
 from flowrt import Frame, NodeContext
+from flowrt.graph._registry import resolve_kind
 from flowrt.node import make_node
-from flowrt.registry import resolve_kind
 
 from .graph import load
 from .nodes import warm_scene

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from flowrt.nodes.capture import Capture
+from flowrt.nodes.capture.node import Capture
 from flowrt.nodes.colour import Detection
 from flowrt.nodes.scene import CHUNK, SoccerScene
 from flowrt.nodes.tracker import FrameDetection, Tracker, TrackerParams

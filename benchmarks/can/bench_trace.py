@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/can/bench_trace.py [--frames 50000]
 
-Feeds the node's :class:`~flowrt.nodes.can_bus.TraceLog` (python-can's writers in a thread
+Feeds the node's :class:`~flowrt.nodes.can.bus.TraceLog` (python-can's writers in a thread
 of their own) with frames as fast as a producer can put them, half classic 8-byte, half
 CAN FD 64-byte, and reports frames per second written, frames dropped (the writer's queue
 holds 100 000) and the file size; then reads the file back with python-can and checks the
@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 import can
-from flowrt.nodes.can_bus import TraceLog
+from flowrt.nodes.can.bus import TraceLog
 
 
 def run(suffix: str, frames: int, folder: Path) -> dict[str, float]:

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import can
-from flowrt.nodes.can_dbc import load_dbc, message_is_fd
+from flowrt.nodes.can.dbc import load_dbc, message_is_fd
 
 from flowrt import GraphBuilder, Runtime
 from flowrt.analysis.can_frames import fd_payload_length

@@ -22,8 +22,8 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from ..graph import Graph
-from ..timing import TimingChange
+from ..graph._resolve import Graph
+from ..kernel.timing import TimingChange
 from .schedulability import GraphVerdict, analyse
 from .timing import Budget, NodeTiming, apply_changes, graph_timing
 

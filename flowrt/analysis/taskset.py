@@ -17,9 +17,9 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from ..diagnostics import Diagnostic, GraphError, Severity
-from ..loading import parse_yaml, pydantic_diagnostics
-from ..spec import DurationMs
+from ..graph._loading import parse_yaml, pydantic_diagnostics
+from ..graph.diagnostics import Diagnostic, GraphError, Severity
+from ..graph.spec import DurationMs
 from .rta import Task
 
 

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 from fractions import Fraction
 from math import gcd
 
-from ..graph import Graph, hyperperiod
-from ..spec import FrameTrigger, TimerTrigger
+from ..graph._resolve import Graph, hyperperiod
+from ..graph.spec import FrameTrigger, TimerTrigger
 
 
 @dataclass(frozen=True)

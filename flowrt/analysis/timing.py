@@ -14,9 +14,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Literal
 
-from ..graph import Graph
-from ..spec import FrameTrigger, InputTrigger, TimerTrigger
-from ..timing import TimingChange
+from ..graph._resolve import Graph
+from ..graph.spec import FrameTrigger, InputTrigger, TimerTrigger
+from ..kernel.timing import TimingChange
 
 TriggerKind = Literal["frame", "timer", "input", "loop"]
 

@@ -23,8 +23,8 @@ from ..analysis.can_database import CanDatabaseError
 from ..analysis.can_database import load_database as _load
 from ..analysis.can_frames import bit_rate
 from ..analysis.can_trace import TraceError, trace_stats
-from ..columns import Column, fit_table
-from ..spec import parse_duration_ms
+from ..graph.spec import parse_duration_ms
+from ..monitors._columns import Column, fit_table
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, stdout_console
 from .json_output import emit
 

@@ -18,7 +18,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from ..diagnostics import GraphError
+from ..graph.diagnostics import GraphError
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, load, print_diagnostics, stdout_console
 from .json_output import emit
 from .run import add_run_options
@@ -36,7 +36,7 @@ def _json_ms(x: float | None) -> float | None:
 
 def cmd_check(args: argparse.Namespace) -> int:
     from ..analysis.taskset import is_task_set
-    from ..loading import parse_yaml, read_graph_file
+    from ..graph._loading import parse_yaml, read_graph_file
 
     err = Console(stderr=True)
     given = _run_option_given(args)
@@ -186,7 +186,7 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
     mode = args.mode if args.mode is not None else graph.spec.initial_mode
     if mode:
         if mode not in graph.spec.modes:
-            from ..diagnostics import did_you_mean
+            from ..graph.diagnostics import did_you_mean
 
             err.print(
                 f"flowrt check: unknown mode {mode!r}" + did_you_mean(mode, graph.spec.modes),
@@ -438,7 +438,7 @@ def _verdict_table(nodes: Any, width: int) -> Any:
     """One row per node; at a narrow width the less telling columns go first."""
     from rich.text import Text
 
-    from ..columns import Column, fit_table
+    from ..monitors._columns import Column, fit_table
 
     def mark(v: Any) -> Text:
         if v.schedulable is None:
@@ -515,7 +515,7 @@ def _plot(tables: Any, path: str) -> str | None:
 
 
 def _duration_s(text: str) -> float:
-    from ..spec import parse_duration_ms
+    from ..graph.spec import parse_duration_ms
 
     if text.startswith("-"):
         raise argparse.ArgumentTypeError("must be more than 0")

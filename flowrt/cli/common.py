@@ -16,8 +16,8 @@ from collections.abc import Iterable
 
 from rich.console import Console
 
-from ..diagnostics import Diagnostic, GraphError, Severity
-from ..graph import Graph
+from ..graph._resolve import Graph
+from ..graph.diagnostics import Diagnostic, GraphError, Severity
 
 EXIT_OK = 0
 EXIT_FAILED = 1
@@ -97,7 +97,7 @@ def setup_logging(handler: logging.Handler) -> None:
 def seconds_arg(text: str) -> float:
     """A command-line duration: ``60``, ``90s``, ``2m``, ``500ms`` (:func:`parse_seconds`);
     0 or more (``--start``)."""
-    from ..spec import parse_seconds
+    from ..graph.spec import parse_seconds
 
     try:
         s = parse_seconds(text.removeprefix("-"))

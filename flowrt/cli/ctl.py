@@ -1,4 +1,7 @@
-"""``flowrt ctl``: talk to a running runtime's control endpoint (see :mod:`flowrt.control`)."""
+"""``flowrt ctl``: talk to a running runtime's control endpoint.
+
+See :mod:`flowrt.control.server`.
+"""
 
 from __future__ import annotations
 
@@ -9,7 +12,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from ..control import DEFAULT_URL, ControlClient, ControlError
+from ..control.server import DEFAULT_URL, ControlClient, ControlError
 from .common import stdout_console
 from .json_output import emit
 
@@ -17,7 +20,7 @@ from .json_output import emit
 def duration_ms_arg(text: str) -> float:
     """``--timer 80ms`` / ``--deadline 0.02s`` as milliseconds (a bare number is ms, as in a
     graph file's timing)."""
-    from ..spec import parse_duration_ms
+    from ..graph.spec import parse_duration_ms
 
     try:
         return parse_duration_ms(text if not _is_number(text) else float(text))
@@ -161,7 +164,7 @@ def add_parsers(sub: Any) -> None:
 def ctl_main(args: argparse.Namespace) -> int:
     """``flowrt ctl``: exit 0 on success, 1 when the runtime is unreachable or refuses."""
     if args.zenoh:
-        from ..spec import _endpoint, check_key_expr
+        from ..graph.spec import _endpoint, check_key_expr
 
         try:
             for endpoint in args.zenoh:
@@ -185,7 +188,7 @@ def ctl_main(args: argparse.Namespace) -> int:
 def _client(args: argparse.Namespace, timeout: float = 5.0) -> Any:
     """HTTP (``--url``), or Zenoh queries (``--zenoh ENDPOINT --key KEY``): the same API."""
     if args.zenoh:
-        from ..remote_control import ZenohControlClient
+        from ..remote.control import ZenohControlClient
 
         return ZenohControlClient(args.zenoh, args.key, args.token, timeout=timeout)
     return ControlClient(args.url, args.token, timeout=timeout)
@@ -204,8 +207,8 @@ def _ctl(client: Any, args: argparse.Namespace) -> int:
         return 0
     if cmd == "stats":
         data = client.get("/stats")
+        from ..monitors.status import render
         from ..stats import RuntimeStats
-        from ..status import render
 
         console = stdout_console()
         console.print(render(RuntimeStats.model_validate(data), width=console.width))

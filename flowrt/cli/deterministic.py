@@ -40,7 +40,7 @@ def _refused_options(args: argparse.Namespace) -> str | None:
 
 def _graph(args: argparse.Namespace, log: Any, err: Console) -> Any:
     """The recorded graph with --trust-graph, else None after one line on ``err``."""
-    from ..graph import Graph
+    from ..graph._resolve import Graph
 
     if not args.trust_graph:
         err.print(
@@ -66,7 +66,7 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
     from ..determinism.api import Replay
     from ..determinism.log import LogError, read_log
     from ..determinism.report import report_lines
-    from ..eventloop import run
+    from ..system._eventloop import run
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     bad = _refused_options(args)

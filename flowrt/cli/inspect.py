@@ -182,7 +182,7 @@ def _ms(ms: float) -> str:
 
 
 def _trigger_text(trig: Any) -> str:
-    from ..spec import FrameTrigger, InputTrigger, TimerTrigger
+    from ..graph.spec import FrameTrigger, InputTrigger, TimerTrigger
 
     if isinstance(trig, FrameTrigger):
         phase = f" +{trig.phase}" if trig.phase else ""
@@ -199,7 +199,7 @@ def _trigger_text(trig: Any) -> str:
 def cmd_schema(args: argparse.Namespace) -> int:
     from pydantic import BaseModel
 
-    from ..spec import GraphSpec
+    from ..graph.spec import GraphSpec
     from ..stats import RuntimeStats
 
     model: type[BaseModel] = GraphSpec if args.what == "graph" else RuntimeStats

@@ -73,7 +73,7 @@ def describe(kind: str) -> dict[str, Any]:
     """What ``flowrt kinds KIND --json`` prints (KindError when the kind does not resolve)."""
     from pydantic_core import PydanticUndefined
 
-    from ..registry import resolve_kind
+    from ..graph._registry import resolve_kind
 
     cls = resolve_kind(kind)
     inputs = [
@@ -175,7 +175,7 @@ def _jsonable(v: Any) -> Any:
 
 
 def cmd_kinds(args: argparse.Namespace) -> int:
-    from ..registry import KindError, available_kinds, resolve_kind
+    from ..graph._registry import KindError, available_kinds, resolve_kind
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     if args.kind:

@@ -17,7 +17,7 @@ import sys
 from collections.abc import Sequence
 from typing import NoReturn
 
-from ..diagnostics import closest
+from ..graph.diagnostics import closest
 
 _NEGATIVE = re.compile(r"^-\.?\d")
 

@@ -86,7 +86,7 @@ def cmd_record(args: argparse.Namespace) -> int:
 
 
 def _record(args: argparse.Namespace, graph: Any, err: Console) -> int:
-    from ..graph import resolve
+    from ..graph._resolve import resolve
     from ..recording import check_writable, new_session
 
     problem = check_writable(args.output)
@@ -264,7 +264,7 @@ def print_info(
 ) -> None:
     """One file: whether it is whole, its streams, metadata, attachments and graph."""
 
-    from ..columns import Column, fit_table
+    from ..monitors._columns import Column, fit_table
     from ..recording.report import human_bytes
 
     if not streams_only:
@@ -364,7 +364,7 @@ def _audio_lines(info: Any) -> list[str]:
 def print_session(console: Console, session: Any, show_graph: bool = False) -> None:
     """A session of several parts: its files, then the streams over all of them."""
 
-    from ..columns import Column, fit_table
+    from ..monitors._columns import Column, fit_table
     from ..recording.report import human_bytes
 
     if len(session.files) == 1:

@@ -24,7 +24,7 @@ def graph_outputs(graph: Any) -> list[str]:
 
 def with_recorder(spec: Any, topics: list[str], params: dict[str, Any], size: int = 16) -> Any:
     """``spec`` plus a recorder node reading ``topics`` over lossless edges."""
-    from ..spec import NodeSpec
+    from ..graph.spec import NodeSpec
 
     name = RECORDER
     while name in spec.nodes:

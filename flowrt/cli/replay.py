@@ -56,7 +56,7 @@ def _not_mcap(path: Path) -> bool:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from ..graph import resolve
+    from ..graph._resolve import resolve
     from ..recording.reader import scan_session
 
     if args.deterministic:
@@ -148,8 +148,8 @@ def _replay_spec(
     err: Console,
 ) -> tuple[Any, dict[str, Any], str] | None:  # the spec, the kinds it adds, what it replays into
     """``--graph``'s graph with replay nodes for its sources, or replay nodes alone (None: no)."""
-    from ..registry import resolve_kind
-    from ..spec import GraphSpec, NodeSpec
+    from ..graph._registry import resolve_kind
+    from ..graph.spec import GraphSpec, NodeSpec
 
     kinds: dict[str, Any] = {}
     replay_cls: Any = resolve_kind("replay")
@@ -249,7 +249,7 @@ def _chosen_streams(info: Any, topics: Any, err: Console) -> list[Any] | None:
 def _replay_target(args: argparse.Namespace, info: Any, path: Path, err: Console) -> Any:
     """The graph a replay runs: ``--graph``, the recorded one with ``--trust-graph``, or None
     (the recorded streams alone). ``_REFUSED`` after one line on ``err``."""
-    from ..graph import Graph
+    from ..graph._resolve import Graph
 
     if args.graph:
         graph = load(args.graph, err)

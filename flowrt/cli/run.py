@@ -14,9 +14,9 @@ from typing import Any
 
 from rich.console import Console
 
-from ..eventloop import new_event_loop
-from ..graph import Graph
-from ..remote import RemoteError
+from ..graph._resolve import Graph
+from ..remote._bridge import RemoteError
+from ..system._eventloop import new_event_loop
 from .common import (
     EXIT_BAD_GRAPH,
     EXIT_FAILED,
@@ -46,7 +46,7 @@ def _warm_forkserver(path: str) -> None:
     import threading
 
     from ..files import read_bytes
-    from ..loading import MAX_FILE_BYTES
+    from ..graph._loading import MAX_FILE_BYTES
 
     try:  # the same limits as the graph file's reading: a device, a FIFO, 1 GiB: not read
         text = read_bytes(path, MAX_FILE_BYTES).decode(errors="replace")
@@ -80,7 +80,7 @@ def _with_recordings(graph: Graph, folder: str) -> Graph | str:
     """The graph with a recorder on every output that waits to be told to start (the live
     view's record panel, ``flowrt ctl record start``), and its display nodes reviewing the
     sessions of ``folder``; or why not, in one line."""
-    from ..graph import resolve
+    from ..graph._resolve import resolve
     from ..recording import check_writable
     from .recorders import graph_outputs, with_recorder
 
@@ -131,8 +131,8 @@ def run_graph(
     ``started`` is called with the run's console once every node is set up and none has
     failed: what a command says only when it is true (``recording ... into ...``).
     """
-    from ..runtime import Runtime
-    from ..status import render
+    from ..monitors.status import render
+    from ..runtime._runtime import Runtime
 
     console = stdout_console()
     as_json = getattr(args, "json", False)
@@ -160,7 +160,7 @@ def run_graph(
     )
     server = None
     if control is not None:
-        from ..control import ControlServer
+        from ..control.server import ControlServer
 
         server = ControlServer(rt, control)
         try:
@@ -223,7 +223,7 @@ def _add_monitors(
 ) -> int | None:
     """The run's monitors: the live table (or log lines) and the Foxglove server, started now
     so that a taken port is one line before anything runs (EXIT_FAILED; None: all there)."""
-    from ..status import LiveTable, LogLines
+    from ..monitors.status import LiveTable, LogLines
 
     monitor: LogLines | LiveTable
     if args.no_ui:
@@ -315,7 +315,7 @@ async def _serve_run(rt: Any, server: Any, graph: Graph, duration: float | None)
     if server is None or zenoh is None or zenoh.control is None:
         await rt.run(duration)
         return
-    from ..remote_control import ZenohControl
+    from ..remote.control import ZenohControl
 
     forwarder = ZenohControl(rt.remote_session, zenoh.control, server.url)
     forwarder.start()
@@ -374,7 +374,7 @@ def _display_options(graph: Graph, args: argparse.Namespace) -> str | None:
 
 
 def _loopback(host: str) -> bool:
-    from ..serving import is_loopback
+    from ..control.serving import is_loopback
 
     return is_loopback(host)
 
@@ -408,7 +408,7 @@ def _remove_nodes(graph: Graph, names: set[str]) -> None:
 
 def _check_addresses(graph: Graph) -> str | None:
     """Try to bind every display node's address; the first that fails, in one line."""
-    from ..control import listen
+    from ..control.server import listen
 
     for name in _display_nodes(graph):
         params = graph.nodes[name].params
@@ -441,7 +441,7 @@ def _control_config(
         return None
     import secrets
 
-    from ..control import ControlConfig
+    from ..control.server import ControlConfig
 
     required = args.control_token_required or (via_zenoh and zenoh.beyond_loopback())
     try:
@@ -463,7 +463,7 @@ def _control_config(
 
 
 def _spin_ms(text: str) -> float:
-    from ..spec import parse_duration_ms
+    from ..graph.spec import parse_duration_ms
 
     try:
         ms = parse_duration_ms(text)

@@ -13,8 +13,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from ..graph import Graph
-from ..spec import ZenohSpec
+from ..graph._resolve import Graph
+from ..graph.spec import ZenohSpec
 
 __all__ = ["add_zenoh_options", "apply_zenoh_options"]
 

@@ -20,9 +20,9 @@ from pathlib import Path
 from types import TracebackType
 from typing import TYPE_CHECKING
 
-from ..graph import Graph
-from ..spec import Placement
-from ..subscription import Subscription
+from ..graph._resolve import Graph
+from ..graph.spec import Placement
+from ..runtime._subscription import Subscription
 from .report import ReplayReport
 
 if TYPE_CHECKING:

@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..edges import Buffer, QueueBuffer
-from ..graph import Graph, ResolvedNode
-from ..spec import Placement, TimerTrigger
+from ..graph._resolve import Graph, ResolvedNode
+from ..graph.spec import Placement, TimerTrigger
 from .context import NOW_KEY, TIMES_KEY, ReplayContext, ReplayFactory, maybe_await
 from .digest import digest
 from .log import Activation, DeterminismLog, Key, OutputRecord, roles

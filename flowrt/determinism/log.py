@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from ..graph import Graph, ResolvedNode
+from ..graph._resolve import Graph, ResolvedNode
 
 __all__ = [
     "ACTIVATION",

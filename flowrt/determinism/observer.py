@@ -27,7 +27,7 @@ from typing import Any, Protocol
 
 from ..events import Event, NodeRestarted, TimingChanged
 from ..frames import Frame
-from ..graph import Graph, ResolvedNode
+from ..graph._resolve import Graph, ResolvedNode
 from .digest import digest
 from .log import ACTIVATION, CHANGE, COMPLETION, FORMAT, OUTPUT, SOURCE, Role, roles
 

@@ -15,8 +15,8 @@ from __future__ import annotations
 import bisect
 import math
 
-from ..graph import Graph
-from ..spec import FrameTrigger, InputTrigger, TimerTrigger
+from ..graph._resolve import Graph
+from ..graph.spec import FrameTrigger, InputTrigger, TimerTrigger
 from .log import Activation, DeterminismLog, Key
 
 __all__ = ["streams", "synthesize"]

@@ -17,10 +17,10 @@ import numpy as np
 from ..events import Event, HealthAlert
 from ..frames import Frame
 from ..node import NodeContext
-from ..timing import Timing
 from .counters import Counters
 from .outputs import OutputCheck
 from .ports import SchedulerPort
+from .timing import Timing
 
 
 class ContextRunner(Protocol):

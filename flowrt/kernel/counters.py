@@ -11,10 +11,10 @@ import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from ..graph import ResolvedNode
-from ..spec import FrameTrigger, InputTrigger, TimerTrigger
+from ..graph._resolve import ResolvedNode
+from ..graph.spec import FrameTrigger, InputTrigger, TimerTrigger
 from ..stats import NodeStats, Running
-from ..timing import Timing
+from .timing import Timing
 
 log = logging.getLogger("flowrt")
 

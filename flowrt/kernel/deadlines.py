@@ -14,10 +14,10 @@ from collections.abc import Callable
 
 from ..clock import Clock
 from ..events import DeadlineMissed, Event
-from ..spec import MissPolicy
-from ..timing import Timing
+from ..graph.spec import MissPolicy
 from .activation import Activation
 from .counters import Counters
+from .timing import Timing
 
 
 class DeadlineWatch:

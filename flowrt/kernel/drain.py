@@ -15,7 +15,7 @@ from typing import Protocol
 from ..clock import Clock
 from ..edges import Buffer, LatestBuffer, LosslessBuffer
 from ..events import Event, HealthAlert
-from ..spec import LoopTrigger
+from ..graph.spec import LoopTrigger
 from .runner import NodeRunner
 from .state import RunState
 

@@ -12,8 +12,8 @@ from collections.abc import Callable
 from typing import Any
 
 from ..edges import EMPTY, Buffer, LatestBuffer, LosslessBuffer
-from ..graph import ResolvedNode, checked_type
-from ..spec import InputTrigger
+from ..graph._resolve import ResolvedNode, checked_type
+from ..graph.spec import InputTrigger
 from .activation import release_all
 from .counters import Counters
 

@@ -9,7 +9,7 @@ callback that no one counted while the node stayed ``running`` with 0 errors.
 
 The check is one dictionary lookup and one ``isinstance`` per published value: the class
 each output's declared type asks for is worked out once per runner
-(:func:`flowrt.graph.checked_type`: generic aliases and ``object`` are not checked,
+(:func:`flowrt.graph._resolve.checked_type`: generic aliases and ``object`` are not checked,
 ``float`` takes any real number, as on the reader's side).
 """
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from typing import Any
 
-from ..graph import ResolvedNode, checked_type
+from ..graph._resolve import ResolvedNode, checked_type
 
 
 class OutputError(TypeError):

@@ -16,9 +16,8 @@ import asyncio
 from typing import Any, Protocol
 
 from ..edges import Buffer, LatestBuffer
-from ..graph import ResolvedNode
-from ..spec import InputTrigger
-from ..timing import Timing
+from ..graph._resolve import ResolvedNode
+from ..graph.spec import InputTrigger
 from .activation import Activation
 from .backpressure import Backpressure
 from .counters import Counters
@@ -27,6 +26,7 @@ from .executor import Executor
 from .ports import SchedulerPort
 from .state import RunState
 from .swapping import Swapper
+from .timing import Timing
 
 
 class PipelinedRunner(Protocol):

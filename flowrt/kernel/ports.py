@@ -13,7 +13,7 @@ from typing import Any, Protocol
 from ..clock import Clock
 from ..events import Event
 from ..frames import Frame
-from ..graph import Graph, ResolvedNode
+from ..graph._resolve import Graph, ResolvedNode
 from ..node import NodeFactory
 from .executor import Executor
 from .services import Services

@@ -65,8 +65,8 @@ from typing import Any
 from .. import clock
 from ..clock import next_release, spin_until
 from ..edges import Buffer, LosslessBuffer
-from ..graph import Graph
-from ..spec import Placement
+from ..graph._resolve import Graph
+from ..graph.spec import Placement
 from ..stats import NodeStats
 from .runner import NodeRunner
 from .state import RunState

@@ -23,11 +23,10 @@ from ..clock import Handle, PeriodicTimer
 from ..edges import Buffer, LosslessBuffer
 from ..events import LoopBlocked
 from ..frames import Frame
-from ..graph import ResolvedNode
+from ..graph._resolve import ResolvedNode
+from ..graph.spec import FrameTrigger, LoopTrigger, Placement, TimerTrigger
 from ..node import NodeFactory, make_node
-from ..spec import FrameTrigger, LoopTrigger, Placement, TimerTrigger
 from ..stats import NodeStats
-from ..timing import Timing
 from .activation import Activation, release_all
 from .backpressure import Backpressure
 from .context import RunnerContext
@@ -41,6 +40,7 @@ from .ports import SchedulerPort
 from .state import STAY_OR_MOVE, RunState, StateError
 from .supervisor import GiveUp, Restart, Supervisor
 from .swapping import Swapper
+from .timing import Timing
 
 log = logging.getLogger("flowrt.scheduler")
 

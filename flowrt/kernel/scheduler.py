@@ -25,17 +25,17 @@ from ..clock import Clock, SystemClock
 from ..edges import Buffer, make_buffer
 from ..events import Event, TimingChanged
 from ..frames import Frame
-from ..graph import Graph, ResolvedNode
+from ..graph._resolve import Graph, ResolvedNode
+from ..graph.spec import LoopTrigger, Placement
 from ..node import NodeFactory
-from ..spec import LoopTrigger, Placement
 from ..stats import NodeStats
-from ..timing import Timing, TimingChange
 from .drain import Drain
 from .executor import Executor
 from .precise import PreciseNodeRunner
 from .runner import NodeRunner
 from .services import Services
 from .state import RunState
+from .timing import Timing, TimingChange
 from .views import NodeView, reports_of, view_of
 
 log = logging.getLogger("flowrt.scheduler")

@@ -15,7 +15,7 @@ from typing import Any, Protocol
 
 from ..events import Event
 from ..frames import Frame
-from ..graph import ResolvedNode
+from ..graph._resolve import ResolvedNode
 from ..node import NodeFactory
 from .executor import Executor
 

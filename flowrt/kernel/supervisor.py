@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from ..events import NodeFailed, NodeGaveUp, NodeRestarted
-from ..graph import ResolvedNode
+from ..graph._resolve import ResolvedNode
 from ..supervision import FailureLog, backoff_s, failure_kind, give_up_reason, out_of_resources
 from .counters import Counters
 from .executor import Executor

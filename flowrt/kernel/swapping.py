@@ -16,7 +16,7 @@ from typing import Protocol
 from pydantic import BaseModel
 
 from ..edges import Buffer
-from ..graph import ResolvedNode
+from ..graph._resolve import ResolvedNode
 from ..node import Node
 from .counters import Counters
 from .executor import Executor, InlineExecutor

@@ -13,9 +13,9 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any
 
-from ..graph import ResolvedNode
-from ..timing import Timing
+from ..graph._resolve import ResolvedNode
 from .runner import NodeRunner
+from .timing import Timing
 
 log = logging.getLogger("flowrt")
 

@@ -49,8 +49,8 @@ from .streams import StreamBook, is_set, split_set
 
 if TYPE_CHECKING:
     from ..events import Event
-    from ..runtime import Runtime
-    from ..subscription import Subscription
+    from ..runtime._runtime import Runtime
+    from ..runtime._subscription import Subscription
 
 __all__ = ["FoxgloveLive"]
 

@@ -184,7 +184,7 @@ def report_table(report: RecordingReport, width: int | None = None) -> Any:
     """
     from rich.text import Text
 
-    from ..columns import Column, fit_table
+    from ..monitors._columns import Column, fit_table
 
     title = f"recording {report.session}: {report.duration:.1f} s"
     if report.error:

@@ -19,7 +19,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from ..spec import parse_seconds
+from ..graph.spec import parse_seconds
 
 __all__ = ["MIN_SPLIT_SIZE", "SplitPolicy", "parse_duration", "parse_size", "part_path"]
 

@@ -7,7 +7,7 @@ the same whatever its placement.
 
 Why processes: the GIL serialises Python threads, and the CAMBADA model needs the *kernel* to
 preempt a low-priority tracker when a high-priority one becomes runnable. Each worker therefore
-gets an OS priority from its flowrt priority (:mod:`flowrt.oscheduling`), and :attr:`granted`
+gets an OS priority from its flowrt priority (:mod:`flowrt.system._priorities`), and :attr:`granted`
 reports what the kernel actually allowed.
 
 Transport: one AF_UNIX stream socketpair per worker, length-prefixed pickles. The main side is

@@ -18,7 +18,7 @@ from typing import Any
 
 from ..frames.lending import WorkerSlots, lazy_report
 from ..ipc import PICKLE, BlockingConn
-from ..oscheduling import WorkerScheduling, apply_scheduling
+from ..system._priorities import WorkerScheduling, apply_scheduling
 from .forkserver import tied_to_runtime
 from .wire import OP_ADD, OP_CALL, OP_EXIT, OP_PRIORITY, OP_REMOVE, R_ERR, R_FATAL, R_OK
 

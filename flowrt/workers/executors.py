@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from ..frames.lending import OutputGrants
-from ..oscheduling import WorkerScheduling, nice_for
+from ..system._priorities import WorkerScheduling, nice_for
 from .channel import Worker
 from .errors import WorkerError
 from .forkserver import check_main_importable
@@ -36,8 +36,8 @@ class WorkerOptions:
     realtime: try SCHED_FIFO at all (False: nice levels only).
     setup_timeout: seconds ``setup()`` may take in ``start``.
     nice_of: the nice level of a priority when SCHED_FIFO is not used (the runtime passes
-        :meth:`FairShare.nice <flowrt.oscheduling.FairShare.nice>`; default
-        :func:`~flowrt.oscheduling.nice_for`).
+        :meth:`FairShare.nice <flowrt.system._priorities.FairShare.nice>`; default
+        :func:`~flowrt.system._priorities.nice_for`).
     cpus: CPUs the worker may run on (None: those it inherits).
     spin: seconds the worker busy-polls around the predicted instant of each call of a
         periodic node, so that it is awake when the call arrives (0: it sleeps).

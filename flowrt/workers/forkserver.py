@@ -25,15 +25,15 @@ PRELOAD_MODULES = [
     "cv2",
     "flowrt.frames",
     "flowrt.frames.lending",
-    "flowrt.oscheduling",
+    "flowrt.system._priorities",
     "flowrt.workers",
     "flowrt.workers.child",
     # The node author's API and pydantic under it: what a worker imports when it unpickles a
     # node (import flowrt is lazy, so naming flowrt.workers no longer brings it along).
     "flowrt.node",
     "flowrt.events",
-    "flowrt._forkserver_signals",  # SIGTERM/SIGHUP ignored, inherited by every worker
-    "flowrt._forkserver_freeze",  # last: freezes all of the above before any fork
+    "flowrt.workers._forkserver_signals",  # SIGTERM/SIGHUP ignored, inherited by every worker
+    "flowrt.workers._forkserver_freeze",  # last: freezes all of the above before any fork
 ]
 
 

@@ -1,0 +1,1 @@
+"""The control endpoint of a running graph: server, wire format and client."""

@@ -1,0 +1,145 @@
+"""Serving HTTP from a process of its own, beside a runtime: what every such server shares.
+
+The control endpoint (:mod:`flowrt.control.server`) and the live view (the ``display`` node) serve
+their clients from a child process, so that a flood of clients costs the event loop neither
+time nor the GIL. Both talk to their side in the runtime over a socket pair with the same
+framing, guard their ``Host`` the same way, run at the same low priority and count and time
+out their connections the same way; this public module is that common part, for them and for
+a third-party node that serves HTTP the same way.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import json
+import os
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+FRAME = struct.Struct(">II")  # header length, body length
+NICE = 19  # a server's nice level: it gets the CPU the graph leaves
+
+
+def pack(header: dict[str, Any], body: bytes = b"") -> bytes:
+    """One message on the channel: a JSON header and an opaque body, both length-prefixed."""
+    head = json.dumps(header).encode()
+    return FRAME.pack(len(head), len(body)) + head + body
+
+
+async def unpack(reader: asyncio.StreamReader) -> tuple[dict[str, Any], bytes]:
+    """The next message :func:`pack` wrote (IncompleteReadError when the other side is gone)."""
+    hlen, blen = FRAME.unpack(await reader.readexactly(FRAME.size))
+    header = json.loads(await reader.readexactly(hlen))
+    return header, (await reader.readexactly(blen) if blen else b"")
+
+
+def is_loopback(host: str) -> bool:
+    """True for localhost and loopback addresses; any other name counts as exposed."""
+    if host.lower() in ("localhost", "localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def hostname(host: str) -> str:
+    """The name in a Host header, without its port."""
+    if host.startswith("["):
+        return host[1 : host.find("]")] if "]" in host else host
+    return host.rsplit(":", 1)[0] if host.count(":") == 1 else host
+
+
+def lower_priority(pid: int) -> None:
+    """SCHED_OTHER at nice :data:`NICE` (``0``: this process). Called by the parent right after
+    the start too: the child's own imports would otherwise run at the loop's priority."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))  # never the loop's FIFO
+    with contextlib.suppress(OSError):
+        os.setpriority(os.PRIO_PROCESS, pid, NICE)
+
+
+async def stop_server(
+    writer: asyncio.StreamWriter | None,
+    task: asyncio.Task[Any] | None,
+    proc: Any,
+    grace: float,
+) -> None:
+    """End a server process: close its channel (it closes its clients and exits), stop the
+    task answering it, give the process ``grace`` seconds, then kill it."""
+    if writer is not None:
+        writer.close()
+    if task is not None:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError, Exception):
+            await task
+    if proc is not None:
+        await asyncio.to_thread(proc.join, grace)
+        if proc.is_alive():
+            proc.kill()
+            await asyncio.to_thread(proc.join, 1.0)
+
+
+@dataclass
+class Conn:
+    """An open connection: when it must have sent its next request, and if one is running."""
+
+    transport: asyncio.BaseTransport
+    deadline: float
+    busy: int = 0
+    next_read: float = 0.0  # for servers that pace reads: none answered before this
+    requests: int = 0  # requests answered on it: 0 = it has not earned its slot yet
+    reserve: bool = False  # taken over the cap: only a request with the token may keep it
+
+
+class Tracked(asyncio.Protocol):
+    """Wraps aiohttp's protocol for one connection, registered in ``conns`` while it is open
+    (a sweeper closes the ones past their deadline; a cap counts them)."""
+
+    def __init__(
+        self,
+        inner: Any,
+        conns: dict[asyncio.BaseTransport, Conn],
+        timeout: float,
+        reserve: bool = False,
+    ):
+        self.inner = inner
+        self.conns = conns
+        self.timeout = timeout
+        self.reserve = reserve
+        self.transport: asyncio.BaseTransport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        import time
+
+        self.transport = transport
+        conn = Conn(transport, time.monotonic() + self.timeout, reserve=self.reserve)
+        self.conns[transport] = conn
+        self.inner.connection_made(transport)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self.transport is not None:
+            self.conns.pop(self.transport, None)
+        self.inner.connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        self.inner.data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return self.inner.eof_received()  # type: ignore[no-any-return]
+
+    def pause_writing(self) -> None:
+        self.inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        self.inner.resume_writing()
+
+
+class Refuse(asyncio.Protocol):
+    """Over the connection cap: closed at once (the client sees the connection reset)."""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        transport.close()

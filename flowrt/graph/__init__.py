@@ -1,0 +1,1 @@
+"""A graph's description: models, YAML loading, resolution, diagnostics, kinds."""

@@ -1,0 +1,438 @@
+"""Monitors for the terminal: the live rich table and periodic log lines.
+
+Both only read ``rt.stats()`` and listen to events; the runtime does not know they exist.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import multiprocessing
+import signal
+import sys
+import threading
+from collections import deque
+from collections.abc import Callable, Sequence
+from multiprocessing.connection import Connection
+from typing import TypeVar
+
+from rich.console import Console, Group, RenderableType
+from rich.live import Live
+from rich.text import Text
+
+from ..events import DeadlineMissed, Event, HealthAlert, LoopBlocked, NodeFailed
+from ..runtime._qos import QosStatus
+from ..runtime._runtime import Runtime
+from ..stats import EdgeStats, NodeStats, RuntimeStats
+from ._columns import Column, fit_table
+
+log = logging.getLogger("flowrt.monitors.status")
+S = TypeVar("S")  # a row: NodeStats or EdgeStats
+
+
+def _ms(x: float) -> str:
+    return f"{x:.2f}" if x < 100 else f"{x:.0f}"
+
+
+# --- the table's columns ------------------------------------------------------------------
+#
+# Each column has a drop rank: at a narrow width the columns are dropped in rank order
+# (1 first) until the table fits; rank 0 is never dropped. The essentials (names, state and
+# every counter of a failure) are rank 0, so an 80-column terminal still shows them in full.
+# Node columns, dropped first to last: resp p99, place, trigger, prio, exec, interval,
+# period, done, rst. Edge columns: age, policy, unread, deliv, pub.
+
+
+def _count(n: int, style: str) -> Text:
+    return Text(str(n), style=style if n else "")
+
+
+def _state(n: NodeStats) -> Text:
+    return Text(n.state, style=STATE_STYLE.get(n.state, "green"))
+
+
+STATE_STYLE = {
+    "failed": "bold red",
+    "error": "bold red",
+    "backoff": "yellow",
+    "waiting": "cyan",
+    "starting": "yellow",
+    "disabled": "dim",
+}
+
+NODE_COLUMNS: tuple[Column[NodeStats], ...] = (
+    Column("node", lambda n: n.name, right=False),
+    Column("state", _state, right=False),
+    Column("act", lambda n: str(n.activations)),
+    Column("done", lambda n: str(n.completions), drop=8),
+    Column("skip", lambda n: _count(n.skipped, "yellow")),
+    Column("miss", lambda n: _count(n.deadline_misses, "bold red")),
+    Column("drop", lambda n: _count(n.dropped, "bold red")),
+    Column("err", lambda n: _count(n.errors, "bold red")),
+    Column("rst", lambda n: _count(n.restarts, "yellow"), drop=9),
+    Column("period", lambda n: n.period, drop=7),
+    Column(
+        "interval ms",
+        lambda n: f"{_ms(n.interval.mean)}±{_ms(n.interval.std)}" if n.interval.count else "-",
+        drop=6,
+    ),
+    Column(
+        "exec ms p50/p99/max",
+        lambda n: (
+            f"{_ms(n.execution.p50)}/{_ms(n.execution.p99)}/{_ms(n.execution.max)}"
+            if n.execution.count
+            else "-"
+        ),
+        drop=5,
+    ),
+    Column("resp ms p99", lambda n: _ms(n.response.p99) if n.response.count else "-", drop=1),
+    Column("place", lambda n: _placement(n.placement, n.granted), drop=2, right=False),
+    Column("trigger", lambda n: n.trigger.replace("frame ", "⟳ "), drop=3, right=False),
+    Column("prio", lambda n: str(n.priority), drop=4),
+)
+
+EDGE_COLUMNS: tuple[Column[EdgeStats], ...] = (
+    Column("edge", lambda e: e.name, right=False),
+    Column("policy", lambda e: e.policy, drop=2, right=False),
+    Column("pub", lambda e: str(e.published), drop=5),
+    Column("deliv", lambda e: str(e.delivered), drop=4),
+    Column("drop", lambda e: _count(e.dropped, "bold red")),
+    Column("unread", lambda e: Text(str(e.unread), style="dim"), drop=3),
+    Column(
+        "age ms mean/max",
+        lambda e: f"{_ms(e.age.mean)}/{_ms(e.age.max)}" if e.age.count else "-",
+        drop=1,
+    ),
+)
+
+
+def _node_rank(n: NodeStats) -> int:
+    """0: a failure (red), 1: a warning (yellow), 2: fine; the first to show when rows are few."""
+    if n.state in ("error", "failed") or n.deadline_misses or n.dropped or n.errors:
+        return 0
+    if n.state in ("backoff", "starting") or n.skipped or n.restarts:
+        return 1
+    return 2
+
+
+def _pick(items: Sequence[S], rank: Callable[[S], int], rows: int) -> list[S]:
+    """At most ``rows`` items, the lowest ranks first, shown in their original order."""
+    if len(items) <= rows:
+        return list(items)
+    order = sorted(range(len(items)), key=lambda i: (rank(items[i]), i))
+    keep = sorted(order[: max(rows, 0)])
+    return [items[i] for i in keep]
+
+
+def _line(text: str, style: str = "") -> Text:
+    return Text(text, style=style, no_wrap=True, overflow="ellipsis")
+
+
+def render(
+    stats: RuntimeStats,
+    recent: list[Event] | None = None,
+    qos: QosStatus | None = None,
+    alerts: list[HealthAlert] | None = None,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+) -> Group:
+    """The process-manager table: one row per node, one per edge, the loop and recent events.
+
+    ``qos`` adds the QoS line (mode, overload, shed nodes); ``alerts`` the latest health alerts,
+    which stay on screen even when other events scroll them out of ``recent``.
+
+    ``width`` drops the least important columns first (see ``NODE_COLUMNS``) so that names
+    and failure counters are never cut; ``height`` (a terminal's rows) makes the nodes with
+    failures and warnings the rows that stay, the others summarised as ``+N ok``, then the
+    edges with drops, then recent events. ``None``: everything.
+    """
+    title = f"flowrt · {stats.graph} · {stats.uptime:.1f} s"
+    if stats.mode:
+        title += f" · mode {stats.mode}"
+    if stats.loop_scheduling:
+        title += f" · loop {stats.loop_scheduling}"
+    elif stats.realtime:
+        title += f" · {stats.realtime}"
+
+    lag = stats.loop.lag
+    footer = _line(
+        f"loop lag ms p50 {lag.p50:.2f} p99 {lag.p99:.2f} max {lag.max:.2f} · "
+        f"blocking calls {stats.loop.blocked_calls} · events {stats.events}"
+    )
+    extra: list[Text] = [
+        _line(f"  frames {p.owner}: {p.dropped} dropped, every one of its slots held", "bold red")
+        for p in stats.frames
+        if p.dropped
+    ]
+    if qos is not None and (qos.overload_control or qos.mode is not None):
+        extra.append(_line(qos.describe(), "bold red" if qos.overloaded else "magenta"))
+    for a in alerts or []:
+        line = f"  alert {a.t:8.3f}s {a.alert} {a.node or ''} {a.detail}"
+        extra.append(_line(line, _alert_style(a)))
+
+    # rows: 1 title, 2 node header, the nodes, their reasons, footer, qos/alerts, the rest
+    room = math.inf if height is None else height - 1  # the cursor's line
+    room -= 1 + 2 + 1 + len(extra)
+    nodes = list(stats.nodes)
+    shown = _fit_nodes(nodes, room)
+    reasons = [
+        _line(f"  {n.name} {n.state}: {n.reason}", "bold red") for n in shown if _has_reason(n)
+    ]
+    room -= len(shown) + len(reasons)
+    parts: list[RenderableType] = [_line(title, "bold"), fit_table(NODE_COLUMNS, shown, width)]
+    if len(shown) < len(nodes):
+        parts.append(_hidden(nodes, shown, _node_rank, "nodes"))
+        room -= 1
+    parts.extend(reasons)
+    parts.append(footer)
+    parts.extend(extra)
+
+    edges = list(stats.edges)
+    if edges and room >= 3:
+        fit = room - 2
+        shown_e = edges if fit >= len(edges) else _pick(edges, _edge_rank, int(fit) - 1)
+        parts.append(fit_table(EDGE_COLUMNS, shown_e, width))
+        room -= 2 + len(shown_e)
+        if len(shown_e) < len(edges):
+            parts.append(_hidden(edges, shown_e, _edge_rank, "edges"))
+            room -= 1
+    elif edges and room >= 1:
+        parts.append(_hidden(edges, [], _edge_rank, "edges"))
+        room -= 1
+
+    events = list(recent or [])
+    if room < len(events):
+        events = events[len(events) - max(int(room), 0) :]
+    for ev in events:
+        style = "red" if isinstance(ev, DeadlineMissed | NodeFailed) else "cyan"
+        if isinstance(ev, HealthAlert):
+            style = _alert_style(ev)
+        parts.append(_line(f"  {ev.t:8.3f}s {ev.kind} {ev.node or ''} {_describe(ev)}", style))
+    return Group(*parts)
+
+
+def _has_reason(n: NodeStats) -> bool:
+    return bool(n.reason) and n.state in ("error", "failed", "waiting")
+
+
+def _fit_nodes(nodes: list[NodeStats], room: float) -> list[NodeStats]:
+    """As many nodes as fit ``room`` rows with their reason lines (failures first), leaving a
+    row for the ``+N`` summary when some are left out."""
+    if len(nodes) + sum(map(_has_reason, nodes)) <= room:
+        return nodes
+    order = sorted(nodes, key=_node_rank)  # stable: graph order within a rank
+    used, k = 1, 0  # the summary's row
+    for n in order:
+        cost = 1 + _has_reason(n)
+        if used + cost > room:
+            break
+        used += cost
+        k += 1
+    return _pick(nodes, _node_rank, k)
+
+
+def _edge_rank(e: EdgeStats) -> int:
+    return 0 if e.dropped else 2
+
+
+def _hidden(items: Sequence[S], shown: Sequence[S], rank: Callable[[S], int], what: str) -> Text:
+    """``+12 ok`` for rows left out; those with failures or warnings said apart, in colour."""
+    rest = [x for x in items if x not in shown]
+    bad = sum(1 for x in rest if rank(x) == 0)
+    warn = sum(1 for x in rest if rank(x) == 1)
+    if not bad and not warn:
+        return _line(f"  +{len(rest)} {what} ok", "green")
+    text = f"  +{len(rest)} {what}: {bad} failing, {warn} warning, {len(rest) - bad - warn} ok"
+    return _line(text, "bold red" if bad else "yellow")
+
+
+def _alert_style(a: HealthAlert) -> str:
+    return "bold red" if a.severity in ("error", "critical") else "yellow"
+
+
+def _placement(placement: str, granted: str) -> str:
+    """``process FIFO 45`` / ``pool nice 3``: where a node runs and what the OS granted."""
+    if not granted:
+        return placement
+    short = granted.replace("SCHED_", "").split(" (")[0]
+    return f"{placement} {short}"
+
+
+def _describe(ev: Event) -> str:
+    if isinstance(ev, NodeFailed):
+        return ev.error
+    if isinstance(ev, DeadlineMissed):
+        return f"deadline {ev.deadline_ms:g} ms" + (" (still running)" if ev.still_running else "")
+    if isinstance(ev, LoopBlocked):
+        return f"blocked the loop {ev.duration_ms:.1f} ms"
+    for attr in ("change", "mode", "alert", "granted", "detail", "reason"):
+        if hasattr(ev, attr):
+            return str(getattr(ev, attr))
+    return ""
+
+
+def _renderer(conn: Connection) -> None:
+    """The table's own process: it renders what the runtime sends, newest first.
+
+    Rendering a table of a dozen nodes and twenty edges takes ~10 ms of pure Python; on the
+    event loop that would delay ticks, in a thread it would still hold the GIL. Here it costs
+    the runtime one ``stats()`` and one pickle (~1.5 ms) per refresh, in a gap between ticks.
+    The table is fitted to the terminal's size at every refresh (a resized pane just works).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
+    console = Console()
+    live: Live | None = None
+    try:
+        while True:
+            try:
+                msg = conn.recv()
+                while msg is not None and msg[0] == "stats" and conn.poll():
+                    msg = conn.recv()  # only the newest table is worth drawing
+            except (EOFError, OSError):
+                break
+            if msg is None:
+                break
+            kind, payload = msg
+            if kind == "log":
+                console.print(payload, markup=False, highlight=False, soft_wrap=True)
+                continue
+            if live is None:
+                live = Live(console=console, auto_refresh=False, transient=True)
+                live.start()
+            width, height = console.size
+            live.update(render(*payload, width=width, height=height), refresh=True)
+    finally:
+        if live is not None:
+            live.stop()
+
+
+class LiveTable:
+    """Refreshes the table ``hz`` times a second while the runtime runs, from its own process.
+
+    Log records are forwarded to that process too (``log_handler``), so that they print
+    above the table instead of tearing it.
+    """
+
+    def __init__(self, console: Console | None = None, hz: float = 4.0) -> None:
+        self.console = console or Console()
+        self.hz = hz
+        self.recent: deque[Event] = deque(maxlen=6)
+        self.alerts: deque[HealthAlert] = deque(maxlen=3)
+        self._task: asyncio.Task[None] | None = None
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe()
+        self._lock = threading.Lock()  # log records come from any thread
+        self._proc = ctx.Process(target=_renderer, args=(child,), name="flowrt-table", daemon=True)
+        self._proc.start()
+        child.close()
+
+    def log_handler(self) -> logging.Handler:
+        return _PipeHandler(self)
+
+    def send(self, msg: object) -> bool:
+        with self._lock:
+            if self._conn.closed:
+                return False
+            try:
+                self._conn.send(msg)
+            except (OSError, ValueError):
+                return False
+            return True
+
+    def started(self, rt: Runtime) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._refresh(rt))
+
+    async def _refresh(self, rt: Runtime) -> None:
+        while True:
+            # Even a snapshot holds the loop a little: take it between ticks.
+            await asyncio.sleep(rt.quiet_delay(1 / self.hz))
+            if rt.started:
+                payload = (rt.stats(), list(self.recent), rt.qos_status(), list(self.alerts))
+                self.send(("stats", payload))
+
+    def event(self, event: Event) -> None:
+        self.recent.append(event)
+        if isinstance(event, HealthAlert):
+            self.alerts.append(event)
+
+    def stopped(self, rt: Runtime) -> None:
+        if self._task is not None:
+            self._task.cancel()
+        self.close()
+
+    def close(self) -> None:
+        """Stop the renderer (it removes its table) and wait for it, briefly."""
+        self.send(None)
+        with self._lock:
+            self._conn.close()
+        self._proc.join(timeout=2.0)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join(timeout=1.0)
+
+
+class _PipeHandler(logging.Handler):
+    """Formats a record here and prints it in the table's process (stderr once it is gone)."""
+
+    def __init__(self, table: LiveTable) -> None:
+        super().__init__()
+        self.table = table
+        self.setFormatter(
+            logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s", "%H:%M:%S")
+        )
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = self.format(record)
+        except Exception:
+            self.handleError(record)
+            return
+        if not self.table.send(("log", text)):
+            print(text, file=sys.stderr)
+
+
+class LogLines:
+    """``--no-ui``: one summary line per node every ``every`` seconds, events as they happen."""
+
+    def __init__(self, every: float = 2.0) -> None:
+        self.every = every
+        self._task: asyncio.Task[None] | None = None
+
+    def started(self, rt: Runtime) -> None:
+        self._task = asyncio.get_running_loop().create_task(self._loop(rt))
+
+    async def _loop(self, rt: Runtime) -> None:
+        while True:
+            await asyncio.sleep(rt.quiet_delay(self.every))
+            if rt.started:
+                for line in summary_lines(rt.stats()):
+                    log.info("%s", line)
+
+    def event(self, event: Event) -> None:
+        if not isinstance(event, NodeFailed):  # failures are logged with their traceback
+            log.info("event %s %s %s", event.kind, event.node or "", _describe(event))
+
+    def stopped(self, rt: Runtime) -> None:
+        if self._task is not None:
+            self._task.cancel()
+
+
+def summary_lines(stats: RuntimeStats) -> list[str]:
+    out = []
+    for n in stats.nodes:
+        out.append(
+            f"{n.name}: {n.state}{f' ({n.reason})' if n.reason else ''} "
+            f"act={n.activations} done={n.completions} skip={n.skipped} "
+            f"miss={n.deadline_misses} drop={n.dropped} err={n.errors} rst={n.restarts} "
+            f"interval={n.interval.mean:.2f}±{n.interval.std:.3f}ms "
+            f"exec_p99={n.execution.p99:.2f}ms"
+        )
+    dropped = sum(e.dropped for e in stats.edges)
+    unread = sum(e.unread for e in stats.edges)
+    out.append(
+        f"loop lag p99={stats.loop.lag.p99:.2f}ms dropped={dropped} unread={unread} "
+        f"events={stats.events}"
+    )
+    return out

@@ -1,0 +1,1 @@
+"""Graphs across machines over Zenoh: exports, imports, clocks and the wire."""

@@ -1,0 +1,448 @@
+"""One imported Zenoh stream: from Zenoh's callback thread to the import node's output.
+
+Zenoh's thread reads the fixed-size binary header (one ``struct`` call), decodes the payload
+(JSON; JPEG/PNG, never on the loop), and for frames that a worker process reads copies the
+pixels into a frame of the local pool that the loop keeps ready (workers map it zero-copy;
+the loop copies only when no such frame fits); frames that only inline nodes read are not
+copied at all (a read-only heap frame over the received bytes). It parks the value in a
+bounded hand-over queue (frames: :data:`FRAME_BACKLOG`; overruns counted); one
+``call_soon_threadsafe`` per batch wakes the loop, which publishes on the import node's
+``output`` (and writes the RTDB record after the readers).
+
+Sequence gaps, overruns and undecodable messages are drops of the remote link
+(:class:`RemoteLinkStats`, an edge ``zenoh:KEY->NAME`` in the statistics); an import that
+hears nothing for ``stale_after`` periods puts its node in the error state until it resumes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import threading
+import time
+from collections import deque
+from typing import Any, Protocol
+
+import numpy as np
+
+from ..audio import AudioBlock
+from ..edges import Buffer
+from ..events import HealthAlert
+from ..frames import Frame
+from ..graph.spec import GraphSpec, Placement
+from ..stats import EdgeStats, Running
+from ._host import BridgeHost
+from ._streams import AUDIO_SCHEMA, decode_audio, decode_json, schema_of_sample
+from .wire import (
+    MAX_HEADER_BYTES,
+    MAX_SEQ_JUMP,
+    WARN_EVERY,
+    Header,
+    PlainFormat,
+    Refused,
+    frame_decoder,
+    own_timestamp,
+    set_timestamp,
+)
+
+__all__ = [
+    "FRAME_BACKLOG",
+    "ImportBridge",
+    "ImportLink",
+    "RemoteLinkStats",
+    "frame_key",
+    "worker_downstream",
+]
+
+log = logging.getLogger("flowrt.remote._bridge")
+
+FRAME_BACKLOG = 3  # received frames waiting for the loop, at most (each holds a pool slot)
+
+
+class ImportBridge(Protocol):
+    """What an import needs of the bridge: the runtime, and the exporters' clock offsets."""
+
+    @property
+    def host(self) -> BridgeHost: ...
+
+    def clock_probe(self, zid: str) -> None: ...
+
+    def offset(self, zid: str) -> float: ...
+
+    def clock_known(self, zid: str) -> bool: ...
+
+
+class RemoteLinkStats(Buffer):
+    """The network hop of an import, shown as an edge: published = what the exporter sent
+    (by sequence number), delivered = received, dropped = sequence gaps, hand-over overruns
+    and undecodable messages (each its own ``drop_reasons`` entry); age = one-way, on the
+    exporter's clock corrected by the measured offset."""
+
+    policy = "remote"
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name, 1)
+
+    def lost(self, reason: str, n: int = 1) -> None:
+        """``n`` messages lost on this hop, counted with ``reason``."""
+        self.dropped += n
+        self.drop_reasons[reason] = self.drop_reasons.get(reason, 0) + n
+
+    def stats(self) -> EdgeStats:
+        return super().stats()
+
+    def pending(self) -> int:
+        return 0
+
+    def clear(self) -> None:
+        pass
+
+
+class ImportLink:
+    """One imported stream: hand-over between Zenoh's thread and the loop, liveness."""
+
+    def __init__(
+        self,
+        bridge: ImportBridge,
+        name: str,
+        key: str,
+        period_ms: float | None,
+        stale_after: float | None,
+        size: int,
+        stale_is: str = "error",
+    ) -> None:
+        self.bridge = bridge
+        self.name = name
+        self.key = key
+        self.period = None if period_ms is None else period_ms / 1000
+        self.stale_after = stale_after  # None: never stale
+        self.stale_is = stale_is  # "error": the node's error state; "state": a counted state
+        self.lock = threading.Lock()
+        self.pending: deque[tuple[Header, Any]] = deque()
+        self.size = size
+        self.scheduled = False
+        self.stream: str | None = None
+        self.last_seq = -1
+        self.link = RemoteLinkStats(f"zenoh:{key}->{name}")
+        self.arrivals = Running()
+        self.last_arrival: float | None = None  # loop clock
+        self.started = bridge.host.now_mono()
+        self.stale = False
+        self.stale_since: float | None = None  # loop clock, while stale
+        self.outages = 0  # times the import went stale (each one alert)
+        self.down_s = 0.0  # time spent stale, over finished outages
+        self.last_contact_wall: float | None = None  # our wall clock at the last arrival
+        self.decode_errors = 0
+        self.restarts = 0  # sequence jumps taken as a restart of the exporter (counted)
+        self.max_bytes = 1 << 20  # set from the ImportSpec: larger messages are refused
+        self.max_pixels = 8192 * 8192
+        self.warned: dict[str, float] = {}  # reason -> last warning (rate-limited)
+        self.plain: PlainFormat | None = None  # header-less payloads of a plain program
+        self.plain_seq = 0
+        self.ctx: Any = None
+        # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
+        # keeps one pool frame of the last shape ready (``spare``); frames replaced before
+        # delivery go back to the pool from the loop (``discard``).
+        self.zero_copy = False  # no worker reads the frames: no copy into the pool at all
+        self.spare: Frame | None = None
+        self.spare_key: tuple[Any, ...] | None = None
+        self.discard: list[Frame] = []
+
+    # Zenoh's thread ---------------------------------------------------------------------
+
+    def on_sample(self, sample: Any) -> None:
+        try:
+            raw_att = sample.attachment
+            if self.plain is not None:  # a plain program's payload: the header is made here
+                # its sequence number is taken once the payload is accepted (below): a refused
+                # sample is counted once, as refused, never again as a gap
+                header = self.plain.header(self.key, self.plain_seq)
+            elif raw_att is None:
+                raise Refused(
+                    "undecodable",
+                    "no flowrt header: from a plain program? declare the import's format "
+                    "(json, bytes, jpeg, png, raw): docs/zenoh.md",
+                )
+            elif len(raw_att) > MAX_HEADER_BYTES:
+                raise Refused("too large", f"a header of {len(raw_att)} bytes")
+            else:
+                header = Header.decode(raw_att.to_bytes())
+            zbytes = sample.payload
+            if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
+                raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
+            if header.kind == "frame":  # checked before the copy (see frame_decoder)
+                pixels = frame_decoder(header.frame, len(zbytes), self.max_pixels)
+                value: Any = self._frame(header.frame, pixels(zbytes.to_bytes()))
+            elif header.kind == "bytes":
+                value = zbytes.to_bytes()
+            elif header.kind == "protobuf":  # the recording's protobuf message (audio)
+                schema = schema_of_sample(sample)
+                if schema != AUDIO_SCHEMA:
+                    raise Refused("undecodable", f"a protobuf message of schema {schema!r}")
+                value = decode_audio(
+                    zbytes.to_bytes(), header.seq, 0.0
+                )  # its time: set on delivery
+            else:  # the recording's JSON message; typed by the schema its encoding names
+                value = decode_json(
+                    zbytes.to_bytes(), "" if self.plain else schema_of_sample(sample)
+                )
+        except Exception as e:
+            reason = e.reason if isinstance(e, Refused) else "undecodable"
+            with self.lock:
+                self.decode_errors += 1
+                self.link.published += 1  # it arrived: published, and dropped with its reason
+                self.link.lost(reason)
+            self._warn(reason, f"import {self.name}: {reason} message on {self.key}: {e}")
+            return
+        if self.plain is not None:
+            self.plain_seq += 1
+        self.bridge.clock_probe(header.zid)
+        with self.lock:
+            if header.stream != self.stream:
+                self.stream, self.last_seq = header.stream, header.seq - 1
+            elif not 0 <= header.seq - self.last_seq <= MAX_SEQ_JUMP:
+                # a forged or reset sequence: a restart of the stream, counted, not a gap of
+                # 2**70 messages (nor a negative one)
+                self.restarts += 1
+                self.last_seq = header.seq - 1
+            gap = header.seq - self.last_seq - 1
+            if gap > 0:  # never received: lost on the way (or dropped by Zenoh's congestion)
+                self.link.published += gap
+                self.link.lost("sequence gap", gap)
+            self.last_seq = max(self.last_seq, header.seq)
+            self.link.published += 1
+            # Frames hold pool slots: a short backlog (two arriving back to back after an
+            # exporter's stall must both get through); messages: the import's ``size``.
+            limit = FRAME_BACKLOG if header.kind == "frame" else self.size
+            while len(self.pending) >= limit:  # the loop has not taken them in time
+                _, old = self.pending.popleft()
+                if isinstance(old, Frame):
+                    self.discard.append(old)
+                self.link.lost("hand-over overrun")
+            self.pending.append((header, value))
+            if self.scheduled:
+                return
+            self.scheduled = True
+        with contextlib.suppress(RuntimeError):  # the loop is closing
+            self.bridge.host.loop.call_soon_threadsafe(self.deliver)
+
+    def _warn(self, reason: str, text: str) -> None:
+        """One warning per reason every WARN_EVERY seconds: a flood is counted, not logged."""
+        now = time.monotonic()
+        last = self.warned.get(reason)
+        if last is None or now - last >= WARN_EVERY:
+            self.warned[reason] = now
+            log.warning("%s (further ones counted, logged at most every %g s)", text, WARN_EVERY)
+
+    def _frame(self, meta: dict[str, Any], arr: np.ndarray) -> Any:
+        """The received pixels as a frame: as they are when no worker process reads them
+        (``zero_copy``: a heap frame over the received bytes, read-only), else copied into
+        the pool frame the loop has ready when its shape fits (else the array, copied into
+        the pool on the loop)."""
+        key = frame_key(meta, arr)
+        if self.zero_copy:
+            return Frame(arr, source=self.name, pixel_format=key[2])
+        with self.lock:
+            spare = self.spare if self.spare_key == key else None
+            if spare is not None:
+                self.spare = None
+        if spare is None:
+            return arr
+        np.copyto(spare.data, arr)  # numpy lets go of the GIL for the copy
+        return spare
+
+    # the loop ---------------------------------------------------------------------------
+
+    def deliver(self) -> None:
+        with self.lock:
+            items = list(self.pending)
+            self.pending.clear()
+            self.scheduled = False
+            discard, self.discard = self.discard, []
+        for old in discard:
+            old.release()
+        host = self.bridge.host
+        records: list[Any] = []
+        key: tuple[Any, ...] | None = None
+        for header, value in items:
+            now = host.now_mono()
+            offset = self.bridge.offset(header.zid)
+            wall_now = time.time()
+            age = max(0.0, wall_now - (header.sent - offset))
+            self.link.delivered += 1
+            self.link.age.add(age)
+            if self.last_arrival is not None:
+                self.arrivals.add(now - self.last_arrival)
+            self.last_arrival = now
+            captured_mono = now - max(0.0, wall_now - (header.captured - offset))
+            if header.zid and not self.bridge.clock_known(header.zid):
+                captured_mono = now  # its clock not measured yet: arrival beats a guess
+            if header.kind == "frame":
+                if isinstance(value, Frame):  # made on Zenoh's thread
+                    frame = value
+                    if frame.shared:  # a pool frame: ready the next one
+                        key = frame_key(header.frame, frame.data)
+                else:
+                    arr = value
+                    key = frame_key(header.frame, arr)
+                    frame = host.new_frame(self.name, tuple(arr.shape), arr.dtype, key[2])
+                    np.copyto(frame.data, arr)
+                frame.seq = int(header.frame.get("seq", header.seq))
+                frame.timestamp = captured_mono
+                host.publish(self.name, "output", frame)
+                frame.release()
+            else:
+                if self.plain is None and own_timestamp(value) is not None:
+                    # the exporter's monotonic stamp means nothing here: the capture time,
+                    # on its corrected clock, mapped onto ours (header.captured carries it)
+                    if isinstance(value, AudioBlock):  # frozen: a copy with its time
+                        value = dataclasses.replace(value, timestamp=captured_mono)
+                    else:
+                        set_timestamp(value, captured_mono)
+                host.publish(self.name, "output", value)
+                records.append(value)
+        if items:
+            self.last_contact_wall = time.time()
+        if self.stale and items:
+            self._resumed()
+        if records:  # after the readers' activations: an RTDB write is ~0.1 ms (a lock)
+            host.loop.call_soon(self._record, records)
+        if key is not None:  # after the readers' activations too
+            host.loop.call_soon(self._ready_spare, key)
+
+    def _ready_spare(self, key: tuple[Any, ...]) -> None:
+        """On the loop: a pool frame of the last shape, for the next arrival to fill."""
+        with self.lock:
+            if self.spare is not None and self.spare_key == key:
+                return
+            old, self.spare, self.spare_key = self.spare, None, None
+        if old is not None:
+            old.release()
+        frame = self.bridge.host.new_frame(self.name, key[0], np.dtype(key[1]), key[2])
+        with self.lock:
+            self.spare, self.spare_key = frame, key
+
+    def close(self) -> None:
+        """On the loop, at the end: frames still held go back to the pool."""
+        with self.lock:
+            held = [v for _, v in self.pending if isinstance(v, Frame)] + self.discard
+            if self.spare is not None:
+                held.append(self.spare)
+            self.pending.clear()
+            self.discard, self.spare, self.spare_key = [], None, None
+        for frame in held:
+            frame.release()
+
+    def _record(self, values: list[Any]) -> None:
+        validity = self._validity_ms()
+        for value in values:
+            self.bridge.host.record(self.name, value, validity)
+
+    def _period(self) -> float | None:
+        if self.period is not None:
+            return self.period
+        s = self.arrivals
+        return s.mean if s.count >= 3 else None
+
+    def _validity_ms(self) -> float | None:
+        p = self._period()
+        if p is None or self.stale_after is None:
+            return None
+        return p * self.stale_after * 1000
+
+    def check_liveness(self, ctx: Any) -> None:
+        self.ctx = ctx
+        if self.stale_after is None:  # stale_after: never
+            return
+        now = self.bridge.host.now_mono()
+        p = self._period()
+        limit = max(0.1, (p if p is not None else 0.2) * self.stale_after)
+        since = now - (self.last_arrival if self.last_arrival is not None else self.started)
+        if since <= limit or self.stale:
+            return
+        self.stale = True
+        self.stale_since = now - since  # down since the last contact (or the start)
+        self.outages += 1
+        what = "no message yet" if self.last_arrival is None else "stale"
+        reason = f"{what} on {self.key} for {since * 1000:.0f} ms (limit {limit * 1000:.0f} ms)"
+        self._publish_state(since)
+        if self.stale_is == "error":
+            ctx.set_error(reason)
+        else:  # a state: one alert per outage, the node stays running
+            ctx.emit(HealthAlert(ctx.elapsed(), self.name, "import-stale", reason))
+            log.warning("import %s: %s", self.name, reason)
+
+    def _resumed(self) -> None:
+        now = self.bridge.host.now_mono()
+        down = 0.0 if self.stale_since is None else max(0.0, now - self.stale_since)
+        self.down_s += down
+        self.stale, self.stale_since = False, None
+        self._publish_state(down)
+        if self.ctx is None:
+            return
+        if self.stale_is == "error":
+            self.ctx.clear_error()
+        else:
+            detail = f"{self.key} back after {down:.1f} s"
+            self.ctx.emit(
+                HealthAlert(self.ctx.elapsed(), self.name, "import-resumed", detail, "info")
+            )
+            log.info("import %s: %s", self.name, detail)
+
+    def _publish_state(self, silent_s: float) -> None:
+        """The link's state on the import's ``state`` output, at each change: recorded like
+        any output, it marks a gap in the recording (stale from when, back after how long)."""
+        self.bridge.host.publish(
+            self.name,
+            "state",
+            {
+                "key": self.key,
+                "stale": self.stale,
+                "silent_s": round(silent_s, 3),  # since the last contact / the outage's length
+                "last_contact": self.last_contact_wall,
+                "outages": self.outages,
+            },
+        )
+
+    def report(self) -> dict[str, Any]:
+        """The link's state for the statistics' ``reports``: stale or not, outages, the time
+        down (the current outage included) and the last contact (Unix time, our clock)."""
+        down = self.down_s
+        if self.stale and self.stale_since is not None:
+            down += max(0.0, self.bridge.host.now_mono() - self.stale_since)
+        return {
+            "key": self.key,
+            "stale": self.stale,
+            "stale_is": self.stale_is,
+            "outages": self.outages,
+            "down_s": round(down, 3),
+            "last_contact": self.last_contact_wall,
+        }
+
+
+def worker_downstream(spec: GraphSpec, source: str) -> bool:
+    """Whether a worker process may read what node ``source`` publishes: a ``process`` or
+    ``pool`` node fed by it, directly or through inline nodes. Only then is an imported
+    frame worth its copy into the shared-memory pool (a heap frame would travel to a worker
+    with its pixels); a node swapped into a worker later still gets the pixels, pickled."""
+    seen: set[str] = set()
+    todo = [source]
+    while todo:
+        upstream = todo.pop()
+        for name, node in spec.nodes.items():
+            if name in seen or all(i.node != upstream for i in node.inputs.values()):
+                continue
+            if node.placement != Placement.inline:
+                return True
+            seen.add(name)
+            todo.append(name)
+    return False
+
+
+def frame_key(meta: dict[str, Any], arr: np.ndarray) -> tuple[Any, ...]:
+    """(shape, dtype, pixel format) of a received frame: what a spare pool frame must match."""
+    pf = str(meta.get("pf", "BGR"))
+    if meta.get("enc", "raw") != "raw" and arr.ndim == 3:
+        pf = "BGR"  # decoded by OpenCV
+    return (tuple(arr.shape), str(arr.dtype), pf)

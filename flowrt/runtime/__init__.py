@@ -1,0 +1,1 @@
+"""One run of a graph: the embedding API and what a run owns."""

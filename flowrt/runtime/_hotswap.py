@@ -1,0 +1,160 @@
+"""Changing a running node's algorithm or params: ``Runtime.swap``, ``reload``, ``set_params``.
+
+A swap to the node's own kind merges the given params into the running ones (issue 37 item
+2: the display swapped with ``{"allowed_hosts": [...]}`` alone moved to the default port).
+
+The kernel swaps one runner's instance (:mod:`flowrt.kernel.swapping`); this resolves what
+the caller names (a kind, a class, params to validate, a module to re-import) and says
+what happened (a ``NodeSwapped`` event), or why not (:class:`SwapError`: the old instance
+runs on).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import importlib
+import sys
+from collections.abc import Mapping
+from typing import Any, Protocol
+
+from pydantic import ValidationError
+
+from ..events import Event, NodeSwapped
+from ..graph._resolve import Graph
+from ..graph.diagnostics import validation_text
+from ..graph.spec import ModeSpec, merge_params
+from ..kernel import NodeRunner, Scheduler
+from ..node import Node
+
+
+class SwapHost(Protocol):
+    """What a swap needs of the runtime (owned here: this module does not import it)."""
+
+    @property
+    def graph(self) -> Graph: ...
+
+    @property
+    def scheduler(self) -> Scheduler: ...
+
+    def runner(self, node: str) -> NodeRunner: ...
+
+    def emit(self, event: Event) -> None: ...
+
+    def now(self) -> float: ...
+
+
+class SwapError(Exception):
+    """A swap that did not happen; the old instance runs on. The message says why."""
+
+
+async def swap(
+    rt: SwapHost,
+    node: str,
+    kind: str | type[Node],
+    params: Mapping[str, Any] | None,
+    origin: str,
+    resolved: type[Node] | None,
+) -> None:
+    """See :meth:`flowrt.Runtime.swap`."""
+    from ..graph._registry import KindError, resolve_kind
+
+    runner = rt.runner(node)
+    old_kind = runner.rnode.spec.kind
+    label = kind if isinstance(kind, str) else f"{kind.__module__}:{kind.__qualname__}"
+    try:
+        cls = resolved if resolved is not None else resolve_kind(kind, None)
+    except KindError as e:
+        raise SwapError(f"{node}: {e}") from None
+    except Exception as e:
+        raise SwapError(f"{node}: kind {label!r}: import failed: {e!r}") from None
+    raw = dict(params or {})
+    if cls is runner.rnode.cls or label == old_kind:
+        # Merged into the running params, as written (a duration stays "200ms", a path
+        # relative to the graph file): a swap of one param keeps the port, the folder...
+        raw = merge_params(as_written(rt, runner), raw)
+    if params is None and cls is runner.rnode.cls:
+        model = runner.rnode.params
+    else:
+        try:
+            model = rt.graph.validate_params(cls, raw)
+        except ValidationError as e:
+            raise SwapError(f"{node}: params for {label}: {validation_text(e)}") from None
+    await _swap_to(rt, runner, cls, model, label, origin)
+    spec = runner.rnode.spec.model_copy(update={"params": raw})
+    runner.install(runner.executor, dataclasses.replace(runner.rnode, spec=spec))
+
+
+def as_written(rt: SwapHost, runner: NodeRunner) -> dict[str, Any]:
+    """The running params as a graph file writes them: the file's text where the running
+    value is still the file's (a duration stays "200ms", not seconds read again as ms), the
+    running value where something set it since (``flowrt run --display-port``)."""
+    raw = dict(runner.rnode.spec.params)
+    running = runner.rnode.params
+    try:
+        written = rt.graph.validate_params(runner.rnode.cls, raw)
+    except ValidationError:
+        return dict(running.model_dump())
+    for key, value in running.model_dump().items():
+        if getattr(written, key, None) != getattr(running, key, None):
+            raw[key] = value
+    return raw
+
+
+async def _swap_to(
+    rt: SwapHost,
+    runner: NodeRunner,
+    cls: type[Node],
+    model: Any,
+    label: str,
+    origin: str,
+    reload: bool = False,
+) -> None:
+    old_kind = runner.rnode.spec.kind
+    try:
+        await runner.swapper.swap(cls, model, label, reload=reload)
+    except Exception as e:
+        raise SwapError(
+            f"{runner.name}: swap to {label} failed, the old instance runs on: {e}"
+        ) from e
+    rt.emit(NodeSwapped(rt.now(), runner.name, label, old_kind, origin))
+
+
+async def reload(rt: SwapHost, node: str, origin: str) -> None:
+    """See :meth:`flowrt.Runtime.reload`."""
+    runner = rt.runner(node)
+    cls = runner.rnode.cls
+    try:  # off the loop, and whatever the module does at import is contained
+        module = await asyncio.to_thread(importlib.reload, sys.modules[cls.__module__])
+        new_cls = getattr(module, cls.__qualname__)
+    except asyncio.CancelledError:
+        raise
+    except BaseException as e:
+        raise SwapError(f"{node}: reloading {cls.__module__} failed: {e!r}") from None
+    kind = runner.rnode.spec.kind
+    await _swap_to(rt, runner, new_cls, runner.rnode.params, kind, origin, reload=True)
+
+
+def set_params(rt: SwapHost, node: str, params: Mapping[str, Any], merge: bool) -> None:
+    """See :meth:`flowrt.Runtime.set_params`."""
+    runner = rt.runner(node)
+    current = runner.rnode.params.model_dump()
+    target = merge_params(current, dict(params)) if merge else dict(params)
+    try:
+        model = rt.graph.validate_params(runner.rnode.cls, target)
+    except ValidationError as e:
+        raise ValueError(f"{node}: params: {validation_text(e)}") from None
+    runner.swapper.set_params(model)
+
+
+def apply_mode_params(rt: SwapHost, previous: ModeSpec | None, new: ModeSpec) -> None:
+    """Params a mode sets, merged over the graph file's; the previous mode's undone."""
+    before = previous.nodes if previous is not None else {}
+    for name in dict.fromkeys([*before, *new.nodes]):
+        o, old = new.nodes.get(name), before.get(name)
+        if not (o is not None and o.params) and not (old is not None and old.params):
+            continue
+        base = rt.graph.spec.nodes[name].params
+        target = merge_params(base, o.params if o is not None else None)
+        runner = rt.scheduler.runners[name]
+        runner.swapper.set_params(rt.graph.validate_params(runner.rnode.cls, target))

@@ -1,0 +1,1 @@
+"""The operating system's side: priorities, real-time scheduling, the event loop."""

@@ -1,0 +1,708 @@
+"""The live view: a web page of the cameras, detections and statistics, for a browser.
+
+Connect any number of frame outputs and detection outputs to a ``display`` node under any
+input names; it serves, at ``http://127.0.0.1:8750`` by default (the address is logged and
+printed at start), a page showing per source the raw frame and the processed frame (the raw
+one with the detections drawn) side by side, each source's frame rate, and the runtime's node
+and edge statistics, all refreshed live::
+
+    view:
+      kind: display
+      params: {port: 8750}
+      inputs:
+        front_cam: front_cam.frame                     # a frame source (any name)
+        ball: {from: ball_fr.detection, policy: latest}
+      # detections carry no frame; say which source each is drawn on when there are several:
+      #   params: {draw_on: {ball: front_cam}}
+
+Endpoints:
+
+- ``/``: the page (HTML and JavaScript, no external resources).
+- ``/ws``: a websocket pushing, per source, one binary message per frame pair (a 4-byte
+  big-endian header length, a JSON header, the raw JPEG, the processed JPEG). The client acks
+  each source's message once shown; the next one is sent only after the ack and only when a
+  newer frame exists, so a client gets at most the source's rate and never a backlog.
+- ``/stream/{source}.mjpg?kind=raw|processed``: the same frames as an MJPEG stream, for other
+  tools; a slow reader gets the newest frame when it is ready for one.
+- ``/frame/{source}.jpg?kind=raw|processed``: the newest frame as one JPEG.
+- ``/stats.json``: ``{"runtime": RuntimeStats, "display": {...}}``: the runtime statistics
+  (the schema of ``flowrt schema stats``) and what the display measures per source (fps,
+  frames, encodes, detections), its clients and its total JPEG encodes.
+
+Who may look: the view binds 127.0.0.1 and answers only requests addressed to a loopback name
+(``Host``; add names with ``allowed_hosts``) and, when they carry an ``Origin`` (every
+browser WebSocket), from its own origin: no other web page open in a browser on the robot's
+computer can read the cameras (DNS rebinding: 421; cross-site WebSocket: 403). To serve it to
+other machines on purpose, give ``host`` (e.g. 0.0.0.0) and a ``token`` (required off
+loopback): clients send ``Authorization: Bearer TOKEN`` or open ``/?token=TOKEN`` once (a
+cookie keeps it). ``max_clients`` connections at once; one that sends no complete request
+within 10 s is closed, and at the cap the one idle longest makes room. MJPEG streams and the
+pages' WebSockets take at most ``max_streams`` of them (half by default), MJPEG streams at most
+``max_streams_per_peer`` per client address;
+each has at most one frame queued in the server, and one that falls more than a second behind
+is dropped (counted ``stalled``): the page, ``/stats.json`` and the API always find a slot.
+
+Why neither the graph nor the cameras wait for a browser: the web server is a process of its
+own (:mod:`flowrt.nodes.station.server`, at nice 19), so HTTP work and JPEG encoding take
+neither the loop's time nor its GIL. ``process`` only keeps a link on the newest frame of each
+source and the newest detections of each input. While a client waits for a frame newer than
+the server has, the node lends the server the newest one (a descriptor of its shared-memory
+slot, not the pixels), at most one per source at a time and at most ``max_fps``; the server
+encodes it once and shares the JPEGs among all its clients. So the node's work per frame is
+one small message whatever the number of clients, and none without clients; a client that is
+slow, or does not read at all, holds at most one frame per source. The node owns the channel
+on the event loop, so it must be placed ``inline`` (the default).
+
+Detections are duck-typed: anything with ``found``, ``bbox`` (x, y, w, h) and ``centroid``
+(e.g. ``flowrt.nodes.colour.Detection``), or a list of such; ``object`` labels it and
+``confidence`` is shown when present. A detection is drawn on the source named by
+``draw_on``, else by its ``source`` attribute (a source's input name or its frames' source
+node), else on the only source; detections older than ``detection_ttl`` are not drawn.
+
+Input policies: frames are best connected with ``policy: latest``, and so are detections
+(a message input defaults to ``queue``, which also works: the display just stores the newest
+as fast as they come).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import multiprocessing
+import pickle
+import secrets
+import socket
+import time
+from collections import deque
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from flowrt import Frame, Input, InputTrigger, Node, resolve_path
+from flowrt.control import serving
+
+from . import record as operator_record
+from . import server as display_server
+from .render import Mark, render
+
+__all__ = ["Display", "Mark", "render"]
+
+PAGE = Path(__file__).with_name("display.html")
+FPS_WINDOW = 2.0  # seconds of arrivals over which a source's rate is measured
+STATS_MAX_AGE = 0.2  # seconds: the runtime's statistics are serialised at most 5 times a second
+WEB_JOYSTICK = "joystick.web"  # RTDB record of the page's joystick (nodes/joystick.py reads it)
+WEB_ESTOP = "estop.web"  # RTDB record of the page's last e-stop action (nodes/estop.py reads it)
+SOURCE_WAIT = 3.0  # seconds a request for a source that has sent no frame yet waits for one
+HEADER_TIMEOUT = 10.0  # seconds a connection has to send a complete request
+START_TIMEOUT = 30.0  # seconds for the view's server process to start (spawn + imports)
+
+
+def _drivers(ctx: Any) -> list[str]:
+    """The nodes the page can drive through (a joystick with ``source: web``), by name."""
+    from ..joystick import Joystick
+
+    try:
+        graph = ctx.graph
+    except RuntimeError:  # no runtime around the node (a bare test harness)
+        return []
+    return [
+        name
+        for name, n in graph.nodes.items()
+        if issubclass(n.cls, Joystick) and getattr(n.params, "source", None) == "web"
+    ]
+
+
+def _is_detection(value: Any) -> bool:
+    return hasattr(value, "found") and (hasattr(value, "bbox") or hasattr(value, "centroid"))
+
+
+def _detections(value: Any) -> list[Any] | None:
+    """The detections in an input value (one or a list of them), or None if it holds none."""
+    if _is_detection(value):
+        return [value]
+    if isinstance(value, Mapping):  # e.g. {object name: detection}
+        value = list(value.values())
+    if isinstance(value, list | tuple) and value and all(_is_detection(v) for v in value):
+        return list(value)
+    return None
+
+
+class _Source:
+    """The newest frame of one input and its arrival times."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.frame: Frame | None = None
+        self.n = 0
+        self.arrivals: deque[float] = deque(maxlen=256)
+        self.delayed = False  # the next frame for the server waits for max_fps
+        self.lent: Frame | None = None  # the frame the server is encoding (a link held)
+        self.last_encode = -math.inf  # time.monotonic() of the last encode start
+        self.encodes = 0
+        self.failing = False  # the last encode failed (logged once until one succeeds)
+
+    def fps(self, now: float) -> float:
+        """Frames per second over the last FPS_WINDOW seconds; 0 once the source stalls."""
+        times = [t for t in self.arrivals if now - t <= FPS_WINDOW]
+        if len(times) < 2:
+            return 0.0
+        span = times[-1] - times[0]
+        gap = now - times[-1]
+        if span <= 0 or gap > max(1.0, 3 * span / (len(times) - 1)):
+            return 0.0
+        return (len(times) - 1) / span
+
+
+def _listen(host: str, port: int) -> socket.socket:
+    """A listening socket (taken here, so that a taken port fails the set-up at once)."""
+    family, *_, address = socket.getaddrinfo(
+        host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+    )[0]
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(address)
+        sock.listen(128)
+    except OSError:
+        sock.close()
+        raise
+    sock.setblocking(False)
+    return sock
+
+
+def _local_host(host: str) -> str:
+    """An IP address, or a name that resolves to an address of this machine.
+
+    Checked when the graph is validated: a name that does not resolve (``example.invalid``)
+    or resolves elsewhere made the view fail to listen at every restart. Resolution is given
+    ``RESOLVE_TIMEOUT`` seconds, so a dead DNS server cannot hang ``flowrt validate``.
+    """
+    import concurrent.futures
+    import ipaddress
+    import socket
+
+    try:
+        ipaddress.ip_address(host)
+        return host
+    except ValueError:
+        pass
+    if host in ("", "localhost"):
+        return host
+    pool = concurrent.futures.ThreadPoolExecutor(1)
+    try:
+        infos = pool.submit(socket.getaddrinfo, host, None, 0, socket.SOCK_STREAM).result(
+            RESOLVE_TIMEOUT
+        )
+    except concurrent.futures.TimeoutError:
+        raise ValueError(
+            f"host {host!r} does not resolve (no answer within {RESOLVE_TIMEOUT:g} s): "
+            "give an IP address (127.0.0.1, ::1, 0.0.0.0)"
+        ) from None
+    except (OSError, UnicodeError) as e:
+        raise ValueError(
+            f"host {host!r} does not resolve ({e}): give an IP address (127.0.0.1, ::1, "
+            "0.0.0.0) or a name of this machine"
+        ) from None
+    finally:
+        pool.shutdown(wait=False)
+    addresses = sorted({str(info[4][0]) for info in infos})
+    for family, _, _, _, sockaddr in infos:
+        with contextlib.suppress(OSError), socket.socket(family, socket.SOCK_STREAM) as s:
+            s.bind((sockaddr[0], 0))
+            return host
+    raise ValueError(
+        f"host {host!r} resolves to {', '.join(addresses)}, not an address of this machine"
+    )
+
+
+RESOLVE_TIMEOUT = 2.0
+
+
+class Robot(BaseModel):
+    """A robot the base station's view watches and records through its control channel."""
+
+    model_config = ConfigDict(extra="forbid")
+    connect: list[str] = Field(
+        min_length=1, description="the robot's Zenoh endpoints, e.g. tcp/192.168.1.10:7447"
+    )
+    control: str = Field(description="the robot graph's zenoh.control key")
+    token: str | None = Field(None, description="its control token, when it needs one")
+
+    @field_validator("connect")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        from flowrt.graph.spec import _endpoint
+
+        return [_endpoint(e) for e in v]
+
+    @field_validator("control")
+    @classmethod
+    def _key(cls, v: str) -> str:
+        from flowrt.graph.spec import check_key_expr
+
+        check_key_expr(v, wildcards=False)
+        return v
+
+
+class Display(Node):
+    """Live web view of frames, detections and statistics; see the module docstring."""
+
+    # what a swap over the control endpoint may change (flowrt kinds shows it)
+    swappable = frozenset(
+        {
+            "max_fps",
+            "jpeg_quality",
+            "draw_on",
+            "detection_ttl",
+            "refresh_ms",
+            "health_hz",
+            "health_keep_s",
+        }
+    )
+
+    inline_only = True
+    listens = True  # params host/port: `flowrt run --display-host/--display-port` set them
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+        host: Annotated[str, AfterValidator(_local_host)] = Field(
+            "127.0.0.1",
+            description="address to listen on: an IP address (0.0.0.0: every interface) or a "
+            "name of this machine; beyond loopback a token is required",
+        )
+        port: int = Field(8750, ge=0, le=65535, description="TCP port; 0 picks a free one")
+        token: str | None = Field(
+            None,
+            min_length=8,
+            description="required of every client (Bearer header, or ?token= once: a cookie)",
+        )
+        token_required: bool | None = Field(
+            None,
+            description="None: required when the graph can drive from the page (a joystick "
+            "with source: web), one generated and printed unless token is given; true: always; "
+            "false: never, any local process may open the page and drive (an explicit opt-out)",
+        )
+        allowed_hosts: list[str] = Field(
+            default_factory=list,
+            description="names besides loopback a browser may use in Host (without a token)",
+        )
+        max_clients: int = Field(
+            32, ge=1, le=1000, description="open connections at once; more are closed at once"
+        )
+        max_streams: int | None = Field(
+            None,
+            ge=1,
+            le=1000,
+            description="MJPEG streams and page WebSockets at once (default: half of "
+            "max_clients): the other slots stay for the page, /stats.json and the API",
+        )
+        max_streams_per_peer: int = Field(
+            4, ge=1, le=1000, description="MJPEG streams one client address may hold at once"
+        )
+        max_fps: float | None = Field(
+            None,
+            gt=0,
+            le=1000,
+            description="cap on the frames encoded per second and source; none: the source's rate",
+        )
+        jpeg_quality: int = Field(80, ge=1, le=100)
+        draw_on: dict[str, str] = Field(
+            default_factory=dict, description="detection input -> the frame input it is drawn on"
+        )
+        detection_ttl: float = Field(
+            1.0, gt=0, le=3600, description="seconds after which a detection is no longer drawn"
+        )
+        refresh_ms: int = Field(
+            333, ge=50, le=3_600_000, description="how often the page polls the statistics"
+        )
+        recordings: str | None = Field(
+            None,
+            description="a folder of recorded sessions to review (besides every recorder's; "
+            "relative: beside the graph file); flowrt run --recordings DIR sets it",
+        )
+        health_hz: float = Field(
+            1.0, ge=0.1, le=10, description="machine and stream health samples per second"
+        )
+        health_keep_s: float = Field(
+            900.0, ge=60, le=86400, description="seconds of health history kept for the plots"
+        )
+        robots: dict[str, Robot] = Field(
+            default_factory=dict,
+            description="robots (name: their Zenoh control channel) whose state the page shows "
+            "and whose recorders it starts and stops",
+        )
+
+        @field_validator("recordings", mode="after")
+        @classmethod
+        def _beside_the_graph(cls, v: str | None, info: ValidationInfo) -> str | None:
+            return None if v is None else resolve_path(v, info)
+
+        @model_validator(mode="after")
+        def _token_beyond_loopback(self) -> Display.Params:
+            if not self.token and not serving.is_loopback(self.host):
+                raise ValueError(
+                    f"serving the live view on {self.host} needs a token (params.token, or "
+                    "flowrt run --display-token): any machine that reaches it sees the cameras"
+                )
+            return self
+
+    any_inputs = Input(
+        object, required=False, doc="frames (a source each) and detections, under any name"
+    )
+
+    @classmethod
+    def default_trigger(cls, params: Any) -> InputTrigger:
+        # Every arrival is stored at once; also lets a display without inputs serve statistics.
+        return InputTrigger()
+
+    # --- lifecycle ----------------------------------------------------------------------
+
+    async def setup(self) -> None:
+        self.sources: dict[str, _Source] = {}
+        self.detections: dict[str, tuple[float, list[Any]]] = {}  # input -> (arrival, detections)
+        self.encodes = 0
+        self.ignored: set[str] = set()
+        self.wanted: dict[str, int] = {}  # source -> the server holds its frame n; wants newer
+        self._kick_due = False
+        self._stats_cache: tuple[float, bytes] | None = None
+        self._writer: asyncio.StreamWriter | None = None
+        self._proc: Any = None
+        self._task: asyncio.Task[None] | None = None
+        self._calls: set[asyncio.Task[None]] = set()  # the server's requests being answered
+        self._record_turn = asyncio.Lock()  # one start or stop of the recorders at a time
+        host, port = self.params.host, self.params.port
+        self.url = ""
+        self.open_url = ""  # the URL to open: with ?token= when the view has one
+        self.drivers = _drivers(self.ctx)
+        token = self.params.token
+        required = self.params.token_required
+        if required is None:
+            required = bool(self.drivers)
+        if required and not token:  # generated, as Jupyter does: printed as a URL to open
+            token = secrets.token_urlsafe(16)
+        try:
+            sock = _listen(host, port)
+        except OSError as e:
+            # An error state, not a failure: restarting cannot free the port (flowrt run checks
+            # it before anything starts; an embedding program sees the state and the reason).
+            reason = f"display: cannot listen on {host}:{port}: {e.strerror or e}"
+            try:
+                self.ctx.set_error(reason)
+            except RuntimeError:  # no runtime around the node (a bare test harness)
+                raise RuntimeError(reason) from e
+            self.ctx.log.error("%s: %s; the live view is off", self.ctx.name, reason)
+            return
+        self.port = int(sock.getsockname()[1])
+        shown = f"[{host}]" if ":" in host else host
+        self.url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '::', '') else shown}:{self.port}"
+        page = PAGE.read_bytes().replace(b"__REFRESH_MS__", str(self.params.refresh_ms).encode())
+        self.open_url = f"{self.url}/?token={token}" if token else self.url
+        settings = {
+            "token": token,
+            "allowed_hosts": list(self.params.allowed_hosts),
+            "max_clients": self.params.max_clients,
+            "max_streams": self.params.max_streams or max(1, self.params.max_clients // 2),
+            "max_streams_per_peer": self.params.max_streams_per_peer,
+            "url": self.url,
+            "page": page,
+            "source_wait": SOURCE_WAIT,
+            "header_timeout": HEADER_TIMEOUT,
+            "recordings": [self.params.recordings] if self.params.recordings else [],
+            "health_hz": self.params.health_hz,
+            "health_keep_s": self.params.health_keep_s,
+            "robots": {k: v.model_dump() for k, v in self.params.robots.items()},
+        }
+        ours, theirs = socket.socketpair()
+        ctx = multiprocessing.get_context("spawn")
+        self._proc = ctx.Process(
+            target=display_server.serve,
+            args=(sock, theirs, settings),
+            name=f"flowrt-view-{self.ctx.name}",
+            daemon=True,
+        )
+        try:
+            self._proc.start()
+            if self._proc.pid is not None:
+                serving.lower_priority(self._proc.pid)
+        finally:
+            theirs.close()
+            sock.close()  # the server's process holds its own copy
+        reader, self._writer = await asyncio.open_unix_connection(sock=ours)
+        ready: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._task = asyncio.get_running_loop().create_task(self._talk(reader, ready))
+        try:
+            await asyncio.wait_for(asyncio.shield(ready), START_TIMEOUT)
+        except (TimeoutError, ConnectionError, asyncio.IncompleteReadError) as e:
+            await self.teardown()
+            raise RuntimeError(f"display: the view's server did not start: {e!r}") from None
+        if token and not self.params.token:
+            why = f"{', '.join(self.drivers)} can drive from the page" if self.drivers else ""
+            print(
+                f"display: {self.url} needs its token{': ' + why if why else ''}; open "
+                f"{self.open_url}",
+                flush=True,
+            )
+        else:
+            print(f"display: {self.url}", flush=True)  # once: scripts and tests read this line
+
+    async def teardown(self) -> None:
+        writer, task, proc = self._writer, self._task, self._proc
+        self._writer = self._task = self._proc = None
+        await serving.stop_server(writer, task, proc, grace=3.0)
+        for src in self.sources.values():
+            if src.lent is not None:
+                src.lent.release()
+                src.lent = None
+            if src.frame is not None:
+                src.frame.release()
+                src.frame = None
+
+    async def _talk(self, reader: asyncio.StreamReader, ready: asyncio.Future[None]) -> None:
+        """Answer the server: a frame it wants, statistics. Bounded whatever its clients do."""
+        try:
+            while True:
+                header, _ = await serving.unpack(reader)
+                op = header.get("op")
+                if op == "ready":
+                    ready.set_result(None)
+                elif op == "want":
+                    name, after = str(header["source"]), int(header["after"])
+                    self.wanted[name] = after
+                    src = self.sources.get(name)
+                    if src is not None and src.n > after:
+                        self._kick(src)
+                elif op == "done":
+                    self._returned(str(header["source"]))
+                elif op == "stats":
+                    self._send_stats()
+                elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
+                    self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
+                elif op == "estop":  # the page's e-stop panel: for an `estop` node
+                    self.ctx.rtdb.write(WEB_ESTOP, header["value"])
+                elif op == "record":  # the record panel: answered when the recorders have
+                    answer = operator_record.answer(
+                        self.ctx.rtdb, header, self._send, self._record_turn
+                    )
+                    task = asyncio.get_running_loop().create_task(answer)
+                    self._calls.add(task)
+                    task.add_done_callback(self._calls.discard)
+        except (asyncio.IncompleteReadError, ConnectionError) as e:
+            if not ready.done():
+                ready.set_exception(e)
+            elif self._writer is not None:  # not our teardown: the server's process died
+                reason = f"display: the view's server process ended; {self.url} is gone"
+                self.ctx.set_error(reason)
+                self.ctx.log.error("%s: %s", self.ctx.name, reason)
+
+    def _send(self, header: dict[str, Any], body: bytes = b"") -> None:
+        if self._writer is not None and not self._writer.is_closing():
+            self._writer.write(serving.pack(header, body))
+
+    def _send_stats(self) -> None:
+        try:
+            runtime: bytes = self._runtime_stats()
+        except RuntimeError:  # no runtime around the node (a bare test harness)
+            runtime = b"null"
+        self._send({"op": "stats", "display": self.display_stats()}, runtime)
+
+    def _runtime_stats(self) -> bytes:
+        """The runtime's statistics, serialised at most every STATS_MAX_AGE."""
+        mono = time.monotonic()
+        if self._stats_cache is not None and mono - self._stats_cache[0] < STATS_MAX_AGE:
+            return self._stats_cache[1]
+        body: bytes = self.ctx.stats().model_dump_json().encode()
+        self._stats_cache = (mono, body)
+        return body
+
+    # --- the hot path -------------------------------------------------------------------
+
+    def process(self, **inputs: Any) -> None:
+        now = self.ctx.now()
+        for port, value in inputs.items():
+            if value is None:
+                continue
+            if isinstance(value, Frame):
+                self._frame(port, value, now)
+                continue
+            dets = _detections(value)
+            if dets is not None:
+                self.detections[port] = (now, dets)
+            elif port not in self.ignored:
+                self.ignored.add(port)
+                self.ctx.log.warning(
+                    "%s: input %r carries %s, neither frames nor detections: ignored",
+                    self.ctx.name,
+                    port,
+                    type(value).__name__,
+                )
+        if self.wanted and not self._kick_due:
+            # Lent after this call, in a callback of its own: process() only stores.
+            self._kick_due = True
+            asyncio.get_running_loop().call_soon(self._kick_wanted)
+
+    def _kick_wanted(self) -> None:
+        self._kick_due = False
+        for name, after in list(self.wanted.items()):
+            src = self.sources.get(name)
+            if src is not None and src.n > after:
+                self._kick(src)
+
+    def _frame(self, port: str, frame: Frame, now: float) -> None:
+        src = self.sources.get(port)
+        if src is None:
+            src = self.sources[port] = _Source(port)
+            self._send({"op": "sources", "names": list(self.sources)})
+        if frame is src.frame:  # a periodic trigger re-reads the same newest frame
+            return
+        frame.acquire()  # the runtime releases the activation's link when process returns
+        if src.frame is not None:
+            src.frame.release()
+        src.frame = frame
+        src.n += 1
+        src.arrivals.append(now)
+
+    # --- encoding (only on request) -----------------------------------------------------
+
+    def _target(self, port: str, det: Any) -> str | None:
+        """The source a detection is drawn on."""
+        explicit: str | None = self.params.draw_on.get(port)
+        if explicit is not None:
+            return explicit
+        name = getattr(det, "source", None)
+        if name:
+            for src in self.sources.values():
+                if name == src.name or (src.frame is not None and name == src.frame.source):
+                    return src.name
+            return None
+        if len(self.sources) == 1:
+            return next(iter(self.sources))
+        return None
+
+    def _marks(self, src: _Source) -> list[Mark]:
+        now = self.ctx.now()
+        marks: list[Mark] = []
+        for port, (t, dets) in self.detections.items():
+            if now - t > self.params.detection_ttl:
+                continue
+            marks.extend(Mark.of(d, port) for d in dets if self._target(port, d) == src.name)
+        return marks
+
+    def _throttle(self, src: _Source) -> float:
+        """Seconds to wait before this source may be encoded again (0: now)."""
+        if self.params.max_fps is None:
+            return 0.0
+        cap = float(self.params.max_fps)
+        return max(0.0, src.last_encode + 1.0 / cap - time.monotonic())
+
+    def _kick(self, src: _Source) -> None:
+        """Hand the newest frame of ``src`` to the server, which encodes and shares it.
+
+        A frame in the shared frame pool travels as a descriptor (``pickle``: the slot's
+        name, not its pixels); the server maps the slot and encodes there, so the JPEG work
+        (milliseconds holding a GIL) is not this process's. A link keeps the slot until the
+        server says it is done; one frame per source is in its hands at a time.
+        """
+        frame = src.frame
+        if frame is None or src.delayed or src.lent is not None:
+            return
+        delay = self._throttle(src)
+        if delay > 0:
+            src.delayed = True
+            asyncio.get_running_loop().call_later(delay, self._rekick, src)
+            return
+        src.last_encode = time.monotonic()
+        self.wanted.pop(src.name, None)
+        header = {
+            "op": "frame",
+            "source": src.name,
+            "node": frame.source,
+            "n": src.n,
+            "seq": frame.seq,
+            "timestamp": frame.timestamp,
+            "shape": list(frame.shape),
+            "pixel_format": frame.pixel_format,
+            "fps": round(src.fps(self.ctx.now()), 2),
+            "marks": [m.json() for m in self._marks(src)],
+            "quality": self.params.jpeg_quality,
+        }
+        frame.acquire()  # until the server is done with it
+        src.lent = frame
+        self._send(header, pickle.dumps(frame, protocol=pickle.HIGHEST_PROTOCOL))
+        src.encodes += 1
+        self.encodes += 1
+
+    def _returned(self, name: str) -> None:
+        """The server is done with the frame of ``name`` it was lent."""
+        src = self.sources.get(name)
+        if src is None or src.lent is None:
+            return
+        src.lent.release()
+        src.lent = None
+        after = self.wanted.get(name)
+        if after is not None and src.n > after:
+            self._kick(src)
+
+    def _rekick(self, src: _Source) -> None:
+        src.delayed = False
+        after = self.wanted.get(src.name)
+        if after is not None and src.n > after:
+            self._kick(src)
+
+    # --- statistics ----------------------------------------------------------------
+
+    def report(self) -> Any:
+        """``reports.NODE.url`` in the statistics: where a view on port 0 is."""
+        return {"url": self.url} if getattr(self, "url", "") else None
+
+    def display_stats(self) -> dict[str, Any]:
+        """What the display measures: per source fps and frames, its clients and encodes."""
+        now = self.ctx.now()
+        sources = []
+        for src in self.sources.values():
+            f = src.frame
+            sources.append(
+                {
+                    "name": src.name,
+                    "node": f.source if f is not None else "",
+                    "fps": src.fps(now),
+                    "frames": src.n,
+                    "seq": f.seq if f is not None else None,
+                    "shape": list(f.shape) if f is not None else None,
+                    "pixel_format": f.pixel_format if f is not None else None,
+                    "age": now - src.arrivals[-1] if src.arrivals else None,
+                    "encodes": src.encodes,
+                    "marks": [m.json() for m in self._marks(src)],
+                }
+            )
+        detections = [
+            {
+                "input": port,
+                "age": now - t,
+                "target": [self._target(port, d) for d in dets],
+                "marks": [Mark.of(d, port).json() for d in dets],
+            }
+            for port, (t, dets) in self.detections.items()
+        ]
+        try:
+            recording = operator_record.state(self.ctx.rtdb)
+        except RuntimeError:  # no runtime around the node (a bare test harness)
+            recording = {"recording": [], "recordings": []}
+        return {
+            "url": self.url,
+            "encodes": self.encodes,
+            "sources": sources,
+            "detections": detections,
+            **recording,
+        }
