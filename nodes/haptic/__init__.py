@@ -9,7 +9,8 @@
 - :mod:`.view`: the ``haptic_view`` kind, the live view's picture of handle, target and force.
 """
 
-from .device import DeviceError, DeviceInfo, DeviceState, HapticDevice, make_device
+from .device import DeviceError, DeviceInfo, DeviceState, HapticDevice
+from .devices import make_device
 from .fixtures import Fixture
 from .messages import Buttons, Force, HandleState, Target
 from .node import Haptic

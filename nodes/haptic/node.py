@@ -46,7 +46,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from flowrt import FatalError, Input, Node, Output, TimerTrigger, parse_duration_ms
 from flowrt.refusals import Refusals
 
-from .device import DeviceError, DeviceInfo, DeviceState, HapticDevice, make_device
+from .device import DeviceError, DeviceInfo, DeviceState, HapticDevice
+from .devices import make_device
 from .evdev_device import EvdevParams
 from .fixtures import Fixture, fixture_force
 from .follow import Follower, scale
