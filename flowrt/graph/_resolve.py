@@ -28,7 +28,6 @@ from .spec import (
     GraphSpec,
     InputSpec,
     InputTrigger,
-    LoopTrigger,
     NodeSpec,
     TimerTrigger,
     Trigger,
@@ -615,8 +614,7 @@ def _check_trigger(
             if port != "any" and port not in ns.inputs:
                 hint = did_you_mean(port, ns.inputs)
                 at((*path, "input"), f"trigger on input {port!r}, which is not connected" + hint)
-    elif isinstance(trig, LoopTrigger):
-        pass
+    # a LoopTrigger has nothing to check
 
 
 def _check_frame_trigger(
