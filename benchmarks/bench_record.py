@@ -432,7 +432,6 @@ async def _lateness_once(
     from flowrt.nodes.tracker import FrameDetection  # what the trackers publish
 
     from flowrt.frames import FrameStore
-    from flowrt.recording import ProcessRecordingWriter, RecordingWriter
 
     loop = asyncio.get_running_loop()
     store = FrameStore()
@@ -444,28 +443,12 @@ async def _lateness_once(
 
     def release_done() -> None:
         t0 = time.perf_counter_ns()
-        while writer.done:
+        while writer is not None and writer.done:
             writer.done.popleft().release()
         release_ns.append(time.perf_counter_ns() - t0)
 
     path = folder / f"late_{time.monotonic_ns()}.mcap"
-    if writer_kind.startswith("process"):
-        writer = ProcessRecordingWriter(
-            path,
-            loop=loop,
-            direct_io=True,
-            on_written=lambda: loop.call_soon(release_done),
-            priority="idle" if writer_kind == "process-idle" else "normal",
-        )
-        await asyncio.to_thread(writer.open, {"bench": {"what": "lateness"}}, [])
-    elif writer_kind != "none":
-        writer = RecordingWriter(
-            path,
-            direct_io=True,
-            gil_free=writer_kind == "gil-free",
-            on_written=lambda: loop.call_soon_threadsafe(release_done),
-        )
-        writer.open({"bench": {"what": "lateness"}}, [])
+    writer = await _bench_writer(writer_kind, path, release_done)
     rng = np.random.default_rng(1)
     images = [rng.integers(0, 255, shape, np.uint8) for _ in range(2)]
     stop = time.monotonic() + seconds
@@ -504,7 +487,56 @@ async def _lateness_once(
 
     tasks = [loop.create_task(camera(0, 0.0)), loop.create_task(camera(1, 0.025))]
     tasks += [loop.create_task(detections(k, 20.0 if k < 6 else 5.0)) for k in range(11)]
-    period = 0.001
+    await _probe(probe, 0.001, stop, late)
+    await asyncio.gather(*tasks)
+    out: dict[str, Any] = {"late_ms": np.array(late) * 1e3}
+    if writer is not None:
+        writer.request_close()  # as the recorder closes either writer
+        for frame in writer.detach_frames():
+            frame.release()
+        while writer.encoding_frame():
+            release_done()
+            await asyncio.sleep(0.005)
+        await asyncio.to_thread(writer.join)
+        release_done()
+        out["written"] = sum(s.written for s in writer.streams.values())
+        out["lost"] = sum(s.lost for s in writer.streams.values())
+        out["submit_us"] = np.array(submit_ns) / 1e3
+        out["release_us"] = np.array(release_ns) / 1e3
+    store.close()
+    return out
+
+
+async def _bench_writer(kind: str, path: Path, release_done: Any) -> Any:
+    """The writer of one lateness condition, opened (None: ``none``, no recording)."""
+    from flowrt.recording import ProcessRecordingWriter, RecordingWriter
+
+    loop = asyncio.get_running_loop()
+    writer: Any = None
+    if kind.startswith("process"):
+        writer = ProcessRecordingWriter(
+            path,
+            loop=loop,
+            direct_io=True,
+            on_written=lambda: loop.call_soon(release_done),
+            priority="idle" if kind == "process-idle" else "normal",
+        )
+        await asyncio.to_thread(writer.open, {"bench": {"what": "lateness"}}, [])
+    elif kind != "none":
+        writer = RecordingWriter(
+            path,
+            direct_io=True,
+            gil_free=kind == "gil-free",
+            on_written=lambda: loop.call_soon_threadsafe(release_done),
+        )
+        writer.open({"bench": {"what": "lateness"}}, [])
+    return writer
+
+
+async def _probe(probe: str, period: float, stop: float, late: list[float]) -> None:
+    """A ``period`` timer noting its own lateness in ``late`` until ``stop`` (monotonic):
+    ``timerfd`` (the runtime's periodic timers) or the loop's ``call_later``."""
+    loop = asyncio.get_running_loop()
     finished = loop.create_future()
     if probe == "timerfd":  # the runtime's own periodic timers (flowrt.clock, one timerfd)
         from flowrt.clock import SystemClock
@@ -534,23 +566,6 @@ async def _lateness_once(
 
         loop.call_later(period, tick)
     await finished
-    await asyncio.gather(*tasks)
-    out: dict[str, Any] = {"late_ms": np.array(late) * 1e3}
-    if writer is not None:
-        writer.request_close()  # as the recorder closes either writer
-        for frame in writer.detach_frames():
-            frame.release()
-        while writer.encoding_frame():
-            release_done()
-            await asyncio.sleep(0.005)
-        await asyncio.to_thread(writer.join)
-        release_done()
-        out["written"] = sum(s.written for s in writer.streams.values())
-        out["lost"] = sum(s.lost for s in writer.streams.values())
-        out["submit_us"] = np.array(submit_ns) / 1e3
-        out["release_us"] = np.array(release_ns) / 1e3
-    store.close()
-    return out
 
 
 def _writer_elsewhere(seconds: float, folder: Path, shape: tuple[int, ...]) -> None:

@@ -223,18 +223,7 @@ class Teleop(Node):
                 self._go("initialization", "invalid joystick value (NaN, inf or wrong type)")
 
         if fresh:
-            start = self._clicked(buttons, p.buttons.start)
-            if self._clicked(buttons, p.buttons.stop):
-                self._go("idle", "stop button")
-            elif start and self.status == "idle":
-                self._go("calibration" if p.calibration else "initialization", "start button")
-                if p.calibration:
-                    self._begin_calibration(axes)
-            elif start and self.status == "calibration":
-                self._go("initialization", "calibration done")
-            for i, a in enumerate(self.shaping):
-                if a.lock is not None and self._clicked(buttons, a.lock.button):
-                    self.locked[i] = not self.locked[i]
+            self._press(axes, buttons)
         if self.status == "calibration":
             self._calibrate(axes)
         if self.status == "run":
@@ -248,6 +237,22 @@ class Teleop(Node):
         if self.status != "run":
             return {"command": self._zero(), "mode": self.status}
         return {"command": self._shaped(axes, state, dt), "mode": self.status}
+
+    def _press(self, axes: Mapping[str, Any], buttons: Mapping[str, Any]) -> None:
+        """The buttons' clicks of a fresh input: stop, start (or end calibration), axis locks."""
+        p = self.params
+        start = self._clicked(buttons, p.buttons.start)
+        if self._clicked(buttons, p.buttons.stop):
+            self._go("idle", "stop button")
+        elif start and self.status == "idle":
+            self._go("calibration" if p.calibration else "initialization", "start button")
+            if p.calibration:
+                self._begin_calibration(axes)
+        elif start and self.status == "calibration":
+            self._go("initialization", "calibration done")
+        for i, a in enumerate(self.shaping):
+            if a.lock is not None and self._clicked(buttons, a.lock.button):
+                self.locked[i] = not self.locked[i]
 
     def _valid(self, axes: Any, buttons: Any) -> bool:
         """Axes that are finite numbers and mappings where mappings belong; else one counted

@@ -433,16 +433,16 @@ async def test_an_unchanged_periodic_value_is_not_encoded_again(
     """Issue 31: a periodic message without counter or checksum is encoded once per new
     value, not at every send (the encode sat between the timer's release and bus.send);
     a new value goes out from the next send on."""
-    import flowrt.nodes.can.node as can_node
+    import flowrt.nodes.can.transmit as can_transmit
 
     encodes: list[dict[str, Any]] = []
-    real = can_node.encode_signals
+    real = can_transmit.encode_signals
 
     def counting(msg: Any, values: Any) -> bytes:
         encodes.append(dict(values))
         return real(msg, values)
 
-    monkeypatch.setattr(can_node, "encode_signals", counting)
+    monkeypatch.setattr(can_transmit, "encode_signals", counting)
     clock = VirtualClock()
     g = graph(channel, {"Battery": "host.values"})
     g.add("host", "can-signals", params={"signals": {"Voltage": {}}}, enabled=False)

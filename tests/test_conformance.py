@@ -416,17 +416,7 @@ def _why(a: Any, b: Any, path: str = "") -> str:
         got = {k: v for k, v in vars(a).items() if not k.startswith("_")}
         return _why(got, fields, path)
     if isinstance(b, dict):  # a None field may be left out
-        keys, valued = {str(k) for k in b}, {str(k) for k in b if _value(b[k])}
-        if not isinstance(a, dict) or set(a) - keys or valued - set(a):
-            return f"{at}: {a!r:.80}, sent keys {sorted(keys)}"
-        for k, v in b.items():
-            if k == "timestamp" and isinstance(v, float):  # rebased on the importer's clock
-                if not isinstance(a.get(k), float) or abs(a[k] - v) > 0.25:
-                    return f"{at}.timestamp: {a.get(k)!r} for {v!r}"
-                continue
-            if why := _why(a.get(str(k)), v, f"{path}.{k}" if path else str(k)):
-                return why
-        return ""
+        return _why_dict(a, b, path)
     if isinstance(b, float) and not math.isfinite(b):
         return "" if a is None else f"{at}: {a!r} for {b!r}"
     if isinstance(b, np.ndarray | np.generic):
@@ -434,16 +424,38 @@ def _why(a: Any, b: Any, path: str = "") -> str:
     if isinstance(b, bytes):
         return "" if a == b else f"{at}: {a!r:.60} for bytes"
     if isinstance(b, tuple | list):
-        if type(a) is not type(b) or len(a) != len(b):
-            return f"{at}: {type(a).__name__} {a!r:.60} for {type(b).__name__} {b!r:.60}"
-        for n, (x, y) in enumerate(zip(a, b, strict=True)):
-            if why := _why(x, y, f"{at}[{n}]"):
-                return why
-        return ""
+        return _why_sequence(a, b, at)
     if isinstance(b, float) and isinstance(a, int | float):
         return "" if math.isclose(a, b, rel_tol=1e-12, abs_tol=1e-12) else f"{at}: {a} for {b}"
     if a != b or type(a) is not type(b):
         return f"{at}: {type(a).__name__} {a!r:.60} for {type(b).__name__} {b!r:.60}"
+    return ""
+
+
+def _why_dict(a: Any, b: dict[Any, Any], path: str) -> str:
+    """:func:`_why` of a mapping: the same keys (a None field may be left out), each value
+    the same, timestamps within the clocks' rebasing."""
+    at = path or "<value>"
+    keys, valued = {str(k) for k in b}, {str(k) for k in b if _value(b[k])}
+    if not isinstance(a, dict) or set(a) - keys or valued - set(a):
+        return f"{at}: {a!r:.80}, sent keys {sorted(keys)}"
+    for k, v in b.items():
+        if k == "timestamp" and isinstance(v, float):  # rebased on the importer's clock
+            if not isinstance(a.get(k), float) or abs(a[k] - v) > 0.25:
+                return f"{at}.timestamp: {a.get(k)!r} for {v!r}"
+            continue
+        if why := _why(a.get(str(k)), v, f"{path}.{k}" if path else str(k)):
+            return why
+    return ""
+
+
+def _why_sequence(a: Any, b: tuple[Any, ...] | list[Any], at: str) -> str:
+    """:func:`_why` of a tuple or list: the same type and length, each item the same."""
+    if type(a) is not type(b) or len(a) != len(b):
+        return f"{at}: {type(a).__name__} {a!r:.60} for {type(b).__name__} {b!r:.60}"
+    for n, (x, y) in enumerate(zip(a, b, strict=True)):
+        if why := _why(x, y, f"{at}[{n}]"):
+            return why
     return ""
 
 

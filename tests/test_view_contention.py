@@ -74,10 +74,10 @@ async def view(**settings: Any) -> AsyncIterator[tuple[ViewServer, FakeNode, str
 def show(server: ViewServer, name: str, jpeg: bytes) -> None:
     """A new encoded frame of ``name``, as the encoder leaves it."""
     server.names.add(name)
-    src = server._source(name)
+    src = server.shown.source(name)
     src.n += 1
     src.raw = src.processed = jpeg
-    server._changed(src)
+    server.shown.changed(src)
 
 
 async def feed(server: ViewServer, name: str, size: int, fps: float) -> None:

@@ -150,7 +150,7 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
     from ..analysis.load import load_tables
     from ..analysis.phases import advise, snippet
     from ..analysis.schedulability import analyse
-    from ..analysis.timing import Budget, graph_timing, with_mode
+    from ..analysis.timing import graph_timing, with_mode
 
     graph = load(args.file, err)
     if graph is None:
@@ -164,24 +164,9 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
                 markup=False,
             )
             return EXIT_BAD_GRAPH
-    budgets: dict[str, Budget] = {}
-    if args.wcet_from:
-        got = _stats_budgets(args, err)
-        if got is None:
-            return EXIT_BAD_GRAPH
-        budgets = got
-    elif args.measure is not None:
-        if args.plot and _plot_unavailable():  # said before a measuring run, not after it
-            err.print(f"flowrt check: --plot: {_plot_unavailable()}", markup=False)
-            return EXIT_BAD_GRAPH
-        try:
-            measured = _measure(graph, args, err)
-        except Exception as e:  # a node that cannot start, a port taken: one line, exit 1
-            err.print(f"flowrt check: the measuring run failed: {e}", markup=False)
-            return EXIT_FAILED
-        if measured is None:  # the run said why
-            return EXIT_FAILED
-        budgets = measured
+    budgets = _budgets(graph, args, err)
+    if isinstance(budgets, int):  # an exit code: said why
+        return budgets
     timing = graph_timing(graph, budgets)
     mode = args.mode if args.mode is not None else graph.spec.initial_mode
     if mode:
@@ -213,6 +198,30 @@ def _check_graph(args: argparse.Namespace, err: Console) -> int:
         if not args.json:
             stdout_console().print(f"load per tick plotted to {args.plot}")
     return EXIT_OK if verdict.schedulable else EXIT_FAILED
+
+
+def _budgets(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, Any] | int:
+    """The execution budgets the analysis uses: declared (none here), from a statistics file
+    (--wcet-from) or from a measuring run (--measure); an exit code when they cannot be had."""
+    budgets: dict[str, Any] = {}
+    if args.wcet_from:
+        got = _stats_budgets(args, err)
+        if got is None:
+            return EXIT_BAD_GRAPH
+        budgets = got
+    elif args.measure is not None:
+        if args.plot and _plot_unavailable():  # said before a measuring run, not after it
+            err.print(f"flowrt check: --plot: {_plot_unavailable()}", markup=False)
+            return EXIT_BAD_GRAPH
+        try:
+            measured = _measure(graph, args, err)
+        except Exception as e:  # a node that cannot start, a port taken: one line, exit 1
+            err.print(f"flowrt check: the measuring run failed: {e}", markup=False)
+            return EXIT_FAILED
+        if measured is None:  # the run said why
+            return EXIT_FAILED
+        budgets = measured
+    return budgets
 
 
 def _run_option_given(args: argparse.Namespace) -> str | None:

@@ -205,59 +205,82 @@ def _ctl(client: Any, args: argparse.Namespace) -> int:
     if args.json and cmd in _QUERIES:
         emit(client.get(_QUERIES[cmd](args)))
         return 0
-    if cmd == "stats":
-        data = client.get("/stats")
-        from ..monitors.status import render
-        from ..stats import RuntimeStats
+    command = _COMMANDS.get(cmd)
+    return 0 if command is None else command(client, args)
 
-        console = stdout_console()
-        console.print(render(RuntimeStats.model_validate(data), width=console.width))
-        console.print(client.get("/qos")["summary"], markup=False, highlight=False)
-    elif cmd == "timing":
-        body = {"node": args.node}
-        for key in ("period", "phase", "timer", "timer_phase", "deadline", "priority", "enabled"):
-            if getattr(args, key) is not None:
-                body[key] = getattr(args, key)
-        if args.force:
-            body["force"] = True
-        reply = client.post("/timing", body)
-        _say(args, reply, f"{reply['node']}: {reply['change']}")
-    elif cmd == "mode":
-        reply = client.post("/mode", {"mode": args.name, **({"force": True} if args.force else {})})
-        _say(args, reply, f"mode {reply['mode']}")
-    elif cmd == "modes":
-        reply = client.get("/modes")
-        for name in reply["modes"]:
-            print(f"{'*' if name == reply['current'] else ' '} {name}")
-        if not reply["modes"]:
-            print("(the graph defines no modes)")
-    elif cmd == "events":
-        events = client.get(f"/events?n={args.n}")
-        for e in events:
-            detail = {k: v for k, v in e.items() if k not in ("kind", "t", "node")}
-            print(f"{e['t']:9.3f}s {e['kind']} {e.get('node') or ''} {json.dumps(detail)}")
-        if not events:
-            print("none (no event since the start: misses, failures, restarts, changes)")
-    elif cmd == "qos":
-        print(client.get("/qos")["summary"])
-    elif cmd == "rtdb":
-        path = f"/rtdb/{args.name}?n={args.n}" if args.name else "/rtdb"
-        records = client.get(path)
-        for r in records:
-            flag = " STALE" if r["stale"] else ""
-            when = f"t={r['timestamp']:.3f}s age={r['age'] * 1000:.1f}ms{flag}"
-            print(f"{r['name']} #{r['seq']} {when}: {json.dumps(r['value'])}")
-        if not records:
-            print("none (no RTDB record yet)")  # an unknown NAME is an error (404)
-    elif cmd == "record":
-        return _record(client, args)
-    elif cmd in ("swap", "reload"):
-        slow = _client(args, timeout=60.0)
-        try:
-            return _swap(slow, args)
-        finally:
-            _close(slow)
+
+def _cmd_stats(client: Any, args: argparse.Namespace) -> int:
+    data = client.get("/stats")
+    from ..monitors.status import render
+    from ..stats import RuntimeStats
+
+    console = stdout_console()
+    console.print(render(RuntimeStats.model_validate(data), width=console.width))
+    console.print(client.get("/qos")["summary"], markup=False, highlight=False)
     return 0
+
+
+def _cmd_timing(client: Any, args: argparse.Namespace) -> int:
+    body = {"node": args.node}
+    for key in ("period", "phase", "timer", "timer_phase", "deadline", "priority", "enabled"):
+        if getattr(args, key) is not None:
+            body[key] = getattr(args, key)
+    if args.force:
+        body["force"] = True
+    reply = client.post("/timing", body)
+    _say(args, reply, f"{reply['node']}: {reply['change']}")
+    return 0
+
+
+def _cmd_mode(client: Any, args: argparse.Namespace) -> int:
+    reply = client.post("/mode", {"mode": args.name, **({"force": True} if args.force else {})})
+    _say(args, reply, f"mode {reply['mode']}")
+    return 0
+
+
+def _cmd_modes(client: Any, args: argparse.Namespace) -> int:
+    reply = client.get("/modes")
+    for name in reply["modes"]:
+        print(f"{'*' if name == reply['current'] else ' '} {name}")
+    if not reply["modes"]:
+        print("(the graph defines no modes)")
+    return 0
+
+
+def _cmd_events(client: Any, args: argparse.Namespace) -> int:
+    events = client.get(f"/events?n={args.n}")
+    for e in events:
+        detail = {k: v for k, v in e.items() if k not in ("kind", "t", "node")}
+        print(f"{e['t']:9.3f}s {e['kind']} {e.get('node') or ''} {json.dumps(detail)}")
+    if not events:
+        print("none (no event since the start: misses, failures, restarts, changes)")
+    return 0
+
+
+def _cmd_qos(client: Any, args: argparse.Namespace) -> int:
+    print(client.get("/qos")["summary"])
+    return 0
+
+
+def _cmd_rtdb(client: Any, args: argparse.Namespace) -> int:
+    path = f"/rtdb/{args.name}?n={args.n}" if args.name else "/rtdb"
+    records = client.get(path)
+    for r in records:
+        flag = " STALE" if r["stale"] else ""
+        when = f"t={r['timestamp']:.3f}s age={r['age'] * 1000:.1f}ms{flag}"
+        print(f"{r['name']} #{r['seq']} {when}: {json.dumps(r['value'])}")
+    if not records:
+        print("none (no RTDB record yet)")  # an unknown NAME is an error (404)
+    return 0
+
+
+def _cmd_swap(client: Any, args: argparse.Namespace) -> int:
+    """Swap or reload on a client of its own: setting up the new instance takes seconds."""
+    slow = _client(args, timeout=60.0)
+    try:
+        return _swap(slow, args)
+    finally:
+        _close(slow)
 
 
 def _swap(client: Any, args: argparse.Namespace) -> int:
@@ -327,3 +350,19 @@ def _record(client: Any, args: argparse.Namespace) -> int:
     if args.json:
         emit({"action": args.action, "nodes": said})
     return 0
+
+
+#: The commands, one handler each: ``flowrt ctl CMD`` calls ``_COMMANDS[CMD](client, args)``
+#: for its exit code (after the ``--json`` queries above, answered as they are).
+_COMMANDS: dict[str, Callable[[Any, argparse.Namespace], int]] = {
+    "stats": _cmd_stats,
+    "timing": _cmd_timing,
+    "mode": _cmd_mode,
+    "modes": _cmd_modes,
+    "events": _cmd_events,
+    "qos": _cmd_qos,
+    "rtdb": _cmd_rtdb,
+    "record": _record,
+    "swap": _cmd_swap,
+    "reload": _cmd_swap,
+}

@@ -57,7 +57,6 @@ def _not_mcap(path: Path) -> bool:
 
 def cmd_replay(args: argparse.Namespace) -> int:
     from ..graph._resolve import resolve
-    from ..recording.reader import scan_session
 
     if args.deterministic:
         from .deterministic import cmd_replay_deterministic
@@ -65,33 +64,10 @@ def cmd_replay(args: argparse.Namespace) -> int:
         return cmd_replay_deterministic(args)
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     console = stdout_console()
-    if args.inline:
-        err.print("flowrt replay: --inline goes with --deterministic", markup=False)
+    checked = _recording(args, err)
+    if checked is None:
         return EXIT_BAD_GRAPH
-    if args.rate <= 0:
-        err.print("flowrt replay: --rate must be positive", markup=False)
-        return EXIT_BAD_GRAPH
-    files = _files(args.path, err, "replay")
-    if files is None:
-        return EXIT_BAD_GRAPH
-    for f in files:
-        if _not_mcap(f):
-            err.print(f"flowrt replay: {f}: not an MCAP file", markup=False)
-            return EXIT_BAD_GRAPH
-    path = Path(args.path)
-    info = scan_session(path)
-    if not info.messages:
-        why = info.damage or "no messages"
-        err.print(f"flowrt replay: {path}: nothing to replay ({why})", markup=False)
-        return EXIT_BAD_GRAPH
-    if not info.closed_cleanly:
-        _say_damage(info, path, err)
-    if args.start >= info.duration and info.duration > 0:
-        err.print(
-            f"flowrt replay: --start {args.start:g}s is past the end ({info.duration:.1f} s)",
-            markup=False,
-        )
-        return EXIT_BAD_GRAPH
+    files, path, info = checked
     streams = _chosen_streams(info, args.topics, err)
     if streams is None:
         return EXIT_BAD_GRAPH
@@ -137,6 +113,41 @@ def cmd_replay(args: argparse.Namespace) -> int:
     if not info.closed_cleanly or left_out:  # not everything asked for was replayed
         return max(code, EXIT_FAILED)
     return code
+
+
+def _recording(args: argparse.Namespace, err: Console) -> tuple[list[Path], Path, Any] | None:
+    """The recording's files, its path and what a scan found, once the options and the files
+    are fit to replay (None: refused, said why in one line)."""
+    from ..recording.reader import scan_session
+
+    if args.inline:
+        err.print("flowrt replay: --inline goes with --deterministic", markup=False)
+        return None
+    if args.rate <= 0:
+        err.print("flowrt replay: --rate must be positive", markup=False)
+        return None
+    files = _files(args.path, err, "replay")
+    if files is None:
+        return None
+    for f in files:
+        if _not_mcap(f):
+            err.print(f"flowrt replay: {f}: not an MCAP file", markup=False)
+            return None
+    path = Path(args.path)
+    info = scan_session(path)
+    if not info.messages:
+        why = info.damage or "no messages"
+        err.print(f"flowrt replay: {path}: nothing to replay ({why})", markup=False)
+        return None
+    if not info.closed_cleanly:
+        _say_damage(info, path, err)
+    if args.start >= info.duration and info.duration > 0:
+        err.print(
+            f"flowrt replay: --start {args.start:g}s is past the end ({info.duration:.1f} s)",
+            markup=False,
+        )
+        return None
+    return files, path, info
 
 
 def _replay_spec(

@@ -131,7 +131,6 @@ def run_graph(
     ``started`` is called with the run's console once every node is set up and none has
     failed: what a command says only when it is true (``recording ... into ...``).
     """
-    from ..monitors.status import render
     from ..runtime._runtime import Runtime
 
     console = stdout_console()
@@ -158,20 +157,9 @@ def run_graph(
         stop_on_failure=not args.keep_going,
         kinds=kinds,
     )
-    server = None
-    if control is not None:
-        from ..control.server import ControlServer
-
-        server = ControlServer(rt, control)
-        try:
-            server.bind()  # held from now on: nothing can take it before the runtime starts
-        except OSError as e:
-            err.print(
-                f"{prog}: control endpoint: {e.strerror or e} (choose another with --control PORT)",
-                markup=False,
-                soft_wrap=True,
-            )
-            return EXIT_FAILED
+    bound, server = _bind_control(rt, control, err, prog)
+    if not bound:
+        return EXIT_FAILED
     if _add_monitors(rt, args, console, err, prog) is not None:
         return EXIT_FAILED
 
@@ -204,6 +192,44 @@ def run_graph(
         return stop_signals.exit_code
     if settle is not None:
         settle()
+    return _ended(rt, args, console, err, prog, after=after, result=result, measuring=measuring)
+
+
+def _bind_control(rt: Any, control: Any, err: Console, prog: str) -> tuple[bool, Any]:
+    """The control endpoint's server, its port bound now (held from then on: nothing can take
+    it before the runtime starts); (False, None) when it cannot be bound, said in one line."""
+    if control is None:
+        return True, None
+    from ..control.server import ControlServer
+
+    server = ControlServer(rt, control)
+    try:
+        server.bind()
+    except OSError as e:
+        err.print(
+            f"{prog}: control endpoint: {e.strerror or e} (choose another with --control PORT)",
+            markup=False,
+            soft_wrap=True,
+        )
+        return False, None
+    return True, server
+
+
+def _ended(
+    rt: Any,
+    args: argparse.Namespace,
+    console: Console,
+    err: Console,
+    prog: str,
+    *,
+    after: Callable[[Any], int] | None,
+    result: dict[str, Any] | None,
+    measuring: bool,
+) -> int:
+    """After the run: the final table, --stats-json, the verdict, ``after``'s code and the
+    --json document; the worst exit code of them."""
+    from ..monitors.status import render
+
     stats = rt.stats()
     with contextlib.suppress(OSError):  # a terminal that hung up (SIGHUP) cannot show it
         if not measuring:
@@ -211,7 +237,7 @@ def run_graph(
     code = _write_stats(args.stats_json, stats, console, err, prog) if args.stats_json else 0
     code = max(code, _verdict(rt.failures(), err, prog))
     code = code if after is None else max(code, after(rt))
-    if as_json:
+    if getattr(args, "json", False):
         from .json_output import emit
 
         emit({**(result or {}), "exit_code": code, "stats": stats.model_dump(mode="json")})

@@ -28,7 +28,6 @@ from .spec import (
     GraphSpec,
     InputSpec,
     InputTrigger,
-    LoopTrigger,
     NodeSpec,
     TimerTrigger,
     Trigger,
@@ -410,59 +409,67 @@ def _resolve_triggers(r: _Resolution) -> None:
                 continue
         triggers[name] = trig
         _check_trigger(name, ns, trig, spec, classes, at, names)
-        if cls is not None and cls.inline_only and ns.placement.value != "inline":
-            at(
-                ("nodes", name, "placement"),
-                f"{ns.kind} runs on the event loop (it serves or owns loop resources): "
-                "placement must be inline",
-            )
-        if ns.cpus is not None and ns.placement.value != "inline":
-            available = _available_cpus()
-            missing = sorted(set(ns.cpus) - available)
-            if missing:
-                left = sorted(set(ns.cpus) & available)
-                then = (
-                    f"its worker will run on CPU {', '.join(map(str, left))} only"
-                    if left
-                    else "its worker will not be pinned"
-                )
-                at(
-                    ("nodes", name, "cpus"),
-                    f"CPU {', '.join(map(str, missing))} not on this machine (it has "
-                    f"{', '.join(map(str, sorted(available)))}): {then}",
-                    Severity.warning,
-                )
-        if ns.timing == "precise" and not isinstance(trig, TimerTrigger):
-            by = (
-                "its inputs"
-                if isinstance(trig, InputTrigger)
-                else "frames"
-                if isinstance(trig, FrameTrigger)
-                else "loop"
+        _check_placement(name, ns, trig, cls, at)
+
+
+def _check_placement(
+    name: str, ns: NodeSpec, trig: Trigger, cls: type[Node] | None, at: Any
+) -> None:
+    """Where the node runs against what it asks of it: inline-only kinds, CPUs this machine
+    has, ``timing: precise`` (a timer, ideally inline), worker-only keys on inline nodes."""
+    if cls is not None and cls.inline_only and ns.placement.value != "inline":
+        at(
+            ("nodes", name, "placement"),
+            f"{ns.kind} runs on the event loop (it serves or owns loop resources): "
+            "placement must be inline",
+        )
+    if ns.cpus is not None and ns.placement.value != "inline":
+        available = _available_cpus()
+        missing = sorted(set(ns.cpus) - available)
+        if missing:
+            left = sorted(set(ns.cpus) & available)
+            then = (
+                f"its worker will run on CPU {', '.join(map(str, left))} only"
+                if left
+                else "its worker will not be pinned"
             )
             at(
-                ("nodes", name, "timing"),
-                "timing: precise applies to a timer-triggered node (trigger: {timer: ...}); "
-                f"this one is triggered by {by}",
-            )
-        elif ns.timing == "precise" and ns.placement.value != "inline":
-            at(
-                ("nodes", name, "timing"),
-                f"timing: precise on a node at placement {ns.placement.value}: its release "
-                "thread hands each release to the loop, which sends it to the worker "
-                "(inline nodes are called in the thread itself)",
+                ("nodes", name, "cpus"),
+                f"CPU {', '.join(map(str, missing))} not on this machine (it has "
+                f"{', '.join(map(str, sorted(available)))}): {then}",
                 Severity.warning,
             )
-        if ns.placement.value == "inline":
-            for key in ("cpus", "spin"):
-                if key == "spin" and ns.timing == "precise":
-                    continue  # the release thread's spin (flowrt/kernel/precise.py)
-                if getattr(ns, key) is not None:
-                    at(
-                        ("nodes", name, key),
-                        f"{key} applies to a node in a worker process (placement: process or "
-                        "pool); an inline node runs in the loop process",
-                    )
+    if ns.timing == "precise" and not isinstance(trig, TimerTrigger):
+        by = (
+            "its inputs"
+            if isinstance(trig, InputTrigger)
+            else "frames"
+            if isinstance(trig, FrameTrigger)
+            else "loop"
+        )
+        at(
+            ("nodes", name, "timing"),
+            "timing: precise applies to a timer-triggered node (trigger: {timer: ...}); "
+            f"this one is triggered by {by}",
+        )
+    elif ns.timing == "precise" and ns.placement.value != "inline":
+        at(
+            ("nodes", name, "timing"),
+            f"timing: precise on a node at placement {ns.placement.value}: its release "
+            "thread hands each release to the loop, which sends it to the worker "
+            "(inline nodes are called in the thread itself)",
+            Severity.warning,
+        )
+    if ns.placement.value == "inline":
+        for key in ("cpus", "spin"):
+            if key == "spin" and ns.timing == "precise":
+                continue  # the release thread's spin (flowrt/kernel/precise.py)
+            if getattr(ns, key) is not None:
+                at(
+                    ("nodes", name, key),
+                    f"{key} applies to a node in a worker process (placement: process or "
+                    "pool); an inline node runs in the loop process",
+                )
 
 
 def _check_exports(r: _Resolution) -> None:
@@ -598,41 +605,57 @@ def _check_trigger(
 ) -> None:
     path = ("nodes", name, "trigger")
     if isinstance(trig, FrameTrigger):
-        src, _, port = trig.frame.partition(".")
-        if src not in names:
-            at((*path, "frame"), f"unknown frame source {src!r}" + did_you_mean(src, names))
-        elif src in classes:
-            frame_ports = classes[src].frame_ports()
-            kind = spec.nodes[src].kind
-            if not frame_ports:
-                at((*path, "frame"), f"frame trigger on {src!r} ({kind}), which produces no frames")
-            elif port and port not in frame_ports:
-                hint = did_you_mean(port, frame_ports)
-                at((*path, "frame"), f"{src!r} has no frame output {port!r}" + hint)
-        if trig.period <= 0:
-            at((*path, "period"), f"period must be a positive number of frames, got {trig.period}")
-        if trig.phase < 0:
-            at((*path, "phase"), f"phase must be >= 0, got {trig.phase}")
-        elif trig.period > 0 and trig.phase >= trig.period:
-            at((*path, "phase"), f"phase {trig.phase} must be less than period {trig.period}")
+        _check_frame_trigger(path, trig, spec, classes, at, names)
     elif isinstance(trig, TimerTrigger):
-        if trig.timer <= 0:
-            at((*path, "timer"), f"timer period must be positive, got {trig.timer:g} ms")
-        if trig.phase < 0:
-            at((*path, "phase"), f"phase must be >= 0, got {trig.phase:g} ms")
-        elif trig.timer > 0 and trig.phase >= trig.timer:
-            at(
-                (*path, "phase"),
-                f"phase {trig.phase:g} ms must be less than the period {trig.timer:g} ms",
-            )
+        _check_timer_trigger(path, trig, at)
     elif isinstance(trig, InputTrigger):
         wanted = [trig.input] if isinstance(trig.input, str) else trig.input
         for port in wanted:
             if port != "any" and port not in ns.inputs:
                 hint = did_you_mean(port, ns.inputs)
                 at((*path, "input"), f"trigger on input {port!r}, which is not connected" + hint)
-    elif isinstance(trig, LoopTrigger):
-        pass
+    # a LoopTrigger has nothing to check
+
+
+def _check_frame_trigger(
+    path: tuple[str, ...],
+    trig: FrameTrigger,
+    spec: GraphSpec,
+    classes: Mapping[str, type[Node]],
+    at: Any,
+    names: Collection[str],
+) -> None:
+    """A frame source that exists and makes frames, a period and a phase within it."""
+    src, _, port = trig.frame.partition(".")
+    if src not in names:
+        at((*path, "frame"), f"unknown frame source {src!r}" + did_you_mean(src, names))
+    elif src in classes:
+        frame_ports = classes[src].frame_ports()
+        kind = spec.nodes[src].kind
+        if not frame_ports:
+            at((*path, "frame"), f"frame trigger on {src!r} ({kind}), which produces no frames")
+        elif port and port not in frame_ports:
+            hint = did_you_mean(port, frame_ports)
+            at((*path, "frame"), f"{src!r} has no frame output {port!r}" + hint)
+    if trig.period <= 0:
+        at((*path, "period"), f"period must be a positive number of frames, got {trig.period}")
+    if trig.phase < 0:
+        at((*path, "phase"), f"phase must be >= 0, got {trig.phase}")
+    elif trig.period > 0 and trig.phase >= trig.period:
+        at((*path, "phase"), f"phase {trig.phase} must be less than period {trig.period}")
+
+
+def _check_timer_trigger(path: tuple[str, ...], trig: TimerTrigger, at: Any) -> None:
+    """A positive period, and a phase within it."""
+    if trig.timer <= 0:
+        at((*path, "timer"), f"timer period must be positive, got {trig.timer:g} ms")
+    if trig.phase < 0:
+        at((*path, "phase"), f"phase must be >= 0, got {trig.phase:g} ms")
+    elif trig.timer > 0 and trig.phase >= trig.timer:
+        at(
+            (*path, "phase"),
+            f"phase {trig.phase:g} ms must be less than the period {trig.timer:g} ms",
+        )
 
 
 def _available_cpus() -> set[int]:

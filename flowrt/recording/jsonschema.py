@@ -63,19 +63,9 @@ def _field(s: Any, defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any
         if name in seen or name not in defs:  # recursive, or unknown: an empty object
             return {"type": "object", "properties": {}, **keep}
         return {**_field(defs[name], defs, (*seen, name)), **keep}
-    for key in ("anyOf", "oneOf", "allOf"):
-        branches = s.get(key)
-        if isinstance(branches, list) and branches:
-            if key == "oneOf" and all(isinstance(b, dict) and "const" in b for b in branches):
-                return {**_enum(b["const"] for b in branches), **keep}
-            real = [b for b in branches if not (isinstance(b, dict) and b.get("type") == "null")]
-            shapes = [_field(b, defs, seen) for b in real] or [{"type": "string"}]
-            types = {b.get("type") for b in shapes}
-            if len(types) > 1 and types <= {"number", "integer"}:
-                return {"type": "number", **keep}
-            if len(types) > 1:  # int | str ...: written as text, the one type all can be
-                return {"type": "string", **keep}
-            return {**shapes[0], **keep}
+    union = _union(s, defs, seen)
+    if union is not None:
+        return {**union, **keep}
     t = s.get("type")
     if isinstance(t, list):  # ["number", "null"]
         t = next((x for x in t if x != "null"), None)
@@ -104,6 +94,26 @@ def _field(s: Any, defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any
             **keep,
         }
     return {"type": "string", **keep}  # Any: no type the apps could read
+
+
+def _union(s: dict[str, Any], defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any] | None:
+    """The one shape of an ``anyOf``/``oneOf``/``allOf`` (None: ``s`` is not one): an enum of
+    constants, the branch itself when it is the only one besides null, else the one type all
+    branches can be written as (numbers, or text)."""
+    for key in ("anyOf", "oneOf", "allOf"):
+        branches = s.get(key)
+        if isinstance(branches, list) and branches:
+            if key == "oneOf" and all(isinstance(b, dict) and "const" in b for b in branches):
+                return _enum(b["const"] for b in branches)
+            real = [b for b in branches if not (isinstance(b, dict) and b.get("type") == "null")]
+            shapes = [_field(b, defs, seen) for b in real] or [{"type": "string"}]
+            types = {b.get("type") for b in shapes}
+            if len(types) > 1 and types <= {"number", "integer"}:
+                return {"type": "number"}
+            if len(types) > 1:  # int | str ...: written as text, the one type all can be
+                return {"type": "string"}
+            return shapes[0]
+    return None
 
 
 def _tuple(items: list[dict[str, Any]]) -> dict[str, Any]:

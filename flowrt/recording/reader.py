@@ -289,37 +289,26 @@ def scan(path: str | Path) -> FileInfo:
 
 def _scan(path: str | Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
     """:func:`scan`, and each channel's times and bytes with its schema name (for sessions)."""
-    from mcap.records import (
-        Attachment,
-        Channel,
-        Chunk,
-        Message,
-        MessageIndex,
-        Metadata,
-        Schema,
-    )
-
     p = Path(path)
     if is_db3(p):
         return _scan_db3(p)
     rec = Recording(p)
+    chans, chunks = _read_channels(p, rec)
+    return _file_info(p, rec, chans, chunks)
+
+
+def _read_channels(p: Path, rec: Recording) -> tuple[dict[int, _Chan], int]:
+    """Every channel's message times and bytes, and the chunks read (damage noted in ``rec``):
+    from the message indexes where the file has them, else from the chunks themselves."""
+    from mcap.records import Attachment, Chunk, MessageIndex, Metadata
+
     chans: dict[int, _Chan] = {}
     chunks = 0
     pending: Chunk | None = None  # a chunk whose message indexes have not come (yet)
     indexed = False
     sizes: dict[int, int] = {}
 
-    def take(r: Any, size: int | None = None) -> None:
-        if isinstance(r, Schema):
-            rec.schemas[r.id] = r
-        elif isinstance(r, Channel):
-            rec.channels[r.id] = r
-            chans.setdefault(r.id, _Chan(r.topic, r.schema_id, r.message_encoding, r.metadata))
-        elif isinstance(r, Message):
-            c = chans.get(r.channel_id)
-            if c is not None:
-                c.times.append(r.log_time)
-                c.bytes += len(r.data) if size is None else size
+    take = _Tally(rec, chans).take
 
     def open_pending() -> None:
         nonlocal pending
@@ -361,6 +350,37 @@ def _scan(path: str | Path) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
             take(r)
     open_pending()
 
+    return chans, chunks
+
+
+class _Tally:
+    """A scan's schemas, channels and per-channel message times and bytes, record by record
+    (the classes imported once: ``take`` runs for every message of an unindexed file)."""
+
+    def __init__(self, rec: Recording, chans: dict[int, _Chan]) -> None:
+        from mcap.records import Channel, Message, Schema
+
+        self.rec, self.chans = rec, chans
+        self.kinds = Schema, Channel, Message
+
+    def take(self, r: Any, size: int | None = None) -> None:
+        schema_cls, channel_cls, message_cls = self.kinds
+        if isinstance(r, schema_cls):
+            self.rec.schemas[r.id] = r
+        elif isinstance(r, channel_cls):
+            self.rec.channels[r.id] = r
+            self.chans.setdefault(r.id, _Chan(r.topic, r.schema_id, r.message_encoding, r.metadata))
+        elif isinstance(r, message_cls):
+            c = self.chans.get(r.channel_id)
+            if c is not None:
+                c.times.append(r.log_time)
+                c.bytes += len(r.data) if size is None else size
+
+
+def _file_info(
+    p: Path, rec: Recording, chans: dict[int, _Chan], chunks: int
+) -> tuple[FileInfo, list[tuple[_Chan, str]]]:
+    """What was read, as the file's description: streams, span, attachments, damage."""
     streams = []
     starts, ends = [], []
     named: list[tuple[_Chan, str]] = []

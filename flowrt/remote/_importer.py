@@ -153,40 +153,7 @@ class ImportLink:
 
     def on_sample(self, sample: Any) -> None:
         try:
-            raw_att = sample.attachment
-            if self.plain is not None:  # a plain program's payload: the header is made here
-                # its sequence number is taken once the payload is accepted (below): a refused
-                # sample is counted once, as refused, never again as a gap
-                header = self.plain.header(self.key, self.plain_seq)
-            elif raw_att is None:
-                raise Refused(
-                    "undecodable",
-                    "no flowrt header: from a plain program? declare the import's format "
-                    "(json, bytes, jpeg, png, raw): docs/zenoh.md",
-                )
-            elif len(raw_att) > MAX_HEADER_BYTES:
-                raise Refused("too large", f"a header of {len(raw_att)} bytes")
-            else:
-                header = Header.decode(raw_att.to_bytes())
-            zbytes = sample.payload
-            if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
-                raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
-            if header.kind == "frame":  # checked before the copy (see frame_decoder)
-                pixels = frame_decoder(header.frame, len(zbytes), self.max_pixels)
-                value: Any = self._frame(header.frame, pixels(zbytes.to_bytes()))
-            elif header.kind == "bytes":
-                value = zbytes.to_bytes()
-            elif header.kind == "protobuf":  # the recording's protobuf message (audio)
-                schema = schema_of_sample(sample)
-                if schema != AUDIO_SCHEMA:
-                    raise Refused("undecodable", f"a protobuf message of schema {schema!r}")
-                value = decode_audio(
-                    zbytes.to_bytes(), header.seq, 0.0
-                )  # its time: set on delivery
-            else:  # the recording's JSON message; typed by the schema its encoding names
-                value = decode_json(
-                    zbytes.to_bytes(), "" if self.plain else schema_of_sample(sample)
-                )
+            header, value = self._decode(sample)
         except Exception as e:
             reason = e.reason if isinstance(e, Refused) else "undecodable"
             with self.lock:
@@ -226,6 +193,41 @@ class ImportLink:
             self.scheduled = True
         with contextlib.suppress(RuntimeError):  # the loop is closing
             self.bridge.host.loop.call_soon_threadsafe(self.deliver)
+
+    def _decode(self, sample: Any) -> tuple[Header, Any]:
+        """The sample's header and value, checked before anything is copied; raises (a
+        :class:`Refused` with its reason, or any decoder's error: undecodable)."""
+        raw_att = sample.attachment
+        if self.plain is not None:  # a plain program's payload: the header is made here
+            # its sequence number is taken once the payload is accepted (below): a refused
+            # sample is counted once, as refused, never again as a gap
+            header = self.plain.header(self.key, self.plain_seq)
+        elif raw_att is None:
+            raise Refused(
+                "undecodable",
+                "no flowrt header: from a plain program? declare the import's format "
+                "(json, bytes, jpeg, png, raw): docs/zenoh.md",
+            )
+        elif len(raw_att) > MAX_HEADER_BYTES:
+            raise Refused("too large", f"a header of {len(raw_att)} bytes")
+        else:
+            header = Header.decode(raw_att.to_bytes())
+        zbytes = sample.payload
+        if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
+            raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
+        if header.kind == "frame":  # checked before the copy (see frame_decoder)
+            pixels = frame_decoder(header.frame, len(zbytes), self.max_pixels)
+            value: Any = self._frame(header.frame, pixels(zbytes.to_bytes()))
+        elif header.kind == "bytes":
+            value = zbytes.to_bytes()
+        elif header.kind == "protobuf":  # the recording's protobuf message (audio)
+            schema = schema_of_sample(sample)
+            if schema != AUDIO_SCHEMA:
+                raise Refused("undecodable", f"a protobuf message of schema {schema!r}")
+            value = decode_audio(zbytes.to_bytes(), header.seq, 0.0)  # its time: set on delivery
+        else:  # the recording's JSON message; typed by the schema its encoding names
+            value = decode_json(zbytes.to_bytes(), "" if self.plain else schema_of_sample(sample))
+        return header, value
 
     def _warn(self, reason: str, text: str) -> None:
         """One warning per reason every WARN_EVERY seconds: a flood is counted, not logged."""

@@ -105,12 +105,10 @@ from __future__ import annotations
 import asyncio
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Any
 
 from flowrt import HealthAlert, Input, Node, Output, TimerTrigger
-from flowrt.analysis.can_frames import fd_payload_length
 
 from .bus import SERIAL_INTERFACES, CanLink, TraceLog, TraceReplay, one_line
 from .dbc import (
@@ -118,13 +116,14 @@ from .dbc import (
     SignalDecoder,
     acceptance_filters,
     checksum,
-    encode_signals,
     load_dbc,
     message_brs,
     message_is_fd,
 )
 from .params import CanParams, MessageParams
 from .signals import SignalSource, Wave
+from .state import MessageState as _Msg
+from .transmit import encode, take
 from .values import CanBusStatus, CanBusSummary, CanFrame, CanMessage, MessageStatus, summarise
 
 __all__ = [
@@ -160,79 +159,6 @@ def _gcd_ms(values: list[float]) -> float:
             else f
         )
     return max(float(g), 1.0) if g else 100.0
-
-
-# --- per-message state -----------------------------------------------------------------------
-
-
-@dataclass
-class _Msg:
-    dbc: Any  # cantools Message
-    cycle: float | None  # ms
-    opts: MessageParams
-    timeout: float | None = None  # s
-    fd: bool = False
-    brs: bool = False
-    # receive
-    received: int = 0
-    last_rx: float | None = None
-    last: CanMessage | None = None
-    timed_out: bool = False
-    fail: int = 0
-    last_counter: int | None = None
-    bad_counter: int = 0
-    bad_checksum: int = 0
-    bad_length: int = 0
-    timeouts: int = 0
-    # transmit
-    tx: bool = False
-    value: dict[str, Any] = field(default_factory=dict)
-    have_value: bool = False
-    fresh: bool = False
-    due: float = 0.0  # seconds since start
-    counter: int = 0
-    sent: int = 0
-    late: int = 0
-    bad_inputs: int = 0
-    encode_errors: int = 0
-    window: int = 0  # frames since the last status
-    # The frame's bytes for ``value`` when it has no counter or checksum (which change at
-    # every send): a periodic message whose value did not change is not encoded again, so
-    # the sends of a tick follow its release closely (cantools' strict encode is the
-    # slowest step between the release and ``bus.send``).
-    encoded: bytes | None = None
-    signal_names: frozenset[str] = frozenset()
-    # Set when cantools refuses to decode the message whole (overlapping signals, loaded
-    # non-strictly): decoded signal by signal from then on (can_dbc.SignalDecoder).
-    by_signal: SignalDecoder | None = None
-
-    @property
-    def checksum_byte(self) -> int | None:
-        if self.opts.checksum is None:
-            return None
-        return int(self.dbc.get_signal_by_name(self.opts.checksum).start // 8)
-
-    def integrity(self, signals: Mapping[str, Any], data: bytes) -> str:
-        """Check the counter and checksum of a received frame: the reason it is bad, or ""."""
-        reason = ""
-        opts = self.opts
-        if opts.counter is not None and opts.counter in signals:
-            sig = self.dbc.get_signal_by_name(opts.counter)
-            raw = round((signals[opts.counter] - sig.offset) / sig.scale)
-            if self.last_counter is not None and raw != (self.last_counter + 1) % (1 << sig.length):
-                self.bad_counter += 1
-                reason = "counter"
-            self.last_counter = raw
-        idx = self.checksum_byte
-        if idx is not None and checksum(opts.checksum_kind, data, idx) != data[idx]:
-            self.bad_checksum += 1
-            reason = "checksum"
-        return reason
-
-    def fits(self, data: bytes) -> bool:
-        """The DBC's length, or (FD) that length padded to the next FD length."""
-        n = int(self.dbc.length)
-        return len(data) == n or (self.fd and n <= 64 and len(data) == fd_payload_length(n))
 
 
 # --- the node ---------------------------------------------------------------------------------
@@ -526,65 +452,20 @@ class Can(Node):
     def _take(self, st: _Msg, value: Any) -> None:
         """Keep an input value for sending; a value that does not fit the message is counted
         (``bad_inputs``) and logged, not raised: one bad producer must not stop the bus."""
-        signals = value.signals if isinstance(value, CanMessage) else value
-        problem = ""
-        if not isinstance(signals, Mapping):
-            problem = f"expected a mapping of signal values, got {type(value).__name__}"
-        else:
-            if not st.signal_names:
-                st.signal_names = frozenset(s.name for s in st.dbc.signals)
-            unknown = sorted(set(signals) - st.signal_names)
-            if unknown:
-                problem = f"no signal {', '.join(map(repr, unknown))}"
-        if problem:
-            st.bad_inputs += 1
-            if st.bad_inputs == 1 or st.bad_inputs % 1000 == 0:
-                self.ctx.log.warning(
-                    "%s: input %s (%d so far): %s",
-                    self.ctx.name,
-                    st.dbc.name,
-                    st.bad_inputs,
-                    problem,
-                )
-            return
-        if not st.have_value:
-            st.value = {s.name: (s.initial if s.initial is not None else 0) for s in st.dbc.signals}
-        st.value.update(signals)
-        st.encoded = None
-        st.have_value = True
-        st.fresh = True
+        problem = take(st, value)
+        if problem and (st.bad_inputs == 1 or st.bad_inputs % 1000 == 0):
+            self.ctx.log.warning(
+                "%s: input %s (%d so far): %s", self.ctx.name, st.dbc.name, st.bad_inputs, problem
+            )
 
     def _send(self, st: _Msg) -> None:
         import can
 
-        if st.encoded is not None:
-            self._put(st, can.Message(**self._frame_fields(st), data=st.encoded))
-            return
-        opts = st.opts
-        values = st.value
-        if opts.counter is not None:
-            sig = st.dbc.get_signal_by_name(opts.counter)
-            values = {**values, opts.counter: st.counter * sig.scale + sig.offset}
-            st.counter = (st.counter + 1) % (1 << sig.length)
-        if opts.checksum is not None:
-            values = {**values, opts.checksum: 0}
         try:
-            if st.fd and not self.params.fd:
-                raise EncodeProblem(
-                    "a CAN FD message on a node without fd: true",
-                    f"{st.dbc.length}-byte CAN FD message; set fd: true to send it",
-                )
-            data = bytearray(encode_signals(st.dbc, values))
+            data = encode(st, self.params.fd)
         except EncodeProblem as e:
             self._encode_failed(st, e)
             return
-        idx = st.checksum_byte
-        if idx is not None:
-            data[idx] = checksum(opts.checksum_kind, bytes(data), idx)
-        if st.fd:
-            data += bytes(fd_payload_length(len(data)) - len(data))
-        if opts.counter is None and opts.checksum is None:
-            st.encoded = bytes(data)
         self._put(st, can.Message(**self._frame_fields(st), data=data))
 
     def _frame_fields(self, st: _Msg) -> dict[str, Any]:

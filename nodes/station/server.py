@@ -17,7 +17,8 @@ source at a time, encoded here in a thread), ``sources`` (the inputs that have s
 ``stats`` (an answer) and ``reply`` (the answer to a request with an ``id``); this process
 sends ``ready``, ``want`` (a frame of a source newer than the one it has), ``done`` (the
 node may release the frame it lent), ``stats`` (a request) and ``record`` (the record
-panel's start or stop, with an ``id``).
+panel's start or stop, with an ``id``). The frames as shown (encoded once, shared by every
+client) are kept by :mod:`.shown`.
 
 The operator's station lives here too (:mod:`.operator_station`): the record panel, the
 review of recorded sessions, the health over time and the robots of a base station.
@@ -29,13 +30,10 @@ import asyncio
 import contextlib
 import hmac
 import json
-import pickle
 import secrets
 import signal
 import socket
-import struct
 import time
-from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import urlsplit
 
@@ -54,7 +52,7 @@ from flowrt.control.serving import (
 from flowrt.refusals import finite_number
 
 from ..display_streams import MAX_BEHIND, MAX_PER_PEER, StreamSlots
-from .render import Mark, render
+from .shown import ShownFrames
 from .station import Calls, Station
 
 STATS_MAX_AGE = 0.2  # seconds /stats.json is served from this process's cache
@@ -79,23 +77,6 @@ def serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any])
         asyncio.run(ViewServer(settings).run(sock, channel))
 
 
-@dataclass
-class _Shown:
-    """One source as this process knows it: its newest encoded frame, shared by all."""
-
-    name: str
-    n: int = 0  # the node's count of the frame held here (0: none yet)
-    header: dict[str, Any] = field(default_factory=dict)
-    raw: bytes = b""
-    processed: bytes = b""
-    message: bytes = b""  # the websocket message, built once
-    failed: str = ""  # why frame n could not be shown (empty: it could)
-    changed: asyncio.Event = field(default_factory=asyncio.Event)
-    pending: tuple[dict[str, Any], bytes] | None = None  # pixels waiting for the encoder
-    encoding: bool = False
-    encodes: int = 0
-
-
 class _Client:
     """A websocket client: what it was last sent per source and whether it acked it."""
 
@@ -116,7 +97,6 @@ class ViewServer:
         self.page: bytes = settings.get("page", b"")
         self.source_wait = float(settings.get("source_wait", SOURCE_WAIT))
         self.header_timeout = float(settings.get("header_timeout", HEADER_TIMEOUT))
-        self.sources: dict[str, _Shown] = {}
         self.names: set[str] = set()  # inputs that have sent frames, as the node says
         self.clients: set[_Client] = set()
         max_streams = int(settings.get("max_streams", max(1, self.max_clients // 2)))
@@ -129,7 +109,7 @@ class ViewServer:
         self.refused_messages = 0  # WebSocket messages refused: not JSON, too deep, bad values
         self.sessions: dict[str, None] = {}  # secrets of the pages served (oldest first)
         self.any_change = asyncio.Event()
-        self._asked: dict[str, int] = {}  # source -> the n a ``want`` was sent after
+        self.shown = ShownFrames(self._send, self.any_change)
         self._writer: asyncio.StreamWriter | None = None
         self._stats: tuple[float, bytes] | None = None
         self._stats_wait: asyncio.Future[bytes] | None = None
@@ -203,7 +183,7 @@ class ViewServer:
                 header, body = await unpack(reader)
                 op = header.get("op")
                 if op == "frame":
-                    self._frame(header, body)
+                    self.shown.frame(header, body)
                 elif op == "sources":
                     self.names = set(header["names"])
                     self.any_change.set()
@@ -231,74 +211,6 @@ class ViewServer:
     def _send(self, header: dict[str, Any]) -> None:
         if self._writer is not None and not self._writer.is_closing():
             self._writer.write(pack(header))
-
-    def _source(self, name: str) -> _Shown:
-        src = self.sources.get(name)
-        if src is None:
-            src = self.sources[name] = _Shown(name)
-        return src
-
-    def _frame(self, header: dict[str, Any], body: bytes) -> None:
-        """Pixels from the node: encoded once (the newest, when frames come faster)."""
-        src = self._source(header["source"])
-        src.pending = (header, body)
-        if not src.encoding:
-            src.encoding = True
-            asyncio.get_running_loop().create_task(self._encode(src))
-
-    async def _encode(self, src: _Shown) -> None:
-        try:
-            while src.pending is not None:
-                header, pixels = src.pending
-                src.pending = None
-                try:
-                    raw, processed = await asyncio.to_thread(_render, header, pixels)
-                except Exception as e:
-                    self._send({"op": "done", "source": src.name})
-                    if not src.failed:
-                        print(f"display: cannot show {src.name} frames: {e}", flush=True)
-                    src.n, src.failed = int(header["n"]), str(e) or type(e).__name__
-                    self._changed(src)
-                    continue
-                shown = {k: v for k, v in header.items() if k not in ("op", "dtype", "quality")}
-                same = processed is raw
-                shown["raw"], shown["processed"] = len(raw), 0 if same else len(processed)
-                self._send({"op": "done", "source": src.name})
-                head = json.dumps(shown).encode()
-                src.n, src.header, src.failed = int(header["n"]), shown, ""
-                src.raw, src.processed = raw, processed
-                src.message = b"".join(
-                    (struct.pack(">I", len(head)), head, raw, b"" if same else processed)
-                )
-                src.encodes += 1
-                self._changed(src)
-        finally:
-            src.encoding = False
-
-    def _changed(self, src: _Shown) -> None:
-        self._asked.pop(src.name, None)
-        src.changed.set()
-        src.changed = asyncio.Event()
-        self.any_change.set()
-
-    def want(self, name: str, after: int) -> None:
-        """Ask the node for a frame of ``name`` newer than ``after`` (once per ``after``)."""
-        if self._asked.get(name) != after:
-            self._asked[name] = after
-            self._send({"op": "want", "source": name, "after": after})
-
-    async def newer(self, name: str, after: int, wait: float) -> _Shown | None:
-        """The source once it holds a frame newer than ``after`` (or a failure), else None."""
-        src = self._source(name)
-        end = time.monotonic() + wait
-        while src.n <= after:
-            self.want(name, after)
-            left = end - time.monotonic()
-            if left <= 0:
-                return None
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(src.changed.wait(), left)
-        return src
 
     async def _sweep(self) -> None:
         """Close connections that sent no complete request in time (slow or idle clients)."""
@@ -405,10 +317,10 @@ class ViewServer:
 
     async def _snapshot(self, request: web.Request) -> web.Response:
         name, kind = await self._requested(request)
-        held = self._source(name).n
-        src = await self.newer(name, held, SNAPSHOT_WAIT if held else FIRST_WAIT)
+        held = self.shown.source(name).n
+        src = await self.shown.newer(name, held, SNAPSHOT_WAIT if held else FIRST_WAIT)
         if src is None:
-            src = self._source(name)
+            src = self.shown.source(name)
             if not src.n:
                 raise web.HTTPServiceUnavailable(text=f"no frame of {name!r} could be encoded")
         if src.failed:
@@ -437,7 +349,7 @@ class ViewServer:
         try:
             await resp.prepare(request)
             while self.streams.check(client):
-                src = await self.newer(name, sent, STREAM_CHECK)
+                src = await self.shown.newer(name, sent, STREAM_CHECK)
                 if src is None or not client.ready():
                     if src is not None:  # the previous frame is still in our buffer
                         client.skipped += 1
@@ -517,14 +429,14 @@ class ViewServer:
             for name in sorted(self.names):
                 if name in client.waiting_ack:
                     continue
-                src = self._source(name)
+                src = self.shown.source(name)
                 after = client.sent.get(name, 0)
                 if src.n <= after:
-                    self.want(name, after)
+                    self.shown.want(name, after)
                     continue
                 client.sent[name] = src.n
                 if src.failed:
-                    self.want(name, src.n)
+                    self.shown.want(name, src.n)
                     continue
                 client.waiting_ack.add(name)
                 await client.ws.send_bytes(src.message)
@@ -595,19 +507,3 @@ def _estop(value: Any) -> dict[str, str] | None:
     if action not in ("stop", "release") or not isinstance(aid, str) or not 0 < len(aid) <= 64:
         return None
     return {"action": action, "id": aid}
-
-
-def _render(header: dict[str, Any], frame: bytes) -> tuple[bytes, bytes]:
-    """Both JPEGs of a frame the node lent (a descriptor of a shared-memory slot: mapped here)."""
-    data = pickle.loads(frame).data
-    marks = [
-        Mark(
-            label=m["label"],
-            found=m["found"],
-            bbox=None if m["bbox"] is None else tuple(m["bbox"]),
-            centroid=None if m["centroid"] is None else tuple(m["centroid"]),
-            confidence=m["confidence"],
-        )
-        for m in header["marks"]
-    ]
-    return render(data, header["pixel_format"], marks, int(header["quality"]))
