@@ -94,8 +94,8 @@ def test_parse_duration(text: str, expected: float) -> None:
         ("--split-size", "12Q", "is not a size"),
         ("--split-size", "10", "at least 64 KiB"),
         ("--split-duration", "10parsecs", "is not a duration"),
-        ("--split-duration", "0s", "more than 0 s"),
-        ("--split-duration", "-3m", "is not a duration"),
+        ("--split-duration", "0s", "must be more than 0"),
+        ("--split-duration", "-3m", "must be more than 0"),  # issue 43 item 5: not an option
     ],
 )
 def test_bad_split_values_are_one_line_exit_2(
