@@ -383,6 +383,7 @@ async def test_synthetic_size_and_pixel_formats() -> None:
     )
 
 
+@pytest.mark.slow  # real-time pacing: a second of frames at their rate (~1 s of CPU)
 async def test_pacing_realtime_vs_fast() -> None:
     realtime = await run_capture({"fps": 20}, 1.0)
     assert 14 <= len(realtime.rows) <= 23  # 20 expected; generous for a loaded machine

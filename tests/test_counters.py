@@ -151,7 +151,7 @@ async def test_interval_after_a_timer_change_and_a_re_enable() -> None:
 
 DOM_STUB = r"""
 const node = (tag) => ({
-  tag, children: [], attrs: {}, className: "", textContent: "", dataset: {}, title: "",
+  tag, children: [], attrs: {}, className: "", textContent: "", dataset: {}, title: "", style: {},
   append(...c) { this.children.push(...c); },
   replaceChildren(...c) { this.children = c; },
   setAttribute(k, v) { this.attrs[k] = v; },

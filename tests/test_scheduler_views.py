@@ -62,11 +62,11 @@ async def test_views_are_snapshots_in_the_graphs_order() -> None:
         after["fast"].activations = 0  # type: ignore[misc]
 
 
-@pytest.mark.parametrize("module", ["qos.py", "runtime_stats.py", "timing_control.py"])
+@pytest.mark.parametrize("module", ["runtime/_qos.py", "runtime/_stats.py", "runtime/_modes.py"])
 def test_readers_outside_the_kernel_use_the_read_api(module: str) -> None:
     """The overload controller, the statistics and the timing check read nodes through views
     and ``timing_of``, not through runners (issue 39: qos alone read 21 runner fields)."""
     source = (Path(flowrt.__file__).parent / module).read_text()
-    allowed = {"timing_control.py": 1}  # admission control's RunnerView, not yet a view
+    allowed = {"runtime/_modes.py": 1}  # admission control's RunnerView, not yet a view
     found = re.findall(r"\.runners\b|\.rnode\b|\.counts\.|NodeRunner", source)
     assert len(found) == allowed.get(module, 0), found
