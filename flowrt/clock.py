@@ -316,6 +316,12 @@ at a precise node's instant wait for its call (bounded) instead of taking turns 
 the GIL."""
 
 
+def set_before_timers(hook: Callable[[], None] | None) -> None:
+    """Set (None: clear) :data:`before_timers`: one writer, by name, for the kernel."""
+    global before_timers
+    before_timers = hook
+
+
 def spin_until(when: float) -> None:
     """Busy-wait until ``when`` (monotonic seconds); returns at once if it has passed."""
     now = time.monotonic

@@ -62,8 +62,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from .. import clock
-from ..clock import next_release, spin_until
+from ..clock import next_release, set_before_timers, spin_until
 from ..edges import Buffer, LosslessBuffer
 from ..graph._resolve import Graph
 from ..graph.spec import Placement
@@ -263,7 +262,7 @@ def _lower_switch_interval() -> None:
     if _switch_users == 0:
         _switch_saved = sys.getswitchinterval()
         sys.setswitchinterval(min(_switch_saved, SWITCH_INTERVAL))
-        clock.before_timers = _timers_wait
+        set_before_timers(_timers_wait)
     _switch_users += 1
 
 
@@ -272,7 +271,7 @@ def _restore_switch_interval() -> None:
     _switch_users -= 1
     if _switch_users == 0:
         sys.setswitchinterval(_switch_saved)
-        clock.before_timers = None
+        set_before_timers(None)
 
 
 # --- the release thread -----------------------------------------------------------------

@@ -77,7 +77,9 @@ class MessageStatus:
 
 
 @dataclass(frozen=True)
-class CanBusStatus:
+class BusCounters:
+    """The bus's own counters: what the full status and the RTDB's summary both carry."""
+
     t: float  # seconds since the runtime started
     interface: str
     channel: str | None
@@ -91,6 +93,10 @@ class CanBusStatus:
     reopens: int
     send_errors: int
     decode_errors: int
+
+
+@dataclass(frozen=True)
+class CanBusStatus(BusCounters):
     messages: tuple[MessageStatus, ...]
     channels: tuple[str, ...] = ()  # the channels frames came from (a multi-channel interface)
     unknown_by_channel: tuple[tuple[str, int], ...] = ()  # (channel, unknown frames)
@@ -111,7 +117,7 @@ SUMMARY_TEXT = 64
 
 
 @dataclass(frozen=True)
-class CanBusSummary:
+class CanBusSummary(BusCounters):
     """What the RTDB keeps of a ``can`` node's status (record ``<node>.can``): the bus
     counters and totals over the messages, a fixed number of fields whatever the DBC.
 
@@ -121,19 +127,6 @@ class CanBusSummary:
     most SUMMARY_NAMES invalid messages are named, so the pickled summary stays under 2 kB.
     """
 
-    t: float
-    interface: str
-    channel: str | None
-    open: bool
-    received: int
-    sent: int
-    unknown: int
-    error_frames: int
-    bus_off: int
-    interface_lost: int
-    reopens: int
-    send_errors: int
-    decode_errors: int
     messages: int  # in the DBC
     invalid: int  # messages not valid now (timed out, or too many bad frames)
     invalid_names: tuple[str, ...]  # the first SUMMARY_NAMES of them
