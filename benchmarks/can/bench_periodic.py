@@ -16,6 +16,8 @@ keep the shared machine usable: ~3000 intervals per configuration):
   flowrt/kernel/precise.py), at normal priority and with ``--realtime``;
   ``flowrt-precise-offsets-rt``: with the offsets of ``flowrt-offsets`` too (the signal
   nodes off the bus's instants: their work on the loop holds the GIL the thread needs);
+  ``flowrt-precise-spin-rt``: the same with ``spin: 50us`` on the ``can`` node (its thread
+  wakes 50 us early and spins to the instant: the wake-up's own latency taken off);
 - with ``--kinds``, also ``flowrt-spin`` (``--spin 0.3ms``) and ``bare-loop`` /
   ``bare-thread``: no node at all, one sender of pre-built frames on flowrt's timerfd clock
   or in one thread sleeping to absolute deadlines (what a single sender per bus costs).
@@ -51,6 +53,7 @@ KINDS = [
     "flowrt-precise",
     "flowrt-precise-rt",
     "flowrt-precise-offsets-rt",
+    "flowrt-precise-spin-rt",
     "send_periodic",
     "bare-loop",
     "bare-thread",
@@ -87,7 +90,12 @@ class Monitor:
 
 
 def run_flowrt(
-    duration: float, realtime: bool, spin: float = 0.0, offsets: bool = False, precise: bool = False
+    duration: float,
+    realtime: bool,
+    spin: float = 0.0,
+    offsets: bool = False,
+    precise: bool = False,
+    node_spin: str | None = None,
 ) -> dict[int, list[float]]:
     import cantools
 
@@ -123,6 +131,7 @@ def run_flowrt(
         inputs=inputs,
         priority=50,
         **({"timing": "precise"} if precise else {}),
+        **({"spin": node_spin} if node_spin else {}),
     )
     mon = Monitor(channel)
 
@@ -249,8 +258,9 @@ def one(kind: str, duration: float) -> None:
             duration,
             realtime=kind.endswith("-rt"),
             spin=SPIN.get(kind, 0.0),
-            offsets="offsets" in kind,
+            offsets="offsets" in kind or "spin-rt" in kind,
             precise=kind.startswith("flowrt-precise"),
+            node_spin="50us" if kind == "flowrt-precise-spin-rt" else None,
         )
     print(json.dumps({**summarise(stamps, periods), "per_message": per_message(stamps, periods)}))
 
