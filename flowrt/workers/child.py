@@ -9,9 +9,11 @@ import gc
 import inspect
 import itertools
 import math
+import os
 import pickle
 import select
 import socket
+import sys
 import time
 import traceback
 from typing import Any
@@ -188,11 +190,31 @@ class _Nodes:
                 self.teardown(nid)
 
 
+def single_threaded_opencv() -> bool:
+    """OpenCV's own thread pool off in a worker (True when this call turned it off).
+
+    A worker is one CPU's worth of a node, preempted by the priority the graph gave it. An
+    OpenCV call that parallelises (``connectedComponentsWithStats``, resizes, filters) wakes
+    the pool's threads, which then spin for their next job on the other CPUs, beside the
+    event loop and the capture's decoder: measured on the 2-CPU machine with the tracker of
+    graphs/video.yaml in a worker, the worker took 0.59-0.70 ms of CPU per frame with the pool
+    and 0.53-0.54 ms without (RESULTS.md, issue 44 item 5). A node that
+    wants the pool calls ``cv2.setNumThreads(n)`` in its ``setup()`` (which runs after this);
+    ``OPENCV_FOR_THREADS_NUM`` in the environment is respected and left alone.
+    """
+    cv2 = sys.modules.get("cv2")  # preloaded by the forkserver; never imported for this
+    if cv2 is None or "OPENCV_FOR_THREADS_NUM" in os.environ:
+        return False
+    cv2.setNumThreads(1)
+    return True
+
+
 def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     """Entry point of a worker process: serve requests until EXIT or EOF."""
     if not tied_to_runtime(main_pid):
         return  # nothing to serve
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
+    single_threaded_opencv()
     conn = BlockingConn(sock)
     w = _Nodes()
     expected = w.expected
