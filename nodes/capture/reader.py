@@ -12,12 +12,20 @@ was decoded into (or None) and :meth:`Reader.reclaim` gives its token back. A de
 then already in its slot: the loop publishes it without copying a pixel. Tokens of blanks the
 thread never used come back from :meth:`Reader.unused` once it has ended (never while it may
 still be writing into one).
+
+Priority: the thread inherits the event loop's (SCHED_FIFO 90 under ``--realtime``, the
+lowest nice otherwise), above every worker. A ``background`` reader (a file or image sequence
+read at ``pacing: fast``: the source follows its readers) lowers itself before it opens the
+device, so that FFmpeg's decoding threads, created by the open, inherit the lower priority
+too: it only has to stay a few frames ahead of trackers that wait for every frame, and at the
+loop's priority it preempted them in the middle of their calls. See :func:`lower_priority`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -28,13 +36,37 @@ import numpy as np
 from .sources import Device, SourceError
 from .stderr import native_stderr
 
-__all__ = ["ALERT", "EOF", "ERROR", "FRAME", "LOG", "Opener", "Reader"]
+__all__ = ["ALERT", "EOF", "ERROR", "FRAME", "LOG", "Opener", "Reader", "lower_priority"]
 
 FRAME, EOF, ERROR, ALERT, LOG = "frame", "eof", "error", "alert", "log"
 
 Opener = Callable[[Callable[[str, str], None], int], Device]
 """Opens the device (in the reader thread): given the thread's alert callback and the stream
 position to resume at."""
+
+BACKGROUND_NICE_STEP = 10
+"""Nice levels a background reader adds to the loop's under the fair scheduler: below the
+graph's first three worker priorities (the top one sits 3 above the loop, each lower rank 3
+further), still above the machine's ordinary (nice 0) programs when the loop has nice -20."""
+
+
+def lower_priority() -> str:
+    """Put the calling thread below the graph's workers; what it now runs at (for the log).
+
+    SCHED_FIFO (a ``--realtime`` loop) becomes SCHED_FIFO 1, the lowest real-time priority:
+    below every worker (1..89 from their flowrt priority), above every ordinary program. Under
+    the fair scheduler the nice level rises by :data:`BACKGROUND_NICE_STEP`. Linux applies
+    both to the calling thread only; elsewhere, or when refused, nothing changes.
+    """
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            return "SCHED_FIFO 1"
+        nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + BACKGROUND_NICE_STEP)
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+        return f"nice {nice}"
+    except (AttributeError, OSError):
+        return "unchanged"
 
 
 class Reader:
@@ -57,8 +89,11 @@ class Reader:
         depth: int = 2,
         rewind: bool = False,
         start: int = 0,
+        background: bool = False,
     ) -> None:
         self._opener = opener
+        self._background = background
+        self.priority = "inherited"  # what the thread runs at (lower_priority's answer)
         self._start = start
         self._loop = loop
         self._latest = latest
@@ -113,6 +148,8 @@ class Reader:
 
     def _run(self) -> None:
         dev: Device | None = None
+        if self._background:  # before the open: the decoder's own threads inherit it
+            self.priority = lower_priority()
         try:
             dev = self._open(self._start)
             while self._room():
