@@ -195,11 +195,12 @@ def single_threaded_opencv() -> bool:
 
     A worker is one CPU's worth of a node, preempted by the priority the graph gave it. An
     OpenCV call that parallelises (``connectedComponentsWithStats``, resizes, filters) wakes
-    the pool's threads, which then spin for their next job on the other CPUs, beside the
-    event loop and the capture's decoder: measured on the 2-CPU machine with the tracker of
-    graphs/video.yaml in a worker, the worker took 0.59-0.70 ms of CPU per frame with the pool
-    and 0.53-0.54 ms without (RESULTS.md, issue 44 item 5). A node that
-    wants the pool calls ``cv2.setNumThreads(n)`` in its ``setup()`` (which runs after this);
+    the pool's threads, which then spin for their next job on the other CPUs, at the worker's
+    priority: there they starved an offline capture's decoder, which runs below its worker
+    readers (nodes/capture/reader.py). Measured with graphs/video.yaml's tracker in a worker
+    (2 CPUs, ``--realtime``): the decoder lowered and the pool kept, 0.70 ms per frame; the
+    pool off as well, 0.43 ms (RESULTS.md, issue 44 item 5). A node that wants the pool
+    calls ``cv2.setNumThreads(n)`` in its ``setup()`` (which runs after this);
     ``OPENCV_FOR_THREADS_NUM`` in the environment is respected and left alone.
     """
     cv2 = sys.modules.get("cv2")  # preloaded by the forkserver; never imported for this
