@@ -1,8 +1,9 @@
 """An offline decoder below the worker readers it feeds (issue 44 item 5).
 
-With ``pacing: fast`` and every period-1 frame reader in a worker, the capture's reader thread
-lowers itself before it opens its device (so FFmpeg's threads, created by the open, inherit
-it); with a reader on the loop it keeps the loop's priority.
+With ``pacing: fast``, every period-1 frame reader in a worker and a ``--realtime`` loop, the
+capture's reader thread takes SCHED_FIFO 1 before it opens its device (so FFmpeg's threads,
+created by the open, inherit it); with a reader on the loop, or under the fair scheduler, it
+keeps the loop's priority.
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
-from flowrt.nodes.capture import reader as capture_reader
 from flowrt.nodes.capture.node import Capture
 from flowrt.nodes.capture.reader import EOF, Reader, lower_priority
 
@@ -53,14 +53,41 @@ async def _nice_seen_by_the_open(background: bool) -> tuple[int, str]:
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_getscheduler"), reason="Linux scheduling calls")
-async def test_a_background_reader_opens_its_device_below_the_loop() -> None:
+async def test_under_the_fair_scheduler_a_background_reader_keeps_the_loops_nice() -> None:
     if os.sched_getscheduler(0) != os.SCHED_OTHER:
         pytest.skip("the test process runs a real-time policy")
     base = os.getpriority(os.PRIO_PROCESS, 0)
-    want = min(19, base + capture_reader.BACKGROUND_NICE_STEP)
-    assert await _nice_seen_by_the_open(background=True) == (want, f"nice {want}")
+    assert await _nice_seen_by_the_open(background=True) == (base, "inherited")
     assert await _nice_seen_by_the_open(background=False) == (base, "inherited")
-    assert os.getpriority(os.PRIO_PROCESS, 0) == base  # the loop's thread is untouched
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling calls")
+async def test_under_sched_fifo_a_background_reader_opens_its_device_at_fifo_1() -> None:
+    """The open (where FFmpeg creates its decoding threads) already runs at SCHED_FIFO 1; the
+    loop's thread keeps its own policy; a reader that is not background keeps the loop's."""
+    seen: list[tuple[int, int]] = []
+
+    def opener(alert: Callable[[str, str], None], start: int) -> _Empty:
+        seen.append((os.sched_getscheduler(0), os.sched_getparam(0).sched_priority))
+        return _Empty()
+
+    loop = asyncio.get_running_loop()
+    before = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))  # the loop's thread
+    except OSError:
+        pytest.skip("SCHED_FIFO not permitted here")
+    try:
+        readers = [Reader("cam", opener, loop, latest=False, background=b) for b in (True, False)]
+    finally:
+        os.sched_setscheduler(0, before[0], before[1])
+    for r in readers:
+        item = await r.get(5.0)
+        assert item is not None
+        assert item[0] == EOF
+        r.thread.join(5.0)
+    assert sorted(seen) == [(os.SCHED_FIFO, 1), (os.SCHED_FIFO, 50)]  # threads race to open
+    assert [r.priority for r in readers] == ["SCHED_FIFO 1", "inherited"]
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="Linux scheduling calls")

@@ -27,9 +27,9 @@ device's rate); ``fast`` publishes as fast as the source delivers and the graph 
 frame waits until every period-1 frame-triggered reader (inline or in a worker) has taken the
 previous one (``ctx.wait_readers()``), so an offline run processes every frame. The thread
 that decodes a file or reads images then runs below the graph's workers when every such
-reader is in one (SCHED_FIFO 1 under ``--realtime``, ten nice levels above the loop
-otherwise), with FFmpeg's own decoding threads: it only needs to stay a few frames ahead of
-them, and at the loop's priority it preempted them in their calls.
+reader is in one and the loop runs ``--realtime`` (SCHED_FIFO 1), with FFmpeg's own decoding
+threads: it only needs to stay a few frames ahead of them, and at the loop's priority it
+preempted them in their calls.
 
 Pixel formats: ``pixel_format`` is what the node publishes (BGR, RGB or GRAY). ``input_format``
 is what the source delivers: for a camera, a raw device format (YUYV, UYVY, I420, NV12, or

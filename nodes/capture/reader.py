@@ -15,10 +15,11 @@ still be writing into one).
 
 Priority: the thread inherits the event loop's (SCHED_FIFO 90 under ``--realtime``, the
 lowest nice otherwise), above every worker. A ``background`` reader (a file or image sequence
-read at ``pacing: fast``: the source follows its readers) lowers itself before it opens the
-device, so that FFmpeg's decoding threads, created by the open, inherit the lower priority
-too: it only has to stay a few frames ahead of trackers that wait for every frame, and at the
-loop's priority it preempted them in the middle of their calls. See :func:`lower_priority`.
+read at ``pacing: fast`` for readers in workers: the source follows them) lowers itself under
+``--realtime`` before it opens the device, so that FFmpeg's decoding threads, created by the
+open, inherit the lower priority too: it only has to stay a few frames ahead of trackers
+that wait for every frame, and at the loop's priority it preempted them in the middle of
+their calls. See :func:`lower_priority`.
 """
 
 from __future__ import annotations
@@ -44,29 +45,25 @@ Opener = Callable[[Callable[[str, str], None], int], Device]
 """Opens the device (in the reader thread): given the thread's alert callback and the stream
 position to resume at."""
 
-BACKGROUND_NICE_STEP = 10
-"""Nice levels a background reader adds to the loop's under the fair scheduler: below the
-graph's first three worker priorities (the top one sits 3 above the loop, each lower rank 3
-further), still above the machine's ordinary (nice 0) programs when the loop has nice -20."""
-
 
 def lower_priority() -> str:
     """Put the calling thread below the graph's workers; what it now runs at (for the log).
 
-    SCHED_FIFO (a ``--realtime`` loop) becomes SCHED_FIFO 1, the lowest real-time priority:
-    below every worker (1..89 from their flowrt priority), above every ordinary program. Under
-    the fair scheduler the nice level rises by :data:`BACKGROUND_NICE_STEP`. Linux applies
-    both to the calling thread only; elsewhere, or when refused, nothing changes.
+    Only under SCHED_FIFO (a ``--realtime`` loop): the thread takes SCHED_FIFO 1, the lowest
+    real-time priority, below every worker (1..89 from their flowrt priority) and still above
+    every ordinary program of the machine. Under the fair scheduler it keeps the loop's nice
+    level: ten levels higher it lost to the machine's other programs at the loop's level (on
+    the loaded 2-CPU machine, graphs/video.yaml with its tracker in a worker went from 0.68x
+    to 0.60x of a plain OpenCV loop), and a level between is not measured. Linux applies it
+    to the calling thread only; elsewhere, or when refused, nothing changes.
     """
     try:
         if os.sched_getscheduler(0) == os.SCHED_FIFO:
             os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
             return "SCHED_FIFO 1"
-        nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + BACKGROUND_NICE_STEP)
-        os.setpriority(os.PRIO_PROCESS, 0, nice)
-        return f"nice {nice}"
     except (AttributeError, OSError):
-        return "unchanged"
+        pass
+    return "inherited"
 
 
 class Reader:
