@@ -43,6 +43,24 @@ class Counter:
         pass
 
 
+class OpenCvThreads:
+    """Reports the OpenCV pool size its worker gives it."""
+
+    def process(self, **inputs: Any) -> int:
+        import cv2
+
+        return int(cv2.getNumThreads())
+
+
+class OpenCvPool(OpenCvThreads):
+    """Asks for OpenCV's pool back in its setup (what a node that wants it does)."""
+
+    def setup(self) -> None:
+        import cv2
+
+        cv2.setNumThreads(2)
+
+
 class Waiter:
     """Waits until the producer writes a marker into the frame *after* sending it."""
 
@@ -185,6 +203,36 @@ async def test_call_returns_result_and_keeps_node_state() -> None:
     finally:
         await ex.stop()
     assert ex.pid is None
+
+
+async def test_opencv_runs_single_threaded_in_a_worker_unless_the_node_asks() -> None:
+    plain = ProcessExecutor("cv-threads", OpenCvThreads, priority=30)
+    pooled = ProcessExecutor("cv-pool", OpenCvPool, priority=30)
+    await asyncio.gather(plain.start(), pooled.start())
+    try:
+        assert await plain.call({}) == 1  # no pool spinning beside the loop and the decoder
+        assert await pooled.call({}) == 2  # setup() runs after the default: the node decides
+    finally:
+        await asyncio.gather(plain.stop(), pooled.stop())
+
+
+def test_opencv_thread_default_leaves_an_explicit_environment_alone(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    cv2 = pytest.importorskip("cv2")
+    from flowrt.workers.child import single_threaded_opencv
+
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(3)
+        monkeypatch.setenv("OPENCV_FOR_THREADS_NUM", "3")
+        assert not single_threaded_opencv()
+        assert cv2.getNumThreads() == 3
+        monkeypatch.delenv("OPENCV_FOR_THREADS_NUM")
+        assert single_threaded_opencv()
+        assert cv2.getNumThreads() == 1
+    finally:
+        cv2.setNumThreads(before)
 
 
 async def test_coroutine_setup_and_process_run_in_the_worker_loop() -> None:

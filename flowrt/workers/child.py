@@ -9,9 +9,11 @@ import gc
 import inspect
 import itertools
 import math
+import os
 import pickle
 import select
 import socket
+import sys
 import time
 import traceback
 from typing import Any
@@ -188,11 +190,32 @@ class _Nodes:
                 self.teardown(nid)
 
 
+def single_threaded_opencv() -> bool:
+    """OpenCV's own thread pool off in a worker (True when this call turned it off).
+
+    A worker is one CPU's worth of a node, preempted by the priority the graph gave it. An
+    OpenCV call that parallelises (``connectedComponentsWithStats``, resizes, filters) wakes
+    the pool's threads, which then spin for their next job on the other CPUs, at the worker's
+    priority: there they starved an offline capture's decoder, which runs below its worker
+    readers (nodes/capture/reader.py). Measured with graphs/video.yaml's tracker in a worker
+    (2 CPUs, ``--realtime``): the decoder lowered and the pool kept, 0.70 ms per frame; the
+    pool off as well, 0.43 ms (RESULTS.md, issue 44 item 5). A node that wants the pool
+    calls ``cv2.setNumThreads(n)`` in its ``setup()`` (which runs after this);
+    ``OPENCV_FOR_THREADS_NUM`` in the environment is respected and left alone.
+    """
+    cv2 = sys.modules.get("cv2")  # preloaded by the forkserver; never imported for this
+    if cv2 is None or "OPENCV_FOR_THREADS_NUM" in os.environ:
+        return False
+    cv2.setNumThreads(1)
+    return True
+
+
 def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     """Entry point of a worker process: serve requests until EXIT or EOF."""
     if not tied_to_runtime(main_pid):
         return  # nothing to serve
     faulthandler.enable()  # a segfault prints the Python stack on stderr before dying
+    single_threaded_opencv()
     conn = BlockingConn(sock)
     w = _Nodes()
     expected = w.expected

@@ -25,7 +25,11 @@ Sources (``source`` param)
 Pacing: ``realtime`` publishes at ``fps`` on a precise timer of the runtime (cameras: at the
 device's rate); ``fast`` publishes as fast as the source delivers and the graph consumes: each
 frame waits until every period-1 frame-triggered reader (inline or in a worker) has taken the
-previous one (``ctx.wait_readers()``), so an offline run processes every frame.
+previous one (``ctx.wait_readers()``), so an offline run processes every frame. The thread
+that decodes a file or reads images then runs below the graph's workers when every such
+reader is in one and the loop runs ``--realtime`` (SCHED_FIFO 1), with FFmpeg's own decoding
+threads: it only needs to stay a few frames ahead of them, and at the loop's priority it
+preempted them in their calls.
 
 Pixel formats: ``pixel_format`` is what the node publishes (BGR, RGB or GRAY). ``input_format``
 is what the source delivers: for a camera, a raw device format (YUYV, UYVY, I420, NV12, or
@@ -269,7 +273,28 @@ class Capture(Node):
             latest=kind == "camera",
             rewind=p.on_eof == "loop",
             start=self._position,
+            # Offline, the source follows its readers: decoding below them (reader.py).
+            background=kind != "camera" and p.pacing == "fast" and self._readers_in_workers(),
         )
+
+    def _readers_in_workers(self) -> bool:
+        """Every period-1 frame reader of this source runs in a worker process (and one does).
+
+        Then its decoder may run below them. Not with a reader on the loop: the loop's own
+        helper threads (OpenCV's pool, spinning between an inline tracker's calls) run at the
+        loop's priority and starved a lowered decoder (graphs/video.yaml inline under
+        ``--realtime``: 0.95x of a plain OpenCV loop -> 0.69x)."""
+        try:
+            graph = self.ctx.graph
+        except RuntimeError:  # outside a runtime (a node harness): no readers
+            return False
+        readers = [
+            n
+            for n in graph.nodes.values()
+            if (n.frame_source or "").split(".")[0] == self.ctx.name
+            and getattr(n.trigger, "period", 1) == 1
+        ]
+        return bool(readers) and all(n.spec.placement != "inline" for n in readers)
 
     def _drop_reader(self) -> None:
         if self._reader is not None:

@@ -12,12 +12,21 @@ was decoded into (or None) and :meth:`Reader.reclaim` gives its token back. A de
 then already in its slot: the loop publishes it without copying a pixel. Tokens of blanks the
 thread never used come back from :meth:`Reader.unused` once it has ended (never while it may
 still be writing into one).
+
+Priority: the thread inherits the event loop's (SCHED_FIFO 90 under ``--realtime``, the
+lowest nice otherwise), above every worker. A ``background`` reader (a file or image sequence
+read at ``pacing: fast`` for readers in workers: the source follows them) lowers itself under
+``--realtime`` before it opens the device, so that FFmpeg's decoding threads, created by the
+open, inherit the lower priority too: it only has to stay a few frames ahead of trackers
+that wait for every frame, and at the loop's priority it preempted them in the middle of
+their calls. See :func:`lower_priority`.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import os
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -28,13 +37,33 @@ import numpy as np
 from .sources import Device, SourceError
 from .stderr import native_stderr
 
-__all__ = ["ALERT", "EOF", "ERROR", "FRAME", "LOG", "Opener", "Reader"]
+__all__ = ["ALERT", "EOF", "ERROR", "FRAME", "LOG", "Opener", "Reader", "lower_priority"]
 
 FRAME, EOF, ERROR, ALERT, LOG = "frame", "eof", "error", "alert", "log"
 
 Opener = Callable[[Callable[[str, str], None], int], Device]
 """Opens the device (in the reader thread): given the thread's alert callback and the stream
 position to resume at."""
+
+
+def lower_priority() -> str:
+    """Put the calling thread below the graph's workers; what it now runs at (for the log).
+
+    Only under SCHED_FIFO (a ``--realtime`` loop): the thread takes SCHED_FIFO 1, the lowest
+    real-time priority, below every worker (1..89 from their flowrt priority) and still above
+    every ordinary program of the machine. Under the fair scheduler it keeps the loop's nice
+    level: ten levels higher it lost to the machine's other programs at the loop's level (on
+    the loaded 2-CPU machine, graphs/video.yaml with its tracker in a worker went from 0.68x
+    to 0.60x of a plain OpenCV loop), and a level between is not measured. Linux applies it
+    to the calling thread only; elsewhere, or when refused, nothing changes.
+    """
+    try:
+        if os.sched_getscheduler(0) == os.SCHED_FIFO:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            return "SCHED_FIFO 1"
+    except (AttributeError, OSError):
+        pass
+    return "inherited"
 
 
 class Reader:
@@ -57,8 +86,11 @@ class Reader:
         depth: int = 2,
         rewind: bool = False,
         start: int = 0,
+        background: bool = False,
     ) -> None:
         self._opener = opener
+        self._background = background
+        self.priority = "inherited"  # what the thread runs at (lower_priority's answer)
         self._start = start
         self._loop = loop
         self._latest = latest
@@ -113,6 +145,8 @@ class Reader:
 
     def _run(self) -> None:
         dev: Device | None = None
+        if self._background:  # before the open: the decoder's own threads inherit it
+            self.priority = lower_priority()
         try:
             dev = self._open(self._start)
             while self._room():
