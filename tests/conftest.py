@@ -4,8 +4,9 @@ Tiers (markers registered in pyproject.toml): a test that drives headless Chromi
 (``browser``), starts flowrt or another program as a process (``subprocess``), measures real
 time (``realtime``) or runs Node.js (``node``) is also ``slow``, so that::
 
-    python -m pytest -q -m "not slow"     # the inner loop: no process, no browser, < 2 min
-    python -m pytest -q                   # everything (CI)
+    python -m pytest -q -n 2 -m "not slow"   # the inner loop: no process, no browser, < 2 min
+    python -m pytest -q -n 2                 # everything (CI; -n 2: pytest-xdist, one worker
+                                             # per core, each test file in one worker)
 
 The markers are derived from what a test uses (its code, its fixtures and the helpers they
 call) and a guard fails a fast-tier test that starts a process or takes too long anyway:
@@ -30,6 +31,11 @@ import tiers
 
 REPO = Path(__file__).resolve().parents[1]
 TIERS = tiers.TIERS
+
+# pytest-xdist's workers get COLUMNS=80 where a plain run has none (piped output is then 200
+# wide, see flowrt.cli.common.stdout_console): the same output with -n 2 as without.
+if os.environ.get("PYTEST_XDIST_WORKER") is not None:
+    os.environ.pop("COLUMNS", None)
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -107,8 +107,9 @@ def test_analyse_fd_dbc_uses_its_data_bitrate(
 
 
 def test_fd_without_data_bitrate_is_one_named_line(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setenv("COLUMNS", "400")  # one line as the program writes it, however long
     path = write(tmp_path, without_data_bitrate(FD_DBC))
     assert cli.main(["can", "analyse", path]) == 0
     out = capsys.readouterr().out

@@ -74,7 +74,7 @@ def cmd_analyse(args: argparse.Namespace) -> int:
     from ..analysis.can import analyse_bus, timings_from_dbc
     from ..analysis.can_database import data_bitrate_of
 
-    err = Console(stderr=True, highlight=False)
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
     try:
         bitrate = parse_bitrate(args.bitrate)
         data_rate = (
@@ -247,7 +247,7 @@ def _ms(x: float | None) -> str:
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
-    err = Console(stderr=True, highlight=False)
+    err = Console(stderr=True, highlight=False, soft_wrap=True)
     try:
         bitrate = parse_bitrate(args.bitrate)
         data_rate = (

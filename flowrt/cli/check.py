@@ -38,7 +38,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     from ..analysis.taskset import is_task_set
     from ..graph._loading import parse_yaml, read_graph_file
 
-    err = Console(stderr=True)
+    err = Console(stderr=True, soft_wrap=True)
     given = _run_option_given(args)
     if given and args.measure is None:
         err.print(

@@ -14,7 +14,7 @@ from .json_output import emit
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    err = Console(stderr=True)
+    err = Console(stderr=True, soft_wrap=True)
     graph = load(args.file, err, import_kinds=not args.no_import)
     if graph is None:
         return EXIT_BAD_GRAPH
@@ -49,7 +49,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
     from ..analysis import activation_tables
 
     console = stdout_console()
-    graph = load(args.file, Console(stderr=True))
+    graph = load(args.file, Console(stderr=True, soft_wrap=True))
     if graph is None:
         return EXIT_BAD_GRAPH
     if args.json:

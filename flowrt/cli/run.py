@@ -62,7 +62,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .. import _startup
 
     _warm_forkserver(args.file)
-    err = Console(stderr=True)
+    err = Console(stderr=True, soft_wrap=True)
     _startup.phase = "loading the graph"
     graph = load(args.file, err)
     if graph is None:
