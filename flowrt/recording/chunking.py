@@ -33,9 +33,9 @@ import numpy as np
 from mcap.records import ChunkIndex
 from mcap.writer import CompressionType, IndexType
 
-from .gilfree import PartsBuilder
+from .gilfree import BIG, PartsBuilder
 
-__all__ = ["Checked", "checked", "crc32_combine", "install_chunks"]
+__all__ = ["Checked", "checked", "checked_if_large", "crc32_combine", "install_chunks"]
 
 _CHUNK = 0x06  # mcap's Opcode.CHUNK
 _PRIVATE = (
@@ -62,6 +62,14 @@ def checked(data: Any) -> Checked:
     out: Checked = data.view(Checked)
     out.crc = zlib.crc32(memoryview(data))
     return out
+
+
+def checked_if_large(data: Any) -> Any:
+    """A large message's bytes with their CRC (the writer's encoder thread: the bytes are in
+    the cache, and the disk thread has the rest of the chunk to do); others as they are."""
+    if isinstance(data, np.ndarray) and data.dtype == np.uint8 and data.nbytes >= BIG:
+        return checked(data)
+    return data
 
 
 def _times(mat: tuple[int, ...], vec: int) -> int:
