@@ -13,7 +13,8 @@ buffers (the direct-I/O file, :mod:`.directio`):
 - the chunk's CRC is chained over its parts (``zlib.crc32(part, crc)``), and a part that
   carries its own CRC (:class:`Checked`: computed by the encoder thread right after it copied
   the pixels, while they are in the cache, and in parallel with the disk thread) is combined
-  in (:func:`crc32_combine`) instead of read again;
+  in (:func:`crc32_combine`) instead of read again; ISA-L's CRC-32 (``isal``) where installed,
+  five times zlib's speed on the dev VM, the same value;
 - the chunk record keeps its parts by reference, and the record builder hands them to the
   stream as a :class:`~.gilfree.Gathered` list, which the stream copies one by one into its buffer.
 
@@ -34,6 +35,11 @@ from mcap.records import ChunkIndex
 from mcap.writer import CompressionType, IndexType
 
 from .gilfree import BIG, PartsBuilder
+
+try:  # ISA-L's CRC-32: the same value, 0.2 ms for a 7 MB frame against zlib's 1.0 (GIL released)
+    from isal.isal_zlib import crc32 as _crc32
+except ImportError:  # a dependency, but the recording works without it
+    _crc32 = zlib.crc32
 
 __all__ = ["Checked", "checked", "checked_if_large", "crc32_combine", "install_chunks"]
 
@@ -60,7 +66,7 @@ class Checked(np.ndarray):
 def checked(data: Any) -> Checked:
     """``data`` (a uint8 array) with its CRC-32, computed now (zlib releases the GIL)."""
     out: Checked = data.view(Checked)
-    out.crc = zlib.crc32(memoryview(data))
+    out.crc = _crc32(memoryview(data))
     return out
 
 
@@ -128,7 +134,7 @@ def _crc(parts: list[Any]) -> int:
         if isinstance(p, Checked) and own is not None:
             crc = crc32_combine(crc, own, p.nbytes)
         else:
-            crc = zlib.crc32(p, crc)
+            crc = _crc32(p, crc)
     return crc
 
 
