@@ -7,6 +7,7 @@
     python benchmarks/bench_record.py fidelity --seconds 5      # reduced Table 5 + PNG plot
     python benchmarks/bench_record.py lateness --seconds 5 --rounds 3  # event-loop lateness
     python benchmarks/bench_record.py all                       # the three, as in RESULTS.md
+    python benchmarks/bench_record.py vsdd --rounds 3 --fps 30 100 --seconds 10  # writer vs dd
 
 What runs:
 
@@ -24,6 +25,12 @@ reading the frames from shared memory) or ``thread`` (writer threads in the runt
    recorder in the same run, and the raw disk write speed in the same run, before and after:
    ``dd if=/dev/zero bs=8M oflag=direct`` into the same folder; each writer's rate as a share
    of it.
+   ``vsdd``: the writer against ``dd`` in interleaved rounds (dd, writer at each ``--fps``,
+   dd, writer ..., dd), each writer run's rate as a share of the mean of the two ``dd`` runs
+   beside it. ``dd`` writes the same bytes to the same file system: the Frames node's
+   pre-rendered images (what the writer writes, less ~100 bytes of headers per 7 MB frame),
+   ``--dd-mib`` of them from a file in /dev/shm, ``bs=8M oflag=direct`` into ``--dir`` as the
+   writer writes (direct I/O, 8 MiB writes, no fsync: the writer does not sync either).
 2. cambada: ``flowrt run graphs/cambada.yaml`` and ``flowrt record graphs/cambada.yaml --writer
    W`` (every output) for the same time, interleaved: inter-activation std of the critical tasks
    (avoid_fr, avoid_om), skipped activations, edge drops, frame-pool drops.
@@ -205,6 +212,104 @@ def disk_speed(folder: Path, mib: int = 512, direct: bool = True) -> float:
     return mib * 1024 * 1024 / float(m.group(1)) / 1e6
 
 
+def dd_source(mib: int) -> Path:
+    """``mib`` MiB of the Frames node's images in /dev/shm: what ``dd`` writes (not zeros)."""
+    from flowrt.nodes.scene import SoccerScene
+
+    scene = SoccerScene(1936, 1216, seed=1)
+    images = [scene.render(i)[0].tobytes() for i in range(8)]
+    src = Path("/dev/shm") / f"flowrt_dd_{os.getpid()}"
+    left = mib << 20
+    with open(src, "wb") as f:
+        while left > 0:
+            for img in images:
+                f.write(img[:left])
+                left -= min(left, len(img))
+    return src
+
+
+def dd_same_bytes(src: Path, folder: Path) -> float:
+    """MB/s of ``dd`` copying ``src`` into ``folder`` as the writer writes (file removed)."""
+    target = folder / "dd.tmp"
+    r = subprocess.run(
+        ["dd", f"if={src}", f"of={target}", "bs=8M", "oflag=direct"],
+        capture_output=True,
+        text=True,
+    )
+    target.unlink(missing_ok=True)
+    m = re.search(r"^(\d+) bytes.*copied, ([0-9.]+) s", r.stderr, re.M)
+    if not m:
+        raise RuntimeError(f"dd: {r.stderr}")
+    return int(m.group(1)) / float(m.group(2)) / 1e6
+
+
+def vsdd(args: argparse.Namespace) -> None:
+    """Interleaved rounds: dd, then the writer at each rate, ...; ratio per writer run."""
+    base = Path(args.dir)
+    base.mkdir(parents=True, exist_ok=True)
+    n = args.streams[-1]
+    print(
+        f"### Writer against dd, {n} x 1936x1216 BGR at {' / '.join(f'{f:g}' for f in args.fps)}"
+        f" fps ({args.seconds:g} s per run, {args.rounds} interleaved rounds, writer "
+        f"{args.writers[0]}, CRC {args.crc[0]})\n"
+    )
+    print(machine() + "\n")
+    src = dd_source(args.dd_mib)
+    runs: list[tuple[int, float, dict[str, Any], float]] = []
+    dds: list[float] = []
+    try:
+        dds.append(dd_same_bytes(src, base))
+        for r in range(args.rounds):
+            for fps in args.fps:
+                folder = Path(tempfile.mkdtemp(dir=base))
+                rec = flowrt.run(
+                    run_streams(
+                        n,
+                        fps,
+                        (1936, 1216),
+                        args.seconds,
+                        folder,
+                        args.crc[0] == "yes",
+                        args.writers[0],
+                    )
+                )
+                shutil.rmtree(folder)
+                runs.append((r, fps, rec, os.getloadavg()[0]))
+            dds.append(dd_same_bytes(src, base))
+    finally:
+        src.unlink(missing_ok=True)
+    print(
+        "| round | fps | dd before MB/s | writer MB/s | dd after MB/s | writer / dd | expected |"
+        " received | written | lost | source skips | pool drops | load |"
+    )
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    ratios: dict[float, list[float]] = {}
+    for r, fps, rec, load in runs:
+        rep = rec["report"]
+        mbps = sum(s["bytes"] for s in rep["streams"]) / rep["duration"] / 1e6
+        before, after = dds[r], dds[r + 1]
+        ratio = mbps / ((before + after) / 2)
+        ratios.setdefault(fps, []).append(ratio)
+        total = {k: sum(s[k] for s in rep["streams"]) for k in ("expected", "received", "written")}
+        lost = sum(s["lost"] for s in rep["streams"])
+        print(
+            f"| {r + 1} | {fps:g} | {before:.0f} | **{mbps:.0f}** | {after:.0f} | "
+            f"**{100 * ratio:.0f} %** | {total['expected']} | {total['received']} | "
+            f"{total['written']} | {lost} | {rec['skipped']} | {rec['pool_dropped']} | "
+            f"{load:.2f} |"
+        )
+    print(
+        "\nPer rate, writer / dd (median of rounds): "
+        + "; ".join(
+            f"{fps:g} fps {100 * float(np.median(v)):.0f} % "
+            f"({', '.join(f'{100 * x:.0f}' for x in v)})"
+            for fps, v in ratios.items()
+        )
+        + f". dd: {args.dd_mib} MiB of the scene's images per run, `dd bs=8M oflag=direct`. "
+        f"Load average at the end: {os.getloadavg()[0]:.2f}.\n"
+    )
+
+
 def machine() -> str:
     import uvloop  # noqa: F401  (the runtime's loop)
 
@@ -218,8 +323,9 @@ def throughput(args: argparse.Namespace) -> None:
     base = Path(args.dir)
     base.mkdir(parents=True, exist_ok=True)
     size = (1936, 1216)
+    fps = args.fps[0]
     print(
-        f"### Recording throughput, {size[0]}x{size[1]} BGR at {args.fps:g} fps "
+        f"### Recording throughput, {size[0]}x{size[1]} BGR at {fps:g} fps "
         f"({args.seconds:g} s per run; writers: {', '.join(args.writers)})\n"
     )
     print(machine() + "\n")
@@ -228,11 +334,11 @@ def throughput(args: argparse.Namespace) -> None:
     rates: dict[str, list[float]] = {}
     crcs = [c == "yes" for c in args.crc]
     for n in args.streams:
-        base_run = flowrt.run(run_streams(n, args.fps, size, args.seconds, None))
+        base_run = flowrt.run(run_streams(n, fps, size, args.seconds, None))
         for crc in crcs:
             for writer in args.writers:
                 folder = Path(tempfile.mkdtemp(dir=base))
-                rec = flowrt.run(run_streams(n, args.fps, size, args.seconds, folder, crc, writer))
+                rec = flowrt.run(run_streams(n, fps, size, args.seconds, folder, crc, writer))
                 rep = rec["report"]
                 written = sum(s["bytes"] for s in rep["streams"])
                 mbps = written / rep["duration"] / 1e6
@@ -658,10 +764,13 @@ def lateness(args: argparse.Namespace) -> None:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("what", choices=("throughput", "cambada", "fidelity", "lateness", "all"))
+    p.add_argument("what", choices=("throughput", "vsdd", "cambada", "fidelity", "lateness", "all"))
     p.add_argument("--seconds", type=float, default=None)
     p.add_argument("--streams", type=int, nargs="+", default=[2, 3])
-    p.add_argument("--fps", type=float, default=20.0, help="throughput: each source's rate")
+    p.add_argument(
+        "--fps", type=float, nargs="+", default=[20.0], help="throughput, vsdd: each source's rate"
+    )
+    p.add_argument("--dd-mib", type=int, default=2048, help="vsdd: MiB dd writes per run")
     p.add_argument(
         "--writers",
         nargs="+",
@@ -692,12 +801,12 @@ def main() -> None:
     args = p.parse_args()
     Path(args.dir).mkdir(parents=True, exist_ok=True)
     todo = ("throughput", "cambada", "fidelity") if args.what == "all" else (args.what,)
-    default = {"throughput": 15.0, "cambada": 15.0, "fidelity": 5.0, "lateness": 5.0}
+    default = {"throughput": 15.0, "cambada": 15.0, "fidelity": 5.0, "lateness": 5.0, "vsdd": 10.0}
     given = args.seconds
     for what in todo:
         args.seconds = given or default[what]
         run = {"throughput": throughput, "cambada": cambada, "fidelity": fidelity}
-        run["lateness"] = lateness
+        run["lateness"], run["vsdd"] = lateness, vsdd
         run[what](args)
     shutil.rmtree(args.dir, ignore_errors=True)
 

@@ -49,7 +49,9 @@ class RecorderParams(BaseModel):
     flush_interval: float = Field(
         default=1.0, gt=0, description="s: a chunk is finished at least this often"
     )
-    max_frames: int = Field(default=8, ge=1, description="frames waiting, per stream")
+    max_frames: int = Field(
+        default=8, ge=1, description="frames waiting to be copied off their slots, per stream"
+    )
     direct_io: bool = Field(
         default=True, description="O_DIRECT writes where possible: past a slow page cache"
     )

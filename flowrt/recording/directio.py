@@ -21,7 +21,7 @@ import os
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
-from .gilfree import copy_into
+from .gilfree import Gathered, copy_into
 
 __all__ = ["DirectFile", "open_direct"]
 
@@ -53,7 +53,11 @@ class DirectFile:
         self._inflight: Future[None] | None = None
         self.closed = False
 
+    gathers = True  # write() takes a Gathered list of buffers (.chunking: chunks not joined)
+
     def write(self, data: Any) -> int:
+        if isinstance(data, Gathered):
+            return sum(self.write(part) for part in data)
         mv = memoryview(data).cast("B")
         total = len(mv)
         while mv:

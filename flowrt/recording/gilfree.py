@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from mcap.data_stream import RecordBuilder
 
-__all__ = ["BIG", "PartsBuilder", "copy_into", "install", "join"]
+__all__ = ["BIG", "Gathered", "PartsBuilder", "copy_into", "install", "join"]
 
 BIG = 64 << 10
 """Writes from this size on are kept by reference; smaller ones are gathered in a bytearray."""
@@ -54,6 +54,11 @@ def join(head: bytes, body: Any) -> np.ndarray:
     return out
 
 
+class Gathered(list[Any]):
+    """Buffers to be written one after the other, as if joined (:meth:`PartsBuilder.end` for a
+    stream that takes them: :mod:`.chunking`)."""
+
+
 class PartsBuilder(RecordBuilder):
     """``mcap``'s ``RecordBuilder`` keeping large writes by reference (see the module).
 
@@ -63,6 +68,7 @@ class PartsBuilder(RecordBuilder):
     """
 
     def __init__(self) -> None:  # no BytesIO: the parent's buffer is not used
+        self.gather = False  # end() gives the parts as they are (a stream that takes them)
         self._parts: list[Any] = []
         self._small = bytearray()
         self._count = 0
@@ -96,18 +102,26 @@ class PartsBuilder(RecordBuilder):
             self._small += view
         self._count += n
 
-    def end(self) -> Any:
-        """Everything written, as one buffer (a bytearray, or a uint8 array when joined)."""
+    def take(self) -> list[Any]:
+        """Everything written, as the buffers it was written in (none joined); then empty."""
         parts = self._parts
         if self._small:
             parts.append(self._small)
-        count = self._count
         self._parts, self._small, self._count = [], bytearray(), 0
         self._record = (self._small, 0, 0)
+        return parts
+
+    def end(self) -> Any:
+        """Everything written, as one buffer (a bytearray, or a uint8 array when joined), or
+        with :attr:`gather` as a :class:`Gathered` list of them when several."""
+        count = self._count
+        parts = self.take()
         if not parts:
             return b""
         if len(parts) == 1 and isinstance(parts[0], bytearray):
             return parts[0]
+        if self.gather:
+            return Gathered(parts)
         out = np.empty(count, np.uint8)
         offset = 0
         for p in parts:

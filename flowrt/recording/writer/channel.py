@@ -10,9 +10,12 @@ then needs no class of the graph's). The process's answers (frames let go of, ea
 message's result) are read on the loop with ``add_reader``; closing hands the socket to a
 thread that waits for the file to be finished, as the thread writer's threads do.
 
-Every guarantee of the thread writer holds: a stream has at most ``max_frames`` frames (and
-the writer ``max_messages`` other messages) in flight, beyond which a message is refused and
-counted (``lost_behind``); a write error stops the file and counts what follows; split parts,
+Every guarantee of the thread writer holds: a stream has at most ``max_frames`` frames whose
+slot the process may still read (the thread writer's bound: frames not yet copied; copied
+ones wait for the disk up to the writer's ``max_bytes``, 256 MiB, so a disk that stalls holds
+memory, not slots, and not the recorder's count), and the writer ``max_messages`` other
+messages in flight, beyond which a message is refused and counted (``lost_behind``); a write
+error stops the file and counts what follows; split parts,
 CRCs, the per-stream report and the flush interval are the same code, in the other process.
 A writer process that dies (``kill -9``, out of memory) is seen at once: the recording
 stops with the error said, every frame's link goes back, and what the file holds is counted
@@ -100,10 +103,11 @@ class ProcessRecordingWriter:
         self._unencodable: set[str] = set()
         self._travels: dict[tuple[str, type], bool] = {}  # pickled as is, or encoded here
         # Invariant: ``_sent`` holds every message sent and not yet reported, ``_held`` every
-        # frame of those whose slot the process may still read (the link this writer holds);
-        # ``_frames_waiting`` and ``_messages_waiting`` count ``_sent`` by kind.
+        # frame of those whose slot the process may still read (the link this writer holds)
+        # with its topic; ``_frames_waiting`` counts ``_held`` per topic, ``_messages_waiting``
+        # the other messages of ``_sent``.
         self._sent: dict[int, _Sent] = {}
-        self._held: dict[int, Frame] = {}
+        self._held: dict[int, tuple[str, Frame]] = {}
         self._frames_waiting: dict[str, int] = {}
         self._messages_waiting = 0
         self._next_id = 0
@@ -205,7 +209,7 @@ class ProcessRecordingWriter:
             # A slot frame: its descriptor, unpickled (mapped) by the process on its own.
             payload = pickle.dumps(value, PICKLE) if value.shared else value
             self._frames_waiting[topic] = waiting + 1
-            self._held[mid] = value
+            self._held[mid] = (topic, value)
         else:
             if self._messages_waiting >= self.max_messages:
                 s.lost_behind += 1
@@ -295,9 +299,7 @@ class ProcessRecordingWriter:
 
     def _result(self, mid: int, nbytes: int, part: int) -> None:
         sent = self._sent.pop(mid)
-        if sent.is_frame:
-            self._frames_waiting[sent.topic] -= 1
-        else:
+        if not sent.is_frame:  # (a frame left the count when its slot was let go of)
             self._messages_waiting -= 1
         s = self.streams[sent.topic]
         if nbytes < 0:
@@ -317,9 +319,10 @@ class ProcessRecordingWriter:
     def _let_go(self, ids: list[int]) -> None:
         got = False
         for mid in ids:
-            frame = self._held.pop(mid, None)
-            if frame is not None:
-                self.done.append(frame)
+            held = self._held.pop(mid, None)
+            if held is not None:
+                self._frames_waiting[held[0]] -= 1
+                self.done.append(held[1])
                 got = True
         if got and self.on_written is not None:
             self.on_written()

@@ -38,6 +38,7 @@ import numpy as np
 
 from ...frames import Frame
 from ...stats import Running
+from ..chunking import checked_if_large, install_chunks
 from ..directio import open_direct
 from ..encoding import Encoded, StreamSchema
 from ..gilfree import install
@@ -182,6 +183,7 @@ class RecordingWriter:
         self._end_attachments: Callable[[], list[tuple[str, str, bytes]]] = list
         self._on_finished: Callable[[], None] | None = None
         self._inflight: Frame | None = None
+        self._crc_now = False  # the encoder computes large messages' CRCs (.chunking)
         self._values = value_encoder(self.image_formats, epoch_offset, gil_free, profile)
         self._unencodable: set[str] = set()
         self.notes: list[str] = []  # problems other than write errors (said once per stream)
@@ -307,8 +309,7 @@ class RecordingWriter:
             file = open(path, "xb")  # noqa: SIM115 - closed by the writer thread
         try:
             w = Writer(file, chunk_size=self.chunk_size, compression=comp, enable_crcs=self.crc)
-            if self.gil_free:
-                install(w)  # large copies with the GIL released: the loop runs meanwhile
+            gathered = self.gil_free and install(w) and install_chunks(w)  # .gilfree, .chunking
             w.start(profile=self.profile, library=_library())
             now = time.time_ns()
             for name, data in self._metadata.items():
@@ -321,7 +322,7 @@ class RecordingWriter:
         except BaseException:
             file.close()
             raise
-        self._file, self._writer, self.path = file, w, path
+        self._file, self._writer, self.path, self._crc_now = file, w, path, gathered and self.crc
         self.files.append(path)
         self.part_messages.append(0)
         self._channels = _Channels()  # each part declares its own
@@ -354,7 +355,7 @@ class RecordingWriter:
     def _encode_item(self, item: _Item) -> Encoded | None:
         is_frame = isinstance(item.value, Frame)
         try:
-            return None if self.error is not None else self._values.encode(item.topic, item.value)
+            return None if self.error is not None else _encode(self._values, item, self._crc_now)
         except Exception as e:  # a value that cannot be encoded: counted, said once
             if item.topic not in self._unencodable:
                 self._unencodable.add(item.topic)
@@ -489,6 +490,13 @@ class RecordingWriter:
         # (the descriptor is closed even when the final flush fails); the file stays.
         with contextlib.suppress(OSError, ValueError):
             self._file.close()
+
+
+def _encode(values: Any, item: _Item, crc_now: bool) -> Encoded:
+    """``item``'s message; with ``crc_now`` a frame's CRC too, on the encoder thread, while
+    its bytes are in the cache (:mod:`..chunking` combines it into its chunk's)."""
+    enc: Encoded = values.encode(item.topic, item.value)
+    return Encoded(enc.schema, checked_if_large(enc.data)) if crc_now else enc
 
 
 def count_written(s: StreamCounters, t: float, nbytes: int) -> None:
