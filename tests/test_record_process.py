@@ -326,7 +326,9 @@ async def test_the_writer_process_runs_at_the_priority_asked_every_thread_of_it(
     assert policies == {policy}
     assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the runtime's own is untouched
     _, report = session_of(tmp_path)
-    assert all(s.lost == 0 and s.written == s.received for s in report.streams)
+    assert all(s.written + s.lost == s.received for s in report.streams)  # each loss counted
+    if policy != os.SCHED_IDLE:  # an idle writer runs only when no other program wants a CPU
+        assert report.lost == 0
 
 
 def test_an_idle_priority_for_writer_threads_is_refused_in_one_line(tmp_path: Path) -> None:
