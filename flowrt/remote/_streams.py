@@ -101,6 +101,8 @@ def _restore(v: Any, hint: Any) -> Any:
     """``v`` as JSON gave it, back in the shape of ``hint`` (a field's type; None: unknown):
     a tuple from an array or a positional object (``_0``, ``_1`` ..., always a tuple), a
     typed value from an object, bytes from base64 text."""
+    if hint is None and not isinstance(v, dict | list):  # nothing to restore (cold: cheap)
+        return v
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         branches = [a for a in typing.get_args(hint) if a is not type(None)]
