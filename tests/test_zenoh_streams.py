@@ -156,3 +156,20 @@ def test_a_message_header_packs_as_the_header_class() -> None:
     assert Header.decode(made).kind == "protobuf"
     with pytest.raises(ValueError, match="longer"):
         header_ids("x" * 17, "z")
+
+
+@pytest.mark.parametrize(
+    ("payload", "schema", "expected"),
+    [
+        (b'{"t":1.5,"p":"x","n":3}', "builtins.dict", {"t": 1.5, "p": "x", "n": 3}),
+        (b'{"_0":1,"_1":2}', "builtins.dict", (1, 2)),  # positional: a tuple, as before
+        (b'{"a":{"_0":1}}', "builtins.dict", {"a": (1,)}),  # nested: restored
+        (b'{"a":{"\\u005f_type__":"T","x":1}}', "", {"a": types.SimpleNamespace(x=1, _type="T")}),
+        (b"\xef\xbb\xbf" + b'{"a":1}', "builtins.dict", {"a": 1}),  # a BOM
+        ('{"a":1}'.encode("utf-16"), "", {"a": 1}),
+    ],
+)
+def test_json_payloads_decode_as_the_general_restoring_does(
+    payload: bytes, schema: str, expected: object
+) -> None:
+    assert decode_json(payload, schema) == expected
