@@ -167,6 +167,8 @@ def test_a_message_header_packs_as_the_header_class() -> None:
         (b'{"a":{"\\u005f_type__":"T","x":1}}', "", {"a": types.SimpleNamespace(x=1, _type="T")}),
         (b"\xef\xbb\xbf" + b'{"a":1}', "builtins.dict", {"a": 1}),  # a BOM
         ('{"a":1}'.encode("utf-16"), "", {"a": 1}),
+        (b' {"a": 1, "b": [2]} \n', "builtins.dict", {"a": 1, "b": [2]}),  # white space
+        (b'{"a":1,"_0":2}', "builtins.dict", {"a": 1, "_0": 2}),  # not positional
     ],
 )
 def test_json_payloads_decode_as_the_general_restoring_does(

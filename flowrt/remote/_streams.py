@@ -79,11 +79,7 @@ def decode_json(payload: bytes, schema_name: str) -> Any:
     ts = obj.get("timestamp")
     if isinstance(ts, int) and not isinstance(ts, bool):  # epoch ns, as recorded: seconds
         obj["timestamp"] = ts / 1e9  # (the import puts its capture time on its clock here)
-    if (
-        schema_name == "builtins.dict"
-        and next(iter(obj), None) != "_0"  # not a positional object (a tuple)
-        and not any(isinstance(v, dict | list) for v in obj.values())
-    ):
+    if schema_name == "builtins.dict" and _flat(obj):
         return obj
     cls = _resolve(schema_name)
     module = schema_name.rpartition(".")[0]
@@ -199,16 +195,31 @@ def _audio_decoder() -> Any:
     return lambda data, seq, off: dec.audio(schema, data, seq, off)
 
 
-_DECODER = json.JSONDecoder()
+# the C scanner: (value, end) of the JSON value at an index
+_SCAN: Any = json.JSONDecoder().scan_once  # type: ignore[attr-defined]
 
 
 def _loads(payload: bytes) -> Any:
     """``json.loads(payload)``, from UTF-8 text straight to the C scanner (``json.loads`` of
-    bytes first guesses their encoding in Python); anything else (a BOM, UTF-16) as before."""
+    bytes first guesses their encoding in Python, and its decoder skips white space with two
+    regular expressions); anything else (white space, a BOM, UTF-16) as ``json.loads``."""
     try:
-        return _DECODER.decode(payload.decode("utf-8"))
-    except ValueError:  # UnicodeDecodeError and JSONDecodeError alike
-        return json.loads(payload)
+        text = payload.decode("utf-8")
+        obj, end = _SCAN(text, 0)
+        if end == len(text):
+            return obj
+    except (ValueError, StopIteration):  # UnicodeDecodeError, JSONDecodeError, no value
+        pass
+    return json.loads(payload)
+
+
+def _flat(obj: dict[str, Any]) -> bool:
+    """No nested object or array, and not a positional object (``_0`` first: a tuple).
+    A loop, not ``all()`` of a generator: a frame resumed per field, cold on this path."""
+    for k, v in obj.items():  # noqa: SIM110
+        if k == "_0" or type(v) is dict or type(v) is list:
+            return False
+    return True
 
 
 def _marked(d: dict[str, Any]) -> Any:
