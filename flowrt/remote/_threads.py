@@ -7,12 +7,12 @@ and ``app`` workers, which carry every export and import) stayed at nice 0 while
 the loop starts later inherits the loop's level. Under load each of them then waited for a
 CPU behind the machine's other programs at every hop of a remote edge, where the loop did
 not (measured: the flowrt exporter's ``tx-0`` and importer's ``rx-0`` at nice 0 beside a loop
-at -20). :class:`ThreadShare` gives the threads made since the bridge was created the loop
-thread's nice, as if the loop had started them, and gives them their level back at close
-(for an embedding program, whose own earlier threads are never touched). Zenoh starts some
-runtimes lazily (a link's ``tx``/``rx`` workers when a peer connects, from its own threads,
-which then pass the level on); :meth:`ThreadShare.share` is cheap and called again when the
-imports are attached and at a link's first arrival.
+at -20). :class:`ThreadShare` gives the threads made since the first bridge was created the
+loop thread's nice, as if the loop had started them, when the exports and the imports are
+attached, and their level back at close. An embedding program's threads from before the
+first session are never touched; Zenoh's runtime threads outlive a session, so a later
+runtime lowers them again. Zenoh starts some workers lazily (a link's ``tx``/``rx`` when a
+peer connects), from its own threads, which pass the level on (checked with ``ps -L``).
 """
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ import os
 import threading
 
 __all__ = ["ThreadShare"]
+
+_BEFORE: set[int] | None = None
 
 
 def _tids() -> set[int]:
@@ -35,7 +37,10 @@ class ThreadShare:
     """Invariant: ``_changed`` holds the nice level before ours of every thread we lowered."""
 
     def __init__(self) -> None:
-        self._before = _tids()  # this process's threads before the session: not ours
+        global _BEFORE
+        if _BEFORE is None:  # Zenoh's runtimes are the process's: made by the first session
+            _BEFORE = _tids()
+        self._before = _BEFORE  # the threads before the first session: not ours
         self._changed: dict[int, int] = {}
 
     def share(self) -> None:
