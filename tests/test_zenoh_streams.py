@@ -121,3 +121,57 @@ def test_the_zenoh_encoding_names_the_schema() -> None:
     assert schema_of_sample(_Sample(enc)) == "flowrt.nodes.tracker.Detection"
     assert str(encoding_of("protobuf", "foxglove.RawAudio")).startswith("application/protobuf")
     assert schema_of_sample(_Sample("application/json")) == ""
+
+
+@pytest.mark.parametrize(
+    "value",
+    [
+        {"t": 1.5, "p": "12345678", "n": 3, "ok": True},  # flat: the short path
+        {"timestamp": 12.25, "x": -1},  # flat, with its time moved to epoch ns
+        {"a": None, "b": 1},  # not flat: None dropped by the walk
+        {"a": float("nan"), "b": [1, (2, 3)], "c": {"d": np.int64(4)}},  # not flat
+        {1: "key not text"},
+    ],
+)
+def test_a_message_is_the_same_bytes_on_the_short_path(value: dict[object, object]) -> None:
+    """The flat-mapping path of the JSON encoding writes what the general walk writes."""
+    from flowrt.recording.encoding import conform, encode_json, schema_for, to_jsonable
+
+    schema = schema_for(value)
+    obj = to_jsonable(value)
+    if isinstance(obj.get("timestamp"), float):
+        obj["timestamp"] = round((obj["timestamp"] + 100.0) * 1e9)
+    walked = conform(obj, json.loads(schema.data), coerce=not schema.guessed)
+    assert (
+        encode_json(value, schema, 100.0).data == json.dumps(walked, separators=(",", ":")).encode()
+    )
+
+
+def test_a_message_header_packs_as_the_header_class() -> None:
+    from flowrt.remote.wire import Header, header_ids, message_header
+
+    ids = header_ids("0123456789abcdef", "f" * 32)
+    made = message_header(ids, "protobuf", 7, 1.25, 0.5)
+    assert made == Header("0123456789abcdef", "f" * 32, 7, 1.25, 0.5, "protobuf").encode()
+    assert Header.decode(made).kind == "protobuf"
+    with pytest.raises(ValueError, match="longer"):
+        header_ids("x" * 17, "z")
+
+
+@pytest.mark.parametrize(
+    ("payload", "schema", "expected"),
+    [
+        (b'{"t":1.5,"p":"x","n":3}', "builtins.dict", {"t": 1.5, "p": "x", "n": 3}),
+        (b'{"_0":1,"_1":2}', "builtins.dict", (1, 2)),  # positional: a tuple, as before
+        (b'{"a":{"_0":1}}', "builtins.dict", {"a": (1,)}),  # nested: restored
+        (b'{"a":{"\\u005f_type__":"T","x":1}}', "", {"a": types.SimpleNamespace(x=1, _type="T")}),
+        (b"\xef\xbb\xbf" + b'{"a":1}', "builtins.dict", {"a": 1}),  # a BOM
+        ('{"a":1}'.encode("utf-16"), "", {"a": 1}),
+        (b' {"a": 1, "b": [2]} \n', "builtins.dict", {"a": 1, "b": [2]}),  # white space
+        (b'{"a":1,"_0":2}', "builtins.dict", {"a": 1, "_0": 2}),  # not positional
+    ],
+)
+def test_json_payloads_decode_as_the_general_restoring_does(
+    payload: bytes, schema: str, expected: object
+) -> None:
+    assert decode_json(payload, schema) == expected

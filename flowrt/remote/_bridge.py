@@ -22,7 +22,8 @@ This module is the session and its wiring (:class:`ZenohBridge`). The parts, eac
 - :mod:`flowrt.remote._importer`: one imported stream, from Zenoh's thread to the loop;
 - :mod:`flowrt.remote._node`: the node an ``import:`` entry becomes;
 - :mod:`flowrt.remote._clock`: the exporters' clock offsets;
-- :mod:`flowrt.remote._host`: the runtime as the bridge sees it.
+- :mod:`flowrt.remote._host`: the runtime as the bridge sees it;
+- :mod:`flowrt.remote._threads`: Zenoh's threads at the loop's priority.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from ._export import Export, ExportSender
 from ._host import BridgeHost
 from ._importer import FRAME_BACKLOG, ImportLink, RemoteLinkStats, worker_downstream
 from ._node import RemoteFrameSource, RemoteSource, RemoteSourceParams
+from ._threads import ThreadShare
 from .wire import PlainFormat
 
 __all__ = [
@@ -75,6 +77,7 @@ class ZenohBridge:
         self._queryable: Any = None
         self._sender: ExportSender | None = None
         self._clocks = ClockOffsets(lambda: self.session)
+        self.threads = ThreadShare()  # Zenoh's threads at the loop's nice (see _threads)
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -141,6 +144,7 @@ class ZenohBridge:
         if self.exports:
             sender.start()
             self._sender = sender
+        self.threads.share()  # the loop's nice is set by now
 
     def attach_imports(self) -> None:
         """Subscribers for the imports, bound to their nodes (once the nodes are set up)."""
@@ -158,6 +162,7 @@ class ZenohBridge:
             self.imports[name] = imp
             self.host.add_buffer(imp.link)
             self._subs.append(self.session.declare_subscriber(im.key, imp.on_sample))
+        self.threads.share()
 
     async def close(self) -> None:
         for s in self._subs:
@@ -173,6 +178,7 @@ class ZenohBridge:
             session, self.session = self.session, None
             with contextlib.suppress(Exception):
                 await asyncio.to_thread(session.close)
+        self.threads.restore()
 
     # --- clocks -------------------------------------------------------------------------
 

@@ -16,7 +16,6 @@ hears nothing for ``stale_after`` periods puts its node in the error state until
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import threading
@@ -141,6 +140,7 @@ class ImportLink:
         self.plain: PlainFormat | None = None  # header-less payloads of a plain program
         self.plain_seq = 0
         self.ctx: Any = None
+        self._wake: Any = None  # the loop's call_soon_threadsafe
         # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
         # keeps one pool frame of the last shape ready (``spare``); frames replaced before
         # delivery go back to the pool from the loop (``discard``).
@@ -191,8 +191,13 @@ class ImportLink:
             if self.scheduled:
                 return
             self.scheduled = True
-        with contextlib.suppress(RuntimeError):  # the loop is closing
-            self.bridge.host.loop.call_soon_threadsafe(self.deliver)
+        wake = self._wake
+        if wake is None:  # the loop's method, looked up once (this path runs cold)
+            wake = self._wake = self.bridge.host.loop.call_soon_threadsafe
+        try:
+            wake(self.deliver)
+        except RuntimeError:  # the loop is closing (no contextlib: its code runs cold here)
+            return
 
     def _decode(self, sample: Any) -> tuple[Header, Any]:
         """The sample's header and value, checked before anything is copied; raises (a

@@ -66,13 +66,21 @@ def decode_json(payload: bytes, schema_name: str) -> Any:
     """A JSON payload of a flowrt export back as its value (see the module docstring).
 
     Without a schema name (an exporter of an older flowrt: marked mappings, ``__type__``)
-    the value is read as that exporter wrote it."""
-    obj = json.loads(payload, object_hook=_marked)
+    the value is read as that exporter wrote it.
+
+    A flat mapping (``builtins.dict``, no nested object or array) is returned as parsed:
+    what the general restoring would give, without its per-field calls (this runs cold on
+    Zenoh's thread, for every message, where those cost ~80 us)."""
+    # the C parser alone unless a marked mapping may be in the text (escapes included)
+    marked = b"__type__" in payload or b"\\u" in payload
+    obj = json.loads(payload, object_hook=_marked) if marked else _loads(payload)
     if not schema_name or not isinstance(obj, dict):
         return obj
     ts = obj.get("timestamp")
     if isinstance(ts, int) and not isinstance(ts, bool):  # epoch ns, as recorded: seconds
         obj["timestamp"] = ts / 1e9  # (the import puts its capture time on its clock here)
+    if schema_name == "builtins.dict" and _flat(obj):
+        return obj
     cls = _resolve(schema_name)
     module = schema_name.rpartition(".")[0]
     if cls is not None:
@@ -101,6 +109,8 @@ def _restore(v: Any, hint: Any) -> Any:
     """``v`` as JSON gave it, back in the shape of ``hint`` (a field's type; None: unknown):
     a tuple from an array or a positional object (``_0``, ``_1`` ..., always a tuple), a
     typed value from an object, bytes from base64 text."""
+    if hint is None and not isinstance(v, dict | list):  # nothing to restore (cold: cheap)
+        return v
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         branches = [a for a in typing.get_args(hint) if a is not type(None)]
@@ -183,6 +193,33 @@ def _audio_decoder() -> Any:
     schema = Schema(id=1, name=s.name, encoding=s.encoding, data=s.data)
     dec = Decoder()
     return lambda data, seq, off: dec.audio(schema, data, seq, off)
+
+
+# the C scanner: (value, end) of the JSON value at an index
+_SCAN: Any = json.JSONDecoder().scan_once  # type: ignore[attr-defined]
+
+
+def _loads(payload: bytes) -> Any:
+    """``json.loads(payload)``, from UTF-8 text straight to the C scanner (``json.loads`` of
+    bytes first guesses their encoding in Python, and its decoder skips white space with two
+    regular expressions); anything else (white space, a BOM, UTF-16) as ``json.loads``."""
+    try:
+        text = payload.decode("utf-8")
+        obj, end = _SCAN(text, 0)
+        if end == len(text):
+            return obj
+    except (ValueError, StopIteration):  # UnicodeDecodeError, JSONDecodeError, no value
+        pass
+    return json.loads(payload)
+
+
+def _flat(obj: dict[str, Any]) -> bool:
+    """No nested object or array, and not a positional object (``_0`` first: a tuple).
+    A loop, not ``all()`` of a generator: a frame resumed per field, cold on this path."""
+    for k, v in obj.items():  # noqa: SIM110
+        if k == "_0" or type(v) is dict or type(v) is list:
+            return False
+    return True
 
 
 def _marked(d: dict[str, Any]) -> Any:
