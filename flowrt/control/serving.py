@@ -80,7 +80,7 @@ async def stop_server(
         await asyncio.to_thread(proc.join, grace)
         if proc.is_alive():
             proc.kill()
-            await asyncio.to_thread(proc.join, 1.0)
+            await asyncio.to_thread(proc.join, 0.5)
 
 
 @dataclass

@@ -338,6 +338,9 @@ class PreciseRelease:
         """The thread has exited: nothing of it runs from now on (teardown may follow)."""
         if self._thread.ident is not None:  # started
             await asyncio.shield(self._exited)
+            # it told the loop as its last act; its end follows at once (a loaded machine may
+            # take a while to run it): no thread of the runtime's outlives its stop
+            await asyncio.to_thread(self._thread.join, 1.0)
 
     def landed(self) -> None:
         """The loop has taken the outcome of the oldest call in flight."""
