@@ -150,7 +150,7 @@ class _NodeExecutor:
             )
         grants = out.grant(inputs, window) if w.usable else ()
         try:
-            return w.request(
+            fut = w.request(
                 (OP_CALL, self.nid, inputs, grants),
                 self.name,
                 self.priority,
@@ -161,6 +161,8 @@ class _NodeExecutor:
         except BaseException:
             out.unsent(grants)
             raise
+        out.lend_ahead()  # the next call's slots, off its path: the worker computes now
+        return fut
 
     def set_priority(self, priority: int) -> None:
         """Change the node's priority at run time (QoS); the worker re-applies its OS priority.
