@@ -67,7 +67,13 @@ SIZES = {"8 B": 8, "640x480x3": 640 * 480 * 3, "1920x1080x3": 1920 * 1080 * 3, "
 RATES = (250, 500, 1000)
 BASELINE = " (baseline)"
 TIMER_WARMUP = 10
-BASELINED = {"flowrt", "flowrt inline", "flowrt workers", "flowrt workers new"}  # + --baseline
+BASELINED = {
+    "flowrt",
+    "flowrt inline",
+    "flowrt workers",
+    "flowrt workers new",
+    "flowrt pipeline 1",
+}  # + --baseline
 
 
 # --- running one side --------------------------------------------------------------------------
@@ -160,8 +166,15 @@ def run_side(
 
 
 class Bench:
-    def __init__(self, tmp: Path, quiet_dora: bool, baseline: Path | None = None) -> None:
+    def __init__(
+        self,
+        tmp: Path,
+        quiet_dora: bool,
+        baseline: Path | None = None,
+        keep: set[str] | None = None,
+    ) -> None:
         self.tmp = tmp
+        self.keep = keep  # the flowrt sides to run (None: all); dora always runs
         self.n = 0
         self.env = dict(os.environ)
         self.env["PYTHONPATH"] = str(REPO) + os.pathsep + self.env.get("PYTHONPATH", "")
@@ -182,6 +195,8 @@ class Bench:
         """The sides of a scenario: each flowrt side also as the baseline checkout, if any."""
         out: list[str] = []
         for n in names:
+            if n.startswith("flowrt") and self.keep is not None and n not in self.keep:
+                continue
             out.append(n)
             if n.startswith("flowrt") and self.baseline_env is not None and n in BASELINED:
                 out.append(n + BASELINE)
@@ -652,8 +667,9 @@ def scenarios(
         n = 100 + TIMER_WARMUP
         yield "timer", "timer idle", lambda b: timer(b, "idle", 0, n)
         yield "timer", "timer 2 burners", lambda b: timer(b, "2 burners", 2, n)
-    if not only or "fps" in only:
+    if not only or "fps" in only or "fps-flat" in only:
         yield "fps", "fps flat", lambda b: fps(b, None, 3.0)
+    if not only or "fps" in only:
         for rate in RATES:
             yield "fps", f"fps {rate}", lambda b, r=rate: fps(b, r, 2.0)
     if not only or "pipe" in only:
@@ -685,7 +701,14 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m benchmarks.peers", description=__doc__.split("\n")[0]
     )
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--only", help="comma-separated groups: lat,timer,fps,pipe")
+    ap.add_argument(
+        "--only", help="comma-separated groups: lat,timer,fps,pipe (fps-flat: fps flat out only)"
+    )
+    ap.add_argument(
+        "--sides",
+        help="comma-separated flowrt sides to run, e.g. 'flowrt workers new,flowrt pipeline 1' "
+        "(default: all; dora and the --baseline copies of these always run)",
+    )
     ap.add_argument("--quick", action="store_true", help="fewer messages per latency run")
     ap.add_argument("--no-write", action="store_true", help="do not touch RESULTS.md")
     ap.add_argument("--json", metavar="PATH", help="also write every per-round sample here")
@@ -713,7 +736,8 @@ def main(argv: list[str] | None = None) -> int:
     loads: list[float] = []
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="flowrt-peers-") as tmp:
-        b = Bench(Path(tmp), quiet_dora=not args.dora_logs, baseline=args.baseline)
+        keep = set(args.sides.split(",")) if args.sides else None
+        b = Bench(Path(tmp), quiet_dora=not args.dora_logs, baseline=args.baseline, keep=keep)
         for rnd in range(args.rounds):
             this: dict[str, dict[str, Sample]] = {}
             loads.append(os.getloadavg()[0])
