@@ -4,6 +4,7 @@
     python -m benchmarks.peers                      # 3 rounds, ~4-5 min on 2 cores
     python -m benchmarks.peers --rounds 1 --only lat,fps   # a subset, quicker
     python -m benchmarks.peers --no-write           # print the table, leave RESULTS.md alone
+    python -m benchmarks.peers --only pipe,fps-flat --sides "flowrt workers new,flowrt pipeline 1"
 
 Each scenario runs as ``flowrt run graph.yaml --no-ui`` and as ``dora run dataflow.yml``
 (no daemon needed), one after the other, in every round; the ratio is taken within a round and
