@@ -119,13 +119,13 @@ class OutputGrants:
         need = self.per_call * max(1, window) - len(self.outstanding)
         ahead = self.ahead
         while ahead and need > 0:
-            f = ahead.pop()
-            slot = f._slot
+            early = ahead.pop()
+            slot = early._slot
             assert slot is not None
             if slot.capacity < cap:  # reserved before the frames grew: back to the pool
-                f.release()
+                early.release()
                 continue
-            out.append(self._lend(f))
+            out.append(self._lend(early))
             need -= 1
         for _ in range(need):
             f = self.pool.reserve((cap,), np.uint8, source=self.node, count_drop=False)
