@@ -170,6 +170,9 @@ def test_linger_only_for_calls_back_to_back() -> None:
     ln.replied_at(t)
     ln.arrived(t + 0.00005)
     assert ln.window(2.0) == (2.0, 2.0 + 0.0002)
+    ln.alone = False  # calls pipelined behind it: the loop, not the worker, is waited for
+    assert ln.window(2.0) is None
+    ln.alone = True
     ln.replied_at(3.0)
     ln.arrived(3.0 + 0.001)  # the stream slowed: sleep in recv again
     assert ln.window(3.1) is None

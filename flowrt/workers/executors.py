@@ -146,12 +146,16 @@ class _NodeExecutor:
         out = self.outputs
         if out is None:
             return w.request(
-                (OP_CALL, self.nid, inputs, ()), self.name, self.priority, self.watchdog, window
+                (OP_CALL, self.nid, inputs, (), window == 1),
+                self.name,
+                self.priority,
+                self.watchdog,
+                window,
             )
         grants = out.grant(inputs, window) if w.usable else ()
         try:
             fut = w.request(
-                (OP_CALL, self.nid, inputs, grants),
+                (OP_CALL, self.nid, inputs, grants, window == 1),
                 self.name,
                 self.priority,
                 self.watchdog,
