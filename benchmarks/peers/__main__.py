@@ -176,6 +176,9 @@ class Bench:
     ) -> None:
         self.tmp = tmp
         self.keep = keep  # the flowrt sides to run (None: all); dora always runs
+        # Every other round the baseline runs first: the side that runs first after the
+        # previous scenario (dora's teardown of ~700 MB) is the one the machine disturbs.
+        self.flip = False
         self.n = 0
         self.env = dict(os.environ)
         self.env["PYTHONPATH"] = str(REPO) + os.pathsep + self.env.get("PYTHONPATH", "")
@@ -198,9 +201,10 @@ class Bench:
         for n in names:
             if n.startswith("flowrt") and self.keep is not None and n not in self.keep:
                 continue
-            out.append(n)
+            pair = [n]
             if n.startswith("flowrt") and self.baseline_env is not None and n in BASELINED:
-                out.append(n + BASELINE)
+                pair.append(n + BASELINE)
+            out.extend(reversed(pair) if self.flip else pair)
         return out
 
     def path(self, name: str) -> str:
@@ -741,6 +745,7 @@ def main(argv: list[str] | None = None) -> int:
         b = Bench(Path(tmp), quiet_dora=not args.dora_logs, baseline=args.baseline, keep=keep)
         for rnd in range(args.rounds):
             this: dict[str, dict[str, Sample]] = {}
+            b.flip = rnd % 2 == 1
             loads.append(os.getloadavg()[0])
             print(f"round {rnd + 1}: load average {loads[-1]:.2f}", flush=True)
             for _group, name, fn in scenarios(only, args.quick):
