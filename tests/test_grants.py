@@ -326,6 +326,52 @@ def test_a_pool_that_cannot_lend_counts_the_refusal() -> None:
         assert store.pool("node").stats().slots_in_use == 0
 
 
+def test_the_next_calls_slot_is_reserved_ahead_and_sent_with_it() -> None:
+    """Once a call is written, the next call's slot is reserved (off the hop's path): the
+    next grant sends it without reserving, and the pool holds one slot more, no more."""
+    with FrameStore() as store:
+        pool = store.pool("node")
+        grants = _lend(store, 1000, 1)
+        grants.lend_ahead()
+        ahead = grants.ahead[0]
+        assert pool.stats().reserved == 2
+        assert grants.stats().outstanding == 2  # lent, and reserved for the next call
+        assert pool.stats().slots_in_use == 2
+        grants.lend_ahead()  # one call's worth, not one more per call
+        assert pool.stats().reserved == 2
+        _answered(grants)
+        sent = grants.grant({"x": Frame(np.zeros(1000, np.uint8))}, window=1)
+        assert [g[0] for g in sent] == [ahead._slot.name]  # type: ignore[union-attr]
+        assert pool.stats().reserved == 2  # sent, not reserved anew
+        assert grants.ahead == []
+        assert grants.granted == 2
+
+
+def test_a_slot_reserved_ahead_that_no_longer_fits_goes_back() -> None:
+    """The input grew after the slot was reserved: it returns to the pool, the call is lent
+    one that fits, and a reclaim releases what was reserved ahead without counting a loss."""
+    with FrameStore() as store:
+        pool = store.pool("node")
+        grants = _lend(store, 1000, 1)
+        grants.lend_ahead()
+        small = grants.ahead[0]
+        _answered(grants)
+        sent = grants.grant({"x": Frame(np.zeros(5000, np.uint8))}, window=1)
+        assert len(sent) == 1
+        assert sent[0][3] >= 5000
+        assert small.refs == 0  # released: back in the pool
+        grants.lend_ahead()
+        assert grants.ahead[0]._slot.capacity >= 5000  # type: ignore[union-attr]
+        assert grants.reclaim() == 1  # the lent one; the one reserved ahead was never lent
+        assert grants.reclaimed == 1
+        assert pool.stats().slots_in_use == 0
+
+
+def _answered(grants: OutputGrants) -> None:
+    """What is lent comes back (as for a call that never reached its worker)."""
+    grants.unsent(tuple((name, 0, 0, 0) for name in list(grants.outstanding)))
+
+
 class SlowInvert(Invert):
     """Makes its frame, then overruns its deadline: the result is discarded (firm deadline)."""
 

@@ -13,7 +13,7 @@ import pytest
 
 from flowrt.system._priorities import FairShare, lowest_nice
 from flowrt.workers import PoolExecutor, ProcessExecutor
-from flowrt.workers.child import Anticipation
+from flowrt.workers.child import Anticipation, Linger
 
 
 class Pid:
@@ -155,6 +155,32 @@ def test_anticipation_ignores_irregular_calls() -> None:
     for t in (0.0, 0.05, 0.06, 0.2, 0.21):
         a.called(1, t)
     assert a.window(0.22) is None
+
+
+def test_linger_only_for_calls_back_to_back() -> None:
+    """Three requests running within the span of their reply: poll before sleeping; the
+    first that comes later ends it; a periodic node never lingers."""
+    ln = Linger(span=0.0002)
+    t = 1.0
+    for _ in range(2):
+        ln.replied_at(t)
+        t += 0.00005
+        ln.arrived(t)
+    assert ln.window(t) is None  # two are not a stream yet
+    ln.replied_at(t)
+    ln.arrived(t + 0.00005)
+    assert ln.window(2.0) == (2.0, 2.0 + 0.0002)
+    ln.alone = False  # calls pipelined behind it: the loop, not the worker, is waited for
+    assert ln.window(2.0) is None
+    ln.alone = True
+    ln.replied_at(3.0)
+    ln.arrived(3.0 + 0.001)  # the stream slowed: sleep in recv again
+    assert ln.window(3.1) is None
+    periodic = Linger(span=0.0002)
+    for k in range(10):
+        periodic.replied_at(k * 0.033)
+        periodic.arrived(k * 0.033 + 0.0329)
+    assert periodic.window(1.0) is None
 
 
 async def test_spinning_worker_serves_periodic_and_late_calls() -> None:

@@ -4,6 +4,7 @@
     python -m benchmarks.peers                      # 3 rounds, ~4-5 min on 2 cores
     python -m benchmarks.peers --rounds 1 --only lat,fps   # a subset, quicker
     python -m benchmarks.peers --no-write           # print the table, leave RESULTS.md alone
+    python -m benchmarks.peers --only pipe,fps-flat --sides "flowrt workers new,flowrt pipeline 1"
 
 Each scenario runs as ``flowrt run graph.yaml --no-ui`` and as ``dora run dataflow.yml``
 (no daemon needed), one after the other, in every round; the ratio is taken within a round and
@@ -67,7 +68,13 @@ SIZES = {"8 B": 8, "640x480x3": 640 * 480 * 3, "1920x1080x3": 1920 * 1080 * 3, "
 RATES = (250, 500, 1000)
 BASELINE = " (baseline)"
 TIMER_WARMUP = 10
-BASELINED = {"flowrt", "flowrt inline", "flowrt workers", "flowrt workers new"}  # + --baseline
+BASELINED = {
+    "flowrt",
+    "flowrt inline",
+    "flowrt workers",
+    "flowrt workers new",
+    "flowrt pipeline 1",
+}  # + --baseline
 
 
 # --- running one side --------------------------------------------------------------------------
@@ -160,8 +167,18 @@ def run_side(
 
 
 class Bench:
-    def __init__(self, tmp: Path, quiet_dora: bool, baseline: Path | None = None) -> None:
+    def __init__(
+        self,
+        tmp: Path,
+        quiet_dora: bool,
+        baseline: Path | None = None,
+        keep: set[str] | None = None,
+    ) -> None:
         self.tmp = tmp
+        self.keep = keep  # the flowrt sides to run (None: all); dora always runs
+        # Every other round the baseline runs first: the side that runs first after the
+        # previous scenario (dora's teardown of ~700 MB) is the one the machine disturbs.
+        self.flip = False
         self.n = 0
         self.env = dict(os.environ)
         self.env["PYTHONPATH"] = str(REPO) + os.pathsep + self.env.get("PYTHONPATH", "")
@@ -182,9 +199,12 @@ class Bench:
         """The sides of a scenario: each flowrt side also as the baseline checkout, if any."""
         out: list[str] = []
         for n in names:
-            out.append(n)
+            if n.startswith("flowrt") and self.keep is not None and n not in self.keep:
+                continue
+            pair = [n]
             if n.startswith("flowrt") and self.baseline_env is not None and n in BASELINED:
-                out.append(n + BASELINE)
+                pair.append(n + BASELINE)
+            out.extend(reversed(pair) if self.flip else pair)
         return out
 
     def path(self, name: str) -> str:
@@ -652,8 +672,9 @@ def scenarios(
         n = 100 + TIMER_WARMUP
         yield "timer", "timer idle", lambda b: timer(b, "idle", 0, n)
         yield "timer", "timer 2 burners", lambda b: timer(b, "2 burners", 2, n)
-    if not only or "fps" in only:
+    if not only or "fps" in only or "fps-flat" in only:
         yield "fps", "fps flat", lambda b: fps(b, None, 3.0)
+    if not only or "fps" in only:
         for rate in RATES:
             yield "fps", f"fps {rate}", lambda b, r=rate: fps(b, r, 2.0)
     if not only or "pipe" in only:
@@ -685,7 +706,14 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m benchmarks.peers", description=__doc__.split("\n")[0]
     )
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--only", help="comma-separated groups: lat,timer,fps,pipe")
+    ap.add_argument(
+        "--only", help="comma-separated groups: lat,timer,fps,pipe (fps-flat: fps flat out only)"
+    )
+    ap.add_argument(
+        "--sides",
+        help="comma-separated flowrt sides to run, e.g. 'flowrt workers new,flowrt pipeline 1' "
+        "(default: all; dora and the --baseline copies of these always run)",
+    )
     ap.add_argument("--quick", action="store_true", help="fewer messages per latency run")
     ap.add_argument("--no-write", action="store_true", help="do not touch RESULTS.md")
     ap.add_argument("--json", metavar="PATH", help="also write every per-round sample here")
@@ -713,9 +741,11 @@ def main(argv: list[str] | None = None) -> int:
     loads: list[float] = []
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="flowrt-peers-") as tmp:
-        b = Bench(Path(tmp), quiet_dora=not args.dora_logs, baseline=args.baseline)
+        keep = set(args.sides.split(",")) if args.sides else None
+        b = Bench(Path(tmp), quiet_dora=not args.dora_logs, baseline=args.baseline, keep=keep)
         for rnd in range(args.rounds):
             this: dict[str, dict[str, Sample]] = {}
+            b.flip = rnd % 2 == 1
             loads.append(os.getloadavg()[0])
             print(f"round {rnd + 1}: load average {loads[-1]:.2f}", flush=True)
             for _group, name, fn in scenarios(only, args.quick):

@@ -146,12 +146,16 @@ class _NodeExecutor:
         out = self.outputs
         if out is None:
             return w.request(
-                (OP_CALL, self.nid, inputs, ()), self.name, self.priority, self.watchdog, window
+                (OP_CALL, self.nid, inputs, (), window == 1),
+                self.name,
+                self.priority,
+                self.watchdog,
+                window,
             )
         grants = out.grant(inputs, window) if w.usable else ()
         try:
-            return w.request(
-                (OP_CALL, self.nid, inputs, grants),
+            fut = w.request(
+                (OP_CALL, self.nid, inputs, grants, window == 1),
                 self.name,
                 self.priority,
                 self.watchdog,
@@ -161,6 +165,8 @@ class _NodeExecutor:
         except BaseException:
             out.unsent(grants)
             raise
+        out.lend_ahead()  # the next call's slots, off its path: the worker computes now
+        return fut
 
     def set_priority(self, priority: int) -> None:
         """Change the node's priority at run time (QoS); the worker re-applies its OS priority.

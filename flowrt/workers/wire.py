@@ -12,7 +12,9 @@ import signal
 
 # Requests (main -> worker); every request gets exactly one reply.
 OP_ADD = 0  # (op, node_id, node_name, factory, WorkerScheduling) -> granted: str
-OP_CALL = 1  # (op, node_id, inputs, grants) -> result (grants: slots lent, frames.lending)
+OP_CALL = 1  # (op, node_id, inputs, grants, alone) -> result (grants: slots lent,
+# frames.lending; alone: no other call of the node in flight behind it, so the worker may
+# poll for the next one, workers/child.py Linger)
 OP_REMOVE = 2  # (op, node_id) -> None (teardown)
 OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
 OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
