@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from collections.abc import Generator
 from dataclasses import dataclass
 
 import cv2
@@ -39,6 +40,7 @@ BALL_R = 6.0
 OBSTACLE_R = 16.0
 N_OBSTACLES = 3
 CHUNK = 256  # frames simulated per chunk
+AHEAD_STEPS = 2  # frames of the next chunk simulated per frame rendered
 
 # BGR colours, chosen to sit well inside the default colour classes of colour.py.
 CARPET = (50, 150, 40)
@@ -177,6 +179,9 @@ class SoccerScene:
         initial = self._initial_state(np.random.default_rng([self.seed, 0x02]))
         self._checkpoints: list[tuple[float, ...]] = [initial]
         self._chunks: OrderedDict[int, np.ndarray] = OrderedDict()
+        # the next chunk, simulated a few frames at a time while this one is shown
+        self._ahead: tuple[int, Generator[None, None, np.ndarray]] | None = None
+        self._positions(0)  # the first chunk at set-up, not at the first frame
 
     # ------------------------------------------------------------------ static content
 
@@ -287,7 +292,17 @@ class SoccerScene:
         return tuple(state)
 
     def _simulate_chunk(self, chunk: int) -> np.ndarray:
-        """Positions (ball x, y, then obstacle x, y...) of every frame of one chunk.
+        """Positions (ball x, y, then obstacle x, y...) of every frame of one chunk."""
+        steps = self._chunk_steps(chunk)
+        while True:
+            try:
+                next(steps)
+            except StopIteration as done:
+                out: np.ndarray = done.value
+                return out
+
+    def _chunk_steps(self, chunk: int) -> Generator[None, None, np.ndarray]:
+        """:meth:`_simulate_chunk` one frame per step (see :meth:`_step_ahead`).
 
         Also records the state at the start of the next chunk. The ball rolls with friction,
         bounces off the field boundary (which extends beyond the camera's view above and
@@ -353,12 +368,15 @@ class SoccerScene:
             out[i, 0:2] = bx, by
             for k in range(N_OBSTACLES):
                 out[i, 2 + 2 * k : 4 + 2 * k] = s[4 + 5 * k], s[5 + 5 * k]
+            yield
         if len(self._checkpoints) == chunk + 1:
             self._checkpoints.append(tuple(s))
         return out
 
     def _positions(self, index: int) -> np.ndarray:
         chunk, offset = divmod(index, CHUNK)
+        if self._ahead is not None and self._ahead[0] == chunk:
+            self._step_ahead(CHUNK)  # wanted before it was done: finish it now
         if chunk not in self._chunks:
             for c in range(len(self._checkpoints) - 1, chunk):
                 self._simulate_chunk(c)  # only to extend the checkpoints
@@ -366,7 +384,26 @@ class SoccerScene:
             while len(self._chunks) > 4:
                 self._chunks.popitem(last=False)
         self._chunks.move_to_end(chunk)
+        self._step_ahead(AHEAD_STEPS, chunk + 1)
         return self._chunks[chunk][offset]
+
+    def _step_ahead(self, steps: int, chunk: int | None = None) -> None:
+        """Simulate ``steps`` frames of the chunk after the one in use, a few per frame
+        rendered: a whole chunk at once is ~4 ms of Python, which a camera on the event loop
+        of a 1 kHz control loop cannot take in one go (the result is the same either way)."""
+        if self._ahead is None:
+            if chunk is None or chunk in self._chunks or len(self._checkpoints) <= chunk:
+                return
+            self._ahead = (chunk, self._chunk_steps(chunk))
+        at, gen = self._ahead
+        try:
+            for _ in range(steps):
+                next(gen)
+        except StopIteration as done:
+            self._ahead = None
+            self._chunks[at] = done.value
+            while len(self._chunks) > 4:
+                self._chunks.popitem(last=False)
 
     # ------------------------------------------------------------------ rendering
 

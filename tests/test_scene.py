@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Generator
+
 import numpy as np
 import pytest
 from flowrt.nodes.scene import BALL, BLUE, MIN_VISIBLE_PIXELS, YELLOW, SceneTruth, SoccerScene
@@ -125,3 +127,36 @@ def test_same_game_at_every_resolution() -> None:
             assert abs(2 * a.centroid[0] - b.centroid[0]) <= 2.0
             assert abs(2 * a.centroid[1] - b.centroid[1]) <= 2.0
     assert compared > 5
+
+
+def test_a_frame_shown_in_order_simulates_a_few_steps_at_most() -> None:
+    """A chunk of the game is ~4 ms of Python: simulated a few frames per frame rendered
+    (the next one while this one is shown), never at once on a camera's tick."""
+    from flowrt.nodes import scene as sc
+
+    s = SoccerScene(64, 48, seed=1)
+    steps = 0
+    original = s._chunk_steps
+
+    def counted(chunk: int) -> Generator[None, None, np.ndarray]:
+        nonlocal steps
+        inner = original(chunk)
+        while True:
+            try:
+                next(inner)
+            except StopIteration as done:
+                out: np.ndarray = done.value
+                return out
+            steps += 1
+            yield
+
+    s._chunk_steps = counted  # type: ignore[method-assign]
+    worst = 0
+    for i in range(3 * sc.CHUNK):
+        before = steps
+        s.render(i)
+        worst = max(worst, steps - before)
+    assert worst == sc.AHEAD_STEPS
+    fresh = SoccerScene(64, 48, seed=1)  # the same game whichever way it was simulated
+    for i in (0, sc.CHUNK - 1, sc.CHUNK, 2 * sc.CHUNK + 5):
+        assert np.array_equal(s.render(i)[0], fresh.render(i)[0])

@@ -56,6 +56,7 @@ import asyncio
 import ctypes
 import logging
 import math
+import os
 import sys
 import threading
 import time
@@ -67,6 +68,7 @@ from ..edges import Buffer, LosslessBuffer
 from ..graph._resolve import Graph
 from ..graph.spec import Placement
 from ..stats import NodeStats
+from ..system._priorities import rt_priority_for
 from .runner import NodeRunner
 from .state import RunState
 
@@ -115,6 +117,29 @@ def _libc_nanosleep() -> Callable[[float], None] | None:
         fn(_CLOCK_MONOTONIC, _TIMER_ABSTIME, ctypes.byref(ts), None)  # EINTR: woken early
 
     return sleep_until
+
+
+def _thread_priority(priority: int) -> str:
+    """SCHED_FIFO for the calling thread alone, where the process may have it: the node asked
+    for its instant, and under the fair scheduler a woken thread may wait for another task's
+    slice (a 1 kHz haptic loop missed its 1 ms deadline 7-9 times in 5 s so, none with it;
+    RESULTS.md). The loop and the workers keep their own scheduling; with ``--realtime`` the
+    thread has the loop's policy already. Returns what was granted ("" if nothing new).
+
+    The priority is the node's, capped below the loop's (``rt_priority_for``); the thread
+    mostly sleeps, waits for the GIL without spinning, and a node whose calls grow long leaves
+    the thread (``LONG_CALLS``), so it cannot take a CPU for long; the kernel's RT throttling
+    bounds it in any case."""
+    if not hasattr(os, "sched_setscheduler"):
+        return ""
+    try:
+        if os.sched_getscheduler(0) != os.SCHED_OTHER:
+            return ""
+        rt = rt_priority_for(priority)
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt))  # 0: this thread
+    except OSError:
+        return ""
+    return f"SCHED_FIFO {rt}"
 
 
 def _relative_sleep(when: float) -> None:
@@ -308,6 +333,8 @@ class PreciseRelease:
         self._after_error = False
         self._stopped = False
         self._long = 0
+        # what the thread got from the OS (written once by the thread as it starts, then read)
+        self.os_grant = ""
         self._exited: asyncio.Future[None] = loop.create_future()
         if thread_mode:
             for buf in runner.ins.buffers.values():
@@ -351,6 +378,7 @@ class PreciseRelease:
     # --- the thread -------------------------------------------------------------------
 
     def _main(self) -> None:
+        self.os_grant = _thread_priority(self._r.rnode.spec.priority)
         try:
             self._run()
         except Exception:  # a bug here must not leave the node silently unreleased
@@ -522,6 +550,8 @@ class PreciseNodeRunner(NodeRunner):
         if p is None:
             return s
         how = "precise thread" if p.thread_mode else "precise release"
+        if p.os_grant:
+            how = f"{how} ({p.os_grant})"
         return s.model_copy(update={"granted": f"{how}, {s.granted}" if s.granted else how})
 
     async def precise_stopped(self) -> None:
