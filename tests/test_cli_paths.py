@@ -418,3 +418,24 @@ def test_a_verdict_is_a_result_not_an_error(
     assert isinstance(doc, dict)
     assert doc["schedulable"] is False
     assert "error" not in doc
+
+
+@pytest.mark.parametrize("command", ["info", "replay"])
+def test_a_folder_of_sessions_names_them(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
+    """``flowrt info recordings/`` (the folder ``-o`` was given): which session to give."""
+    for name in ("rec_001", "rec_002"):
+        (tmp_path / "recordings" / name).mkdir(parents=True)
+        (tmp_path / "recordings" / name / f"{name}.mcap").write_bytes(b"")
+    (tmp_path / "recordings" / "notes").mkdir()  # a folder without a recording: not named
+    assert main([command, str(tmp_path / "recordings")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(
+        "no .mcap file in this folder (it holds sessions: rec_001, rec_002; give one, "
+        f"e.g. {tmp_path / 'recordings' / 'rec_002'})"
+    )
+    assert "notes" not in err
+    (tmp_path / "empty").mkdir()
+    assert main([command, str(tmp_path / "empty")]) == 2
+    assert capsys.readouterr().err.strip().endswith("no .mcap file in this folder")

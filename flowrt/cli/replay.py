@@ -38,9 +38,25 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
         err.print(f"flowrt {cmd}: {e}", markup=False)
         return None
     if not files:
-        err.print(f"flowrt {cmd}: {path}: no .mcap file in this folder", markup=False)
+        err.print(
+            f"flowrt {cmd}: {path}: no .mcap file in this folder{_sessions_hint(p)}", markup=False
+        )
         return None
     return files
+
+
+def _sessions_hint(folder: Path) -> str:
+    """A folder of recording sessions (``-o recordings/``) named to the user: which to give."""
+    try:
+        sessions = sorted(d.name for d in folder.iterdir() if d.is_dir() and any(d.glob("*.mcap")))
+    except OSError:
+        return ""
+    if not sessions:
+        return ""
+    shown = ", ".join(printable(n) for n in sessions[-3:])
+    more = f" and {len(sessions) - 3} more" if len(sessions) > 3 else ""
+    last = printable(str(folder / sessions[-1]))
+    return f" (it holds sessions: {shown}{more}; give one, e.g. {last})"
 
 
 def _not_mcap(path: Path) -> bool:
