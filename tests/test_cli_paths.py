@@ -439,3 +439,18 @@ def test_a_folder_of_sessions_names_them(
     (tmp_path / "empty").mkdir()
     assert main([command, str(tmp_path / "empty")]) == 2
     assert capsys.readouterr().err.strip().endswith("no .mcap file in this folder")
+
+
+def test_can_analyse_finds_the_shipped_database_as_the_node_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``dbc: robot.dbc`` in a graph finds the database shipped with the node kinds; so does
+    ``flowrt can analyse robot.dbc`` from any folder (an installed wheel has no nodes/)."""
+    monkeypatch.chdir(tmp_path)
+    assert main(["can", "analyse", "robot.dbc", "--bitrate", "250000"]) == 0
+    assert capsys.readouterr().out.startswith("robot.dbc: 5 messages at 250000 bit/s")
+    (tmp_path / "robot.dbc").write_text("not a database\n")  # the user's own file comes first
+    assert main(["can", "analyse", "robot.dbc"]) == 2
+    assert "robot.dbc:1: not a valid CAN database" in capsys.readouterr().err
+    assert main(["can", "analyse", "nosuch.dbc"]) == 2
+    assert capsys.readouterr().err.strip() == "flowrt can analyse: nosuch.dbc: no such file"

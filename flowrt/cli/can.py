@@ -15,6 +15,8 @@ load per second (:mod:`flowrt.analysis.can_trace`).
 from __future__ import annotations
 
 import argparse
+import inspect
+from pathlib import Path
 from typing import Any
 
 from rich.console import Console
@@ -23,6 +25,7 @@ from ..analysis.can_database import CanDatabaseError
 from ..analysis.can_database import load_database as _load
 from ..analysis.can_frames import bit_rate
 from ..analysis.can_trace import TraceError, trace_stats
+from ..graph._registry import KindError, resolve_kind
 from ..graph.spec import parse_duration_ms
 from ..monitors._columns import Column, fit_table
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, stdout_console
@@ -40,7 +43,22 @@ MAX_MS = 3_600_000.0
 
 def load_database(path: str, strict: bool = False) -> Any:
     """A cantools database (non-strict unless ``strict``), or a one-line CanDatabaseError."""
-    return _load(path, strict)[0]
+    return _load(database_path(path), strict)[0]
+
+
+def database_path(path: str) -> str:
+    """``path`` as given (relative to the working directory), else a database shipped with the
+    ``can`` node kind's package (``robot.dbc``), where the node's ``dbc:`` param looks too: the
+    README's example runs from an installed wheel as well as from the repository."""
+    p = Path(path)
+    if p.exists() or p.is_absolute():
+        return path
+    try:
+        kind = resolve_kind("can")  # through the entry points, as a graph's kinds are
+        shipped = Path(inspect.getfile(kind)).resolve().parent.parent / path
+    except (KindError, TypeError, OSError):
+        return path
+    return str(shipped) if shipped.is_file() else path
 
 
 def parse_bitrate(text: str, flag: str = "--bitrate") -> int:
@@ -80,7 +98,7 @@ def cmd_analyse(args: argparse.Namespace) -> int:
         data_rate = (
             parse_bitrate(args.data_bitrate, "--data-bitrate") if args.data_bitrate else None
         )
-        db, warnings = _load(args.dbc, args.strict)
+        db, warnings = _load(database_path(args.dbc), args.strict)
         source = "--data-bitrate"
         if data_rate is None:
             data_rate, source = data_bitrate_of(db), "the DBC's BaudrateCANFD"
