@@ -273,7 +273,12 @@ def print_info(
             highlight=False,
         )
         if info.closed_cleanly:
-            console.print("closed cleanly: yes (summary and index read)", highlight=False)
+            how = (  # a rosbag2 SQLite3 file has no MCAP summary: what was read, in its words
+                "its SQLite3 database read"
+                if Path(info.path).suffix == ".db3"
+                else "summary and index read"
+            )
+            console.print(f"closed cleanly: yes ({how})", highlight=False)
         else:
             why = info.damage or "no summary"
             console.print(
