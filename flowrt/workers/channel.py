@@ -31,6 +31,7 @@ from .forkserver import (
     WITH_MAIN,
     context,
     exit_if_importing_main,
+    shut_at_exit,
     unguarded_main_message,
 )
 from .watchdog import proc_forget, progress_of, state_of
@@ -132,6 +133,7 @@ class Worker:
             raise
         finally:
             child.close()
+        shut_at_exit(parent)
         self.proc = proc
         self.pid = proc.pid
         self.alive = True

@@ -6,13 +6,18 @@ are shared (copy-on-write) and a worker starts in milliseconds.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import multiprocessing
 import multiprocessing.context
+import multiprocessing.util
 import os
 import pickle
 import signal
+import socket
 import sys
 import threading
+import weakref
 from collections.abc import Mapping
 from typing import Any
 
@@ -51,6 +56,36 @@ def context() -> multiprocessing.context.ForkServerContext:
             ctx.set_forkserver_preload(PRELOAD_MODULES)
             _ctx = ctx
         return _ctx
+
+
+_open_ends: weakref.WeakSet[socket.socket] = weakref.WeakSet()
+_shut_registered = False
+
+
+def shut_at_exit(sock: socket.socket) -> None:
+    """Shut ``sock``, the main process's end of a child's socket, down when the interpreter
+    exits, before multiprocessing joins its children.
+
+    Why: the children (workers, writer processes) ignore SIGTERM (``_forkserver_signals``),
+    so multiprocessing's exit handler, which terminates daemonic children and then joins
+    them, would wait forever for one whose socket is still open: a program that ends
+    without stopping its runtime (an exception, ``sys.exit``) hung at exit. Shut down, the
+    socket reads EOF in the child, which then exits as when the runtime dies. Atexit handlers
+    run last registered first, and multiprocessing's is registered when ``multiprocessing.util``
+    is imported (above), so this one runs before it.
+    """
+    global _shut_registered
+    with _ctx_lock:
+        if not _shut_registered:
+            atexit.register(_shut_open_ends)
+            _shut_registered = True
+        _open_ends.add(sock)
+
+
+def _shut_open_ends() -> None:
+    for sock in list(_open_ends):
+        with contextlib.suppress(OSError):  # closed already (a clean stop): nothing to do
+            sock.shutdown(socket.SHUT_RDWR)
 
 
 # Process names of workers that must not re-import the main script (see _install_prepare_hook).

@@ -459,7 +459,7 @@ class ProcessRecordingWriter:
 
 def _start_process(name: str) -> tuple[socket.socket, Any]:
     """A writer process from the workers' forkserver, and the recorder's end of its socket."""
-    from ...workers.forkserver import NO_MAIN, context
+    from ...workers.forkserver import NO_MAIN, context, shut_at_exit
     from .child import writer_main
 
     parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -476,6 +476,7 @@ def _start_process(name: str) -> tuple[socket.socket, Any]:
         raise
     finally:
         child.close()
+    shut_at_exit(parent)
     return parent, proc
 
 
