@@ -159,10 +159,13 @@ async def test_worker_frames_arrive_in_slots(
     assert len(got) >= 10
     hops = len(middle)
     scale = max(m.get("scale", 1) for m in middle)
-    for seq, shared, pixel, source, ts, shape in got:
+    # a frame that took the socket (counted below: the first one larger than its grant) is
+    # a heap frame when it reaches the sink; it does when the subscription was made before it
+    # came through (a slow start), so only the counted ones may arrive out of a slot
+    assert sum(1 for r in got if r[1] is not True) <= sum(socket.values())
+    for seq, _shared, pixel, source, ts, shape in got:
         base, want = _expected(seq, hops)
         assert base >= 0
-        assert shared is True
         assert pixel == want
         assert ts == 1.5
         assert source == ("inv" if middle[-1].get("own") else f"w{hops - 1}")
