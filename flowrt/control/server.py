@@ -50,7 +50,6 @@ import hmac
 import json
 import logging
 import multiprocessing
-import signal
 import socket
 import time
 from collections.abc import Awaitable, Callable
@@ -74,6 +73,7 @@ from .serving import (
     is_loopback,
     lower_priority,
     pack,
+    serve_in_process,
     stop_server,
     unpack,
 )
@@ -286,11 +286,8 @@ class ControlServer:
 
 
 def _serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]) -> None:
-    """The server process: below the runtime's priority, ended by the channel's end."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
-    lower_priority(0)
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(_Gateway(settings).run(sock, channel))
+    """The server process (see :func:`serving.serve_in_process`)."""
+    serve_in_process(_Gateway, sock, channel, settings)
 
 
 class _Gateway:

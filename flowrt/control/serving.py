@@ -15,9 +15,12 @@ import contextlib
 import ipaddress
 import json
 import os
+import signal
+import socket
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
 FRAME = struct.Struct(">II")  # header length, body length
 NICE = 19  # a server's nice level: it gets the CPU the graph leaves
@@ -60,6 +63,30 @@ def lower_priority(pid: int) -> None:
         os.sched_setscheduler(pid, os.SCHED_OTHER, os.sched_param(0))  # never the loop's FIFO
     with contextlib.suppress(OSError):
         os.setpriority(os.PRIO_PROCESS, pid, NICE)
+
+
+class ServerSide(Protocol):
+    """What :func:`serve_in_process` runs: serves ``sock`` until ``channel`` ends."""
+
+    async def run(self, sock: socket.socket, channel: socket.socket) -> None: ...
+
+
+def serve_in_process(
+    make: Callable[[dict[str, Any]], ServerSide],
+    sock: socket.socket,
+    channel: socket.socket,
+    settings: dict[str, Any],
+) -> None:
+    """The body of a server's process: below the runtime's priority, Ctrl-C left to the
+    runtime (which stops it by ending the channel), ``make(settings)`` served until then."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    lower_priority(0)
+
+    async def main() -> None:
+        await make(settings).run(sock, channel)
+
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(main())
 
 
 async def stop_server(

@@ -31,7 +31,6 @@ import contextlib
 import hmac
 import json
 import secrets
-import signal
 import socket
 import time
 from typing import Any
@@ -45,8 +44,8 @@ from flowrt.control.serving import (
     Tracked,
     hostname,
     is_loopback,
-    lower_priority,
     pack,
+    serve_in_process,
     unpack,
 )
 from flowrt.refusals import finite_number
@@ -70,11 +69,8 @@ CALL_WAIT = 30.0  # seconds the node has to answer a request (the recorders' sta
 
 
 def serve(sock: socket.socket, channel: socket.socket, settings: dict[str, Any]) -> None:
-    """The process: below the runtime's priority, ended by the channel's end."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
-    lower_priority(0)
-    with contextlib.suppress(KeyboardInterrupt):
-        asyncio.run(ViewServer(settings).run(sock, channel))
+    """The process (see :func:`flowrt.control.serving.serve_in_process`)."""
+    serve_in_process(ViewServer, sock, channel, settings)
 
 
 class _Client:
