@@ -117,21 +117,6 @@ def _ascii(text: str, size: int, what: str) -> bytes:
     return raw
 
 
-def _wire_object(d: dict[str, Any]) -> Any:
-    if "__type__" not in d:
-        return d
-    t = d.pop("__type__")
-    ns = types.SimpleNamespace(**d)
-    ns.__dict__["_type"] = t
-    return ns
-
-
-def loads_wire(payload: bytes) -> Any:
-    """``from_wire(json.loads(payload))`` in one pass of the C parser (the marked mappings
-    converted as they are parsed): the import callback's whole payload decoding."""
-    return json.loads(payload, object_hook=_wire_object)
-
-
 @dataclass
 class Header:
     """What travels beside every payload (as the Zenoh attachment).
