@@ -619,7 +619,8 @@ async def test_foreign_host_and_origin_are_refused(capsys: pytest.CaptureFixture
 async def test_a_token_serves_the_view_beyond_loopback_on_purpose(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(display_module, "HEADER_TIMEOUT", 0.5)
+    # long enough that a loaded machine's server evicts before it times anything out
+    monkeypatch.setattr(display_module, "HEADER_TIMEOUT", 3.0)
     with pytest.raises(flowrt.GraphError, match="needs a token"):
         demo_graph(host="0.0.0.0")
     token = "view-token-123"
@@ -642,14 +643,14 @@ async def test_a_token_serves_the_view_beyond_loopback_on_purpose(
         held = [await asyncio.open_connection("127.0.0.1", port) for _ in range(2)]
         await asyncio.sleep(0.1)
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        assert await asyncio.wait_for(held[0][0].read(), 0.4) == b""
+        assert await asyncio.wait_for(held[0][0].read(), 2.5) == b""  # evicted, not timed out
         writer.write(b"GET /stats.json HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
         assert (await asyncio.wait_for(reader.readline(), 5)).startswith(b"HTTP/1.1 401")
         writer.close()
         # a client that sends its request a byte at a time is closed when its time is up
         slow_r, slow_w = held[1]
         slow_w.write(b"GET /stats.json HTTP/1.1\r\nHo")
-        assert await asyncio.wait_for(slow_r.read(), 5) == b""
+        assert await asyncio.wait_for(slow_r.read(), 8) == b""
         for _, w in held:
             w.close()
 
@@ -727,7 +728,11 @@ async def test_stream_clients_that_never_read_do_not_keep_a_new_client_out(
 
             await wait_for(dropped, 20, "the stalled streams dropped")
             stats = await get_json(http, url + "/stats.json")
-        assert stats["display"]["refused_streams"] >= 30  # 4 per peer address
+        # 4 streams per peer address; every other one counted: its stream refused, or the
+        # connection refused or evicted at the cap of 32
+        display = stats["display"]
+        counted = display["refused_streams"] + display["refused"] + display["evicted"]
+        assert counted >= 36, {k: v for k, v in display.items() if isinstance(v, int)}
         for s in socks:
             s.close()
 

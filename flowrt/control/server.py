@@ -66,7 +66,7 @@ from .routes import ENDPOINTS as ENDPOINTS  # what GET / lists
 from .routes import ROUTES, Route, answer, one_line
 from .routes import dumps as _dumps
 from .serving import (
-    Conn,
+    Conns,
     Refuse,
     Tracked,
     hostname,
@@ -298,7 +298,7 @@ class _Gateway:
         self.token: str | None = settings["token"]
         self.max_connections: int = settings["max_connections"]
         self.timeout: float = settings["request_timeout"]
-        self.conns: dict[asyncio.BaseTransport, Conn] = {}
+        self.conns = Conns()
         self.refused = 0
         self.timed_out = 0
         self.evicted = 0  # connections closed at the cap before their first request
@@ -331,14 +331,14 @@ class _Gateway:
             connection that has not sent a request yet makes room (slow clients cannot hold
             the slots: they have FIRST_REQUEST_TIMEOUT, and are first to go); else one of
             RESERVED more, which only a request carrying the token keeps."""
-            if len(gateway.conns) >= gateway.max_connections:
+            if gateway.conns.count() >= gateway.max_connections:
                 idle = [c for c in gateway.conns.values() if not c.requests and not c.busy]
                 if idle:
                     oldest = min(idle, key=lambda c: c.deadline)
                     gateway.conns.pop(oldest.transport, None)
                     oldest.transport.close()
                     gateway.evicted += 1
-                elif gateway.token and len(gateway.conns) < gateway.max_connections + RESERVED:
+                elif gateway.token and gateway.conns.count() < gateway.max_connections + RESERVED:
                     return Tracked(server(), gateway.conns, first, reserve=True)
                 else:
                     gateway.refused += 1

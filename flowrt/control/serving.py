@@ -122,6 +122,23 @@ class Conn:
     reserve: bool = False  # taken over the cap: only a request with the token may keep it
 
 
+class Conns(dict[asyncio.BaseTransport, Conn]):
+    """The open connections by transport, and how many were accepted but are not made yet.
+
+    A burst of connections is accepted in one go: the loop calls the protocol factory for
+    each before any ``connection_made`` runs, so a cap that counted only the made ones let a
+    burst through (three open under a cap of two, and the wrong one evicted next).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.pending = 0  # Tracked protocols made by the factory, connection_made not yet run
+
+    def count(self) -> int:
+        """Connections that hold a slot: made or about to be."""
+        return len(self) + self.pending
+
+
 class Tracked(asyncio.Protocol):
     """Wraps aiohttp's protocol for one connection, registered in ``conns`` while it is open
     (a sweeper closes the ones past their deadline; a cap counts them)."""
@@ -129,7 +146,7 @@ class Tracked(asyncio.Protocol):
     def __init__(
         self,
         inner: Any,
-        conns: dict[asyncio.BaseTransport, Conn],
+        conns: Conns,
         timeout: float,
         reserve: bool = False,
     ):
@@ -138,11 +155,13 @@ class Tracked(asyncio.Protocol):
         self.timeout = timeout
         self.reserve = reserve
         self.transport: asyncio.BaseTransport | None = None
+        conns.pending += 1  # holds its slot from now: see Conns
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         import time
 
         self.transport = transport
+        self.conns.pending = max(0, self.conns.pending - 1)
         conn = Conn(transport, time.monotonic() + self.timeout, reserve=self.reserve)
         self.conns[transport] = conn
         self.inner.connection_made(transport)

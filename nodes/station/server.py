@@ -39,7 +39,7 @@ from urllib.parse import urlsplit
 from aiohttp import WSMsgType, web
 
 from flowrt.control.serving import (
-    Conn,
+    Conns,
     Refuse,
     Tracked,
     hostname,
@@ -98,7 +98,7 @@ class ViewServer:
         max_streams = int(settings.get("max_streams", max(1, self.max_clients // 2)))
         per_peer = int(settings.get("max_streams_per_peer", MAX_PER_PEER))
         self.streams = StreamSlots(max_streams, per_peer)
-        self.conns: dict[asyncio.BaseTransport, Conn] = {}
+        self.conns = Conns()
         self.refused = 0
         self.evicted = 0  # idle connections closed at the cap to make room for a new one
         self.refused_control = 0  # control messages from a WebSocket without a page session
@@ -142,7 +142,7 @@ class ViewServer:
         def factory() -> asyncio.Protocol:
             """At the cap, the connection idle longest (no request running) makes room:
             streams are capped below the cap, so the page and the API always find one."""
-            if len(self.conns) >= self.max_clients:
+            if self.conns.count() >= self.max_clients:
                 idle = [c for c in self.conns.values() if not c.busy]
                 if not idle:
                     self.refused += 1
