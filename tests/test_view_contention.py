@@ -167,7 +167,7 @@ async def test_a_stream_that_stops_reading_is_dropped_within_seconds() -> None:
 @pytest.mark.realtime
 async def test_streams_never_take_the_page_and_api_slots() -> None:
     """40 stalled streams from one address (the cap is 8 connections): at most
-    max_streams_per_peer of them are served, the rest refused (503, counted); the page,
+    max_streams_per_peer of them are served, the rest refused (counted); the page,
     /stats.json and the record API answer at once, and a reading stream gets frames."""
     async with view(max_clients=8) as (server, _, url):
         camera = asyncio.ensure_future(feed(server, "cam", 20_000, 20))
@@ -184,7 +184,9 @@ async def test_streams_never_take_the_page_and_api_slots() -> None:
                 assert time.monotonic() - t0 < 1.0, path
             async with http.post(url + "/api/record/stop", json={}) as r:
                 assert r.status == 409  # the fake node: not recording; answered, not locked out
-        assert server.streams.refused >= 30
+        # every stream beyond the 4 served is counted: refused with a 503, or its connection
+        # refused or evicted at the cap of 8
+        assert server.streams.refused + server.refused + server.evicted >= 36
         camera.cancel()
         for s in socks:
             s.close()
