@@ -254,20 +254,30 @@ async def test_no_slot_leaks_after_many_frames() -> None:
         sub = rt.subscribe("sink.result")
         await rt.run(1.5)
         rt.set_timing("cam", enabled=False)
-        await asyncio.sleep(0.3)  # the frames in flight reach the sink
+
+        def drained() -> bool:  # the frames in flight have reached the sink
+            st = rt.stats()
+            lent = {w.node: w.outstanding for w in st.worker_frames}
+            return all(p.slots_in_use == lent.get(p.owner, 0) for p in st.frames)
+
+        deadline = time.monotonic() + 10  # a loaded machine takes longer than an idle one
+        await asyncio.sleep(0.3)
+        while not drained() and time.monotonic() < deadline:  # noqa: ASYNC110 (polls stats)
+            await asyncio.sleep(0.1)
         got = sub.drain()
         s = rt.stats()
+    detail = (s.frames, s.worker_frames)  # what a failure shows
     assert len(got) >= 40
     assert [r[0] for r in got] == sorted(r[0] for r in got)
     pools = {p.owner: p for p in s.frames}
     frames = {w.node: w for w in s.worker_frames}
-    assert pools["cam"].slots_in_use == 0
+    assert pools["cam"].slots_in_use == 0, detail
     for node in ("w0", "w1"):
-        assert pools[node].slots_in_use == frames[node].outstanding
-        assert frames[node].in_slots >= len(got) - 2
-        assert pools[node].slots <= 8  # bounded: lent (window 4) + queued downstream
-        assert pools[node].dropped == 0
-        assert frames[node].by_socket == {}
+        assert pools[node].slots_in_use == frames[node].outstanding, detail
+        assert frames[node].in_slots >= len(got) - 2, detail
+        assert pools[node].slots <= 8, detail  # bounded: lent (window 4) + queued downstream
+        assert pools[node].dropped == 0, detail
+        assert frames[node].by_socket == {}, detail
 
 
 # --- the two halves of the protocol, in one process ---------------------------------------
