@@ -120,9 +120,10 @@ __all__ = [
 ]
 
 
-LEND = 3
-"""Slots lent to a file's reader thread to decode into: its read-ahead (2 frames) plus the one
-it decodes while the loop takes a frame, so a blank is always there (else it decodes into an
+LEND = 5
+"""Slots lent to a file's reader thread to decode into: its read-ahead (4 frames, see
+:class:`~.reader.Reader`) plus the one it decodes while the loop takes a frame, so a blank is
+always there (else it decodes into an
 array of its own, copied once into a slot by the loop)."""
 
 

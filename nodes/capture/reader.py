@@ -71,9 +71,13 @@ class Reader:
 
     Items go to a deque that the event loop takes from; ``latest`` keeps only the newest
     (cameras: an old frame is worthless), otherwise the thread reads at most ``depth`` frames
-    ahead (files: decoding is smoothed, nothing is skipped). The thread alone touches the
-    device, so abandoning a reader stuck in a driver call is safe: it releases the device
-    whenever the call returns.
+    ahead (files: decoding is smoothed, nothing is skipped) and is woken only once the loop
+    has taken half of them: every wake-up makes the thread take the GIL back from the loop
+    for its few lines of Python before the decoder lets go of it, and woken per frame that
+    cost the loop 0.09 ms p50 per frame (the gap between a paced capture's activation and its
+    tracker's, benchmarks/bench_video.py's offline run); woken per two frames, 0.001 ms. The
+    thread alone touches the device, so abandoning a reader stuck in a driver call is safe: it
+    releases the device whenever the call returns.
     """
 
     def __init__(
@@ -83,7 +87,7 @@ class Reader:
         loop: asyncio.AbstractEventLoop,
         *,
         latest: bool,
-        depth: int = 2,
+        depth: int = 4,
         rewind: bool = False,
         start: int = 0,
         background: bool = False,
@@ -95,6 +99,7 @@ class Reader:
         self._loop = loop
         self._latest = latest
         self._depth = depth
+        self._low = max(0, depth // 2)
         self._rewind = rewind
         self._items: deque[tuple[str, Any]] = deque()
         self._cond = threading.Condition()
@@ -209,7 +214,8 @@ class Reader:
             if not self._items:
                 return None
             item = self._items.popleft()
-            self._cond.notify()
+            if len(self._items) <= self._low:
+                self._cond.notify()
         if item[0] == FRAME:
             self.delivered += 1
         return item
