@@ -244,13 +244,8 @@ class Can(Node):
         self.id_counts: dict[tuple[str, int, bool], int] = {}
         self.encode_causes: dict[tuple[str, str], int] = {}
         self.last_status = 0.0
-        self.keep_status = p.status_record
-        self.rtdb: Any = None
-        if self.keep_status:  # taken now, on the loop: its first use creates it (~5 ms)
-            try:
-                self.rtdb = self.ctx.rtdb
-            except RuntimeError:  # no RTDB (outside a Runtime): nothing to keep it in
-                self.keep_status = False
+        self.rtdb: Any = _status_rtdb(self.ctx) if p.status_record else None
+        self.keep_status = self.rtdb is not None
         self.replay: TraceReplay | None = None
         self.trace_error = ""
         trace = None
@@ -417,11 +412,8 @@ class Can(Node):
         """Keep the status's bounded summary in the RTDB (``<node>.can``): ``flowrt ctl rtdb
         chassis.can`` shows it while the graph runs. The full table, which grows with the
         DBC, is on ``status`` only: an RTDB value has a size limit, and a status over it
-        raised here and restarted the node every ``status_ms`` (issue 38).
-
-        Always on the loop, never in a precise release thread: the RTDB takes locks the loop
-        also takes (the first status in that thread, with the RTDB made on first use then,
-        held the next CAN frames back 4.6 ms)."""
+        raised here and restarted the node every ``status_ms`` (issue 38). On the loop only:
+        in a precise release thread its locks held the next frames back (4.6 ms, once)."""
         if not self.keep_status:
             return
         try:
@@ -570,6 +562,15 @@ class Can(Node):
             tuple((c, i, e, n) for (c, i, e), n in sorted(self.id_counts.items())),
             timestamp=now,  # recorded as Unix time, the recording's time base
         )  # fmt: skip
+
+
+def _status_rtdb(ctx: Any) -> Any:
+    """The RTDB that keeps the status record, taken at setup on the loop (its first use
+    creates it, ~5 ms: not in a precise release thread); None outside a Runtime."""
+    try:
+        return ctx.rtdb
+    except RuntimeError:  # no RTDB: nothing to keep the record in
+        return None
 
 
 def _decode(st: _Msg, data: bytes) -> Mapping[str, Any]:
