@@ -116,23 +116,23 @@ def _plain_loop(video: Path) -> dict[str, Any]:
 
 
 def repeated(video: Path, times: int, folder: Path) -> Path:
-    """``video`` ``times`` over, in one file of the same codec (``--repeat``)."""
+    """``video`` ``times`` over, in one file of the same codec (``--repeat``), read again for
+    each time rather than held in memory (the sample's frames are 300 MB decoded)."""
     cap = cv2.VideoCapture(str(video))
-    frames = []
-    while True:
-        ok, img = cap.read()
-        if not ok:
-            break
-        frames.append(img)
     fourcc = int(cap.get(cv2.CAP_PROP_FOURCC)) or cv2.VideoWriter.fourcc(*"MJPG")
     fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+    size = (int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
     cap.release()
-    h, w = frames[0].shape[:2]
     path = folder / f"{video.stem}_x{times}{video.suffix}"
-    out = cv2.VideoWriter(str(path), fourcc, fps, (w, h))
+    out = cv2.VideoWriter(str(path), fourcc, fps, size)
     for _ in range(times):
-        for img in frames:
+        cap = cv2.VideoCapture(str(video))
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                break
             out.write(img)
+        cap.release()
     out.release()
     return path
 

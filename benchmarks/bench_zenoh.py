@@ -259,8 +259,9 @@ def raw_sub(args: argparse.Namespace) -> None:
     Path(args.lat).write_text(json.dumps(lat))
 
 
-def _spawn(role: str, **kw: Any) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "benchmarks.bench_zenoh", "--role", role]
+def _spawn(role: str, module: str = "benchmarks.bench_zenoh", **kw: Any) -> subprocess.Popen[bytes]:
+    """``python -m MODULE --role ROLE --key value ...`` (a True value: the bare flag)."""
+    cmd = [sys.executable, "-m", module, "--role", role]
     for k, v in kw.items():
         if v is True:
             cmd.append(f"--{k}")

@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -149,13 +148,7 @@ def flowrt_sub(a: argparse.Namespace) -> None:
 
 
 def _spawn(role: str, **kw: Any) -> subprocess.Popen[bytes]:
-    cmd = [sys.executable, "-m", "benchmarks.bench_zenoh_cross", "--role", role]
-    for k, v in kw.items():
-        if v is True:
-            cmd.append(f"--{k}")
-        elif v is not None and v is not False:
-            cmd += [f"--{k}", str(v)]
-    return subprocess.Popen(cmd)
+    return bench._spawn(role, "benchmarks.bench_zenoh_cross", **kw)
 
 
 def _p50(xs: list[float]) -> float:
