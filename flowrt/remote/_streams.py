@@ -33,6 +33,8 @@ import types
 import typing
 from typing import Any
 
+import msgspec
+
 from ..audio import AudioBlock
 
 __all__ = ["AUDIO_SCHEMA", "decode_audio", "decode_json", "encoding_of", "schema_of_sample"]
@@ -195,22 +197,19 @@ def _audio_decoder() -> Any:
     return lambda data, seq, off: dec.audio(schema, data, seq, off)
 
 
-# the C scanner: (value, end) of the JSON value at an index
-_SCAN: Any = json.JSONDecoder().scan_once  # type: ignore[attr-defined]
+_DECODE: Any = msgspec.json.Decoder().decode
 
 
 def _loads(payload: bytes) -> Any:
-    """``json.loads(payload)``, from UTF-8 text straight to the C scanner (``json.loads`` of
-    bytes first guesses their encoding in Python, and its decoder skips white space with two
-    regular expressions); anything else (white space, a BOM, UTF-16) as ``json.loads``."""
+    """``json.loads(payload)``, by msgspec's decoder where it reads the text: this runs cold
+    on Zenoh's thread for every message, where ``json.loads`` cost ~18 us and msgspec ~4 us
+    (cache-evicted calls, median), with the same values (integers of any size included).
+    What msgspec refuses and ``json`` reads (``NaN``, ``1e400``, a BOM, lone surrogates,
+    UTF-16) goes to ``json.loads``."""
     try:
-        text = payload.decode("utf-8")
-        obj, end = _SCAN(text, 0)
-        if end == len(text):
-            return obj
-    except (ValueError, StopIteration):  # UnicodeDecodeError, JSONDecodeError, no value
-        pass
-    return json.loads(payload)
+        return _DECODE(payload)
+    except msgspec.DecodeError:
+        return json.loads(payload)
 
 
 def _flat(obj: dict[str, Any]) -> bool:
