@@ -497,12 +497,8 @@ def encode_json(value: Any, schema: StreamSchema, epoch_offset: float | None = N
     (runtime clock, seconds) is written as nanoseconds since the Unix epoch, the time base of
     every time in a recording (log times, image stamps); replay maps it back.
     """
-    if schema.guessed and _flat(value):  # what the two walks below would give, unchanged
-        obj = dict(value)
-        ts = obj.get("timestamp")
-        if epoch_offset is not None and type(ts) is float:
-            obj["timestamp"] = round((ts + epoch_offset) * 1e9)
-        return Encoded(schema, _flat_dumps(obj))
+    if schema.guessed and (data := flat_json(value, epoch_offset)) is not None:
+        return Encoded(schema, data)  # what the two walks below would give, unchanged
     obj = to_jsonable(value)
     if not isinstance(obj, dict):
         obj = {"value": obj}
@@ -517,6 +513,18 @@ def encode_json(value: Any, schema: StreamSchema, epoch_offset: float | None = N
 
 _dumps = json.JSONEncoder(separators=(",", ":")).encode
 """``json.dumps(obj, separators=(",", ":"))`` without a new encoder object per call."""
+
+
+def flat_json(value: Any, epoch_offset: float | None) -> bytes | None:
+    """A flat mapping (:func:`_flat`) under a guessed schema as :func:`encode_json` writes it
+    (its float ``timestamp`` in epoch nanoseconds); None when ``value`` is not flat."""
+    if not _flat(value):
+        return None
+    ts = value.get("timestamp")
+    if epoch_offset is not None and type(ts) is float:
+        value = {**value, "timestamp": round((ts + epoch_offset) * 1e9)}
+    return _flat_dumps(value)
+
 
 _flat_dumps = msgspec.json.Encoder().encode
 """A flat mapping (:func:`_flat`) as compact UTF-8 JSON. msgspec's C encoder, not ``json``'s:

@@ -45,6 +45,7 @@ from .encoding import (
     encode_audio,
     encode_frame,
     encode_json,
+    flat_json,
     image_schema,
     schema_for,
 )
@@ -131,6 +132,17 @@ class StreamBook:
     def streams(self) -> list[StreamDescription]:
         """Every description made so far, in order."""
         return list(self._streams.values())
+
+    def encode_flat(self, topic: str, value: Any) -> Encoded | None:
+        """``encode(topic, value)`` for a flat mapping (text keys, scalar values: never a
+        set) of a stream already described by a guessed schema; None for anything else.
+        One walk of the value instead of three calls: the exporter's message path runs
+        cold at 20 Hz and pays every one."""
+        d = self._streams.get((topic, dict))
+        if d is None or not d.schema.guessed or type(value) is not dict:
+            return None
+        data = flat_json(value, self.epoch_offset)
+        return None if data is None else Encoded(d.schema, data)
 
     def encode(self, topic: str, value: Any) -> Encoded:
         """``value`` as a message of ``topic``'s channel (time in Unix time)."""

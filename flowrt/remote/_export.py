@@ -33,10 +33,10 @@ from ._host import BridgeHost
 from ._streams import encoding_of
 from .wire import (
     Header,
+    MessageHeaders,
     encode_frame,
     frame_meta,
     header_ids,
-    message_header,
     own_timestamp,
     payload_encoding,
 )
@@ -62,7 +62,7 @@ class Export:
     seq: int = 0
     busy: bool = False
     errors: int = 0
-    encodings: dict[str, Any] = field(default_factory=dict)  # schema -> (kind, Zenoh encoding)
+    encodings: dict[str, Any] = field(default_factory=dict)  # schema -> (headers, encoding)
     topic: str = field(init=False, default="")  # node.port: the stream's name in the book
 
     def __post_init__(self) -> None:
@@ -143,21 +143,23 @@ class ExportSender:
         ``put`` is latency (its encoding took 0.12 ms cold, Zenoh's whole hop 0.3 ms)."""
         now_wall = time.time()
         topic = exp.topic
-        # a set: its index, as the recording's TOPIC channel (members not sent)
-        shown = split_set(topic, value)[0] if type(value) is dict and is_set(value) else value
-        msg = self._book.encode(topic, shown)
+        msg = self._book.encode_flat(topic, value)  # a flat mapping: one walk (never a set)
+        if msg is None:
+            # a set: its index, as the recording's TOPIC channel (members not sent)
+            shown = split_set(topic, value)[0] if type(value) is dict and is_set(value) else value
+            msg = self._book.encode(topic, shown)
         stamp = own_timestamp(value)  # a detection: its frame's capture time
         captured = self._wall0 + (stamp - self._mono0) if stamp is not None else now_wall
         zkey = msg.schema.name
         sent = exp.encodings.get(zkey)
-        if sent is None:  # one per schema: the Zenoh encoding made once, not per put
+        if sent is None:  # one per schema: the Zenoh encoding and header made once, not per put
             json_ = msg.schema.message_encoding == "json"
             sent = exp.encodings[zkey] = (
-                "json" if json_ else "protobuf",
+                MessageHeaders(self._ids, "json" if json_ else "protobuf"),
                 encoding_of(msg.schema.message_encoding, zkey),
             )
-        kind, encoding = sent
-        attachment = message_header(self._ids, kind, exp.seq, now_wall, captured)
+        header, encoding = sent
+        attachment = header(exp.seq, now_wall, captured)
         exp.seq += 1
         exp.publisher.put(msg.data, attachment=attachment, encoding=encoding)
 

@@ -96,13 +96,28 @@ _KIND = {k: i for i, k in enumerate(KINDS)}
 _ENC = {e: i for i, e in enumerate(ENCODINGS)}
 
 
+class MessageHeaders:
+    """The headers of one stream's messages of one kind: ``Header(stream, zid, seq, sent,
+    cap, kind).encode()``, from the stream and session ids already checked
+    (:func:`header_ids`). The bytes before and after the three per-message fields are made
+    once; a header is then one small ``pack`` and two joins (5 us cold against 9 us for the
+    full ``pack``: the exporter's message path runs cold at 20 Hz and pays every call)."""
+
+    _TIMES = struct.Struct("<Qdd")  # seq, sent, captured: at offset 56 of HEADER
+
+    def __init__(self, ids: tuple[bytes, bytes], kind: str) -> None:
+        whole = HEADER.pack(
+            MAGIC, WIRE_VERSION, _KIND[kind], 0, 0, *ids, 0, 0.0, 0.0, 0, 0, 0, 0, b"", b""
+        )
+        self._head, self._tail = whole[:56], whole[56 + self._TIMES.size :]
+
+    def __call__(self, seq: int, sent: float, cap: float) -> bytes:
+        return self._head + self._TIMES.pack(seq, sent, cap) + self._tail
+
+
 def message_header(ids: tuple[bytes, bytes], kind: str, seq: int, sent: float, cap: float) -> bytes:
-    """``Header(stream, zid, seq, sent, cap, kind).encode()`` for a message (no frame fields),
-    from the stream and session ids already checked (:func:`header_ids`): one ``pack``, as
-    the exporter's message path runs cold at 20 Hz and pays every call it makes."""
-    return HEADER.pack(
-        MAGIC, WIRE_VERSION, _KIND[kind], 0, 0, *ids, seq, sent, cap, 0, 0, 0, 0, b"", b""
-    )
+    """One message's header (an export keeps a :class:`MessageHeaders` per kind instead)."""
+    return MessageHeaders(ids, kind)(seq, sent, cap)
 
 
 def header_ids(stream: str, zid: str) -> tuple[bytes, bytes]:
@@ -115,6 +130,11 @@ def _ascii(text: str, size: int, what: str) -> bytes:
     if len(raw) > size:
         raise ValueError(f"{what} {text!r} is longer than the header's {size} bytes")
     return raw
+
+
+_NAMES: dict[tuple[bytes, bytes], tuple[str, str]] = {}
+"""The header's stream and session ids (raw) -> as text: a stream's are the same in every
+message. Bounded (cleared at 64 entries: exporters restarting make new streams)."""
 
 
 @dataclass
@@ -183,15 +203,15 @@ class Header:
                 "seq": fseq,
                 "enc": ENCODINGS[enc],
             }
-        return cls(
-            stream.rstrip(b"\0").decode("ascii"),
-            zid.rstrip(b"\0").decode("ascii"),
-            seq,
-            sent,
-            cap,
-            k,
-            meta,
-        )
+        names = _NAMES.get((stream, zid))
+        if names is None:  # a new stream: its ids as text, once (cold: 18 -> 13 us a header)
+            if len(_NAMES) >= 64:
+                _NAMES.clear()
+            names = _NAMES[stream, zid] = (
+                stream.rstrip(b"\0").decode("ascii"),
+                zid.rstrip(b"\0").decode("ascii"),
+            )
+        return cls(names[0], names[1], seq, sent, cap, k, meta)
 
     @classmethod
     def _decode_json(cls, raw: bytes) -> Header:
