@@ -75,7 +75,10 @@ def _link(stale_after: float | None, stale_is: str = "error") -> tuple[ImportLin
     clock = _Clock()
     calls: list[Any] = []
     host = types.SimpleNamespace(
-        loop=types.SimpleNamespace(call_soon_threadsafe=calls.append, call_soon=lambda *a: None),
+        # call_soon: at once (the loop would run it right after the delivery)
+        loop=types.SimpleNamespace(
+            call_soon_threadsafe=calls.append, call_soon=lambda f, *a: f(*a)
+        ),
         now_mono=clock,
         publish=lambda *a: None,
         record=lambda *a: None,

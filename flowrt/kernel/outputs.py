@@ -72,7 +72,7 @@ class OutputCheck:
         if len(self.ports) == 1:
             self.value(self.ports[0], result)
             return
-        if not isinstance(result, Mapping):
+        if type(result) is not dict and not isinstance(result, Mapping):  # (ABC check: cold)
             raise OutputError(
                 f"a node with outputs {self.ports} must return a mapping of them, "
                 f"not {type(result).__name__}"

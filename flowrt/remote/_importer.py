@@ -262,6 +262,9 @@ class ImportLink:
     # the loop ---------------------------------------------------------------------------
 
     def deliver(self) -> None:
+        """On the loop: publish what arrived; the link's accounting follows in a callback of
+        its own, after the readers' activations (which the publication queued first): at
+        20 Hz this runs cold, and every line before the publication delays the readers."""
         with self.lock:
             items = list(self.pending)
             self.pending.clear()
@@ -269,22 +272,15 @@ class ImportLink:
             discard, self.discard = self.discard, []
         for old in discard:
             old.release()
+        if not items:
+            return
         host = self.bridge.host
+        arrived: list[tuple[Header, float, float]] = []  # (header, loop clock, wall clock)
         records: list[Any] = []
         key: tuple[Any, ...] | None = None
         for header, value in items:
-            now = host.now_mono()
-            offset = self.bridge.offset(header.zid)
-            wall_now = time.time()
-            age = max(0.0, wall_now - (header.sent - offset))
-            self.link.delivered += 1
-            self.link.age.add(age)
-            if self.last_arrival is not None:
-                self.arrivals.add(now - self.last_arrival)
-            self.last_arrival = now
-            captured_mono = now - max(0.0, wall_now - (header.captured - offset))
-            if header.zid and not self.bridge.clock_known(header.zid):
-                captured_mono = now  # its clock not measured yet: arrival beats a guess
+            now, wall_now = host.now_mono(), time.time()
+            arrived.append((header, now, wall_now))
             if header.kind == "frame":
                 if isinstance(value, Frame):  # made on Zenoh's thread
                     frame = value
@@ -296,27 +292,51 @@ class ImportLink:
                     frame = host.new_frame(self.name, tuple(arr.shape), arr.dtype, key[2])
                     np.copyto(frame.data, arr)
                 frame.seq = int(header.frame.get("seq", header.seq))
-                frame.timestamp = captured_mono
+                frame.timestamp = self._captured(header, now, wall_now)
                 host.publish(self.name, "output", frame)
                 frame.release()
             else:
                 if self.plain is None and own_timestamp(value) is not None:
                     # the exporter's monotonic stamp means nothing here: the capture time,
                     # on its corrected clock, mapped onto ours (header.captured carries it)
+                    stamp = self._captured(header, now, wall_now)
                     if isinstance(value, AudioBlock):  # frozen: a copy with its time
-                        value = dataclasses.replace(value, timestamp=captured_mono)
+                        value = dataclasses.replace(value, timestamp=stamp)
                     else:
-                        set_timestamp(value, captured_mono)
+                        set_timestamp(value, stamp)
                 host.publish(self.name, "output", value)
                 records.append(value)
-        if items:
-            self.last_contact_wall = time.time()
-        if self.stale and items:
+        host.loop.call_soon(self._account, arrived, records, key)
+
+    def _captured(self, header: Header, now: float, wall_now: float) -> float:
+        """A value's capture time on our loop clock, from the exporter's corrected clock."""
+        if header.zid and not self.bridge.clock_known(header.zid):
+            return now  # its clock not measured yet: arrival beats a guess
+        offset = self.bridge.offset(header.zid)
+        return now - max(0.0, wall_now - (header.captured - offset))
+
+    def _account(
+        self,
+        arrived: list[tuple[Header, float, float]],
+        records: list[Any],
+        key: tuple[Any, ...] | None,
+    ) -> None:
+        """On the loop, after the readers of a delivery: the link's counts and ages, the
+        import's liveness, the RTDB records (a write is ~0.1 ms: a lock), the next spare."""
+        for header, now, wall_now in arrived:
+            offset = self.bridge.offset(header.zid)
+            self.link.delivered += 1
+            self.link.age.add(max(0.0, wall_now - (header.sent - offset)))
+            if self.last_arrival is not None:
+                self.arrivals.add(now - self.last_arrival)
+            self.last_arrival = now
+        self.last_contact_wall = time.time()
+        if self.stale:
             self._resumed()
-        if records:  # after the readers' activations: an RTDB write is ~0.1 ms (a lock)
-            host.loop.call_soon(self._record, records)
-        if key is not None:  # after the readers' activations too
-            host.loop.call_soon(self._ready_spare, key)
+        if records:
+            self._record(records)
+        if key is not None:
+            self._ready_spare(key)
 
     def _ready_spare(self, key: tuple[Any, ...]) -> None:
         """On the loop: a pool frame of the last shape, for the next arrival to fill."""
