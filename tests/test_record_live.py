@@ -78,12 +78,14 @@ class Client:
         self.sock.sendall(header + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(data)))
 
     def next_frame(self) -> tuple[int, bytes]:
-        """The next frame; channel advertisements are noted on the way."""
+        """The next frame; channel advertisements are noted on the way, an error the server
+        reports (``Unknown channel ID``: a refused subscription) fails the test at once."""
         op, payload = self.frame()
         if op == 1:
             msg = json.loads(payload)
             if msg.get("op") == "advertise":
                 self.channels.update({c["topic"]: c for c in msg["channels"]})
+            assert not (msg.get("op") == "status" and msg.get("level") == 2), msg
         return op, payload
 
     def wait_for_channel(self, topic: str) -> dict[str, Any]:
@@ -174,6 +176,32 @@ async def test_live_detections_are_drawn_on_their_camera() -> None:
     assert decode is not None
     ann = decode(payload)
     assert ann.timestamp.seconds > 1_600_000_000  # the frame's time, as Unix time
+
+
+def test_a_late_channel_reaches_viewers_once_it_can_be_subscribed() -> None:
+    """The SDK's server queues a new channel's advertisement before it takes subscriptions to
+    it: a viewer that subscribed at once was told ``Unknown channel ID`` and got nothing (the
+    flaky detections test). The bridge relays nothing while a channel is being added."""
+    import foxglove
+
+    live = FoxgloveLive(port=0)
+    live.open()
+    viewer = None
+    try:
+        viewer = Client(live.port)
+        _, info = viewer.next_frame()
+        assert json.loads(info)["op"] == "serverInfo"  # nothing else is on its way
+        with live._bridge.holding():
+            foxglove.Channel("late", message_encoding="json", context=live._ctx)
+            viewer.sock.settimeout(0.5)  # the advertisement is queued: the bridge holds it
+            with pytest.raises(TimeoutError):
+                viewer.next_frame()
+            viewer.sock.settimeout(30)
+        assert viewer.wait_for_channel("late")["encoding"] == "json"
+    finally:
+        if viewer is not None:
+            viewer.sock.close()
+        live.stopped(None)  # type: ignore[arg-type]  # no runtime: only the server to stop
 
 
 def test_run_foxglove_port_taken_is_one_line() -> None:

@@ -351,12 +351,18 @@ class FoxgloveLive:
     def _channel(self, topic: str, schema: StreamSchema) -> Any:
         import foxglove
 
-        return foxglove.Channel(
-            topic,
-            schema=foxglove.Schema(name=schema.name, encoding=schema.encoding, data=schema.data),
-            message_encoding=schema.message_encoding,
-            context=self._ctx,
-        )
+        # advertised to the viewers only once the server takes subscriptions to it: a viewer
+        # that subscribes at once would else be told "Unknown channel ID" (wsbridge.py)
+        bridge = self._bridge
+        with bridge.holding() if bridge is not None else contextlib.nullcontext():
+            return foxglove.Channel(
+                topic,
+                schema=foxglove.Schema(
+                    name=schema.name, encoding=schema.encoding, data=schema.data
+                ),
+                message_encoding=schema.message_encoding,
+                context=self._ctx,
+            )
 
 
 def _stop_server(server: Any) -> None:

@@ -9,6 +9,14 @@ subscribe, binary message data...), so this bridge listens on the user's port, a
 either name, and relays frames both ways to the SDK server on a private loopback port, which
 it asks for ``foxglove.sdk.v1``. It runs on its own thread and event loop: a viewer never
 takes the graph's loop.
+
+It also closes a race of the SDK's server: a channel added while a viewer is connected is
+advertised to the viewer (queued to its socket) before the server notes it among that
+viewer's channels, so a viewer that subscribes as soon as it reads the advertisement (a
+panel already showing that topic) may be answered ``Unknown channel ID`` and never gets a
+message. The server has noted it for every viewer once ``foxglove.Channel()`` has
+returned; :meth:`SubprotocolBridge.holding` around that call keeps the bridge from relaying
+anything from the server to the viewers meanwhile, so no viewer sees the advertisement early.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ import contextlib
 import logging
 import socket
 import threading
+from collections.abc import Awaitable, Callable, Iterator
 from typing import Any
 
 __all__ = ["SUBPROTOCOLS", "SubprotocolBridge"]
@@ -42,10 +51,40 @@ class SubprotocolBridge:
         self._stop: asyncio.Event | None = None
         self._thread = threading.Thread(target=self._run, name="foxglove-bridge", daemon=True)
         self._ready = threading.Event()
+        self._holds = 0  # callers adding a channel now: nothing goes from the server to viewers
+        self._holds_lock = threading.Lock()
+        self._released: asyncio.Event | None = None  # on the bridge's loop
 
     def start(self) -> None:
         self._thread.start()
         self._ready.wait(10)
+
+    @contextlib.contextmanager
+    def holding(self) -> Iterator[None]:
+        """Relay nothing from the server to the viewers until the block is done.
+
+        Wrap ``foxglove.Channel()`` (any thread): its advertisement reaches a viewer only once
+        the server accepts a subscription to it (see the module docstring).
+        """
+        with self._holds_lock:
+            self._holds += 1
+        try:
+            yield
+        finally:
+            with self._holds_lock:
+                self._holds -= 1
+                last = self._holds == 0
+            loop, released = self._loop, self._released
+            if last and loop is not None and released is not None:
+                with contextlib.suppress(RuntimeError):  # the bridge's loop is closed
+                    loop.call_soon_threadsafe(released.set)
+
+    async def _unheld(self) -> None:
+        """Return when no channel is being added (on the bridge's loop)."""
+        released = self._released
+        while self._holds and released is not None:
+            released.clear()  # a set() for this hold is queued on this loop after this line
+            await released.wait()
 
     def close(self) -> None:
         loop, stop = self._loop, self._stop
@@ -66,6 +105,7 @@ class SubprotocolBridge:
 
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
+        self._released = asyncio.Event()
         app = web.Application()
         app.add_routes([web.get("/", self._client), web.get("/{tail:.*}", self._client)])
         runner = web.AppRunner(app, access_log=None, handle_signals=False)
@@ -99,7 +139,7 @@ class SubprotocolBridge:
                     compress=0,
                 ) as up,
             ):
-                await asyncio.gather(_pump(ws, up), _pump(up, ws))
+                await asyncio.gather(_pump(ws, up), _pump(up, ws, self._unheld))
         except (aiohttp.ClientError, ConnectionError) as e:
             log.debug("foxglove bridge: %s", e)
         finally:
@@ -108,12 +148,15 @@ class SubprotocolBridge:
         return ws
 
 
-async def _pump(src: Any, dst: Any) -> None:
-    """Relay text and binary frames from ``src`` to ``dst`` until either side closes."""
+async def _pump(src: Any, dst: Any, gate: Callable[[], Awaitable[None]] | None = None) -> None:
+    """Relay text and binary frames from ``src`` to ``dst`` until either side closes; each
+    one, in order, once ``gate`` returns."""
     from aiohttp import WSMsgType
 
     try:
         async for msg in src:
+            if gate is not None:
+                await gate()
             if msg.type is WSMsgType.TEXT:
                 await dst.send_str(msg.data)
             elif msg.type is WSMsgType.BINARY:
