@@ -152,33 +152,28 @@ class ImportLink:
     # Zenoh's thread ---------------------------------------------------------------------
 
     def on_sample(self, sample: Any) -> None:
+        plain = self.plain is not None
         try:
-            header, value = self._decode(sample)
+            header, zbytes = self._header(sample)
+            if plain:  # its sequence number is taken once the payload is accepted: a refused
+                value = self._value(sample, header, zbytes)  # sample is never also a gap
         except Exception as e:
-            reason = e.reason if isinstance(e, Refused) else "undecodable"
-            with self.lock:
-                self.decode_errors += 1
-                self.link.published += 1  # it arrived: published, and dropped with its reason
-                self.link.lost(reason)
-            self._warn(reason, f"import {self.name}: {reason} message on {self.key}: {e}")
+            self._refused(e, counted=False)
             return
-        if self.plain is not None:
+        if plain:
             self.plain_seq += 1
         self.bridge.clock_probe(header.zid)
         with self.lock:
-            if header.stream != self.stream:
-                self.stream, self.last_seq = header.stream, header.seq - 1
-            elif not 0 <= header.seq - self.last_seq <= MAX_SEQ_JUMP:
-                # a forged or reset sequence: a restart of the stream, counted, not a gap of
-                # 2**70 messages (nor a negative one)
-                self.restarts += 1
-                self.last_seq = header.seq - 1
-            gap = header.seq - self.last_seq - 1
-            if gap > 0:  # never received: lost on the way (or dropped by Zenoh's congestion)
-                self.link.published += gap
-                self.link.lost("sequence gap", gap)
-            self.last_seq = max(self.last_seq, header.seq)
-            self.link.published += 1
+            self._sequence(header)
+        if not plain:
+            # The payload after the header's accounting: copying a large frame evicts the
+            # CPU's caches, and every line after the copy runs cold (on the way to the loop).
+            try:
+                value = self._value(sample, header, zbytes)
+            except Exception as e:
+                self._refused(e, counted=True)
+                return
+        with self.lock:
             # Frames hold pool slots: a short backlog (two arriving back to back after an
             # exporter's stall must both get through); messages: the import's ``size``.
             limit = FRAME_BACKLOG if header.kind == "frame" else self.size
@@ -199,13 +194,37 @@ class ImportLink:
         except RuntimeError:  # the loop is closing (no contextlib: its code runs cold here)
             return
 
-    def _decode(self, sample: Any) -> tuple[Header, Any]:
-        """The sample's header and value, checked before anything is copied; raises (a
-        :class:`Refused` with its reason, or any decoder's error: undecodable)."""
+    def _sequence(self, header: Header) -> None:
+        """Count a sample that arrived (under the lock): published, and the sequence numbers
+        it skipped as lost on the way."""
+        if header.stream != self.stream:
+            self.stream, self.last_seq = header.stream, header.seq - 1
+        elif not 0 <= header.seq - self.last_seq <= MAX_SEQ_JUMP:
+            # a forged or reset sequence: a restart of the stream, counted, not a gap of
+            # 2**70 messages (nor a negative one)
+            self.restarts += 1
+            self.last_seq = header.seq - 1
+        gap = header.seq - self.last_seq - 1
+        if gap > 0:  # never received: lost on the way (or dropped by Zenoh's congestion)
+            self.link.published += gap
+            self.link.lost("sequence gap", gap)
+        self.last_seq = max(self.last_seq, header.seq)
+        self.link.published += 1
+
+    def _refused(self, e: Exception, counted: bool) -> None:
+        """A sample not taken, dropped with its reason (``counted``: already published)."""
+        reason = e.reason if isinstance(e, Refused) else "undecodable"
+        with self.lock:
+            self.decode_errors += 1
+            if not counted:
+                self.link.published += 1  # it arrived: published, and dropped with its reason
+            self.link.lost(reason)
+        self._warn(reason, f"import {self.name}: {reason} message on {self.key}: {e}")
+
+    def _header(self, sample: Any) -> tuple[Header, Any]:
+        """The sample's header and payload (not copied); raises :class:`Refused`."""
         raw_att = sample.attachment
         if self.plain is not None:  # a plain program's payload: the header is made here
-            # its sequence number is taken once the payload is accepted (below): a refused
-            # sample is counted once, as refused, never again as a gap
             header = self.plain.header(self.key, self.plain_seq)
         elif raw_att is None:
             raise Refused(
@@ -220,19 +239,23 @@ class ImportLink:
         zbytes = sample.payload
         if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
             raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
+        return header, zbytes
+
+    def _value(self, sample: Any, header: Header, zbytes: Any) -> Any:
+        """The payload's value, checked before anything is copied; raises (a
+        :class:`Refused` with its reason, or any decoder's error: undecodable)."""
         if header.kind == "frame":  # checked before the copy (see frame_decoder)
             pixels = frame_decoder(header.frame, len(zbytes), self.max_pixels)
-            value: Any = self._frame(header.frame, pixels(zbytes.to_bytes()))
-        elif header.kind == "bytes":
-            value = zbytes.to_bytes()
-        elif header.kind == "protobuf":  # the recording's protobuf message (audio)
+            return self._frame(header.frame, pixels(zbytes.to_bytes()))
+        if header.kind == "bytes":
+            return zbytes.to_bytes()
+        if header.kind == "protobuf":  # the recording's protobuf message (audio)
             schema = schema_of_sample(sample)
             if schema != AUDIO_SCHEMA:
                 raise Refused("undecodable", f"a protobuf message of schema {schema!r}")
-            value = decode_audio(zbytes.to_bytes(), header.seq, 0.0)  # its time: set on delivery
-        else:  # the recording's JSON message; typed by the schema its encoding names
-            value = decode_json(zbytes.to_bytes(), "" if self.plain else schema_of_sample(sample))
-        return header, value
+            return decode_audio(zbytes.to_bytes(), header.seq, 0.0)  # its time: on delivery
+        # the recording's JSON message; typed by the schema its encoding names
+        return decode_json(zbytes.to_bytes(), "" if self.plain else schema_of_sample(sample))
 
     def _warn(self, reason: str, text: str) -> None:
         """One warning per reason every WARN_EVERY seconds: a flood is counted, not logged."""
