@@ -184,6 +184,18 @@ class _Sample:
         self.payload = _Bytes(payload)
 
 
+def test_a_refused_flowrt_sample_is_counted_once_not_again_as_a_gap() -> None:
+    """Its header was read: its sequence number is taken, so the next sample sees no gap."""
+    imp, _ = _link(5.0)
+    for seq in range(6):
+        payload = b"{not json" if seq % 2 else b'{"v": 1}'
+        imp.on_sample(_Sample(Header("s", "z", seq, time.time(), time.time(), "json"), payload))
+        imp.pending.clear()
+    assert imp.link.published == 6
+    assert imp.link.drop_reasons == {"undecodable": 3}
+    assert imp.link.dropped == 3
+
+
 def test_a_message_timestamp_is_mapped_onto_the_importer_clock() -> None:
     """Issue 40 item 5: a detection's own timestamp (the exporter's monotonic clock) arrives
     as the importer's monotonic time of the same instant, through the measured offset."""
