@@ -158,6 +158,22 @@ def test_a_message_header_packs_as_the_header_class() -> None:
         header_ids("x" * 17, "z")
 
 
+def test_a_frame_header_packs_as_the_header_class() -> None:
+    import numpy as np
+
+    from flowrt import Frame
+    from flowrt.remote.wire import FrameHeaders, Header, frame_meta
+
+    headers = FrameHeaders("0123456789abcdef", "f" * 32)
+    for shape, pf in (((480, 640, 3), "BGR"), ((120, 160), "GRAY"), ((480, 640, 3), "RGB")):
+        frame = Frame(np.zeros(shape, np.uint8), pixel_format=pf)
+        frame.seq = 41
+        meta = frame_meta(frame, "raw")
+        whole = Header("0123456789abcdef", "f" * 32, 7, 1.25, 0.5, "frame", meta).encode()
+        assert headers(frame, 7, 1.25, 0.5) == whole
+        assert Header.decode(whole).frame == {**meta, "shape": list(shape)}
+
+
 @pytest.mark.parametrize(
     ("payload", "schema", "expected"),
     [

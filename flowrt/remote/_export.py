@@ -32,10 +32,10 @@ from ..recording.streams import StreamBook, is_set, split_set
 from ._host import BridgeHost
 from ._streams import encoding_of
 from .wire import (
+    FrameHeaders,
     Header,
     MessageHeaders,
     encode_frame,
-    frame_meta,
     header_ids,
     own_timestamp,
     payload_encoding,
@@ -79,6 +79,7 @@ class ExportSender:
         self._mono0, self._wall0 = time.monotonic(), time.time()  # capture time to wall clock
         self._book = StreamBook(epoch_offset=self._wall0 - self._mono0)  # the recorder's
         self._ids = header_ids(stream, zid)
+        self._frames = FrameHeaders(stream, zid)  # raw frames' headers
         self._jobs: queue.SimpleQueue[tuple[Export, Any] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
 
@@ -165,19 +166,17 @@ class ExportSender:
 
     def _send_frame(self, exp: Export, value: Frame) -> None:
         now_wall = time.time()
-        raw = exp.encoding == "raw"
-        # Raw pixels are copied last (below): whatever follows that copy runs cold.
-        if raw:
-            meta, payload = frame_meta(value, "raw"), b""
-        else:
-            meta, payload = encode_frame(value, exp.encoding, exp.quality)
         captured = self._wall0 + (value.timestamp - self._mono0) if value.timestamp else now_wall
-        header = Header(self.stream, self.zid, exp.seq, now_wall, captured, "frame", meta)
-        exp.seq += 1
         encoding = exp.encodings.get("frame")
         if encoding is None:  # a Zenoh object made once, not per put
-            encoding = exp.encodings["frame"] = payload_encoding(header)
-        attachment = header.encode()
-        if raw:
+            encoding = exp.encodings["frame"] = payload_encoding(exp.encoding)
+        if exp.encoding == "raw":  # the header from the stream's template, the pixels last:
+            attachment = self._frames(value, exp.seq, now_wall, captured)  # what follows the
+            exp.seq += 1  # copy runs cold
             payload = value.data.tobytes()  # Zenoh takes bytes: the one copy on this side
+        else:
+            meta, payload = encode_frame(value, exp.encoding, exp.quality)
+            header = Header(self.stream, self.zid, exp.seq, now_wall, captured, "frame", meta)
+            exp.seq += 1
+            attachment = header.encode()
         exp.publisher.put(payload, attachment=attachment, encoding=encoding)
