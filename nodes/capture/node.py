@@ -263,7 +263,13 @@ class Capture(Node):
                 assert isinstance(target, str)
                 return ImageDevice(target, p.input_format == "GRAY", alert, start)
             return VideoDevice(
-                kind, target, input_format=p.input_format, size=p.size, fps=p.fps, start=start
+                kind,
+                target,
+                input_format=p.input_format,
+                size=p.size,
+                fps=p.fps,
+                start=start,
+                decode_threads=p.decode_threads,
             )
 
         self._recovery.opening()

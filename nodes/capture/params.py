@@ -149,6 +149,13 @@ class CaptureParams(BaseModel):
     )
     pacing: Literal["realtime", "fast"] = "realtime"
     on_eof: Literal["stop", "loop", "exit"] = "stop"
+    decode_threads: int = Field(
+        1,
+        ge=0,
+        le=64,
+        description="a file's decoding threads (FFmpeg): 1 decodes on the reader thread, "
+        "beside the graph; 0: FFmpeg's choice (one per CPU)",
+    )
     seed: int = Field(0, ge=0)
     clutter: float = Field(
         0.3, ge=0.0, le=1.0, description="synthetic scene: noise, lighting, distractors"

@@ -13,6 +13,7 @@ from __future__ import annotations
 import glob
 import os
 from collections.abc import Callable
+from typing import Any
 
 import cv2
 import numpy as np
@@ -55,11 +56,30 @@ class Device:
         pass
 
 
+def _open_file(target: str, threads: int) -> Any:
+    """A file (or stream URL) through FFmpeg with ``threads`` decoding threads (0: its
+    choice); a backend that does not take the setting opens it with its own."""
+    if threads > 0:
+        cap = cv2.VideoCapture(target, cv2.CAP_FFMPEG, [cv2.CAP_PROP_N_THREADS, threads])
+        if cap.isOpened():
+            return cap
+        cap.release()
+    return cv2.VideoCapture(target)
+
+
 class VideoDevice(Device):
     """A video file or stream (``kind`` ``file``) or a camera (``camera``), through OpenCV.
 
     A camera is asked for ``input_format`` (delivered raw, unconverted), ``size`` and ``fps``;
     what it grants is in ``dims``. A file reopened after a stall seeks to ``start``.
+
+    ``decode_threads``: FFmpeg's decoding threads for a file (0: its choice, one per CPU).
+    One by default: the reader thread already decodes beside the graph, and FFmpeg's own
+    threads (woken for every frame) compete with the graph's nodes for the CPUs. Measured on
+    the 2-CPU machine with the 720x528 sample clip: one thread 0.30-0.32 ms of CPU per frame,
+    FFmpeg's choice 0.36-0.38 ms (a lower wall time alone, 0.23-0.26 ms); graphs/video.yaml
+    offline, inline tracker: 1.17x a plain OpenCV loop with one thread, 1.03x with FFmpeg's
+    choice (benchmarks/RESULTS.md).
     """
 
     def __init__(
@@ -71,6 +91,7 @@ class VideoDevice(Device):
         size: tuple[int, int] | None = None,
         fps: float = 0.0,
         start: int = 0,
+        decode_threads: int = 0,
     ) -> None:
         self.kind = kind
         self.target = target
@@ -84,7 +105,7 @@ class VideoDevice(Device):
                 raise SourceError(
                     f"{target} is a directory, not a video file (for images use images:GLOB)"
                 )
-            cap = cv2.VideoCapture(target)
+            cap = _open_file(target, decode_threads)
             if not cap.isOpened():
                 cap.release()
                 raise SourceError(
