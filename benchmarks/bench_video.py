@@ -151,6 +151,8 @@ def spec_for(video: Path, placement: str) -> GraphSpec:
     cam = data["nodes"]["cam"]["params"]
     cam.update(source=f"file:{video}", pacing="fast", on_eof="exit")
     data["nodes"]["lamp"]["placement"] = "process" if placement.startswith("process") else placement
+    if placement == "inline":  # no worker to pin
+        data["nodes"]["lamp"].pop("cpus", None)
     if placement == UNPIPELINED:  # one call at a time: the worker as before it was pipelined
         data["nodes"]["lamp"]["pipeline"] = 1
     if DISPLAY:

@@ -33,6 +33,7 @@ from ..monitors._quiet import delay_to_gap
 from ..node import Node
 from ..stats import NodeStats, Running, RuntimeStats
 from ..system._eventloop import run as run
+from ..system._loop_cpus import LoopCpus
 from ..system._loop_share import LoopShare
 from ._event_hub import EventHub
 from ._event_hub import Monitor as Monitor
@@ -101,6 +102,7 @@ class Runtime(Interruptible):
         self._rtdb: RTDB | None = None
         self._fair: FairShare | None = None
         self._loop_share = LoopShare()
+        self._loop_cpus = LoopCpus()
         self.qos: OverloadController | None = None
         self._bridge: Any = None  # flowrt.remote._bridge.ZenohBridge when the graph spans machines
         self.started = False
@@ -154,6 +156,7 @@ class Runtime(Interruptible):
             from ..workers import start_forkserver
 
             await in_daemon_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
+            self._loop_cpus.apply(self.graph)  # after the forkserver: workers keep every CPU
         # Imported now, not at the first run-time change: an import on the loop at that moment
         # (tens of ms) would make the ticks around a `ctl timing` late.
         from ..analysis import admission  # noqa: F401
@@ -229,6 +232,7 @@ class Runtime(Interruptible):
             if self._rtdb is not None:
                 self._rtdb.close()
             self._loop_share.restore()
+            self._loop_cpus.restore()
             gc.unfreeze()
 
     async def run(self, duration: float | None = None) -> None:
@@ -248,7 +252,9 @@ class Runtime(Interruptible):
     @property
     def loop_scheduling(self) -> str:
         """What the loop process was granted: SCHED_FIFO, or its nice level and slice."""
-        return self.realtime if self.realtime.startswith("SCHED_FIFO") else self.latency_hint
+        granted = self.realtime if self.realtime.startswith("SCHED_FIFO") else self.latency_hint
+        cpus = self._loop_cpus.granted
+        return f"{granted}, {cpus}" if cpus and granted else granted
 
     # --- resources ----------------------------------------------------------------------
 
