@@ -72,3 +72,43 @@ def test_the_loop_keeps_off_pinned_workers_cpus(placement: str, cpus: str, kept_
     else:
         assert during == mine
         assert said == ""
+
+
+def test_a_run_with_a_pinned_worker_moves_the_loop_and_gives_its_cpus_back() -> None:
+    """End to end: a tracker in a worker pinned to the first CPU; the loop thread runs on the
+    others during the run (its scheduling says so) and has every CPU again after it."""
+    import flowrt
+
+    mine = os.sched_getaffinity(0)
+    first = min(mine)
+    g = flowrt.GraphBuilder("pinned")
+    g.add("cam", "capture", params={"source": "synthetic:soccer", "fps": 20, "size": [160, 120]})
+    g.add(
+        "ball",
+        "tracker",
+        params={"object": "ball"},
+        trigger={"frame": "cam"},
+        inputs={"frame": "cam.frame"},
+        placement="process",
+        cpus=[first],
+    )
+    out: dict[str, Any] = {}
+
+    async def run() -> None:
+        async with flowrt.Runtime(g.build()) as rt:
+            await rt.run(0.5)
+            out["during"] = os.sched_getaffinity(0)
+            out["said"] = rt.stats().loop_scheduling
+            out["ball"] = next(n for n in rt.stats().nodes if n.name == "ball").completions
+
+    def thread() -> None:
+        flowrt.run(run())
+        out["after"] = os.sched_getaffinity(0)
+
+    t = threading.Thread(target=thread)
+    t.start()
+    t.join(60)
+    assert out["during"] == mine - {first}
+    assert f"cpus {','.join(map(str, sorted(mine - {first})))} (not {first})" in out["said"]
+    assert out["after"] == mine
+    assert out["ball"] > 0  # the pinned worker ran

@@ -156,7 +156,6 @@ class Runtime(Interruptible):
             from ..workers import start_forkserver
 
             await in_daemon_thread(start_forkserver)  # preloaded numpy/cv2: shared pages
-            self._loop_cpus.apply(self.graph)  # after the forkserver: workers keep every CPU
         # Imported now, not at the first run-time change: an import on the loop at that moment
         # (tens of ms) would make the ticks around a `ctl timing` late.
         from ..analysis import admission  # noqa: F401
@@ -190,6 +189,7 @@ class Runtime(Interruptible):
             m.started(self)
         if self.realtime:
             self._emit(RealtimeStatus(0.0, None, self.realtime))
+        self._loop_cpus.apply(self.graph)  # after the forkserver: workers keep every CPU
         await self._sched.start()
         if self._bridge is not None:
             self._bridge.attach_imports()
