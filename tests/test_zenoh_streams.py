@@ -148,10 +148,10 @@ def test_a_message_is_the_same_bytes_on_the_short_path(value: dict[object, objec
 
 
 def test_a_message_header_packs_as_the_header_class() -> None:
-    from flowrt.remote.wire import Header, header_ids, message_header
+    from flowrt.remote.wire import Header, MessageHeaders, header_ids
 
     ids = header_ids("0123456789abcdef", "f" * 32)
-    made = message_header(ids, "protobuf", 7, 1.25, 0.5)
+    made = MessageHeaders(ids, "protobuf")(7, 1.25, 0.5)
     assert made == Header("0123456789abcdef", "f" * 32, 7, 1.25, 0.5, "protobuf").encode()
     assert Header.decode(made).kind == "protobuf"
     with pytest.raises(ValueError, match="longer"):

@@ -33,12 +33,11 @@ class LoopCpus:
         self._before: set[int] | None = None
         self.granted = ""  # what the loop runs (ran) on when kept off ("": unchanged)
 
-    def apply(self, graph: Graph) -> str:
+    def apply(self, graph: Graph) -> None:
         """Keep the calling (loop) thread off the pinned workers' CPUs, before the nodes'
-        threads start; what it runs on now (``""``: unchanged: no worker is pinned, or no
-        CPU would be left)."""
+        threads start (unchanged when no worker is pinned or no CPU would be left)."""
         if not hasattr(os, "sched_setaffinity"):
-            return ""
+            return
         claimed = {
             c
             for n in graph.nodes.values()
@@ -48,15 +47,14 @@ class LoopCpus:
         mine = os.sched_getaffinity(0)
         rest = mine - claimed
         if not claimed or not rest or rest == mine:
-            return ""
+            return
         try:
             os.sched_setaffinity(0, rest)
         except OSError:
-            return ""
+            return
         self._before = mine
         self.granted = f"cpus {_cpus(rest)} (not {_cpus(mine & claimed)})"  # not: pinned workers'
         log.info("loop: %s: the CPUs of pinned workers", self.granted)
-        return self.granted
 
     def restore(self) -> None:
         before, self._before = self._before, None  # (granted: what it ran on, kept)

@@ -91,7 +91,7 @@ class VideoDevice(Device):
         size: tuple[int, int] | None = None,
         fps: float = 0.0,
         start: int = 0,
-        decode_threads: int = 0,
+        decode_threads: int = 1,
     ) -> None:
         self.kind = kind
         self.target = target
