@@ -13,8 +13,9 @@ Rows, each measured in the same run:
   small message (8 B of payload in a JSON mapping), 640x480x3 and 1920x1080x3 frames at 20 Hz:
   flowrt local edge (one process), flowrt over Zenoh (two processes), and Zenoh's own Python
   publisher/subscriber sending the same bytes (two processes, no flowrt), its callback on
-  Zenoh's thread (the criterion) and that callback handing each sample to a uvloop loop
-  (informative: what a user's own asyncio program pays);
+  Zenoh's thread (the criterion), and, informative, that callback handing each sample to a
+  uvloop loop (what a user's own asyncio program pays) and, for frames, the publisher putting
+  them from Zenoh's shared-memory API (as flowrt does when the session enables it);
 - sustained 640x480x3 at 30 fps for ``--duration`` seconds: published, received, lost;
 - memory (RSS, PSS) of the exporting and importing processes;
 - a critical 20 Hz timer node's inter-activation std on the exporting side, with and without
@@ -208,6 +209,12 @@ def raw_pub(args: argparse.Namespace) -> None:
     pub = s.declare_publisher("bench/raw")
     shape = SIZES[args.payload]
     frame = None if shape is None else np.zeros(shape, np.uint8)
+    pool = policy = None
+    if args.shm and frame is not None:  # Zenoh's shared-memory API, as its examples use it
+        import zenoh.shm as zshm
+
+        pool = zshm.ShmProvider.default_backend(4 * frame.nbytes + (1 << 20))
+        policy = zshm.GarbageCollect()
     end = time.monotonic() + args.seconds
     period = 1 / args.rate
     nxt = time.monotonic() + 1.0
@@ -221,6 +228,10 @@ def raw_pub(args: argparse.Namespace) -> None:
             n += 1
             frame[0, 0, 0] = n % 256
             data = frame.tobytes()
+            if pool is not None:  # one copy more into the shared buffer (it takes bytes)
+                buf = pool.alloc(len(data), policy)
+                buf[0 : len(data)] = data
+                data = buf
         pub.put(data, attachment=repr(sent).encode())
         nxt += period
     s.close()
@@ -316,13 +327,15 @@ def _flowrt_zenoh(payload: str, seconds: float, tmp: Path) -> dict[str, float]:
     return _summ(json.loads((tmp / "remote.json").read_text()))
 
 
-def _raw_zenoh(payload: str, seconds: float, tmp: Path, aio: bool = False) -> dict[str, float]:
-    """Zenoh's own publisher and subscriber (``aio``: the callback hands each sample to a
-    uvloop loop: informative)."""
+def _raw_zenoh(
+    payload: str, seconds: float, tmp: Path, aio: bool = False, shm: bool = False
+) -> dict[str, float]:
+    """Zenoh's own publisher and subscriber (informative: ``aio``, the callback hands each
+    sample to a uvloop loop; ``shm``, frames put from Zenoh's shared-memory API)."""
     p = _port()
-    pub = _spawn("raw_pub", payload=payload, rate=20, port=p, seconds=seconds + 1)
+    pub = _spawn("raw_pub", payload=payload, rate=20, port=p, seconds=seconds + 1, shm=shm)
     time.sleep(0.5)
-    out = tmp / ("raw_aio.json" if aio else "raw.json")
+    out = tmp / ("raw_aio.json" if aio else "raw_shm.json" if shm else "raw.json")
     sub = _spawn("raw_sub", payload=payload, rate=20, port=p, seconds=seconds, lat=out, asyncio=aio)
     sub.wait()
     pub.wait()
@@ -334,16 +347,19 @@ VARIANTS = {
     "flowrt_zenoh": _flowrt_zenoh,
     "raw_zenoh": _raw_zenoh,
     "raw_zenoh_asyncio": lambda payload, seconds, tmp: _raw_zenoh(payload, seconds, tmp, True),
+    "raw_zenoh_shm": lambda payload, seconds, tmp: _raw_zenoh(payload, seconds, tmp, shm=True),
 }
+FRAMES_ONLY = {"raw_zenoh_shm"}  # an 8-byte message is put the same way with or without
 
 
 def latency_row(payload: str, seconds: float, tmp: Path, rounds: int = 1) -> dict[str, Any]:
     """Every variant ``rounds`` times, interleaved (the order reverses every round): each
     figure is the median over the rounds of that round's p50 and p99, and ``ratios`` the
     per-round flowrt / raw p50 (the two measured minutes apart at most)."""
-    runs: dict[str, list[dict[str, float]]] = {k: [] for k in VARIANTS}
+    names = [k for k in VARIANTS if SIZES[payload] is not None or k not in FRAMES_ONLY]
+    runs: dict[str, list[dict[str, float]]] = {k: [] for k in names}
     for r in range(rounds):
-        for name in list(VARIANTS) if r % 2 == 0 else list(VARIANTS)[::-1]:
+        for name in names if r % 2 == 0 else names[::-1]:
             runs[name].append(VARIANTS[name](payload, seconds, tmp))
     row: dict[str, Any] = {"payload": payload, "rounds": rounds}
     for name, rs in runs.items():
@@ -351,6 +367,7 @@ def latency_row(payload: str, seconds: float, tmp: Path, rounds: int = 1) -> dic
             "n": sum(x["n"] for x in rs),
             "p50_ms": float(np.median([x["p50_ms"] for x in rs])),
             "p99_ms": float(np.median([x["p99_ms"] for x in rs])),
+            "p50_rounds": [x["p50_ms"] for x in rs],
         }
     row["ratios"] = [
         f["p50_ms"] / r["p50_ms"]
@@ -407,13 +424,14 @@ def report(res: dict[str, Any]) -> str:
         f"load average {res['loadavg_start']} at the start, {res['loadavg_end']} at the end",
         "",
         "| payload | local p50/p99 ms | flowrt over Zenoh p50/p99 ms | raw Zenoh p50/p99 ms "
-        "| raw Zenoh -> asyncio p50/p99 ms | flowrt / raw (p50, median of rounds) |",
-        "|---|---|---|---|---|---|",
+        "| raw Zenoh -> asyncio p50/p99 ms | raw Zenoh, shared memory p50/p99 ms "
+        "| flowrt / raw (p50, median of rounds) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in res["latency"]:
         cells = [
-            f"{r[k]['p50_ms']:.2f} / {r[k]['p99_ms']:.2f}"
-            for k in ("local", "flowrt_zenoh", "raw_zenoh", "raw_zenoh_asyncio")
+            f"{r[k]['p50_ms']:.2f} / {r[k]['p99_ms']:.2f}" if k in r else "-"
+            for k in ("local", "flowrt_zenoh", "raw_zenoh", "raw_zenoh_asyncio", "raw_zenoh_shm")
         ]
         ratio = float(np.median(r["ratios"]))
         per = " ".join(f"{x:.2f}" for x in r["ratios"])
@@ -450,6 +468,7 @@ def main() -> None:
     ap.add_argument("--lat", default="")
     ap.add_argument("--critical", action="store_true")
     ap.add_argument("--asyncio", action="store_true")
+    ap.add_argument("--shm", action="store_true", help="frames from Zenoh's shared memory (raw)")
     ap.add_argument("--sustained", type=float, help="seconds of the 30 fps run (default 3x)")
     ap.add_argument(
         "--rounds", type=int, default=1, help="interleaved rounds of every latency variant"

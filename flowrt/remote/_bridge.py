@@ -19,6 +19,7 @@ This module is the session and its wiring (:class:`ZenohBridge`). The parts, eac
 
 - :mod:`flowrt.remote.wire`: the wire format (header, payload encodings, what is refused);
 - :mod:`flowrt.remote._export`: the sender thread behind the exported outputs;
+- :mod:`flowrt.remote._shm`: raw frames put from Zenoh's shared memory;
 - :mod:`flowrt.remote._importer`: one imported stream, from Zenoh's thread to the loop;
 - :mod:`flowrt.remote._node`: the node an ``import:`` entry becomes;
 - :mod:`flowrt.remote._clock`: the exporters' clock offsets;
@@ -69,6 +70,7 @@ class ZenohBridge:
         self.spec = spec
         self.zspec = spec.zenoh or ZenohSpec()
         self.session: Any = None
+        self.shm = False  # the session enables Zenoh's shared memory (raw frames use it)
         self.stream = uuid.uuid4().hex[:16]
         self.zid = ""
         self.exports: list[Export] = []
@@ -103,6 +105,7 @@ class ZenohBridge:
             raise RemoteError(f"zenoh: the eclipse-zenoh package is missing ({e})") from None
         try:
             cfg = self.config()
+            self.shm = json.loads(cfg.get_json("transport/shared_memory/enabled")) is True
             self.session = await asyncio.to_thread(zenoh.open, cfg)
         except Exception as e:
             text = _first_line(e)
@@ -124,7 +127,7 @@ class ZenohBridge:
 
     def attach_exports(self) -> None:
         """Buffers on the exported outputs, before the nodes start publishing."""
-        sender = ExportSender(self.host, self.stream, self.zid)
+        sender = ExportSender(self.host, self.stream, self.zid, self.shm)
         for key, ex in self.spec.exports.items():
             node, port = ex.source.split(".")
             outs = self.host.runner_output(node, port)

@@ -30,6 +30,7 @@ from ..edges import EMPTY, Buffer
 from ..frames import Frame
 from ..recording.streams import StreamBook, is_set, split_set
 from ._host import BridgeHost
+from ._shm import ShmFrames
 from ._streams import encoding_of
 from .wire import (
     FrameHeaders,
@@ -70,9 +71,11 @@ class Export:
 
 
 class ExportSender:
-    """The thread that sends every export's values, under the session's stream and id."""
+    """The thread that sends every export's values, under the session's stream and id.
 
-    def __init__(self, host: BridgeHost, stream: str, zid: str) -> None:
+    ``shm``: the session enables Zenoh's shared memory; raw frames are then put from it."""
+
+    def __init__(self, host: BridgeHost, stream: str, zid: str, shm: bool = False) -> None:
         self.host = host
         self.stream = stream
         self.zid = zid
@@ -80,6 +83,7 @@ class ExportSender:
         self._book = StreamBook(epoch_offset=self._wall0 - self._mono0)  # the recorder's
         self._ids = header_ids(stream, zid)
         self._frames = FrameHeaders(stream, zid)  # raw frames' headers
+        self.shm = ShmFrames() if shm else None  # raw frames' shared buffers (sender thread)
         self._jobs: queue.SimpleQueue[tuple[Export, Any] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
 
@@ -173,7 +177,9 @@ class ExportSender:
         if exp.encoding == "raw":  # the header from the stream's template, the pixels last:
             attachment = self._frames(value, exp.seq, now_wall, captured)  # what follows the
             exp.seq += 1  # copy runs cold
-            payload = value.data.tobytes()  # Zenoh takes bytes: the one copy on this side
+            payload = value.data.tobytes()  # Zenoh takes bytes (or its shared buffer)
+            if self.shm is not None:
+                payload = self.shm.payload(payload)
         else:
             meta, payload = encode_frame(value, exp.encoding, exp.quality)
             header = Header(self.stream, self.zid, exp.seq, now_wall, captured, "frame", meta)
