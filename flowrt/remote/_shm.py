@@ -25,7 +25,6 @@ log = logging.getLogger("flowrt.remote._bridge")
 
 MIN_BYTES = 64 * 1024  # smaller payloads: Zenoh's own path is as fast (allocation costs ~us)
 POOL_FRAMES = 4  # frames the pool holds: one being filled, the rest still read by subscribers
-_MIN_POOL = 16 << 20  # bytes (Zenoh's own transport pool is 16 MiB)
 _SLACK = 1 << 20  # the allocator's own room: 4 x 5 MiB do not fit in 20 MiB, they do in 21
 
 
@@ -63,7 +62,7 @@ class ShmFrames:
     def _grow(self, n: int) -> None:
         import zenoh.shm as zshm
 
-        size = max(_MIN_POOL, -(-(n * POOL_FRAMES + _SLACK) // (1 << 20)) << 20)  # whole MiB
+        size = -(-(n * POOL_FRAMES + _SLACK) // (1 << 20)) << 20  # whole MiB
         self.provider = None  # dropped first: at most one pool made per payload size
         self.provider = zshm.ShmProvider.default_backend(size)
         self.size = size
