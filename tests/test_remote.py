@@ -333,7 +333,8 @@ async def test_frames_arrive_intact_in_the_pool_and_go_back_to_it(placement: str
         imp = rt._bridge.imports["rx"]
         if placement == "process":
             assert pooled == seen
-            assert imp.spare is not None  # the next frame's slot is ready off the loop
+            # the next frame's slot is ready off the loop (unless a frame is arriving now)
+            assert await wait_for(lambda: imp.spare is not None, 2.0)
         else:
             assert pooled == 0
             assert imp.spare is None
@@ -383,6 +384,59 @@ def test_link_counts_each_loss_with_its_reason() -> None:
     assert imp.link.dropped == 1 + overruns + 1
     # 0..6 by sequence number, and the undecodable one: it arrived (published) and was dropped
     assert imp.link.published == 8
+
+
+class _Encoded(_Sample):
+    def __init__(self, header: Header, payload: bytes, encoding: Any) -> None:
+        super().__init__(header, payload)
+        self.encoding = encoding
+
+
+def test_each_message_is_read_by_the_schema_its_own_encoding_names() -> None:
+    """The import keeps the last encoding's schema (its text is costly to read on Zenoh's
+    thread): messages of several types on one key, in any order, each come back as its own."""
+    from flowrt.recording.streams import StreamBook
+    from flowrt.remote._streams import encoding_of
+
+    book = StreamBook(epoch_offset=0.0)
+    values = [{"a": 1}, 7, {"a": 2}, {"a": 3}, Det(True, (1.0, 2.0), 3.0), 8, {"a": 4}]
+    imp = _imp()
+    for seq, value in enumerate(values):
+        msg = book.encode("n.out", value)
+        enc = encoding_of("json", msg.schema.name)
+        imp.on_sample(_Encoded(Header("s", "z", seq, 0.0, 0.0, "json", {}), msg.data, enc))
+    got = [v for _, v in imp.pending]
+    assert got[:4] == [{"a": 1}, 7, {"a": 2}, {"a": 3}]
+    assert got[4].found is True
+    assert tuple(got[4].centroid) == (1.0, 2.0)
+    assert got[5:] == [8, {"a": 4}]
+    assert imp.link.dropped == 0
+
+
+def test_a_frame_copied_while_the_import_closes_goes_back_to_the_pool() -> None:
+    """Zenoh's thread may still be copying into a pool frame when the import closes (its
+    subscriber undeclared): that frame is released on the loop, not kept, nor published."""
+    woken: list[Any] = []
+    host = types.SimpleNamespace(
+        loop=types.SimpleNamespace(call_soon_threadsafe=woken.append), now_mono=lambda: 0.0
+    )
+    bridge = types.SimpleNamespace(host=host, clock_probe=lambda zid: None)
+    imp = ImportLink(bridge, "rx", "k", None, 5.0, 16)  # type: ignore[arg-type]
+    released: list[int] = []
+
+    class Counted(Frame):
+        def release(self) -> None:
+            released.append(1)
+
+    held = Counted(np.zeros((4, 4, 3), np.uint8))
+    imp._frame = lambda meta, arr: held  # type: ignore[method-assign]  # the spare, taken
+    meta, pixels = encode_frame(Frame(np.zeros((4, 4, 3), np.uint8)), "raw", 90)
+    imp.close()  # on the loop, while the copy runs
+    imp.on_sample(_Sample(Header("s", "z", 0, 0.0, 0.0, "frame", meta), pixels))
+    assert not imp.pending
+    assert woken == [imp.deliver]
+    imp.deliver()  # the loop runs it
+    assert released == [1]
 
 
 def _imp() -> Any:

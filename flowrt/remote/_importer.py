@@ -141,6 +141,9 @@ class ImportLink:
         self.plain_seq = 0
         self.ctx: Any = None
         self._wake: Any = None  # the loop's call_soon_threadsafe
+        # The last sample's Zenoh encoding and the schema it names, swapped as one tuple
+        # (Zenoh's threads of two exporters may call on_sample at once).
+        self._named: tuple[Any, str] = (None, "")
         # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
         # keeps one pool frame of the last shape ready (``spare``); frames replaced before
         # delivery go back to the pool from the loop (``discard``).
@@ -148,6 +151,7 @@ class ImportLink:
         self.spare: Frame | None = None
         self.spare_key: tuple[Any, ...] | None = None
         self.discard: list[Frame] = []
+        self.closed = False  # set by close(): no frame is kept after it
 
     # Zenoh's thread ---------------------------------------------------------------------
 
@@ -174,15 +178,19 @@ class ImportLink:
                 self._refused(e, counted=True)
                 return
         with self.lock:
-            # Frames hold pool slots: a short backlog (two arriving back to back after an
-            # exporter's stall must both get through); messages: the import's ``size``.
-            limit = FRAME_BACKLOG if header.kind == "frame" else self.size
-            while len(self.pending) >= limit:  # the loop has not taken them in time
-                _, old = self.pending.popleft()
-                if isinstance(old, Frame):
-                    self.discard.append(old)
-                self.link.lost("hand-over overrun")
-            self.pending.append((header, value))
+            if self.closed:  # closed while this one was copied: its pool slot goes back
+                if isinstance(value, Frame):
+                    self.discard.append(value)  # (released on the loop, by deliver)
+            else:
+                # Frames hold pool slots: a short backlog (two arriving back to back after an
+                # exporter's stall must both get through); messages: the import's ``size``.
+                limit = FRAME_BACKLOG if header.kind == "frame" else self.size
+                while len(self.pending) >= limit:  # the loop has not taken them in time
+                    _, old = self.pending.popleft()
+                    if isinstance(old, Frame):
+                        self.discard.append(old)
+                    self.link.lost("hand-over overrun")
+                self.pending.append((header, value))
             if self.scheduled:
                 return
             self.scheduled = True
@@ -250,12 +258,22 @@ class ImportLink:
         if header.kind == "bytes":
             return zbytes.to_bytes()
         if header.kind == "protobuf":  # the recording's protobuf message (audio)
-            schema = schema_of_sample(sample)
+            schema = self._schema(sample)
             if schema != AUDIO_SCHEMA:
                 raise Refused("undecodable", f"a protobuf message of schema {schema!r}")
             return decode_audio(zbytes.to_bytes(), header.seq, 0.0)  # its time: on delivery
         # the recording's JSON message; typed by the schema its encoding names
-        return decode_json(zbytes.to_bytes(), "" if self.plain else schema_of_sample(sample))
+        return decode_json(zbytes.to_bytes(), "" if self.plain else self._schema(sample))
+
+    def _schema(self, sample: Any) -> str:
+        """The schema the sample's encoding names, read again only when the encoding is not
+        the last one's: ``str()`` of a Zenoh encoding cost 18-21 us on this thread, cold, and
+        comparing two 5 (a stream's messages are of one schema, mostly)."""
+        enc = getattr(sample, "encoding", None)
+        last = self._named
+        if enc is None or enc != last[0]:
+            last = self._named = (enc, schema_of_sample(sample))
+        return last[1]
 
     def _warn(self, reason: str, text: str) -> None:
         """One warning per reason every WARN_EVERY seconds: a flood is counted, not logged."""
@@ -371,11 +389,16 @@ class ImportLink:
             old.release()
         frame = self.bridge.host.new_frame(self.name, key[0], np.dtype(key[1]), key[2])
         with self.lock:
-            self.spare, self.spare_key = frame, key
+            if not self.closed:
+                self.spare, self.spare_key = frame, key
+                return
+        frame.release()  # a delivery's accounting after the end
 
     def close(self) -> None:
-        """On the loop, at the end: frames still held go back to the pool."""
+        """On the loop, at the end: frames still held go back to the pool (a frame Zenoh's
+        thread is still copying, after this, by :meth:`deliver`)."""
         with self.lock:
+            self.closed = True
             held = [v for _, v in self.pending if isinstance(v, Frame)] + self.discard
             if self.spare is not None:
                 held.append(self.spare)
