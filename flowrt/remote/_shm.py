@@ -6,7 +6,7 @@ Zenoh's shared memory. A buffer allocated from a :class:`zenoh.shm.ShmProvider` 
 is put as it is: a subscriber on this host maps it (no copy through the socket), one on another
 machine gets its bytes through the socket as before (Zenoh serialises a shared buffer for a link
 without shared memory). Measured on a 1920x1080 BGR frame, one host (benchmarks/RESULTS.md):
-the sending side's work 0.89 -> 0.63 ms, a plain program's frame latency 1.65 -> 1.3 ms.
+flowrt's copies and `put` 0.91 -> 0.70 ms, a plain program's frame latency 1.65 -> 1.3 ms.
 
 Used only when the session enables shared memory (``transport/shared_memory/enabled``, Zenoh's
 default) and for payloads of at least :data:`MIN_BYTES`. A buffer is not reused while a
