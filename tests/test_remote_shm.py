@@ -67,6 +67,23 @@ def test_when_every_buffer_is_still_read_the_payload_goes_as_bytes_counted() -> 
     assert shm.fallbacks == 1
 
 
+def test_without_room_in_dev_shm_frames_go_as_bytes(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A tmpfs written past its end kills the writer (SIGBUS): no pool unless it fits twice."""
+    from flowrt.remote import _shm
+
+    monkeypatch.setattr(_shm, "shm_free", lambda: 8 * MIB)
+    shm = ShmFrames()
+    data = bytes(2 * MIB)  # a 9 MiB pool
+    assert shm.payload(data) is data
+    assert shm.payload(data) is data  # not tried again
+    assert shm.failed
+    assert shm.provider is None
+    assert shm.fallbacks == 1
+    assert "/dev/shm has 8 MiB free, the pool takes 9" in caplog.text
+
+
 SHAPE = (192, 256, 3)  # 147 KiB: above MIN_BYTES
 
 

@@ -17,9 +17,10 @@ payload is put as bytes, counted in :attr:`ShmFrames.fallbacks` (not a loss: it 
 from __future__ import annotations
 
 import logging
+import os
 from typing import Any
 
-__all__ = ["MIN_BYTES", "POOL_FRAMES", "ShmFrames"]
+__all__ = ["MIN_BYTES", "POOL_FRAMES", "ShmFrames", "shm_free"]
 
 log = logging.getLogger("flowrt.remote._bridge")
 
@@ -38,7 +39,7 @@ class ShmFrames:
         self.provider: Any = None
         self.size = 0  # bytes of the current pool
         self.fallbacks = 0  # payloads put as bytes: no buffer free, or no pool could be made
-        self.failed = False  # the pool could not be made (no /dev/shm): bytes from then on
+        self.failed = False  # no pool could be made (/dev/shm short): bytes from then on
         self._policy: Any = None
 
     def payload(self, data: bytes) -> Any:
@@ -64,6 +65,19 @@ class ShmFrames:
 
         size = -(-(n * POOL_FRAMES + _SLACK) // (1 << 20)) << 20  # whole MiB
         self.provider = None  # dropped first: at most one pool made per payload size
+        free = shm_free()
+        if free is not None and free < 2 * size:  # a tmpfs filled past its end is a SIGBUS
+            raise OSError(f"/dev/shm has {free >> 20} MiB free, the pool takes {size >> 20}")
         self.provider = zshm.ShmProvider.default_backend(size)
         self.size = size
         self._policy = zshm.GarbageCollect()  # reclaim the buffers readers let go, never wait
+
+
+def shm_free() -> int | None:
+    """Bytes free in /dev/shm (a container's is 64 MiB unless raised), None where there is
+    none to ask: a pool is made only with room for it twice over."""
+    try:
+        st = os.statvfs("/dev/shm")
+    except OSError:
+        return None
+    return st.f_bavail * st.f_frsize
