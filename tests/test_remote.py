@@ -13,11 +13,13 @@ import subprocess
 import sys
 import textwrap
 import types
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from pydantic import BaseModel
 
 from flowrt import Frame, Graph, GraphBuilder, GraphError, Node, Output, Runtime
 from flowrt.edges import EMPTY
@@ -285,6 +287,9 @@ def test_client_mode_without_a_router_is_one_line_and_exit_1(tmp_path: Path) -> 
 class Pattern(Node):
     """Frames whose every pixel is the frame's number (mod 256): a copy error shows."""
 
+    class Params(BaseModel):
+        shape: tuple[int, ...] = (48, 64, 3)
+
     frame = Output(Frame)
 
     def setup(self) -> None:
@@ -292,9 +297,31 @@ class Pattern(Node):
 
     def process(self) -> Any:
         self.n += 1
-        f = self.ctx.new_frame((48, 64, 3))
+        f = self.ctx.new_frame(self.params.shape)
         f.data[...] = self.n % 256
         return f
+
+
+async def intact_frames(sub: Any, want: int, shape: tuple[int, ...]) -> AsyncIterator[Frame]:
+    """:class:`Pattern`'s frames from ``sub`` until ``want`` came (20 s at most), each checked
+    whole: its shape, one frame's pixels (not a mix of two), a new frame's (not a slot's old
+    ones). Each is held while the caller has it (its slot is not reused meanwhile)."""
+    seen, last = 0, -1
+    loop = asyncio.get_running_loop()
+    end = loop.time() + 20
+    while seen < want and loop.time() < end:
+        await asyncio.sleep(0.05)
+        while (f := sub.take_held()) is not EMPTY:
+            assert f.shape == shape
+            values = np.unique(f.data)
+            assert len(values) == 1, values
+            assert values[0] != last
+            last = int(values[0])
+            seen += 1
+            try:
+                yield f
+            finally:
+                f.release()
 
 
 @pytest.mark.subprocess  # a worker (or writer) process, from its graph
@@ -314,21 +341,10 @@ async def test_frames_arrive_intact_in_the_pool_and_go_back_to_it(placement: str
     async with Runtime(ex.build()) as rx_side, Runtime(im.build()) as rt:
         sub = rt.subscribe("rx.output", size=1024)
         seen = pooled = 0
-        last = -1
-        loop = asyncio.get_running_loop()
-        end = loop.time() + 20
-        while seen < 40 and loop.time() < end:
-            await asyncio.sleep(0.05)
-            while (f := sub.take_held()) is not EMPTY:  # held: the slot is not reused meanwhile
-                assert f.shape == (48, 64, 3)
-                values = np.unique(f.data)
-                assert len(values) == 1, values  # one frame's pixels, not a mix of two
-                assert values[0] != last  # a new frame's pixels, not a slot's old ones
-                last = int(values[0])
-                pooled += f._slot is not None  # in the local pool, readable zero-copy
-                assert f._slot is not None or not f.data.flags.writeable
-                seen += 1
-                f.release()
+        async for f in intact_frames(sub, 40, (48, 64, 3)):
+            pooled += f._slot is not None  # in the local pool, readable zero-copy
+            assert f._slot is not None or not f.data.flags.writeable
+            seen += 1
         assert seen >= 40
         imp = rt._bridge.imports["rx"]
         if placement == "process":

@@ -4,26 +4,18 @@ subscriber without it, as on another machine, gets the bytes through the socket)
 
 from __future__ import annotations
 
-import asyncio
-import socket
 from typing import Any
 
 import numpy as np
 import pytest
 
-from flowrt import Frame, GraphBuilder, Node, Output, Runtime
-from flowrt.edges import EMPTY
+from flowrt import GraphBuilder, Runtime
 from flowrt.remote._shm import MIN_BYTES, POOL_FRAMES, ShmFrames
+from tests.test_remote import Pattern, free_port, intact_frames
 
 pytestmark = pytest.mark.timeout(90)
 
 MIB = 1 << 20
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def test_a_small_payload_is_put_as_bytes_and_makes_no_pool() -> None:
@@ -87,21 +79,6 @@ def test_without_room_in_dev_shm_frames_go_as_bytes(
 SHAPE = (192, 256, 3)  # 147 KiB: above MIN_BYTES
 
 
-class Numbered(Node):
-    """Frames whose every pixel is the frame's number (mod 256): a copy error shows."""
-
-    frame = Output(Frame)
-
-    def setup(self) -> None:
-        self.n = 0
-
-    def process(self) -> Any:
-        self.n += 1
-        f = self.ctx.new_frame(SHAPE)
-        f.data[...] = self.n % 256
-        return f
-
-
 def _shm(enabled: bool) -> dict[str, Any]:
     return {"transport/shared_memory/enabled": enabled}
 
@@ -116,7 +93,7 @@ async def test_large_frames_arrive_intact_with_or_without_shared_memory(
     exporter_shm: bool, importer_shm: bool
 ) -> None:
     port = free_port()
-    ex = GraphBuilder("ex").add("src", Numbered, trigger={"timer": "20ms"})
+    ex = GraphBuilder("ex").add("src", Pattern, params={"shape": SHAPE}, trigger={"timer": "20ms"})
     ex.zenoh(listen=[f"tcp/127.0.0.1:{port}"], config=_shm(exporter_shm))
     ex.export("p/frame", "src.frame")
     im = GraphBuilder("im").zenoh(
@@ -126,19 +103,9 @@ async def test_large_frames_arrive_intact_with_or_without_shared_memory(
     im.add("sink", "sink", inputs={"input": "rx.output"})
     async with Runtime(ex.build()) as tx, Runtime(im.build()) as rt:
         sub = rt.subscribe("rx.output", size=1024)
-        seen, last = 0, -1
-        loop = asyncio.get_running_loop()
-        end = loop.time() + 20
-        while seen < 30 and loop.time() < end:
-            await asyncio.sleep(0.05)
-            while (f := sub.take_held()) is not EMPTY:
-                assert f.shape == SHAPE
-                values = np.unique(f.data)
-                assert len(values) == 1, values  # one frame's pixels, not a mix of two
-                assert values[0] != last  # a new frame, not a buffer's old pixels
-                last = int(values[0])
-                seen += 1
-                f.release()
+        seen = 0
+        async for _ in intact_frames(sub, 30, SHAPE):
+            seen += 1
         assert seen >= 30
         shm = tx._bridge._sender.shm
         if exporter_shm:

@@ -64,7 +64,7 @@ class ShmFrames:
         import zenoh.shm as zshm
 
         size = -(-(n * POOL_FRAMES + _SLACK) // (1 << 20)) << 20  # whole MiB
-        self.provider = None  # dropped first: at most one pool made per payload size
+        self.provider = None  # dropped first: if no new one can be made, bytes from then on
         free = shm_free()
         if free is not None and free < 2 * size:  # a tmpfs filled past its end is a SIGBUS
             raise OSError(f"/dev/shm has {free >> 20} MiB free, the pool takes {size >> 20}")
