@@ -14,8 +14,11 @@ Rows, each measured in the same run:
   flowrt local edge (one process), flowrt over Zenoh (two processes), and Zenoh's own Python
   publisher/subscriber sending the same bytes (two processes, no flowrt), its callback on
   Zenoh's thread (the criterion), and, informative, that callback handing each sample to a
-  uvloop loop (what a user's own asyncio program pays) and, for frames, the publisher putting
-  them from Zenoh's shared-memory API (as flowrt does when the session enables it);
+  uvloop loop (what a user's own asyncio program pays), for the small message, the plain
+  program sending flowrt's message itself (the same JSON mapping, ``json.dumps`` before the
+  ``put``, ``json.loads`` in the callback: the criterion's 8 bytes carry no message), and, for
+  frames, the publisher putting them from Zenoh's shared-memory API (as flowrt does when the
+  session enables it);
 - sustained 640x480x3 at 30 fps for ``--duration`` seconds: published, received, lost;
 - memory (RSS, PSS) of the exporting and importing processes;
 - a critical 20 Hz timer node's inter-activation std on the exporting side, with and without
@@ -222,6 +225,11 @@ def raw_pub(args: argparse.Namespace) -> None:
     while time.monotonic() < end:
         time.sleep(max(0.0, nxt - time.monotonic()))
         sent = time.time()
+        if args.json:  # flowrt's message itself, as a plain program sends a mapping
+            n += 1
+            pub.put(json.dumps({"t": sent, "p": "12345678", "n": n}).encode())
+            nxt += period
+            continue
         if frame is None:
             data = b"12345678"
         else:  # a program publishing its numpy frames pays this copy too (ZBytes takes bytes)
@@ -246,6 +254,9 @@ def raw_sub(args: argparse.Namespace) -> None:
     if not args.asyncio:
 
         def on(sample: Any) -> None:
+            if args.json:  # the message, as a mapping (its stamp inside)
+                lat.append(time.time() - json.loads(sample.payload.to_bytes())["t"])
+                return
             np.frombuffer(sample.payload.to_bytes(), np.uint8)  # the bytes, as an array
             lat.append(time.time() - float(sample.attachment.to_bytes()))
 
@@ -328,15 +339,33 @@ def _flowrt_zenoh(payload: str, seconds: float, tmp: Path) -> dict[str, float]:
 
 
 def _raw_zenoh(
-    payload: str, seconds: float, tmp: Path, aio: bool = False, shm: bool = False
+    payload: str,
+    seconds: float,
+    tmp: Path,
+    aio: bool = False,
+    shm: bool = False,
+    as_json: bool = False,
 ) -> dict[str, float]:
     """Zenoh's own publisher and subscriber (informative: ``aio``, the callback hands each
-    sample to a uvloop loop; ``shm``, frames put from Zenoh's shared-memory API)."""
+    sample to a uvloop loop; ``shm``, frames put from Zenoh's shared-memory API;
+    ``as_json``, the small message as flowrt's JSON mapping)."""
     p = _port()
-    pub = _spawn("raw_pub", payload=payload, rate=20, port=p, seconds=seconds + 1, shm=shm)
+    pub = _spawn(
+        "raw_pub", payload=payload, rate=20, port=p, seconds=seconds + 1, shm=shm, json=as_json
+    )
     time.sleep(0.5)
-    out = tmp / ("raw_aio.json" if aio else "raw_shm.json" if shm else "raw.json")
-    sub = _spawn("raw_sub", payload=payload, rate=20, port=p, seconds=seconds, lat=out, asyncio=aio)
+    name = "raw_aio" if aio else "raw_shm" if shm else "raw_json" if as_json else "raw"
+    out = tmp / f"{name}.json"
+    sub = _spawn(
+        "raw_sub",
+        payload=payload,
+        rate=20,
+        port=p,
+        seconds=seconds,
+        lat=out,
+        asyncio=aio,
+        json=as_json,
+    )
     sub.wait()
     pub.wait()
     return _summ(json.loads(out.read_text()))
@@ -348,15 +377,18 @@ VARIANTS = {
     "raw_zenoh": _raw_zenoh,
     "raw_zenoh_asyncio": lambda payload, seconds, tmp: _raw_zenoh(payload, seconds, tmp, True),
     "raw_zenoh_shm": lambda payload, seconds, tmp: _raw_zenoh(payload, seconds, tmp, shm=True),
+    "raw_zenoh_json": lambda payload, seconds, tmp: _raw_zenoh(payload, seconds, tmp, as_json=True),
 }
 FRAMES_ONLY = {"raw_zenoh_shm"}  # an 8-byte message is put the same way with or without
+MESSAGES_ONLY = {"raw_zenoh_json"}  # a frame is no JSON mapping
 
 
 def latency_row(payload: str, seconds: float, tmp: Path, rounds: int = 1) -> dict[str, Any]:
     """Every variant ``rounds`` times, interleaved (the order reverses every round): each
     figure is the median over the rounds of that round's p50 and p99, and ``ratios`` the
     per-round flowrt / raw p50 (the two measured minutes apart at most)."""
-    names = [k for k in VARIANTS if SIZES[payload] is not None or k not in FRAMES_ONLY]
+    skip = FRAMES_ONLY if SIZES[payload] is None else MESSAGES_ONLY
+    names = [k for k in VARIANTS if k not in skip]
     runs: dict[str, list[dict[str, float]]] = {k: [] for k in names}
     for r in range(rounds):
         for name in names if r % 2 == 0 else names[::-1]:
@@ -369,10 +401,12 @@ def latency_row(payload: str, seconds: float, tmp: Path, rounds: int = 1) -> dic
             "p99_ms": float(np.median([x["p99_ms"] for x in rs])),
             "p50_rounds": [x["p50_ms"] for x in rs],
         }
-    row["ratios"] = [
-        f["p50_ms"] / r["p50_ms"]
-        for f, r in zip(runs["flowrt_zenoh"], runs["raw_zenoh"], strict=True)
-    ]
+    for key, ref in (("ratios", "raw_zenoh"), ("ratios_json", "raw_zenoh_json")):
+        if ref in runs:  # per round: flowrt / the plain program, measured minutes apart at most
+            row[key] = [
+                f["p50_ms"] / r["p50_ms"]
+                for f, r in zip(runs["flowrt_zenoh"], runs[ref], strict=True)
+            ]
     return row
 
 
@@ -425,19 +459,18 @@ def report(res: dict[str, Any]) -> str:
         "",
         "| payload | local p50/p99 ms | flowrt over Zenoh p50/p99 ms | raw Zenoh p50/p99 ms "
         "| raw Zenoh -> asyncio p50/p99 ms | raw Zenoh, shared memory p50/p99 ms "
-        "| flowrt / raw (p50, median of rounds) |",
-        "|---|---|---|---|---|---|---|",
+        "| raw Zenoh, the JSON message p50/p99 ms "
+        "| flowrt / raw (p50, median of rounds) | flowrt / raw JSON message |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
+    columns = ("local", "flowrt_zenoh", "raw_zenoh", "raw_zenoh_asyncio", "raw_zenoh_shm")
     for r in res["latency"]:
         cells = [
             f"{r[k]['p50_ms']:.2f} / {r[k]['p99_ms']:.2f}" if k in r else "-"
-            for k in ("local", "flowrt_zenoh", "raw_zenoh", "raw_zenoh_asyncio", "raw_zenoh_shm")
+            for k in (*columns, "raw_zenoh_json")
         ]
-        ratio = float(np.median(r["ratios"]))
-        per = " ".join(f"{x:.2f}" for x in r["ratios"])
-        lines.append(
-            f"| {r['payload']} | " + " | ".join(cells) + f" | {ratio:.2f} (rounds: {per}) |"
-        )
+        ratios = [_ratio_cell(r.get(k)) for k in ("ratios", "ratios_json")]
+        lines.append(f"| {r['payload']} | " + " | ".join(cells + ratios) + " |")
     s = res["sustained"]
     if s is None:  # --sustained 0
         return "\n".join(lines)
@@ -451,6 +484,13 @@ def report(res: dict[str, Any]) -> str:
         f"{s['crit_std_ms_without']:.3f} ms without"
     )
     return "\n".join(lines)
+
+
+def _ratio_cell(ratios: list[float] | None) -> str:
+    if not ratios:
+        return "-"
+    per = " ".join(f"{x:.2f}" for x in ratios)
+    return f"{float(np.median(ratios)):.2f} (rounds: {per})"
 
 
 def main() -> None:
@@ -469,6 +509,7 @@ def main() -> None:
     ap.add_argument("--critical", action="store_true")
     ap.add_argument("--asyncio", action="store_true")
     ap.add_argument("--shm", action="store_true", help="frames from Zenoh's shared memory (raw)")
+    ap.add_argument("--json", action="store_true", help="the JSON message, not 8 bytes (raw)")
     ap.add_argument("--sustained", type=float, help="seconds of the 30 fps run (default 3x)")
     ap.add_argument(
         "--rounds", type=int, default=1, help="interleaved rounds of every latency variant"
