@@ -14,6 +14,15 @@ them raise :class:`Interrupted`, a ``KeyboardInterrupt`` that ``main`` turns int
 line and exit code; a command that runs a graph then installs its own handlers
 (:mod:`flowrt.cli.signals`). SIGHUP ignored at the start (``nohup``) stays ignored, and a
 program that embeds flowrt is not touched.
+
+While importing, the exit is ``os._exit`` after the line (and, with ``--json``, the error
+document on stdout), not an exception: a ``SystemExit`` raised inside a class body's
+``__set_name__`` (pydantic's models) came out of Python 3.11 as a ``RuntimeError``, a
+traceback and exit 1; nothing is started yet that an exit would leave behind.
+
+The processes the command spawns (the table, the live view's and the control endpoint's
+servers) re-import it with the same ``sys.argv``: they ignore SIGINT instead (a Ctrl-C
+reaches the whole process group; the main process stops them in order) and print nothing.
 """
 
 from __future__ import annotations
@@ -22,6 +31,7 @@ import contextlib
 import os
 import signal
 import sys
+from collections.abc import Callable
 from typing import Any
 
 EXIT_INTERRUPTED = 130
@@ -41,16 +51,61 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
+#: Called with every line :func:`say` writes (``--json`` keeps them for its error document:
+#: they bypass ``sys.stderr``, which a signal handler must not write to).
+listeners: list[Callable[[str], None]] = []
+
+
+def interrupted_by(e: BaseException) -> int | None:
+    """The signal behind ``e``, when an :class:`Interrupted` is in its chain: raised inside
+    code that wraps what it catches (Python 3.11's ``__set_name__`` makes a ``RuntimeError``
+    of it), it is still a signal, not a bug."""
+    seen: set[int] = set()
+    cur: BaseException | None = e
+    while cur is not None and id(cur) not in seen:
+        if isinstance(cur, KeyboardInterrupt):
+            return cur.signum if isinstance(cur, Interrupted) else int(signal.SIGINT)
+        seen.add(id(cur))
+        cur = cur.__cause__ or cur.__context__
+    return None
+
+
+def say(text: str) -> None:
+    """One line on stderr from a signal handler (``os.write``: the handler may run while the
+    main thread is inside a write to ``sys.stderr``, which is not reentrant)."""
+    with contextlib.suppress(OSError):  # a terminal that hung up
+        os.write(2, (text + "\n").encode())
+    for listener in listeners:
+        listener(text)
+
+
 def say_interrupted(signum: int, prog: str = "flowrt") -> int:
     """The one line for a signal at start-up; returns the exit code."""
     code = 128 + signum
-    with contextlib.suppress(OSError):  # a terminal that hung up
-        os.write(2, f"{prog}: {signal.Signals(signum).name} while {phase}: exit {code}\n".encode())
+    say(f"{prog}: {signal.Signals(signum).name} while {phase}: exit {code}")
     return code
 
 
 def _exit_quietly(signum: int, frame: Any) -> None:
-    raise SystemExit(say_interrupted(signum))
+    code = say_interrupted(signum)
+    if "--json" in sys.argv[1:]:  # exactly one document on stdout (cli/json_output.py's form)
+        line = f"flowrt: {signal.Signals(signum).name} while {phase}: exit {code}"
+        words = [w for w in sys.argv[1:] if not w.startswith("-")]
+        doc = {"message": line, "exit_code": code, "command": words[0] if words else ""}
+        text = '{"error": {' + ", ".join(f"{_quoted(k)}: {_value(v)}" for k, v in doc.items())
+        with contextlib.suppress(OSError):
+            os.write(1, (text + f', "lines": [{_quoted(line)}]}}}}\n').encode())
+    os._exit(code)
+
+
+def _quoted(text: str) -> str:
+    """A JSON string (no ``json`` import in a signal handler that may run inside an import)."""
+    escaped = text.replace("\\", "\\\\").replace('"', '\\"')
+    return '"' + "".join(c if " " <= c < "\x7f" else f"\\u{ord(c):04x}" for c in escaped) + '"'
+
+
+def _value(v: Any) -> str:
+    return str(v) if isinstance(v, int) else _quoted(str(v))
 
 
 def _raise_interrupted(signum: int, frame: Any) -> None:
@@ -61,9 +116,18 @@ def _is_the_flowrt_command() -> bool:
     return bool(sys.argv) and os.path.basename(sys.argv[0]) in ("flowrt", "flowrt.exe")
 
 
+def _is_spawned_child() -> bool:
+    """A process multiprocessing spawned (its ``sys.argv`` is the parent's)."""
+    return "--multiprocessing-fork" in getattr(sys, "orig_argv", ())
+
+
 def _install() -> None:
     global hup_ignored
     if not _is_the_flowrt_command():
+        return
+    if _is_spawned_child():  # see the module: Ctrl-C is the main process's to handle
+        with contextlib.suppress(ValueError):
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
         return
     try:
         for sig in _SIGNALS:

@@ -79,3 +79,14 @@ class SlowSetup(Node):
 
     def process(self) -> int:
         return 1
+
+
+def interrupt_self() -> None:
+    """A spawned child's body: Ctrl-C to itself; a child of the ``flowrt`` command ignores it
+    (the main process stops its children in order) and goes on."""
+    import os
+    import signal
+
+    os.kill(os.getpid(), signal.SIGINT)
+    time.sleep(0.2)
+    print("child went on", flush=True)

@@ -10,6 +10,7 @@ reclaimed at the next start with one log line. Marker files written by the nodes
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -180,6 +181,126 @@ def test_ctrl_c_while_the_command_imports_exits_130_quietly() -> None:
     assert done.returncode == 130
     assert done.stderr == "flowrt: SIGINT while importing: exit 130\n"  # what it interrupted
     assert "not reached" not in done.stdout
+
+
+def _flowrt_script(body: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """``body`` run as if it were the ``flowrt`` command (``sys.argv[0]``), from tests/."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), *sys.path])}
+    argv = ", ".join(repr(a) for a in ("/usr/bin/flowrt", *args))
+    script = f"import sys; sys.argv[:] = [{argv}]\nimport flowrt._startup, os, signal\n{body}"
+    return subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=30
+    )
+
+
+def test_a_signal_inside_a_class_body_is_no_traceback() -> None:
+    """Python 3.11 wraps an exception raised in ``__set_name__`` (pydantic's descriptors) in
+    a RuntimeError: the start-up exit must not be an exception there."""
+    done = _flowrt_script(
+        "class Name:\n"
+        "    def __set_name__(self, owner, name):\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        import time; time.sleep(5)\n"
+        "class Model:\n"
+        "    field = Name()\n"
+        "print('not reached')\n"
+    )
+    assert (done.returncode, done.stderr) == (130, "flowrt: SIGINT while importing: exit 130\n")
+    assert done.stdout == ""
+
+
+def test_a_signal_while_importing_with_json_prints_the_error_document() -> None:
+    """``--json``: exactly one document on stdout, whatever happens (even before main())."""
+    done = _flowrt_script(
+        "os.kill(os.getpid(), signal.SIGTERM)\nimport time; time.sleep(5)\n",
+        "run",
+        "g.yaml",
+        "--json",
+    )
+    line = "flowrt: SIGTERM while importing: exit 143"
+    assert (done.returncode, done.stderr) == (143, line + "\n")
+    error = json.loads(done.stdout)["error"]
+    assert error == {"message": line, "exit_code": 143, "command": "run", "lines": [line]}
+
+
+def test_a_child_the_command_spawns_ignores_ctrl_c_quietly() -> None:
+    """A spawned child gets the command's ``sys.argv``: no start-up line of its own, and a
+    Ctrl-C (the whole process group gets one) leaves it to the main process."""
+    done = _flowrt_script(
+        "import multiprocessing, signalkinds\n"
+        "from flowrt.system import _spawned\n"
+        "p = multiprocessing.get_context('spawn').Process(target=signalkinds.interrupt_self)\n"
+        "_spawned.start(p)\n"
+        "p.join(20)\n"
+        "print('exit', p.exitcode)\n"
+    )
+    assert done.stdout.splitlines() == ["child went on", "exit 0"], done.stderr
+    assert done.stderr == ""
+
+
+def test_the_forkserver_ignores_ctrl_c_while_it_preloads() -> None:
+    """multiprocessing's forkserver ignores SIGINT only once numpy and OpenCV are imported:
+    a Ctrl-C in its first second printed a traceback from inside their imports."""
+    done = _flowrt_script(
+        "import threading, time\n"
+        "from multiprocessing import forkserver\n"
+        "from flowrt.workers import start_forkserver\n"
+        "t = threading.Thread(target=start_forkserver)\n"
+        "t.start(); t.join()\n"
+        "pid = forkserver._forkserver._forkserver_pid\n"
+        "os.kill(pid, signal.SIGINT)  # while it preloads\n"
+        "os.kill(pid, signal.SIGTERM)\n"
+        "time.sleep(0.2)\n"
+        "print('alive', os.waitpid(pid, os.WNOHANG) == (0, 0))\n",
+    )
+    assert done.stdout.strip() == "alive True", done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_a_line_said_from_a_signal_handler_is_the_json_error_message() -> None:
+    """Handlers write with ``os.write`` (not ``sys.stderr``): ``--json`` still hears them."""
+    from flowrt import _startup
+    from flowrt.cli.json_output import json_mode
+
+    line = "flowrt run: SIGINT during set-up (in setup() of cam): stopping, exit 130"
+    with json_mode("run") as out:
+        _startup.say(line)
+    error = out.document(130)["error"]
+    assert (error["message"], error["lines"]) == (line, [line])
+    assert _startup.listeners == []
+
+
+def _wrapped(inner: BaseException) -> BaseException:
+    try:
+        try:
+            raise inner
+        except BaseException as e:
+            raise RuntimeError("Error calling __set_name__") from e
+    except RuntimeError as outer:
+        return outer
+
+
+@pytest.mark.parametrize(
+    ("error", "signum"),
+    [
+        (ValueError("a bug"), None),
+        (KeyboardInterrupt(), signal.SIGINT),
+        ("Interrupted(SIGTERM)", signal.SIGTERM),
+        ("wrapped Interrupted(SIGHUP)", signal.SIGHUP),
+        ("wrapped ValueError", None),
+    ],
+)
+def test_a_wrapped_interruption_is_still_the_signal(error: object, signum: int | None) -> None:
+    from flowrt._startup import Interrupted, interrupted_by
+
+    made = {
+        "Interrupted(SIGTERM)": Interrupted(signal.SIGTERM),
+        "wrapped Interrupted(SIGHUP)": _wrapped(Interrupted(signal.SIGHUP)),
+        "wrapped ValueError": _wrapped(ValueError("a bug")),
+    }
+    e = made[error] if isinstance(error, str) else error
+    assert isinstance(e, BaseException)
+    assert interrupted_by(e) == signum
 
 
 def test_ctrl_c_at_start_up_of_flowrt_run(tmp_path: Path, run: object) -> None:

@@ -79,3 +79,8 @@ def _main(argv: list[str]) -> int:
         return int(args.func(args))
     except KeyboardInterrupt as e:  # one line naming the phase, exit 128 + N (130: Ctrl-C)
         return _startup.say_interrupted(getattr(e, "signum", signal.SIGINT))
+    except Exception as e:  # an Interrupted that a library wrapped is still the signal
+        signum = _startup.interrupted_by(e)
+        if signum is None:
+            raise
+        return _startup.say_interrupted(signum)

@@ -21,6 +21,8 @@ import sys
 from collections.abc import Iterator
 from typing import Any, TextIO
 
+from .. import _startup
+
 _active: JsonOutput | None = None
 
 #: A log line of :func:`flowrt.cli.common.plain_handler`: not an error message.
@@ -80,6 +82,10 @@ class _Stderr(io.TextIOBase):
 
     def text(self) -> str:
         return "".join(self.parts)
+
+    def heard(self, line: str) -> None:
+        """A line a signal handler wrote on fd 2 itself (:func:`flowrt._startup.say`)."""
+        self.parts.append(line + "\n")
 
 
 class JsonOutput:
@@ -143,9 +149,11 @@ def json_mode(command: str) -> Iterator[JsonOutput]:
     sys.stderr = out.stderr
     sys.stdout = real_stderr  # what a command says besides its result: for a person
     _active = out
+    _startup.listeners.append(out.stderr.heard)
     try:
         yield out
     finally:
+        _startup.listeners.remove(out.stderr.heard)
         _active = None
         sys.stdout, sys.stderr = real_stdout, real_stderr
         if saved_fd is not None:

@@ -20,7 +20,6 @@ SIGHUP ignored when the command started (``nohup flowrt run ...``) stays ignored
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import os
 import signal
 from collections.abc import Callable
@@ -107,6 +106,5 @@ class StopSignals:
 
 
 def _say(text: str) -> None:
-    """One line on stderr from a signal handler; a terminal that hung up is no error."""
-    with contextlib.suppress(OSError):
-        os.write(2, (text + "\n").encode())
+    """One line on stderr from a signal handler (``--json`` keeps it too, see _startup.say)."""
+    _startup.say(text)

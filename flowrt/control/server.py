@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING, Any
 
 from pydantic import ValidationError
 
+from ..system import _spawned as spawned
 from .client import DEFAULT_PORT as DEFAULT_PORT  # the client's, re-exported
 from .client import DEFAULT_URL as DEFAULT_URL
 from .client import ControlClient as ControlClient
@@ -222,7 +223,7 @@ class ControlServer:
         proc = ctx.Process(
             target=_serve, args=(self._sock, theirs, settings), name="flowrt-control", daemon=True
         )
-        proc.start()
+        spawned.start(proc)
         if proc.pid is not None:  # before its imports, which would compete with the loop
             lower_priority(proc.pid)
         theirs.close()

@@ -15,12 +15,13 @@ import contextlib
 import ipaddress
 import json
 import os
-import signal
 import socket
 import struct
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
+
+from ..system._spawned import ignore_interrupts
 
 FRAME = struct.Struct(">II")  # header length, body length
 NICE = 19  # a server's nice level: it gets the CPU the graph leaves
@@ -79,7 +80,7 @@ def serve_in_process(
 ) -> None:
     """The body of a server's process: below the runtime's priority, Ctrl-C left to the
     runtime (which stops it by ending the channel), ``make(settings)`` served until then."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_interrupts()  # started with SIGINT blocked (flowrt/system/_spawned.py)
     lower_priority(0)
 
     async def main() -> None:

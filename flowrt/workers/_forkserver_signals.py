@@ -7,9 +7,15 @@ was never retrieved") and no node's ``teardown`` would have run in its worker. S
 them, as they ignore SIGINT (Ctrl-C); the main process stops the workers in order, and they
 die with it anyway (EOF on their socket, PR_SET_PDEATHSIG). SIGKILL still ends a worker, and
 the runtime replaces it.
+
+The server started with the three blocked (:func:`flowrt.workers.forkserver.start_forkserver`):
+one sent while it imported numpy and OpenCV is pending; ignoring drops it, then they are
+unblocked, for the workers too (they inherit the mask, and so would their own children).
 """
 
 import signal
 
-for _sig in (signal.SIGTERM, signal.SIGHUP):
+_STOP = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+for _sig in _STOP:
     signal.signal(_sig, signal.SIG_IGN)
+signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP)

@@ -24,6 +24,9 @@ from typing import Any
 from ..ipc import PICKLE
 from .errors import WorkerError
 
+#: Blocked while the forkserver starts (see start_forkserver), ignored by it once preloaded.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
 #: Modules imported once by the forkserver, so every worker shares their pages.
 PRELOAD_MODULES = [
     "numpy",
@@ -192,7 +195,7 @@ def start_forkserver() -> None:
     The runtime calls this at start, before any deadline runs, so that the first worker start
     is not the one that pays for importing OpenCV.
     """
-    from multiprocessing import forkserver
+    from multiprocessing import forkserver, resource_tracker
 
     exit_if_importing_main()
     context()
@@ -204,9 +207,17 @@ def start_forkserver() -> None:
     # start (multiprocessing's prepare), so user modules the main process can import work.
     before = os.environ.get("PYTHONSAFEPATH")
     os.environ["PYTHONSAFEPATH"] = "1"
+    # The server starts with the stop signals blocked (a thread's signal mask is inherited
+    # through fork and exec): multiprocessing ignores SIGINT there only after the preload,
+    # so a Ctrl-C in its first second printed a traceback from inside numpy's import.
+    # _forkserver_signals, preloaded, ignores them and unblocks (a pending one is dropped).
+    # (The resource tracker first: its own start unblocks SIGINT and SIGTERM in this thread.)
+    resource_tracker.ensure_running()
+    masked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     try:
         forkserver.ensure_running()
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, masked)
         if before is None:
             os.environ.pop("PYTHONSAFEPATH", None)
         else:

@@ -80,6 +80,7 @@ from typing import Any
 
 from flowrt import Frame, Input, InputTrigger, Node
 from flowrt.control import serving
+from flowrt.system import _spawned as spawned
 
 from . import record as operator_record
 from . import server as display_server
@@ -267,7 +268,7 @@ class Display(Node):
             daemon=True,
         )
         try:
-            self._proc.start()
+            spawned.start(self._proc)  # Ctrl-C is the runtime's, from the child's first instant
             if self._proc.pid is not None:
                 serving.lower_priority(self._proc.pid)
         finally:
