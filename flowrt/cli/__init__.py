@@ -75,7 +75,7 @@ def _main(argv: list[str]) -> int:
         _startup.phase = "reading the arguments"
         args = build_parser().parse_args(argv)
         _name_command(args)
-        _startup.phase = f"flowrt {args.command}"
+        _startup.phase = f"starting {args.command}"  # "SIGINT while starting run"
         return int(args.func(args))
     except KeyboardInterrupt as e:  # one line naming the phase, exit 128 + N (130: Ctrl-C)
         return _startup.say_interrupted(getattr(e, "signum", signal.SIGINT))
