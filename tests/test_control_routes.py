@@ -147,6 +147,19 @@ async def test_routes_answer_reads_and_unknown_operations(server: Server) -> Non
     assert (await ask(server, "nope"))[0] == 404
 
 
+async def test_a_swap_of_a_param_the_kind_does_not_have_is_422(server: Server) -> None:
+    """A typo is the request's fault (422, "did you mean"), not a refused param (403)."""
+    body = {"node": "slow", "kind": "burn", "params": {"mss": 2}}
+    status, data = await ask(server, "swap", body)
+    assert (status, data) == (
+        422,
+        {"error": "burn: unknown param 'mss' (did you mean 'ms'?); see flowrt kinds burn"},
+    )
+    status, data = await ask(server, "swap", {**body, "kind": "relay", "params": {}})
+    assert status == 403, data  # a kind the graph does not allow: still a rule
+    assert server.rt.runner("slow").rnode.params.ms == 0.1  # type: ignore[attr-defined]
+
+
 def test_one_module_owns_the_recorders_command_key() -> None:
     """``flowrt.record.NODE`` is spelled once, in flowrt.rtdb; the control endpoint, the
     recorder node and the operator's page take it from there."""

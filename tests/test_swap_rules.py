@@ -12,13 +12,15 @@ from typing import Any
 
 import aiohttp
 import pytest
+from flowrt.nodes.basic import Relay
 from flowrt.nodes.recorder import Recorder
 from flowrt.nodes.station.display import Display
-from pydantic import BaseModel
+from flowrt.nodes.tracker import Tracker
+from pydantic import BaseModel, ConfigDict
 
 from flowrt import GraphBuilder, Input, Node, NodeSwapped, Output, Runtime, SwapError, VirtualClock
 from flowrt.cli.kinds import describe
-from flowrt.control._swap_policy import SwapRefused, check_params
+from flowrt.control._swap_policy import SwapRefused, UnknownParams, check_params
 from flowrt.control.server import ControlConfig, ControlServer
 
 # --- the allow-list, alone -----------------------------------------------------------------
@@ -45,6 +47,63 @@ def test_what_a_swap_may_not_change_is_refused_with_the_reason(
 ) -> None:
     with pytest.raises(SwapRefused, match=reason):
         check_params("recorder", Recorder, params, folders(tmp_path))
+
+
+class Open(Node):
+    """A kind whose params take any name: no name is unknown, one not in ``swappable`` is
+    still refused."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="allow")
+        gain: float = 1.0
+
+    swappable = frozenset({"gain"})
+
+
+@pytest.mark.parametrize(
+    ("kind", "cls", "params", "refusal", "message"),
+    [
+        (
+            "tracker", Tracker, {"objekt": "ball"}, UnknownParams,
+            "tracker: unknown param 'objekt' (did you mean 'object'?); see flowrt kinds tracker",
+        ),
+        (
+            "tracker", Tracker, {"object": "ball", "binz": 32, "colors": {}}, UnknownParams,
+            "tracker: unknown params 'binz' (did you mean 'bins'?), "
+            "'colors' (did you mean 'colours'?); see flowrt kinds tracker",
+        ),
+        (
+            "recorder", Recorder, {"xyzzy": 1}, UnknownParams,
+            "recorder: unknown param 'xyzzy'; see flowrt kinds recorder",
+        ),
+        # unknown before not swappable: the spelling is the first thing to fix
+        (
+            "recorder", Recorder, {"pth": "/", "path": "/"}, UnknownParams,
+            "recorder: unknown param 'pth' (did you mean 'path'?)",
+        ),
+        ("relay", Relay, {"gain": 2}, UnknownParams, "relay: unknown param 'gain';"),
+        # a real param that may not be changed stays a 403, with the graph file's advice
+        (
+            "recorder", Recorder, {"path": "/tmp"}, SwapRefused,
+            "recorder: params path may not be changed over the control endpoint",
+        ),
+        ("open", Open, {"gian": 2}, SwapRefused, "params gian may not be changed"),
+    ],
+)  # fmt: skip
+def test_a_param_the_kind_does_not_have_is_unknown_with_a_suggestion(
+    tmp_path: Path,
+    kind: str,
+    cls: type[Node],
+    params: dict[str, Any],
+    refusal: type[SwapRefused],
+    message: str,
+) -> None:
+    """Not "may not be changed ... edit the graph file instead" for a typo: the graph file
+    has no such param either (the YAML validator's "did you mean", over the endpoint)."""
+    with pytest.raises(SwapRefused) as refused:
+        check_params(kind, cls, params, folders(tmp_path))
+    assert type(refused.value) is refusal
+    assert message in str(refused.value)
 
 
 def test_a_session_is_resolved_inside_its_folder_links_included(tmp_path: Path) -> None:

@@ -13,7 +13,9 @@ the graph allows the kind) with its params as the graph file has them, none chan
 param a kind allows is confined to a folder param of the same node (``swap_folders =
 {"session": "path"}``: a recorder's session inside its recordings folder): the value must be
 a relative path without ``..``, and it is resolved under that folder (symbolic links
-included). ``Runtime.swap`` from Python is the program's own code: it is not restricted.
+included). A name the kind has no param of is answered apart (422, with the YAML
+validator's "did you mean"): that is a typo to fix, not a rule to take to the graph file.
+``Runtime.swap`` from Python is the program's own code: it is not restricted.
 """
 
 from __future__ import annotations
@@ -23,16 +25,37 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["SwapRefused", "allowed", "check_params", "confined"]
+from pydantic import BaseModel
+
+from ..graph.diagnostics import did_you_mean
+
+__all__ = ["SwapRefused", "UnknownParams", "allowed", "check_params", "confined"]
 
 
 class SwapRefused(Exception):
     """A swap the endpoint does not allow (403): a kind not allowed, a param not swappable."""
 
 
+class UnknownParams(SwapRefused):
+    """Params the kind does not have at all (422): a typo, not a rule. Told apart from a
+    param that may not be changed, whose answer sends the caller to the graph file: for a
+    misspelt name that advice is wrong, the spelling is what to fix."""
+
+
 def allowed(cls: type) -> frozenset[str]:
     """The params of kind ``cls`` a swap over the endpoint may change (its ``swappable``)."""
     return frozenset(getattr(cls, "swappable", frozenset()))
+
+
+def param_names(cls: type) -> frozenset[str] | None:
+    """The names a swap's params of kind ``cls`` may have (fields and their aliases), or
+    None when its ``Params`` takes any name (``extra="allow"``) or is not a pydantic model."""
+    model = getattr(cls, "Params", None)
+    if not (isinstance(model, type) and issubclass(model, BaseModel)):
+        return None
+    if model.model_config.get("extra") == "allow":
+        return None
+    return frozenset(n for name, f in model.model_fields.items() for n in (name, f.alias) if n)
 
 
 def confined(cls: type) -> Mapping[str, str]:
@@ -49,8 +72,14 @@ def check_params(
     """``given`` checked against the allow-list of ``cls``, path params resolved under their
     folders (``folder_of(param)``: the folder param's absolute value for this swap).
 
-    Raises :class:`SwapRefused` naming every param refused and why, before anything changes.
+    Raises :class:`SwapRefused` naming every param refused and why, before anything changes;
+    :class:`UnknownParams` first when some are not params of the kind at all.
     """
+    known = param_names(cls)
+    if known is not None and (unknown := [k for k in given if k not in known]):
+        names = ", ".join(f"{k!r}{did_you_mean(k, sorted(known))}" for k in unknown)
+        plural = "s" if len(unknown) > 1 else ""
+        raise UnknownParams(f"{kind}: unknown param{plural} {names}; see flowrt kinds {kind}")
     allow = allowed(cls)
     refused = sorted(k for k in given if k not in allow)
     if refused:

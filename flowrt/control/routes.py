@@ -22,7 +22,7 @@ from pydantic import BaseModel, ValidationError
 from ..graph.spec import merge_params
 from ..rtdb import RECORD_COMMAND
 from ..runtime._hotswap import SwapError
-from ._swap_policy import SwapRefused, check_params, confined
+from ._swap_policy import SwapRefused, UnknownParams, check_params, confined
 from .wire import (
     ModeRequest,
     RecordRequest,
@@ -103,6 +103,8 @@ async def answer(server: Answering, op: str, body: bytes) -> Answer:
         return await route.handler(server, request)
     except KeyError as e:
         return 404, dumps({"error": str(e.args[0] if e.args else e)})
+    except UnknownParams as e:  # a misspelt name: the request is at fault, not a rule
+        return 422, dumps({"error": str(e)})
     except SwapRefused as e:
         return 403, dumps({"error": str(e)})
     except SwapError as e:

@@ -6,16 +6,16 @@ Both only read ``rt.stats()`` and listen to events; the runtime does not know th
 from __future__ import annotations
 
 import asyncio
+import io
 import logging
 import math
 import multiprocessing
-import signal
 import sys
 import threading
 from collections import deque
 from collections.abc import Callable, Sequence
 from multiprocessing.connection import Connection
-from typing import TypeVar
+from typing import Any, TextIO, TypeVar, cast
 
 from rich.console import Console, Group, RenderableType
 from rich.live import Live
@@ -25,6 +25,7 @@ from ..events import DeadlineMissed, Event, HealthAlert, LoopBlocked, NodeFailed
 from ..runtime._qos import QosStatus
 from ..runtime._runtime import Runtime
 from ..stats import EdgeStats, NodeStats, RuntimeStats
+from ..system import _spawned as spawned
 from ._columns import Column, fit_table
 
 log = logging.getLogger("flowrt.monitors.status")
@@ -281,9 +282,8 @@ def _renderer(conn: Connection) -> None:
     the runtime one ``stats()`` and one pickle (~1.5 ms) per refresh, in a gap between ticks.
     The table is fitted to the terminal's size at every refresh (a resized pane just works).
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the runtime's to handle
-    console = Console()
-    live: Live | None = None
+    spawned.ignore_interrupts()  # Ctrl-C is the runtime's to handle (started with it blocked)
+    screen = _Screen(Console())
     try:
         while True:
             try:
@@ -294,25 +294,53 @@ def _renderer(conn: Connection) -> None:
                 break
             if msg is None:
                 break
-            kind, payload = msg
-            if kind == "log":
-                console.print(payload, markup=False, highlight=False, soft_wrap=True)
-                continue
-            if live is None:
-                live = Live(console=console, auto_refresh=False, transient=True)
-                live.start()
-            width, height = console.size
-            live.update(render(*payload, width=width, height=height), refresh=True)
+            screen.show(*msg)
     finally:
-        if live is not None:
-            live.stop()
+        screen.close()
+
+
+class _Screen:
+    """The terminal as the table's process draws it: the table, and lines printed above it.
+
+    Only this process may write to the terminal while the table is up: rich's redraw moves
+    the cursor up by the table's own height, so a line written by anyone else shifts the
+    table down one row, the redraw starts one row too low, and it erases that line and
+    leaves the table's old first line behind. Lines of the run's process (log records,
+    ``print``) are sent here instead and printed through the same Live.
+    """
+
+    def __init__(self, console: Console) -> None:
+        self.console = console
+        self.live: Live | None = None
+
+    def show(self, kind: str, payload: Any) -> None:
+        """``("log", text)``, ``("out", text)`` (the run's stdout) or ``("stats", args)``."""
+        if kind == "log":
+            self.console.print(payload, markup=False, highlight=False, soft_wrap=True)
+            return
+        if kind == "out":  # a rich console's colours in it stay colours, not escape codes
+            self.console.print(Text.from_ansi(payload), soft_wrap=True)
+            return
+        if self.live is None:
+            self.live = Live(console=self.console, auto_refresh=False, transient=True)
+            self.live.start()
+        width, height = self.console.size
+        self.live.update(render(*payload, width=width, height=height), refresh=True)
+
+    def close(self) -> None:
+        """Remove the table (transient): the run's final table is printed in its place."""
+        if self.live is not None:
+            self.live.stop()
+            self.live = None
 
 
 class LiveTable:
     """Refreshes the table ``hz`` times a second while the runtime runs, from its own process.
 
-    Log records are forwarded to that process too (``log_handler``), so that they print
-    above the table instead of tearing it.
+    Log records are forwarded to that process too (``log_handler``), and so is what this
+    process prints to ``sys.stdout`` while the table is on a terminal (a node's ``print``,
+    the display's URL), so that they print above the table instead of tearing it (see
+    :class:`_Screen`). What other processes (workers) write to the terminal is not.
     """
 
     def __init__(self, console: Console | None = None, hz: float = 4.0) -> None:
@@ -325,8 +353,9 @@ class LiveTable:
         self._conn, child = ctx.Pipe()
         self._lock = threading.Lock()  # log records come from any thread
         self._proc = ctx.Process(target=_renderer, args=(child,), name="flowrt-table", daemon=True)
-        self._proc.start()
+        spawned.start(self._proc)
         child.close()
+        self._stdout: _Forward | None = None  # sys.stdout while the table is up
 
     def log_handler(self) -> logging.Handler:
         return _PipeHandler(self)
@@ -343,6 +372,11 @@ class LiveTable:
 
     def started(self, rt: Runtime) -> None:
         self._task = asyncio.get_running_loop().create_task(self._refresh(rt))
+        # Before the nodes' setup: what they print from then on goes above the table. Only
+        # on a terminal: elsewhere there is no table to tear, and the output stays as it is.
+        if self.console.is_terminal and self._stdout is None:
+            self._stdout = _Forward(self.send, sys.stdout)
+            sys.stdout = cast(TextIO, self._stdout)
 
     async def _refresh(self, rt: Runtime) -> None:
         while True:
@@ -364,6 +398,11 @@ class LiveTable:
 
     def close(self) -> None:
         """Stop the renderer (it removes its table) and wait for it, briefly."""
+        forward, self._stdout = self._stdout, None
+        if forward is not None:
+            forward.flush()  # a line without its newline yet: printed before the table goes
+            if sys.stdout is forward:  # else someone replaced it since: theirs to restore
+                sys.stdout = forward.stream
         self.send(None)
         with self._lock:
             self._conn.close()
@@ -371,6 +410,70 @@ class LiveTable:
         if self._proc.is_alive():
             self._proc.kill()
             self._proc.join(timeout=1.0)
+
+
+class _Forward(io.TextIOBase):
+    """``sys.stdout`` while the table is up: each whole line is sent to the table's process,
+    which prints it above the table; written to ``stream`` itself once that process is gone.
+
+    Whole lines, because the table is redrawn after each message: half a line would end
+    up on a line of its own anyway. ``flush`` sends what is buffered, so a line written
+    without its newline (a prompt, a progress dot) is not held back until the run's end.
+    """
+
+    def __init__(self, send: Callable[[object], bool], stream: TextIO) -> None:
+        super().__init__()
+        self.send = send
+        self.stream = stream
+        self._partial = ""
+        self._lock = threading.Lock()  # print() from any thread
+
+    def write(self, text: str) -> int:
+        if not isinstance(text, str):  # as a real text stream says it
+            raise TypeError(f"write() argument must be str, not {type(text).__name__}")
+        with self._lock:
+            head, newline, tail = (self._partial + text).rpartition("\n")
+            self._partial = tail
+            if newline:
+                self._out(head)
+        return len(text)
+
+    def flush(self) -> None:
+        with self._lock:
+            partial, self._partial = self._partial, ""
+            if partial:
+                self._out(partial)
+        self.stream.flush()
+
+    def _out(self, text: str) -> None:
+        if not self.send(("out", text)):
+            self.stream.write(text + "\n")
+            self.stream.flush()
+
+    # What callers ask of sys.stdout besides writing: the terminal's answers. Anything else
+    # (``buffer``, ``reconfigure``) is the stream's: bytes written there bypass the table, as
+    # they did before, rather than fail.
+    def __getattr__(self, name: str) -> Any:
+        if name == "stream":  # not set yet (a copy being made): no endless recursion
+            raise AttributeError(name)
+        return getattr(self.stream, name)
+
+    def isatty(self) -> bool:
+        return self.stream.isatty()
+
+    def fileno(self) -> int:
+        return self.stream.fileno()
+
+    def writable(self) -> bool:
+        return True
+
+    @property
+    def encoding(self) -> str:  # type: ignore[override]
+        return self.stream.encoding
+
+    @property
+    def errors(self) -> str | None:  # type: ignore[override]
+        return self.stream.errors
 
 
 class _PipeHandler(logging.Handler):
