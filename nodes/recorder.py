@@ -253,13 +253,14 @@ class Recorder(Node):
         if writer is None or session is None:
             return
         self.writer, self._draining = None, writer
-        duration = self.ctx.now() - self._started_at
+        started = self._started_at
+        duration = self.ctx.now() - started
         start = dt.datetime.fromtimestamp(self._started_wall, dt.UTC).isoformat()
         stats = self._stats()
         rates = nominal_rates(stats) if stats is not None else {}
 
         def report() -> RecordingReport:
-            return build_report(writer, session.name, start, duration, rates)
+            return build_report(writer, session.name, start, duration, rates, started)
 
         def attachments() -> list[tuple[str, str, bytes]]:
             return [("streams.json", "application/json", report().model_dump_json().encode())]

@@ -1,9 +1,12 @@
 """The post-recording check (the acquisition paper's per-stream table): expected vs received
 vs written, lost, rate mean/min/max and bytes per stream, lost in red.
 
-``expected`` is the source's nominal rate times the recording's active window (from the
-first to the last message the recorder received, any stream, plus one): a source that
-delivered less than it should shows up as ``missing`` even when the recorder lost nothing.
+``expected`` counts the source's releases whose values the session could hold: a periodic
+node releases on a grid (flowrt.kernel.scheduler: a timer at ``origin + phase + n*period``, a
+frame reader on the ticks ``k % period == phase`` of its source), so a stream's own values
+place its grid, phase included, and :func:`expected_releases` counts the grid's points in
+the session's window (its first message to its last: the ``span``). A source that delivered
+less than it should shows up as ``missing`` even when the recorder lost nothing.
 The nominal rate comes from the running graph's timing (a timer trigger's period; a frame
 trigger's source rate divided by its period), as the runtime's statistics report it, unless
 the output declares a rate of its own (``output_hz``: a status every second on a node that
@@ -13,6 +16,7 @@ nothing, and nothing of it is ever "missing".
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -20,7 +24,19 @@ from pydantic import BaseModel, Field
 
 from .writer import StreamCounters
 
-__all__ = ["RecordingReport", "StreamReport", "build_report", "nominal_rates", "report_table"]
+__all__ = [
+    "RecordingReport",
+    "StreamReport",
+    "build_report",
+    "expected_releases",
+    "nominal_rates",
+    "releases_in",
+    "report_table",
+]
+
+_EPS = 1e-9
+"""Periods of float noise forgiven when a release falls on a window's edge: (0.9 - 0.1) / 0.8
+is 0.9999999999999999, and a release exactly at a start would otherwise fall before it."""
 
 
 class StreamReport(BaseModel):
@@ -29,7 +45,10 @@ class StreamReport(BaseModel):
     topic: str
     source: str = Field(description="node.port the stream was recorded from")
     nominal_hz: float | None = Field(description="the source's rate by the graph's timing")
-    expected: int | None = Field(description="nominal rate x duration (None: not periodic)")
+    expected: int | None = Field(
+        description="the source's releases within the session, its phase respected "
+        "(expected_releases; None: not periodic)"
+    )
     received: int
     written: int
     lost: int = Field(description="received and not written (lost_behind + lost_error)")
@@ -101,8 +120,59 @@ def stream_rate(rates: dict[str, float | None], source: str) -> float | None:
     return rates.get(source.split(".")[0])
 
 
-def _stream(c: StreamCounters, hz: float | None, window: float | None) -> StreamReport:
-    expected = None if hz is None or window is None else round(hz * window) + 1
+def releases_in(period: float, anchor: float, start: float, end: float) -> int:
+    """How many of the releases ``anchor + k * period`` (``k`` any integer) fall in
+    ``[start, end)``.
+
+    One release fixes the others: the scheduler releases a timer at ``origin + phase +
+    n*period`` and a frame reader on every ``period``-th tick of its source from its
+    ``phase`` on (flowrt.kernel.scheduler), so the phase is in ``anchor``.
+    """
+    if end <= start or period <= 0:
+        return 0
+    first = math.ceil((start - anchor) / period - _EPS)
+    past = math.ceil((end - anchor) / period - _EPS)
+    return max(0, past - first)
+
+
+def expected_releases(
+    period: float, start: float, end: float, first: float | None, last: float | None
+) -> int:
+    """The releases of a stream of nominal ``period`` whose values a session could hold.
+
+    ``start`` and ``end`` are the session's first and last message (any stream), ``first``
+    and ``last`` the stream's own (None: it sent nothing), all stamped at (or just after) their
+    release.
+    Counted: the stream's releases from its first value to its last (gaps included), and
+    those of the same grid before its first value from ``start`` on and after its last
+    value up to ``end``; so the node's phase decides, not the window's length (the length
+    times the rate, plus one, expected 16 of graphs/cambada.yaml's 5 Hz ``bgoal``, whose
+    phase puts 15 releases in a 3 s session, and 5 of its 1.25 Hz ``bpost``, which had 4).
+
+    The edges are not alike. At the start nothing before the first message counts: a
+    timer armed after its origin skips the release there (``flowrt.clock.next_release``:
+    strictly after), so the grid's point before a source's first value was never a
+    release. At the end a release less than half a period before the last message is
+    taken as at the end and not counted: stamps jitter (a frame is stamped when captured,
+    its readers' values with it), and a value released just before a live stop may still
+    have been on its way (a tracker's result comes up to its deadline after its frame).
+    Only a loss in that last half period goes unseen; one anywhere else is ``missing``.
+    """
+    half = period / 2
+    if first is None or last is None:  # no value places the grid: the fewest any phase puts
+        return max(0, math.floor((end - half - start) / period + _EPS)) if period > 0 else 0
+    own = round((last - first) / period) + 1
+    before = releases_in(period, first, start, first - half)
+    after = releases_in(period, last, last + half, end - half)
+    return own + before + after
+
+
+def _stream(
+    c: StreamCounters, hz: float | None, window: tuple[float, float] | None
+) -> StreamReport:
+    expected = None
+    if hz is not None and hz > 0 and window is not None:
+        expected = expected_releases(1.0 / hz, *window, c.first_seen, c.last_seen)
     iv = c.intervals
     mean = None
     if c.written > 1 and c.first_time is not None and c.last_time is not None:
@@ -147,20 +217,31 @@ def build_report(
     start_time: str,
     duration: float,
     rates: dict[str, float | None],
+    started: float | None = None,
 ) -> RecordingReport:
-    """The report of a finished (or stopped) writer."""
+    """The report of a finished (or stopped) writer.
+
+    ``started`` is when the session opened (the runtime clock, as the stamps): a value
+    released before it and still on its way is recorded, and stamped earlier, but the
+    other streams' releases before it could not be; none of them is expected.
+    """
     firsts = [c.first_seen for c in writer.streams.values() if c.first_seen is not None]
     lasts = [c.last_seen for c in writer.streams.values() if c.last_seen is not None]
-    window = max(lasts) - min(firsts) if firsts else None
+    window = (min(firsts), max(lasts)) if firsts and lasts else None
+    counted = window
+    if window is not None and started is not None:
+        counted = (max(window[0], started), window[1])
     return RecordingReport(
         session=session,
         files=[str(f) for f in writer.files] or [str(writer.path)],
         start_time=start_time,
         duration=duration,
-        span=window,
+        span=window[1] - window[0] if window is not None else None,
         error=writer.error,
         notes=list(writer.notes),
-        streams=[_stream(c, stream_rate(rates, c.source), window) for c in writer.streams.values()],
+        streams=[
+            _stream(c, stream_rate(rates, c.source), counted) for c in writer.streams.values()
+        ],
     )
 
 
@@ -177,7 +258,8 @@ def _hz(x: float | None) -> str:
 
 
 def report_table(report: RecordingReport, width: int | None = None) -> Any:
-    """A rich Table of the report; lost (and missing) in red.
+    """A rich Table of the report; lost (and missing) in red: any missing, since expected
+    counts the releases themselves (the operator view warns at one too, station/operator.js).
 
     At a narrow ``width`` (an 80-column terminal) the rate columns go first, then the bytes
     and the expected count; the stream and what was received, written and lost never go.
@@ -195,9 +277,7 @@ def report_table(report: RecordingReport, width: int | None = None) -> Any:
         Column("received", lambda s: str(s.received)),
         Column("written", lambda s: str(s.written)),
         Column("lost", lambda s: Text(str(s.lost), style="bold red" if s.lost else "")),
-        Column(
-            "missing", lambda s: Text(str(s.missing), style="red" if s.missing > 1 else ""), drop=6
-        ),
+        Column("missing", lambda s: Text(str(s.missing), style="red" if s.missing else ""), drop=6),
         Column("Hz mean", lambda s: _hz(s.rate_mean), drop=3),
         Column("Hz min", lambda s: _hz(s.rate_min), drop=1),
         Column("Hz max", lambda s: _hz(s.rate_max), drop=2),
