@@ -13,7 +13,7 @@ import importlib
 
 from .common import EXIT_BAD_GRAPH as EXIT_BAD_GRAPH
 
-GROUPS = ("run", "inspect", "kinds", "ctl", "can", "check", "record", "sync")
+GROUPS = ("run", "inspect", "kinds", "examples", "ctl", "can", "check", "record", "sync")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -8,11 +8,13 @@ before the run ran (130 for Ctrl-C; :mod:`flowrt.cli.signals`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import re
 import sys
 from collections.abc import Iterable
+from pathlib import Path
 
 from rich.console import Console
 
@@ -40,6 +42,17 @@ def diagnostic_json(d: Diagnostic) -> dict[str, object]:
     }
 
 
+def _with_examples_hint(e: GraphError, path: str) -> GraphError:
+    """A missing ``graphs/cambada.yaml``: a wheel's user has the examples in the package."""
+    from .examples import is_example
+
+    if Path(path).exists() or len(e.diagnostics) != 1 or not is_example(path):
+        return e
+    (d,) = e.diagnostics
+    hint = "; the example graphs ship with flowrt: `flowrt examples --copy .` writes ./graphs"
+    return GraphError([dataclasses.replace(d, message=d.message + hint)])
+
+
 def print_diagnostics(console: Console, e: GraphError) -> None:
     from .json_output import note
 
@@ -57,7 +70,7 @@ def load(path: str, console: Console, *, import_kinds: bool = True) -> Graph | N
     try:
         graph = Graph.from_file(path, import_kinds=import_kinds)
     except GraphError as e:
-        print_diagnostics(console, e)
+        print_diagnostics(console, _with_examples_hint(e, path))
         return None
     for w in graph.warnings:
         console.print(str(w), style="yellow", markup=False, highlight=False, soft_wrap=True)

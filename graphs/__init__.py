@@ -1,0 +1,1 @@
+"""The example graphs, installed as ``flowrt.examples`` (``flowrt examples --copy .``)."""
