@@ -88,9 +88,11 @@ def say_interrupted(signum: int, prog: str = "flowrt") -> int:
 
 def _exit_quietly(signum: int, frame: Any) -> None:
     code = say_interrupted(signum)
-    if "--json" in sys.argv[1:]:  # exactly one document on stdout (cli/json_output.py's form)
+    given = sys.argv[1:]
+    given = given[: given.index("--")] if "--" in given else given  # as flowrt.cli.main reads
+    if "--json" in given:  # exactly one document on stdout (cli/json_output.py's form)
         line = f"flowrt: {signal.Signals(signum).name} while {phase}: exit {code}"
-        words = [w for w in sys.argv[1:] if not w.startswith("-")]
+        words = [w for w in given if not w.startswith("-")]
         doc = {"message": line, "exit_code": code, "command": words[0] if words else ""}
         text = '{"error": {' + ", ".join(f"{_quoted(k)}: {_value(v)}" for k, v in doc.items())
         with contextlib.suppress(OSError):
