@@ -272,8 +272,12 @@ def test_builder_gives_the_same_model_as_yaml() -> None:
             {"name": "tick", "kind": "counter", "trigger": {"timer": "10ms", "phase": "10ms"}},
             "nodes.tick.trigger.phase: phase 10 ms must be less than the period 10 ms",
         ),
+        (  # a tuple given too few items: said of the list, not of an item the file lacks
+            {"name": "cam", "kind": "capture", "params": {"size": [320]}},
+            "nodes.cam.params.size: too few items: none at position 1 (from 0)",
+        ),
     ],
-    ids=["kind", "field", "phase"],
+    ids=["kind", "field", "phase", "short tuple"],
 )
 def test_builder_reports_the_same_errors(add: dict[str, object], message: str) -> None:
     g = GraphBuilder("typos")

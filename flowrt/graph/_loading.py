@@ -401,6 +401,10 @@ def pydantic_diagnostics(
             msg = f"unknown field {key!r}" + did_you_mean(key, siblings)
             if (match := closest(key, siblings)) is not None:
                 suggested.add((*path[:-1], match))
+        elif err["type"] == "missing" and path and isinstance(path[-1], int):
+            # a tuple given too few items (``size: [320]``): said of the list, not of an
+            # "item 1" the file never names
+            path, msg = path[:-1], f"too few items: none at position {path[-1]} (from 0)"
         elif err["type"] == "missing":
             msg = f"missing required field {str(path[-1])!r}"
         elif err["type"] == "value_error":
