@@ -67,8 +67,8 @@ def test_every_command_with_json_is_covered() -> None:
     # tests/test_cli_paths.py and tests/test_cli_json_runs.py (issue 43)
     ctl = {"stats", "timing", "mode", "modes", "events", "qos", "rtdb", "record", "swap", "reload"}
     covered = {
-        "kinds", "check", "can analyse", "can analyze", "can stats", "info", "sync measure",
-        "replay", "run", "record", "validate", "graph", "schema", *(f"ctl {c}" for c in ctl),
+        "kinds", "examples", "check", "can analyse", "can analyze", "can stats", "info",
+        "sync measure", "replay", "run", "record", "validate", "graph", "schema", *(f"ctl {c}" for c in ctl),
     }  # fmt: skip
     parser = build_parser()
     found = set()

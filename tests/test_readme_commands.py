@@ -63,7 +63,7 @@ def free_port() -> int:
 # How each kind of command runs in a test (first match wins); a command none matches fails.
 RUNS = "--duration 1 --no-ui --no-display"
 KNOWN = [
-    r"^flowrt (kinds|validate|graph|schema|info|can analyse)\b",
+    r"^flowrt (kinds|examples|validate|graph|schema|info|can analyse)\b",
     r"^flowrt (run|check|record|replay)\b",
     r"^flowrt ctl\b",
 ]

@@ -44,7 +44,7 @@ def diagnostic_json(d: Diagnostic) -> dict[str, object]:
 
 def _with_examples_hint(e: GraphError, path: str) -> GraphError:
     """A missing ``graphs/cambada.yaml``: a wheel's user has the examples in the package."""
-    from .examples import is_example
+    from .example_files import is_example
 
     if Path(path).exists() or len(e.diagnostics) != 1 or not is_example(path):
         return e

@@ -11,32 +11,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-from importlib import resources
 from importlib.abc import Traversable
 from pathlib import Path
 from typing import Any
 
 from .common import EXIT_FAILED, EXIT_OK, stdout_console
+from .example_files import shipped
 from .json_output import emit
-
-PACKAGE = "flowrt.examples"
-SUFFIXES = (".yaml", ".avi", ".py")  # graphs, the sample clip, the script that renders it
-
-
-def shipped() -> list[Traversable]:
-    """The example files in the installed package, by name (none: an incomplete install)."""
-    try:
-        root = resources.files(PACKAGE)
-    except ModuleNotFoundError:
-        return []
-    files = [f for f in root.iterdir() if f.is_file() and f.name.endswith(SUFFIXES)]
-    return sorted((f for f in files if f.name != "__init__.py"), key=lambda f: f.name)
-
-
-def is_example(path: str) -> bool:
-    """``graphs/cambada.yaml`` (or ``cambada.yaml``) names a graph flowrt ships."""
-    name = Path(path).name
-    return name.endswith(".yaml") and any(f.name == name for f in shipped())
 
 
 def _summary(graph: Traversable, width: int) -> str:
