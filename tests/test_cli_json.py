@@ -68,7 +68,8 @@ def test_every_command_with_json_is_covered() -> None:
     ctl = {"stats", "timing", "mode", "modes", "events", "qos", "rtdb", "record", "swap", "reload"}
     covered = {
         "kinds", "examples", "check", "can analyse", "can analyze", "can stats", "info",
-        "sync measure", "replay", "run", "record", "validate", "graph", "schema", *(f"ctl {c}" for c in ctl),
+        "sync measure", "replay", "run", "record", "validate", "graph", "schema",
+        *(f"ctl {c}" for c in ctl),
     }  # fmt: skip
     parser = build_parser()
     found = set()
