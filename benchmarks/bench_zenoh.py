@@ -24,6 +24,10 @@ Rows, each measured in the same run:
 - a critical 20 Hz timer node's inter-activation std on the exporting side, with and without
   the 640x480 @ 30 fps export.
 
+``--pm-qos`` (informative, root): the whole run with ``/dev/cpu_dma_latency`` held at 0, idle
+CPUs polling instead of halting, as real-time set-ups do (cyclictest, tuned's
+latency-performance profile): what the hop costs without the idle states' wake-ups.
+
 Both processes run on this machine, so their clocks agree: latency is one-way, from the
 sender's wall-clock stamp (in the JSON, in the frame's last 8 bytes, or in the attachment for
 raw Zenoh) to the receiver's clock at the sink's activation; flowrt's clock-offset estimate
@@ -493,6 +497,16 @@ def _ratio_cell(ratios: list[float] | None) -> str:
     return f"{float(np.median(ratios)):.2f} (rounds: {per})"
 
 
+def _hold_cpu_latency() -> int:
+    """A PM QoS request of 0 us (what cyclictest does): while its file stays open, idle CPUs
+    poll instead of halting (on a KVM guest: no exit to the host, no wake-up IPI cost)."""
+    import struct
+
+    fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
+    os.write(fd, struct.pack("i", 0))
+    return fd
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=10.0)
@@ -510,6 +524,9 @@ def main() -> None:
     ap.add_argument("--asyncio", action="store_true")
     ap.add_argument("--shm", action="store_true", help="frames from Zenoh's shared memory (raw)")
     ap.add_argument("--json", action="store_true", help="the JSON message, not 8 bytes (raw)")
+    ap.add_argument(
+        "--pm-qos", action="store_true", help="hold /dev/cpu_dma_latency at 0 (root; informative)"
+    )
     ap.add_argument("--sustained", type=float, help="seconds of the 30 fps run (default 3x)")
     ap.add_argument(
         "--rounds", type=int, default=1, help="interleaved rounds of every latency variant"
@@ -521,6 +538,9 @@ def main() -> None:
     if args.role:
         role_main(args)
         return
+    if args.pm_qos:  # held until this process exits: every variant of the run alike
+        qos = _hold_cpu_latency()
+        print(f"/dev/cpu_dma_latency held at 0 (fd {qos}): idle CPUs poll, never halt")
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"bench_zenoh_{os.getpid()}"
     tmp.mkdir(exist_ok=True)
     start_load = os.getloadavg()
