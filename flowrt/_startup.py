@@ -81,9 +81,12 @@ def say(text: str) -> None:
 
 def say_interrupted(signum: int, prog: str = "flowrt") -> int:
     """The one line for a signal at start-up; returns the exit code."""
-    code = 128 + signum
-    say(f"{prog}: {signal.Signals(signum).name} while {phase}: exit {code}")
-    return code
+    say(_line(signum, prog))
+    return 128 + signum
+
+
+def _line(signum: int, prog: str = "flowrt") -> str:
+    return f"{prog}: {signal.Signals(signum).name} while {phase}: exit {128 + signum}"
 
 
 def _exit_quietly(signum: int, frame: Any) -> None:
@@ -91,12 +94,14 @@ def _exit_quietly(signum: int, frame: Any) -> None:
     given = sys.argv[1:]
     given = given[: given.index("--")] if "--" in given else given  # as flowrt.cli.main reads
     if "--json" in given:  # exactly one document on stdout (cli/json_output.py's form)
-        line = f"flowrt: {signal.Signals(signum).name} while {phase}: exit {code}"
-        words = [w for w in given if not w.startswith("-")]
-        doc = {"message": line, "exit_code": code, "command": words[0] if words else ""}
-        text = '{"error": {' + ", ".join(f"{_quoted(k)}: {_value(v)}" for k, v in doc.items())
+        command = next((w for w in given if not w.startswith("-")), "")
+        line = _quoted(_line(signum))
+        doc = (
+            f'{{"error": {{"message": {line}, "exit_code": {code}, '
+            f'"command": {_quoted(command)}, "lines": [{line}]}}}}\n'
+        )
         with contextlib.suppress(OSError):
-            os.write(1, (text + f', "lines": [{_quoted(line)}]}}}}\n').encode())
+            os.write(1, doc.encode())
     os._exit(code)
 
 
@@ -104,10 +109,6 @@ def _quoted(text: str) -> str:
     """A JSON string (no ``json`` import in a signal handler that may run inside an import)."""
     escaped = text.replace("\\", "\\\\").replace('"', '\\"')
     return '"' + "".join(c if " " <= c < "\x7f" else f"\\u{ord(c):04x}" for c in escaped) + '"'
-
-
-def _value(v: Any) -> str:
-    return str(v) if isinstance(v, int) else _quoted(str(v))
 
 
 def _raise_interrupted(signum: int, frame: Any) -> None:
