@@ -450,6 +450,11 @@ def test_can_analyse_finds_the_shipped_database_as_the_node_does(
     monkeypatch.chdir(tmp_path)
     assert main(["can", "analyse", "robot.dbc", "--bitrate", "250000"]) == 0
     assert capsys.readouterr().out.startswith("robot.dbc: 5 messages at 250000 bit/s")
+    # the README's command, from a folder with the examples copied out but no nodes/
+    assert main(["can", "analyse", "nodes/robot.dbc", "--bitrate", "250000"]) == 0
+    assert capsys.readouterr().out.startswith("nodes/robot.dbc: 5 messages at 250000 bit/s")
+    assert main(["can", "analyse", "nodes/nosuch.dbc"]) == 2
+    assert capsys.readouterr().err.strip() == "flowrt can analyse: nodes/nosuch.dbc: no such file"
     (tmp_path / "robot.dbc").write_text("not a database\n")  # the user's own file comes first
     assert main(["can", "analyse", "robot.dbc"]) == 2
     assert "robot.dbc:1: not a valid CAN database" in capsys.readouterr().err

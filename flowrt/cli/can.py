@@ -49,13 +49,15 @@ def load_database(path: str, strict: bool = False) -> Any:
 def database_path(path: str) -> str:
     """``path`` as given (relative to the working directory), else a database shipped with the
     ``can`` node kind's package (``robot.dbc``), where the node's ``dbc:`` param looks too: the
-    README's example runs from an installed wheel as well as from the repository."""
+    README's example runs from an installed wheel as well as from the repository, and so does
+    its path in the repository (``nodes/robot.dbc``: ``nodes/`` installs as flowrt.nodes)."""
     p = Path(path)
     if p.exists() or p.is_absolute():
         return path
+    inside = Path(*p.parts[1:]) if p.parts[:1] == ("nodes",) and len(p.parts) > 1 else p
     try:
         kind = resolve_kind("can")  # through the entry points, as a graph's kinds are
-        shipped = Path(inspect.getfile(kind)).resolve().parent.parent / path
+        shipped = Path(inspect.getfile(kind)).resolve().parent.parent / inside
     except (KindError, TypeError, OSError):
         return path
     return str(shipped) if shipped.is_file() else path
