@@ -18,9 +18,12 @@ import can
 import pytest
 from _can_dbcs import FD_DBC, write
 from flowrt.nodes.can.node import Can
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from flowrt import GraphBuilder, Runtime, VirtualClock, cli
 from flowrt.analysis.can_frames import fd_frame_bits, frame_bits
+from flowrt.analysis.can_trace import MIN_PEAK_S, bus_load
 
 pytestmark = pytest.mark.timeout(30)
 _channels = itertools.count()
@@ -320,3 +323,98 @@ async def test_a_trace_that_cannot_open_leaves_the_bus_running_in_error(
         assert "CAN trace" in runner.error_reason
         assert "cannot open" in runner.error_reason
         assert runner.counts.errors == 0  # nothing raised out of the node
+
+
+_TICK = 1 / 64  # s: exact in binary and in candump's 6 decimals, so no window edge is rounded
+_BACKGROUND = [1000.75 + k * _TICK for k in range(256)]  # 64 frames/s from mid-second, 3.98 s
+
+
+@pytest.mark.parametrize(
+    ("times", "mean_fps", "peak_fps", "second_frames"),
+    [
+        # the tester's trace: starting mid-second, the clock's first and last seconds are
+        # partial (16 and 48 frames) and the mean over the span (64.25/s) beat every second
+        pytest.param(_BACKGROUND, 64.0, 64.0, [64, 64, 64, 64], id="partial-clock-seconds"),
+        # 16 more frames astride the third second from the first frame (at 1002.75): those
+        # seconds have 72 each, the window over the burst 80
+        pytest.param(
+            sorted(_BACKGROUND + [1002.75 + m * _TICK for m in range(-8, 8)]),
+            208 / 3,
+            80.0,
+            [64, 72, 72, 64],
+            id="burst-across-a-clock-second",
+        ),
+        # a frame a whole second after another is in the next second (and past the 3 whole
+        # seconds, out of the mean); the clock gave a mean of 4/3 and a busiest second of 1
+        pytest.param([1000.5, 1001.5, 1002.5, 1003.5], 1.0, 1.0, [1, 1, 1, 1], id="on-edges"),
+        # under MIN_PEAK_S: no busiest second, the mean over the span
+        pytest.param(_BACKGROUND[:97], 97 / 1.5, None, [64, 33], id="short"),
+    ],
+)
+def test_stats_busiest_second_is_a_whole_second_never_under_the_mean(
+    tmp_path: Path,
+    times: list[float],
+    mean_fps: float,
+    peak_fps: float | None,
+    second_frames: list[int],
+) -> None:
+    trace = tmp_path / "t.log"
+    with can.CanutilsLogWriter(str(trace), channel="can0") as w:
+        for t in times:
+            w.on_message_received(
+                can.Message(timestamp=t, arbitration_id=0x10, data=bytes(8), is_extended_id=False)
+            )
+    rc, out, _ = _run("can", "stats", str(trace), "--bitrate", "500k", "--json")
+    assert rc == 0
+    doc = json.loads(out)
+    per_frame = frame_bits(8) / 500_000
+    assert doc["mean_load"] == pytest.approx(mean_fps * per_frame, rel=1e-12)
+    if peak_fps is None:
+        assert doc["peak_load"] is None
+    else:
+        assert doc["peak_load"] == pytest.approx(peak_fps * per_frame, rel=1e-12)
+        assert doc["peak_load"] >= doc["mean_load"]
+    assert [s["t_s"] for s in doc["load"]] == [float(k) for k in range(len(second_frames))]
+    assert [s["bits"] for s in doc["load"]] == [n * frame_bits(8) for n in second_frames]
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    base=st.sampled_from([0.0, 1000.2, 1.7e9 + 0.123456]),
+    frames=st.lists(
+        st.tuples(
+            st.one_of(  # any time, or a trace's decimal microseconds
+                st.floats(0, 8, allow_nan=False), st.integers(0, 8_000_000).map(lambda us: us / 1e6)
+            ),
+            st.integers(1, 2000),
+        ),
+        min_size=1,
+        max_size=60,
+    ),
+    scale=st.sampled_from([125_000**2, 500_000 * 2_000_000, 1_000_000**2]),
+)
+def test_bus_load_peak_is_never_under_the_mean(
+    base: float, frames: list[tuple[float, int]], scale: int
+) -> None:
+    """Any frame times and lengths: the busiest second is at least the mean, exactly (no
+    rounding slack), and is the busiest window [t, t + 1 s) starting at a frame of the whole
+    seconds (from the first frame, in microseconds) the mean is over."""
+    times = [base + x for x, _ in frames]
+    units = [n * 4000 for _, n in frames]
+    bits = [n for _, n in frames]
+    load = bus_load(times, bits, units, scale)
+    assert sum(b for _, b, _ in load.seconds) == sum(bits)
+    first = min(times)
+    d = sorted((round((t - first) * 1e6), u) for t, u in zip(times, units, strict=True))
+    span = d[-1][0]
+    if span < MIN_PEAK_S * 1e6:
+        assert load.peak is None
+        return
+    assert load.mean is not None
+    assert load.peak is not None
+    assert load.peak >= load.mean
+    whole = span // 1_000_000
+    starts = [x for x, _ in d if x < whole * 1_000_000]
+    busiest = max(sum(u for y, u in d if x <= y < x + 1_000_000) for x in starts)
+    assert load.peak == busiest / scale
+    assert load.mean == sum(u for x, u in d if x < whole * 1_000_000) / (whole * scale)

@@ -220,6 +220,108 @@ def test_odd_yaml_is_a_located_error(text: str, where: tuple[int, int], fragment
     assert (hits[0].line, hits[0].column) == where
 
 
+# --- a node whose params fail: its params-given ports are not reported as missing -----------
+
+
+def _can_graph(
+    robot_dbc: str = "robot.dbc",
+    chassis_dbc: str = "robot.dbc",
+    robot_in: str = "WheelSpeeds",
+    chassis_out: str = "Infrared",
+    world_from: str = "chassis",
+    exported: str = "Battery",
+) -> str:
+    """graphs/can.yaml's shape: a CAN node fed by another, a CAN node feeding another and
+    exported; the CAN nodes' ports named after their DBC's messages."""
+    return f"""\
+nodes:
+  wheels:
+    kind: can-signals
+    params: {{rate_ms: 10, signals: {{LeftSpeed: {{value: 1}}}}}}
+  robot:
+    kind: can
+    params: {{interface: virtual, channel: r, dbc: {robot_dbc}}}
+    inputs:
+      {robot_in}: wheels.values
+  chassis:
+    kind: can
+    params: {{interface: virtual, channel: r, dbc: {chassis_dbc}}}
+  world:
+    kind: rtdb
+    inputs:
+      wheels: {world_from}.WheelSpeeds
+      infrared: {world_from}.{chassis_out}
+export:
+  robot/battery: chassis.{exported}
+"""
+
+
+_NO_DBC = "nosuch.dbc: no such file"
+
+
+@pytest.mark.parametrize(
+    ("graph", "errors"),
+    [
+        # the DBC's messages are the CAN nodes' ports: without it none of them can be checked
+        (
+            _can_graph(robot_dbc="nosuch.dbc", chassis_dbc="nosuch.dbc"),
+            [("nodes.robot.params.dbc", _NO_DBC), ("nodes.chassis.params.dbc", _NO_DBC)],
+        ),
+        (
+            _can_graph(chassis_dbc="nosuch.dbc", chassis_out="Infrred", exported="Batery"),
+            [("nodes.chassis.params.dbc", _NO_DBC)],
+        ),
+        # with the DBC read, a misspelt port is an error of its own, at each side
+        (
+            _can_graph(robot_in="WheelSpeed"),
+            [
+                (
+                    "nodes.robot.inputs.WheelSpeed",
+                    "can has no input 'WheelSpeed' (its inputs: ",
+                ),
+            ],
+        ),
+        (
+            _can_graph(chassis_out="Infrred"),
+            [("nodes.world.inputs.infrared", "node 'chassis' (can) has no output 'Infrred'")],
+        ),
+        (
+            _can_graph(exported="Batery"),
+            [("export.robot/battery", "node 'chassis' has no output 'Batery'")],
+        ),
+        # an error that does not follow from the params is still told
+        (
+            _can_graph(robot_dbc="nosuch.dbc", world_from="chasis"),
+            [
+                ("nodes.robot.params.dbc", _NO_DBC),
+                ("nodes.world.inputs.wheels", "input from unknown node 'chasis'"),
+                ("nodes.world.inputs.infrared", "input from unknown node 'chasis'"),
+            ],
+        ),
+    ],
+    ids=[
+        "no-dbc",
+        "no-dbc-and-its-ports",
+        "misspelt-input",
+        "misspelt-output",
+        "misspelt-export",
+        "no-dbc-and-unknown-node",
+    ],
+)
+def test_ports_of_a_node_with_invalid_params_are_not_reported(
+    tmp_path: Path, graph: str, errors: list[tuple[str, str]]
+) -> None:
+    path = tmp_path / "can.yaml"  # robot.dbc is not beside it: the one in flowrt.nodes
+    path.write_text(graph, encoding="utf-8")
+    with pytest.raises(GraphError) as info:
+        Graph.from_file(path)
+    got = [(d.key, d.message) for d in info.value.errors]
+    assert len(got) == len(errors), str(info.value)
+    for (key, message), (want_key, fragment) in zip(got, errors, strict=True):
+        assert key == want_key, str(info.value)
+        assert fragment in message, str(info.value)
+
+
 # --- GraphBuilder: the same model as YAML ---------------------------------------------------
 
 

@@ -8,22 +8,39 @@ comparable with ``flowrt can analyse``: classic frames after Davis et al. 2007, 
 (ISO 11898-1:2015) with their real payload, the data phase of a bit-rate-switched frame at
 the data bit rate (at the nominal rate, an upper bound, when none is given; counted).
 Remote frames count with no data bytes; error frames are counted, not timed.
+
+The load per second is of seconds from a channel's first frame, not of the clock's: a
+clock-aligned first and last second hold only part of a second. The busiest second is the
+busiest 1 s window starting at a frame, the mean is over the same whole seconds, so the
+busiest second is never under the mean (a mean over the trace's span, ragged ends included,
+could exceed every whole second of an evenly loaded bus).
 """
 
 from __future__ import annotations
 
+import bisect
 import itertools
 import statistics
-from collections.abc import Iterable
+from array import array
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from .can_frames import fd_frame_bits, frame_bits
 
-__all__ = ["MIN_PEAK_S", "TraceError", "frame_seconds", "read_trace", "trace_stats"]
+__all__ = [
+    "MIN_PEAK_S",
+    "BusLoad",
+    "TraceError",
+    "bus_load",
+    "frame_seconds",
+    "read_trace",
+    "trace_stats",
+]
 
 #: Shortest trace (s) whose busiest second ``peak_load`` is given; a shorter one has its mean.
 MIN_PEAK_S = 2.0
+_US = 1_000_000  # microseconds a second
 
 
 class TraceError(Exception):
@@ -43,6 +60,81 @@ def frame_seconds(msg: Any, bitrate: int, data_bitrate: int | None) -> tuple[int
     return bits, bits / bitrate
 
 
+def _frame_units(msg: Any, bitrate: int, data_bitrate: int | None) -> tuple[int, int]:
+    """(worst-case bits, time on the wire in 1/(bitrate * data rate) s): whole numbers, so
+    that windows sum and compare exactly (float sums in another order could put the mean of
+    the seconds a rounding above their busiest); the data rate is ``bitrate`` without one."""
+    rate = data_bitrate if data_bitrate is not None else bitrate
+    ext = bool(msg.is_extended_id)
+    n = 0 if msg.is_remote_frame else len(msg.data)
+    if msg.is_fd:
+        fd = fd_frame_bits(n, ext, bool(msg.bitrate_switch))
+        if fd.brs and data_bitrate is not None:
+            return fd.total, fd.arbitration * rate + fd.data * bitrate
+        return fd.total, fd.total * rate
+    bits = frame_bits(min(n, 8), ext)
+    return bits, bits * rate
+
+
+@dataclass(frozen=True)
+class BusLoad:
+    """A channel's load: ``mean`` and ``peak`` (busiest second) as fractions of the time,
+    ``seconds`` the (second from the first frame, bits, load) of each second with frames."""
+
+    mean: float | None
+    peak: float | None
+    seconds: list[tuple[int, int, float]]
+
+
+def bus_load(
+    times: Sequence[float], bits: Sequence[int], units: Sequence[int], scale: int
+) -> BusLoad:
+    """The load of frames at ``times`` (any order) each ``bits`` long and ``units`` / ``scale``
+    seconds on the wire; a frame of no bits (an error frame) only marks the trace's span.
+
+    A trace of MIN_PEAK_S or more is cut to its K whole seconds from the first frame (the
+    rest, under a second, cannot be a second's load): the mean is over those K seconds, the
+    peak the busiest window [t, t + 1 s) starting at a frame among them. Each of the K
+    seconds lies in the window starting at its first frame, so peak >= mean, and exactly: the
+    sums are of whole units and each figure one rounded division. A shorter trace has no peak
+    and its mean over its span (the only figure it gives); one instant has neither.
+
+    Times count in whole microseconds from the first frame: a trace's times are decimals
+    (candump's and ASC's in us), which binary floats only approximate, so 0.13 s and 1.13 s
+    would be 0.9999999999999999 s apart and two frames of a 10 ms message a second apart
+    would fall in one window (101 frames of it in a busiest second).
+    """
+    n = len(times)
+    if n == 0:
+        return BusLoad(None, None, [])
+    first = min(times)
+    order = sorted(range(n), key=times.__getitem__)
+    d = [round((times[i] - first) * _US) for i in order]
+    u = [units[i] for i in order]
+    per_bits: dict[int, int] = {}
+    per_units: dict[int, int] = {}
+    for k, i in enumerate(order):
+        sec = d[k] // _US
+        per_bits[sec] = per_bits.get(sec, 0) + bits[i]
+        per_units[sec] = per_units.get(sec, 0) + u[k]
+    seconds = [(sec, b, per_units[sec] / scale) for sec, b in sorted(per_bits.items()) if b]
+    span = d[-1]
+    if span < MIN_PEAK_S * _US:
+        mean = sum(u) * _US / (span * scale) if span > 0 else None
+        return BusLoad(mean, None, seconds)
+    whole = span // _US
+    counted = bisect.bisect_left(d, whole * _US)  # the frames of the whole seconds
+    busiest = window = 0
+    hi = 0
+    for j in range(counted):
+        while hi < n and d[hi] < d[j] + _US:
+            window += u[hi]
+            hi += 1
+        busiest = max(busiest, window)
+        window -= u[j]
+    return BusLoad(sum(u[:counted]) / (whole * scale), busiest / scale, seconds)
+
+
 @dataclass
 class _Stream:
     arrivals: list[float] = field(default_factory=list)
@@ -55,8 +147,10 @@ class _Stream:
 @dataclass
 class _Channel:
     streams: dict[tuple[int, bool], _Stream] = field(default_factory=dict)
-    busy: dict[int, float] = field(default_factory=dict)  # second -> seconds on the wire
-    bits: dict[int, int] = field(default_factory=dict)
+    # every frame: its time, bits and time on the wire (in _frame_units's units; 0 untimed)
+    times: array[float] = field(default_factory=lambda: array("d"))
+    bits: array[int] = field(default_factory=lambda: array("q"))
+    units: array[int] = field(default_factory=lambda: array("q"))
     error_frames: int = 0
     first: float | None = None
     last: float | None = None
@@ -105,8 +199,11 @@ def trace_stats(
         t = float(msg.timestamp)
         ch.first = t if ch.first is None else min(ch.first, t)
         ch.last = t if ch.last is None else max(ch.last, t)
-        if msg.is_error_frame:
+        if msg.is_error_frame:  # untimed, but the trace's span (and so the mean's) is up to it
             ch.error_frames += 1
+            ch.times.append(t)
+            ch.bits.append(0)
+            ch.units.append(0)
             continue
         key = (int(msg.arbitration_id), bool(msg.is_extended_id))
         st = ch.streams.setdefault(key, _Stream())
@@ -115,17 +212,19 @@ def trace_stats(
         st.fd = st.fd or bool(msg.is_fd)
         st.brs = st.brs or bool(msg.bitrate_switch)
         st.remote += bool(msg.is_remote_frame)
-        bits, secs = frame_seconds(msg, bitrate, data_bitrate)
+        bits, units = _frame_units(msg, bitrate, data_bitrate)
         brs_nominal += bool(msg.is_fd and msg.bitrate_switch and data_bitrate is None)
-        ch.busy[int(t)] = ch.busy.get(int(t), 0.0) + secs
-        ch.bits[int(t)] = ch.bits.get(int(t), 0) + bits
+        ch.times.append(t)
+        ch.bits.append(bits)
+        ch.units.append(units)
     if not chans:
         raise TraceError(f"{path}: no CAN frame in it (not a trace python-can reads?)")
     names: dict[tuple[int, bool], str] = {}
     if db is not None:
         for m in db.messages:
             names[(int(m.frame_id), bool(m.is_extended_frame))] = m.name
-    channels = [_channel_doc(c, ch, names) for c, ch in sorted(chans.items())]
+    scale = bitrate * (data_bitrate if data_bitrate is not None else bitrate)
+    channels = [_channel_doc(c, ch, names, scale) for c, ch in sorted(chans.items())]
     first = min(c.first for c in chans.values() if c.first is not None)
     last = max(c.last for c in chans.values() if c.last is not None)
     return {
@@ -144,7 +243,9 @@ def trace_stats(
     }
 
 
-def _channel_doc(name: str, ch: _Channel, names: dict[tuple[int, bool], str]) -> dict[str, Any]:
+def _channel_doc(
+    name: str, ch: _Channel, names: dict[tuple[int, bool], str], scale: int
+) -> dict[str, Any]:
     ids: list[dict[str, Any]] = []
     for key in sorted(ch.streams):
         st = ch.streams[key]
@@ -168,26 +269,14 @@ def _channel_doc(name: str, ch: _Channel, names: dict[tuple[int, bool], str]) ->
         )
     first = ch.first if ch.first is not None else 0.0
     duration = (ch.last - first) if ch.last is not None else 0.0
-    start = int(first)
-    load = [
-        {"t_s": float(sec - start), "bits": ch.bits[sec], "load": ch.busy[sec]}
-        for sec in sorted(ch.busy)
-    ]
-    busy = sum(ch.busy.values())
-    # the busiest whole second, of a trace of 2 s or more (which has at least one whole):
-    # the first and last bins hold only part of a second, which says nothing of a second's
-    # load, and the busiest of one or two is no figure to give
-    last = ch.last if ch.last is not None else first
-    whole = [ch.busy[sec] for sec in ch.busy if sec >= first and sec + 1 <= last]
-    if duration < MIN_PEAK_S:
-        whole = []
+    load = bus_load(ch.times, ch.bits, ch.units, scale)
     return {
         "channel": name,
         "duration_s": duration,
         "frames": sum(len(s.arrivals) for s in ch.streams.values()),
         "error_frames": ch.error_frames,
-        "mean_load": busy / duration if duration > 0 else None,
-        "peak_load": max(whole) if whole else None,
+        "mean_load": load.mean,
+        "peak_load": load.peak,
         "ids": ids,
-        "load": load,
+        "load": [{"t_s": float(sec), "bits": b, "load": x} for sec, b, x in load.seconds],
     }

@@ -6,7 +6,6 @@ here, every problem collected with its location, so a bad graph never reaches th
 
 from __future__ import annotations
 
-import numbers
 import os
 from collections import deque
 from collections.abc import Collection, Iterable, Mapping
@@ -20,6 +19,8 @@ from pydantic import BaseModel, ValidationError, ValidationInfo
 from ..frames import Frame
 from ..node import Node
 from ._loading import Locations, check_text, pydantic_diagnostics, read_graph_file
+from ._ports import checked_type as checked_type  # where the kernel imports it from
+from ._ports import is_compatible, params_ports, ports_unknown, type_name
 from ._registry import KindError, NotImported, resolve_kind
 from .diagnostics import Diagnostic, GraphError, Severity, closest, did_you_mean
 from .spec import (
@@ -163,34 +164,6 @@ class Graph:
         return 1000.0 / fps if isinstance(fps, int | float) and fps > 0 else None
 
 
-def _is_compatible(out_type: Any, in_type: Any) -> bool:
-    """Where both ports declare a type, what the output produces must be what the input
-    takes (an ``int`` output may feed a ``float`` input, as at run time)."""
-    if in_type in (object, Any) or out_type in (object, Any):
-        return True
-    if isinstance(out_type, type) and isinstance(in_type, type):
-        return issubclass(out_type, checked_type(in_type) or object)
-    return bool(out_type == in_type)
-
-
-_NUMERIC = {float: numbers.Real, int: numbers.Integral, complex: numbers.Complex}
-
-
-def checked_type(t: Any) -> type | None:
-    """The class a value on a port declared ``t`` must be an instance of; None: anything.
-
-    Generic aliases (``list[int]``) and ``object``/``Any`` are not checked at run time.
-    ``float`` takes any real number (an int, a numpy float), as static typing does.
-    """
-    if not isinstance(t, type) or t is object:
-        return None
-    return _NUMERIC.get(t, t)
-
-
-def _type_name(t: Any) -> str:
-    return getattr(t, "__name__", str(t))
-
-
 def importable(folder: Path) -> None:
     """Put a graph file's folder on the import path, so its ``module:Class`` kinds import
     without ``PYTHONPATH=.`` (as ``python script.py`` finds modules beside the script).
@@ -327,27 +300,32 @@ def _resolve_classes(r: _Resolution) -> None:
 
 
 def _resolve_edges(r: _Resolution) -> None:
-    """Every input's edge, its ports and types checked; required inputs connected."""
+    """Every input's edge, its ports and types checked; required inputs connected. A port
+    that may be one a node's invalid params would give it is not reported (see
+    :func:`ports_unknown`); the rest of its edge is."""
     spec, at, classes, params = r.spec, r.at, r.classes, r.params
     names, invalid_nodes, edges = r.names, r.invalid_nodes, r.edges
     for name, ns in spec.nodes.items():
         cls = classes.get(name)
         misspelt: set[str | None] = set()  # inputs already named by a "did you mean"
-        own_ins = {**cls.inputs, **_params_ports(cls, params, name, True)} if cls else {}
+        own_ins = {**cls.inputs, **params_ports(cls, params, name, True)} if cls else {}
         for port, ins in ns.inputs.items():
             path = ("nodes", name, "inputs", port)
             if "." not in ins.source and ins.node not in spec.imports:
                 at((*path, "from"), f"expected node.port, got {ins.source!r}")
                 continue
+            no_input = False
             if cls is not None and port not in own_ins and cls.any_inputs is None:
-                have = ", ".join(own_ins) or "none"
-                at(
-                    path,
-                    f"{ns.kind} has no input {port!r} (its inputs: {have})"
-                    + did_you_mean(port, own_ins),
-                )
-                misspelt.add(closest(port, cls.inputs))
-                continue
+                no_input = True
+                if not ports_unknown(cls, params, name, True):
+                    have = ", ".join(own_ins) or "none"
+                    at(
+                        path,
+                        f"{ns.kind} has no input {port!r} (its inputs: {have})"
+                        + did_you_mean(port, own_ins),
+                    )
+                    misspelt.add(closest(port, cls.inputs))
+                    continue
             if ins.node not in spec.nodes:
                 if ins.node not in invalid_nodes:
                     hint = did_you_mean(ins.node, names)
@@ -356,23 +334,19 @@ def _resolve_edges(r: _Resolution) -> None:
             src_cls = classes.get(ins.node)
             if src_cls is None or cls is None:
                 continue
-            src_outs = {**src_cls.outputs, **_params_ports(src_cls, params, ins.node, False)}
-            if ins.port not in src_outs:
-                at(
-                    path,
-                    f"node {ins.node!r} ({spec.nodes[ins.node].kind}) has no output {ins.port!r}"
-                    f" (its outputs: {', '.join(src_outs) or 'none'})"
-                    + did_you_mean(ins.port, src_outs),
-                )
+            src_outs = _source_outputs(r, src_cls, ins, path)
+            if src_outs is None:
+                continue
+            if no_input:  # an input its params may give it: no edge, and no type to check
                 continue
             in_port = own_ins.get(port) or cls.any_inputs
             assert in_port is not None
             out_t, in_t = src_outs[ins.port].type, in_port.type
-            if not _is_compatible(out_t, in_t):
+            if not is_compatible(out_t, in_t):
                 at(
                     path,
-                    f"incompatible port types: {ins.source} produces {_type_name(out_t)}, "
-                    f"{name}.{port} expects {_type_name(in_t)}",
+                    f"incompatible port types: {ins.source} produces {type_name(out_t)}, "
+                    f"{name}.{port} expects {type_name(in_t)}",
                 )
                 continue
             edges.append(_edge(name, port, ins, in_t, out_t, in_port.policy))
@@ -380,6 +354,23 @@ def _resolve_edges(r: _Resolution) -> None:
             for port, p in cls.inputs.items():
                 if p.required and port not in ns.inputs and port not in misspelt:
                     at(("nodes", name), f"required input {port!r} of {ns.kind} is not connected")
+
+
+def _source_outputs(
+    r: _Resolution, src_cls: type[Node], ins: InputSpec, path: tuple[str | int, ...]
+) -> Mapping[str, Any] | None:
+    """The outputs of an input's source node, or None when the port is not among them (an
+    error, unless its params may give it one: see :func:`ports_unknown`)."""
+    src_outs = {**src_cls.outputs, **params_ports(src_cls, r.params, ins.node, False)}
+    if ins.port in src_outs:
+        return src_outs
+    if not ports_unknown(src_cls, r.params, ins.node, False):
+        r.at(
+            path,
+            f"node {ins.node!r} ({r.spec.nodes[ins.node].kind}) has no output {ins.port!r}"
+            f" (its outputs: {', '.join(src_outs) or 'none'})" + did_you_mean(ins.port, src_outs),
+        )
+    return None
 
 
 def _resolve_triggers(r: _Resolution) -> None:
@@ -483,13 +474,13 @@ def _check_exports(r: _Resolution) -> None:
                 ("export", key),
                 f"export from unknown node {ex.node!r}" + did_you_mean(ex.node, names),
             )
-        elif src_cls is not None and ex.port not in (
-            src_outs := {**src_cls.outputs, **_params_ports(src_cls, params, ex.node, False)}
-        ):
-            at(
-                ("export", key),
-                f"node {ex.node!r} has no output {ex.port!r}" + did_you_mean(ex.port, src_outs),
-            )
+        elif src_cls is not None and not ports_unknown(src_cls, params, ex.node, False):
+            src_outs = {**src_cls.outputs, **params_ports(src_cls, params, ex.node, False)}
+            if ex.port not in src_outs:
+                at(
+                    ("export", key),
+                    f"node {ex.node!r} has no output {ex.port!r}" + did_you_mean(ex.port, src_outs),
+                )
 
 
 def _check_modes_and_qos(r: _Resolution) -> None:
@@ -525,15 +516,6 @@ def _check_modes_and_qos(r: _Resolution) -> None:
     if spec.initial_mode is not None and spec.initial_mode not in spec.modes:
         hint = did_you_mean(spec.initial_mode, spec.modes)
         at(("initial_mode",), f"unknown mode {spec.initial_mode!r}" + hint)
-
-
-def _params_ports(
-    cls: type[Node], params: Mapping[str, BaseModel], name: str, inputs: bool
-) -> Mapping[str, Any]:
-    """The ports a node has because of its params (none while its params are invalid)."""
-    if name not in params:
-        return {}
-    return cls.params_inputs(params[name]) if inputs else cls.params_outputs(params[name])
 
 
 REMOTE_SOURCE = "flowrt.remote._bridge:RemoteSource"
