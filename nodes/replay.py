@@ -14,11 +14,16 @@ recorded data.
 Frames go into the runtime's frame pool (``ctx.new_frame``), keep their recorded sequence
 number, and tick frame triggers like a camera does; reading and decoding the file runs on a
 thread, only the pixel copy into the pool slot happens on the loop. Messages are released at
-``origin + (log_time - first) / rate`` on the runtime clock, so several replay nodes of one
-recording stay in step. A session split into several files is replayed as one recording, the
-parts one after the other in their order (a part that ends before ``start`` is skipped
-unread). A damaged file is replayed up to the damage, which is logged and reported as the
-node's error state.
+``start + LEAD + (log_time - first) / rate`` on the runtime clock, ``start`` being the first
+activation of any replay node of the run, which the runtime makes once every node is set up:
+the replay nodes of a run stay in step, and a worker that took a second to start does not
+make the first second of frames due at once (a burst its readers skip frames of). With
+``on_end: stop``, the run stops when the last of its replay nodes with ``on_end: stop`` has
+played to its end, not the first: a stream that ends early (4 detections in 3 s) does not cut
+the others short (a looping node never ends). A session split into several files is replayed
+as one recording, the parts one after the other in their order (a part that ends before
+``start`` is skipped unread). A damaged file is replayed up to the damage, which is logged
+and reported as the node's error state.
 """
 
 from __future__ import annotations
@@ -26,7 +31,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
-from collections.abc import Iterator
+import weakref
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Literal
 
@@ -42,7 +48,7 @@ from flowrt.recording.session import mcap_files
 from flowrt.recording.streams import join_set
 
 LEAD = 0.05
-"""Seconds between the start of the runtime and the first replayed message."""
+"""Seconds between the first activation of the run's replay nodes and the first message."""
 
 
 STAMP_SPAN = 60.0
@@ -67,6 +73,35 @@ class _Item:
 
     def __init__(self, port: str, log_time: int, seq: int, value: Any) -> None:
         self.port, self.log_time, self.seq, self.value = port, log_time, seq, value
+
+
+@dataclasses.dataclass(eq=False)
+class _Run:
+    """What the replay nodes of one run share: the time their messages are due from, and
+    which of them still play, so that the run stops after the last one ends."""
+
+    graph: Callable[[], Any] | None  # the running graph (weak): which run this is
+    start: float | None = None  # ctx.elapsed() at the first activation of any of them
+    members: set[str] = dataclasses.field(default_factory=set)  # set up, not torn down
+    stopping: set[str] = dataclasses.field(default_factory=set)  # members with on_end: stop
+    ended: set[str] = dataclasses.field(default_factory=set)  # members at their end
+
+
+_RUNS: dict[int, _Run] = {}
+"""The replay nodes' shared state per running graph (by id, the graph checked through a weak
+reference); an entry goes when its last member is torn down, so a graph run again starts anew."""
+
+
+def _run_of(ctx: Any) -> _Run:
+    """The state this node shares with the run's other replay nodes (its own outside one)."""
+    try:
+        graph = ctx.graph
+    except RuntimeError:  # no runtime around the node (a node harness): a run of its own
+        return _Run(None)
+    run = _RUNS.get(id(graph))
+    if run is None or run.graph is None or run.graph() is not graph:
+        run = _RUNS[id(graph)] = _Run(weakref.ref(graph))
+    return run
 
 
 class ReplayBase(Node):
@@ -97,7 +132,9 @@ class ReplayBase(Node):
         start: float = Field(default=0.0, ge=0, description="seconds into the recording")
         loop: bool = False
         on_end: Literal["stop", "idle"] = Field(
-            default="stop", description="at the end: ask the runtime to stop, or stay idle"
+            default="stop",
+            description="at the end: ask the runtime to stop (once every replay node with "
+            "stop has ended), or stay idle",
         )
 
     inline_only = True
@@ -132,6 +169,14 @@ class ReplayBase(Node):
             self._open()
         except (OSError, ValueError) as e:  # no bag, a damaged one, a misspelt topic
             raise FatalError(str(e)) from None  # one line, given up: a restart cannot help
+        # Set up before any node's first activation (the runtime arms loop triggers after
+        # every setup): each node that can stop the run is known before one can end.
+        self.run = run = _run_of(self.ctx)
+        name = self.ctx.name
+        run.members.add(name)
+        run.ended.discard(name)
+        if self.params.on_end == "stop":
+            run.stopping.add(name)
 
     def _open(self) -> None:
         p = self.params
@@ -236,7 +281,12 @@ class ReplayBase(Node):
     async def process(self) -> dict[str, Any] | None:
         if len(self.left_out) > len(self._said_left_out):
             self._left_out()
+        run = self.run
+        if run.start is None:  # the whole graph is set up: its workers are ready
+            run.start = self.ctx.elapsed()
+        start = run.start
         if self.ended:
+            self._stop_if_last()  # a peer given up (torn down) has left the run meanwhile
             await asyncio.sleep(0.2)
             return None
         fut = self._next or self._prefetch()
@@ -250,8 +300,8 @@ class ReplayBase(Node):
                 self._it = self._items()
                 return None
             self.ended = True
-            if self.params.on_end == "stop":
-                self.ctx.request_stop()
+            run.ended.add(self.ctx.name)
+            self._stop_if_last()
             return None
         self._next = self._prefetch()  # decode the next one while this one waits
         due = (
@@ -260,12 +310,18 @@ class ReplayBase(Node):
             + (item.log_time - self.origin - self.params.start * 1e9) / 1e9 / self.params.rate
         )
         self.last_due = due
-        wait = due - self.ctx.elapsed()
+        wait = start + due - self.ctx.elapsed()
         if wait > 0:
             await asyncio.sleep(wait)
         self.published += 1
         value = self._value(item)
         return value if len(self.outputs) == 1 else {item.port: value}  # one port: bare
+
+    def _stop_if_last(self) -> None:
+        """``on_end: stop``: the run stops once every replay node with it has ended."""
+        run = self.run
+        if self.params.on_end == "stop" and run.stopping <= run.ended:
+            self.ctx.request_stop()
 
     def _value(self, item: _Item) -> Any:
         if not isinstance(item.value, _Pixels):
@@ -329,6 +385,16 @@ class ReplayBase(Node):
                 self.ctx.set_error(f"{msg}: {damaged.damage}")
 
     async def teardown(self) -> None:
+        run: _Run | None = getattr(self, "run", None)
+        if run is not None:  # given up or the run's end: it no longer holds the run open
+            name = self.ctx.name
+            run.members.discard(name)
+            run.stopping.discard(name)
+            run.ended.discard(name)
+            if not run.members and run.graph is not None:
+                for key, r in list(_RUNS.items()):
+                    if r is run:
+                        del _RUNS[key]
         nxt = getattr(self, "_next", None)
         if nxt is not None:
             # The read in flight ends on its own (its thread cannot be cancelled); wait() does
