@@ -58,11 +58,13 @@ import datetime as dt
 import errno
 import os
 import time
+from collections import deque
 from functools import partial
 from pathlib import Path
 from typing import Any
+from weakref import WeakKeyDictionary
 
-from flowrt import Frame, Input, InputTrigger, Node
+from flowrt import AudioBlock, Frame, Input, InputTrigger, Node
 from flowrt.determinism.log import METADATA
 from flowrt.determinism.observer import Observer
 from flowrt.node import SEED_ENV
@@ -97,6 +99,33 @@ FINISH_WAIT = 1.0
 LET_GO_WAIT = 2.0
 """Seconds a stop waits for the writer to let go of the frames' slots (a process: a round trip)."""
 AnyWriter = Writer  # either writer: the recorder never asks which
+LAGS_KEPT = 8
+"""The last values of a stream stamped ahead of its releases its lead is taken from (_submit)."""
+_LAGS: WeakKeyDictionary[AnyWriter, dict[str, deque[float]]] = WeakKeyDictionary()
+"""Writer -> topic -> seconds from a value's stamp to its publication, the last LAGS_KEPT: a
+session's own, gone with its writer."""
+
+
+def _submit(writer: AnyWriter, topic: str, value: Any, t: float, seq: int, now: float) -> bool:
+    """``writer.submit``, noting how long after its stamp ``t`` an audio block was published
+    (``now``: the recorder is handed each value's publication time).
+
+    An audio block is stamped at its first sample and published at the audio node's first
+    activation after it is complete: one block late or two by the activations' lateness
+    against the first one's, often alternately, so the last block's lag alone may be the
+    short one and the report takes the largest of the last few as the stream's lead
+    (build_report's ``leads``). The last few only: a late activation at the start (set-up, a
+    first pause) would otherwise end the stream's window early by its delay, hiding a loss.
+    """
+    if isinstance(value, AudioBlock):
+        lags = _LAGS.setdefault(writer, {})
+        lags.setdefault(topic, deque(maxlen=LAGS_KEPT)).append(now - t)
+    return writer.submit(topic, value, t, seq)
+
+
+def _leads(writer: AnyWriter) -> dict[str, float]:
+    """Topic -> the lead of each stream stamped ahead of its releases (see _submit)."""
+    return {topic: max(lags) for topic, lags in _LAGS.get(writer, {}).items() if lags}
 
 
 class Recorder(Node):
@@ -258,9 +287,10 @@ class Recorder(Node):
         start = dt.datetime.fromtimestamp(self._started_wall, dt.UTC).isoformat()
         stats = self._stats()
         rates = nominal_rates(stats) if stats is not None else {}
+        leads = _leads(writer)
 
         def report() -> RecordingReport:
-            return build_report(writer, session.name, start, duration, rates, started)
+            return build_report(writer, session.name, start, duration, rates, started, leads)
 
         def attachments() -> list[tuple[str, str, bytes]]:
             return [("streams.json", "application/json", report().model_dump_json().encode())]
@@ -368,7 +398,7 @@ class Recorder(Node):
             s = getattr(value, "seq", None)
             seq = s if isinstance(s, int) and s >= 0 else self._seq.get(topic, 0)
             self._seq[topic] = seq + 1
-        accepted = writer.submit(topic, value, t, seq)
+        accepted = _submit(writer, topic, value, t, seq, now)
         if not accepted and is_frame:
             value.release()
         if is_frame:

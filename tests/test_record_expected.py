@@ -10,10 +10,12 @@ ends of the window. ``bgoal`` releases on omni ticks 1, 5, 9 ... and ``bpost`` o
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from flowrt.nodes.recorder import LAGS_KEPT
 
 from flowrt.clock import next_release
 from flowrt.recording import build_report
@@ -210,3 +212,156 @@ def test_a_value_from_before_a_live_start_expects_nothing_else_before_it() -> No
     assert by["front_cam.frame"][2] == 0
     assert by["bgoal.detection"] == (15, 15, 0)  # 14 from the start on, and the one on its way
     assert _report(recorded)["omni_cam.frame"] == (59, 55, 4)  # from the old stamp on: wrong
+
+
+# --- an audio stream: graphs/avsync.yaml's mic beside its two cameras -------------------------
+#
+# `flowrt record graphs/avsync.yaml --duration 8` said `mic.audio expected 374 received 373
+# missing 1` (233/232 at 5 s) on a complete stream: a block is stamped at its first sample and
+# published once complete, one or two blocks later, so on stamps alone the grid's point after
+# the last block (published after the cameras' last frame, never made) fell more than half a
+# block before that frame's stamp. The recorder hands the report each audio stream's lead.
+
+BLOCK = 1024 / 48000  # nodes/audio.py: 1024 samples at 48 kHz, its timer's period
+LEDS = {"led.frame": (1 / 30, 0.0), "led2.frame": (1 / 30, 0.004)}  # timer, phase (seconds)
+
+
+def _audio(
+    on: float, off: float, first_late: float, late: tuple[float, ...], jitter: float
+) -> list[tuple[float, float]]:
+    """(stamp, publication) of each block of nodes/audio.py's synthetic source.
+
+    Its timer armed at ``on`` fires first at ``a``; the first activation reads the clock
+    ``first_late`` after it (t0) and publishes nothing; block ``k`` holds the samples from
+    ``t0 + k * BLOCK`` and is published at the first activation (``a + n * BLOCK``, read
+    ``late[n % len(late)]`` after it) at which it is complete: the next one or the one after.
+    Nothing from ``off`` on. Stamps off by -jitter, 0, +jitter in turn: a microphone's blocks
+    are stamped when drained.
+    """
+    a, _ = next_release(ORIGIN, BLOCK, 0.0, on)
+    t0 = a + first_late
+    out: list[tuple[float, float]] = []
+    n = 1
+    while (act := a + n * BLOCK + late[n % len(late)]) < off:
+        while t0 + (len(out) + 1) * BLOCK <= act + 1e-9:
+            k = len(out)
+            out.append((t0 + k * BLOCK + jitter * (k % 3 - 1), act))
+        n += 1
+    return out
+
+
+def _av_report(
+    on: float,
+    off: float,
+    first_late: float,
+    late: tuple[float, ...],
+    jitter: float,
+    lost: tuple[int, ...] = (),
+    leads: bool = True,
+) -> dict[str, tuple[int | None, int, int]]:
+    """topic -> (expected, received, missing) of the session's cameras and microphone, the
+    blocks ``lost`` not received; the audio's lead as the recorder gives it (the largest lag
+    of its last LAGS_KEPT blocks), or none (``leads=False``: on stamps alone)."""
+    on, off = ORIGIN + on, ORIGIN + off
+    streams = {}
+    for topic, (period, phase) in LEDS.items():
+        t, _ = next_release(ORIGIN, period, phase, on)
+        n = math.ceil((off - t) / period)
+        streams[topic] = StreamCounters(
+            topic, topic, received=n, written=n, first_seen=t, last_seen=t + (n - 1) * period
+        )
+    blocks = [b for i, b in enumerate(_audio(on, off, first_late, late, jitter)) if i not in lost]
+    streams["mic.audio"] = StreamCounters(
+        "mic.audio", "mic.audio", received=len(blocks), written=len(blocks),
+        first_seen=blocks[0][0], last_seen=blocks[-1][0],
+    )  # fmt: skip
+    lead = {"mic.audio": max(r - s for s, r in blocks[-LAGS_KEPT:])} if leads else None
+    rates = {"led": 30.0, "led2": 30.0, "mic": 1 / BLOCK}
+    report = build_report(_Written(streams), "rec_001", "t", off - on, rates, None, lead)
+    return {s.topic: (s.expected, s.received, s.missing) for s in report.streams}
+
+
+# (sources on, sources off, first activation's lateness, the others', stamp jitter): seconds;
+# and what the report said on stamps alone (missing)
+AV_SESSIONS = [
+    # each block published two activations on: the first activation ran later than the rest
+    (0.0003, 8.0003, 0.001, (0.0001,), 0.0, 1),
+    (0.0043, 5.0043, 0.001, (0.0001,), 0.0, 2),
+    (0.0163, 8.0163, 0.0002, (0.0001, 0.0004), 0.0, 1),  # blocks published two at a time
+    (0.0343, 8.0343, 0.0002, (0.0001, 0.0004), 0.0, 2),
+    (0.0363, 3.1363, 0.0002, (0.0001, 0.0004), 0.0, 2),
+    (0.0203, 5.0203, 0.0005, (0.0, 0.0009, 0.0002), 0.004, 1),  # and stamps a few ms apart
+    (0.0083, 5.0083, 0.0005, (0.0, 0.0009, 0.0002), 0.004, 2),
+    (0.0263, 5.0263, 0.001, (0.0001,), 0.003, 1),
+    (0.0063, 5.0063, 0.0, (0.0,), 0.0, 1),  # each block published at the next activation
+    (0.0383, 8.0383, 0.0, (0.0,), 0.002, 1),
+    (0.0003, 5.0003, 0.0, (0.0,), 0.0, 0),
+]
+
+
+@pytest.mark.parametrize(("on", "off", "first_late", "late", "jitter", "before"), AV_SESSIONS)
+def test_a_complete_audio_stream_misses_nothing(
+    on: float, off: float, first_late: float, late: tuple[float, ...], jitter: float, before: int
+) -> None:
+    by = _av_report(on, off, first_late, late, jitter)
+    n = len(_audio(ORIGIN + on, ORIGIN + off, first_late, late, jitter))
+    assert by["mic.audio"] == (n, n, 0)
+    assert [t for t, (_, _, m) in by.items() if m] == []
+    stamps_alone = _av_report(on, off, first_late, late, jitter, leads=False)
+    assert stamps_alone["mic.audio"] == (n + before, n, before)  # the report before the fix
+
+
+def test_the_repro_recording_is_complete() -> None:
+    """Stamps of `flowrt record graphs/avsync.yaml --duration 8` from its MCAP (seconds from
+    its first message): 373 blocks, the last 36 ms before the session's last message;
+    nodes/audio.py published each block 1.95 blocks after its stamp (a probe's figures)."""
+    stamps = {  # topic: (first, last, count)
+        "mic.audio": (0.0, 7.935999744, 373),
+        "led.frame": (0.001303296, 7.968080384, 240),
+        "led2.frame": (0.00529664, 7.971932672, 240),
+        "pair.set": (0.006184448, 7.97221632, 240),
+    }
+    streams = {
+        t: StreamCounters(t, t, received=n, written=n, first_seen=a, last_seen=b)
+        for t, (a, b, n) in stamps.items()
+    }
+    rates = {"led": 30.0, "led2": 30.0, "mic": 1 / BLOCK, "pair.set": None}
+    (mic,) = (
+        s
+        for s in build_report(_Written(streams), "r", "t", 8.3, rates).streams
+        if s.topic == "mic.audio"
+    )
+    assert (mic.expected, mic.missing) == (374, 1)  # on stamps alone
+    report = build_report(
+        _Written(streams), "r", "t", 8.3, rates, None, {"mic.audio": 1.95 * BLOCK}
+    )
+    by = {s.topic: (s.expected, s.received, s.missing) for s in report.streams}
+    assert by["mic.audio"] == (373, 373, 0)
+    assert by["led.frame"] == (240, 240, 0)
+
+
+@pytest.mark.parametrize(
+    ("session", "lost", "missing"),
+    [
+        (0, (100,), 1),  # a block in the middle
+        (2, (100,), 1),  # published two at a time: one of a pair
+        (2, (100, 101), 2),  # the pair
+        (5, (100, 101, 102), 3),  # stamps a few ms apart
+        (8, (200, 201), 2),
+        (3, (1,), 1),  # the second block
+        (0, (0,), 1),  # the first: a frame came before its stamp
+        (1, (-1,), 1),  # the last: due more than half a block before the end
+        (0, (-1,), 0),  # due in the stream's lag and half a block before the end: unseen
+        (1, (-2, -1), 2),
+        (7, (-3, -2, -1), 2),
+    ],
+)
+def test_a_genuine_audio_loss_is_still_missing(
+    session: int, lost: tuple[int, ...], missing: int
+) -> None:
+    on, off, first_late, late, jitter, _ = AV_SESSIONS[session]
+    n = len(_audio(ORIGIN + on, ORIGIN + off, first_late, late, jitter))
+    lost = tuple(i % n for i in lost)
+    by = _av_report(on, off, first_late, late, jitter, lost)
+    assert by["mic.audio"] == (n - len(lost) + missing, n - len(lost), missing)
+    assert [t for t, (_, _, m) in by.items() if m] == (["mic.audio"] if missing else [])

@@ -7,6 +7,9 @@ frame reader on the ticks ``k % period == phase`` of its source), so a stream's 
 place its grid, phase included, and :func:`expected_releases` counts the grid's points in
 the session's window (its first message to its last: the ``span``). A source that delivered
 less than it should shows up as ``missing`` even when the recorder lost nothing.
+A value need not be stamped at its release: an audio block carries its first sample's time
+and is released once its last sample is in, a block or more later (``leads``,
+:func:`build_report`).
 The nominal rate comes from the running graph's timing (a timer trigger's period; a frame
 trigger's source rate divided by its period), as the runtime's statistics report it, unless
 the output declares a rate of its own (``output_hz``: a status every second on a node that
@@ -17,6 +20,7 @@ nothing, and nothing of it is ever "missing".
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -142,7 +146,8 @@ def expected_releases(
 
     ``start`` and ``end`` are the session's first and last message (any stream), ``first``
     and ``last`` the stream's own (None: it sent nothing), all stamped at (or just after) their
-    release.
+    release; for a stream stamped ahead of its releases (an audio block) ``end`` is first
+    shifted onto its stamps (:func:`_on_stamps`).
     Counted: the stream's releases from its first value to its last (gaps included), and
     those of the same grid before its first value from ``start`` on and after its last
     value up to ``end``; so the node's phase decides, not the window's length (the length
@@ -218,12 +223,17 @@ def build_report(
     duration: float,
     rates: dict[str, float | None],
     started: float | None = None,
+    leads: Mapping[str, float] | None = None,
 ) -> RecordingReport:
     """The report of a finished (or stopped) writer.
 
     ``started`` is when the session opened (the runtime clock, as the stamps): a value
     released before it and still on its way is recorded, and stamped earlier, but the
     other streams' releases before it could not be; none of them is expected.
+
+    ``leads``: topic -> seconds from a value's stamp to its release (the largest lag of the
+    stream's last values), for the streams not stamped at their release (an audio block: its
+    first sample's time); the session's end is shifted onto their stamps (:func:`_on_stamps`).
     """
     firsts = [c.first_seen for c in writer.streams.values() if c.first_seen is not None]
     lasts = [c.last_seen for c in writer.streams.values() if c.last_seen is not None]
@@ -231,6 +241,7 @@ def build_report(
     counted = window
     if window is not None and started is not None:
         counted = (max(window[0], started), window[1])
+    leads = leads or {}
     return RecordingReport(
         session=session,
         files=[str(f) for f in writer.files] or [str(writer.path)],
@@ -240,9 +251,37 @@ def build_report(
         error=writer.error,
         notes=list(writer.notes),
         streams=[
-            _stream(c, stream_rate(rates, c.source), counted) for c in writer.streams.values()
+            _stream(c, stream_rate(rates, c.source), _on_stamps(counted, leads.get(topic)))
+            for topic, c in writer.streams.items()
         ],
     )
+
+
+def _on_stamps(
+    counted: tuple[float, float] | None, lead: float | None
+) -> tuple[float, float] | None:
+    """The session's ``counted`` window as a stream stamped ``lead`` before its releases sees
+    it at the end: its grid is placed by its stamps, but what the session's last message
+    bounds is a release.
+
+    An audio block is stamped at its first sample and published once complete, a block
+    later or two (nodes/audio.py publishes a block at the first activation after it is
+    complete, and its first activation's lateness usually makes that the next one). On
+    stamps alone, the grid's point after the last block, released after the session's last
+    message and so never made, could fall more than half a block before that message's stamp
+    and be expected: ``missing 1`` on a complete stream. With the end shifted by the
+    stream's lag (the largest of its last values: after a block published at once, the next
+    may wait an activation), the point is expected only if its release would have come half
+    a period before the end. A loss in the stream's last lag and half period goes unseen.
+
+    The start is left on the stamps: a block stamped before the session's first message
+    would hold samples from before the sources began (the first block of a synthetic source
+    starts at its first activation), and a lag that varies by a block (the activation's
+    lateness against the first one's) would make a shifted start expect one never made.
+    """
+    if counted is None or lead is None or lead <= 0:
+        return counted
+    return (counted[0], counted[1] - lead)
 
 
 def human_bytes(n: float) -> str:
