@@ -62,7 +62,6 @@ from collections import deque
 from functools import partial
 from pathlib import Path
 from typing import Any
-from weakref import WeakKeyDictionary
 
 from flowrt import AudioBlock, Frame, Input, InputTrigger, Node
 from flowrt.determinism.log import METADATA
@@ -100,15 +99,11 @@ LET_GO_WAIT = 2.0
 """Seconds a stop waits for the writer to let go of the frames' slots (a process: a round trip)."""
 AnyWriter = Writer  # either writer: the recorder never asks which
 LAGS_KEPT = 8
-"""The last values of a stream stamped ahead of its releases its lead is taken from (_submit)."""
-_LAGS: WeakKeyDictionary[AnyWriter, dict[str, deque[float]]] = WeakKeyDictionary()
-"""Writer -> topic -> seconds from a value's stamp to its publication, the last LAGS_KEPT: a
-session's own, gone with its writer."""
+"""The last values of a stream stamped ahead of its releases its lead is taken from."""
 
 
-def _submit(writer: AnyWriter, topic: str, value: Any, t: float, seq: int, now: float) -> bool:
-    """``writer.submit``, noting how long after its stamp ``t`` an audio block was published
-    (``now``: the recorder is handed each value's publication time).
+class StampLags:
+    """One session's streams stamped ahead of their publication (audio), and by how much.
 
     An audio block is stamped at its first sample and published at the audio node's first
     activation after it is complete: one block late or two by the activations' lateness
@@ -117,15 +112,22 @@ def _submit(writer: AnyWriter, topic: str, value: Any, t: float, seq: int, now: 
     (build_report's ``leads``). The last few only: a late activation at the start (set-up, a
     first pause) would otherwise end the stream's window early by its delay, hiding a loss.
     """
-    if isinstance(value, AudioBlock):
-        lags = _LAGS.setdefault(writer, {})
-        lags.setdefault(topic, deque(maxlen=LAGS_KEPT)).append(now - t)
-    return writer.submit(topic, value, t, seq)
 
+    def __init__(self) -> None:
+        self._lags: dict[str, deque[float]] = {}  # topic -> the last LAGS_KEPT lags, seconds
 
-def _leads(writer: AnyWriter) -> dict[str, float]:
-    """Topic -> the lead of each stream stamped ahead of its releases (see _submit)."""
-    return {topic: max(lags) for topic, lags in _LAGS.get(writer, {}).items() if lags}
+    def submit(
+        self, writer: AnyWriter, topic: str, value: Any, t: float, seq: int, now: float
+    ) -> bool:
+        """``writer.submit``, noting how long after its stamp ``t`` an audio block was
+        published (``now``: the recorder is handed each value's publication time)."""
+        if isinstance(value, AudioBlock):
+            self._lags.setdefault(topic, deque(maxlen=LAGS_KEPT)).append(now - t)
+        return writer.submit(topic, value, t, seq)
+
+    def leads(self) -> dict[str, float]:
+        """Topic -> the lead of each stream stamped ahead of its releases."""
+        return {topic: max(lags) for topic, lags in self._lags.items() if lags}
 
 
 class Recorder(Node):
@@ -261,7 +263,7 @@ class Recorder(Node):
                     attachments.insert(0, ("graph.yaml", "application/yaml", text))
                 except OSError:
                     self.ctx.log.info("%s: no graph file to attach", self.ctx.name)
-        self._indexes, self._log_seq = {}, {}
+        self._indexes, self._log_seq, self._lags = {}, {}, StampLags()
         writer.open(metadata, attachments)
         self.writer, self.session = writer, session
         self.sessions.append(session)
@@ -287,7 +289,7 @@ class Recorder(Node):
         start = dt.datetime.fromtimestamp(self._started_wall, dt.UTC).isoformat()
         stats = self._stats()
         rates = nominal_rates(stats) if stats is not None else {}
-        leads = _leads(writer)
+        leads = self._lags.leads()
 
         def report() -> RecordingReport:
             return build_report(writer, session.name, start, duration, rates, started, leads)
@@ -398,7 +400,7 @@ class Recorder(Node):
             s = getattr(value, "seq", None)
             seq = s if isinstance(s, int) and s >= 0 else self._seq.get(topic, 0)
             self._seq[topic] = seq + 1
-        accepted = _submit(writer, topic, value, t, seq, now)
+        accepted = self._lags.submit(writer, topic, value, t, seq, now)
         if not accepted and is_frame:
             value.release()
         if is_frame:
