@@ -135,12 +135,18 @@ class FlowrtRun:
         async for line in stream:
             self.out.append(line.decode())
 
-    async def stop(self) -> None:
-        """Ctrl-C, as a user stops it: the run must end cleanly (exit 0)."""
+    async def stop(self, tolerated: str | None = None) -> None:
+        """Ctrl-C, as a user stops it: the run must end cleanly (exit 0), or, when the run's
+        only failure is ``tolerated`` (a load-dependent one, counted, e.g. a recorder behind
+        a loaded machine), with exit 1 and that reason in its last line."""
         self.proc.send_signal(signal.SIGINT)
-        assert await asyncio.wait_for(self.proc.wait(), 60) == 0, "".join(self.out)
+        code = await asyncio.wait_for(self.proc.wait(), 60)
         if self._drain is not None:
             await self._drain
+        said = [ln for ln in self.out if ln.startswith("flowrt run: node ")]
+        if code == 1 and tolerated is not None and said and all(tolerated in ln for ln in said):
+            return
+        assert code == 0, "".join(self.out)
 
 
 @contextlib.asynccontextmanager

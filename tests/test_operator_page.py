@@ -185,4 +185,6 @@ async def test_the_page_records_reviews_and_plots(tmp_path: Path, repo: Path) ->
             assert "ALERT - FRAME DROPS: omni_cam" in text
             await asyncio.sleep(20.0 if SHOTS else 0.0)  # the README's picture: some history
             await shot(page, "#healthpanel", "operator-health.png")
-        await run.stop()
+        # the recorder may fall behind a machine loaded by the whole suite (CI: 2 frames):
+        # counted above, and the run's exit says so (1); anything else must exit 0
+        await run.stop(tolerated="recorder behind")
