@@ -11,11 +11,10 @@ ends of the window. ``bgoal`` releases on omni ticks 1, 5, 9 ... and ``bpost`` o
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from pathlib import Path
 
 import pytest
 from flowrt.nodes.recorder import LAGS_KEPT
+from test_stream_rates import _Written  # what a report reads of a writer
 
 from flowrt.clock import next_release
 from flowrt.recording import build_report
@@ -37,17 +36,6 @@ TRACKERS = {
     "bpost": ("omni_cam", 16, 2),
     "ypost": ("omni_cam", 16, 4),
 }
-
-
-@dataclass
-class _Written:
-    """What a report reads of a writer."""
-
-    streams: dict[str, StreamCounters]
-    files: list[Path] = field(default_factory=list)
-    path: Path = Path("rec.mcap")
-    error: str | None = None
-    notes: list[str] = field(default_factory=list)
 
 
 def _camera_ticks(name: str, on: float, off: float) -> list[float]:

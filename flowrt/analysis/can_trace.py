@@ -49,15 +49,8 @@ class TraceError(Exception):
 
 def frame_seconds(msg: Any, bitrate: int, data_bitrate: int | None) -> tuple[int, float]:
     """(worst-case bits, seconds on the wire) of one python-can message."""
-    ext = bool(msg.is_extended_id)
-    n = 0 if msg.is_remote_frame else len(msg.data)
-    if msg.is_fd:
-        fd = fd_frame_bits(n, ext, bool(msg.bitrate_switch))
-        if fd.brs and data_bitrate is not None:
-            return fd.total, fd.seconds(bitrate, data_bitrate)
-        return fd.total, fd.total / bitrate
-    bits = frame_bits(min(n, 8), ext)
-    return bits, bits / bitrate
+    bits, units = _frame_units(msg, bitrate, data_bitrate)
+    return bits, units / (bitrate * (data_bitrate if data_bitrate is not None else bitrate))
 
 
 def _frame_units(msg: Any, bitrate: int, data_bitrate: int | None) -> tuple[int, int]:

@@ -15,7 +15,7 @@ from pydantic import BaseModel
 
 from ..node import Node
 
-__all__ = ["checked_type", "is_compatible", "params_ports", "ports_unknown", "type_name"]
+__all__ = ["checked_type", "is_compatible", "node_ports", "ports_unknown", "type_name"]
 
 
 def is_compatible(out_type: Any, in_type: Any) -> bool:
@@ -47,13 +47,16 @@ def type_name(t: Any) -> str:
     return getattr(t, "__name__", str(t))
 
 
-def params_ports(
+def node_ports(
     cls: type[Node], params: Mapping[str, BaseModel], name: str, inputs: bool
-) -> Mapping[str, Any]:
-    """The ports a node has because of its params (none while its params are invalid)."""
+) -> dict[str, Any]:
+    """A node's inputs (or outputs): its class's and those its params give it (none of these
+    while its params are invalid)."""
+    own = cls.inputs if inputs else cls.outputs
     if name not in params:
-        return {}
-    return cls.params_inputs(params[name]) if inputs else cls.params_outputs(params[name])
+        return {**own}
+    given = cls.params_inputs(params[name]) if inputs else cls.params_outputs(params[name])
+    return {**own, **given}
 
 
 def ports_unknown(

@@ -20,7 +20,7 @@ from ..frames import Frame
 from ..node import Node
 from ._loading import Locations, check_text, pydantic_diagnostics, read_graph_file
 from ._ports import checked_type as checked_type  # where the kernel imports it from
-from ._ports import is_compatible, params_ports, ports_unknown, type_name
+from ._ports import is_compatible, node_ports, ports_unknown, type_name
 from ._registry import KindError, NotImported, resolve_kind
 from .diagnostics import Diagnostic, GraphError, Severity, closest, did_you_mean
 from .spec import (
@@ -308,7 +308,7 @@ def _resolve_edges(r: _Resolution) -> None:
     for name, ns in spec.nodes.items():
         cls = classes.get(name)
         misspelt: set[str | None] = set()  # inputs already named by a "did you mean"
-        own_ins = {**cls.inputs, **params_ports(cls, params, name, True)} if cls else {}
+        own_ins = node_ports(cls, params, name, True) if cls else {}
         for port, ins in ns.inputs.items():
             path = ("nodes", name, "inputs", port)
             if "." not in ins.source and ins.node not in spec.imports:
@@ -361,7 +361,7 @@ def _source_outputs(
 ) -> Mapping[str, Any] | None:
     """The outputs of an input's source node, or None when the port is not among them (an
     error, unless its params may give it one: see :func:`ports_unknown`)."""
-    src_outs = {**src_cls.outputs, **params_ports(src_cls, r.params, ins.node, False)}
+    src_outs = node_ports(src_cls, r.params, ins.node, False)
     if ins.port in src_outs:
         return src_outs
     if not ports_unknown(src_cls, r.params, ins.node, False):
@@ -475,7 +475,7 @@ def _check_exports(r: _Resolution) -> None:
                 f"export from unknown node {ex.node!r}" + did_you_mean(ex.node, names),
             )
         elif src_cls is not None and not ports_unknown(src_cls, params, ex.node, False):
-            src_outs = {**src_cls.outputs, **params_ports(src_cls, params, ex.node, False)}
+            src_outs = node_ports(src_cls, params, ex.node, False)
             if ex.port not in src_outs:
                 at(
                     ("export", key),

@@ -12,26 +12,43 @@ between was pending, and is dropped.
 
 from __future__ import annotations
 
+import contextlib
 import signal
+from collections.abc import Collection, Iterator
 from multiprocessing import resource_tracker
 from typing import Any
 
 _INT = {signal.SIGINT}
 
 
-def start(proc: Any) -> None:
-    """``proc.start()`` (a ``multiprocessing`` process) with SIGINT blocked in this thread
-    meanwhile: the child inherits the mask; its body calls :func:`ignore_interrupts`."""
-    # The resource tracker first: its own start unblocks SIGINT in this thread.
+@contextlib.contextmanager
+def blocked(signals: Collection[int] = _INT) -> Iterator[None]:
+    """``signals`` blocked in this thread meanwhile: a child started here inherits the mask
+    (through fork and exec) and holds them pending until it unblocks them (:func:`ignore`)."""
+    # The resource tracker first: its own start unblocks SIGINT and SIGTERM in this thread.
     resource_tracker.ensure_running()
-    masked = signal.pthread_sigmask(signal.SIG_BLOCK, _INT)
+    masked = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
     try:
-        proc.start()
+        yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, masked)
 
 
+def start(proc: Any) -> None:
+    """``proc.start()`` (a ``multiprocessing`` process) with SIGINT blocked: its body calls
+    :func:`ignore_interrupts`."""
+    with blocked():
+        proc.start()
+
+
+def ignore(signals: Collection[int]) -> None:
+    """In a child started under :func:`blocked`: ``signals`` ignored (a pending one dropped),
+    then unblocked."""
+    for sig in signals:
+        signal.signal(sig, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, signals)
+
+
 def ignore_interrupts() -> None:
-    """First thing in a child's body: SIGINT ignored (a pending one dropped), then unblocked."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, _INT)
+    """First thing in a spawned child's body: SIGINT ignored, then unblocked."""
+    ignore(_INT)

@@ -13,9 +13,7 @@ one sent while it imported numpy and OpenCV is pending; ignoring drops it, then 
 unblocked, for the workers too (they inherit the mask, and so would their own children).
 """
 
-import signal
+from ..system._spawned import ignore
+from .forkserver import STOP_SIGNALS
 
-_STOP = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-for _sig in _STOP:
-    signal.signal(_sig, signal.SIG_IGN)
-signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP)
+ignore(STOP_SIGNALS)

@@ -22,6 +22,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..ipc import PICKLE
+from ..system import _spawned as spawned
 from .errors import WorkerError
 
 #: Blocked while the forkserver starts (see start_forkserver), ignored by it once preloaded.
@@ -195,7 +196,7 @@ def start_forkserver() -> None:
     The runtime calls this at start, before any deadline runs, so that the first worker start
     is not the one that pays for importing OpenCV.
     """
-    from multiprocessing import forkserver, resource_tracker
+    from multiprocessing import forkserver
 
     exit_if_importing_main()
     context()
@@ -211,13 +212,10 @@ def start_forkserver() -> None:
     # through fork and exec): multiprocessing ignores SIGINT there only after the preload,
     # so a Ctrl-C in its first second printed a traceback from inside numpy's import.
     # _forkserver_signals, preloaded, ignores them and unblocks (a pending one is dropped).
-    # (The resource tracker first: its own start unblocks SIGINT and SIGTERM in this thread.)
-    resource_tracker.ensure_running()
-    masked = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
     try:
-        forkserver.ensure_running()
+        with spawned.blocked(STOP_SIGNALS):
+            forkserver.ensure_running()
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, masked)
         if before is None:
             os.environ.pop("PYTHONSAFEPATH", None)
         else:
