@@ -15,7 +15,7 @@ from typing import Protocol
 from ..clock import Clock
 from ..edges import Buffer, LatestBuffer, LosslessBuffer
 from ..events import Event, HealthAlert
-from ..graph.spec import LoopTrigger
+from ..graph.spec import LoopTrigger, TimerTrigger
 from .runner import NodeRunner
 from .state import RunState
 
@@ -72,13 +72,15 @@ class Drain:
                 if r.task is not None and not r.task.done():
                     r.task.add_done_callback(r.cancelled)
                     r.task.cancel()  # e.g. a capture waiting for its next frame
-        while True:
-            left = self.undrained()
-            if not left or loop.time() - t0 >= timeout or self.cut:
-                break
+        left = await self._settle(t0, timeout)
+        if not left and not self.cut:
+            # Timed nodes with inputs (a 1 kHz loop reading the latest wall) ran on while the
+            # graph drained; they stop now, their call in flight ends and what it published is
+            # delivered too, not dropped at the teardown.
             for r in s.runners.values():
-                r.catch_up()
-            await asyncio.sleep(0.002)
+                if isinstance(r.rnode.trigger, TimerTrigger) and not r.stopping:
+                    r.stop_releasing()
+            left = await self._settle(t0, timeout)
         self.left = left
         if left and self.cut:
             detail = "cut short by a signal: " + "; ".join(left)
@@ -91,6 +93,17 @@ class Drain:
         else:
             log.debug("drained in %.1f ms", (loop.time() - t0) * 1000)
         return left
+
+    async def _settle(self, t0: float, limit: float) -> list[str]:
+        """Wait until nothing is left undrained, the deadline ``t0 + limit`` or a cut."""
+        loop = self._s.loop
+        while True:
+            left = self.undrained()
+            if not left or loop.time() - t0 >= limit or self.cut:
+                return left
+            for r in self._s.runners.values():
+                r.catch_up()
+            await asyncio.sleep(0.002)
 
     def undrained(self) -> list[str]:
         """What the drain still waits for, in words."""
@@ -119,6 +132,7 @@ class Drain:
                 and buf.pending()
                 and reader.timing.enabled
                 and reader.state is not RunState.failed
+                and not reader.stopping  # released no more: it takes nothing now
             ):
                 left.append(f"{buf.name} holds {buf.pending()}")
         return left
