@@ -9,6 +9,7 @@ equal, the replay identical, every activation re-executed.
 from __future__ import annotations
 
 import asyncio
+import json
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -461,3 +462,43 @@ def test_ctx_random_is_seeded_by_node_and_run(monkeypatch: pytest.MonkeyPatch) -
     monkeypatch.setenv("FLOWRT_SEED", "7")
     assert NodeContext("a").random.random() != a[0]
     assert node_seed("a") == node_seed("a", "7")
+
+
+class Stamped(Node):
+    """A value with its own time, as a detection carries its frame's capture time."""
+
+    class Params(BaseModel):
+        factor: int = 3
+
+    value = Input(int)
+    out = Output(object)
+
+    def process(self, value: int) -> dict[str, Any]:
+        return {"timestamp": self.ctx.now() - 0.001, "v": value * self.params.factor}
+
+
+async def test_a_divergence_shows_both_values_on_one_clock(tmp_path: Path) -> None:
+    """The recording holds a value's own timestamp in Unix nanoseconds, the replay has it on
+    the runtime clock in seconds: shown side by side they must read the same (before, they
+    read as a mismatch where there was none: 1.7e18 against 0.039)."""
+    g = GraphBuilder("det")
+    g.add("tick", Ticker, trigger={"timer": "10ms"})
+    g.add("stamped", Stamped, inputs={"value": "tick.tick"})
+    recorder(g, tmp_path / "session", "stamped.out")
+    graph = g.build()
+    clock = VirtualClock()
+    async with Runtime(graph, clock=clock):
+        await clock.advance(0.1)
+    await asyncio.to_thread(wait_for_writers)
+    node = graph.spec.nodes["stamped"].model_copy(update={"params": {"factor": 5}})
+    spec = graph.spec.model_copy(update={"nodes": {**graph.spec.nodes, "stamped": node}})
+    changed = flowrt.graph._resolve.resolve(spec, kinds={"Ticker": Ticker, "Stamped": Stamped})
+    async with flowrt.replay(tmp_path / "session", changed, inline=True) as rp:
+        d = (await rp.run()).first_divergence
+    assert d is not None
+    assert (d.node, d.seq) == ("stamped", 1)
+    assert d.recorded is not None
+    assert d.replayed is not None
+    recorded, replayed = json.loads(d.recorded), json.loads(d.replayed)
+    assert (recorded["v"], replayed["v"]) == (3, 5)
+    assert recorded["timestamp"] == replayed["timestamp"]

@@ -544,7 +544,7 @@ def _divergence(
     """The first divergence, with both values where the recording holds the recorded one."""
     recorded = None
     if rec is not None and rec.topic is not None and rec.index is not None:
-        recorded = show(read_one(log_.path, rec.topic, rec.index))
+        recorded = show(read_one(log_.path, rec.topic, rec.index, rec.stamp))
     return Divergence(
         node=a.node,
         port=port,

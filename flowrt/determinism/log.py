@@ -119,6 +119,7 @@ class OutputRecord:
     digest: str
     topic: str | None = None
     index: int | None = None
+    stamp: float | None = None  # the value's own timestamp, runtime clock (recorded: Unix ns)
 
 
 @dataclass(frozen=True)
@@ -216,6 +217,7 @@ def _add(log: DeterminismLog, topic: str, r: dict[str, Any]) -> None:
             str(r["digest"]),
             r.get("topic"),
             r.get("index"),
+            r.get("stamp"),
         )
         log.outputs.setdefault((o.node, o.n), []).append(o)
         log.output_at[(o.node, o.port, o.seq)] = o

@@ -185,12 +185,8 @@ class Observer:
                     "source": value.source,
                     "pixel_format": value.pixel_format,
                 }
-            else:
-                stamp = getattr(value, "timestamp", None)
-                if isinstance(value, dict):
-                    stamp = value.get("timestamp")
-                if isinstance(stamp, float):
-                    record["stamp"] = stamp
+            elif (stamp := _own_stamp(value)) is not None:
+                record["stamp"] = stamp
             self.sink.log(SOURCE, record, t)
             return
         record = {
@@ -205,6 +201,8 @@ class Observer:
             index = self.sink.value(topic, f"{node}.{port}", value)
             if index is not None:
                 record["topic"], record["index"] = topic, index
+                if (stamp := _own_stamp(value)) is not None:  # the recording has it in
+                    record["stamp"] = stamp  # Unix ns: a divergence shows it as replayed
         self.sink.log(OUTPUT, record, t)
 
     def event(self, event: Event) -> None:
@@ -225,3 +223,9 @@ class Observer:
         else:
             return
         self.sink.log(CHANGE, record, t)
+
+
+def _own_stamp(value: Any) -> float | None:
+    """A value's own ``timestamp`` on the runtime clock (a detection's frame time), if any."""
+    stamp = value.get("timestamp") if isinstance(value, dict) else getattr(value, "timestamp", None)
+    return stamp if isinstance(stamp, float) else None

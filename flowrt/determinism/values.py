@@ -102,20 +102,27 @@ def _restore(value: Any, src: SourceRecord) -> Any:
             pixel_format=str(f.get("pixel_format", value.pixel_format)),
         )
         return frame
-    if src.stamp is None:
+    return _with_stamp(value, src.stamp)
+
+
+def _with_stamp(value: Any, stamp: float | None) -> Any:
+    """``value`` with its own ``timestamp`` set back to ``stamp`` (runtime clock, seconds;
+    the recording holds Unix nanoseconds), where it has one."""
+    if stamp is None:
         return value
     if isinstance(value, dict):
-        return {**value, "timestamp": src.stamp}
+        return {**value, "timestamp": stamp} if "timestamp" in value else value
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         try:
-            return dataclasses.replace(value, timestamp=src.stamp)
+            return dataclasses.replace(value, timestamp=stamp)
         except TypeError:
             return value
     return value
 
 
-def read_one(path: Path, topic: str, index: int) -> Any:
-    """The ``index``-th recorded message of ``topic``, decoded (None if absent): to show it."""
+def read_one(path: Path, topic: str, index: int, stamp: float | None = None) -> Any:
+    """The ``index``-th recorded message of ``topic``, decoded (None if absent): to show it
+    beside a replayed value, its ``timestamp`` on the runtime clock when ``stamp`` is known."""
     decoder = Decoder()
     for n, m in enumerate(iter_session(mcap_files(path), {topic})):
         if n == index:
@@ -123,7 +130,7 @@ def read_one(path: Path, topic: str, index: int) -> Any:
             if decoder.is_image(name):
                 px, fmt = decoder.image(m.schema, m.data)
                 return Frame(np.array(px), pixel_format=fmt)
-            return decoder.message(name, m.data)
+            return _with_stamp(decoder.message(name, m.data), stamp)
     return None
 
 
