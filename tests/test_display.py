@@ -366,8 +366,9 @@ async def test_no_viewer_means_no_encoding(
         assert img.shape == (H, W, 3)
         await asyncio.sleep(0.25)  # /stats.json is cached for 0.2 s
         assert (await get_json(http, url + "/stats.json"))["display"]["encodes"] == 1
-        async with http.get(url + "/frame/nope.jpg") as r:  # after a wait for its first frame
+        async with http.get(url + "/frame/nope.jpg") as r:  # no such input: not waited for
             assert r.status == 404
+            assert "no input 'nope' on this display; its inputs: [" in await r.text()
         async with http.get(url + "/") as r:
             assert r.status == 200
             assert "text/html" in r.content_type

@@ -114,6 +114,16 @@ def _drivers(ctx: Any) -> list[str]:
     ]
 
 
+def _inputs(ctx: Any) -> list[str] | None:
+    """The display's input names (every frame source is one), or None when not known."""
+    try:
+        graph = ctx.graph
+    except RuntimeError:  # no runtime around the node (a bare test harness)
+        return None
+    node = graph.nodes.get(ctx.name)
+    return None if node is None else sorted(node.spec.inputs)
+
+
 def _is_detection(value: Any) -> bool:
     return hasattr(value, "found") and (hasattr(value, "bbox") or hasattr(value, "centroid"))
 
@@ -253,6 +263,7 @@ class Display(Node):
             "url": self.url,
             "page": page,
             "source_wait": SOURCE_WAIT,
+            "inputs": _inputs(self.ctx),  # a name none of them is: 404 at once, not waited for
             "header_timeout": HEADER_TIMEOUT,
             "recordings": [self.params.recordings] if self.params.recordings else [],
             "health_hz": self.params.health_hz,

@@ -92,6 +92,8 @@ class ViewServer:
         self.url: str = settings.get("url", "")
         self.page: bytes = settings.get("page", b"")
         self.source_wait = float(settings.get("source_wait", SOURCE_WAIT))
+        inputs = settings.get("inputs")
+        self.inputs = None if inputs is None else frozenset(inputs)  # None: not known
         self.header_timeout = float(settings.get("header_timeout", HEADER_TIMEOUT))
         self.names: set[str] = set()  # inputs that have sent frames, as the node says
         self.clients: set[_Client] = set()
@@ -299,6 +301,10 @@ class ViewServer:
         kind = request.query.get("kind", "processed")
         if kind not in ("raw", "processed"):
             raise web.HTTPBadRequest(text="kind must be raw or processed")
+        if self.inputs is not None and name not in self.inputs and name not in self.names:
+            raise web.HTTPNotFound(
+                text=f"no input {name!r} on this display; its inputs: {sorted(self.inputs)}"
+            )
         end = time.monotonic() + self.source_wait
         while name not in self.names:
             left = end - time.monotonic()
