@@ -218,3 +218,27 @@ async def test_cpu_starvation_kills_no_worker() -> None:
     # Each detection is counted; the alert says it once per episode.
     assert len(alerts) <= 1
     assert stats.loop.starvation_events >= len(alerts)
+
+
+@pytest.mark.subprocess  # a worker process
+@pytest.mark.timeout(30)
+async def test_a_call_between_a_workers_eof_and_its_exit_fails_with_its_death() -> None:
+    """A worker killed from outside closes its socket a moment before its exit is reaped; a
+    call in that moment (seen on a loaded machine) failed with a bare "not running" instead
+    of who killed it, and its node's failure said nothing of the SIGKILL."""
+    from flowrt.workers.errors import WorkerError
+    from flowrt.workers.wire import OP_EXIT
+
+    w = channel.Worker("w")
+    await w.spawn()
+    try:
+        os.kill(w.pid, 9)
+        assert w._transport is not None
+        w._transport.abort()  # the EOF seen, the sentinel not yet
+        assert not w.usable
+        with pytest.raises(WorkerError) as e:
+            await asyncio.wait_for(w.request((OP_EXIT,), "n", 0, None), 5)
+        assert e.value.kind == "killed"
+        assert "SIGKILL" in str(e.value)
+    finally:
+        await w.wait_exit()

@@ -99,6 +99,7 @@ class Worker:
         self._exited = asyncio.Event()
         self._eof_timer: asyncio.TimerHandle | None = None
         self.death: WorkerError | None = None
+        self._deaths: set[asyncio.Task[None]] = set()  # calls waiting to fail with the death
         self.alive = False  # the process exists (until its sentinel fires)
         self._killing = False
         self.last_run_time = 0.0
@@ -160,6 +161,8 @@ class Worker:
         output slots and the grants ``msg`` carries (told of the reply, or taken back).
         """
         if not self.usable or self._loop is None:
+            if self.death is None and self.alive and self._loop is not None:
+                return self._death_later(node)  # its socket closed before its exit was seen
             raise self.death_for(node)
         fut = self._loop.create_future()
         fut.add_done_callback(_retrieved)
@@ -171,6 +174,24 @@ class Worker:
             self._send(call)
         else:
             heapq.heappush(self._waiting, call)
+        return fut
+
+    def _death_later(self, node: str) -> asyncio.Future[Any]:
+        """A call to a worker whose socket is closed and whose exit is not reaped yet fails
+        with the worker's death once it is (killed by whom, exit code), not with a bare "not
+        running": the sentinel follows the EOF by microseconds, later on a loaded machine."""
+        assert self._loop is not None
+        fut = self._loop.create_future()
+        fut.add_done_callback(_retrieved)
+
+        async def fail() -> None:
+            await self.wait_exit(1.0)  # killed after 1 s, as a worker that closed its socket
+            if not fut.done():
+                fut.set_exception(self.death_for(node))
+
+        task = self._loop.create_task(fail())
+        self._deaths.add(task)  # the loop keeps only a weak reference to a task
+        task.add_done_callback(self._deaths.discard)
         return fut
 
     def _may_follow(self, call: _Call) -> bool:
