@@ -25,6 +25,7 @@ import subprocess
 import sys
 from collections.abc import AsyncIterator, Callable, Generator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import tiers
@@ -170,3 +171,29 @@ async def flowrt_running(*args: str, cwd: Path | None = None) -> AsyncIterator[F
         if proc.returncode is None:
             proc.kill()
             await proc.wait()
+
+
+# -- counts reached over real time ------------------------------------------------------------
+
+
+async def wait_until(done: Callable[[], object], within: float = 10.0, step: float = 0.05) -> bool:
+    """Poll ``done()`` every ``step`` s of the real clock until it holds or ``within`` s have
+    passed; whether it holds. For what a run makes over real time (frames, activations): a
+    machine loaded by the whole suite (CI: 2 busy cores) starts workers and releases timers
+    later than an idle one, so a test waits (bounded) for the count it asserts instead of
+    assuming an idle machine in a fixed window, then asserts the same bar. Waiting on the
+    event loop costs no CPU (the fast tier's budget)."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + within
+    while not done():
+        if loop.time() >= end:
+            return False
+        await asyncio.sleep(step)
+    return True
+
+
+def drained(sub: Any, into: list[Any]) -> list[Any]:
+    """``into``, with what the subscription ``sub`` holds now moved onto its end (a long wait
+    drains as it goes: a subscription's buffer is bounded)."""
+    into += sub.drain()
+    return into

@@ -183,7 +183,7 @@ def test_can_signals_are_recorded_as_plottable_json(tmp_path: Path, flowrt_cli: 
     (path,) = tmp_path.glob("*/*.mcap")
     with open(path, "rb") as f:
         got = list(make_reader(f).iter_messages(topics=["chassis.WheelSpeeds"]))
-    assert len(got) >= 50
+    assert len(got) >= 50  # of 100 in the fixed 1 s (10 ms): room for a loaded machine's skips
     schema, _, message = got[0]
     signals = json.loads(schema.data)["properties"]["signals"]["properties"]
     assert {"LeftSpeed", "RightSpeed", "Heading"} <= set(signals)
@@ -257,7 +257,7 @@ def test_raw_can_frames_are_a_channel_of_their_own(tmp_path: Path, flowrt_cli: F
     (path,) = tmp_path.glob("*/*.mcap")
     with open(path, "rb") as f:
         got = list(make_reader(f).iter_messages(topics=["chassis.frames"]))
-    assert len(got) >= 100
+    assert len(got) >= 100  # of ~210 in the fixed 1 s: room for a loaded machine's skips
     schema, _, message = got[0]
     props = json.loads(schema.data)["properties"]
     assert {"id", "extended", "fd", "remote", "dlc", "data"} <= set(props)

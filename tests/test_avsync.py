@@ -72,5 +72,7 @@ def test_flash_and_beep_40ms_measured_from_a_recording(tmp_path: Path) -> None:
     assert m.returncode == 0, m.stderr
     got = json.loads(m.stdout)
     assert set(got) == {"lag_ms", "min_ms", "max_ms", "std_ms", "events"}
+    # a fixed 4 s window: the flashes come once a second on the clock, each seen by 3 frames,
+    # so a loaded machine's late or skipped frames do not take an event away
     assert got["events"] >= 3
     assert abs(got["lag_ms"] - 40) < 5

@@ -157,7 +157,7 @@ async def run_capture(
         end = loop.time() + seconds
         while loop.time() < end:
             await asyncio.sleep(0.02)
-            if until and until(Run(Recorder.store.get(key, []), events, None, truths)):
+            if until and until(Run(Recorder.store.get(key, []), events, rt.stats(), truths)):
                 break
         stats = rt.stats()
         truths.extend(sub.drain())
@@ -663,10 +663,14 @@ async def test_bad_sources_raise_health_events(tmp_path: Path, source: str, deta
         (tmp_path / "gone.jpg").write_bytes(b"")
         vanish = (tmp_path / "gone.jpg").unlink
 
+    def seen(r: Run) -> bool:  # what is asserted below: a loaded machine may need over 0.6 s
+        return len(r.alerts("source-error")) >= 3 and r.stats.node("tick").completions >= 15
+
     run = await run_capture(
         {"source": src, "backoff": "50ms", "max_backoff": "100ms"},
-        0.6,
+        10.0,
         extra=counter,
+        until=seen,
         built=vanish,
     )
     _assert_quiet_failure(run)

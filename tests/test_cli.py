@@ -268,7 +268,7 @@ def test_run_spin_and_fair_share_scheduling(tmp_path: Path) -> None:
     assert stats["loop_scheduling"].startswith("nice ")
     loop_nice = int(stats["loop_scheduling"].split()[1].rstrip(","))
     node = {n["name"]: n for n in stats["nodes"]}["out"]
-    assert node["activations"] > 20
+    assert node["activations"] > 20  # of 50 in the fixed 1 s: room for a loaded machine
     assert node["errors"] == 0
     # the only worker: the top rank, 3 nice levels above the loop (or 0), whatever the
     # priority of the inline node (it runs in the loop)

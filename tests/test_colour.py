@@ -247,6 +247,7 @@ def _video_frames() -> list[np.ndarray]:
     return frames
 
 
+@pytest.mark.slow  # 250 frames of a real video decoded and tracked: ~1 s of CPU
 def test_real_video_candle_track() -> None:
     """The sample is an animated restaurant scene in four shots (cuts near frames 98, 154 and
     200); a glowing table lamp is in view throughout the first three (frames 1-199)."""

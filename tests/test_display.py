@@ -20,6 +20,7 @@ import aiohttp
 import cv2
 import numpy as np
 import pytest
+from conftest import wait_until
 from flowrt.nodes.station import display as display_module
 from flowrt.nodes.station.display import Display, Mark, render
 from tiers import uses
@@ -341,6 +342,12 @@ async def test_no_viewer_means_no_encoding(
     monkeypatch.setattr(display_module, "SOURCE_WAIT", 0.3)
     async with running(capsys) as (rt, url), aiohttp.ClientSession() as http:
         await asyncio.sleep(1.0)
+
+        async def fifteen() -> bool:  # 20 fps: a loaded machine may show fewer in 1 s
+            sources = (await get_json(http, url + "/stats.json"))["display"]["sources"]
+            return bool(sources) and sources[0]["frames"] >= 15
+
+        await wait_for(fifteen, 10, "15 frames at the display")
         stats = await get_json(http, url + "/stats.json")
         display = stats["display"]
         assert display["encodes"] == 0
@@ -667,6 +674,12 @@ async def test_a_taken_port_is_an_error_state_not_a_restart_loop(
         port = taken.getsockname()[1]
         async with flowrt.Runtime(demo_graph(port=port)) as rt:
             await asyncio.sleep(0.5)
+
+            def settled() -> bool:  # (later on a loaded machine: waited for, bounded)
+                st = rt.stats()
+                return st.node("view").state == "error" and st.node("cam").activations >= 5
+
+            await wait_until(settled)
             view = rt.stats().node("view")
             assert view.state == "error"
             assert f"cannot listen on 127.0.0.1:{port}" in (view.reason or "")

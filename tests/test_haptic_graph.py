@@ -31,6 +31,8 @@ def test_the_haptic_graph_runs_five_seconds_and_is_recorded(
     assert r.returncode == 0, r.stderr[-2000:]
     s = json.loads(stats.read_text())
     haptic = next(n for n in s["nodes"] if n["name"] == "haptic")
+    # a fixed 5 s window, but not a count a loaded machine lowers: a precise node counts
+    # every 1 ms instant it is released at, the missed ones too (as skipped)
     assert haptic["activations"] >= 4800
     assert haptic["errors"] == 0
     report = s["reports"]["haptic"]

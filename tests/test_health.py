@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 import psutil
 import pytest
+from conftest import drained, wait_until
 from flowrt.nodes.health import HealthReport
 from rich.console import Console
 
@@ -182,7 +183,10 @@ async def test_machine_state_is_reported() -> None:
     async with Runtime(g.build()) as rt:
         sub = rt.subscribe("health.report")
         await rt.run(0.35)
-        report = reports(sub)[-1]
+        got = reports(sub)
+        # a loaded machine may report later than every 100 ms: waited for (bounded)
+        await wait_until(lambda: bool(drained(sub, got)) and got[-1].machine is not None)
+        report = got[-1]
     m = report.machine
     assert m is not None
     assert len(m.cpu_per_core) == psutil.cpu_count()

@@ -158,7 +158,8 @@ PRINTER = '''
 from flowrt import Node
 
 class Printer(Node):
-    """Prints a line every tenth tick, as the display node prints its URL."""
+    """Prints a line every tenth tick, as the display node prints its URL; ends the run after
+    its 52nd tick (2.6 s on an idle machine, later on a loaded one that skips ticks)."""
 
     def setup(self) -> None:
         self.n = 0
@@ -167,6 +168,8 @@ class Printer(Node):
         self.n += 1
         if self.n % 10 == 0:
             print(f"printed {self.n // 10}", flush=True)
+        if self.n == 52:
+            self.ctx.request_stop()
 '''
 
 
@@ -180,7 +183,9 @@ def test_a_run_on_a_terminal_keeps_what_a_node_prints(tmp_path: Path) -> None:
     fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "NO_COLOR")}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "flowrt.cli", "run", str(graph), "--duration", "2.6"],
+        # the node ends the run after 5 lines: not a window a loaded machine's late or skipped
+        # ticks would leave fewer in (the duration is a bound)
+        [sys.executable, "-m", "flowrt.cli", "run", str(graph), "--duration", "30"],
         cwd=tmp_path,
         env={**env, "TERM": "xterm-256color"},
         stdin=subprocess.DEVNULL,

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import pytest
+from conftest import wait_until
 
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime, VirtualClock
 from flowrt.edges import LatestBuffer
@@ -313,6 +314,14 @@ async def test_a_real_graph_with_a_precise_node_fills_its_statistics() -> None:
     g.add("keep", Keep, inputs={"input": "tick.value"})
     async with Runtime(g.build()) as rt:
         await asyncio.sleep(2.0)
+
+        def counted() -> bool:  # what is asserted below: a loaded machine may need longer
+            st = rt.stats()
+            tick, seen = st.node("tick"), node(rt, "keep").seen
+            counts = (tick.completions, tick.interval.count, tick.execution.count, len(seen))
+            return min(*counts, tick.response.count) > 100 and st.node("slow").completions > 20
+
+        await wait_until(counted)
         threads = node(rt, "tick").threads
         seen = node(rt, "keep").seen
         names = {t.name for t in threading.enumerate()}

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import psutil
 import pytest
+from conftest import wait_until
 
 import flowrt
 from flowrt.cli.record import wait_for_writers
@@ -74,6 +75,19 @@ def the_writer_process(mcap: Path) -> psutil.Process | None:
     return None
 
 
+async def writer_of(mcap: Path) -> psutil.Process | None:
+    """The writer process once it has ``mcap`` open, waited for (bounded): a loaded machine
+    starts it later, and an idle-priority one gets its first turn later still."""
+    found: list[psutil.Process | None] = [None]
+
+    def opened() -> bool:
+        found[0] = the_writer_process(mcap)
+        return found[0] is not None
+
+    await wait_until(opened, step=0.2)
+    return found[0]
+
+
 def session_of(tmp: Path) -> tuple[Path, RecordingReport]:
     (session,) = sorted(tmp.glob("drive_*"))
     report = RecordingReport.model_validate_json((session / "streams.json").read_text())
@@ -88,8 +102,10 @@ async def test_the_runtime_process_holds_no_writer_thread_and_the_file_is_whole(
         await rt.run(0.8)
         threads = writer_threads()
         mcap = tmp_path / "drive_001" / "drive_001.mcap"
-        writer = the_writer_process(mcap)
+        writer = await writer_of(mcap)
         await rt.run(0.7)
+        # a loaded machine may make fewer frames in 1.5 s: more time, the same bar below
+        await wait_until(lambda: rt.stats().node("cam").completions >= 20)
         stats = rt.stats()
     await asyncio.to_thread(wait_for_writers)
     assert threads == []  # nothing of the writing runs beside the event loop
@@ -316,8 +332,11 @@ async def test_the_writer_process_runs_at_the_priority_asked_every_thread_of_it(
 ) -> None:
     async with flowrt.Runtime(small_graph(tmp_path, writer_priority=priority)) as rt:
         await rt.run(0.8)
-        writer = the_writer_process(tmp_path / "drive_001" / "drive_001.mcap")
+        writer = await writer_of(tmp_path / "drive_001" / "drive_001.mcap")
         assert writer is not None
+        # its threads start as it opens the file: later on a loaded machine (or at idle
+        # priority), so they are waited for (bounded) before they are read
+        await wait_until(lambda: len(os.listdir(f"/proc/{writer.pid}/task")) >= 3)
         tids = [int(t) for t in os.listdir(f"/proc/{writer.pid}/task")]
         policies = {os.sched_getscheduler(t) for t in tids}
         await rt.run(0.4)

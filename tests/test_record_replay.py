@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import wait_until
 from mcap.reader import make_reader
 
 import flowrt
@@ -62,6 +63,8 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
         g = build(dict(CAPTURE), {"path": str(tmp), "name": "exact"})
         async with flowrt.Runtime(g.build()) as rt:
             await rt.run(2.0)
+            # a loaded machine makes fewer frames in 2 s: more time for the 20 asserted below
+            await wait_until(lambda: min(rt.stats().node(n).completions for n in TRACKERS) >= 20)
 
     asyncio.run(main())
     wait_for_writers()  # a slow (shared) disk may still be finishing the file

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import drained, wait_until
 from pydantic import BaseModel
 
 from flowrt import GraphBuilder, Input, Node, NodeSwapped, Output, Runtime, SwapError, VirtualClock
@@ -270,9 +271,12 @@ async def test_swap_of_a_process_node() -> None:
         out = rt.subscribe("alg.output", size=1024)
         await asyncio.sleep(0.3)
         before = out.drain()
+        # a loaded machine's worker answers later: waited for (bounded), before and after
+        await wait_until(lambda: bool(drained(out, before)))
         await rt.swap("alg", "burn", {"ms": 0.1})
         await asyncio.sleep(0.3)
         after = out.drain()
+        await wait_until(lambda: bool(drained(out, after)))
         alg = rt.stats().node("alg")
     assert before
     assert after

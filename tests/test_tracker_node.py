@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
+from conftest import wait_until
 from flowrt.nodes.colour import OBJECTS, Detection
 from flowrt.nodes.tracker import FrameDetection, Tracker, TrackerParams
 from pydantic import ValidationError
@@ -320,21 +321,33 @@ def _cambada_spec(placement: str, display: bool) -> flowrt.GraphSpec:
 
 
 async def _run_cambada(
-    spec: flowrt.GraphSpec, seconds: float
+    spec: flowrt.GraphSpec, seconds: float, counted: str
 ) -> tuple[Any, list[Any], dict[str, list[Any]]]:
+    """``seconds`` of the graph, and more (bounded) until ``counted`` has completed 20 times
+    and every tracker once: a loaded machine makes fewer in the time than the tests assert."""
     rt = flowrt.Runtime(spec)
     events: list[Any] = []
     rt.on_event(events.append)
     async with rt:
         subs = {n: rt.subscribe(f"{n}.detection", size=1000) for n in TABLE2}
         await rt.run(seconds)
+
+        def made() -> bool:
+            st = rt.stats()
+            return st.node(counted).completions >= 20 and all(
+                st.node(n).completions >= 1 for n in TABLE2
+            )
+
+        await wait_until(made)
         stats = rt.stats()
         dets = {n: s.drain() for n, s in subs.items()}
     return stats, events, dets
 
 
 async def test_cambada_runs_inline() -> None:
-    stats, events, dets = await _run_cambada(_cambada_spec("inline", display=False), 1.6)
+    stats, events, dets = await _run_cambada(
+        _cambada_spec("inline", display=False), 1.6, "omni_cam"
+    )
     assert not [e for e in events if isinstance(e, NodeFailed)]
     ticks = stats.node("omni_cam").completions
     assert ticks >= 20
@@ -350,7 +363,9 @@ async def test_cambada_runs_inline() -> None:
 
 async def test_cambada_runs_as_shipped() -> None:
     """Worker processes and the display, as `flowrt run graphs/cambada.yaml` runs it."""
-    stats, events, dets = await _run_cambada(_cambada_spec("process", display=True), 2.5)
+    stats, events, dets = await _run_cambada(
+        _cambada_spec("process", display=True), 2.5, "avoid_om"
+    )
     assert not [e for e in events if isinstance(e, NodeFailed)]
     for name in TABLE2:
         assert stats.node(name).errors == 0

@@ -82,6 +82,7 @@ def test_a_kind_beside_the_graph_runs_inline_and_in_a_worker_from_another_folder
     import json
 
     nodes = {n["name"]: n for n in json.loads(stats.read_text())["nodes"]}
+    # of 20 in the fixed 1 s (50 ms): room for a loaded machine's late ticks
     assert nodes["m"]["completions"] >= 10
     assert nodes["h"]["completions"] >= 10  # in a worker process
     assert nodes["h"]["state"] == "idle"
