@@ -140,7 +140,17 @@ def modes_graph() -> Graph:
     return g.build()
 
 
-def test_a_mode_that_cannot_apply_is_refused_at_load() -> None:
+@pytest.mark.parametrize(
+    ("node", "change", "error"),
+    [  # the node's phase kept by a mode that changes its period / timer alone, and does not fit
+        ("a", {"period": 2}, r"modes.broken.nodes.a.phase: phase 3 must be in 0..1"),
+        ("t", {"timer": "40ms"}, r"nodes.t.timer: phase 60 ms must be less than the timer 40 ms"),
+        ("t", {"timer_phase": 120}, r"t.timer_phase: phase 120 ms must be less than the timer 100"),
+    ],
+)
+def test_a_mode_that_cannot_apply_is_refused_at_load(
+    node: str, change: dict[str, Any], error: str
+) -> None:
     g = GraphBuilder("modes")
     g.add("cam", Camera, trigger={"timer": 3_600_000}, enabled=False)
     g.add(
@@ -149,10 +159,9 @@ def test_a_mode_that_cannot_apply_is_refused_at_load() -> None:
         trigger={"frame": "cam", "period": 4, "phase": 3},
         inputs={"frame": "cam.frame"},
     )
-    g.mode("broken", a={"period": 2})  # the graph's phase 3 does not fit period 2
-    with pytest.raises(
-        flowrt.GraphError, match=r"modes.broken.nodes.a.phase: phase 3 must be in 0..1"
-    ):
+    g.add("t", "counter", trigger={"timer": "100ms", "phase": "60ms"})
+    g.mode("broken", **{node: change})
+    with pytest.raises(flowrt.GraphError, match=error):
         g.build()
 
 
@@ -514,5 +523,10 @@ async def test_a_timers_phase_changes_at_run_time() -> None:
         after = [round(x * 1000) % 100 for x in sub.drain()]
         with pytest.raises(ValueError, match=r"timer_phase must be in 0\.\.100"):
             rt.set_timing("t", timer_phase=150)
+        # the timer alone, below the phase it keeps: refused (it was taken, and the control
+        # endpoint and the status lines stopped answering), with both at once: fine
+        with pytest.raises(ValueError, match=r"timer 20 ms must be above its phase 30 ms"):
+            rt.set_timing("t", timer=20)
+        assert "timer_ms 100.0 -> 20.0" in rt.set_timing("t", timer=20, timer_phase=10)
     assert set(before) == {0}
     assert set(after[1:]) == {30}

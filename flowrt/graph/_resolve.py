@@ -572,8 +572,14 @@ def _check_override(path: tuple[str | int, ...], o: Any, trig: Trigger | None, a
     elif o.period is not None or o.phase is not None:
         key = "period" if o.period is not None else "phase"
         at((*path, key), "period/phase in frames apply to frame-triggered nodes; use timer")
-    elif isinstance(trig, TimerTrigger) and o.timer is not None and o.timer <= 0:
-        at((*path, "timer"), "timer period must be positive")
+    elif isinstance(trig, TimerTrigger) and (o.timer is not None or o.timer_phase is not None):
+        timer = trig.timer if o.timer is None else o.timer
+        phase = trig.phase if o.timer_phase is None else o.timer_phase
+        key = "timer" if o.timer is not None else "timer_phase"
+        if timer <= 0:
+            at((*path, "timer"), "timer period must be positive")
+        elif not 0 <= phase < timer:  # the node's phase, kept by a mode that sets a timer
+            at((*path, key), f"phase {phase:g} ms must be less than the timer {timer:g} ms")
 
 
 def _check_trigger(

@@ -164,6 +164,13 @@ class TimingChange:
                     f"{name}: timer_phase must be in 0..{timer_ms:g} ms (its timer), "
                     f"got {self.timer_phase_ms:g}"
                 )
+        elif self.timer_ms is not None and timing.timer is not None:
+            phase_ms = timing.timer_phase * 1000  # the phase it keeps must stay below it
+            if phase_ms >= self.timer_ms:
+                problems.append(
+                    f"{name}: timer {self.timer_ms:g} ms must be above its phase "
+                    f"{phase_ms:g} ms: change timer_phase with it"
+                )
         period = timing.period if self.period is None else self.period
         phase = timing.phase if self.phase is None else self.phase
         if is_frame and (period <= 0 or not 0 <= phase < period):

@@ -17,7 +17,9 @@ def quiet_gap(timers: tuple[tuple[float, float], ...]) -> tuple[float, float]:
     ``timers``: (period, phase) of each enabled timer, in seconds, sorted (the cache key).
     The hyperperiod is bounded (2 s, or ten of the longest period): a window, not forever.
     """
-    us = [(round(p * 1e6), round(ph * 1e6)) for p, ph in timers]
+    # a phase is below its period (checked wherever one is set); were it not, the releases
+    # are still at phase mod period, and no instant may be left out of the cycle
+    us = [(pu, round(ph * 1e6) % pu) for p, ph in timers if (pu := max(1, round(p * 1e6)))]
     cycle = 1
     for p, _ in us:
         cycle = cycle * p // math.gcd(cycle, p)
