@@ -185,6 +185,31 @@ async def test_intermittent_failure_is_never_given_up() -> None:
     assert flaky.completions >= 10
 
 
+@pytest.mark.parametrize(
+    ("kind", "seconds", "listed"),
+    [
+        (AlwaysFails, 0.5, True),  # 3 failures, in back-off, 7 short of its give-up
+        (FailsEveryOther, 0.5, False),  # fails, and completes in between
+    ],
+)
+async def test_a_node_that_never_completed_fails_the_run_before_its_give_up(
+    kind: type[flowrt.Node], seconds: float, listed: bool
+) -> None:
+    """A run shorter than the give-up (10 failures, ~22 s of back-off) ended with exit 0
+    while a node had failed every activation (a typo in an output name): no success."""
+    FailsEveryOther.calls = 0
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("n", kind, trigger={"timer": "10ms"})
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(seconds)
+        failures = rt.failures()
+    assert [n.name for n in failures] == (["n"] if listed else [])
+    if listed:
+        assert failures[0].state == "backoff"
+        assert failures[0].reason == "last error: ValueError: boom"
+
+
 async def test_failures_log_one_traceback_then_rate_limited_summaries(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -571,8 +596,8 @@ async def test_a_node_that_never_starts_is_given_up_after_three_start_failures(
     async with rt:
         for _ in range(100):
             await asyncio.sleep(0.1)
-            if rt.failures():
-                break
+            if any(n.state == "failed" for n in rt.failures()):  # (listed from its first
+                break  # failure: in back-off, never completed)
         (failed,) = rt.failures()
     assert failed.name == "bad"
     assert failed.state == "failed"

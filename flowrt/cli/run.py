@@ -355,7 +355,9 @@ async def _serve_run(rt: Any, server: Any, graph: Graph, duration: float | None)
 def _verdict(failures: list[Any], err: Console, prog: str = "flowrt run") -> int:
     """Exit 1 when the run ends with a node failed or in error, one line per node."""
     for n in failures:
-        what = "failed" if n.state == "failed" else "in error"
+        what = {"failed": "failed", "backoff": "never completed an activation"}.get(
+            n.state, "in error"
+        )
         err.print(
             f"{prog}: node {n.name} {what}: {n.reason}",
             markup=False,
