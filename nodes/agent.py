@@ -22,6 +22,7 @@ circles, fast enough to run inline at 50 Hz.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import cv2
@@ -93,6 +94,14 @@ class RobotSim(Node):
     @classmethod
     def default_trigger(cls, params: Any) -> TimerTrigger:
         return TimerTrigger(timer=1000.0 / params.rate_hz)
+
+    @classmethod
+    def output_rates(cls, params: Any) -> Mapping[str, float | None]:
+        """``arena`` is drawn every ``render_every`` steps, not every step: without saying so
+        a recording's stream table expected it at the step rate and called four frames in
+        five "missing". The rate assumes the default trigger (``rate_hz``); a graph that
+        gives the robot a timer of its own should set ``rate_hz`` to match."""
+        return {**super().output_rates(params), "arena": params.rate_hz / params.render_every}
 
     def setup(self) -> None:
         p = self.params

@@ -5,13 +5,16 @@ disabling a behaviour mid-run leaves the others' activations untouched."""
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
-from flowrt.nodes.agent import ARENA, OBSTACLES, cast
+from flowrt.nodes.agent import ARENA, OBSTACLES, RobotSim, cast
 
-from flowrt import Graph, ModeChanged, Runtime, VirtualClock
+from flowrt import Graph, GraphBuilder, ModeChanged, Runtime, VirtualClock
 from flowrt.graph._resolve import resolve
+from flowrt.recording import build_report, nominal_rates
+from flowrt.recording.writer import StreamCounters
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -74,3 +77,61 @@ async def test_disabling_a_behaviour_leaves_the_others_untouched() -> None:
         assert stats[name].deadline_misses == 0
         assert stats[name].skipped == 0
     assert stats["wall"].activations - before["wall"] == pytest.approx(20, abs=1)  # 2 s of 4
+
+
+@dataclass
+class _Written:
+    """What a recording report reads of a writer: its streams' counters."""
+
+    streams: dict[str, StreamCounters]
+    files: list[Path] = field(default_factory=list)
+    path: Path = Path("rec.mcap")
+    error: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def _counters(source: str, stamps: list[float]) -> StreamCounters:
+    return StreamCounters(
+        topic=f"/{source}", source=source, received=len(stamps), written=len(stamps),
+        first_seen=stamps[0], last_seen=stamps[-1],
+    )  # fmt: skip
+
+
+def test_robot_sim_declares_the_arenas_rate_from_its_params() -> None:
+    """The arena is drawn every ``render_every`` steps; pose and sense every step."""
+    rates = RobotSim.output_rates(RobotSim.Params(rate_hz=50, render_every=5))
+    assert rates["arena"] == 10.0
+    assert "pose" not in rates  # once per activation, as sense
+    assert "sense" not in rates
+    assert RobotSim.output_rates(RobotSim.Params(rate_hz=40, render_every=2))["arena"] == 20.0
+
+
+async def test_the_recording_report_expects_the_arena_at_its_render_rate() -> None:
+    """``flowrt record graphs/agent.yaml`` reported ``robot.arena expected 250 received 50
+    missing 200``: the arena was expected at the robot's 50 Hz step rate."""
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("robot", "robot_sim", params={"rate_hz": 50, "render_every": 5})
+    async with Runtime(g.build(), clock=clock) as rt:
+        arena = rt.subscribe("robot.arena", size=256)
+        pose = rt.subscribe("robot.pose", size=256)
+        await clock.advance(2.0)
+        frames = arena.drain()
+        poses = len(pose.drain())
+        stats = rt.stats()
+    rates = nominal_rates(stats)
+    assert rates["robot"] == pytest.approx(50.0)
+    assert rates["robot.arena"] == pytest.approx(10.0)
+    step = 1.0 / 50
+    writer = _Written(
+        {
+            "pose": _counters("robot.pose", [i * step for i in range(poses)]),
+            "arena": _counters("robot.arena", [f.timestamp for f in frames]),
+        }
+    )
+    report = build_report(writer, "rec_001", "2026-01-01T00:00:00", 2.0, rates)
+    by = {s.source: s for s in report.streams}
+    assert by["robot.arena"].received == len(frames) > 0
+    assert by["robot.arena"].expected == len(frames)
+    assert by["robot.arena"].missing == 0
+    assert by["robot.pose"].missing == 0

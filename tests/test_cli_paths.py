@@ -256,6 +256,22 @@ def test_check_refuses_a_run_option_without_measure(
     assert "--display-port is an option of the measuring run (give --measure DURATION)" in err
 
 
+@pytest.mark.parametrize("command", ["check", "validate", "graph", "run", "record"])
+def test_a_missing_example_graph_gets_the_examples_hint_from_every_command(
+    command: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """From an empty folder ``check`` said only ``No such file or directory``; the others
+    said where the shipped examples are."""
+    monkeypatch.chdir(tmp_path)
+    assert main([command, "graphs/cambada.yaml"]) == 2
+    err = capsys.readouterr().err
+    assert "No such file or directory" in err
+    assert "`flowrt examples --copy .` writes ./graphs" in err
+
+
 # --- small things ---------------------------------------------------------------------------
 
 
@@ -333,6 +349,69 @@ def test_ctl_takes_url_before_or_after_its_command(
     assert err.startswith(
         f"flowrt ctl: cannot reach the runtime at http://127.0.0.1:{closed_port} "
     )
+
+
+@pytest.mark.parametrize("argv", [["ctl"], ["ctl", "--json"], ["ctl", "--url", "http://x:1"]])
+def test_ctl_without_a_command_says_what_to_do_in_one_line(
+    argv: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``flowrt ctl --json`` said ``the following arguments are required: ctl_command
+    (--json: did you mean --token?)``: argparse's name for the command, and a valid option
+    taken for a typo."""
+    line = (
+        "flowrt ctl: say what to do: stats, timing, mode, modes, events, qos, rtdb, record, "
+        "swap, reload (flowrt ctl --help)"
+    )
+    if "--json" in argv:  # the error document's exit code
+        assert main(argv) == 2
+    else:  # argparse's
+        with pytest.raises(SystemExit) as e:
+            main(argv)
+        assert e.value.code == 2
+    out, err = capsys.readouterr()
+    assert err.splitlines() == [line]
+    if "--json" in argv:
+        error = json.loads(out)["error"]
+        assert (error["message"], error["exit_code"], error["command"]) == (line, 2, "ctl")
+    else:
+        assert out == ""
+
+
+@pytest.mark.parametrize(
+    ("argv", "line"),
+    [
+        (["can"], "flowrt can: say what to do: analyse, analyze, stats (flowrt can --help)"),
+        (["sync"], "flowrt sync: say what to do: measure (flowrt sync --help)"),
+        ([], "flowrt: say what to do: run, validate, graph, schema, kinds, examples, ctl, can, "
+             "check, record, info, replay, sync (flowrt --help)"),
+        (["ctl", "--tokn"], None),  # a typo before the command still gets its hint
+    ],
+)  # fmt: skip
+def test_every_missing_command_is_said_the_same_way(
+    argv: list[str], line: str | None, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as e:
+        build_parser().parse_args(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    if line is not None:
+        assert err.splitlines() == [line]
+    else:
+        assert "did you mean --token?" in err
+    assert "_command" not in err
+
+
+def test_ctl_takes_json_before_its_command(
+    closed_port: int, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """As --url: ``ctl --json stats`` was refused (``unrecognized arguments: --json``)."""
+    url = f"http://127.0.0.1:{closed_port}"
+    assert build_parser().parse_args(["ctl", "--json", "stats"]).json is True
+    assert build_parser().parse_args(["ctl", "stats", "--json"]).json is True
+    assert build_parser().parse_args(["ctl", "stats"]).json is False
+    assert main(["ctl", "--json", "stats", "--url", url]) == 1
+    error = json.loads(capsys.readouterr().out)["error"]
+    assert error["message"].startswith(f"flowrt ctl: cannot reach the runtime at {url}")
 
 
 def test_ctl_at_something_else_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:

@@ -19,7 +19,15 @@ from rich.console import Console
 from rich.table import Table
 
 from ..graph.diagnostics import GraphError
-from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, load, print_diagnostics, stdout_console
+from .common import (
+    EXIT_BAD_GRAPH,
+    EXIT_FAILED,
+    EXIT_OK,
+    _with_examples_hint,
+    load,
+    print_diagnostics,
+    stdout_console,
+)
 from .json_output import emit
 from .run import add_run_options
 
@@ -49,8 +57,8 @@ def cmd_check(args: argparse.Namespace) -> int:
         return EXIT_BAD_GRAPH
     try:
         text = read_graph_file(args.file)
-    except GraphError as e:
-        print_diagnostics(err, e)
+    except GraphError as e:  # a missing shipped example: the hint run and validate give
+        print_diagnostics(err, _with_examples_hint(e, args.file))
         return EXIT_BAD_GRAPH
     data, _, _ = parse_yaml(text, args.file)
     if is_task_set(data):

@@ -13,8 +13,9 @@ from collections.abc import Callable
 from typing import Any
 
 from ..control.server import DEFAULT_URL, ControlClient, ControlError
+from ..rtdb import RECORDING_SESSION
 from .common import stdout_console
-from .json_output import emit
+from .json_output import emit, note
 
 
 def duration_ms_arg(text: str) -> float:
@@ -84,9 +85,14 @@ def add_parsers(sub: Any) -> None:
     """Register ``flowrt ctl`` on the CLI's subcommands."""
     ctl = sub.add_parser("ctl", help="talk to a running runtime's control endpoint")
     _connection_options(ctl)
+    # before the command too (``ctl --json stats``), as --url; the command's own, given after
+    # it, is not defaulted so that this one stands
+    ctl.add_argument("--json", action="store_true", help="the endpoint's reply as JSON")
     what = ctl.add_subparsers(dest="ctl_command", required=True)
     st = what.add_parser("stats", help="the status table of the running graph")
-    st.add_argument("--json", action="store_true", help="raw RuntimeStats JSON")
+    st.add_argument(
+        "--json", action="store_true", default=argparse.SUPPRESS, help="raw RuntimeStats JSON"
+    )
     tm = what.add_parser("timing", help="change a node's timing between ticks")
     tm.add_argument("node", help="the node whose timing changes")
     tm.add_argument("--period", type=int, help="frames (frame-triggered nodes)")
@@ -156,7 +162,10 @@ def add_parsers(sub: Any) -> None:
         _connection_options(parser, after=True)
         if "--json" not in parser._option_string_actions:  # stats: its own help
             parser.add_argument(
-                "--json", action="store_true", help=f"the endpoint's reply to {name} as JSON"
+                "--json",
+                action="store_true",
+                default=argparse.SUPPRESS,
+                help=f"the endpoint's reply to {name} as JSON",
             )
     ctl.set_defaults(func=ctl_main)
 
@@ -321,10 +330,38 @@ _QUERIES: dict[str, Callable[[argparse.Namespace], str]] = {
 }
 
 
+def _sessions(client: Any, node: str | None) -> dict[str, str]:
+    """Each recorder's session as it publishes it (``""``: stopped), by node; ``node``: that
+    one only. A recorder that has said nothing yet is not in it (the endpoint decides)."""
+    out: dict[str, str] = {}
+    for r in client.get("/rtdb"):
+        name = str(r.get("name", ""))
+        if name.startswith(RECORDING_SESSION) and node in (None, name[len(RECORDING_SESSION) :]):
+            out[name[len(RECORDING_SESSION) :]] = str(r.get("value") or "")
+    return out
+
+
+def _refused(message: str, sessions: dict[str, str]) -> int:
+    """A start while recording, a stop while not: exit 1, as the operator page's API answers
+    409 for them (nodes/station/record.py). The control endpoint's POST /record only writes
+    the recorders' command records (a recorder ignores one it cannot obey) and answers 200,
+    so this is decided here, from the state the recorders publish."""
+    print(f"flowrt ctl: {message}", file=sys.stderr)
+    note(sessions={n: s or None for n, s in sessions.items()})
+    return 1
+
+
 def _record(client: Any, args: argparse.Namespace) -> int:
     """Ask, then wait (up to 5 s) for each recorder to say where it records, or that it stopped."""
     import time
 
+    before = _sessions(client, args.node)
+    busy = {n: s for n, s in before.items() if s}
+    if args.action == "start" and busy:
+        where = ", ".join(f"{n} into {s}" for n, s in busy.items())
+        return _refused(f"already recording: {where} (flowrt ctl record stop first)", before)
+    if args.action == "stop" and before and not busy:
+        return _refused(f"not recording ({', '.join(before)} stopped)", before)
     body: dict[str, Any] = {"action": args.action}
     if args.node:
         body["node"] = args.node

@@ -6,7 +6,9 @@ top-level usage (``flowrt run --duraton 3`` showed how to call ``flowrt``, not `
 reads ``--split-duration -3s`` as two options (``expected one argument``) because ``-3s`` is
 not a number to it. Here the subcommand that was given the option refuses it, with its usage
 and ``did you mean --duration?``, and a value that starts with ``-`` and a digit is the value
-of the option before it, so the option's own check says ``must be more than 0``.
+of the option before it, so the option's own check says ``must be more than 0``. A command
+group given no command (``flowrt ctl``) says so in one line, with the commands it takes, not
+argparse's ``the following arguments are required: ctl_command``.
 """
 
 from __future__ import annotations
@@ -98,7 +100,47 @@ class Parser(argparse.ArgumentParser):
                 action = self._option_string_actions[found[0]]
         return action
 
+    def _missing_command(self, message: str) -> list[str] | None:
+        """The choices of this parser's subcommand when the message says it is missing (``the
+        following arguments are required: ctl_command``: argparse names it by its dest)."""
+        prefix = "the following arguments are required: "
+        if not message.startswith(prefix):
+            return None
+        names = message.removeprefix(prefix).split(", ")
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction) and (
+                action.dest in names or action.metavar in names
+            ):
+                return list(action.choices or ())
+        return None
+
+    def _sub_options(self) -> set[str]:
+        """Every option of this parser's subcommands, nested ones included."""
+        out: set[str] = set()
+        for action in self._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    out.update(sub._option_string_actions)
+                    if isinstance(sub, Parser):
+                        out |= sub._sub_options()
+        return out
+
     def error(self, message: str) -> NoReturn:
+        commands = self._missing_command(message)
+        if commands is not None:
+            # One line in the user's words: ``ctl_command`` is argparse's name for it, and an
+            # option of a subcommand given before one (``flowrt ctl --json``) is no typo.
+            sub = self._sub_options()
+            given = getattr(self, "_given", [])
+            self._given = [w for w in given if w.split("=", 1)[0] not in sub]
+            hint = self._hint(message)
+            self.exit(
+                2,
+                f"{self.prog}: say what to do: {', '.join(commands)} ({self.prog} --help){hint}\n",
+            )
         message += self._hint(message)
+        for action in self._actions:  # ``argument ctl_command: invalid choice``: not its name
+            if isinstance(action, argparse._SubParsersAction) and action.dest:
+                message = message.replace(f"argument {action.dest}: ", "", 1)
         self.print_usage(sys.stderr)
         self.exit(2, f"{self.prog}: error: {message}\n")
