@@ -73,7 +73,9 @@ class PipelinedRunner(Protocol):
 
     def started(self, task: asyncio.Task[None] | None = None) -> None: ...
 
-    def fail(self, exc: BaseException, starting: bool = False) -> None: ...
+    def fail(self, exc: BaseException, starting: bool = False) -> None:
+        """The instance failed: supervision decides, the calls in flight are lost
+        (:meth:`Pipeline.lose_in_flight`)."""
 
     def release(self, t_release: float) -> None: ...
 
@@ -93,7 +95,8 @@ class Pipeline:
 
     Invariants: ``0 <= inflight <= window``; ``inflight > 0`` implies the runner is busy;
     a result whose ``gen`` is older than ``gen`` belongs to a node instance that failed
-    and is counted as aborted, never published.
+    (:meth:`lose_in_flight`, at every failure) and is counted as aborted, never published
+    nor checked.
     """
 
     def __init__(self, runner: PipelinedRunner) -> None:
@@ -141,6 +144,15 @@ class Pipeline:
         """
         r = self._r
         return r.frame_key is not None and r.timing.period == 1 and r.frame_key in r.sched.paced
+
+    def lose_in_flight(self) -> None:
+        """The node instance failed (a call raised, or a result failed its output check on
+        the loop, or a set-up): the calls in flight on it are lost with it. Each is counted
+        as aborted when it comes back, never as a failure of its own: one failure starts one
+        back-off, and a node given up is not failed (restarted, given up) again by the
+        calls that were on their way when it failed. Called by the runner's ``fail``, the
+        one path every failure takes."""
+        self.gen += 1
 
     def active(self) -> bool:
         """Calls may overlap now: a pipelined executor with a window above one."""
@@ -206,8 +218,7 @@ class Pipeline:
         except Exception as e:
             act.close()
             if self.inflight == 0:
-                self.gen += 1
-                r.fail(e)
+                r.fail(e)  # (the instance is lost: fail() calls lose_in_flight())
             else:
                 r.counts.aborted += 1  # the worker is gone: the calls in flight report it
             return False
@@ -233,18 +244,20 @@ class Pipeline:
             if act.gen != self.gen:
                 r.counts.aborted += 1  # lost with the instance that failed under an earlier call
                 return
-            self.gen += 1
-            r.fail(e)
+            r.fail(e)  # (the calls behind this one are lost with it: see lose_in_flight)
             return
         finally:
             r.deadlines.disarm(act)
         self.inflight -= 1
         r.readers_may_go()  # the window has room: a paced source may publish its next frame
-        if act.gen != self.gen:  # the node failed under an earlier call: this instance is gone
+        if act.gen == self.gen:
+            await r.backpressure.wait_turn()  # a lossless reader is full: keep the results' order
+        # The node failed under an earlier call (it raised, or its result's check failed on
+        # the loop, maybe while this one waited its turn): this instance is gone.
+        if act.gen != self.gen:
             r.counts.aborted += 1
             act.abandon(result)
             return
-        await r.backpressure.wait_turn()  # a lossless reader is full: keep the results' order
         act.adopt(result)
         end = r.sched.clock.now()
         # The worker ran it from when the previous one finished (or from the send).

@@ -255,7 +255,12 @@ class NodeRunner(RunnerFields):
     # --- failures (supervision decides, the runner applies) ------------------------------
 
     def fail(self, exc: BaseException, starting: bool = False) -> None:
-        """The node raised (or could not start): restart after a back-off, or give up."""
+        """The node raised (or could not start, or returned what its outputs cannot carry):
+        restart after a back-off, or give up. Either way this instance is gone, and with it
+        the pipelined calls still in flight on it: whichever of them failed first is the one
+        failure (an output check on the loop, as a raise in the worker), the others are
+        aborted, so they neither fail the node again nor restart a node given up."""
+        self.pipeline.lose_in_flight()
         decision = self.supervisor.failed(exc, starting)
         self.busy = False
         if isinstance(decision, GiveUp):
