@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from ..clock import Clock, SystemClock
-from ..events import Event, HealthAlert, NodeFailed, NodeGaveUp, RealtimeStatus
+from ..events import Event, HealthAlert, NodeGaveUp, RealtimeStatus
 from ..graph._resolve import Graph, resolve
 from ..graph.spec import GraphSpec, Placement
 from ..kernel import NodeRunner, Scheduler, Services
@@ -32,7 +32,6 @@ from ..kernel.timing import TimingChange
 from ..monitors._quiet import delay_to_gap
 from ..node import Node
 from ..stats import NodeStats, Running, RuntimeStats
-from ..supervision import failure_kind
 from ..system._eventloop import run as run
 from ..system._loop_cpus import LoopCpus
 from ..system._loop_share import LoopShare
@@ -50,6 +49,7 @@ from ._modes import set_mode as switch_mode
 from ._resources import RunResources
 from ._stats import runtime_stats
 from ._subscription import Subscription
+from ._verdict import failures
 
 if TYPE_CHECKING:
     from ..rtdb import RTDB
@@ -351,23 +351,12 @@ class Runtime(Interruptible):
         )
 
     def failures(self) -> list[NodeStats]:
-        """The nodes that failed: given up by supervision (state ``failed``), in an error
-        state they reported (``ctx.set_error``: e.g. a source that cannot be opened or never
-        delivered a frame), or waiting to restart without having completed one activation
-        (every call failed: a run shorter than the give-up takes is no success either).
-        Empty when the run went well; ``flowrt run`` exits 1 otherwise. Valid during the run
-        and after it (the verdict of the run's end)."""
+        """The nodes that failed (given up, in an error state they reported, or never one
+        activation completed: :mod:`._verdict`). Empty when the run went well; ``flowrt run``
+        exits 1 otherwise. Valid during the run and after it (the verdict of the run's end)."""
         if self._sched is None:
             return []
-        found = [n for n in self.stats().nodes if n.state in ("failed", "error") or never_ran(n)]
-        return [self._last_error(n) if never_ran(n) else n for n in found]
-
-    def _last_error(self, n: NodeStats) -> NodeStats:
-        """``n`` with the last failure it had as its reason (a node in backoff has none)."""
-        for e in reversed(self.events):
-            if isinstance(e, NodeFailed) and e.node == n.name:
-                return n.model_copy(update={"reason": f"last error: {failure_kind(e.error)}"})
-        return n
+        return failures(self.stats().nodes, list(self.events))
 
     @property
     def starvation_events(self) -> int:
@@ -482,8 +471,3 @@ def _freeze_heap() -> None:
     """
     gc.collect()
     gc.freeze()
-
-
-def never_ran(n: NodeStats) -> bool:
-    """Waiting to restart, and no activation of it has completed: every call failed."""
-    return n.state == "backoff" and n.completions == 0 and n.errors > 0
