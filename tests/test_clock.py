@@ -70,7 +70,13 @@ async def test_timers_due_together_fire_in_creation_order_after_one_wake_up() ->
     assert not clock._wheels  # the last cancel closed it
     shared = [r for r, name in order if name == "slow0"]
     assert shared
+    slows = [f"slow{i}" for i in range(8)]
+    together = 0
     for r in shared:
         names = [name for r2, name in order if abs(r2 - r) < 1e-6]
-        assert names == ["fast"] + [f"slow{i}" for i in range(8)], names
+        # a loaded machine may wake past an instant: the fast timer then fires once for the
+        # releases it missed (a later release, ``missed`` > 0), not at this one
+        assert names in (["fast", *slows], slows), names
+        together += names[0] == "fast"
+    assert together >= 1
     assert loop.is_running()
