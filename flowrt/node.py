@@ -26,9 +26,12 @@ Lifecycle and timing contract
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import importlib
 import logging
 import os
+import sys
 from collections.abc import Mapping
 from random import Random
 from typing import TYPE_CHECKING, Any, ClassVar, Final, Generic, Literal, TypeVar
@@ -419,23 +422,192 @@ def make_node(
 
 
 class NodeFactory:
-    """A picklable recipe for a node instance, so a worker process can build its own copy."""
+    """A picklable recipe for a node instance, so a worker process can build its own copy.
+
+    It pickles its class and its params' class by name (module and qualified name, found
+    again in the process that unpickles it), and the params as their field values: pickle's
+    own way refuses a class that is no longer its module's, which every class of a module
+    becomes when ``flowrt ctl reload`` re-imports it in the main process (an inline node's
+    reload); the other nodes of that module could then no longer be restarted in a worker.
+    """
 
     def __init__(self, cls: type[Node], params: BaseModel, name: str) -> None:
-        self.cls = cls
-        self.params = params
+        self._cls: type[Node] | None = cls
+        self._params: BaseModel | None = params
+        # Unpickled: the class's name and the params' portable form, resolved by the first
+        # call (after the module is imported anew when ``reload`` says so).
+        self._cls_ref: _ClassRef = cls
+        self._params_state: Any = None
         self.name = name
         self.rtdb: RtdbHandle | None = None  # set by the runtime: where ctx.rtdb attaches
         # ``flowrt ctl reload``: a worker forked from a process that imported the module
         # before the edit must import it anew to run the edited code.
         self.reload = False
 
-    def __call__(self) -> Node:
-        cls = self.cls
-        if self.reload:
-            import importlib
-            import sys
+    @property
+    def cls(self) -> type[Node]:
+        """The node's class (in a worker: found by its name the first time it is asked)."""
+        if self._cls is None:
+            self._cls = _find_class(self._cls_ref)
+        return self._cls
 
-            module = importlib.reload(sys.modules[cls.__module__])
-            cls = getattr(module, cls.__qualname__)
-        return make_node(cls, self.params, NodeContext(self.name, rtdb=self.rtdb))
+    @property
+    def params(self) -> BaseModel:
+        """The node's params (in a worker: rebuilt for their class found by name)."""
+        if self._params is None:
+            self._params = _from_portable(self._params_state)
+        return self._params
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        if self._params is None:  # pickled again before its first call: as it came
+            ref, state = self._cls_ref, self._params_state
+        else:
+            ref, state = _class_ref(self.cls), _portable(self._params)
+        return (_unpickle_factory, (ref, state, self.name, self.rtdb, self.reload))
+
+    def __call__(self) -> Node:
+        if self.reload:
+            cls = _reimport(self._cls_ref if self._cls is None else self._cls)
+            # Rebuilt from the portable form after the re-import: nested models of the
+            # edited module get its new classes too.
+            state = self._params_state if self._params is None else _portable(self._params)
+            params = (
+                _construct(cls.Params, state) if isinstance(state, _ModelState) else self.params
+            )
+        else:
+            cls, params = self.cls, self.params
+        return make_node(cls, params, NodeContext(self.name, rtdb=self.rtdb))
+
+    @staticmethod
+    def carry_params(cls: type[Node], params: BaseModel) -> BaseModel:
+        """``params`` as an instance of ``cls.Params``, the class of a module re-imported
+        since they were made: their field values and the fields that were set, taken over
+        without validation (``model_construct``). Validating them again would read what a
+        validator already converted as if it were written: a duration "200ms" became 0.2 s,
+        which read again as milliseconds is 0.2 ms. Fields the edit added get their defaults;
+        nested models are rebuilt for the classes their names now find."""
+        state = _portable(params)
+        if not isinstance(state, _ModelState):
+            return params
+        return _construct(cls.Params, state)
+
+
+#: A class as a factory pickles it: ``(module, qualified name)``, or the class itself when
+#: its name does not find it (a class made in a function: pickle then says why it refuses).
+_ClassRef = tuple[str, str] | type
+
+
+def _lookup(module: Any, qualname: str) -> Any:
+    obj = module
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _class_ref(cls: type) -> _ClassRef:
+    """``cls`` by name, if its name finds a class in the module as loaded now."""
+    module = sys.modules.get(cls.__module__)
+    try:
+        found = _lookup(module, cls.__qualname__) if module is not None else None
+    except AttributeError:
+        found = None
+    return (cls.__module__, cls.__qualname__) if isinstance(found, type) else cls
+
+
+def _find_class(ref: _ClassRef) -> Any:
+    """The class ``ref`` names, as the module imported in this process defines it now."""
+    if isinstance(ref, type):
+        return ref
+    module, qualname = ref
+    return _lookup(importlib.import_module(module), qualname)
+
+
+def _reimport(ref: _ClassRef) -> type[Node]:
+    """The node's class from its module imported anew from disk (imported afresh when this
+    process never imported it, re-imported when it did: a worker forked from a process that
+    had). A module that does not import (the edit has a syntax error) raises an ImportError
+    of one line, which is what the swap that failed shows the user."""
+    module, qualname = (ref.__module__, ref.__qualname__) if isinstance(ref, type) else ref
+    try:
+        loaded = sys.modules.get(module)
+        fresh = importlib.reload(loaded) if loaded is not None else importlib.import_module(module)
+        cls = _lookup(fresh, qualname)
+    except Exception as e:
+        if isinstance(e, SyntaxError):
+            why = f"{e.msg} ({e.filename}, line {e.lineno})"
+        else:
+            why = " ".join(str(e).split())
+        raise ImportError(f"re-importing {module} failed: {type(e).__name__}: {why}") from None
+    if not (isinstance(cls, type) and issubclass(cls, Node)):
+        raise ImportError(f"re-importing {module} failed: {qualname} is no longer a Node class")
+    return cls
+
+
+@dataclasses.dataclass(frozen=True)
+class _ModelState:
+    """A pydantic model by name and field values (see :class:`NodeFactory`)."""
+
+    cls: _ClassRef
+    values: dict[str, Any]
+    fields_set: frozenset[str]
+    extra: dict[str, Any] | None
+    private: dict[str, Any] | None
+
+
+def _portable(value: Any) -> Any:
+    """``value`` with every pydantic model in it (in lists, tuples and dicts too) replaced
+    by its class's name and its field values: it pickles whatever became of its class."""
+    if isinstance(value, BaseModel):
+        return _ModelState(
+            _class_ref(type(value)),
+            {k: _portable(v) for k, v in value.__dict__.items()},
+            frozenset(value.model_fields_set),
+            _portable(value.__pydantic_extra__),
+            _portable(value.__pydantic_private__),
+        )
+    kind = type(value)
+    if kind is list or kind is tuple:
+        return kind(_portable(v) for v in value)
+    if kind is dict:
+        return {k: _portable(v) for k, v in value.items()}
+    return value
+
+
+def _from_portable(value: Any) -> Any:
+    """What :func:`_portable` made, built again with the classes the names find now."""
+    if isinstance(value, _ModelState):
+        return _construct(_find_class(value.cls), value)
+    kind = type(value)
+    if kind is list or kind is tuple:
+        return kind(_from_portable(v) for v in value)
+    if kind is dict:
+        return {k: _from_portable(v) for k, v in value.items()}
+    return value
+
+
+def _construct(model: type[BaseModel], state: _ModelState) -> BaseModel:
+    """An instance of ``model`` with ``state``'s values, not validated again (their class may
+    be an edited one: fields it no longer has are left out, new ones get their defaults)."""
+    names = set(model.model_fields)
+    values = {k: _from_portable(v) for k, v in state.values.items() if k in names}
+    extra = _from_portable(state.extra) if state.extra else {}
+    if model.model_config.get("extra") == "allow":
+        names |= set(extra)
+        values = {**extra, **values}
+    built = model.model_construct(_fields_set=set(state.fields_set & names), **values)
+    private = _from_portable(state.private) if state.private else None
+    if private and built.__pydantic_private__ is not None:
+        known = getattr(model, "__private_attributes__", {})
+        built.__pydantic_private__.update({k: v for k, v in private.items() if k in known})
+    return built
+
+
+def _unpickle_factory(
+    ref: _ClassRef, state: Any, name: str, rtdb: RtdbHandle | None, reload: bool
+) -> NodeFactory:
+    """A factory from its pickled parts; its class and params are found at its first call."""
+    factory = NodeFactory.__new__(NodeFactory)
+    factory._cls, factory._params = None, None
+    factory._cls_ref, factory._params_state = ref, state
+    factory.name, factory.rtdb, factory.reload = name, rtdb, reload
+    return factory

@@ -16,6 +16,7 @@ from ..graph._resolve import ResolvedNode, checked_type
 from ..graph.spec import InputTrigger
 from .activation import release_all
 from .counters import Counters
+from .outputs import same_name
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -88,7 +89,11 @@ class Inputs:
                     release_all(values.values())
                     return None
                 value = None
-            elif port in self.types and not isinstance(value, self.types[port]):
+            elif (
+                port in self.types
+                and not isinstance(value, self.types[port])
+                and not same_name(value, self.types[port])  # (a reloaded module's: cold)
+            ):
                 self._wrong_type(port, value)
                 release_all([*values.values(), value])
                 return None

@@ -10,7 +10,11 @@ callback that no one counted while the node stayed ``running`` with 0 errors.
 The check is one dictionary lookup and one ``isinstance`` per published value: the class
 each output's declared type asks for is worked out once per runner
 (:func:`flowrt.graph._resolve.checked_type`: generic aliases and ``object`` are not checked,
-``float`` takes any real number, as on the reader's side).
+``float`` takes any real number, as on the reader's side). A value ``isinstance`` refuses
+is taken when its class (or a base) has the expected one's module and qualified name: an
+edited module re-imported by ``flowrt ctl reload`` has new classes of the same names, which
+the nodes of that module that were not reloaded, and the values their workers send back
+(unpickled by name), meet beside the old ones (:func:`same_name`; off the fast path).
 """
 
 from __future__ import annotations
@@ -19,6 +23,14 @@ from collections.abc import Iterable, Mapping
 from typing import Any
 
 from ..graph._resolve import ResolvedNode, checked_type
+
+
+def same_name(value: Any, want: type) -> bool:
+    """``value``'s class, or a base, has ``want``'s module and qualified name: the same class
+    in an other import of its module (see the module's documentation). Called only once
+    ``isinstance`` has refused the value, so the per-message path pays nothing for it."""
+    key = (want.__module__, want.__qualname__)
+    return any((c.__module__, c.__qualname__) == key for c in type(value).__mro__)
 
 
 class OutputError(TypeError):
@@ -50,7 +62,7 @@ class OutputCheck:
             if port not in self.ports:
                 has = ", ".join(self.ports) or "none"
                 raise OutputError(f"no output port {port!r} (its outputs: {has})")
-        elif not isinstance(value, want):
+        elif not isinstance(value, want) and not same_name(value, want):
             raise OutputError(
                 f"output {port!r} expects {self.names[port]}, got {type(value).__name__}"
             )

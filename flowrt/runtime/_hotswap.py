@@ -23,9 +23,9 @@ from pydantic import ValidationError
 from ..events import Event, NodeSwapped
 from ..graph._resolve import Graph
 from ..graph.diagnostics import validation_text
-from ..graph.spec import ModeSpec, merge_params
+from ..graph.spec import ModeSpec, Placement, merge_params
 from ..kernel import NodeRunner, Scheduler
-from ..node import Node
+from ..node import Node, NodeFactory
 
 
 class SwapHost(Protocol):
@@ -114,25 +114,98 @@ async def _swap_to(
     try:
         await runner.swapper.swap(cls, model, label, reload=reload)
     except Exception as e:
+        from ..workers.errors import WorkerError  # (not at import: workers load lazily)
+
+        # One line: a worker's failure is its traceback, whose last line says what happened.
+        why = e.summary if isinstance(e, WorkerError) else str(e)
         raise SwapError(
-            f"{runner.name}: swap to {label} failed, the old instance runs on: {e}"
+            f"{runner.name}: swap to {label} failed, the old instance runs on: {_one_line(why)}"
         ) from e
     rt.emit(NodeSwapped(rt.now(), runner.name, label, old_kind, origin))
 
 
 async def reload(rt: SwapHost, node: str, origin: str) -> None:
-    """See :meth:`flowrt.Runtime.reload`."""
+    """See :meth:`flowrt.Runtime.reload`.
+
+    A node in a worker is reloaded there only: the new instance's worker imports the module
+    anew (``NodeFactory.reload``) and the main process keeps its classes, which are those of
+    the other nodes of the module and of the values their workers send back (unpickled by
+    name). Re-imported here, every other node of the module had classes that were no longer
+    the module's: their results failed their output check ("expects FrameDetection, got
+    FrameDetection") and their factories no longer pickled for a restart.
+
+    An inline node's module is re-imported here, and its params carried over to the new
+    class; the other nodes of the module go on with their classes, which factories pickle
+    and the type checks compare by name.
+    """
     runner = rt.runner(node)
     cls = runner.rnode.cls
+    kind = runner.rnode.spec.kind
+    placement = runner.rnode.spec.placement
+    if placement is not Placement.inline:
+        if placement is Placement.pool:
+            _refuse_shared_pool(rt, node, cls.__module__)
+        await _swap_to(rt, runner, cls, runner.rnode.params, kind, origin, reload=True)
+        return
     try:  # off the loop, and whatever the module does at import is contained
         module = await asyncio.to_thread(importlib.reload, sys.modules[cls.__module__])
-        new_cls = getattr(module, cls.__qualname__)
+        new_cls = _lookup(module, cls.__qualname__)
     except asyncio.CancelledError:
         raise
     except BaseException as e:
-        raise SwapError(f"{node}: reloading {cls.__module__} failed: {e!r}") from None
-    kind = runner.rnode.spec.kind
-    await _swap_to(rt, runner, new_cls, runner.rnode.params, kind, origin, reload=True)
+        raise SwapError(
+            f"{node}: reloading {cls.__module__} failed, the old instance runs on: {_why(e)}"
+        ) from None
+    if not (isinstance(new_cls, type) and issubclass(new_cls, Node)):
+        raise SwapError(f"{node}: {cls.__module__}.{cls.__qualname__} is no longer a Node class")
+    params = NodeFactory.carry_params(new_cls, runner.rnode.params)
+    await _swap_to(rt, runner, new_cls, params, kind, origin, reload=True)
+
+
+def _lookup(module: Any, qualname: str) -> Any:
+    obj = module
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _why(e: BaseException) -> str:
+    """An import's failure in one line, located when it is the edit's syntax."""
+    if isinstance(e, SyntaxError):
+        return f"SyntaxError: {e.msg} ({e.filename}, line {e.lineno})"
+    return f"{type(e).__name__}: {_one_line(str(e))}"
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _refuse_shared_pool(rt: SwapHost, node: str, module: str) -> None:
+    """A pool worker holds several nodes: re-importing ``module`` there for ``node`` would
+    leave any other node of that module in the same worker with classes that are no longer
+    the module's (its results and its restart would no longer pickle). Which worker a node
+    lands in is the pool's choice, so any other pool node of the module refuses the reload."""
+    others = [
+        name
+        for name, r in rt.scheduler.runners.items()
+        if name != node and r.rnode.spec.placement is Placement.pool and _uses(r, module)
+    ]
+    if others:
+        who = f"{', '.join(sorted(others))} {'uses' if len(others) == 1 else 'use'}"
+        raise SwapError(
+            f"{node}: not reloaded: {who} {module} in the worker pool too, where re-importing "
+            f"it would replace the classes of a running node under it; give {node} "
+            "placement: process to reload it in a worker of its own"
+        )
+
+
+def _uses(runner: NodeRunner, module: str) -> bool:
+    """The runner's node has a class of ``module``: its own, its params', a port's type."""
+    cls = runner.rnode.cls
+    types: list[Any] = [cls, type(runner.rnode.params)]
+    types += [p.type for p in cls.inputs.values()]
+    types += [p.type for p in cls.outputs.values()]
+    return any(getattr(t, "__module__", None) == module for t in types)
 
 
 def set_params(rt: SwapHost, node: str, params: Mapping[str, Any], merge: bool) -> None:
