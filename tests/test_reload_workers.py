@@ -23,6 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import psutil
 import pytest
 from conftest import drained, wait_until
 
@@ -223,8 +224,12 @@ async def test_an_edit_that_does_not_import_leaves_the_old_instance(
         got: list[Any] = []
         assert await wait_until(lambda: drained(out, got))
         mod.edit(2, BROKEN)
-        with pytest.raises(SwapError) as info:
-            await rt.reload("a")
+        before = workers()
+        for _ in range(3):
+            with pytest.raises(SwapError) as info:
+                await rt.reload("a")
+        # each failed start's worker is stopped: none stays until the run's end
+        assert await wait_until(lambda: workers() <= before)
         mark = len(drained(out, got))
         assert await wait_until(lambda: len(drained(out, got)) >= mark + 5)
         stats = rt.stats().node("a")
@@ -236,6 +241,18 @@ async def test_an_edit_that_does_not_import_leaves_the_old_instance(
     assert {r.version for r in got} == {1}
     assert stats.errors == 0
     assert stats.state != "failed"
+
+
+def workers() -> set[int]:
+    """This process's live children (worker processes, the forkserver)."""
+    live = set()
+    for c in psutil.Process().children(recursive=True):
+        try:
+            if c.status() != psutil.STATUS_ZOMBIE:
+                live.add(c.pid)
+        except psutil.NoSuchProcess:
+            pass
+    return live
 
 
 # -- worker processes ------------------------------------------------------------------------

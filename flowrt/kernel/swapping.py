@@ -137,7 +137,11 @@ class Swapper:
             await self._swap_in_place(rnode, reload)
             return
         new = r.make_executor(rnode, reload=reload)
-        await new.start()  # raises: the old instance keeps running
+        try:
+            await new.start()  # raises: the old instance keeps running
+        except BaseException:
+            await _quietly_stopped(new)  # its worker, spawned for nothing, does not stay
+            raise
         self.swapping = True  # set before busy is read: a precise thread sees one or the other
         try:
             old = await self._replace(new, rnode)
@@ -243,3 +247,12 @@ class Swapper:
 def _log_swap_failure(task: asyncio.Task[None]) -> None:
     if not task.cancelled() and task.exception() is not None:
         log.error("params change by swap failed: %s", task.exception())
+
+
+async def _quietly_stopped(executor: Executor) -> None:
+    """Stop an executor whose start failed (its worker process, if one was spawned); what
+    that stop raises is not the news: the failed start is."""
+    try:
+        await asyncio.shield(executor.stop())
+    except Exception as e:  # the start's error is what the caller sees
+        log.debug("an executor whose start failed did not stop cleanly: %r", e)
