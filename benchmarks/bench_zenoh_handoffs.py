@@ -1,6 +1,7 @@
 """Where the time of a remote edge goes: timestamps at each hand-off of an import.
 
     python -m benchmarks.bench_zenoh_handoffs [--payload 8B|640x480|1920x1080] [--seconds 6]
+        [--rate 20]
     python -m benchmarks.bench_zenoh_handoffs --put-cost 1000
 
 Runs bench_zenoh's exporter role in a second process and its importer here, with the
@@ -14,6 +15,10 @@ import's Zenoh callback, its loop delivery and the sink wrapped to take wall-clo
 - callback end -> deliver: the loop waking;
 - deliver: publication on the import node's output;
 - deliver end -> sink: the sink's activation by the scheduler.
+
+``--rate``: messages per second (default 20, the latency benchmark's). At 20 Hz every step
+runs cold (the caches are another program's after 50 ms asleep); at a few hundred it runs
+warm: the ratio is what the same code costs cold.
 """
 
 from __future__ import annotations
@@ -70,6 +75,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--payload", default="8B", choices=list(bench.SIZES))
     ap.add_argument("--seconds", type=float, default=6.0)
+    ap.add_argument("--rate", type=float, default=20.0, help="messages per second")
     ap.add_argument("--put-cost", type=int, metavar="N", help="time N puts instead")
     args = ap.parse_args()
     if args.put_cost:
@@ -113,13 +119,13 @@ def main() -> None:
     exporter = bench._spawn(
         "exporter",
         payload=args.payload,
-        rate=20,
+        rate=args.rate,
         port=port,
         seconds=args.seconds + 3,
         result=tmp / "exp.json",
     )
     time.sleep(1.5)
-    spec = bench.importer_graph(args.payload, port, "", 20.0)
+    spec = bench.importer_graph(args.payload, port, "", args.rate)
     import flowrt
 
     flowrt.run(bench._run(spec, args.seconds))
@@ -128,7 +134,7 @@ def main() -> None:
     for s, t in zip(delivered[-len(sink_times) :], sink_times[-len(delivered) :], strict=False):
         rec[s]["sink"] = t
     rows = [r for r in rec.values() if all(k in r for a_b in STEPS for k in a_b)][5:]
-    print(f"{args.payload}: {len(rows)} messages, load average {os.getloadavg()}")
+    print(f"{args.payload} at {args.rate:g} Hz: {len(rows)} messages, load {os.getloadavg()}")
     for a, b in STEPS:
         x = np.array([r[b] - r[a] for r in rows]) * 1000
         p50, p90 = np.percentile(x, 50), np.percentile(x, 90)
