@@ -186,6 +186,24 @@ async def test_live_detections_are_drawn_on_their_camera() -> None:
     assert ann.timestamp.seconds > 1_600_000_000  # the frame's time, as Unix time
 
 
+async def test_live_events_carry_unix_time() -> None:
+    """An event's ``t`` (seconds since the run's start) is served as Unix time, as every
+    recorded and live time is; it was off by the clock's origin (the machine's uptime)."""
+    import time
+
+    live = FoxgloveLive(port=0)
+    async with flowrt.Runtime(graph(), monitors=[live]) as rt:
+        viewer = await asyncio.to_thread(Client, live.port)
+        await asyncio.to_thread(viewer.subscribe, "/flowrt/events")
+        await asyncio.sleep(0.5)  # the subscription reaches the server
+        rt.set_timing("ball", priority=30)  # a TimingChanged event
+        payload = await asyncio.to_thread(viewer.next_message)
+    viewer.sock.close()
+    event = json.loads(payload)
+    assert event["kind"] == "TimingChanged"
+    assert abs(event["t"] - time.time()) < 30
+
+
 def test_a_late_channel_reaches_viewers_once_it_can_be_subscribed() -> None:
     """The SDK's server queues a new channel's advertisement before it takes subscriptions to
     it: a viewer that subscribed at once was told ``Unknown channel ID`` and got nothing (the

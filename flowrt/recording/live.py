@@ -103,7 +103,8 @@ class FoxgloveLive:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._rt: Runtime | None = None
         self._next_stats = 0.0
-        self._epoch = 0.0
+        self._epoch = 0.0  # added to the runtime clock: Unix time
+        self._event_epoch = 0.0  # added to an event's t (seconds since the start): Unix time
 
     @property
     def url(self) -> str:
@@ -149,6 +150,7 @@ class FoxgloveLive:
         self._rt = rt
         self._loop = asyncio.get_running_loop()
         self._epoch = time.time() - rt.clock.now()
+        self._event_epoch = self._epoch + rt.clock.origin
         self._book.epoch_offset = self._epoch
         for name, node in rt.graph.nodes.items():
             # every output: the class's and those its params make (a can node's messages)
@@ -241,8 +243,8 @@ class FoxgloveLive:
             watched = drawn is not None and drawn.has_sinks()
             if ch is not None and not watched and not ch.has_sinks():  # a set's members
                 prefix = topic + "/"
-                watched = any(
-                    c.has_sinks() for t, c in self._channels.items() if t.startswith(prefix)
+                watched = any(  # a copy: the sender thread adds a channel at a first value
+                    c.has_sinks() for t, c in tuple(self._channels.items()) if t.startswith(prefix)
                 )
             if ch is not None and not ch.has_sinks() and not watched:
                 continue  # nobody watches: the latest buffer just keeps the newest value
@@ -316,7 +318,7 @@ class FoxgloveLive:
         elif topic == "/flowrt/events":
             body = {"kind": getattr(value, "kind", type(value).__name__), **to_jsonable(value)}
             if isinstance(body.get("t"), float):
-                body["t"] = body["t"] + self._epoch  # Unix time, as every recorded time
+                body["t"] = body["t"] + self._event_epoch  # Unix time, as every recorded time
             self._events_channel.log(encode_json(body, self._events_schema).data, log_time=ns)
         elif is_set(value):  # a sync set: its members on channels of their own (streams.py)
             index, members = split_set(topic, value)
