@@ -379,7 +379,10 @@ async def test_no_viewer_means_no_encoding(
         async with http.get(url + "/") as r:
             assert r.status == 200
             assert "text/html" in r.content_type
-            assert "__REFRESH_MS__" not in await r.text()
+            page = await r.text()
+            assert "__REFRESH_MS__" not in page
+            # its own icon: a browser asks no /favicon.ico (a 404 in its console otherwise)
+            assert '<link rel="icon" href="data:image/svg+xml,' in page
 
 
 async def test_slow_viewer_never_slows_the_source(capsys: pytest.CaptureFixture[str]) -> None:

@@ -492,12 +492,16 @@ def test_record_then_info_and_replay_from_the_cli(graph_file: Path, tmp_path: Pa
         (["replay", "/nonexistent/x"], "no such file"),
         (["info", "{notmcap}"], "not an MCAP file"),
         (["replay", "{notmcap}"], "not an MCAP file"),
+        (["info", "{ros1}"], "a ROS 1 bag, not read: convert it with rosbags-convert"),
+        (["replay", "{ros1}"], "a ROS 1 bag, not read: convert it with rosbags-convert"),
     ],
 )
 def test_info_and_replay_bad_input(tmp_path: Path, args: list[str], message: str) -> None:
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(b"this is not an mcap file at all")
-    r = flowrt_cli(*[a.replace("{notmcap}", str(bad)) for a in args])
+    ros1 = tmp_path / "old.bag"  # what rosbag (ROS 1) writes first
+    ros1.write_bytes(b"#ROSBAG V2.0\nE\x00\x00\x00")
+    r = flowrt_cli(*[a.replace("{notmcap}", str(bad)).replace("{ros1}", str(ros1)) for a in args])
     assert r.returncode == 2
     assert message in r.stderr
     assert "Traceback" not in r.stderr

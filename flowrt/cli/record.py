@@ -434,8 +434,8 @@ def cmd_info(args: argparse.Namespace) -> int:
     if files is None:
         return EXIT_BAD_GRAPH
     for f in files:
-        if _not_mcap(f):
-            err.print(f"flowrt info: {f}: not an MCAP file", markup=False)
+        if (why := _not_mcap(f)) is not None:
+            err.print(f"flowrt info: {f}: {why}", markup=False)
             return EXIT_BAD_GRAPH
     if args.repair:
         for f in files:

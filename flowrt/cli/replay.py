@@ -59,16 +59,21 @@ def _sessions_hint(folder: Path) -> str:
     return f" (it holds sessions: {shown}{more}; give one, e.g. {last})"
 
 
-def _not_mcap(path: Path) -> bool:
-    """True for a file that is not MCAP; one cut inside its magic (killed at creation) is."""
+def _not_mcap(path: Path) -> str | None:
+    """Why ``path`` is no recording flowrt reads (None: it is MCAP, a rosbag2 SQLite3
+    file, or an MCAP cut inside its magic, killed at creation: repairable)."""
     from ..recording.rosbag2 import is_db3
 
     if is_db3(path):  # a rosbag2 SQLite3 file: read through the same reader
-        return False
+        return None
     magic = b"\x89MCAP0\r\n"
     with open(path, "rb") as f:
-        head = f.read(8)
-    return not magic.startswith(head) or (not head and path.suffix != ".mcap")
+        head = f.read(13)
+    if head.startswith(b"#ROSBAG V"):
+        return "a ROS 1 bag, not read: convert it with rosbags-convert (pip install rosbags)"
+    if not magic.startswith(head[:8]) or (not head and path.suffix != ".mcap"):
+        return "not an MCAP file"
+    return None
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -146,8 +151,8 @@ def _recording(args: argparse.Namespace, err: Console) -> tuple[list[Path], Path
     if files is None:
         return None
     for f in files:
-        if _not_mcap(f):
-            err.print(f"flowrt replay: {f}: not an MCAP file", markup=False)
+        if (why := _not_mcap(f)) is not None:
+            err.print(f"flowrt replay: {f}: {why}", markup=False)
             return None
     path = Path(args.path)
     info = scan_session(path)
