@@ -23,7 +23,8 @@ played to its end, not the first: a stream that ends early (4 detections in 3 s)
 the others short (a looping node never ends). A session split into several files is replayed
 as one recording, the parts one after the other in their order (a part that ends before
 ``start`` is skipped unread). A damaged file is replayed up to the damage, which is logged
-and reported as the node's error state.
+and reported as the node's error state. A mapping recorded with the ``ros2`` profile (as
+``flowrt_msgs/KeyValue[]``) is published as the mapping again (:func:`_as_recorded`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from flowrt.recording.decoding import MessageDecoder
 from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.images import is_image_schema
 from flowrt.recording.reader import Recording, channel_schemas, iter_messages, iter_session
+from flowrt.recording.ros2_profile import mapping_restorer
 from flowrt.recording.session import mcap_files
 from flowrt.recording.streams import join_set
 
@@ -259,7 +261,7 @@ class ReplayBase(Node):
                 elif d.kind == "audio":  # stamped in Unix time: moved to this run at publish
                     value = self.decoder.own.audio(m.schema, m.data, m.sequence, 0.0)
                 else:
-                    value = join_set(m.topic, value, self.members)
+                    value = join_set(m.topic, _as_recorded(m, value), self.members)
             except Exception as e:
                 self.left_out[m.topic] = [str(e) or type(e).__name__, 1]
                 continue
@@ -407,6 +409,17 @@ class Replay(ReplayBase):
 
     frame = Output(Frame, doc="recorded images, as frames in the runtime's pool")
     message = Output(object, doc="recorded messages (detections as their dataclass)")
+
+
+def _as_recorded(m: Any, value: Any) -> Any:
+    """A decoded CDR message with flowrt's ``KeyValue[]`` (the ``ros2`` profile's mappings:
+    CAN signals) as the mapping it was recorded from: a graph's reader gets
+    ``{"LeftSpeed": 0.25}`` as it did live, not ``{"items": [...]}``."""
+    s = m.schema
+    if m.encoding != "cdr" or s is None:
+        return value
+    restore = mapping_restorer(s.name, s.encoding, bytes(s.data))
+    return value if restore is None else restore(value)
 
 
 def _first_log_time(path: Path) -> int:

@@ -25,17 +25,24 @@ detection that found nothing is ``[]``), a mapping is ``KeyValue[]``, a float ``
 (the runtime clock) is a ``builtin_interfaces/msg/Time`` in Unix time, and a value of no
 ROS type is its JSON text. Detections are not drawn as annotations in this profile. Topics
 are ROS 2 names (:func:`ros2_topic`).
+
+Read back by flowrt (the ``replay`` node, so ``flowrt replay BAG --graph G``), flowrt's own
+``KeyValue[]`` becomes the mapping it was written from again (:func:`mapping_restorer`): a
+``can`` node replayed from a bag gets ``{"LeftSpeed": 0.25}``, not ``{"items": [...]}``.
+Other readers see the ``KeyValues`` messages as written.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import re
 import struct
 import types
 import typing
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -44,7 +51,7 @@ from ..audio import AudioBlock
 from ..frames import Frame
 from .encoding import FRAME_ENCODINGS, Encoded, Overlay, StreamSchema, to_jsonable
 
-__all__ = ["Ros2Encoder", "ros2_topic"]
+__all__ = ["Ros2Encoder", "mapping_restorer", "mappings_of", "ros2_topic"]
 
 SEP = "=" * 80 + "\n"
 TIME = "builtin_interfaces/msg/Time"
@@ -380,6 +387,159 @@ def _key_values(x: Any) -> list[dict[str, Any]]:
         text = "" if number else (v if isinstance(v, str) else _json_text(v))
         out.append({"key": str(k), "value": float(v) if number else math.nan, "text": text})
     return out
+
+
+# --- read back: flowrt's KeyValue[] as the mapping it was written from --------------------
+
+KEY_VALUE = "flowrt_msgs/KeyValue"
+_KEY_VALUE_FIELDS = [
+    ("string", False, "key"),
+    ("float64", False, "value"),
+    ("string", False, "text"),
+]
+_KEY_VALUES_FIELDS = [(KEY_VALUE, True, "items")]
+_MSG_PRIMITIVES = {"bool", "byte", "char", "float32", "float64", "string", "wstring"}
+_MSG_PRIMITIVES |= {f"{s}int{n}" for s in ("", "u") for n in (8, 16, 32, 64)}
+_JSON_STARTS = tuple('[{"tfn')  # JSON of a non-number: array, object, string, true/false/null
+
+
+def mappings_of(items: Any) -> dict[str, Any]:
+    """The mapping a ``KeyValue[]`` (decoded to dicts) was written from: ``_key_values``
+    inverted, so a replayed ``can`` node gets its signals by name.
+
+    A number is its ``value``; anything else has a NaN ``value`` and its ``text``: a string
+    as it is, any other value as its JSON. Comes back as written: text keys, numbers,
+    strings, bools, None, and lists and mappings nested in a value. Does not round-trip:
+
+    - an ``int`` comes back a ``float`` (``3`` -> ``3.0``, equal; past 2**53 rounded):
+      ``value`` is a float64 and the type is not written;
+    - a key that was not a string comes back as its text (``str(key)``);
+    - a NaN number and the empty string are written alike (NaN, ``""``): read as NaN;
+    - a string that is exactly the JSON written for another value (``"true"``, ``"null"``,
+      ``"[1,2]"``, ``'"x"'``) comes back as that value (``True``, ``None``, ``[1, 2]``,
+      ``"x"``);
+    - inside a nested value, what JSON loses: tuples come back as lists, keys as text,
+      NaN and infinities as None, bytes as base64 text, other objects as their ``repr``.
+    """
+    out: dict[str, Any] = {}
+    for item in items or ():
+        value, text = item.get("value"), item.get("text") or ""
+        if isinstance(value, int | float) and not math.isnan(value):
+            out[str(item.get("key"))] = float(value)
+        else:
+            out[str(item.get("key"))] = _from_text(text) if text else math.nan
+    return out
+
+
+def _from_text(text: str) -> Any:
+    """A ``KeyValue``'s ``text``: the value whose JSON it is exactly (as ``_json_text``
+    writes it), else the string itself. Numbers are never written as text: ``"1"`` is a
+    string."""
+    if not text.startswith(_JSON_STARTS):
+        return text
+    try:
+        parsed = json.loads(text)
+    except ValueError:
+        return text
+    if isinstance(parsed, int | float) and not isinstance(parsed, bool):
+        return text
+    return parsed if json.dumps(parsed, separators=(",", ":")) == text else text
+
+
+def mapping_restorer(name: str, encoding: str, data: bytes) -> Callable[[Any], Any] | None:
+    """For the decoded messages of a schema: a function giving their ``KeyValue[]`` fields
+    back as mappings (:func:`mappings_of`; a whole ``KeyValues`` message becomes the mapping
+    itself), or None when the schema has no such field (its messages stay as decoded).
+
+    Only flowrt's own type counts: ``flowrt_msgs/KeyValue`` defined in the schema as this
+    profile writes it (``string key``, ``float64 value``, ``string text``); a foreign type
+    keeps its fields. Built once per schema (cached): a replay calls it for every message.
+    """
+    if encoding != "ros2msg" or KEY_VALUE.encode() not in data:
+        return None
+    return _restorer_of(name, data)
+
+
+@functools.lru_cache(maxsize=256)
+def _restorer_of(name: str, data: bytes) -> Callable[[Any], Any] | None:
+    try:
+        defs = _msg_types(name, data.decode())
+    except UnicodeDecodeError:
+        return None
+    if defs.get(KEY_VALUE) != _KEY_VALUE_FIELDS:
+        return None
+    root = _type_key(name)
+    if defs.get(root) == _KEY_VALUES_FIELDS and root == "flowrt_msgs/KeyValues":
+        return lambda v: mappings_of(v.get("items")) if isinstance(v, dict) else v
+    return _fields_restorer(defs, root, frozenset({root}))
+
+
+def _fields_restorer(
+    defs: dict[str, list[tuple[str, bool, str]]], typ: str, seen: frozenset[str]
+) -> Callable[[Any], Any] | None:
+    """Restores the ``KeyValue[]`` fields of ``typ``, also inside its nested messages."""
+    convs: list[tuple[str, Callable[[Any], Any]]] = []
+    for base, array, field in defs.get(typ, []):
+        if base == KEY_VALUE and array:
+            convs.append((field, mappings_of))
+        elif base in defs and base not in seen:
+            inner = _fields_restorer(defs, base, seen | {base})
+            if inner is not None:
+                convs.append((field, _each(inner) if array else inner))
+    if not convs:
+        return None
+
+    def restore(v: Any) -> Any:
+        if not isinstance(v, dict):
+            return v
+        out = dict(v)
+        for field, conv in convs:
+            if field in out:
+                out[field] = conv(out[field])
+        return out
+
+    return restore
+
+
+def _each(conv: Callable[[Any], Any]) -> Callable[[Any], Any]:
+    return lambda xs: [conv(x) for x in xs] if isinstance(xs, list) else xs
+
+
+def _msg_types(name: str, text: str) -> dict[str, list[tuple[str, bool, str]]]:
+    """type -> [(field type, is an array, field name)] of a ``ros2msg`` schema: the message
+    first, then each type it uses after a line of ``=`` and ``MSG: pkg/Name``."""
+    out: dict[str, list[tuple[str, bool, str]]] = {}
+    current = _type_key(name)
+    fields = out.setdefault(current, [])
+    lines = iter(text.splitlines())
+    for line in lines:
+        if line.startswith("===") and not line.strip().strip("="):
+            head = next(lines, "").strip()
+            current = _type_key(head.removeprefix("MSG:").strip()) if head[:4] == "MSG:" else ""
+            fields = out.setdefault(current, [])
+            continue
+        bits = line.split("#", 1)[0].split()
+        if len(bits) < 2 or "=" in bits[1] or (len(bits) > 2 and bits[2].startswith("=")):
+            continue  # blank, a comment or a constant
+        typ, bracket, _ = bits[0].partition("[")
+        fields.append((_resolve(typ.partition("<=")[0], current), bool(bracket), bits[1]))
+    return out
+
+
+def _resolve(typ: str, owner: str) -> str:
+    """A field's type as ``pkg/Name``: a bare name is of its owner's package (``Header``:
+    ``std_msgs``), a primitive stays as it is."""
+    if typ in _MSG_PRIMITIVES or "/" in typ:
+        return _type_key(typ) if "/" in typ else typ
+    if typ == "Header":
+        return "std_msgs/Header"
+    return f"{owner.partition('/')[0]}/{typ}"
+
+
+def _type_key(name: str) -> str:
+    """``pkg/msg/Name`` or ``pkg/Name`` -> ``pkg/Name``."""
+    parts = name.split("/")
+    return f"{parts[0]}/{parts[-1]}" if len(parts) == 3 else name
 
 
 def _is_velocity(v: Any) -> bool:
