@@ -24,7 +24,7 @@ Every message must then match its schema, for a validator (jsonschema, ajv) as f
 :func:`conform` gives a value the shape of its schema, decided by the schema alone: a field
 whose value is ``None`` (or a non-finite float) is left out rather than written ``null`` (no
 field is ``required``), a tuple that became an object is written as that object, a value under
-a ``string`` schema is written as text. docs/recording.md ("Message shapes") says the same for
+a ``string`` schema is written as text. The README ("The message shapes") says the same for
 readers.
 
 The choice (docs/DESIGN-NOTES.md): JSON with such schemas rather than protobuf built from

@@ -8,7 +8,7 @@ the recorder (thread or process writer) and the live Foxglove server each hold a
 encode through it, so a stream is the same channel in a recording and live, and a consumer
 that needs to know a stream's channel (Zenoh export, replay, ``flowrt info``) reads it here.
 
-The shapes (see docs/recording.md, "Message shapes"):
+The shapes (see the README, "Recording and replay", "The message shapes"):
 
 - a :class:`~flowrt.frames.Frame`: ``foxglove.RawImage`` (protobuf), or
   ``foxglove.CompressedImage`` when the stream's image format is ``jpeg``/``png``;
