@@ -42,3 +42,44 @@ def test_realtime_memory_lock_does_not_populate_later_mappings() -> None:
         pytest.skip(f"no real-time scheduling here: {out.stdout.strip()}")
     grew_kib = int(out.stdout.split()[1])
     assert grew_kib < 16 << 10, f"64 MiB mapping made {grew_kib} KiB resident"
+
+
+REFUSED = textwrap.dedent(
+    """
+    import json, resource
+    import flowrt
+
+    resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))
+
+    async def main():
+        g = flowrt.GraphBuilder("rt")
+        g.add("tick", "counter", trigger={"timer": "10ms"})
+        async with flowrt.Runtime(g.build(), realtime=True) as rt:
+            await rt.run(0.1)
+            s = rt.stats()
+        print(json.dumps({"realtime": rt.realtime, "loop": s.loop_scheduling}))
+
+    flowrt.run(main())
+    """
+)
+
+
+def test_realtime_refused_keeps_the_fair_share() -> None:
+    """--realtime where SCHED_FIFO is refused (no CAP_SYS_NICE, no rtprio limit): the loop
+    still gets the nice-and-slice share it gets without the flag. Its refusal text started
+    with "SCHED_FIFO", which the runtime took for a grant: no share at all."""
+    import json
+    import shutil
+
+    setpriv = shutil.which("setpriv")
+    if setpriv is None:
+        pytest.skip("setpriv (util-linux) is needed to drop CAP_SYS_NICE")
+    r = subprocess.run(
+        [setpriv, "--inh-caps=-sys_nice", "--bounding-set=-sys_nice", sys.executable, "-c",
+         REFUSED],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["realtime"].startswith("normal priority: SCHED_FIFO not permitted")
+    assert "slice" in out["loop"], out

@@ -92,6 +92,7 @@ class Runtime(Interruptible):
         self.monitors = self.hub.monitors  # watchers of the run (table, web view, QoS...)
         self.realtime_requested = realtime
         self.realtime = ""
+        self._fifo = False  # the loop got SCHED_FIFO (``realtime`` says so, or why not)
         self.latency_hint = ""
         self.mode: str | None = None
         self.events = self.hub.events  # the last 1000 events
@@ -141,15 +142,15 @@ class Runtime(Interruptible):
         if self.realtime_requested:
             from ..system._realtime import enable_realtime
 
-            granted, self.realtime = enable_realtime()
-            if not granted:
+            self._fifo, self.realtime = enable_realtime()
+            if not self._fifo:
                 log.warning("--realtime: %s", self.realtime)
-        if not self.realtime.startswith("SCHED_FIFO"):
+        if not self._fifo:
             self._fair, self.latency_hint = self._loop_share.apply(self.graph)
         self.resources = resources = RunResources(
             self.clock,
             self._emit,
-            realtime=lambda: self.realtime.startswith("SCHED_FIFO"),
+            realtime=lambda: self._fifo,
             fair=lambda: self._fair,
             rtdb_handle=lambda: self.rtdb.handle,
         )
@@ -253,7 +254,7 @@ class Runtime(Interruptible):
     @property
     def loop_scheduling(self) -> str:
         """What the loop process was granted: SCHED_FIFO, or its nice level and slice."""
-        granted = self.realtime if self.realtime.startswith("SCHED_FIFO") else self.latency_hint
+        granted = self.realtime if self._fifo else self.latency_hint
         cpus = self._loop_cpus.granted
         return f"{granted}, {cpus}" if cpus and granted else granted
 

@@ -15,22 +15,23 @@ _MCL_CURRENT, _MCL_FUTURE, _MCL_ONFAULT = 1, 2, 4
 
 
 def enable_realtime(priority: int = 90) -> tuple[bool, str]:
-    """Try SCHED_FIFO at ``priority`` for this process; returns (granted, description).
+    """Try SCHED_FIFO at ``priority`` for this process; returns (granted, description): a
+    refusal's description starts "normal priority", a grant's "SCHED_FIFO".
 
     90 is above every worker (they are capped at 89): the frame clock and the dispatch of
     activations must never wait for a tracker.
     """
     if not hasattr(os, "sched_setscheduler"):
-        return False, f"SCHED_FIFO not available on {sys.platform}"
+        return False, f"normal priority: SCHED_FIFO not available on {sys.platform}"
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except PermissionError:
         return (
             False,
-            "SCHED_FIFO not permitted (needs root or CAP_SYS_NICE / rtprio limit); normal priority",
+            "normal priority: SCHED_FIFO not permitted (needs root or CAP_SYS_NICE / rtprio limit)",
         )
     except OSError as e:
-        return False, f"SCHED_FIFO refused ({e.strerror}); normal priority"
+        return False, f"normal priority: SCHED_FIFO refused ({e.strerror})"
     locked = ""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
