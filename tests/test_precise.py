@@ -228,6 +228,38 @@ async def test_a_coroutine_node_is_released_on_the_loop_with_its_time() -> None:
     assert st.response.count == 1
 
 
+async def test_swapped_to_a_coroutine_and_back_the_node_runs_in_the_thread_again(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A swap to a coroutine hands the releases to the loop; a swap back to a sync kind
+    takes them back (it stayed "precise release" for good: late ticks at 1 kHz). A release
+    handed to the loop before the take-back is not run there (counted skipped): the node
+    never runs on both at once."""
+    async with Runtime(graph().build(), clock=VirtualClock()) as rt:
+        _, p = precise(rt)
+        await rt.swap("tick", AsyncCount)
+        p.fire(0.0, 0)
+        assert not p.thread_mode
+        await settle()
+        assert rt.stats().node("tick").completions == 1  # on the loop
+        handed: list[tuple[Any, ...]] = []
+        monkeypatch.setattr(p, "_post", lambda *call: handed.append(call) or True)
+        p.fire(1.0, 0)  # handed to the loop, not run there yet ...
+        monkeypatch.undo()
+        await rt.swap("tick", Count)
+        p.fire(2.0, 0)  # ... when the swap back makes the node sync: the thread takes it back
+        assert p.thread_mode
+        await settle()
+        assert "precise thread" in rt.stats().node("tick").granted
+        for fn, *args in handed:
+            fn(*args)  # the stale release reaches the loop: not run
+        await settle()
+        st = rt.stats().node("tick")
+        assert node(rt, "tick").n == 1  # the new instance ran once: in the thread
+        assert node(rt, "keep").seen == [1, 0]
+    assert (st.activations, st.completions, st.skipped) == (3, 2, 1)
+
+
 class Frames(Node):
     frame = Output(Frame)
 

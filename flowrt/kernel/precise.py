@@ -308,8 +308,11 @@ class PreciseRelease:
     Invariants: ``inflight`` counts the calls started by the thread whose outcome the loop
     has not taken, written under ``lock``; ``_after_error`` is true from a call that raised
     to the loop taking it, and no call starts meanwhile; ``thread_mode`` is written by the
-    thread only (it leaves for the loop after :data:`LONG_CALLS` long calls, or a swap to a
-    coroutine, and never comes back).
+    thread only (it leaves for the loop after :data:`LONG_CALLS` long calls, for good, or
+    while a swap has made it a coroutine: ``_for_coroutine``, and comes back when a swap makes
+    it sync again); ``_loop_epoch`` (under ``lock``) numbers the stretches of releases handed
+    to the loop: one posted in an earlier stretch is not run (the thread took over), and
+    ``_on_loop`` (under ``lock``) is true while one runs there, when the thread may not.
     """
 
     def __init__(
@@ -333,6 +336,9 @@ class PreciseRelease:
         self._after_error = False
         self._stopped = False
         self._long = 0
+        self._for_coroutine = False  # left the thread for a coroutine: back once sync (thread)
+        self._loop_epoch = 0
+        self._on_loop = False
         # what the thread got from the OS (written once by the thread as it starts, then read)
         self.os_grant = ""
         self._exited: asyncio.Future[None] = loop.create_future()
@@ -434,10 +440,15 @@ class PreciseRelease:
         instant after it, announced to the loop's timers (see :func:`_timers_wait`)."""
         r = self._r
         if self.thread_mode and not r.executor.sync:
-            self.thread_mode = False  # swapped for a coroutine: the loop runs it from now on
+            self.thread_mode = False  # swapped for a coroutine: the loop runs it meanwhile
+            self._for_coroutine = True
             self._announce(None)
+        elif self._for_coroutine and r.executor.sync:
+            self._back_to_thread()  # swapped back to a sync kind: here again, once it may
         if not self.thread_mode:
-            self._post(r.release_timer, release, missed)
+            with self.lock:
+                epoch = self._loop_epoch
+            self._post(self._release_on_loop, epoch, release, missed)
             return
         with self.lock:
             go = (
@@ -465,6 +476,33 @@ class PreciseRelease:
             self._announce(nxt)
         if r.timing.enabled and not r.stopping:
             self._post(r.skipped_release, missed)  # an overrun, or the node is down: counted
+
+    def _back_to_thread(self) -> None:
+        """Take the node's releases back from the loop, when none of them runs there now;
+        those already handed over are then not run (a new stretch: ``_loop_epoch``), so the
+        node never runs on both at once."""
+        with self.lock:
+            if self._on_loop or self._r._busy:
+                return  # one runs on the loop: next release
+            self._loop_epoch += 1
+            self._for_coroutine, self._long = False, 0
+            self.thread_mode = True
+
+    def _release_on_loop(self, epoch: int, release: float, missed: int) -> None:
+        """On the loop: a release the thread handed over, unless the thread took the node
+        back since (then it is not run: counted skipped)."""
+        r = self._r
+        with self.lock:
+            stale = epoch != self._loop_epoch
+            self._on_loop = not stale
+        if stale:
+            r.skipped_release(missed)
+            return
+        try:
+            r.release_timer(release, missed)
+        finally:
+            with self.lock:
+                self._on_loop = False
 
     def _call(self, release: float, missed: int) -> None:
         r = self._r
