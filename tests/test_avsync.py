@@ -76,3 +76,15 @@ def test_flash_and_beep_40ms_measured_from_a_recording(tmp_path: Path) -> None:
     # so a loaded machine's late or skipped frames do not take an event away
     assert got["events"] >= 3
     assert abs(got["lag_ms"] - 40) < 5
+    # topics of the wrong kind: one line each, exit 2 (they were tracebacks)
+    for args, said in (
+        (["--video", "mic.audio", "--audio", "led.frame"], "mic.audio is audio, not video"),
+        (["--video", "led.frame", "--audio", "led.frame"], "led.frame is video, not audio"),
+    ):
+        w = subprocess.run(
+            [sys.executable, "-m", "flowrt.cli", "sync", "measure", str(session), *args],
+            cwd=REPO, env=env, capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert w.returncode == 2, w.stderr
+        assert said in w.stderr
+        assert "Traceback" not in w.stderr

@@ -5,6 +5,7 @@ LED). The estimator is :mod:`flowrt.analysis.avsync`; this reads the recording."
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 from pathlib import Path
 from typing import Any
@@ -14,6 +15,8 @@ from rich.console import Console
 
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, printable, stdout_console
 from .json_output import emit
+
+NO_MATPLOTLIB = "--plot needs matplotlib (pip install matplotlib)"
 
 
 def _stamp(msg: Any) -> float:
@@ -79,13 +82,25 @@ def cmd_measure(args: argparse.Namespace) -> int:
             markup=False,
         )
         return EXIT_BAD_GRAPH
+    if args.plot and importlib.util.find_spec("matplotlib") is None:  # said before the work
+        err.print(f"flowrt sync measure: {NO_MATPLOTLIB}", markup=False)
+        return EXIT_BAD_GRAPH
     other = args.audio or videos[1]
     data = _read(path, {videos[0], other})
-    for topic in (videos[0], other):
+    wanted = {videos[0]: "video", other: "audio" if args.audio else "video"}
+    for topic, kind in wanted.items():
         if not data[topic]:
             err.print(
                 f"flowrt sync measure: {printable(topic)}: no image or audio messages in "
                 f"{printable(str(path))}",
+                markup=False,
+            )
+            return EXIT_BAD_GRAPH
+        found = "audio" if isinstance(data[topic][0][1], tuple) else "video"
+        if found != kind:
+            flag = "--audio takes an audio topic" if kind == "audio" else "--video takes images"
+            err.print(
+                f"flowrt sync measure: {printable(topic)} is {found}, not {kind} ({flag})",
                 markup=False,
             )
             return EXIT_BAD_GRAPH
@@ -138,7 +153,7 @@ def _plot(r: Any, path: str, other: str) -> str | None:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
     except ImportError:
-        return "--plot needs matplotlib (pip install matplotlib)"
+        return NO_MATPLOTLIB
     fig, ax = plt.subplots(figsize=(8, 3))
     t0 = r.times[0]
     ax.plot([t - t0 for t in r.times], r.lags_ms, "o-")
