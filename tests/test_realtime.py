@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from typing import Any
 
 import pytest
 
@@ -83,3 +84,45 @@ def test_realtime_refused_keeps_the_fair_share() -> None:
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["realtime"].startswith("normal priority: SCHED_FIFO not permitted")
     assert "slice" in out["loop"], out
+
+
+GRANTED = textwrap.dedent(
+    """
+    import json
+    import flowrt
+
+    class Tick(flowrt.Node):
+        value = flowrt.Output(int)
+
+        def process(self) -> int:
+            return 1
+
+    async def main():
+        g = flowrt.GraphBuilder("rt")
+        g.add("tick", Tick, trigger={"timer": "5ms"}, timing="precise", priority=60)
+        async with flowrt.Runtime(g.build(), realtime=True) as rt:
+            await rt.run(0.2)
+            s = rt.stats()
+        print(json.dumps({"realtime": rt.realtime, "granted": s.node("tick").granted}))
+
+    if __name__ == "__main__":
+        flowrt.run(main())
+    """
+)
+
+
+def test_a_precise_thread_says_it_runs_at_the_loops_realtime_priority(tmp_path: Any) -> None:
+    """With --realtime granted, the precise thread inherits the loop's SCHED_FIFO: the table
+    said only "precise thread", as if it ran at the normal policy."""
+    import json
+
+    script = tmp_path / "granted.py"
+    script.write_text(GRANTED)
+    r = subprocess.run(
+        [sys.executable, str(script)], capture_output=True, text=True, timeout=60, cwd=tmp_path
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    if not out["realtime"].startswith("SCHED_FIFO"):
+        pytest.skip(f"SCHED_FIFO not granted here: {out['realtime']}")
+    assert out["granted"].startswith("precise thread (SCHED_FIFO 90, the loop's)"), out

@@ -124,7 +124,8 @@ def _thread_priority(priority: int) -> str:
     for its instant, and under the fair scheduler a woken thread may wait for another task's
     slice (a 1 kHz haptic loop missed its 1 ms deadline 7-9 times in 5 s so, none with it;
     RESULTS.md). The loop and the workers keep their own scheduling; with ``--realtime`` the
-    thread has the loop's policy already. Returns what was granted ("" if nothing new).
+    thread has the loop's policy already (said so: "SCHED_FIFO 90, the loop's"). Returns
+    what the thread runs at ("" when it stays at the normal policy).
 
     The priority is the node's, capped below the loop's (``rt_priority_for``); the thread
     mostly sleeps, waits for the GIL without spinning, and a node whose calls grow long leaves
@@ -133,8 +134,12 @@ def _thread_priority(priority: int) -> str:
     if not hasattr(os, "sched_setscheduler"):
         return ""
     try:
-        if os.sched_getscheduler(0) != os.SCHED_OTHER:
-            return ""
+        policy = os.sched_getscheduler(0)
+        if policy != os.SCHED_OTHER:  # inherited from the loop (--realtime)
+            names = {os.SCHED_FIFO: "SCHED_FIFO", os.SCHED_RR: "SCHED_RR"}
+            if policy not in names:
+                return ""
+            return f"{names[policy]} {os.sched_getparam(0).sched_priority}, the loop's"
         rt = rt_priority_for(priority)
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt))  # 0: this thread
     except OSError:
