@@ -55,12 +55,13 @@ the fresh sources, weights renormalised over the fresh ones, each source through
 filters (``low_pass`` time constant, ``max_rate`` per second). Values are mappings of the
 ``zero`` command's keys (missing keys count as 0; other keys are ignored).
 
-Outputs on every activation: ``command`` (a mapping like ``zero``) and ``selected`` (the
-winning source, ``"blend"``, or ``None``). A change of selected source is counted
-(``switches``) and is an event (``HealthAlert`` of kind ``arbiter-switch``, severity info).
-Modes set the weights between ticks (``modes: {avoid: {nodes: {drive: {params: {sources:
-{avoid: {weight: 3}}}}}}}``): new params take effect at the next activation, filter state
-kept.
+Outputs on every activation: ``command`` (a mapping like ``zero``); and ``selected`` (the
+winning source or ``"blend"``), on every activation that has one: while no source is valid
+nothing is published there (the command is ``zero``), so the recording expects no rate of
+it. A change of selected source is counted (``switches``) and is an event (``HealthAlert``
+of kind ``arbiter-switch``, severity info). Modes set the weights between ticks
+(``modes: {avoid: {nodes: {drive: {params: {sources: {avoid: {weight: 3}}}}}}}``): new
+params take effect at the next activation, filter state kept.
 
 The per-activation path reuses lists sized at set-up (one slot per source and per command
 key); only the published ``command`` mapping is new, because readers may hold on to it.
@@ -242,7 +243,10 @@ class Arbiter(Node):
     Params = ArbiterParams
     any_inputs = Input(object, required=False, policy="latest", doc="command sources and locks")
     command = Output(dict, doc="the command for the actuator: a mapping like `zero`")
-    selected = Output(object, doc="the winning source, 'blend', or None")
+    # not every activation: nothing is published while no source is valid (a None result)
+    selected = Output(
+        object, doc="the winning source or 'blend'; nothing while none is valid", rate_hz=None
+    )
 
     def setup(self) -> None:
         self.keys = list(self.params.zero)

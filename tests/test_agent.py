@@ -135,3 +135,26 @@ async def test_the_recording_report_expects_the_arena_at_its_render_rate() -> No
     assert by["robot.arena"].expected == len(frames)
     assert by["robot.arena"].missing == 0
     assert by["robot.pose"].missing == 0
+
+
+async def test_the_arbiters_selected_has_no_rate_while_nothing_is_valid() -> None:
+    """``drive.selected expected 250 received 249 missing 1`` in a clean recording of the
+    agent graph: the arbiter publishes nothing on ``selected`` while no source is valid (its
+    first tick), so that output has no per-activation rate to expect."""
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("src", "counter", trigger={"timer": "20ms"})
+    g.add(
+        "drive",
+        "arbiter",
+        trigger={"timer": "20ms"},
+        params={"mode": "priority", "sources": {"a": {"priority": 1}}, "zero": {"vx": 0.0}},
+        inputs={"a": "src.value"},
+    )
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(0.5)
+        stats = rt.stats()
+    rates = nominal_rates(stats)
+    assert rates["drive"] == pytest.approx(50.0)
+    assert rates["drive.selected"] is None  # no rate: the report expects no count of it
+    assert "drive.command" not in rates  # every activation: the node's own 50 Hz
