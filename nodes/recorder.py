@@ -59,6 +59,7 @@ import errno
 import os
 import time
 from collections import deque
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -213,12 +214,8 @@ class Recorder(Node):
         except OSError as e:
             raise _cannot_start(e, session or Path(p.path)) from None
         try:
-            self._open_in(session, stats)
-        except OSError as e:  # nothing half-made is left: a retry starts clean
-            with contextlib.suppress(OSError):
-                (session / f"{session.name}.mcap").unlink(missing_ok=True)
-                if made and not any(session.iterdir()):
-                    session.rmdir()
+            _open_cleanly(session, made, lambda: self._open_in(session, stats))
+        except OSError as e:
             raise _cannot_start(e, session) from None
 
     def _open_in(self, session: Path, stats: Any) -> None:
@@ -553,6 +550,23 @@ def _oserror(e: OSError) -> str:
         where = f"{e.filename}: " if e.filename else ""
         return f"{where}no space left on device ({errno.errorcode[e.errno]})"
     return str(e)
+
+
+def _open_cleanly(session: Path, made: bool, open_in: Callable[[], None]) -> None:
+    """Open a session; when that fails nothing half-made is left (a retry starts clean), but
+    a recording that was there before is never removed (a session named again, by a swap:
+    it deleted a finished 28 MB recording)."""
+    mcap = session / f"{session.name}.mcap"
+    existed = mcap.exists()
+    try:
+        open_in()
+    except OSError:
+        with contextlib.suppress(OSError):
+            if not existed:
+                mcap.unlink(missing_ok=True)
+            if made and not any(session.iterdir()):
+                session.rmdir()
+        raise
 
 
 def _cannot_start(e: OSError, where: Path) -> OSError:

@@ -215,7 +215,7 @@ async def _estop(action: str, url: str, deadline: float) -> tuple[str, float]:
 
     import aiohttp
 
-    async with aiohttp.ClientSession() as http:
+    async with aiohttp.ClientSession(headers=VIEW_AUTH) as http:
         while True:
             try:
                 async with http.get(url + "/") as r:
@@ -240,7 +240,7 @@ async def _wait_link(url: str, node: str, deadline: float) -> float:
     """Poll the page's statistics until import ``node`` hears its exporter; the time then."""
     import aiohttp
 
-    async with aiohttp.ClientSession() as http:
+    async with aiohttp.ClientSession(headers=VIEW_AUTH) as http:
         while time.monotonic() < deadline:
             try:
                 async with http.get(url + "/stats.json") as r:
@@ -259,7 +259,7 @@ async def _edge(url: str, name: str) -> dict[str, Any]:
     """One edge's counters from the page's statistics (``{}`` when it has none)."""
     import aiohttp
 
-    async with aiohttp.ClientSession() as http, http.get(url + "/stats.json") as r:
+    async with aiohttp.ClientSession(headers=VIEW_AUTH) as http, http.get(url + "/stats.json") as r:
         stats = await r.json()
     edges = (stats.get("runtime") or {}).get("edges") or []
     return next((e for e in edges if e.get("name") == name), {})
@@ -271,10 +271,16 @@ async def _post(url: str, body: str) -> tuple[int, str]:
 
     timeout = aiohttp.ClientTimeout(total=60)
     async with (
-        aiohttp.ClientSession(timeout=timeout) as http,
+        aiohttp.ClientSession(timeout=timeout, headers=VIEW_AUTH) as http,
         http.post(url, data=body, headers={"Content-Type": "application/json"}) as r,
     ):
         return r.status, (await r.text()).strip()
+
+
+#: The base's live view has an e-stop, so it needs a token: the bed gives the base this one
+#: (``FLOWRT_DISPLAY_TOKEN``) and its page client sends it.
+VIEW_TOKEN = "netns-bed-view-token"
+VIEW_AUTH = {"Authorization": f"Bearer {VIEW_TOKEN}"}
 
 
 def main(argv: list[str]) -> int:

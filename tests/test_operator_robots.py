@@ -80,7 +80,12 @@ async def test_the_base_station_records_on_the_robot(tmp_path: Path, repo: Path)
             return m.group(1) if m else ""
 
         url = await until(view, 60, "the base's view", base_out)
-        async with aiohttp.ClientSession() as http:
+        # its page can release the e-stop: the view needs the token it printed
+        m = re.search(r"\?token=([\w-]+)", "".join(base_out))
+        assert m, "".join(base_out[-30:])
+        token = m.group(1)
+        auth = {"Authorization": f"Bearer {token}"}
+        async with aiohttp.ClientSession(headers=auth) as http:
 
             async def robot1() -> Any:
                 (r,) = (await get(http, f"{url}/api/robots"))["robots"]
@@ -121,7 +126,7 @@ async def test_the_base_station_records_on_the_robot(tmp_path: Path, repo: Path)
             async with http.post(f"{url}/api/robots/nobody/record/start", json={}) as resp:
                 assert resp.status == 404
         if chromium_path() is not None:
-            await the_page_records_on_the_robot(url, tmp_path)
+            await the_page_records_on_the_robot(url, tmp_path, token)
     finally:
         for proc in (base, robot):
             if proc.returncode is None:
@@ -135,13 +140,13 @@ async def test_the_base_station_records_on_the_robot(tmp_path: Path, repo: Path)
         await asyncio.gather(robot_done, base_done, return_exceptions=True)
 
 
-async def the_page_records_on_the_robot(url: str, tmp_path: Path) -> None:
+async def the_page_records_on_the_robot(url: str, tmp_path: Path, token: str) -> None:
     """The same from the base's page: the robot's row, its Start and Stop clicked."""
     from tests.test_display import browser
     from tests.test_operator_page import click, shot
     from tests.test_operator_page import until as page_until
 
-    async with browser(url + "/") as page:
+    async with browser(f"{url}/?token={token}") as page:
         row = '#robots tr[data-robot="robot1"]'
         await page_until(
             page,

@@ -590,3 +590,34 @@ def test_raw_image_encoding_matches_foxglove_sdk(
     )
     np.testing.assert_array_equal(px, data)
     assert got_fmt == fmt
+
+
+@pytest.mark.subprocess  # the recorder's writer process
+async def test_a_session_named_again_never_removes_its_recording(tmp_path: Path) -> None:
+    """A recorder given the session name of a finished recording (a swap's ``session``)
+    cannot start there, and the finished recording stays: it was unlinked as 'half-made'."""
+    import flowrt.recording.session as session_module
+
+    def graph() -> Any:
+        g = flowrt.GraphBuilder("again")
+        g.add("cam", "capture", params={"source": "synthetic:soccer", "fps": 20, "size": [80, 60]})
+        g.add(
+            "rec",
+            "recorder",
+            params={"path": str(tmp_path), "session": str(tmp_path / "day1")},
+            inputs={"cam.frame": {"from": "cam.frame", "policy": "lossless"}},
+        )
+        return g.build()
+
+    async with flowrt.Runtime(graph()) as rt:
+        await rt.run(0.5)
+    wait_for_writers()
+    mcap = tmp_path / "day1" / "day1.mcap"
+    size = mcap.stat().st_size
+    assert size > 0
+    async with flowrt.Runtime(graph()) as rt:
+        await rt.run(0.5)
+        state = rt.stats().node("rec").state
+    assert state in ("error", "failed")  # it says it cannot start there
+    assert mcap.stat().st_size == size
+    assert session_module.SESSION_NAME.match("abc\n") is None  # "$" took a trailing newline

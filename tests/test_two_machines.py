@@ -31,7 +31,7 @@ from typing import Any
 
 import pytest
 from mcap.reader import make_reader
-from netns_bed import ROBOT_EP, Bed, leftovers, unavailable
+from netns_bed import ROBOT_EP, VIEW_TOKEN, Bed, leftovers, unavailable
 
 pytestmark = [pytest.mark.slow, pytest.mark.subprocess, pytest.mark.timeout(300)]
 
@@ -110,6 +110,7 @@ def test_estop_across_a_cut_link_and_corrected_clocks(bed: Bed, tmp_path: Path, 
             "--zenoh-connect", ROBOT_EP,
         ],
         tmp_path / "base.log",
+        env={"FLOWRT_DISPLAY_TOKEN": VIEW_TOKEN},  # its page can release the e-stop
     )  # fmt: skip
     record = f"{PAGE}/api/robots/robot1/record"
     try:

@@ -56,3 +56,20 @@ async def test_the_page_that_drives_needs_the_printed_token(
         assert f"display: {opened.url}\n" in printed
         async with aiohttp.ClientSession() as fresh, fresh.get(opened.url + "/") as r:
             assert r.status == 200
+
+
+async def test_a_page_that_can_release_an_estop_needs_the_token_too(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """An e-stop's Release goes through the page and lets a robot move: a graph with an
+    estop node and no web joystick served the page without a token, and any local process
+    could scrape its session and release the stop."""
+    g = GraphBuilder("stop")
+    g.add("stop", "estop")
+    g.add("view", "display", params={"port": 0})
+    async with Runtime(g.build()) as rt, aiohttp.ClientSession() as http:
+        view = rt.runner("view").executor.node  # type: ignore[attr-defined]
+        printed = capsys.readouterr().out
+        assert "needs its token: stop can drive from the page" in printed, printed
+        async with http.get(view.url + "/") as r:
+            assert r.status == 401

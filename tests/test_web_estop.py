@@ -29,14 +29,15 @@ def graph() -> Any:
 @needs_chromium
 async def test_estop_buttons_and_the_link_state_on_the_page() -> None:
     async with Runtime(graph()) as rt:
-        url = rt.scheduler.runners["view"].executor.node.url  # type: ignore[attr-defined]
+        # the page can release the e-stop: the view needs its token (in the URL to open)
+        url = rt.scheduler.runners["view"].executor.node.open_url  # type: ignore[attr-defined]
         echo = rt.subscribe("echo.output", policy="latest")
 
         async def echoed(active: bool) -> bool:
             got = echo.drain()
             return bool(got) and got[-1].get("active") is active
 
-        async with browser(url + "/") as page:
+        async with browser(url) as page:
             await until(lambda: page.eval("!!document.querySelector('#links')"), 20, "the page")
             await until(
                 lambda: page.eval("!document.querySelector('#estoppanel').hidden"),

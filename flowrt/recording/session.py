@@ -33,7 +33,7 @@ __all__ = [
 ]
 
 SESSION_FILE = "streams.json"
-SESSION_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}$")
+SESSION_NAME = re.compile(r"^[A-Za-z0-9_\-]{1,64}\Z")  # \Z: "$" took "abc\n" too
 """A session prefix (and a session folder's name): no path separator, no dot, bounded."""
 _NAME = SESSION_NAME
 _PART = re.compile(r"^(.*)_(\d+)\.mcap$")

@@ -100,7 +100,9 @@ START_TIMEOUT = 30.0  # seconds for the view's server process to start (spawn + 
 
 
 def _drivers(ctx: Any) -> list[str]:
-    """The nodes the page can drive through (a joystick with ``source: web``), by name."""
+    """The nodes the page can drive through, by name: a joystick with ``source: web``, and
+    an e-stop (its Release lets a robot move: no less a drive than a joystick's)."""
+    from ..estop import Estop
     from ..joystick import Joystick
 
     try:
@@ -110,7 +112,8 @@ def _drivers(ctx: Any) -> list[str]:
     return [
         name
         for name, n in graph.nodes.items()
-        if issubclass(n.cls, Joystick) and getattr(n.params, "source", None) == "web"
+        if (issubclass(n.cls, Joystick) and getattr(n.params, "source", None) == "web")
+        or issubclass(n.cls, Estop)
     ]
 
 
