@@ -14,11 +14,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from pydantic import ValidationError
 
 import flowrt
 from flowrt import GraphBuilder, Runtime, VirtualClock
 from flowrt.control.routes import BY_OP, ENDPOINTS, ROUTES, answer
-from flowrt.control.wire import TimingRequest
+from flowrt.control.wire import ModeRequest, TimingRequest
 from flowrt.events import TimingChanged
 from flowrt.kernel.timing import TimingChange
 from flowrt.rtdb import RECORD_COMMAND
@@ -73,8 +74,26 @@ def test_the_index_lists_the_endpoints_users_know() -> None:
 
 
 def test_a_timing_request_is_one_timing_change() -> None:
-    req = TimingRequest.model_validate({"node": "a", "timer": "80ms", "deadline": 5, "force": 1})
+    req = TimingRequest.model_validate({"node": "a", "timer": "80ms", "deadline": 5, "force": True})
     assert req.change() == TimingChange(timer_ms=80.0, deadline_ms=5.0)
+
+
+@pytest.mark.parametrize(
+    ("model", "body", "field"),
+    [  # read as true or 1 before: "force": "yes" went past admission control
+        (TimingRequest, {"node": "a", "timer": 50, "force": "yes"}, "force"),
+        (TimingRequest, {"node": "a", "timer": 50, "force": 1}, "force"),
+        (TimingRequest, {"node": "a", "priority": True}, "priority"),
+        (TimingRequest, {"node": "a", "enabled": "yes"}, "enabled"),
+        (ModeRequest, {"mode": "attack", "force": "yes"}, "force"),
+    ],
+)
+def test_a_request_takes_its_types_as_written(
+    model: type[Any], body: dict[str, Any], field: str
+) -> None:
+    with pytest.raises(ValidationError) as info:
+        model.model_validate_json(json.dumps(body))
+    assert [e["loc"][0] for e in info.value.errors()] == [field]
 
 
 async def test_timing_is_answered_through_apply_timing(server: Server) -> None:

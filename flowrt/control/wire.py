@@ -10,7 +10,7 @@ import dataclasses
 import math
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator
 
 from ..events import Event, NodeFailed
 from ..graph.spec import TimingOverride
@@ -27,7 +27,16 @@ class TimingRequest(TimingOverride):
     """
 
     node: str = Field(max_length=256)
-    force: bool = False  # past admission control
+    force: StrictBool = False  # past admission control: "yes" is no yes
+    enabled: StrictBool | None = None
+
+    @field_validator("priority", mode="before")
+    @classmethod
+    def _no_bool(cls, v: Any) -> Any:
+        """``true`` is no priority (pydantic would read it as 1)."""
+        if isinstance(v, bool):
+            raise ValueError("priority must be a number, not true/false")
+        return v
 
     def change(self) -> TimingChange:
         """The one value the runtime applies (``Runtime.apply_timing(node, change)``)."""
@@ -37,7 +46,7 @@ class TimingRequest(TimingOverride):
 class ModeRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
     mode: str = Field(max_length=256)
-    force: bool = False  # past admission control
+    force: StrictBool = False  # past admission control: "yes" is no yes
 
 
 class SwapRequest(BaseModel):
