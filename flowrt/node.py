@@ -32,7 +32,7 @@ import importlib
 import logging
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from random import Random
 from typing import TYPE_CHECKING, Any, ClassVar, Final, Generic, Literal, TypeVar
 
@@ -467,7 +467,7 @@ class NodeFactory:
 
     def __call__(self) -> Node:
         if self.reload:
-            cls = _reimport(self._cls_ref if self._cls is None else self._cls)
+            cls = reimport(self._cls_ref if self._cls is None else self._cls)
             # Rebuilt from the portable form after the re-import: nested models of the
             # edited module get its new classes too.
             state = self._params_state if self._params is None else _portable(self._params)
@@ -522,17 +522,18 @@ def _find_class(ref: _ClassRef) -> Any:
     return _lookup(importlib.import_module(module), qualname)
 
 
-def _reimport(ref: _ClassRef) -> type[Node]:
+def reimport(ref: _ClassRef) -> type[Node]:
     """The node's class from its module imported anew from disk (imported afresh when this
     process never imported it, re-imported when it did: a worker forked from a process that
-    had). A module that does not import (the edit has a syntax error) raises an ImportError
-    of one line, which is what the swap that failed shows the user."""
+    had; ``flowrt ctl reload`` of an inline node, in the runtime's process). A module that
+    does not import (the edit has a syntax error, or exits) raises an ImportError of one
+    line, which is what the swap that failed shows the user."""
     module, qualname = (ref.__module__, ref.__qualname__) if isinstance(ref, type) else ref
     try:
         loaded = sys.modules.get(module)
         fresh = importlib.reload(loaded) if loaded is not None else importlib.import_module(module)
         cls = _lookup(fresh, qualname)
-    except Exception as e:
+    except (Exception, SystemExit) as e:  # whatever the module does at import is contained
         if isinstance(e, SyntaxError):
             why = f"{e.msg} ({e.filename}, line {e.lineno})"
         else:
@@ -565,23 +566,23 @@ def _portable(value: Any) -> Any:
             _portable(value.__pydantic_extra__),
             _portable(value.__pydantic_private__),
         )
-    kind = type(value)
-    if kind is list or kind is tuple:
-        return kind(_portable(v) for v in value)
-    if kind is dict:
-        return {k: _portable(v) for k, v in value.items()}
-    return value
+    return _inside(value, _portable)
 
 
 def _from_portable(value: Any) -> Any:
     """What :func:`_portable` made, built again with the classes the names find now."""
     if isinstance(value, _ModelState):
         return _construct(_find_class(value.cls), value)
+    return _inside(value, _from_portable)
+
+
+def _inside(value: Any, each: Callable[[Any], Any]) -> Any:
+    """``each`` of a list's, tuple's or dict's items (the same container again), or ``value``."""
     kind = type(value)
     if kind is list or kind is tuple:
-        return kind(_from_portable(v) for v in value)
+        return kind(each(v) for v in value)
     if kind is dict:
-        return {k: _from_portable(v) for k, v in value.items()}
+        return {k: each(v) for k, v in value.items()}
     return value
 
 

@@ -5,16 +5,15 @@ disabling a behaviour mid-run leaves the others' activations untouched."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 from flowrt.nodes.agent import ARENA, OBSTACLES, RobotSim, cast
+from test_stream_rates import _counters, _Written  # what a report reads of a writer
 
 from flowrt import Graph, GraphBuilder, ModeChanged, Runtime, VirtualClock
 from flowrt.graph._resolve import resolve
 from flowrt.recording import build_report, nominal_rates
-from flowrt.recording.writer import StreamCounters
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -79,24 +78,6 @@ async def test_disabling_a_behaviour_leaves_the_others_untouched() -> None:
     assert stats["wall"].activations - before["wall"] == pytest.approx(20, abs=1)  # 2 s of 4
 
 
-@dataclass
-class _Written:
-    """What a recording report reads of a writer: its streams' counters."""
-
-    streams: dict[str, StreamCounters]
-    files: list[Path] = field(default_factory=list)
-    path: Path = Path("rec.mcap")
-    error: str | None = None
-    notes: list[str] = field(default_factory=list)
-
-
-def _counters(source: str, stamps: list[float]) -> StreamCounters:
-    return StreamCounters(
-        topic=f"/{source}", source=source, received=len(stamps), written=len(stamps),
-        first_seen=stamps[0], last_seen=stamps[-1],
-    )  # fmt: skip
-
-
 def test_robot_sim_declares_the_arenas_rate_from_its_params() -> None:
     """The arena is drawn every ``render_every`` steps; pose and sense every step."""
     rates = RobotSim.output_rates(RobotSim.Params(rate_hz=50, render_every=5))
@@ -125,8 +106,10 @@ async def test_the_recording_report_expects_the_arena_at_its_render_rate() -> No
     step = 1.0 / 50
     writer = _Written(
         {
-            "pose": _counters("robot.pose", [i * step for i in range(poses)]),
-            "arena": _counters("robot.arena", [f.timestamp for f in frames]),
+            "pose": _counters("robot.pose", poses, 0.0, (poses - 1) * step),
+            "arena": _counters(
+                "robot.arena", len(frames), frames[0].timestamp, frames[-1].timestamp
+            ),
         }
     )
     report = build_report(writer, "rec_001", "2026-01-01T00:00:00", 2.0, rates)

@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import importlib
-import sys
 from collections.abc import Mapping
 from typing import Any, Protocol
 
@@ -25,7 +23,7 @@ from ..graph._resolve import Graph
 from ..graph.diagnostics import validation_text
 from ..graph.spec import ModeSpec, Placement, merge_params
 from ..kernel import NodeRunner, Scheduler
-from ..node import Node, NodeFactory
+from ..node import Node, NodeFactory, reimport
 
 
 class SwapHost(Protocol):
@@ -147,33 +145,12 @@ async def reload(rt: SwapHost, node: str, origin: str) -> None:
             _refuse_shared_pool(rt, node, cls.__module__)
         await _swap_to(rt, runner, cls, runner.rnode.params, kind, origin, reload=True)
         return
-    try:  # off the loop, and whatever the module does at import is contained
-        module = await asyncio.to_thread(importlib.reload, sys.modules[cls.__module__])
-        new_cls = _lookup(module, cls.__qualname__)
-    except asyncio.CancelledError:
-        raise
-    except BaseException as e:
-        raise SwapError(
-            f"{node}: reloading {cls.__module__} failed, the old instance runs on: {_why(e)}"
-        ) from None
-    if not (isinstance(new_cls, type) and issubclass(new_cls, Node)):
-        raise SwapError(f"{node}: {cls.__module__}.{cls.__qualname__} is no longer a Node class")
+    try:  # off the loop
+        new_cls = await asyncio.to_thread(reimport, cls)
+    except ImportError as e:
+        raise SwapError(f"{node}: {e}; the old instance runs on") from None
     params = NodeFactory.carry_params(new_cls, runner.rnode.params)
     await _swap_to(rt, runner, new_cls, params, kind, origin, reload=True)
-
-
-def _lookup(module: Any, qualname: str) -> Any:
-    obj = module
-    for part in qualname.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
-def _why(e: BaseException) -> str:
-    """An import's failure in one line, located when it is the edit's syntax."""
-    if isinstance(e, SyntaxError):
-        return f"SyntaxError: {e.msg} ({e.filename}, line {e.lineno})"
-    return f"{type(e).__name__}: {_one_line(str(e))}"
 
 
 def _one_line(text: str) -> str:
