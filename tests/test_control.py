@@ -528,3 +528,59 @@ async def test_params_that_move_data_are_refused_over_the_endpoint(
     assert status == 422, body
     assert body["error"].startswith("burn: unknown param")
     assert rt_token.stats().node("slow").kind == "burn"
+
+
+async def test_a_body_sent_a_byte_at_a_time_is_408_and_its_slot_freed() -> None:
+    """Headers in, the body trickling: answered 408 once the body's time is up (it held the
+    connection's slot for as long as the client liked)."""
+    async with (
+        Runtime(graph(), clock=VirtualClock()) as rt,
+        ControlServer(rt, ControlConfig("127.0.0.1", 0), request_timeout=0.5) as server,
+    ):
+        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
+        writer.write(
+            b"POST /mode HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+            b'Content-Length: 40\r\n\r\n{"mo'
+        )
+        await writer.drain()
+        status = await asyncio.wait_for(reader.readline(), 5)
+        assert status.startswith(b"HTTP/1.1 408"), status
+        writer.close()
+        assert rt.mode is None
+
+
+CHANGES = {  # (the runtime's answer after s, None: never; the lock held s) -> status
+    "answered": ((0.05, None), 200),
+    "sent, never answered: may be applied, not 408": ((None, None), 504),
+    "queued behind others past the wait: never sent": ((0.05, 5.0), 503),
+}
+
+
+@pytest.mark.parametrize("name", list(CHANGES))
+async def test_a_change_answer_says_whether_it_was_applied(
+    name: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A change answered 408 was applied after all (ten queued behind a 1 s quiet gap): now
+    503 when it was never sent (not applied), 504 when sent and not answered (unknown)."""
+    from flowrt.control import server as control_server
+
+    (answer_after, held), status = CHANGES[name]
+    monkeypatch.setattr(control_server, "QUEUE_WAIT", 0.2)
+    gateway = control_server._Gateway(
+        {"host": "127.0.0.1", "token": None, "max_connections": 4, "request_timeout": 0.3}
+    )
+    sent: list[str] = []
+
+    async def ask(op: str, args: Any) -> tuple[int, bytes]:
+        sent.append(op)
+        await asyncio.sleep(3600 if answer_after is None else answer_after)
+        return 200, b"{}"
+
+    monkeypatch.setattr(gateway, "_ask", ask)
+    if held is not None:
+        await gateway._changes.acquire()
+        asyncio.get_running_loop().call_later(held, gateway._changes.release)
+    got, body = await gateway.change("mode", {"mode": "x"})
+    assert got == status, body
+    assert sent == ([] if status == 503 else ["mode"])
+    assert not gateway._changes.locked() or held is not None

@@ -194,3 +194,39 @@ def test_one_module_owns_the_recorders_command_key() -> None:
         if '"flowrt.record."' in p.read_text()
     ]
     assert spelled == ["flowrt/rtdb.py"]
+
+
+@pytest.mark.parametrize(
+    ("said", "action", "status"),
+    [
+        ({"rec": "/data/run_001"}, "start", 409),  # already recording
+        ({"rec": ""}, "start", 200),
+        ({"rec": ""}, "stop", 409),  # not recording
+        ({"rec": "/data/run_001"}, "stop", 200),
+    ],
+)
+async def test_post_record_refuses_what_the_recorders_cannot_obey(
+    said: dict[str, str], action: str, status: int, tmp_path: Path
+) -> None:
+    """A start while recording, a stop while stopped: 409 with each recorder's session, as
+    the operator page's API and ``flowrt ctl`` say (it answered 200 and did nothing)."""
+    from flowrt.rtdb import RECORDING_SESSION
+
+    g = GraphBuilder("rec")
+    g.add("src", "counter", trigger={"timer": "50ms"})
+    g.add(
+        "rec",
+        "recorder",
+        params={"path": str(tmp_path), "start": False, "log_report": False},
+        inputs={"src.value": "src.value"},
+    )
+    async with Runtime(g.build(), clock=VirtualClock()) as rt:
+        print(rt.rtdb.history(RECORDING_SESSION + "rec", 1))
+        for node, session in said.items():
+            rt.rtdb.write(RECORDING_SESSION + node, session)
+        got, reply = await ask(Server(rt), "record", {"action": action})
+        assert got == status, reply
+        commands = rt.rtdb.history(RECORD_COMMAND + "rec", 1)
+        assert bool(commands) == (status == 200)  # a refused one is never written
+        if status == 409:
+            assert reply["sessions"] == said

@@ -399,3 +399,38 @@ async def test_cambada_with_recordings_start_three_seconds_stop(tmp_path: Path, 
             for s in health["series"]:
                 assert sum(v is not None for v in s["values"]) >= 3, s["name"]
         await run.stop()
+
+
+async def test_a_record_request_body_sent_a_byte_at_a_time_is_408(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The page's state-changing requests read their body within BODY_TIMEOUT (there was no
+    limit: a client trickling a body held its connection's slot as long as it liked)."""
+    from aiohttp import web
+    from flowrt.nodes.station import record as operator_record
+
+    monkeypatch.setattr(operator_record, "BODY_TIMEOUT", 0.3)
+
+    async def echo(request: web.Request) -> web.Response:
+        return web.json_response(await operator_record._body(request))
+
+    app = web.Application()
+    app.router.add_post("/api/record/start", echo)
+    runner = web.AppRunner(app, shutdown_timeout=0.5)
+    await runner.setup()
+    site = web.TCPSite(runner, "127.0.0.1", 0)
+    await site.start()
+    try:
+        port = runner.addresses[0][1]
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(
+            b"POST /api/record/start HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+            b'Content-Type: application/json\r\nContent-Length: 40\r\n\r\n{"na'
+        )
+        await writer.drain()
+        status = await asyncio.wait_for(reader.readline(), 5)
+        assert status.startswith(b"HTTP/1.1 408"), status
+        writer.close()
+        await writer.wait_closed()
+    finally:
+        await runner.cleanup()

@@ -194,7 +194,9 @@ def ctl_main(args: argparse.Namespace) -> int:
         _close(client)
 
 
-def _client(args: argparse.Namespace, timeout: float = 5.0) -> Any:
+def _client(args: argparse.Namespace, timeout: float = 15.0) -> Any:
+    # 15 s: longer than the endpoint takes to answer a change (a 503 after 3 s queued, a
+    # 504 after 10 s sent), so that the answer says whether it was applied
     """HTTP (``--url``), or Zenoh queries (``--zenoh ENDPOINT --key KEY``): the same API."""
     if args.zenoh:
         from ..remote.control import ZenohControlClient
@@ -342,10 +344,9 @@ def _sessions(client: Any, node: str | None) -> dict[str, str]:
 
 
 def _refused(message: str, sessions: dict[str, str]) -> int:
-    """A start while recording, a stop while not: exit 1, as the operator page's API answers
-    409 for them (nodes/station/record.py). The control endpoint's POST /record only writes
-    the recorders' command records (a recorder ignores one it cannot obey) and answers 200,
-    so this is decided here, from the state the recorders publish."""
+    """A start while recording, a stop while not: exit 1, as the operator page's API and the
+    endpoint's POST /record answer 409 for them; said here first, with each recorder's
+    session (``--json``), from the state the recorders publish."""
     print(f"flowrt ctl: {message}", file=sys.stderr)
     note(sessions={n: s or None for n, s in sessions.items()})
     return 1

@@ -22,7 +22,7 @@ class ControlClient:
     """A small synchronous client of the control endpoint (stdlib only)."""
 
     def __init__(
-        self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 5.0
+        self, url: str = DEFAULT_URL, token: str | None = None, timeout: float = 15.0
     ) -> None:
         self.url = url.rstrip("/")
         self.token = token
@@ -45,6 +45,11 @@ class ControlClient:
             raise ControlError(self._refused(e)) from None
         except (urllib.error.URLError, OSError) as e:
             reason = getattr(e, "reason", e)
+            if isinstance(reason, TimeoutError) and data is not None:
+                raise ControlError(
+                    f"{self.url}: no answer within {self.timeout:g} s; the change may still "
+                    "be applied (see `flowrt ctl events`)"
+                ) from None
             raise ControlError(
                 f"cannot reach the runtime at {self.url} ({reason}); "
                 "is `flowrt run --control` running?"

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 from pydantic import BaseModel, ValidationError
 
 from ..graph.spec import merge_params
-from ..rtdb import RECORD_COMMAND
+from ..rtdb import RECORD_COMMAND, RECORDING_SESSION
 from ..runtime._hotswap import SwapError
 from ._swap_policy import SwapRefused, UnknownParams, check_params, confined
 from .wire import (
@@ -174,12 +174,25 @@ async def _record(server: Answering, req: RecordRequest) -> Answer:
     targets = [req.node] if req.node is not None else recorders
     if not targets:
         raise KeyError("the graph has no recorder node (add one, or use flowrt record)")
+    said = {n: _session(server, n) for n in targets}
+    busy = {n: s for n, s in said.items() if s}
+    if req.action == "start" and busy:  # as the operator page and `flowrt ctl` refuse it
+        where = ", ".join(f"{n} into {s}" for n, s in busy.items())
+        return 409, dumps({"error": f"already recording: {where}", "sessions": said})
+    if req.action == "stop" and any(s is not None for s in said.values()) and not busy:
+        return 409, dumps({"error": "not recording", "sessions": said})
     command: Any = req.action
     if req.action == "start" and req.name is not None:
         command = {"action": "start", "name": req.name}
     for name in targets:
         server.rt.rtdb.write(RECORD_COMMAND + name, command)
     return 200, dumps({"action": req.action, "nodes": targets})
+
+
+def _session(server: Answering, node: str) -> str | None:
+    """The session a recorder says it records into (``""``: stopped; None: said nothing yet)."""
+    last = server.rt.rtdb.history(RECORDING_SESSION + node, 1)
+    return str(last[-1].value or "") if last else None
 
 
 async def _swap(server: Answering, req: SwapRequest) -> Answer:

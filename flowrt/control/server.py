@@ -90,6 +90,8 @@ log = logging.getLogger("flowrt.control.server")
 MAX_CONNECTIONS = 256  # open connections at once; more are closed as they arrive
 REQUEST_TIMEOUT = 10.0  # seconds for a request's headers (from the previous one)
 FIRST_REQUEST_TIMEOUT = 2.0  # seconds a new connection has for its first request
+BODY_TIMEOUT = 5.0  # seconds for a request's body, once its headers are in (then 408)
+QUEUE_WAIT = 3.0  # seconds a change waits behind others before it is refused, not sent
 RESERVED = 8  # connections over the cap, kept for requests that carry the token
 MAX_BODY = 1 << 20  # bytes of a request body
 READ_MAX_AGE = 0.2  # seconds a read (stats, events, ...) is served from the server's cache
@@ -415,11 +417,32 @@ class _Gateway:
             self._cache[key] = (time.monotonic(), *fut.result())
 
     async def change(self, op: str, args: Any) -> tuple[int, bytes]:
-        """A change: one at a time, and the reads cached before it are forgotten."""
-        async with self._changes:
-            result = await self._ask(op, args)
+        """A change: one at a time, and the reads cached before it are forgotten.
+
+        Every answer says whether it was applied: one that waited :data:`QUEUE_WAIT` behind
+        others is never sent (503, not applied); one sent is applied by the runtime at its
+        next quiet gap, and is answered with what it did, or, past ``timeout``, 504 (sent,
+        the outcome unknown): never a 408 for a change applied after all."""
+        try:
+            async with asyncio.timeout(min(QUEUE_WAIT, self.timeout)):
+                await self._changes.acquire()
+        except TimeoutError:
+            return 503, _dumps(
+                {"error": "busy: other changes are ahead of this one; not applied, try again"}
+            )
+        try:
+            async with asyncio.timeout(self.timeout):
+                return await self._ask(op, args)
+        except TimeoutError:
+            return 504, _dumps(
+                {
+                    "error": f"sent, but the runtime did not answer within {self.timeout:g} s: "
+                    "it may still be applied (see `flowrt ctl events`)"
+                }
+            )
+        finally:
             self._cache.clear()
-            return result
+            self._changes.release()
 
     # --- HTTP -------------------------------------------------------------------------------
 
@@ -460,11 +483,7 @@ class _Gateway:
                     if conn.next_read > now:
                         await asyncio.sleep(conn.next_read - now)
                     conn.next_read = max(now, conn.next_read) + READ_MAX_AGE
-                try:
-                    async with asyncio.timeout(self.timeout):
-                        return await handler(request)  # type: ignore[no-any-return]
-                except TimeoutError:
-                    return _error(408, f"request not complete within {self.timeout:g} s")
+                return await handler(request)  # type: ignore[no-any-return]
             finally:
                 if conn is not None:
                     conn.busy -= 1
@@ -479,8 +498,14 @@ class _Gateway:
         if model is not None:
 
             async def post(request: web.Request) -> web.Response:
+                wait = min(BODY_TIMEOUT, self.timeout)
                 try:
-                    data = json.loads(await request.read(), parse_constant=_no_constant)
+                    async with asyncio.timeout(wait):  # a body sent a byte at a time
+                        raw = await request.read()
+                except TimeoutError:
+                    return _error(408, f"request body not complete within {wait:g} s")
+                try:
+                    data = json.loads(raw, parse_constant=_no_constant)
                     body = model.model_validate(data)
                 except RecursionError:
                     return _error(400, "bad request body: nested too deeply")
@@ -494,7 +519,11 @@ class _Gateway:
             args: dict[str, Any] = dict(request.match_info)
             for key, default in route.query:
                 args[key] = _int_query(request, key, default)
-            return _reply(*await self.read(route.op, args))
+            try:
+                async with asyncio.timeout(self.timeout):
+                    return _reply(*await self.read(route.op, args))
+            except TimeoutError:
+                return _error(408, f"request not complete within {self.timeout:g} s")
 
         return get
 

@@ -42,6 +42,7 @@ OBEY_WAIT = 20.0  # seconds for the recorders to say they started (a writer proc
 RATE_INTERVAL = 0.5  # seconds: the shortest interval a live rate is measured over
 STOP_WITHIN = 9.0  # seconds a stop is answered within, from its arrival (files finished or not)
 TURN_WAIT = 3.0  # seconds a start or stop waits for the one under way before it is refused
+BODY_TIMEOUT = 5.0  # seconds for a request's body once its headers are in (then 408)
 
 Call = Callable[..., Awaitable[dict[str, Any]]]
 
@@ -337,7 +338,14 @@ async def _body(request: web.Request) -> dict[str, Any]:
     if request.content_type != "application/json":
         raise web.HTTPUnsupportedMediaType(text="send application/json\n")
     try:
-        body = json.loads(await request.text() or "{}")
+        async with asyncio.timeout(BODY_TIMEOUT):  # a body sent a byte at a time: its slot
+            text = await request.text()  # is not held for long (the headers have theirs)
+    except TimeoutError:
+        raise web.HTTPRequestTimeout(
+            text=f"body not complete within {BODY_TIMEOUT:g} s\n"
+        ) from None
+    try:
+        body = json.loads(text or "{}")
     except ValueError:
         raise web.HTTPBadRequest(text="the body is not JSON\n") from None
     except RecursionError:  # 100 000 nested [: refused, not a traceback
