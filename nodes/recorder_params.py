@@ -15,6 +15,7 @@ from pydantic import (
 
 from flowrt import resolve_path
 from flowrt.recording import parse_duration, parse_size
+from flowrt.recording.session import SESSION_NAME
 
 
 class RecorderParams(BaseModel):
@@ -33,6 +34,26 @@ class RecorderParams(BaseModel):
         default=None, description="an existing empty folder to record into (the CLI's)"
     )
     start: bool = Field(default=True, description="record from the start (else: ctl)")
+
+    @field_validator("name", mode="after")
+    @classmethod
+    def _a_session_prefix(cls, v: str) -> str:
+        """Refused here, at load or swap, not only when a recording starts (as a graph's
+        every other mistake): NAME_001 must be one plain folder name."""
+        if not SESSION_NAME.match(v):
+            raise ValueError(f"{_shown(v)}: letters, digits, _ and - (at most 64)")
+        return v
+
+    @field_validator("path", "session", mode="before")
+    @classmethod
+    def _a_folder_name(cls, v: Any) -> Any:
+        """A folder that can be made (each part at most 255 bytes) and named on one line."""
+        if isinstance(v, str):
+            if any(ord(c) < 32 or c == "\x7f" for c in v):
+                raise ValueError(f"{_shown(v)}: a control character (a newline?) in a folder name")
+            if any(len(part.encode()) > 255 for part in v.split("/")):
+                raise ValueError(f"{_shown(v)}: a folder name is at most 255 bytes")
+        return v
 
     @field_validator("path", "session", mode="after")
     @classmethod
@@ -103,3 +124,8 @@ class RecorderParams(BaseModel):
         default=False,
         description="also record what a deterministic replay needs (activations, digests)",
     )
+
+
+def _shown(v: str) -> str:
+    """A refused value in a one-line message (a 300-character name, cut)."""
+    return repr(v) if len(v) <= 60 else repr(v[:60]) + "..."

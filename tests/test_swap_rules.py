@@ -170,6 +170,35 @@ async def test_a_swap_merges_the_given_params_into_the_running_ones() -> None:
         assert (arb.mode, arb.timeout) == ("blend", 0.1)  # type: ignore[attr-defined]
 
 
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        ({"name": "day\n1"}, "letters, digits, _ and -"),
+        ({"name": "d" * 300}, "letters, digits, _ and -"),
+        ({"session": "s" * 300}, "at most 255 bytes"),
+        ({"session": "day1\nrun"}, "a control character"),
+    ],
+)
+async def test_a_recorder_swapped_to_a_session_it_cannot_make_is_refused_at_the_swap(
+    tmp_path: Path, params: dict[str, Any], message: str
+) -> None:
+    """Refused when swapped, as when loaded (it was refused only at the next start, the
+    recorder then in an error state): the running recorder is untouched."""
+    g = GraphBuilder("rec")
+    g.add("src", "counter", trigger={"timer": "50ms"})
+    g.add(
+        "rec",
+        "recorder",
+        params={"path": str(tmp_path), "start": False, "log_report": False},
+        inputs={"src.value": "src.value"},
+    )
+    async with Runtime(g.build(), clock=VirtualClock()) as rt:
+        before = rt.runner("rec").rnode
+        with pytest.raises((SwapError, ValueError), match=message):
+            await rt.swap("rec", "recorder", params)
+        assert rt.runner("rec").rnode is before
+
+
 # --- over the endpoint ----------------------------------------------------------------------
 
 
