@@ -443,6 +443,9 @@ class NodeFactory:
         # ``flowrt ctl reload``: a worker forked from a process that imported the module
         # before the edit must import it anew to run the edited code.
         self.reload = False
+        # The ports the graph wired, as the runtime's process knows them: a reload in a
+        # worker must keep them (the runtime never sees the edited class to check it).
+        self.ports = _ports(cls, params)
 
     @property
     def cls(self) -> type[Node]:
@@ -463,7 +466,7 @@ class NodeFactory:
             ref, state = self._cls_ref, self._params_state
         else:
             ref, state = _class_ref(self.cls), _portable(self._params)
-        return (_unpickle_factory, (ref, state, self.name, self.rtdb, self.reload))
+        return (_unpickle_factory, (ref, state, self.name, self.rtdb, self.reload, self.ports))
 
     def __call__(self) -> Node:
         if self.reload:
@@ -474,6 +477,12 @@ class NodeFactory:
             params = (
                 _construct(cls.Params, state) if isinstance(state, _ModelState) else self.params
             )
+            changed = _ports_changed(self.ports, _ports(cls, params))
+            if changed:  # as an inline node's reload is refused by the swap's port check
+                raise ImportError(
+                    f"the edit changes {self.name}'s ports ({changed}): a reload keeps a "
+                    "node's ports; restart the graph to wire new ones"
+                )
         else:
             cls, params = self.cls, self.params
         return make_node(cls, params, NodeContext(self.name, rtdb=self.rtdb))
@@ -604,11 +613,34 @@ def _construct(model: type[BaseModel], state: _ModelState) -> BaseModel:
 
 
 def _unpickle_factory(
-    ref: _ClassRef, state: Any, name: str, rtdb: RtdbHandle | None, reload: bool
+    ref: _ClassRef,
+    state: Any,
+    name: str,
+    rtdb: RtdbHandle | None,
+    reload: bool,
+    ports: tuple[frozenset[str], frozenset[str]],
 ) -> NodeFactory:
     """A factory from its pickled parts; its class and params are found at its first call."""
     factory = NodeFactory.__new__(NodeFactory)
     factory._cls, factory._params = None, None
     factory._cls_ref, factory._params_state = ref, state
-    factory.name, factory.rtdb, factory.reload = name, rtdb, reload
+    factory.name, factory.rtdb, factory.reload, factory.ports = name, rtdb, reload, ports
     return factory
+
+
+def _ports(cls: type[Node], params: Any) -> tuple[frozenset[str], frozenset[str]]:
+    """(input names, output names) of a node of ``cls`` with ``params``."""
+    outputs = {*cls.outputs, *cls.params_outputs(params)}
+    return frozenset(cls.inputs), frozenset(outputs)
+
+
+def _ports_changed(
+    old: tuple[frozenset[str], frozenset[str]], new: tuple[frozenset[str], frozenset[str]]
+) -> str:
+    """What differs, in words ("outputs +result -out"); empty when nothing does."""
+    said = []
+    for what, a, b in (("inputs", old[0], new[0]), ("outputs", old[1], new[1])):
+        diff = [f"+{p}" for p in sorted(b - a)] + [f"-{p}" for p in sorted(a - b)]
+        if diff:
+            said.append(f"{what} {' '.join(diff)}")
+    return "; ".join(said)

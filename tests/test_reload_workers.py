@@ -167,6 +167,31 @@ def test_a_reload_factory_imports_anew_and_a_broken_edit_is_one_line(mod: NodeMo
     assert f"{mod.path}, line" in text
 
 
+@pytest.mark.parametrize(
+    ("edit", "said"),
+    [
+        (("out = Output(Reading)", "result = Output(Reading)"), "outputs +result -out"),
+        (("value = Input(int)", "value = Input(int)\n    extra = Input(int)"), "inputs +extra"),
+    ],
+)
+def test_a_reload_in_a_worker_keeps_the_node_s_ports(
+    mod: NodeModule, edit: tuple[str, str], said: str
+) -> None:
+    """An edit that changes the node's ports is refused in its worker, as an inline node's
+    is by the swap's port check (the worker's reload said "reloaded", its result published
+    on the old output, the new one never wired)."""
+    old = importlib.import_module(mod.name)
+    factory = NodeFactory(old.Scale, old.Scale.Params(gain=2), "a")
+    factory.reload = True
+    mod.edit(2)
+    mod.path.write_text(mod.path.read_text().replace(*edit, 1))
+    shutil.rmtree(mod.path.parent / "__pycache__", ignore_errors=True)
+    with pytest.raises(ImportError) as info:
+        pickle.loads(pickle.dumps(factory))()
+    assert said in str(info.value)
+    assert "a reload keeps a node's ports" in str(info.value)
+
+
 async def test_inline_reload_leaves_the_module_s_other_nodes_running(mod: NodeModule) -> None:
     """Inline: ``a`` reloaded in the main process returns the edited code's values with its
     params carried over; ``b`` of the same class goes on with the old one, and ``c``, whose
