@@ -195,7 +195,7 @@ def ctl_main(args: argparse.Namespace) -> int:
 
 
 def _client(args: argparse.Namespace, timeout: float = 15.0) -> Any:
-    # 15 s: longer than the endpoint takes to answer a change (a 503 after 3 s queued, a
+    # 15 s: longer than the endpoint takes to answer a change (a 503 after 5 s queued, a
     # 504 after 10 s sent), so that the answer says whether it was applied
     """HTTP (``--url``), or Zenoh queries (``--zenoh ENDPOINT --key KEY``): the same API."""
     if args.zenoh:

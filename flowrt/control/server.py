@@ -91,7 +91,7 @@ MAX_CONNECTIONS = 256  # open connections at once; more are closed as they arriv
 REQUEST_TIMEOUT = 10.0  # seconds for a request's headers (from the previous one)
 FIRST_REQUEST_TIMEOUT = 2.0  # seconds a new connection has for its first request
 BODY_TIMEOUT = 5.0  # seconds for a request's body, once its headers are in (then 408)
-QUEUE_WAIT = 3.0  # seconds a change waits behind others before it is refused, not sent
+QUEUE_WAIT = 5.0  # seconds a change waits behind others before it is refused, not sent
 RESERVED = 8  # connections over the cap, kept for requests that carry the token
 MAX_BODY = 1 << 20  # bytes of a request body
 READ_MAX_AGE = 0.2  # seconds a read (stats, events, ...) is served from the server's cache
@@ -511,7 +511,8 @@ class _Gateway:
                     return _error(400, "bad request body: nested too deeply")
                 except (ValueError, ValidationError) as e:  # JSONDecodeError is a ValueError
                     return _error(400, f"bad request body: {one_line(e)}")
-                return _reply(*await self.change(route.op, body.model_dump(mode="json")))
+                status, answer = await self.change(route.op, body.model_dump(mode="json"))
+                return _reply(status, answer, {"Retry-After": "1"} if status == 503 else None)
 
             return post
 
@@ -545,10 +546,10 @@ def _int_query(request: web.Request, key: str, default: int) -> int:
     return value
 
 
-def _reply(status: int, body: bytes) -> web.Response:
+def _reply(status: int, body: bytes, headers: dict[str, str] | None = None) -> web.Response:
     from aiohttp import web
 
-    return web.Response(status=status, body=body, content_type="application/json")
+    return web.Response(status=status, body=body, content_type="application/json", headers=headers)
 
 
 def _error(status: int, message: str, headers: dict[str, str] | None = None) -> web.Response:
