@@ -566,3 +566,28 @@ async def test_a_log_cut_between_a_completion_and_its_outputs_does_not_diverge(
     assert report.log_cut
     assert not report.identical
     assert report.compared == sum(len(v) for v in log.outputs.values()) > 0
+
+
+async def test_a_repaired_log_is_never_identical(tmp_path: Path) -> None:
+    """``flowrt info --repair`` makes a cut file whole, not what the cut lost: its log still
+    says so (it replayed "identical", log_cut null, exit 0)."""
+    from flowrt.recording.reader import repair
+
+    graph, session = await record(tmp_path, case_timers)
+    seen = [0]
+
+    def twentieth(topic: str, r: dict[str, Any]) -> bool:
+        seen[0] += 1
+        return seen[0] == 20
+
+    session = _cut_after(session, twentieth)
+    repair(next(session.glob("*.mcap")))
+    log = read_log(session)
+    assert not log.closed_cleanly
+    assert log.damage is not None
+    assert log.damage.startswith("repaired after ")
+    async with flowrt.replay(session, graph, inline=True) as rp:
+        report = await rp.run()
+    assert report.first_divergence is None
+    assert not report.identical
+    assert report.log_cut == log.damage

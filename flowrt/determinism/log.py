@@ -294,6 +294,10 @@ def read_log(path: str | Path) -> DeterminismLog:
         metadata, log.graph = facts["metadata"], facts["graph"]
         if facts["start"] is not None:
             log.duration = (facts["end"] - facts["start"]) / 1e9
+    repair = metadata.get("flowrt.repair")
+    if repair is not None:  # `flowrt info --repair` made it whole, but what the cut lost
+        log.closed_cleanly = False  # is lost: never "identical"
+        log.damage = f"repaired after {repair.get('damage') or 'damage'}"
     meta = metadata.get(METADATA)
     if meta is None:
         raise LogError(
