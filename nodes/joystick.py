@@ -21,7 +21,8 @@ node's log and events).
 column ``time`` (seconds from the start) first, then one column per axis (``x`` or
 ``axis:x``) and per button (``button:a``). At each activation the newest row whose time has
 come is published; after the last row ``end`` says what happens: ``hold`` (keep publishing
-it), ``loop`` (start again) or ``silent`` (publish nothing: a lost link, for tests).
+it), ``loop`` (start again once the last row has been held as long as the gap before it)
+or ``silent`` (publish nothing: a lost link, for tests).
 
 ``web``: the live view (``display`` node) has a joystick panel: tick "drive from this page",
 then drag the on-screen stick (axes ``x``, ``y``), or use the keyboard (arrows or WASD for the
@@ -36,6 +37,7 @@ anyone at the page ends well.
 
 from __future__ import annotations
 
+import bisect
 import contextlib
 import csv
 import io
@@ -154,6 +156,7 @@ class Joystick(Node):
         self.buttons: dict[str, bool] = {}
         self.ranges: dict[int, tuple[float, float]] = {}
         self.script: list[tuple[float, dict[str, float], dict[str, bool]]] = []
+        self.times: list[float] = []  # each row's time: found by bisection, not a scan
         self.row = -1
         self.t0: float | None = None
         self.refused = Refusals(
@@ -163,6 +166,7 @@ class Joystick(Node):
             self.script = load_script(rest)  # a bad file fails set-up: one clear reason
             if not self.script:
                 raise ValueError(f"{rest}: no rows")
+            self.times = [row[0] for row in self.script]
 
     def teardown(self) -> None:
         self._close()
@@ -178,20 +182,20 @@ class Joystick(Node):
     # --- script -------------------------------------------------------------------------
 
     def _script(self, now: float) -> JoyState | None:
+        """The newest row whose time has come. Looping, the last row is held as long as the
+        gap before it, then row 0 again: it was held for 1 ms, so a last row that lets go of
+        the deadman was never published and the row before it (driving) went on for good."""
         if self.t0 is None:
             self.t0 = now
         t = now - self.t0
-        last = self.script[-1][0]
+        times = self.times
+        last = times[-1]
         if t > last + 1e-9 and self.params.end == "silent" and self.row == len(self.script) - 1:
             return None
         if self.params.end == "loop" and last > 0:
-            t %= last + 1e-3
-        while self.row + 1 < len(self.script) and self.script[self.row + 1][0] <= t + 1e-9:
-            self.row += 1
-        if self.params.end == "loop" and self.row == len(self.script) - 1 and t < last:
-            self.row = -1
-            while self.row + 1 < len(self.script) and self.script[self.row + 1][0] <= t + 1e-9:
-                self.row += 1
+            gap = last - times[-2] if len(times) > 1 else last
+            t %= last + max(gap, 1e-3)
+        self.row = bisect.bisect_right(times, t + 1e-9) - 1
         if self.row < 0:
             return None
         _, axes, buttons = self.script[self.row]

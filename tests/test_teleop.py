@@ -425,3 +425,28 @@ async def test_a_web_joystick_without_a_page_is_waiting_not_an_error() -> None:
         assert (node.state, rt.failures()) == ("waiting", [])
         assert "stopped sending" in node.reason
     assert node.errors == 0
+
+
+@pytest.mark.parametrize(
+    ("end", "expected"),
+    [
+        # the last row (the deadman let go) held as long as the gap before it, then row 0
+        ("loop", [0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.0]),
+        ("hold", [0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]),
+        ("silent", [0.0, 0.0, 0.5, 0.5, 0.0, None, None, None, None, None, None]),
+    ],
+)
+def test_a_script_s_last_row_is_published_whatever_its_end(
+    tmp_path: Path, end: str, expected: list[float | None]
+) -> None:
+    """A looping script's last row was held 1 ms: never published, the row before it
+    (driving, deadman held) went on for the rest of the run."""
+    script = tmp_path / "drive.csv"
+    script.write_text("time,y,button:tl\n0,0,0\n0.2,0.5,1\n0.4,0,0\n")
+    h = NodeHarness(Joystick, {"source": f"script:{script}", "end": end})
+    seen = []
+    for k in range(11):
+        h.ctx.time = 10.0 + k * 0.1 + 0.01
+        out = h.process()
+        seen.append(None if out is None else out.axes["y"])
+    assert seen == expected
