@@ -317,6 +317,11 @@ class Node:
     swap_folders: ClassVar[Mapping[str, str]] = {}
     """Path params in ``swappable`` -> the folder param each is confined to (a recorder's
     ``session`` inside its ``path``): relative, without ``..``, resolved under that folder."""
+    timing_fixed: ClassVar[bool] = False
+    """True for nodes that keep a robot safe (an arbiter, an e-stop): their timing is the
+    graph file's (its modes included); the control endpoint refuses to change it (403), as it
+    refuses their safety params: a local caller disabling the arbiter left the robot on its
+    last command, a Stop on the page no longer reaching it."""
     external: ClassVar[bool] = False
     """True for nodes whose outputs come from outside the graph although they have inputs (a
     CAN bus: frames received while it transmits its inputs). A deterministic recording stores

@@ -239,6 +239,7 @@ class Arbiter(Node):
     # over the control endpoint (flowrt kinds): weights and priorities, as modes set them;
     # never what keeps the robot safe (timeout, locks, zero, limits)
     swappable = frozenset({"mode", "sources"})
+    timing_fixed = True  # disabled or slowed, the robot keeps its last command
 
     Params = ArbiterParams
     any_inputs = Input(object, required=False, policy="latest", doc="command sources and locks")

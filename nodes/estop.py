@@ -51,6 +51,7 @@ class Estop(Node):
     """A latching stop from the live view, published at ``rate_hz`` (see the module doc)."""
 
     Params = EstopParams
+    timing_fixed = True  # disabled, no Stop reaches the arbiter (its lock's heartbeat aside)
     output: Output[dict[str, Any]] = Output(
         dict, doc="{active, release, since}: the latched stop, as a heartbeat"
     )
@@ -64,21 +65,46 @@ class Estop(Node):
         self.release: str | None = None
         self.since = time.time()
         self.applied: str | None = None  # id of the last page action applied
+        self.read_once = False  # the first read takes the newest action only
         self.presses = 0
         self.releases = 0
+        self.refused = 0  # releases sent in the same period as a Stop (never applied)
 
     def process(self) -> dict[str, Any]:
-        self._apply(self.ctx.rtdb.value(WEB_ESTOP))
+        for action, stopped in self._new_actions():
+            self._apply(action, stopped)
         return {"active": self.active, "release": self.release, "since": self.since}
 
-    def _apply(self, action: Any) -> None:
-        """A new action of the page, once: stop or release (anything else is ignored)."""
-        if not isinstance(action, Mapping) or action.get("id") == self.applied:
-            return
+    def _new_actions(self) -> list[tuple[Mapping[str, Any], bool]]:
+        """The page's actions since the last one applied, oldest first, each with whether a
+        Stop came before it in this batch. Only the newest was read: a Stop followed within
+        one period by another page's Release was never applied, nor counted."""
+        history = [r.value for r in self.ctx.rtdb.history(WEB_ESTOP)]
+        actions = [a for a in history if isinstance(a, Mapping) and isinstance(a.get("id"), str)]
+        ids = [a["id"] for a in actions]
+        if not self.read_once:  # a fresh instance: the page's state now, not its past
+            self.read_once = True
+            actions = actions[-1:]
+        elif self.applied in ids:
+            actions = actions[ids.index(self.applied) + 1 :]
+        out, stopped = [], False
+        for a in actions:
+            out.append((a, stopped))
+            stopped = stopped or a.get("action") == "stop"
+        return out
+
+    def _apply(self, action: Mapping[str, Any], stopped: bool) -> None:
+        """A new action of the page, once: stop or release (anything else is ignored). A
+        Release sent in the same period as a Stop before it is refused (counted): its sender
+        had not seen that Stop, and the Stop is published at least once."""
         what, aid = action.get("action"), action.get("id")
         if not isinstance(aid, str) or what not in ("stop", "release"):
             return
         self.applied = aid
+        if what == "release" and stopped:
+            self.refused += 1
+            self.ctx.log.warning("e-stop release refused: a Stop came in the same instant")
+            return
         stop = what == "stop"
         if stop:
             self.presses += 1
@@ -96,4 +122,5 @@ class Estop(Node):
             "since": self.since,
             "presses": self.presses,
             "releases": self.releases,
+            "releases_refused": self.refused,
         }

@@ -230,3 +230,33 @@ async def test_post_record_refuses_what_the_recorders_cannot_obey(
         assert bool(commands) == (status == 200)  # a refused one is never written
         if status == 409:
             assert reply["sessions"] == said
+
+
+@pytest.mark.parametrize(
+    "change",
+    [{"enabled": False}, {"timer": 3600000}, {"phase": 10}, {"priority": 5}],
+)
+async def test_the_timing_of_what_keeps_a_robot_safe_is_the_graph_file_s(
+    change: dict[str, Any],
+) -> None:
+    """A local caller disabled the arbiter (or set its timer to an hour) over the endpoint:
+    the robot kept its last command, the page's Stop no longer reaching it. Refused (403),
+    as the arbiter's safety params are; the embedding API (the program's own) may."""
+    g = GraphBuilder("safe")
+    g.add("src", "counter", trigger={"timer": "50ms"})
+    g.add("stop", "estop")
+    g.add(
+        "drive",
+        "arbiter",
+        params={"sources": {"a": {}}, "zero": {"vx": 0.0}, "timeout": "300ms"},
+        trigger={"timer": "50ms"},
+    )
+    async with Runtime(g.build(), clock=VirtualClock()) as rt:
+        for node in ("drive", "stop"):
+            status, reply = await ask(Server(rt), "timing", {"node": node, **change})
+            assert status == 403, reply
+            assert "keeps the robot safe" in reply["error"]
+            assert rt.stats().node(node).enabled
+        status, _ = await ask(Server(rt), "timing", {"node": "src", "priority": 7})
+        assert status == 200
+        rt.set_timing("drive", priority=30)  # the program's own API: its choice

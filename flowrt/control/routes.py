@@ -145,6 +145,13 @@ async def _mode(server: Answering, req: ModeRequest) -> Answer:
 
 
 async def _timing(server: Answering, req: TimingRequest) -> Answer:
+    runner = server.rt.scheduler.runners.get(req.node)  # unknown: apply_timing says so
+    rnode = None if runner is None else runner.rnode
+    if rnode is not None and rnode.cls.timing_fixed:
+        raise SwapRefused(
+            f"{req.node}: a {rnode.spec.kind} keeps the robot safe: its timing is the graph "
+            "file's (its modes included), not changed over the control endpoint"
+        )
     change = server.rt.apply_timing(req.node, req.change(), origin="control", force=req.force)
     return 200, dumps({"node": req.node, "change": change})
 
