@@ -584,3 +584,29 @@ async def test_a_change_answer_says_whether_it_was_applied(
     assert got == status, body
     assert sent == ([] if status == 503 else ["mode"])
     assert not gateway._changes.locked() or held is not None
+
+
+@pytest.mark.parametrize(
+    ("chunks", "late"),
+    [
+        ([b"GET /stats HTTP/1.1\r\nHo"], True),  # still sending its headers: closed
+        ([b"GET /stats HTTP/1.1\r\nHost: x\r\n\r\n"], False),  # in: answered, however late
+        ([b"POST /mode HTTP/1.1\r\nHost: x\r\n\r", b"\n{"], False),  # the blank line split
+        ([b"GET / HTTP/1.1\r\n", b"\r", b"\n"], False),
+    ],
+)
+def test_a_request_whose_headers_are_in_is_never_swept(chunks: list[bytes], late: bool) -> None:
+    """The endpoint's process runs at nice 19: on a busy machine it read a request only
+    after the sweeper's 2 s were up, closed it unanswered, then applied the change anyway.
+    A connection is closed for lateness only while its headers are still coming."""
+    import time
+
+    from flowrt.control.serving import Conn
+
+    conn = Conn(transport=None, deadline=time.monotonic() - 1.0)  # type: ignore[arg-type]
+    for chunk in chunks:
+        conn.received(chunk)
+    assert conn.late(time.monotonic()) is late
+    conn.answered(10.0)  # its answer sent: the next request has its own time
+    assert not conn.headers_in
+    assert not conn.late(time.monotonic())

@@ -335,7 +335,11 @@ class _Gateway:
             the slots: they have FIRST_REQUEST_TIMEOUT, and are first to go); else one of
             RESERVED more, which only a request carrying the token keeps."""
             if gateway.conns.count() >= gateway.max_connections:
-                idle = [c for c in gateway.conns.values() if not c.requests and not c.busy]
+                idle = [
+                    c
+                    for c in gateway.conns.values()
+                    if not c.requests and not c.busy and not c.headers_in
+                ]
                 if idle:
                     oldest = min(idle, key=lambda c: c.deadline)
                     gateway.conns.pop(oldest.transport, None)
@@ -381,7 +385,7 @@ class _Gateway:
             await asyncio.sleep(min(0.5, self.timeout / 4))
             now = time.monotonic()
             for conn in list(self.conns.values()):
-                if not conn.busy and now > conn.deadline:
+                if conn.late(now):
                     self.timed_out += 1
                     conn.transport.close()
 
@@ -474,6 +478,10 @@ class _Gateway:
                         )
                 elif not is_loopback(hostname(request.host)):
                     return _error(403, f"Host {request.host!r} is not a loopback name")
+                if request.transport is None or request.transport.is_closing():
+                    # closed before its turn came (evicted, the client gone): no answer can
+                    # reach it, so nothing is done either (a change applied unanswered)
+                    return _error(503, "the connection closed before the request was read")
                 if request.method == "POST" and request.content_type != "application/json":
                     return _error(415, "send a JSON body with Content-Type: application/json")
                 if conn is not None and request.method == "GET":
@@ -487,7 +495,7 @@ class _Gateway:
             finally:
                 if conn is not None:
                     conn.busy -= 1
-                    conn.deadline = time.monotonic() + self.timeout
+                    conn.answered(self.timeout)
 
         return guard
 

@@ -121,6 +121,27 @@ class Conn:
     next_read: float = 0.0  # for servers that pace reads: none answered before this
     requests: int = 0  # requests answered on it: 0 = it has not earned its slot yet
     reserve: bool = False  # taken over the cap: only a request with the token may keep it
+    # A request's headers are all in (their blank line seen): it is answered, however late
+    # this low-priority process gets to it; only a client still sending headers times out.
+    headers_in: bool = False
+    tail: bytes = b""  # the last bytes received: a blank line split across two reads
+
+    def received(self, data: bytes) -> None:
+        if not self.headers_in:
+            seen = self.tail + data
+            self.headers_in = b"\r\n\r\n" in seen
+            self.tail = seen[-3:]
+
+    def answered(self, timeout: float) -> None:
+        """A request done: the next one has ``timeout`` for its headers."""
+        import time
+
+        self.headers_in, self.tail = False, b""
+        self.deadline = time.monotonic() + timeout
+
+    def late(self, now: float) -> bool:
+        """Past its deadline with no request under way: the sweeper closes it."""
+        return not self.busy and not self.headers_in and now > self.deadline
 
 
 class Conns(dict[asyncio.BaseTransport, Conn]):
@@ -173,6 +194,9 @@ class Tracked(asyncio.Protocol):
         self.inner.connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
+        conn = self.conns.get(self.transport) if self.transport is not None else None
+        if conn is not None:
+            conn.received(data)
         self.inner.data_received(data)
 
     def eof_received(self) -> bool | None:

@@ -145,7 +145,7 @@ class ViewServer:
             """At the cap, the connection idle longest (no request running) makes room:
             streams are capped below the cap, so the page and the API always find one."""
             if self.conns.count() >= self.max_clients:
-                idle = [c for c in self.conns.values() if not c.busy]
+                idle = [c for c in self.conns.values() if not c.busy and not c.headers_in]
                 if not idle:
                     self.refused += 1
                     return Refuse()
@@ -216,7 +216,7 @@ class ViewServer:
             await asyncio.sleep(min(1.0, self.header_timeout / 4))
             now = time.monotonic()
             for conn in list(self.conns.values()):
-                if not conn.busy and now > conn.deadline:
+                if conn.late(now):
                     conn.transport.close()
 
     # --- who may connect ----------------------------------------------------------------------
@@ -248,7 +248,7 @@ class ViewServer:
             finally:
                 if conn is not None:
                     conn.busy -= 1
-                    conn.deadline = time.monotonic() + self.header_timeout
+                    conn.answered(self.header_timeout)
 
         return guard
 
