@@ -126,3 +126,27 @@ def test_every_argument_has_help() -> None:
 
     walk(build_parser(), "")
     assert not missing, missing
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["kinds", "--json"], ["schema", "stats"], ["validate", "graphs/cambada.yaml", "--json"]],
+)
+def test_a_reader_that_closed_the_pipe_ends_the_command_quietly(args: list[str]) -> None:
+    """``flowrt ... --json | head -c 50``: a BrokenPipeError traceback (3 runs of 6). The
+    pipe's reading end is closed before the command writes: the first write fails."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        proc = subprocess.run(
+            [sys.executable, "-m", "flowrt.cli", *args],
+            cwd=REPO,
+            stdout=write,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=60,
+        )
+    finally:
+        os.close(write)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode == 1

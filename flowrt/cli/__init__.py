@@ -29,7 +29,27 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Exit codes: see :mod:`flowrt.cli.common`; ``--json``: see :mod:`flowrt.cli.json_output`."""
+    """Exit codes: see :mod:`flowrt.cli.common`; ``--json``: see :mod:`flowrt.cli.json_output`.
+
+    A reader that closes the pipe early (``| head -c 50``) ends the command quietly, exit 1:
+    what it read is all it wanted, and a traceback would be noise on the terminal."""
+    try:
+        return _documented(argv)
+    except BrokenPipeError:
+        _quiet_stdout()
+        return 1
+
+
+def _quiet_stdout() -> None:
+    """Standard output pointed at /dev/null: the interpreter's last flush cannot fail again."""
+    import os
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.close(devnull)
+
+
+def _documented(argv: list[str] | None) -> int:
     import sys
 
     given = list(sys.argv[1:] if argv is None else argv)
