@@ -341,3 +341,46 @@ def test_segments_of_a_killed_run_are_reclaimed_with_one_line(
         r"reclaimed \d+ shared-memory segments? left in /dev/shm by a runtime that was killed",
         lines[0],
     )
+
+
+def test_after_the_final_output_a_signal_is_ignored_not_fatal() -> None:
+    """The interpreter's finalization puts a Python handler back to the default action: a
+    second Ctrl-C 0.2-0.5 s after the final table killed the run (exit 130) that had
+    reported exit 0. At exit the handlers become SIG_IGN, which finalization leaves."""
+    from flowrt.cli.signals import StopSignals
+
+    saved = {s: signal.getsignal(s) for s in StopSignals.SIGNALS}
+    try:
+        stop = StopSignals(lambda: "the run", lambda: "")
+        stop.install()
+        assert signal.getsignal(signal.SIGINT) == stop._handler
+        stop._ignore_from_now()  # what atexit calls
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGTERM) is signal.SIG_IGN
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+
+
+def test_a_signal_after_the_set_up_was_cut_is_still_stopping() -> None:
+    """A second SIGTERM while a cut set-up is undone said "stopping the run (drain, then
+    teardown)": there is no run to drain."""
+    import asyncio
+
+    from flowrt import _startup
+    from flowrt.cli.signals import StopSignals
+
+    said: list[str] = []
+    phases = iter(["set-up (in setup() of slow)", "the run"])
+    stop = StopSignals(lambda: next(phases), lambda: "")
+    loop = asyncio.new_event_loop()
+    stop.loop = loop
+    _startup.listeners.append(said.append)
+    try:
+        stop(signal.SIGTERM)
+        stop(signal.SIGTERM)
+    finally:
+        _startup.listeners.remove(said.append)
+        loop.close()
+    assert "during set-up (in setup() of slow): stopping, exit 143" in said[0]
+    assert "still stopping" in said[1]

@@ -20,6 +20,7 @@ SIGHUP ignored when the command started (``nohup flowrt run ...``) stays ignored
 from __future__ import annotations
 
 import asyncio
+import atexit
 import os
 import signal
 from collections.abc import Callable
@@ -54,6 +55,16 @@ class StopSignals:
             if sig == signal.SIGHUP and _startup.hup_ignored:
                 continue  # nohup: the user asked for the run to outlive the terminal
             signal.signal(sig, self._handler)
+        atexit.register(self._ignore_from_now)
+
+    def _ignore_from_now(self) -> None:
+        """At exit, after the final output: a signal now is ignored. The interpreter's
+        finalization puts a Python handler back to the default action (an ignored one it
+        leaves), and a second Ctrl-C in its 0.2-0.5 s killed the process (exit 130) after
+        the run had reported exit 0."""
+        for sig in self.SIGNALS:
+            if signal.getsignal(sig) == self._handler:
+                signal.signal(sig, signal.SIG_IGN)
 
     def _handler(self, signum: int, frame: Any) -> None:
         self(signum)
@@ -67,7 +78,9 @@ class StopSignals:
             _say(f"{self.prog}: {name}: forced exit")
             os._exit(128 + sig)
         loop = self.loop
-        if loop is not None and not loop.is_closed():
+        if self.in_setup is not None:  # the set-up is being undone: not a run to drain
+            _say(f"{self.prog}: {name}: still stopping; a third signal forces the exit")
+        elif loop is not None and not loop.is_closed():
             what = self.phase()
             self._say_phase(name, sig, what)
             if what != "teardown":
@@ -80,11 +93,8 @@ class StopSignals:
 
     def _say_phase(self, name: str, sig: int, what: str) -> None:
         if what.startswith(("set-up", "the start")):
-            if self.in_setup is None:
-                self.in_setup = sig
-                _say(f"{self.prog}: {name} during {what}: stopping, exit {128 + sig}")
-            else:
-                _say(f"{self.prog}: {name}: still stopping; a third signal forces the exit")
+            self.in_setup = sig
+            _say(f"{self.prog}: {name} during {what}: stopping, exit {128 + sig}")
         elif what == "the run":
             _say(f"{self.prog}: {name}: stopping the run (drain, then teardown)")
         elif what == "the drain":
