@@ -9,6 +9,7 @@ the server process forwards.
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -196,40 +197,42 @@ def test_one_module_owns_the_recorders_command_key() -> None:
     assert spelled == ["flowrt/rtdb.py"]
 
 
-@pytest.mark.parametrize(
-    ("said", "action", "status"),
-    [
-        ({"rec": "/data/run_001"}, "start", 409),  # already recording
-        ({"rec": ""}, "start", 200),
-        ({"rec": ""}, "stop", 409),  # not recording
-        ({"rec": "/data/run_001"}, "stop", 200),
-    ],
-)
-async def test_post_record_refuses_what_the_recorders_cannot_obey(
-    said: dict[str, str], action: str, status: int, tmp_path: Path
-) -> None:
-    """A start while recording, a stop while stopped: 409 with each recorder's session, as
-    the operator page's API and ``flowrt ctl`` say (it answered 200 and did nothing)."""
-    from flowrt.rtdb import RECORDING_SESSION
+async def test_post_record_answers_once_the_recorders_obeyed(tmp_path: Path) -> None:
+    """POST /record answered 200 before the recorder had done anything: two starts at once
+    were both 200 with one session made, a start while recording "done". Now it is
+    answered once the recorder obeyed, one start or stop at a time (with the operator
+    page's): one of two concurrent starts records, the other is 409."""
+    import asyncio
 
     g = GraphBuilder("rec")
-    g.add("src", "counter", trigger={"timer": "50ms"})
+    g.add("src", "counter", trigger={"timer": "20ms"})
     g.add(
         "rec",
         "recorder",
-        params={"path": str(tmp_path), "start": False, "log_report": False},
+        params={"path": str(tmp_path), "start": False, "log_report": False, "writer": "thread"},
         inputs={"src.value": "src.value"},
     )
-    async with Runtime(g.build(), clock=VirtualClock()) as rt:
-        print(rt.rtdb.history(RECORDING_SESSION + "rec", 1))
-        for node, session in said.items():
-            rt.rtdb.write(RECORDING_SESSION + node, session)
-        got, reply = await ask(Server(rt), "record", {"action": action})
-        assert got == status, reply
-        commands = rt.rtdb.history(RECORD_COMMAND + "rec", 1)
-        assert bool(commands) == (status == 200)  # a refused one is never written
-        if status == 409:
-            assert reply["sessions"] == said
+    async with Runtime(g.build()) as rt:
+        server = Server(rt)
+        await asyncio.sleep(0.2)  # the recorder says it is stopped
+        one, two = await asyncio.gather(
+            ask(server, "record", {"action": "start", "name": "one"}),
+            ask(server, "record", {"action": "start", "name": "two"}),
+        )
+        assert sorted([one[0], two[0]]) == [200, 409], (one, two)
+        won, lost = (one, two) if one[0] == 200 else (two, one)
+        session = won[1]["sessions"]["rec"]
+        assert session.endswith(("one_001", "two_001"))
+        assert "already recording: rec into" in lost[1]["error"]
+        assert os.listdir(tmp_path) == [session.rsplit("/", 1)[-1]]
+        status, stopped = await ask(server, "record", {"action": "stop"})
+        assert (status, stopped["sessions"]) == (200, {"rec": session})
+        status, again = await ask(server, "record", {"action": "stop"})
+        assert (status, again["error"]) == (409, "not recording")
+        status, unnamed = await ask(server, "record", {"action": "start"})
+        assert status == 200, unnamed
+        assert unnamed["nodes"] == ["rec"]
+        await ask(server, "record", {"action": "stop"})
 
 
 @pytest.mark.parametrize(

@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING, Any, Literal, Protocol
 from pydantic import BaseModel, ValidationError
 
 from ..graph.spec import merge_params
-from ..rtdb import RECORD_COMMAND, RECORDING_SESSION
 from ..runtime._hotswap import SwapError
+from . import recorders as commands
 from ._swap_policy import SwapRefused, UnknownParams, check_params, confined
 from .wire import (
     ModeRequest,
@@ -37,6 +37,8 @@ if TYPE_CHECKING:
     from ..runtime._runtime import Runtime
 
 log = logging.getLogger("flowrt.control.server")
+
+RECORD_WAIT = 8.0  # seconds POST /record waits for the recorders (the gateway's answer: 10)
 
 Answer = tuple[int, bytes]  # HTTP status, JSON body
 
@@ -174,6 +176,8 @@ async def _rtdb_record(server: Answering, args: dict[str, Any]) -> Answer:
 
 
 async def _record(server: Answering, req: RecordRequest) -> Answer:
+    """Answered once the recorders obeyed (under the runtime's one turn with the operator
+    page: :mod:`flowrt.recording.commands`), so that every answer says what was done."""
     nodes = server.rt.graph.spec.nodes
     recorders = [n for n, spec in nodes.items() if spec.kind == "recorder"]
     if req.node is not None and req.node not in recorders:
@@ -181,25 +185,14 @@ async def _record(server: Answering, req: RecordRequest) -> Answer:
     targets = [req.node] if req.node is not None else recorders
     if not targets:
         raise KeyError("the graph has no recorder node (add one, or use flowrt record)")
-    said = {n: _session(server, n) for n in targets}
-    busy = {n: s for n, s in said.items() if s}
-    if req.action == "start" and busy:  # as the operator page and `flowrt ctl` refuse it
-        where = ", ".join(f"{n} into {s}" for n, s in busy.items())
-        return 409, dumps({"error": f"already recording: {where}", "sessions": said})
-    if req.action == "stop" and any(s is not None for s in said.values()) and not busy:
-        return 409, dumps({"error": "not recording", "sessions": said})
-    command: Any = req.action
-    if req.action == "start" and req.name is not None:
-        command = {"action": "start", "name": req.name}
-    for name in targets:
-        server.rt.rtdb.write(RECORD_COMMAND + name, command)
-    return 200, dumps({"action": req.action, "nodes": targets})
-
-
-def _session(server: Answering, node: str) -> str | None:
-    """The session a recorder says it records into (``""``: stopped; None: said nothing yet)."""
-    last = server.rt.rtdb.history(RECORDING_SESSION + node, 1)
-    return str(last[-1].value or "") if last else None
+    rtdb = server.rt.rtdb
+    async with commands.turn(rtdb):
+        result = await commands.obey(rtdb, req.action, req.name, RECORD_WAIT, targets)
+    status = int(result.pop("status"))
+    if status == 404:  # recorders that have not said anything yet: they cannot obey
+        result["error"] = f"{', '.join(targets)} not running yet: try again"
+        status = 409
+    return status, dumps({"action": req.action, "nodes": targets, **result})
 
 
 async def _swap(server: Answering, req: SwapRequest) -> Answer:

@@ -80,6 +80,7 @@ from typing import Any
 
 from flowrt import Frame, Input, InputTrigger, Node
 from flowrt.control import serving
+from flowrt.control.recorders import turn
 from flowrt.system import _spawned as spawned
 
 from . import record as operator_record
@@ -229,7 +230,6 @@ class Display(Node):
         self._proc: Any = None
         self._task: asyncio.Task[None] | None = None
         self._calls: set[asyncio.Task[None]] = set()  # the server's requests being answered
-        self._record_turn = asyncio.Lock()  # one start or stop of the recorders at a time
         host, port = self.params.host, self.params.port
         self.url = ""
         self.open_url = ""  # the URL to open: with ?token= when the view has one
@@ -343,9 +343,8 @@ class Display(Node):
                 elif op == "estop":  # the page's e-stop panel: for an `estop` node
                     self.ctx.rtdb.write(WEB_ESTOP, header["value"])
                 elif op == "record":  # the record panel: answered when the recorders have
-                    answer = operator_record.answer(
-                        self.ctx.rtdb, header, self._send, self._record_turn
-                    )
+                    rtdb = self.ctx.rtdb  # one turn with the control endpoint's POST /record
+                    answer = operator_record.answer(rtdb, header, self._send, turn(rtdb))
                     task = asyncio.get_running_loop().create_task(answer)
                     self._calls.add(task)
                     task.add_done_callback(self._calls.discard)

@@ -31,6 +31,7 @@ from typing import Any
 
 from aiohttp import web
 
+from flowrt.control.recorders import obey, recorders
 from flowrt.rtdb import RECORD_COMMAND, RECORDING_FOLDER, RECORDING_SESSION
 
 from .sessions import SESSION_FILE, session_length, valid_name
@@ -48,11 +49,6 @@ Call = Callable[..., Awaitable[dict[str, Any]]]
 
 
 # --- the runtime's side -------------------------------------------------------------------
-
-
-def recorders(rtdb: Any) -> list[str]:
-    """The recorder nodes of the running graph: those that publish their state."""
-    return sorted(n[len(STATUS) :] for n in rtdb.names() if n.startswith(STATUS))
 
 
 def state(rtdb: Any) -> dict[str, Any]:
@@ -74,71 +70,6 @@ def state(rtdb: Any) -> dict[str, Any]:
     return {"recording": rows, "recordings": folders}
 
 
-async def obey(rtdb: Any, action: str, name: Any, wait: float = OBEY_WAIT) -> dict[str, Any]:
-    """Start (``name``: the session's prefix) or stop every recorder, and wait until each says
-    it did. ``{"status": 200, "sessions": {node: folder}}`` or ``{"status", "error"}``.
-
-    Callers are serialised by the display node (:func:`answer`); a command written meanwhile
-    by another client (``flowrt ctl record``) ends the wait with 409 and the state as it is,
-    never a wait for a state that will not come."""
-    nodes = recorders(rtdb)
-    if not nodes:
-        return {
-            "status": 404,
-            "error": "the graph has no recorder (run it with --recordings DIR, or add one)",
-        }
-    current = {n: rtdb.value(STATUS + n, "") for n in nodes}
-    if action == "start":
-        if not isinstance(name, str) or not valid_name(name):
-            return {"status": 400, "error": "name: letters, digits, _ and - (at most 64)"}
-        busy = {n: s for n, s in current.items() if s}
-        if busy:
-            where = ", ".join(f"{n} into {Path(s).name}" for n, s in busy.items())
-            return {"status": 409, "error": f"already recording: {where}"}
-        targets, command = nodes, {"action": "start", "name": name}
-    elif action == "stop":
-        targets = [n for n, s in current.items() if s]
-        if not targets:
-            return {"status": 409, "error": "not recording"}
-        command = "stop"  # type: ignore[assignment]
-    else:
-        return {"status": 400, "error": "action: start or stop"}
-    ours: dict[str, int] = {}
-    for node in targets:
-        rtdb.write(COMMAND + node, command)
-        rec = rtdb.read(COMMAND + node)
-        ours[node] = rec.seq if rec is not None else -1
-    loop = asyncio.get_running_loop()
-    end = loop.time() + wait
-    while True:
-        now = {n: rtdb.value(STATUS + n, "") for n in targets}
-        if all(bool(s) == (action == "start") for s in now.values()):
-            break
-        others = [n for n in targets if _seq(rtdb, COMMAND + n) != ours[n]]
-        if others:
-            return {
-                "status": 409,
-                "error": f"another client changed the recording of {', '.join(others)} meanwhile",
-                "sessions": now,
-            }
-        if loop.time() > end:
-            late = [n for n, s in now.items() if bool(s) != (action == "start")]
-            # Not a gateway failure: the command stands and the recorder obeys when it can
-            # (its state is in GET /api/record); the caller is told, in time.
-            return {
-                "status": 409 if action == "stop" else 202,
-                "error": f"{', '.join(late)} did not {action} within {wait:g} s; it will",
-                "sessions": now,
-            }
-        await asyncio.sleep(0.05)
-    return {"status": 200, "sessions": now if action == "start" else current}
-
-
-def _seq(rtdb: Any, name: str) -> int:
-    rec = rtdb.read(name)
-    return rec.seq if rec is not None else -1
-
-
 async def answer(
     rtdb: Any,
     header: dict[str, Any],
@@ -149,9 +80,14 @@ async def answer(
     at a time under ``turn`` (two operators, a double click in two tabs)."""
     wait = header.get("wait")
     wait = float(wait) if isinstance(wait, int | float) and 0 < wait <= OBEY_WAIT else OBEY_WAIT
+    action, name = str(header.get("action")), header.get("name")
+    if action == "start" and not isinstance(name, str):  # the page always names its session
+        result = {"status": 400, "error": "name: letters, digits, _ and - (at most 64)"}
+        send({"op": "reply", "id": header.get("id"), "result": result})
+        return
     try:
         async with turn if turn is not None else contextlib.nullcontext():
-            result = await obey(rtdb, str(header.get("action")), header.get("name"), wait)
+            result = await obey(rtdb, action, name, wait)
     except Exception as e:  # an RTDB that cannot be written: the page says why
         result = {"status": 500, "error": f"{type(e).__name__}: {e}"}
     send({"op": "reply", "id": header.get("id"), "result": result})
