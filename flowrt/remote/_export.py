@@ -81,8 +81,12 @@ class ExportSender:
         self.zid = zid
         self._mono0, self._wall0 = time.monotonic(), time.time()  # capture time to wall clock
         self._book = StreamBook(epoch_offset=self._wall0 - self._mono0)  # the recorder's
+        # The stream's start in every header (whole seconds, floored: the stream looks older
+        # than it is, never younger): an importer that first hears it at sequence number N
+        # counts the N values before as lost only if the stream began after it listened.
+        self._started = int(self._wall0)
         self._ids = header_ids(stream, zid)
-        self._frames = FrameHeaders(stream, zid)  # raw frames' headers
+        self._frames = FrameHeaders(stream, zid, self._started)  # raw frames' headers
         self.shm = ShmFrames() if shm else None  # raw frames' shared buffers (sender thread)
         self._jobs: queue.SimpleQueue[tuple[Export, Any] | None] = queue.SimpleQueue()
         self._thread: threading.Thread | None = None
@@ -160,7 +164,7 @@ class ExportSender:
         if sent is None:  # one per schema: the Zenoh encoding and header made once, not per put
             json_ = msg.schema.message_encoding == "json"
             sent = exp.encodings[zkey] = (
-                MessageHeaders(self._ids, "json" if json_ else "protobuf"),
+                MessageHeaders(self._ids, "json" if json_ else "protobuf", self._started),
                 encoding_of(msg.schema.message_encoding, zkey),
             )
         header, encoding = sent
@@ -182,7 +186,9 @@ class ExportSender:
                 payload = self.shm.payload(payload)
         else:
             meta, payload = encode_frame(value, exp.encoding, exp.quality)
-            header = Header(self.stream, self.zid, exp.seq, now_wall, captured, "frame", meta)
+            header = Header(
+                self.stream, self.zid, exp.seq, now_wall, captured, "frame", meta, self._started
+            )
             exp.seq += 1
             attachment = header.encode()
         exp.publisher.put(payload, attachment=attachment, encoding=encoding)

@@ -9,7 +9,8 @@ bounded hand-over queue (frames: :data:`FRAME_BACKLOG`; overruns counted); one
 ``call_soon_threadsafe`` per batch wakes the loop, which publishes on the import node's
 ``output`` (and writes the RTDB record after the readers).
 
-Sequence gaps, overruns and undecodable messages are drops of the remote link
+Sequence gaps (also a new stream's first values, when the import could have had them:
+:class:`StreamStarts`), overruns and undecodable messages are drops of the remote link
 (:class:`RemoteLinkStats`, an edge ``zenoh:KEY->NAME`` in the statistics); an import that
 hears nothing for ``stale_after`` periods puts its node in the error state until it resumes.
 """
@@ -50,6 +51,7 @@ __all__ = [
     "ImportBridge",
     "ImportLink",
     "RemoteLinkStats",
+    "StreamStarts",
     "frame_key",
     "worker_downstream",
 ]
@@ -57,6 +59,8 @@ __all__ = [
 log = logging.getLogger("flowrt.remote._bridge")
 
 FRAME_BACKLOG = 3  # received frames waiting for the loop, at most (each holds a pool slot)
+STREAMS_KEPT = 64  # other streams of a key whose last sequence number is remembered
+BEFORE_LINK = "before the link was up"  # a new stream's values before the first one heard
 
 
 class ImportBridge(Protocol):
@@ -74,9 +78,10 @@ class ImportBridge(Protocol):
 
 class RemoteLinkStats(Buffer):
     """The network hop of an import, shown as an edge: published = what the exporter sent
-    (by sequence number), delivered = received, dropped = sequence gaps, hand-over overruns
-    and undecodable messages (each its own ``drop_reasons`` entry); age = one-way, on the
-    exporter's clock corrected by the measured offset."""
+    (by sequence number), delivered = received, dropped = sequence gaps, a new stream's
+    values before the first one heard, hand-over overruns and undecodable messages (each its
+    own ``drop_reasons`` entry); age = one-way, on the exporter's clock corrected by the
+    measured offset."""
 
     policy = "remote"
 
@@ -96,6 +101,50 @@ class RemoteLinkStats(Buffer):
 
     def clear(self) -> None:
         pass
+
+
+class StreamStarts:
+    """Where an import's count starts on a stream other than the last one it heard.
+
+    A stream heard before (two exporters on one key) goes on from its own last number. A new
+    one starts at 0 (every export's numbers do): the values before the first one heard are
+    lost (:data:`BEFORE_LINK`: a restarted exporter publishes before Zenoh's link to the
+    import is back) when the import was listening as the stream began, so that it could
+    have had them: the stream's age at that sample, ``sent - started`` on the exporter's
+    clock alone (no offset needed), is less than the time the import has listened. A late
+    joiner to an exporter that has run for an hour never could have had that hour: not
+    counted. A header that does not say its start (an older flowrt) has them counted only for
+    a restart: after another stream was heard on the key. Runs only when the stream changes,
+    never per message of a stream."""
+
+    def __init__(self) -> None:
+        self.heard: dict[str, int] = {}  # other streams heard on the key -> their last number
+        self.listening = time.monotonic()  # since when (the subscriber is declared next)
+
+    def switch(self, imp: ImportLink, header: Header) -> None:
+        """``imp`` hears ``header``'s stream after another (under its lock): its count goes
+        on from that stream's last number, or starts at its first, the values before counted
+        if the import could have had them."""
+        heard = self.heard
+        if imp.stream is not None:
+            heard[imp.stream] = imp.last_seq
+        imp.stream = header.stream
+        last = heard.pop(header.stream, None)
+        if last is not None:
+            imp.last_seq = last
+            return
+        imp.last_seq = header.seq - 1
+        if len(heard) > STREAMS_KEPT:  # exporters' restarts: forget the oldest ended stream
+            del heard[next(iter(heard))]
+        if 0 < header.seq <= MAX_SEQ_JUMP and self._began_listened(header, bool(heard)):
+            imp.link.published += header.seq
+            imp.link.lost(BEFORE_LINK, header.seq)
+
+    def _began_listened(self, header: Header, heard_before: bool) -> bool:
+        """Whether the stream began while the import was listening (see the class)."""
+        if header.started:  # whole seconds, rounded down: older than it is, never younger
+            return header.sent - header.started < time.monotonic() - self.listening
+        return heard_before
 
 
 class ImportLink:
@@ -123,6 +172,7 @@ class ImportLink:
         self.scheduled = False
         self.stream: str | None = None
         self.last_seq = -1
+        self.starts = StreamStarts()  # where the counting of a stream not heard last starts
         self.link = RemoteLinkStats(f"zenoh:{key}->{name}")
         self.arrivals = Running()
         self.last_arrival: float | None = None  # loop clock
@@ -205,9 +255,9 @@ class ImportLink:
     def _sequence(self, header: Header) -> None:
         """Count a sample that arrived (under the lock): published, and the sequence numbers
         it skipped as lost on the way."""
-        if header.stream != self.stream:
-            self.stream, self.last_seq = header.stream, header.seq - 1
-        elif not 0 <= header.seq - self.last_seq <= MAX_SEQ_JUMP:
+        if header.stream != self.stream:  # rare: a stream's first sample, or another exporter
+            self.starts.switch(self, header)
+        if not 0 <= header.seq - self.last_seq <= MAX_SEQ_JUMP:
             # a forged or reset sequence: a restart of the stream, counted, not a gap of
             # 2**70 messages (nor a negative one)
             self.restarts += 1

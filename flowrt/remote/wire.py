@@ -87,8 +87,10 @@ def from_wire(data: Any) -> Any:
 
 #: The header's fixed layout (docs/zenoh.md has it as a table): little-endian, 120 bytes.
 #: magic, version, kind, encoding, reserved, stream, zid, seq, sent, captured, frame seq,
-#: height, width, channels (0: a 2-D frame), 4 pad bytes, dtype, pixel format.
-HEADER = struct.Struct("<4sBBBB16s32sQddQIII4x8s8s")
+#: height, width, channels (0: a 2-D frame), the stream's start (whole Unix seconds, 0: not
+#: said; these 4 bytes were padding, so a reader of the older layout skips them), dtype,
+#: pixel format.
+HEADER = struct.Struct("<4sBBBB16s32sQddQIIII8s8s")
 MAGIC = b"FLRT"
 KINDS = ("json", "frame", "bytes", "protobuf")  # the kind byte indexes this
 ENCODINGS = ("raw", "jpeg", "png")  # the encoding byte indexes this
@@ -99,16 +101,16 @@ _PER_MESSAGE_AT = struct.calcsize("<4sBBBB16s32s")  # seq, sent, captured (frame
 
 class MessageHeaders:
     """The headers of one stream's messages of one kind: ``Header(stream, zid, seq, sent,
-    cap, kind).encode()``, from the stream and session ids already checked
+    cap, kind, started=started).encode()``, from the stream and session ids already checked
     (:func:`header_ids`). The bytes before and after the three per-message fields are made
     once; a header is then one small ``pack`` and two joins (5 us cold against 9 us for the
     full ``pack``: the exporter's message path runs cold at 20 Hz and pays every call)."""
 
     _TIMES = struct.Struct("<Qdd")  # seq, sent, captured
 
-    def __init__(self, ids: tuple[bytes, bytes], kind: str) -> None:
+    def __init__(self, ids: tuple[bytes, bytes], kind: str, started: int = 0) -> None:
         whole = HEADER.pack(
-            MAGIC, WIRE_VERSION, _KIND[kind], 0, 0, *ids, 0, 0.0, 0.0, 0, 0, 0, 0, b"", b""
+            MAGIC, WIRE_VERSION, _KIND[kind], 0, 0, *ids, 0, 0.0, 0.0, 0, 0, 0, 0, started, b"", b""
         )
         self._head, self._tail = _split(whole, self._TIMES.size)
 
@@ -125,8 +127,8 @@ class FrameHeaders:
 
     _VARYING = struct.Struct("<QddQ")  # seq, sent, captured, frame seq
 
-    def __init__(self, stream: str, zid: str) -> None:
-        self.stream, self.zid = stream, zid
+    def __init__(self, stream: str, zid: str, started: int = 0) -> None:
+        self.stream, self.zid, self.started = stream, zid, started
         self._parts: dict[tuple[Any, ...], tuple[bytes, bytes]] = {}
 
     def __call__(self, frame: Frame, seq: int, sent: float, cap: float) -> bytes:
@@ -135,7 +137,8 @@ class FrameHeaders:
         parts = self._parts.get(key)
         if parts is None:  # a new shape: its bytes from the header class (checked there)
             meta = frame_meta(frame, "raw")
-            whole = Header(self.stream, self.zid, 0, 0.0, 0.0, "frame", meta).encode()
+            header = Header(self.stream, self.zid, 0, 0.0, 0.0, "frame", meta, self.started)
+            whole = header.encode()
             parts = self._parts[key] = _split(whole, self._VARYING.size)
         return parts[0] + self._VARYING.pack(seq, sent, cap, frame.seq) + parts[1]
 
@@ -177,6 +180,11 @@ class Header:
     captured: float  # exporter's wall clock at capture (frames) or publication
     kind: str  # "json", "frame", "bytes" or "protobuf" (audio: foxglove.RawAudio)
     frame: dict[str, Any] = field(default_factory=dict)
+    # The stream's start, exporter's wall clock, whole seconds (floored); 0: not said (an
+    # older flowrt, a plain program). An importer tells by it whether a stream it first hears
+    # at sequence number N began before it listened (the N values were never its to have)
+    # or after (they were lost on the way): ``sent - started`` needs no clock offset.
+    started: int = 0
 
     def encode(self) -> bytes:
         f = self.frame
@@ -199,6 +207,7 @@ class Header:
             h,
             w,
             c,
+            self.started,
             _ascii(str(f.get("dtype", "")), 8, "dtype"),
             _ascii(str(f.get("pf", "")), 8, "pixel format"),
         )
@@ -213,8 +222,8 @@ class Header:
             raise ValueError(f"wire version {raw[4]}, expected {WIRE_VERSION}")
         if len(raw) != HEADER.size:
             raise ValueError(f"a header of {len(raw)} bytes, expected {HEADER.size}")
-        (_, _, kind, enc, _, stream, zid, seq, sent, cap, fseq, h, w, c, dt, pf) = HEADER.unpack(
-            raw
+        (_, _, kind, enc, _, stream, zid, seq, sent, cap, fseq, h, w, c, started, dt, pf) = (
+            HEADER.unpack(raw)
         )
         if kind >= len(KINDS) or enc >= len(ENCODINGS):
             raise ValueError(f"unknown kind {kind} or encoding {enc}")
@@ -236,7 +245,7 @@ class Header:
                 stream.rstrip(b"\0").decode("ascii"),
                 zid.rstrip(b"\0").decode("ascii"),
             )
-        return cls(names[0], names[1], seq, sent, cap, k, meta)
+        return cls(names[0], names[1], seq, sent, cap, k, meta, started)
 
     @classmethod
     def _decode_json(cls, raw: bytes) -> Header:
