@@ -235,6 +235,19 @@ def test_stats_unreadable_trace_exit_2(tmp_path: Path, capsys: pytest.CaptureFix
     assert "cannot read the trace" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("suffix", ["blf", "asc", "log", "csv", "trc"])
+def test_stats_of_an_empty_trace_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], suffix: str
+) -> None:
+    """An empty .blf was "cannot read the trace: unpack requires a buffer of 72 bytes"."""
+    empty = tmp_path / f"t.{suffix}"
+    empty.write_bytes(b"")
+    assert cli.main(["can", "stats", str(empty)]) == 2
+    err = capsys.readouterr().err
+    assert "an empty file (no CAN frame in it)" in err
+    assert "unpack" not in err
+
+
 @pytest.mark.parametrize("width", [80, 200])
 def test_analyse_table_fits_the_terminal(monkeypatch: pytest.MonkeyPatch, width: int) -> None:
     import io

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import bisect
 import itertools
+import os
 import statistics
 from array import array
 from collections.abc import Iterable, Sequence
@@ -158,6 +159,12 @@ def read_trace(path: str) -> Iterable[Any]:
     problem = file_problem(path)  # a FIFO or a device would block or never end
     if problem is not None:
         raise TraceError(problem)
+    try:
+        empty = os.path.getsize(path) == 0
+    except OSError:
+        empty = False  # python-can says what is wrong with it
+    if empty:  # python-can's BLF reader: "unpack requires a buffer of 72 bytes"
+        raise TraceError(f"{path}: an empty file (no CAN frame in it)")
     try:
         reader = can.LogReader(path)
     except Exception as e:  # python-can raises many kinds on unknown suffixes and bad headers
