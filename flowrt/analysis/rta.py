@@ -26,6 +26,19 @@ Programming Languages*, ch. 11). The analyses here:
   task would start still goes first; here the time unit is one nanosecond (a blocking job
   started at least one unit before the release, hence C_k - 1 ns).
 
+* **Interrupts**: work above every task of the set that does not wait for the running job
+  to finish, even on a non-preemptive resource (a precise node's release thread taking the
+  interpreter lock in turns with the event loop's callback), as interrupt handlers compete
+  with application tasks (Jeffay & Stone, "Accounting for interrupt handling costs in
+  dynamic priority task systems", RTSS 1993). Their work counts over the job's whole window,
+  to its completion, where the set's own higher priorities count only until it starts::
+
+      w(q) = B + q C + sum_{j in hp} (floor((w + J_j) / T_j) + 1) C_j
+                     + sum_{i in irq} (floor((w + J_i) / T_i) + 1) C_i       (start of q)
+      f(q) = B + (q+1) C + sum_{j in hp} (floor((w(q) + J_j) / T_j) + 1) C_j
+                     + sum_{i in irq} ceil((f + J_i) / T_i) C_i               (end of q)
+      R    = max_q  J + f(q) - q T
+
 Equal priorities are taken to interfere with each other both ways (FIFO order among equals
 is not known in advance), which is pessimistic but safe. Times are in milliseconds at the
 interface and exact integers (nanoseconds) inside, so that ``ceil`` never suffers a rounding
@@ -200,11 +213,13 @@ def _preemptive(me: _T, hp: Sequence[_T]) -> tuple[int, int, int] | None:
     return None
 
 
-def _non_preemptive(me: _T, hp: Sequence[_T]) -> tuple[int, int, int] | None:
-    limit = _horizon(me, hp, me.b)
+def _non_preemptive(
+    me: _T, hp: Sequence[_T], irq: Sequence[_T] = ()
+) -> tuple[int, int, int] | None:
+    limit = _horizon(me, [*hp, *irq], me.b)
     if limit is None:
         return None
-    everyone = [*hp, me]
+    everyone = [*hp, *irq, me]
 
     def busy(x: int) -> int:
         return me.b + sum(_ceil_div(x + h.j, h.t) * h.c for h in everyone)
@@ -221,28 +236,46 @@ def _non_preemptive(me: _T, hp: Sequence[_T]) -> tuple[int, int, int] | None:
         base = me.b + q * me.c
 
         def step(x: int, base: int = base) -> int:
-            return base + sum((((x + h.j) // h.t) + 1) * h.c for h in hp)
+            return base + sum((((x + h.j) // h.t) + 1) * h.c for h in [*hp, *irq])
 
         fp = _fixed_point(max(w, base), step, limit)
         if fp is None:
             return None
         w = fp
-        worst = max(worst, me.j + w - q * me.t + me.c)
-        worst_rel = max(worst_rel, w + me.c - max(0, q * me.t - me.j))
+        f = w + me.c
+        if irq:  # the start's hp interference is fixed; interrupts go on to the end
+            fixed = base + me.c + sum((((w + h.j) // h.t) + 1) * h.c for h in hp)
+
+            def finish(x: int, fixed: int = fixed) -> int:
+                return fixed + sum(_ceil_div(x + h.j, h.t) * h.c for h in irq)
+
+            end = _fixed_point(f, finish, limit)
+            if end is None:
+                return None
+            f = max(f, end)
+        worst = max(worst, me.j + f - q * me.t)
+        worst_rel = max(worst_rel, f - max(0, q * me.t - me.j))
     return worst, worst_rel, n
 
 
 def response_times(
-    tasks: Sequence[Task], *, preemptive: bool = True, only: int | None = None
+    tasks: Sequence[Task],
+    *,
+    preemptive: bool = True,
+    only: int | None = None,
+    interrupts: Sequence[Task] = (),
 ) -> list[Response]:
     """Worst-case response time of every task, in the order given (of ``tasks[only]`` alone
     when ``only`` is given: the list then has that one response).
 
     Preemptive: each task's own ``blocking`` is used as B. Non-preemptive: B is the larger of
     the task's own ``blocking`` and the longest lower-priority execution time (less 1 ns).
+    ``interrupts`` are above every task and preempt even a non-preemptive job (see the
+    module's docstring); they are not analysed themselves and block nobody.
     """
     ints = [_T(_ns(t.wcet), _ns(t.period), _ns(t.jitter), _ns(t.blocking)) for t in tasks]
-    if any(x.t <= 0 for x in ints):
+    irq = [_T(_ns(t.wcet), _ns(t.period), _ns(t.jitter), 0) for t in interrupts]
+    if any(x.t <= 0 for x in [*ints, *irq]):
         raise ValueError("every period must be at least 1 ns")
     out: list[Response] = []
     for i, task in enumerate(tasks):
@@ -253,12 +286,12 @@ def response_times(
         hp = [ints[k] for k in hp_i]
         b = me.b
         if preemptive:
-            res = _preemptive(me, hp)
+            res = _preemptive(me, [*hp, *irq])
         else:
             # a lower-priority job that blocks must have started at least one unit (1 ns)
             # before our release, else we would have gone first (discrete time, as PROSA)
             b = max([me.b, *(ints[k].c - 1 for k in lp_i if ints[k].c > 0)])
-            res = _non_preemptive(_T(me.c, me.t, me.j, b), hp)
+            res = _non_preemptive(_T(me.c, me.t, me.j, b), hp, irq)
         if res is None:
             out.append(Response(task, math.inf, math.inf, 0, False, _ms(b)))
         else:

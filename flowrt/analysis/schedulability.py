@@ -21,6 +21,18 @@ The graph is mapped onto the classic analyses of :mod:`flowrt.analysis.rta`:
   a worker's result comes in) is late by up to the longest inline execution — added to the
   worker's release jitter. A worker fed by an inline node is released by that node's own
   callback, whose response already includes that wait.
+* **Precise threads** (``timing: precise`` nodes called in their own release thread,
+  :mod:`flowrt.kernel.precise`) are not on the loop: the thread sleeps to the instant, so the
+  loop neither delays their release nor holds them back with its callbacks. They share only
+  the interpreter lock, which is not handed over by priority: each is analysed as a
+  preemptive task beside the other precise threads, all at its own priority. Towards the
+  rest they are the loop process's highest work: the loop's timers due at their instant
+  wait for their call, and a callback already running takes turns with it, so on the loop
+  they are interrupts (:func:`flowrt.analysis.rta.response_times`) and on the workers
+  interference above every worker, as inline work is. A precise node handed to the loop (a
+  coroutine, frames, a lossless input, a worker) is analysed where it runs. flowrt never
+  queues a second call of a node, so at most one call of each is carried into a window: it
+  is counted with a release jitter of its period.
 * **Chains** are analysed holistically (Tindell & Clark 1994): a frame-triggered node is
   released when its source publishes the frame, so its release jitter is the source's
   worst-case response time; an input-triggered node inherits its producers' response times,
@@ -92,6 +104,8 @@ class _Stream:
 
 
 def _resource(t: NodeTiming) -> str:
+    if t.thread:
+        return "precise thread"
     if t.placement == "inline":
         return "loop"
     if t.placement == "pool":
@@ -116,8 +130,11 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
         b = by_name[n].budget
         assert b is not None  # nodes without a budget have no stream
         budget[n] = b.ms
-    inline = [n for n in streams if by_name[n].placement == "inline"]
-    loop_block = max((budget[n] for n in inline), default=0.0)
+    inline = [n for n in streams if by_name[n].placement == "inline" and not by_name[n].thread]
+    threads = [n for n in streams if by_name[n].thread]
+    # what the loop may be busy with when it should release a worker: a callback, or (its
+    # timers waiting for them) a precise thread's call
+    loop_block = max((budget[n] for n in [*inline, *threads]), default=0.0)
 
     arrival_r: dict[str, float] = dict.fromkeys(streams, 0.0)  # R from arrival, per node
     release_r: dict[str, float] = {}
@@ -130,7 +147,7 @@ def analyse(timing: Mapping[str, NodeTiming], cpus: int = 1) -> GraphVerdict:
             stable = True
             break
         jit = new_jit
-        arrival_r, release_r, blocking = _pass(streams, by_name, budget, jit, inline, cpus)
+        arrival_r, release_r, blocking = _pass(streams, by_name, budget, jit, inline, threads, cpus)
     verdicts = []
     for t in nodes:
         n = t.name
@@ -200,7 +217,13 @@ def _jitters(
                 if timing[p].trigger != "input":
                     # completes at most once per own tick (overruns are skipped)
                     j = min(j, streams[p][0].period)
-            fed_by_loop = s.producer is not None and timing[s.producer].placement == "inline"
+            # released by an inline producer's callback, whose response includes the loop's
+            # wait; a precise thread's outcome is handed to the loop after its response
+            fed_by_loop = (
+                s.producer is not None
+                and timing[s.producer].placement == "inline"
+                and not timing[s.producer].thread
+            )
             if by_name[n].placement != "inline" and not fed_by_loop:
                 j += loop_block  # the loop may be in an inline node when it should release
             new_jit[(n, k)] = j
@@ -227,6 +250,7 @@ def _pass(
     budget: Mapping[str, float],
     jit: Mapping[tuple[str, int], float],
     inline: list[str],
+    threads: list[str],
     cpus: int,
 ) -> tuple[dict[str, float], dict[str, float], dict[str, float]]:
     """One holistic pass: every node's worst response from arrival and from release."""
@@ -242,15 +266,28 @@ def _pass(
         (n, k): task(n, k, by_name[n].priority) for n, ss in streams.items() for k in range(len(ss))
     }
     as_loop = {(n, k): task(n, k, LOOP_PRIORITY) for n in inline for k in range(len(streams[n]))}
+    # a precise thread's calls, above the loop's and the workers' (one carried in at most)
+    for n in threads:
+        period = streams[n][0].period
+        as_loop[(n, 0)] = Task(f"{n}#0", budget[n], period, None, period, 0.0, LOOP_PRIORITY)
+    irq = [t for n in threads if (t := as_loop[(n, 0)]) is not None]
     results: dict[str, list[Response | None]] = {}
     blocking: dict[str, float] = {}
+    # each precise thread: preemptive, the others' calls taking turns with it on the GIL
+    for n in threads:
+        mine = own[(n, 0)]
+        others = [replace(t, priority=by_name[n].priority) for t in irq if t.name != f"{n}#0"]
+        results[n] = [None if mine is None else response_times([mine, *others], only=0)[0]]
+        blocking[n] = 0.0
     # the event loop: non-preemptive fixed priority among inline nodes
     loop_tasks = [(n, own[(n, k)]) for n in inline for k in range(len(streams[n]))]
     if any(t is None for _, t in loop_tasks):
         for n in inline:
             results[n] = [None]
     else:
-        res = response_times([t for _, t in loop_tasks if t is not None], preemptive=False)
+        res = response_times(
+            [t for _, t in loop_tasks if t is not None], preemptive=False, interrupts=irq
+        )
         for (n, _), r in zip(loop_tasks, res, strict=True):
             results.setdefault(n, []).append(r)
         for n in inline:
@@ -258,7 +295,7 @@ def _pass(
             blocking[n] = max(lower, default=0.0)
     # workers and the pool: preemptive fixed priority per CPU, the loop on top
     for n in streams:
-        if by_name[n].placement != "inline":
+        if by_name[n].placement != "inline" and not by_name[n].thread:
             blocking[n], results[n] = _worker_responses(
                 n, streams, by_name, budget, own, as_loop, task, cpus
             )

@@ -9,13 +9,14 @@ analysis, one before a run and one before a change.
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Literal
 
 from ..graph._resolve import Graph
-from ..graph.spec import FrameTrigger, InputTrigger, TimerTrigger
+from ..graph.spec import EdgePolicy, FrameTrigger, InputTrigger, Placement, TimerTrigger
 from ..kernel.timing import TimingChange
 
 TriggerKind = Literal["frame", "timer", "input", "loop"]
@@ -50,6 +51,7 @@ class NodeTiming:
     deadline_ms: float | None = None
     cpus: tuple[int, ...] | None = None
     budget: Budget | None = None
+    thread: bool = False  # timing: precise, called in its own release thread (not the loop)
 
 
 def graph_timing(
@@ -75,6 +77,7 @@ def graph_timing(
             deadline_ms=s.deadline,
             cpus=tuple(s.cpus) if s.cpus else None,
             budget=budget,
+            thread=in_precise_thread(graph, name),
         )
         if isinstance(trig, FrameTrigger):
             t = replace(
@@ -104,6 +107,32 @@ def graph_timing(
             t = replace(t, own_interval_ms=graph.frame_interval_ms(name))
         out[name] = t
     return out
+
+
+def in_precise_thread(graph: Graph, name: str) -> bool:
+    """Whether ``timing: precise`` node ``name`` is called in its own release thread rather
+    than handed to the event loop at each instant: the same rules as
+    :func:`flowrt.kernel.precise.why_not_thread` decides by when the node is set up (an
+    inline node whose ``process`` is a plain function, no frame output or input, no lossless
+    input), read here from the graph so that ``flowrt check`` and ``flowrt run`` see it
+    before anything runs. A running node that left its thread (long calls, a swap to a
+    coroutine) is known to the runtime only: admission control takes it from there."""
+    n = graph.nodes[name]
+    if n.spec.timing != "precise" or not isinstance(n.trigger, TimerTrigger):
+        return False
+    if n.spec.placement is not Placement.inline or inspect.iscoroutinefunction(n.cls.process):
+        return False
+    if n.cls.frame_ports():
+        return False
+    for e in graph.edges:
+        if e.dst != name:
+            continue
+        if e.policy is EdgePolicy.lossless:
+            return False
+        src = graph.nodes.get(e.src)
+        if src is not None and e.src_port in src.cls.frame_ports():
+            return False
+    return True
 
 
 def apply_changes(

@@ -228,6 +228,8 @@ def _budgets(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, An
             return EXIT_FAILED
         if measured is None:  # the run said why
             return EXIT_FAILED
+        if isinstance(measured, int):  # cut by a signal: its exit code
+            return measured
         budgets = measured
     return budgets
 
@@ -280,9 +282,9 @@ def _plot_unavailable() -> str | None:
     return None
 
 
-def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, Any] | None:
+def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, Any] | int | None:
     """Run the graph for ``--measure`` and take each node's execution-time statistic; None
-    when the run failed (said on ``err``).
+    when the run failed (said on ``err``); 128 + N when a signal cut it (no verdict).
 
     The run is :func:`flowrt.cli.run.run_graph` with the run options given to ``check``
     (``--no-display``, ``--display-port``, ``--control``, ``--stats-json`` ...), as ``flowrt
@@ -307,6 +309,8 @@ def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, An
     # reading --json gets one JSON document on stdout and nothing else.
     with contextlib.redirect_stdout(sys.stderr):
         code = run_graph(graph, run_args, err, prog="flowrt check", after=keep, measuring=True)
+    if code > 128:  # interrupted: the run said so
+        return code
     if code != EXIT_OK or not ran:  # the run said why, as "flowrt check: ..."
         return None
     return budgets_from_stats(ran[0].stats().nodes, args.wcet_stat, "measured")
@@ -399,6 +403,13 @@ def _print_graph(file: str, cpus: int, verdict: Any, tables: Any, advice: Any, p
         markup=False,
         style="dim",
     )
+    if any(v.resource == "precise thread" for v in verdict.nodes):
+        console.print(  # else "where" looks like a resource with nothing else on it
+            "  precise thread: timing: precise, called in its own release thread; the loop "
+            "neither delays nor blocks it, its calls count against the loop and the workers",
+            markup=False,
+            style="dim",
+        )
     for tab in tables:
         cpu_cols = sorted({c for k in tab.ticks for c in k.per_cpu_ms})
         frame = f"{tab.frame_ms:g} ms" if tab.frame_ms else "unknown interval"
