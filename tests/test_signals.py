@@ -384,3 +384,31 @@ def test_a_signal_after_the_set_up_was_cut_is_still_stopping() -> None:
         loop.close()
     assert "during set-up (in setup() of slow): stopping, exit 143" in said[0]
     assert "still stopping" in said[1]
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_ctrl_c_in_a_measuring_run_gives_no_verdict(tmp_path: Path) -> None:
+    """``flowrt check --measure 10s`` cut after a second printed a whole response-time
+    verdict from half a second of budgets, exit 1 ("timing does not hold")."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), *sys.path])}
+    proc = subprocess.Popen(
+        [*FLOWRT, "check", str(_graph(tmp_path)), "--measure", "30s", "--no-ui"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    try:
+        _wait_for(tmp_path / "marked.running", proc)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, err
+    assert "the measuring run was interrupted: no verdict from a cut run" in err
+    assert "schedulable" not in out + err
+    assert "Traceback" not in err

@@ -188,8 +188,9 @@ def run_graph(
         except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
             err.print(f"{prog}: {e}", markup=False, soft_wrap=True)
             return 1
-    if stop_signals.exit_code is not None:  # interrupted before the run: undone, no table
-        return stop_signals.exit_code
+    cut = _cut_short(stop_signals, measuring, err, prog)
+    if cut is not None:
+        return cut
     if settle is not None:
         settle()
     return _ended(rt, args, console, err, prog, after=after, result=result, measuring=measuring)
@@ -213,6 +214,17 @@ def _bind_control(rt: Any, control: Any, err: Console, prog: str) -> tuple[bool,
         )
         return False, None
     return True, server
+
+
+def _cut_short(stop_signals: StopSignals, measuring: bool, err: Console, prog: str) -> int | None:
+    """128 + N when a signal leaves nothing to report: it came before the run (undone, no
+    table), or it cut a measuring run (``check --measure``: budgets of a part, no verdict)."""
+    if stop_signals.exit_code is not None:
+        return stop_signals.exit_code
+    if measuring and stop_signals.received:
+        err.print(f"{prog}: the measuring run was interrupted: no verdict from a cut run")
+        return 128 + stop_signals.received[0]
+    return None
 
 
 def _ended(
