@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import math
 from array import array
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, WithJsonSchema
 
 RING = 2048  # recent samples kept for percentiles: ~100 s at 20 Hz
 
@@ -248,7 +248,10 @@ class RuntimeStats(_Frozen):
         description="frames made in worker processes: in shared-memory slots or by the socket",
     )
     events: int = Field(description="events published so far (misses, errors, restarts, changes)")
-    reports: dict[str, Any] = Field(
+    # A node's report() may return any JSON-able value (node.py), and the recorder's is a
+    # list, not an object; only None is never stored (kernel/views.py reports_of). So the
+    # schema of a report says "any value but null", the most that holds for every kind.
+    reports: dict[str, Annotated[Any, WithJsonSchema({"not": {"type": "null"}})]] = Field(
         default_factory=dict,
         description="what nodes report about themselves (their optional report() hook), by "
         "node name: e.g. a recorder's per-stream table of each recording",

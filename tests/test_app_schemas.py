@@ -105,7 +105,16 @@ def test_the_live_servers_own_channels_pass_too() -> None:
                 "type": "object",
                 "properties": {"d": {"type": "object", "additionalProperties": {"type": "number"}}},
             },
-            {"type": "object", "properties": {"d": {"type": "object", "properties": {}}}},
+            {
+                "type": "object",
+                "properties": {
+                    "d": {
+                        "type": "object",
+                        "properties": {},
+                        "additionalProperties": {"type": "number"},
+                    }
+                },
+            },
         ),
         (
             {"type": "object", "properties": {"any": {}}},
@@ -264,3 +273,48 @@ def test_raw_can_frames_are_a_channel_of_their_own(tmp_path: Path, flowrt_cli: F
     assert schema_problems(json.loads(schema.data)) == []
     body = json.loads(message.data)
     assert len(base64.b64decode(body["data"])) == body["dlc"]
+
+
+def test_a_mappings_values_are_typed_and_written_in_their_shape() -> None:
+    """A typed message's mapping (keys known at run time) keeps its values' schema as
+    ``additionalProperties``, rewritten as a field's; each value is written in that shape,
+    so the message still validates: a tuple as its positional object, a union as text. The
+    keys of a later message, not in the first one's guessed ``properties``, rely on it."""
+    from dataclasses import dataclass, field
+
+    import jsonschema
+
+    from flowrt.recording.encoding import encode_json, schema_for
+
+    @dataclass
+    class Counts:
+        by_reason: dict[str, int] = field(default_factory=dict)
+        rate: dict[str, float | None] = field(default_factory=dict)
+        last: dict[str, tuple[str, int]] = field(default_factory=dict)
+        label: dict[str, int | str] = field(default_factory=dict)
+        free: dict[str, object] = field(default_factory=dict)
+
+    stream = schema_for(Counts({"queue full": 3}, {"a": 2.5}, {}, {"k": "x"}, {"n": 1}))
+    schema = json.loads(stream.data)
+    values = {k: p.get("additionalProperties") for k, p in schema["properties"].items()}
+    assert values == {
+        "by_reason": {"type": "integer"},
+        "rate": {"type": "number"},
+        "last": {
+            "type": "object",
+            "properties": {"_0": {"type": "string"}, "_1": {"type": "integer"}},
+        },
+        "label": {"type": "string"},
+        "free": None,  # any value: nothing to say of it
+    }
+    assert schema_problems(schema) == []
+    later = Counts({"stop": 1}, {"b": None, "c": 4}, {"can0": ("x", 1)}, {"j": 7}, {"m": [1, None]})
+    message = json.loads(encode_json(later, stream).data)
+    assert message == {
+        "by_reason": {"stop": 1},
+        "rate": {"c": 4},
+        "last": {"can0": {"_0": "x", "_1": 1}},
+        "label": {"j": "7"},
+        "free": {"m": [1, None]},
+    }
+    assert list(jsonschema.Draft202012Validator(schema).iter_errors(message)) == []

@@ -17,15 +17,21 @@ signal could be plotted. :func:`app_schema` rewrites a schema into that subset:
   apps refuse: ``Unsupported array item type: "array"``) becomes such an object too;
 - ``bytes`` (``"format": "binary"``) becomes a string with ``"contentEncoding": "base64"``,
   which the apps show as bytes;
-- an object without ``properties`` (a free-form mapping) gets ``"properties": {}``;
+- an object without ``properties`` (a free-form mapping) gets ``"properties": {}``, and
+  keeps the schema of its values as ``additionalProperties`` (rewritten as a field's): its
+  keys are names known only at run time (nodes, ports, reasons), so ``properties`` cannot
+  list them, yet a validator can still check every value. The apps' parser reads
+  ``properties`` only and passes over ``additionalProperties`` (its source, both apps), so
+  the topic stays readable. A value schema without a type (``{"not": {"type": "null"}}``)
+  is kept as it is, its values written unchanged, not as text;
 - a field with no type (``Any``) becomes a string, the one type every value can be shown as.
 
 Every message must then match its schema, for a validator (jsonschema, ajv) as for the apps:
 :func:`conform` gives a value the shape of its schema, decided by the schema alone: a field
 whose value is ``None`` (or a non-finite float) is left out rather than written ``null`` (no
 field is ``required``), a tuple that became an object is written as that object, a value under
-a ``string`` schema is written as text. The README ("The message shapes") says the same for
-readers.
+a ``string`` schema is written as text, a mapping's values as its ``additionalProperties``
+says. The README ("The message shapes") says the same for readers.
 
 The choice (docs/DESIGN-NOTES.md): JSON with such schemas rather than protobuf built from
 the models: the recording keeps one encoder for every value type, the apps plot the fields,
@@ -39,6 +45,21 @@ from typing import Any
 __all__ = ["app_schema", "conform", "schema_problems"]
 
 PRIMITIVES = ("boolean", "string", "number", "integer")
+# the keys from which _field tells a value's type (else it has none: Any)
+TYPED = frozenset(
+    [
+        "type",
+        "$ref",
+        "anyOf",
+        "oneOf",
+        "allOf",
+        "enum",
+        "const",
+        "properties",
+        "items",
+        "prefixItems",
+    ]
+)
 
 
 def app_schema(schema: dict[str, Any]) -> dict[str, Any]:
@@ -91,9 +112,26 @@ def _field(s: Any, defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any
         return {
             "type": "object",
             "properties": {str(k): _field(v, defs, seen) for k, v in props.items()},
+            **_values(s, defs, seen),
             **keep,
         }
     return {"type": "string", **keep}  # Any: no type the apps could read
+
+
+def _values(s: dict[str, Any], defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any]:
+    """``additionalProperties`` for a mapping whose values have a schema, else nothing.
+
+    ``true``/``{}`` (any value) would tell a validator nothing, and ``false`` (a closed model)
+    only that no field beyond ``properties`` comes, so both stay out as before. A value schema
+    with no type (``{"not": {"type": "null"}}``: any value but null) is kept as written: the
+    apps need no type there, and made text as a field of no type is, every value would be
+    rewritten as JSON text."""
+    v = s.get("additionalProperties")
+    if not isinstance(v, dict) or not v.keys() - {"title", "description"}:
+        return {}
+    if not v.keys() & TYPED:
+        return {"additionalProperties": v}
+    return {"additionalProperties": _field(v, defs, seen)}
 
 
 def _union(s: dict[str, Any], defs: dict[str, Any], seen: tuple[str, ...]) -> dict[str, Any] | None:
@@ -159,6 +197,7 @@ def conform(value: Any, schema: Any, coerce: bool = True) -> Any:
     t = schema.get("type")
     if t == "object":
         props = schema.get("properties") or {}
+        rest = schema.get("additionalProperties")  # a mapping's values (any name)
         if isinstance(value, list | tuple) and coerce:
             if props and all(k.startswith("_") for k in props):
                 value = {f"_{i}": v for i, v in enumerate(value)}
@@ -167,7 +206,7 @@ def conform(value: Any, schema: Any, coerce: bool = True) -> Any:
         if not isinstance(value, dict):
             return value
         return {
-            k: conform(v, props.get(k), coerce)
+            k: conform(v, props.get(k, rest), coerce)
             for k, v in value.items()
             if not (_null(v) and (coerce or k in props))
         }
@@ -210,6 +249,8 @@ def schema_problems(schema: Any, path: str = "") -> list[str]:
     ``array``; an array's ``items`` one of ``boolean``, ``string`` (no ``contentEncoding``),
     ``number``/``integer`` or ``object`` (no array of arrays). ``$ref``/``anyOf``/``oneOf``
     are refused too: the parser ignores them and so would lose the field's type.
+    ``additionalProperties`` is not checked: the parser never reads it (a mapping's values are
+    for validators).
     """
     if not isinstance(schema, dict):
         return [f"{path or '<root>'}: not a schema"]
