@@ -23,8 +23,10 @@ played to its end, not the first: a stream that ends early (4 detections in 3 s)
 the others short (a looping node never ends). A session split into several files is replayed
 as one recording, the parts one after the other in their order (a part that ends before
 ``start`` is skipped unread). A damaged file is replayed up to the damage, which is logged
-and reported as the node's error state. A mapping recorded with the ``ros2`` profile (as
-``flowrt_msgs/KeyValue[]``) is published as the mapping again (:func:`_as_recorded`).
+and reported as the node's error state. A value recorded with the ``ros2`` profile is
+published as the value it was recorded from (:func:`_as_recorded`): a mapping (written as
+``flowrt_msgs/KeyValue[]``) as the mapping, a ``std_msgs`` scalar as the scalar, an
+``AudioBlock`` as one.
 """
 
 from __future__ import annotations
@@ -32,8 +34,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import keyword
 import weakref
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
@@ -45,7 +48,7 @@ from flowrt.recording.decoding import MessageDecoder
 from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.images import is_image_schema
 from flowrt.recording.reader import Recording, channel_schemas, iter_messages, iter_session
-from flowrt.recording.ros2_profile import mapping_restorer
+from flowrt.recording.ros2_profile import value_restorer
 from flowrt.recording.session import mcap_files
 from flowrt.recording.streams import join_set
 
@@ -162,6 +165,29 @@ class ReplayBase(Node):
         sub = type(f"ReplayAs{node_cls.__name__}", (ReplayBase,), ports)
         sub.__module__ = __name__
         sub.stands_in_for = name
+        return sub
+
+    @classmethod
+    def with_ports(cls, ports: Mapping[str, Any], name: str) -> type[ReplayBase] | None:
+        """A replay kind publishing on ``ports`` (port -> type): the ports a node's streams
+        were recorded from, so that ``flowrt replay REC`` (no graph) serves them under their
+        recorded names (``wheels.values``), each a channel of its own, as recorded. None
+        (the generic ``Replay`` then) when a name is no plain identifier.
+
+        The names are a recording's (data): the ports are given as the class's ``outputs``
+        only, never as its attributes, where one could shadow what a replay node is made of
+        (a port ``process``, ``run``, ``params``).
+        """
+        if not ports or any(
+            not p.isidentifier() or p.startswith("_") or keyword.iskeyword(p) for p in ports
+        ):
+            return None
+        sub = type(f"ReplayOf{name.title().replace('_', '')}", (ReplayBase,), {})
+        sub.__module__ = __name__
+        outs = {p: Output(t, doc="recorded", rate_hz=None) for p, t in ports.items()}
+        for p, out in outs.items():
+            out.name = p
+        sub.outputs = outs
         return sub
 
     # --- lifecycle ---------------------------------------------------------------------
@@ -412,13 +438,14 @@ class Replay(ReplayBase):
 
 
 def _as_recorded(m: Any, value: Any) -> Any:
-    """A decoded CDR message with flowrt's ``KeyValue[]`` (the ``ros2`` profile's mappings:
-    CAN signals) as the mapping it was recorded from: a graph's reader gets
-    ``{"LeftSpeed": 0.25}`` as it did live, not ``{"items": [...]}``."""
+    """A decoded CDR message as the value the ``ros2`` profile wrote it from
+    (:func:`~flowrt.recording.ros2_profile.value_restorer`): a graph's reader gets
+    ``{"LeftSpeed": 0.25}`` as it did live, not ``{"items": [...]}``, a counter's ``3``, not
+    ``{"data": 3}``, and an ``AudioBlock``, each of which its typed port takes."""
     s = m.schema
     if m.encoding != "cdr" or s is None:
         return value
-    restore = mapping_restorer(s.name, s.encoding, bytes(s.data))
+    restore = value_restorer(s.name, s.encoding, bytes(s.data))
     return value if restore is None else restore(value)
 
 

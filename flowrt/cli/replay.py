@@ -8,6 +8,8 @@ Also where a path on the command line becomes its MCAP files (:func:`_files`), w
 from __future__ import annotations
 
 import argparse
+import contextlib
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -210,14 +212,20 @@ def _replay_spec(
         into = f"{graph_name}, replacing its source node(s) {', '.join(replaced)}"
     else:
         # Only the recorded streams: node names and topics from the file are plain strings
-        # here; nothing the recording names is imported, served or sent to.
-        spec = GraphSpec(
-            name="replay",
-            nodes={
-                node: NodeSpec(kind="replay", params={**common, "topics": by_node[name]})
-                for name, node in safe_node_names(by_node).items()
-            },
-        )
+        # here; nothing the recording names is imported (but flowrt's own built-in kinds,
+        # :func:`_builtin_types`), served or sent to. Each node publishes on the ports its
+        # streams were recorded from, so a live view serves the recording's topics.
+        _builtin_types(info.streams)
+        nodes = {}
+        for name, node in safe_node_names(by_node).items():
+            params = {**common, "topics": by_node[name]}
+            ports = _recorded_ports(name, [s for s in info.streams if s.topic in by_node[name]])
+            own = replay_cls.with_ports(ports, node) if ports else None
+            if own is not None:
+                kinds[f"replay-of-{node}"] = own
+                params["node"] = name
+            nodes[node] = NodeSpec(kind=f"replay-of-{node}" if own else "replay", params=params)
+        spec = GraphSpec(name="replay", nodes=nodes)
         into = "replay nodes publishing the recorded streams"
         if info.graph:
             err.print(
@@ -226,6 +234,53 @@ def _replay_spec(
                 markup=False,
             )
     return spec, kinds, into
+
+
+def _recorded_ports(node: str, streams: list[Any]) -> dict[str, Any] | None:
+    """port -> type of the outputs ``node``'s streams were recorded from (their ``source``,
+    ``node.port``): frames for images, audio blocks, anything else. None when a stream has
+    no such source (another writer's topics): the generic ``frame``/``message`` ports then.
+    A sync set's members (``node.port/KEY``) are joined into their set's port."""
+    from ..audio import AudioBlock
+    from ..frames import Frame
+    from ..recording.encoding import AUDIO_SCHEMA
+    from ..recording.images import is_image_schema
+
+    ports: dict[str, Any] = {}
+    members: set[str] = set()
+    for s in streams:
+        owner, dot, port = (s.source or "").partition(".")
+        if owner != node or not dot:
+            return None
+        if "/" in port:
+            members.add(port.partition("/")[0])
+            continue
+        audio = s.schema_name in (AUDIO_SCHEMA, "flowrt_msgs/msg/AudioBlock")
+        ports[port] = Frame if is_image_schema(s.schema_name) else AudioBlock if audio else object
+    return ports if members <= set(ports) else None
+
+
+def _builtin_types(streams: list[Any]) -> None:
+    """Import the modules of flowrt's built-in kinds whose dataclasses the streams were
+    recorded as (JSON schema ``flowrt.nodes.can.values.CanMessage``), so that a replay
+    gives the dataclass back, and a live view serves the recorded schema, not one guessed
+    from a dict. Only modules of the ``flowrt.nodes`` package (shipped with flowrt, imported
+    by any graph naming a built-in kind), never another module a file names."""
+    from importlib import import_module
+
+    for s in streams:
+        module = s.schema_name.rpartition(".")[0]
+        if s.message_encoding != "json" or not module.startswith(_BUILTIN_PACKAGE):
+            continue
+        if module in sys.modules or not all(
+            part.isidentifier() and not part.startswith("_") for part in module.split(".")
+        ):
+            continue
+        with contextlib.suppress(Exception):  # not there, or its dependency missing: the
+            import_module(module)  # values stay mappings
+
+
+_BUILTIN_PACKAGE = "flowrt.nodes."
 
 
 _REFUSED: Any = object()

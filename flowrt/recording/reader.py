@@ -24,6 +24,7 @@ import io
 import itertools
 import os
 import statistics
+import struct
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -145,11 +146,14 @@ class Recording:
     last_offset: int = 0  # where the record being handled starts
 
 
-def _describe(e: BaseException) -> str:
+def _describe(e: BaseException, within: str = "the file") -> str:
+    """One line for why reading stopped. ``mcap`` raises a record cut short as ``EndOfFile``
+    when nothing of it is left, as a bare ``struct.error`` when part of a field is (a cut in
+    the summary or the first bytes): the same truncation, said in the same words."""
     from mcap.exceptions import EndOfFile
 
-    if isinstance(e, EndOfFile):
-        return "truncated: the file ends inside a record"
+    if isinstance(e, EndOfFile | struct.error):
+        return f"truncated: {within} ends inside a record"
     name = type(e).__name__
     return f"{name}: {e}" if str(e) else name
 
@@ -267,11 +271,15 @@ def _records(path: Path, rec: Recording, emit_chunks: bool) -> Iterator[Any]:
             pos = f.tell()
             try:
                 r = next(it)
-                inner = chunk_records(r) if isinstance(r, Chunk) and not emit_chunks else None
             except StopIteration:
                 break
             except Exception as e:  # any damage: keep what came before, say where and why
                 rec.damage, rec.damage_offset = _describe(e), pos
+                return
+            try:
+                inner = chunk_records(r) if isinstance(r, Chunk) and not emit_chunks else None
+            except Exception as e:  # a chunk read whole whose records do not: not the file's end
+                rec.damage, rec.damage_offset = _describe(e, "a chunk"), pos
                 return
             if isinstance(r, Footer):
                 rec.closed_cleanly = True
@@ -317,7 +325,7 @@ def _read_channels(p: Path, rec: Recording) -> tuple[dict[int, _Chan], int]:
                 for inner in chunk_records(pending):
                     take(inner)
             except Exception as e:
-                rec.damage = rec.damage or f"chunk: {_describe(e)}"
+                rec.damage = rec.damage or f"chunk: {_describe(e, 'the chunk')}"
         pending = None
 
     for r in _records(p, rec, emit_chunks=True):
@@ -335,7 +343,7 @@ def _read_channels(p: Path, rec: Recording) -> tuple[dict[int, _Chan], int]:
             try:
                 defs, sizes = _chunk_definitions(r)
             except Exception as e:  # a damaged chunk: what follows is not trusted either
-                rec.damage = f"chunk {chunks + 1}: {_describe(e)}"
+                rec.damage = f"chunk {chunks + 1}: {_describe(e, 'the chunk')}"
                 rec.damage_offset = rec.last_offset
                 break
             chunks += 1
@@ -706,14 +714,23 @@ def repair(path: str | Path) -> tuple[Path, int, Path]:
     taken: an original is never overwritten); the repaired file takes its name. Returns (the
     repaired file, messages kept, where the original is kept). An ``OSError`` (a read-only
     folder, a full disk) leaves the original untouched and no partial file behind.
+
+    The repaired file keeps the original's header profile: a ``ros2`` file stays one, since
+    rosbags refuses any other. A killed ``ros2`` recording never wrote the folder's
+    ``metadata.yaml`` (the recorder writes it at a clean close), without which rosbags does
+    not open the folder, so the repair writes it (:func:`.rosbag2.metadata_after_repair`).
     """
+    from .rosbag2 import header_profile, metadata_after_repair
+
     p = Path(path)
     if is_db3(p):  # it would be renamed .damaged.mcap and replaced by an empty MCAP file
         raise OSError(errno.EINVAL, "a rosbag2 SQLite3 file: flowrt repairs MCAP files only")
     rec = Recording(p)
     tmp = p.with_name(p.stem + ".repairing.mcap")
+    profile = header_profile(p)
+    profile = "flowrt" if profile is None else profile  # cut inside its header: flowrt's
     try:
-        kept = _write_repaired(p, rec, tmp, "flowrt")
+        kept = _write_repaired(p, rec, tmp, profile)
         damaged = _free_name(p.with_name(p.stem + ".damaged.mcap"))
         os.rename(p, damaged)  # a free name: the original is kept, never overwritten
         try:
@@ -725,6 +742,11 @@ def repair(path: str | Path) -> tuple[Path, int, Path]:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
+    if profile == "ros2":  # a folder that is no bag flowrt reads (BagError): no metadata
+        from .session import mcap_files
+
+        with contextlib.suppress(BagError):
+            metadata_after_repair(p, mcap_files(p.parent))
     return p, kept, damaged
 
 

@@ -22,14 +22,19 @@ any other mapping (CAN signals)        ``flowrt_msgs/msg/KeyValues`` (key, value
 
 In flowrt definitions ``X | None`` is an array of zero or one ``X`` (``centroid`` of a
 detection that found nothing is ``[]``), a mapping is ``KeyValue[]``, a float ``timestamp``
-(the runtime clock) is a ``builtin_interfaces/msg/Time`` in Unix time, and a value of no
-ROS type is its JSON text. Detections are not drawn as annotations in this profile. Topics
-are ROS 2 names (:func:`ros2_topic`).
+(the runtime clock: a dataclass's, or a mapping's such as a sync set's index) is a
+``builtin_interfaces/msg/Time`` in Unix time, and a value of no ROS type is its JSON text.
+Detections are not drawn as annotations in this profile. Topics are ROS 2 names
+(:func:`ros2_topic`).
 
-Read back by flowrt (the ``replay`` node, so ``flowrt replay BAG --graph G``), flowrt's own
-``KeyValue[]`` becomes the mapping it was written from again (:func:`mapping_restorer`): a
-``can`` node replayed from a bag gets ``{"LeftSpeed": 0.25}``, not ``{"items": [...]}``.
-Other readers see the ``KeyValues`` messages as written.
+Read back by flowrt (the ``replay`` node, so ``flowrt replay BAG --graph G``), a message is
+the value it was written from again (:func:`value_restorer`), so that a replayed source's
+typed outputs take it: flowrt's own ``KeyValue[]`` the mapping (:func:`mapping_restorer`: a
+``can`` node gets ``{"LeftSpeed": 0.25}``, not ``{"items": [...]}``), a ``std_msgs`` scalar
+the scalar (a ``counter`` gets ``3``, not ``{"data": 3}``), an ``AudioBlock`` the block
+(:func:`audio_block_of`), a flowrt message's ``timestamp`` Unix nanoseconds (as a ``flowrt``
+recording's JSON has it; the replay moves it onto its clock). Other readers see the
+messages as written.
 """
 
 from __future__ import annotations
@@ -51,7 +56,14 @@ from ..audio import AudioBlock
 from ..frames import Frame
 from .encoding import FRAME_ENCODINGS, Encoded, Overlay, StreamSchema, to_jsonable
 
-__all__ = ["Ros2Encoder", "mapping_restorer", "mappings_of", "ros2_topic"]
+__all__ = [
+    "Ros2Encoder",
+    "audio_block_of",
+    "mapping_restorer",
+    "mappings_of",
+    "ros2_topic",
+    "value_restorer",
+]
 
 SEP = "=" * 80 + "\n"
 TIME = "builtin_interfaces/msg/Time"
@@ -243,6 +255,8 @@ class Ros2Encoder:
             base = type(v).__name__
         elif isinstance(v, dict):
             hints = {k: _sample_type(x) for k, x in v.items()}
+            if isinstance(v.get("timestamp"), float):  # the runtime clock, as a field's is
+                hints["timestamp"] = _Stamp  # (a sync set's index, a joystick's state)
             base = "".join(p.capitalize() for p in re.split(r"[^A-Za-z0-9]+", topic) if p)
         else:
             hints = {"data": Any}
@@ -503,6 +517,109 @@ def _fields_restorer(
 
 def _each(conv: Callable[[Any], Any]) -> Callable[[Any], Any]:
     return lambda xs: [conv(x) for x in xs] if isinstance(xs, list) else xs
+
+
+# --- read back: the other values the profile writes, as they were -------------------------
+
+_STD_SCALARS = {  # std_msgs' one-field wrappers of a primitive: the four flowrt writes, and
+    f"std_msgs/{name}": typ  # their siblings, so a bag's Int32 is not read unlike its Int64
+    for name, typ in (
+        ("Bool", "bool"), ("Byte", "byte"), ("Char", "char"), ("String", "string"),
+        ("Float32", "float32"), ("Float64", "float64"),
+        *((f"{u}Int{n}", f"{u.lower()}int{n}") for u in ("", "U") for n in (8, 16, 32, 64)),
+    )
+}  # fmt: skip
+AUDIO_BLOCK = "flowrt_msgs/AudioBlock"
+_TIME_KEY = "builtin_interfaces/Time"
+_TIME_FIELDS = [("int32", False, "sec"), ("uint32", False, "nanosec")]
+_AUDIO_FIELDS = [
+    (_TIME_KEY, False, "stamp"),
+    ("uint32", False, "sample_rate"),
+    ("uint32", False, "channels"),
+    ("int64", False, "seq"),
+    ("int16", True, "data"),
+]
+
+
+def value_restorer(name: str, encoding: str, data: bytes) -> Callable[[Any], Any] | None:
+    """For the decoded messages of a schema: a function giving back the value this profile
+    wrote them from, or None when they stay as decoded. What the replay node publishes, so
+    that a graph replayed from a ``ros2`` bag gets what a ``flowrt`` recording gives it
+    (a typed output refuses ``{"data": 1}`` where it declares ``int``):
+
+    - a ``std_msgs`` scalar (``Bool``, ``Int64``, ``Float64``, ``String``, and the other
+      one-field wrappers ``Int32``, ``UInt8``, ``Float32``...): its ``data``, the Python
+      scalar. Also from a bag flowrt did not write: the message is the same;
+    - flowrt's ``AudioBlock``: an :class:`~flowrt.AudioBlock` (:func:`audio_block_of`);
+    - ``KeyValue[]`` fields and ``KeyValues`` messages: mappings (:func:`mapping_restorer`);
+    - the ``builtin_interfaces/Time timestamp`` of a ``flowrt_msgs`` message (a float
+      ``timestamp`` when written): nanoseconds since the epoch, as a ``flowrt`` recording
+      has it in JSON, which replay moves onto its own clock.
+
+    A type is recognised by its definition in the schema, as this profile writes it; one of
+    the same name with other fields keeps them. Built once per schema (cached).
+    """
+    if encoding != "ros2msg":
+        return None
+    return _value_restorer(name, bytes(data))
+
+
+@functools.lru_cache(maxsize=256)
+def _value_restorer(name: str, data: bytes) -> Callable[[Any], Any] | None:
+    try:
+        defs = _msg_types(name, data.decode())
+    except UnicodeDecodeError:
+        return None
+    root = _type_key(name)
+    fields = defs.get(root)
+    time_ok = defs.get(_TIME_KEY) == _TIME_FIELDS
+    if root in _STD_SCALARS and fields == [(_STD_SCALARS[root], False, "data")]:
+        return _scalar
+    if root == AUDIO_BLOCK and fields == _AUDIO_FIELDS and time_ok:
+        return audio_block_of
+    mappings = mapping_restorer(name, "ros2msg", data)
+    stamped = root.startswith("flowrt_msgs/") and time_ok
+    if not (stamped and (_TIME_KEY, False, "timestamp") in (fields or [])):
+        return mappings
+    if mappings is None:
+        return _epoch_timestamp
+    return lambda v: _epoch_timestamp(mappings(v))
+
+
+def _scalar(v: Any) -> Any:
+    return v["data"] if isinstance(v, dict) and "data" in v else v
+
+
+def _epoch_timestamp(v: Any) -> Any:
+    ts = v.get("timestamp") if isinstance(v, dict) else None
+    if not isinstance(ts, dict):
+        return v
+    return {**v, "timestamp": int(ts.get("sec", 0)) * 1_000_000_000 + int(ts.get("nanosec", 0))}
+
+
+def audio_block_of(v: Any) -> Any:
+    """A decoded ``flowrt_msgs/AudioBlock`` as the :class:`~flowrt.AudioBlock` it was written
+    from, as a ``flowrt`` recording's ``RawAudio`` is replayed: float32 samples in [-1, 1)
+    (the int16 PCM / 32768), shape (frames, channels), its rate and ``seq``, and its
+    ``timestamp`` the first sample's Unix time (replay moves it onto its own clock).
+
+    Does not round-trip: ``source`` (not written: ``""``), the samples' type (an int16 block
+    comes back float32), their precision (16 bits) and range (clipped to [-1, 1] when
+    written).
+    """
+    if not isinstance(v, dict):
+        return v
+    channels = max(1, int(v.get("channels") or 1))
+    pcm = np.asarray(v.get("data") or [], dtype=np.int16)
+    pcm = pcm[: len(pcm) - len(pcm) % channels]  # a partial last frame is not a frame
+    stamp = v.get("stamp")
+    stamp = stamp if isinstance(stamp, dict) else {}
+    return AudioBlock(
+        (pcm.reshape(-1, channels).astype(np.float32) / 32768.0),
+        int(v.get("sample_rate") or 0),
+        int(stamp.get("sec", 0)) + int(stamp.get("nanosec", 0)) / 1e9,
+        int(v.get("seq") or 0),
+    )
 
 
 def _msg_types(name: str, text: str) -> dict[str, list[tuple[str, bool, str]]]:

@@ -30,7 +30,9 @@ __all__ = [
     "bag_files",
     "db3_messages",
     "db3_topics",
+    "header_profile",
     "is_db3",
+    "metadata_after_repair",
     "write_metadata",
 ]
 
@@ -254,3 +256,50 @@ def write_metadata(folder: Path, files: list[Path]) -> Path:
     tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}, sort_keys=False))
     tmp.replace(path)
     return path
+
+
+def header_profile(path: Path) -> str | None:
+    """The profile in an MCAP file's header record (``flowrt``, ``ros2``...), None when the
+    file is cut before its header ends."""
+    from mcap.records import Header
+    from mcap.stream_reader import StreamReader
+
+    try:
+        with open(path, "rb") as f:
+            first = next(iter(StreamReader(f, skip_magic=False).records), None)
+    except Exception:
+        return None
+    return first.profile if isinstance(first, Header) else None
+
+
+def metadata_after_repair(repaired: Path, files: list[Path]) -> Path | None:
+    """``metadata.yaml`` for the rosbag2 folder of a repaired ``ros2`` file (the reader's
+    ``repair``), from what its files now hold: a killed recorder never wrote it, and rosbags
+    does not open a folder without it. The path written, or None.
+
+    Only when the folder is that bag: the file is one of its parts and every part is a
+    finished ``ros2`` file. A part still unrepaired (``info --repair`` goes through a
+    session's files in turn) leaves it to that part's repair; a ``ros2`` file among files
+    of another profile (copied into a folder of its own choosing) makes no bag of them.
+    ``files``: the folder's parts, as :func:`.session.mcap_files` lists them.
+    """
+    folder = repaired.parent
+    if repaired not in files or any(header_profile(f) != "ros2" for f in files):
+        return None
+    if not all(_finished(f) for f in files):
+        return None
+    try:
+        return write_metadata(folder, files)
+    except (BagError, OSError):
+        return None
+
+
+def _finished(path: Path) -> bool:
+    """True when the file ends with its summary (what :func:`write_metadata` reads)."""
+    from mcap.reader import SeekingReader
+
+    try:
+        with open(path, "rb") as f:
+            return SeekingReader(f).get_summary() is not None
+    except Exception:
+        return False
