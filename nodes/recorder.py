@@ -17,7 +17,8 @@ neither the disk nor the writer's CPU work touches the event loop or its GIL; ``
 thread`` writes on threads of the runtime's process instead (:mod:`flowrt.recording.writer`).
 
 A writer that cannot keep up loses messages *counted per stream*, and the node goes into the
-error state at once (red in the status table, a ``HealthAlert``); a write error (disk full)
+error state at once (red in the status table until the next session) with one ``HealthAlert``
+per burst of losses (a burst ends after ``BURST_QUIET`` s without one); a write error (disk full)
 stops the recording, keeps the file, says why, and the graph goes on. When a recording stops
 its per-stream table is logged and saved as ``streams.json`` in the session.
 
@@ -45,9 +46,15 @@ place in its stream is known, so replay finds it again. One deterministic record
 
 At run time ``flowrt ctl record start|stop`` (RTDB record ``flowrt.record.NODE``) starts a new
 session or closes the current one; the command may also be ``{"action": "start", "name":
-"drive"}`` (the live view's record panel): the new session is then ``drive_NNN``. The node
-says where its sessions go in ``flowrt.recordings.NODE`` (the folder), so the live view can
-list them for review.
+"drive"}`` (the live view's record panel): the new session is then ``drive_NNN``; a start
+without a name is ``NAME_NNN``, the ``name`` param's. The node says where its sessions go in
+``flowrt.recordings.NODE`` (the folder), so the live view can list them for review.
+
+A swap (``flowrt ctl swap rec recorder --params '{"compression": "zstd"}'``) while recording
+goes on in a new session (``drive_001`` then ``drive_002``: the new params make a new file):
+the new instance obeys the last start or stop command in its ``setup``, beside the old one,
+so its session is open when it takes over, and each value is in one of the two sessions;
+the statistics' ``reports`` list both sessions' tables.
 """
 
 from __future__ import annotations
@@ -56,6 +63,7 @@ import asyncio
 import contextlib
 import datetime as dt
 import errno
+import math
 import os
 import time
 from collections import deque
@@ -101,6 +109,8 @@ LET_GO_WAIT = 2.0
 AnyWriter = Writer  # either writer: the recorder never asks which
 LAGS_KEPT = 8
 """The last values of a stream stamped ahead of its releases its lead is taken from."""
+BURST_QUIET = 1.0
+"""Seconds without a new loss that end a burst of losses: the next loss is alerted again."""
 
 
 class StampLags:
@@ -129,6 +139,44 @@ class StampLags:
     def leads(self) -> dict[str, float]:
         """Topic -> the lead of each stream stamped ahead of its releases."""
         return {topic: max(lags) for topic, lags in self._lags.items() if lags}
+
+
+class LossAlerts:
+    """One session's losses and write error in the node's state: red, and one alert a burst.
+
+    A writer that is behind refuses values one at a time as its bound frees and fills
+    again; an alert per new count (``recorder behind: 1 lost`` ... ``15 lost``) flooded the
+    event ring with what the per-stream counters (``streams.json``, ``flowrt info``) already
+    hold. So the node's error reason changes (a ``HealthAlert``) when a burst begins, and
+    a burst ends after ``BURST_QUIET`` s without a new loss, not at the next accepted
+    value (as :class:`flowrt.refusals.Refusals` does): a writer behind accepts one between
+    two refusals. The node stays red until a new session.
+    """
+
+    def __init__(self) -> None:
+        self._lost = 0  # lost_behind of the session when last looked at
+        self._last = -math.inf  # runtime time of the last new loss
+        self._said_error = False
+
+    def watch(self, ctx: Any, writer: AnyWriter) -> None:
+        if writer.error is not None:
+            if not self._said_error:
+                self._said_error = True
+                ctx.log.error("%s: recording stopped: %s", ctx.name, writer.error)
+                ctx.set_error(f"recording stopped: {writer.error}")
+            return
+        lost = sum(s.lost_behind for s in writer.streams.values())
+        if lost <= self._lost:
+            return
+        now = ctx.now()
+        begins = now - self._last >= BURST_QUIET
+        self._lost, self._last = lost, now
+        if begins:
+            worst = max(writer.streams.values(), key=lambda s: s.lost_behind)
+            ctx.set_error(
+                f"recorder behind: {lost} lost ({worst.topic}: {worst.lost_behind}) as a "
+                "burst of losses began; every loss is counted per stream"
+            )
 
 
 class Recorder(Node):
@@ -175,31 +223,31 @@ class Recorder(Node):
         self._seq: dict[str, int] = {}
         self._sources: dict[str, str] = {}
         self._cameras: dict[str, str] = {}  # frame source node -> its recorded topic
-        self._said_lost = 0
-        self._said_error = False
+        self._losses = LossAlerts()
         self._next_command_check = 0.0
-        self._command_seq = 0
         self._draining: AnyWriter | None = None  # closing: its frames still come back
-        self._rtdb_ok = True
         self._task: asyncio.Task[None] | None = None  # a start/stop asked for by ctl
-        self._prefix = self.params.name  # the next session's name (a start command may set it)
         self._indexes: dict[str, int] = {}  # messages accepted per topic (the current file set)
         self._log_seq: dict[str, int] = {}
         self._observer: Observer | None = None
         if self.params.deterministic:
             self._observer = Observer(self, self.ctx.name)
             self.ctx.observe(self._observer)  # from now on: before any source publishes
-        self._publish_status("")
+        start, prefix, seq = _standing_command(self.ctx, self.params)
+        self._rtdb_ok, self._command_seq = seq is not None, seq or 0
+        if not start:  # else said once open (meanwhile the swapped-out instance's, if any)
+            self._publish_status("")
         if self._rtdb_ok:
             self.ctx.rtdb.write(FOLDER_RECORD + self.ctx.name, str(Path(self.params.path)))
-        if self.params.start:
-            await asyncio.to_thread(self._open, self._stats())
+        if start:
+            await asyncio.to_thread(self._open, self._stats(), prefix)
             self._publish_status(str(self.session))
 
     # --- sessions ---------------------------------------------------------------------------
 
-    def _open(self, stats: Any) -> None:
-        """Create the session folder and the file (on a thread: it touches the disk).
+    def _open(self, stats: Any, prefix: str) -> None:
+        """Create the session folder ``prefix_NNN`` and the file (on a thread: it touches
+        the disk).
 
         ``stats`` is taken on the loop before: the runtime's tables are not read from here.
         """
@@ -210,7 +258,7 @@ class Recorder(Node):
             if session is not None:
                 session.mkdir(parents=True, exist_ok=True)
             else:
-                session = new_session(p.path, self._prefix)
+                session = new_session(p.path, prefix)
         except OSError as e:
             raise _cannot_start(e, session or Path(p.path)) from None
         try:
@@ -264,7 +312,7 @@ class Recorder(Node):
         writer.open(metadata, attachments)
         self.writer, self.session = writer, session
         self.sessions.append(session)
-        self._said_lost, self._said_error = 0, False
+        self._losses = LossAlerts()
         pid = getattr(writer, "pid", None)
         where = f" (writer process {pid})" if pid is not None else ""
         self.ctx.log.info("%s: recording into %s%s", self.ctx.name, writer.path, where)
@@ -338,6 +386,18 @@ class Recorder(Node):
         elif self.params.log_report:
             self.ctx.log.info("%s: recording stopped\n%s", self.ctx.name, report_text(report))
 
+    def get_state(self) -> Any:
+        """The sessions and their tables, for the instance a swap puts in this one's place:
+        without them the tables of the sessions before a swap were gone from ``stats.json``.
+        The list itself: this session's table is added once its file is finished, after."""
+        return {"recorder_sessions": self.sessions, "recorder_reports": self.reports}
+
+    def set_state(self, state: Any) -> None:
+        if isinstance(state, dict) and "recorder_reports" in state:
+            self.sessions[:0] = state["recorder_sessions"]
+            state["recorder_reports"].extend(self.reports)
+            self.reports = state["recorder_reports"]
+
     def report(self) -> Any:
         """The per-stream table of every recording this node made (in ``stats.json``)."""
         if not self.reports:
@@ -369,7 +429,7 @@ class Recorder(Node):
                 for topic, value in inputs.items():
                     if value is not None and not isinstance(value, Frame) and is_detection(value):
                         self._overlay(writer, topic, value)
-        self._watch(writer)
+        self._losses.watch(self.ctx, writer)
 
     def _record(
         self,
@@ -440,19 +500,6 @@ class Recorder(Node):
         seq = det.seq if isinstance(getattr(det, "seq", None), int) and det.seq >= 0 else 0
         writer.submit(name, Overlay(det), det.timestamp, seq)
 
-    def _watch(self, writer: AnyWriter) -> None:
-        """Say at once when something is lost or the disk failed (red in the table)."""
-        if writer.error is not None and not self._said_error:
-            self._said_error = True
-            self.ctx.log.error("%s: recording stopped: %s", self.ctx.name, writer.error)
-            self.ctx.set_error(f"recording stopped: {writer.error}")
-            return
-        lost = sum(s.lost_behind for s in writer.streams.values())
-        if lost > self._said_lost and not self._said_error:
-            self._said_lost = lost
-            worst = max(writer.streams.values(), key=lambda s: s.lost_behind)
-            self.ctx.set_error(f"recorder behind: {lost} lost ({worst.topic}: {worst.lost_behind})")
-
     def _written(self) -> None:
         """From the writer (any thread): give the written frames' links back on the loop."""
         if not self._loop.is_closed():
@@ -489,20 +536,15 @@ class Recorder(Node):
         if self._task is not None and not self._task.done():
             return  # a start or stop is under way: the command is read again after it
         self._command_seq = rec.seq
-        cmd = rec.value
-        if isinstance(cmd, dict):  # {"action": "start", "name": "drive"}: the live view's
-            name = cmd.get("name")
-            if cmd.get("action") == "start" and isinstance(name, str) and SESSION_NAME.match(name):
-                self._prefix = name
-            cmd = cmd.get("action")
+        cmd, prefix = _command(rec.value, self.params.name)
         if cmd == "start" and self.writer is None:
-            self._task = self._loop.create_task(self._start_async())
+            self._task = self._loop.create_task(self._start_async(prefix))
         elif cmd == "stop" and self.writer is not None:
             self._task = self._loop.create_task(self._stop_async())
 
-    async def _start_async(self) -> None:
+    async def _start_async(self, prefix: str) -> None:
         try:
-            await asyncio.to_thread(self._open, self._stats())
+            await asyncio.to_thread(self._open, self._stats(), prefix)
         except OSError as e:
             self.ctx.set_error(f"cannot start recording: {e}")
             return
@@ -542,6 +584,42 @@ class NoSpace(OSError):
 
 
 _FULL = {errno.ENOSPC, errno.EDQUOT}
+
+
+def _standing_command(ctx: Any, p: RecorderParams) -> tuple[bool, str, int | None]:
+    """Whether a recorder records from its ``setup`` on, the prefix of that session, and the
+    sequence number of the command it thereby obeys (0: none; None: no RTDB).
+
+    The last ``start``/``stop`` command outlives the instance that obeyed it: an instance
+    swapped in (or restarted) obeys it in ``setup``, before it takes over, so its session is
+    open for the first value the old one did not take. Obeyed at the first activation
+    instead, it lost the values taken while its writer opened (2-4 of a 20 Hz counter per
+    ``ctl swap``, in neither session and counted nowhere). Without a command: ``start``.
+    """
+    try:
+        rec = ctx.rtdb.read(COMMAND_RECORD + ctx.name)
+    except Exception:  # outside a runtime (tests): no RTDB, no command
+        return p.start, p.name, None
+    if rec is None:
+        return p.start, p.name, 0
+    action, prefix = _command(rec.value, p.name)
+    if action not in ("start", "stop"):
+        return p.start, prefix, rec.seq
+    return action == "start", prefix, rec.seq
+
+
+def _command(value: Any, name: str) -> tuple[Any, str]:
+    """A command record's action and the prefix of the session a start makes: the name the
+    command gives (``{"action": "start", "name": "drive"}``: the live view's), else the
+    recorder's own ``name``. Per command: a name given once was kept for every later start,
+    and ``flowrt ctl record start`` recorded into the page's ``drive_002``."""
+    if not isinstance(value, dict):
+        return value, name
+    given = value.get("name")
+    action = value.get("action")
+    if action == "start" and isinstance(given, str) and SESSION_NAME.match(given):
+        return action, given
+    return action, name
 
 
 def _oserror(e: OSError) -> str:
