@@ -301,3 +301,42 @@ def test_repair_of_a_killed_ros2_recording_opens_in_rosbags(tmp_path: Path) -> N
     assert info.messages > 0
     assert _anyreader_counts(mcap.parent) == {s.topic: s.count for s in info.streams}
     assert _anyreader_counts(mcap) == {s.topic: s.count for s in info.streams}
+
+
+@pytest.mark.parametrize("writer", ["thread", "process"])
+async def test_a_file_being_recorded_is_not_damaged_nor_repaired(
+    tmp_path: Path, writer: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``flowrt info`` of a live session said "NOT closed cleanly ... --repair rewrites the
+    summary", and ``--repair`` renamed the file under its writer: the writer went on in
+    ``.damaged.mcap``, a copy cut at that instant took the session's name and was "clean"."""
+    import os
+
+    import flowrt
+    from flowrt import cli
+    from flowrt.recording.inuse import being_recorded
+
+    g = flowrt.GraphBuilder("live")
+    g.add("src", "counter", trigger={"timer": "10ms"})
+    g.add(
+        "rec",
+        "recorder",
+        params={"path": str(tmp_path), "log_report": False, "writer": writer},
+        inputs={"src.value": "src.value"},
+    )
+    async with flowrt.Runtime(g.build()) as rt:
+        await rt.run(1.5)  # the writer has written its first chunk
+        (session,) = [tmp_path / n for n in os.listdir(tmp_path)]
+        (mcap,) = session.glob("*.mcap")
+        assert being_recorded(mcap)
+        with pytest.raises(OSError, match="still being recorded"):
+            repair(mcap)
+        assert cli.main(["info", str(session)]) == 0
+        out, err = capsys.readouterr()
+        assert "still being recorded" in out + err
+        assert "NOT closed cleanly" not in out
+        assert cli.main(["info", str(session), "--repair"]) == 1
+        assert "cannot repair: still being recorded" in capsys.readouterr().err
+        assert sorted(os.listdir(session)) == [mcap.name]  # untouched: nothing renamed
+    assert not being_recorded(mcap)
+    assert scan(mcap).closed_cleanly

@@ -265,6 +265,7 @@ def print_info(
     """One file: whether it is whole, its streams, metadata, attachments and graph."""
 
     from ..monitors._columns import Column, fit_table
+    from ..recording.inuse import being_recorded
     from ..recording.report import human_bytes
 
     if not streams_only:
@@ -279,6 +280,12 @@ def print_info(
                 else "summary and index read"
             )
             console.print(f"closed cleanly: yes ({how})", highlight=False)
+        elif being_recorded(info.path):  # no summary yet: not damaged
+            console.print(
+                Text("still being recorded", style="bold yellow")
+                + f": read so far, {info.messages} messages in {info.chunks} chunks",
+                highlight=False,
+            )
         else:
             why = info.damage or "no summary"
             console.print(
@@ -426,6 +433,7 @@ def _print_session_report(console: Console, path: Path) -> None:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
+    from ..recording.inuse import being_recorded
     from ..recording.reader import repair, scan, scan_session
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
@@ -437,8 +445,16 @@ def cmd_info(args: argparse.Namespace) -> int:
         if (why := _not_mcap(f)) is not None:
             err.print(f"flowrt info: {f}: {why}", markup=False)
             return EXIT_BAD_GRAPH
+    live = [f for f in files if being_recorded(f)]  # no summary yet: not damaged
     if args.repair:
         for f in files:
+            if f in live:
+                err.print(
+                    f"flowrt info: {printable(str(f))}: cannot repair: still being recorded "
+                    "(a recorder writes it; it is whole once that stops)",
+                    markup=False,
+                )
+                return EXIT_FAILED
             if not scan(f).closed_cleanly:
                 try:
                     fixed, kept, original = repair(f)
@@ -460,10 +476,19 @@ def cmd_info(args: argparse.Namespace) -> int:
     else:
         print_session(console, session, show_graph=args.graph)
         _print_session_report(console, Path(args.path))
-    if not session.closed_cleanly:
+    if live:
         err.print(
-            f"flowrt info: {', '.join(i.path for i in session.files if not i.closed_cleanly)} "
-            "not closed cleanly (damaged or the recorder was killed)",
+            f"flowrt info: {', '.join(printable(str(f)) for f in live)}: still being recorded "
+            "(what is read so far; its summary comes when the recorder stops)",
+            markup=False,
+        )
+    held = {f.resolve() for f in live}
+    damaged = [i.path for i in session.files if not i.closed_cleanly]
+    damaged = [d for d in damaged if Path(d).resolve() not in held]
+    if damaged:
+        err.print(
+            f"flowrt info: {', '.join(damaged)} not closed cleanly (damaged or the recorder "
+            "was killed)",
             markup=False,
         )
         return EXIT_FAILED

@@ -32,6 +32,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
+from .inuse import being_recorded
 from .rosbag2 import BagError, db3_messages, db3_topics, is_db3
 
 __all__ = [
@@ -715,19 +716,18 @@ def repair(path: str | Path) -> tuple[Path, int, Path]:
     repaired file, messages kept, where the original is kept). An ``OSError`` (a read-only
     folder, a full disk) leaves the original untouched and no partial file behind.
 
-    The repaired file keeps the original's header profile: a ``ros2`` file stays one, since
-    rosbags refuses any other. A killed ``ros2`` recording never wrote the folder's
-    ``metadata.yaml`` (the recorder writes it at a clean close), without which rosbags does
-    not open the folder, so the repair writes it (:func:`.rosbag2.metadata_after_repair`).
+    The repaired file keeps the original's header profile (rosbags refuses a ``ros2`` file
+    of another). A killed ``ros2`` recording never wrote the folder's ``metadata.yaml``,
+    without which rosbags does not open it: the repair writes it (:mod:`.rosbag2`).
     """
     from .rosbag2 import header_profile, metadata_after_repair
 
     p = Path(path)
     if is_db3(p):  # it would be renamed .damaged.mcap and replaced by an empty MCAP file
         raise OSError(errno.EINVAL, "a rosbag2 SQLite3 file: flowrt repairs MCAP files only")
-    rec = Recording(p)
-    tmp = p.with_name(p.stem + ".repairing.mcap")
-    profile = header_profile(p)
+    if being_recorded(p):  # its writer would go on in the renamed file, this one cut short
+        raise OSError(errno.EBUSY, "still being recorded (a recorder writes it)")
+    rec, tmp, profile = Recording(p), p.with_name(p.stem + ".repairing.mcap"), header_profile(p)
     profile = "flowrt" if profile is None else profile  # cut inside its header: flowrt's
     try:
         kept = _write_repaired(p, rec, tmp, profile)

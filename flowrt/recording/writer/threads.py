@@ -42,6 +42,7 @@ from ..chunking import checked_if_large, install_chunks
 from ..directio import open_direct
 from ..encoding import Encoded, StreamSchema
 from ..gilfree import install
+from ..inuse import hold
 from ..ros2_profile import ros2_topic
 from ..split import SplitPolicy, part_path
 from ..streams import StreamBook
@@ -304,9 +305,7 @@ class RecordingWriter:
             "lz4": CompressionType.LZ4,
             "zstd": CompressionType.ZSTD,
         }[self.compression]
-        file: Any = open_direct(path) if self.direct_io else None
-        if file is None:
-            file = open(path, "xb")  # noqa: SIM115 - closed by the writer thread
+        file = _create(path, self.direct_io)
         try:
             w = Writer(file, chunk_size=self.chunk_size, compression=comp, enable_crcs=self.crc)
             gathered = self.gil_free and install(w) and install_chunks(w)  # .gilfree, .chunking
@@ -590,3 +589,13 @@ def _library() -> str:
     except Exception:
         mcap_version = "?"
     return f"flowrt {__version__} (mcap {mcap_version})"
+
+
+def _create(path: Path, direct_io: bool) -> Any:
+    """``path`` created for writing (direct I/O where it may), held while it is written:
+    ``flowrt info`` and ``--repair`` tell it from a killed recorder's file (:mod:`..inuse`)."""
+    file: Any = open_direct(path) if direct_io else None
+    if file is None:
+        file = open(path, "xb")  # noqa: SIM115 - closed by the writer thread
+    hold(file.fileno())
+    return file
