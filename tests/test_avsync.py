@@ -77,12 +77,24 @@ def test_flash_and_beep_40ms_measured_from_a_recording(tmp_path: Path) -> None:
     assert got["events"] >= 3
     assert abs(got["lag_ms"] - 40) < 5
     # topics of the wrong kind: one line each, exit 2 (they were tracebacks)
-    for args, said in (
-        (["--video", "mic.audio", "--audio", "led.frame"], "mic.audio is audio, not video"),
-        (["--video", "led.frame", "--audio", "led.frame"], "led.frame is video, not audio"),
+    for where, args, said in (
+        (
+            session,
+            ["--video", "mic.audio", "--audio", "led.frame"],
+            "mic.audio is audio, not video",
+        ),
+        (
+            session,
+            ["--video", "led.frame", "--audio", "led.frame"],
+            "led.frame is video, not audio",
+        ),
+        # a topic the recording has not: its streams named (it blamed the topic's messages)
+        (session, ["--video", "cam.frame", "--audio", "mic.audio"], "no stream 'cam.frame' in"),
+        # a file that is no recording: said so (it was "a: no image or audio messages")
+        (REPO / "graphs/sample.avi", ["--video", "a", "--audio", "b"], "not an MCAP file"),
     ):
         w = subprocess.run(
-            [sys.executable, "-m", "flowrt.cli", "sync", "measure", str(session), *args],
+            [sys.executable, "-m", "flowrt.cli", "sync", "measure", str(where), *args],
             cwd=REPO, env=env, capture_output=True, text=True, timeout=60,
         )  # fmt: skip
         assert w.returncode == 2, w.stderr

@@ -15,6 +15,7 @@ from rich.console import Console
 
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, printable, stdout_console
 from .json_output import emit
+from .replay import _files, _not_mcap
 
 NO_MATPLOTLIB = "--plot needs matplotlib (pip install matplotlib)"
 
@@ -67,14 +68,33 @@ def _audio(rows: list[tuple[float, Any]]) -> list[float]:
     return audio_onsets(times, samples)
 
 
+def _missing(path: Path, topic: str) -> str:
+    """Why ``topic`` gave nothing: not a stream of the recording (its streams named), or
+    one without images or audio."""
+    from ..recording.reader import scan_session
+
+    topics = sorted({st.topic for st in scan_session(path).streams})
+    if topic not in topics:
+        return (
+            f"no stream {printable(topic)!r} in {printable(str(path))} (streams: "
+            + (", ".join(printable(t) for t in topics) or "none")
+            + ")"
+        )
+    return f"{printable(topic)}: no image or audio messages in {printable(str(path))}"
+
+
 def cmd_measure(args: argparse.Namespace) -> int:
     from ..analysis.avsync import measure_lag
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     path = Path(args.session)
-    if not path.exists():
-        err.print(f"flowrt sync measure: {args.session}: no such file or folder", markup=False)
+    files = _files(args.session, err, "sync measure")  # (no such file, no .mcap in it)
+    if files is None:
         return EXIT_BAD_GRAPH
+    for f in files:
+        if (why := _not_mcap(f)) is not None:  # a video file given for a recording
+            err.print(f"flowrt sync measure: {printable(str(f))}: {why}", markup=False)
+            return EXIT_BAD_GRAPH
     videos = list(args.video or [])
     if not videos or (not args.audio and len(videos) != 2):
         err.print(
@@ -90,11 +110,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
     wanted = {videos[0]: "video", other: "audio" if args.audio else "video"}
     for topic, kind in wanted.items():
         if not data[topic]:
-            err.print(
-                f"flowrt sync measure: {printable(topic)}: no image or audio messages in "
-                f"{printable(str(path))}",
-                markup=False,
-            )
+            err.print(f"flowrt sync measure: {_missing(path, topic)}", markup=False)
             return EXIT_BAD_GRAPH
         found = "audio" if isinstance(data[topic][0][1], tuple) else "video"
         if found != kind:

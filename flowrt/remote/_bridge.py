@@ -113,7 +113,8 @@ class ZenohBridge:
                 where = self.zspec.listen
                 raise RemoteError(
                     f"zenoh: cannot listen on {', '.join(where)}: address already in use "
-                    "(change zenoh.listen in the graph file, or stop the other process)"
+                    "(change zenoh.listen in the graph file or --zenoh-listen, or stop the "
+                    "other process)"
                 ) from None
             if "Unable to connect" in text:
                 raise RemoteError(
