@@ -73,7 +73,7 @@ def _json_run(capsys: pytest.CaptureFixture[str], argv: list[str]) -> tuple[int,
 # (subcommand, argv of a success, argv of a failure and its exit code); {x}: from `files`
 CASES: dict[str, tuple[list[str] | None, list[str], int]] = {
     "kinds": (["kinds", "capture"], ["kinds", "nope"], 2),
-    "examples": (["examples"], ["examples", "--copy", "{graph}"], 1),  # a file, not a folder
+    "examples": (["examples"], ["examples", "--copy", "{graph}"], 2),  # a file, not a folder
     "validate": (["validate", "{graph}"], ["validate", "{bad}"], 2),
     "graph": (["graph", "{graph}"], ["graph", "{tmp}/missing.yaml"], 2),
     "schema": (["schema", "stats"], ["schema", "nope"], 2),

@@ -15,7 +15,7 @@ from importlib.abc import Traversable
 from pathlib import Path
 from typing import Any
 
-from .common import EXIT_FAILED, EXIT_OK, stdout_console
+from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, stdout_console
 from .example_files import shipped
 from .json_output import emit
 
@@ -57,8 +57,12 @@ def copy(dest: Path, force: bool) -> list[Path]:
 def cmd_examples(args: argparse.Namespace) -> int:
     console = stdout_console()
     if args.copy is not None:
+        dest = Path(args.copy)
+        if dest.exists() and not dest.is_dir():  # (was "[Errno 20] Not a directory: ...")
+            print(f"flowrt examples: --copy {args.copy}: not a folder", file=sys.stderr)
+            return EXIT_BAD_GRAPH
         try:
-            written = copy(Path(args.copy), args.force)
+            written = copy(dest, args.force)
         except OSError as e:  # exists, not writable, a file where the folder goes
             print(f"flowrt examples: {e}", file=sys.stderr)
             return EXIT_FAILED
