@@ -539,3 +539,25 @@ def test_can_analyse_finds_the_shipped_database_as_the_node_does(
     assert "robot.dbc:1: not a valid CAN database" in capsys.readouterr().err
     assert main(["can", "analyse", "nosuch.dbc"]) == 2
     assert capsys.readouterr().err.strip() == "flowrt can analyse: nosuch.dbc: no such file"
+
+
+@pytest.mark.parametrize(
+    ("host", "refused", "token_said"),
+    [("1.2.3.4.5", True, False), ("0.0.0.0", False, True), ("127.0.0.1", False, False)],
+)
+def test_a_view_token_is_said_only_for_an_address_taken(
+    capsys: pytest.CaptureFixture[str], host: str, refused: bool, token_said: bool
+) -> None:
+    """--display-host 1.2.3.4.5 printed a freshly made token before refusing the address."""
+    import argparse
+
+    from flowrt import Graph
+    from flowrt.cli.run import _display_options
+
+    graph = Graph.from_file(REPO / "graphs" / "cambada.yaml")
+    args = argparse.Namespace(
+        no_display=False, display_token=None, display_host=host, display_port=None
+    )
+    problem = _display_options(graph, args)
+    assert (problem is not None) == refused
+    assert ("live view token" in capsys.readouterr().out) == token_said

@@ -399,17 +399,19 @@ def _display_options(graph: Graph, args: argparse.Namespace) -> str | None:
         return "--display-host/--display-port/--display-token: the graph has no display node"
     if "port" in update and len(names) > 1 and update["port"] != 0:
         return f"--display-port: the graph has {len(names)} display nodes ({', '.join(names)})"
-    if args.display_host and not token and not _loopback(args.display_host):
+    made = args.display_host and not token and not _loopback(args.display_host)
+    if made:
         import secrets
 
         update["token"] = secrets.token_urlsafe(18)
-        print(f"live view token (open the view as /?token=...): {update['token']}", flush=True)
     for name in names:
         n = graph.nodes[name]
         try:
             n.params = n.params.model_validate({**n.params.model_dump(), **update})
         except ValueError as e:
             return f"--display-host/--display-port/--display-token: {_one_line(e)}"
+    if made:  # said once the address is taken: never a token for a run that does not start
+        print(f"live view token (open the view as /?token=...): {update['token']}", flush=True)
     return None
 
 
