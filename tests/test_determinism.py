@@ -591,3 +591,54 @@ async def test_a_repaired_log_is_never_identical(tmp_path: Path) -> None:
     assert report.first_divergence is None
     assert not report.identical
     assert report.log_cut == log.damage
+
+
+async def test_a_deterministic_recorder_swapped_while_recording_logs_both_sessions(
+    tmp_path: Path,
+) -> None:
+    """Swapped (``ctl swap rec recorder --params '{"compression": "zstd"}'``), the new
+    instance installed its observer before its file was open: what ran meanwhile was logged
+    by neither instance, and its numbers began at 0 in the middle of the run. Every
+    activation is now in one of the two logs, numbered as the run did; the first session
+    replays identical; the second, begun mid-run (its nodes' inputs and state from before
+    it unrecorded), is not comparable, and never called identical."""
+    import os
+
+    TRACE.clear()
+    g = GraphBuilder("det")
+    drive = case_timers(g)
+    g.add(
+        "rec",
+        "recorder",
+        params={
+            "path": str(tmp_path),
+            "name": "s",
+            "deterministic": True,
+            "log_report": False,
+            "writer": "thread",
+        },
+        inputs={"slow.total": {"from": "slow.total", "policy": "lossless"}},
+    )
+    graph = g.build()
+    clock = VirtualClock()
+    async with Runtime(graph, clock=clock) as rt:
+        await drive(rt, clock)
+        await rt.swap("rec", "recorder", {"compression": "zstd"})
+        await drive(rt, clock)
+    await asyncio.to_thread(wait_for_writers)
+    live = list(TRACE)
+    sessions = sorted(tmp_path / n for n in os.listdir(tmp_path))
+    assert [s.name for s in sessions] == ["s_001", "s_002"]
+    first, second = (read_log(s) for s in sessions)
+    numbers = [(a.node, a.n) for a in first.activations + second.activations]
+    assert len(numbers) == len(set(numbers)) == len(live)  # each once, none lost
+    assert min(a.n for a in second.activations if a.node == "slow") > 1  # the run's numbers
+    async with flowrt.replay(sessions[0], graph, inline=True) as rp:
+        report = await rp.run()
+    assert report.identical, report.first_divergence
+    assert report.activations == len(first.activations)
+    async with flowrt.replay(sessions[1], graph, inline=True) as rp:
+        report = await rp.run()
+    assert not report.identical
+    assert report.first_divergence is None
+    assert {n.node: n.status for n in report.nodes}["slow"] == "not comparable"

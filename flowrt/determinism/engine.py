@@ -526,8 +526,11 @@ def _report(self: ReplayEngine, wall_s: float) -> ReplayReport:
         + (f" ({c.origin})" if c.origin else "")
         for c in self.log.changes
     ]
+    # nothing compared, every node given up (a session begun mid-run: its inputs from before
+    # it were never recorded): no divergence, and no claim of "identical" either
+    nothing = self.compared == 0 and any(n.reason for n in self.nodes.values())
     return ReplayReport(
-        identical=self.divergence is None and self.log.closed_cleanly,
+        identical=self.divergence is None and self.log.closed_cleanly and not nothing,
         activations=self.activations,
         compared=self.compared,
         first_divergence=self.divergence,

@@ -76,9 +76,21 @@ class Observer:
         self.rnodes: dict[str, ResolvedNode] = {}  # what the last activation ran
         self.base: dict[str, dict[str, Any]] = {}  # the graph's params, as JSON
         self.refused = 0  # values the sink refused: their readers' activations cannot replay
+        self.previous: Observer | None = None  # logs on until this one's sink records
 
     def attach(self, graph: Graph, scheduler: Any) -> None:
-        """Called by ``ctx.observe``: learn the graph and hear its events (timing, restarts)."""
+        """Called by ``ctx.observe``: learn the graph and hear its events (timing, restarts).
+
+        A recorder swapped while recording installs its observer before its own file is
+        open: the observer it replaces (``scheduler.observer`` still) goes on logging into
+        its session until this one records (:attr:`previous`), and this one's numbers go on
+        from its (they began at 0 again, mid-run, and a session's numbers are the run's)."""
+        previous = getattr(scheduler, "observer", None)
+        if isinstance(previous, Observer) and previous is not self:
+            self.previous = previous
+            self.seqs, self.counts = dict(previous.seqs), dict(previous.counts)
+            self.open = {n: deque(q) for n, q in previous.open.items()}
+            self.current, self.rnodes = dict(previous.current), dict(previous.rnodes)
         self.graph = graph
         self.origin = float(scheduler.clock.origin)
         self.roles = roles(graph)
@@ -104,6 +116,13 @@ class Observer:
 
     # --- the scheduler's calls ---------------------------------------------------------------
 
+    def _handed_over(self) -> Observer | None:
+        """The observer this one replaced, while this one's sink does not record yet."""
+        prev = self.previous
+        if prev is not None and self.sink.recording:
+            self.previous = prev = None  # this session has begun: the old one has ended
+        return prev
+
     def activation(
         self,
         node: str,
@@ -112,6 +131,8 @@ class Observer:
         held: dict[str, int | None],
         rnode: ResolvedNode,
     ) -> None:
+        if (prev := self._handed_over()) is not None:
+            prev.activation(node, release, start, held, rnode)
         if self.roles.get(node) != "replayed":
             return
         n = self.counts[node] = self.counts.get(node, 0) + 1
@@ -143,6 +164,8 @@ class Observer:
         self.sink.log(ACTIVATION, record, start)
 
     def completed(self, node: str, release: float, end: float, discarded: bool) -> None:
+        if (prev := self._handed_over()) is not None:
+            prev.completed(node, release, end, discarded)
         pending = self.open.get(node)
         if not pending:
             return
@@ -158,6 +181,8 @@ class Observer:
             self.sink.log(COMPLETION, record, end)
 
     def published(self, node: str, port: str, value: Any, t: float) -> None:
+        if (prev := self._handed_over()) is not None:
+            prev.published(node, port, value, t)
         key = (node, port)
         seq = self.seqs[key] = self.seqs.get(key, 0) + 1
         role = self.roles.get(node)

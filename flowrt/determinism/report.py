@@ -101,6 +101,8 @@ def report_lines(report: ReplayReport) -> list[str]:
             f"compared over the {report.recorded_s:.1f} s recorded before the cut, what came "
             "after it was never checked"
         )
+    elif d is None and not report.identical:
+        lines.append("not identical: nothing could be compared (each node's reason above)")
     elif d is None:
         lines.append("identical: every compared output has its recorded digest")
     else:

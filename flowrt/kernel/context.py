@@ -127,8 +127,8 @@ class RunnerContext(NodeContext):
         """Tell ``observer`` of every activation and publication from now on (what
         ``flowrt record --deterministic`` records; :mod:`flowrt.determinism`)."""
         sched = self._runner.sched
+        observer.attach(sched.graph, sched)  # (it may take over from sched.observer)
         sched.observer = observer
-        observer.attach(sched.graph, sched)
 
     def request_stop(self) -> None:
         """Ask the runtime to stop (e.g. a video source at its end with on_eof: stop)."""
