@@ -197,3 +197,37 @@ def drained(sub: Any, into: list[Any]) -> list[Any]:
     drains as it goes: a subscription's buffer is bounded)."""
     into += sub.drain()
     return into
+
+
+def recorded_counter(folder: Path, timer: str = "20ms", **params: Any) -> Any:
+    """A graph builder: a counter every ``timer`` recorded by a recorder ``rec`` into
+    ``folder`` (``params`` over ``log_report: false``): the graph of the recorder's tests."""
+    from flowrt import GraphBuilder
+
+    g = GraphBuilder("rec")
+    g.add("src", "counter", trigger={"timer": timer})
+    g.add(
+        "rec",
+        "recorder",
+        params={"path": str(folder), "log_report": False, **params},
+        inputs={"src.value": "src.value"},
+    )
+    return g
+
+
+async def trickled_post(port: int, path: str, body_start: bytes) -> bytes:
+    """The status line a server at ``port`` answers to a POST whose headers are whole and
+    whose body stops after ``body_start`` (of 40 bytes announced): a slow client's body."""
+    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+    writer.write(
+        f"POST {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        "Content-Length: 40\r\n\r\n".encode()
+        + body_start
+    )
+    await writer.drain()
+    try:
+        return await asyncio.wait_for(reader.readline(), 5)
+    finally:
+        writer.close()
+        with contextlib.suppress(ConnectionError):
+            await writer.wait_closed()

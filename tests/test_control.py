@@ -11,6 +11,7 @@ from typing import Any
 
 import aiohttp
 import pytest
+from conftest import trickled_post
 
 import flowrt
 from flowrt import GraphBuilder, Runtime, VirtualClock
@@ -537,15 +538,8 @@ async def test_a_body_sent_a_byte_at_a_time_is_408_and_its_slot_freed() -> None:
         Runtime(graph(), clock=VirtualClock()) as rt,
         ControlServer(rt, ControlConfig("127.0.0.1", 0), request_timeout=0.5) as server,
     ):
-        reader, writer = await asyncio.open_connection("127.0.0.1", server.port)
-        writer.write(
-            b"POST /mode HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
-            b'Content-Length: 40\r\n\r\n{"mo'
-        )
-        await writer.drain()
-        status = await asyncio.wait_for(reader.readline(), 5)
+        status = await trickled_post(server.port, "/mode", b'{"mo')
         assert status.startswith(b"HTTP/1.1 408"), status
-        writer.close()
         assert rt.mode is None
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import recorded_counter
 from pydantic import ValidationError
 
 import flowrt
@@ -204,14 +205,7 @@ async def test_post_record_answers_once_the_recorders_obeyed(tmp_path: Path) -> 
     page's): one of two concurrent starts records, the other is 409."""
     import asyncio
 
-    g = GraphBuilder("rec")
-    g.add("src", "counter", trigger={"timer": "20ms"})
-    g.add(
-        "rec",
-        "recorder",
-        params={"path": str(tmp_path), "start": False, "log_report": False, "writer": "thread"},
-        inputs={"src.value": "src.value"},
-    )
+    g = recorded_counter(tmp_path, start=False, writer="thread")
     async with Runtime(g.build()) as rt:
         server = Server(rt)
         await asyncio.sleep(0.2)  # the recorder says it is stopped

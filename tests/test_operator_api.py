@@ -24,7 +24,7 @@ from flowrt.nodes.health_history import ALERT_TEXT, HealthHistory
 import flowrt
 from flowrt import Frame, Input, Node, Output
 from flowrt.recording.seek import SessionIndex
-from tests.conftest import flowrt_running
+from tests.conftest import flowrt_running, trickled_post
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.realtime]
 
@@ -421,16 +421,7 @@ async def test_a_record_request_body_sent_a_byte_at_a_time_is_408(
     site = web.TCPSite(runner, "127.0.0.1", 0)
     await site.start()
     try:
-        port = runner.addresses[0][1]
-        reader, writer = await asyncio.open_connection("127.0.0.1", port)
-        writer.write(
-            b"POST /api/record/start HTTP/1.1\r\nHost: 127.0.0.1\r\n"
-            b'Content-Type: application/json\r\nContent-Length: 40\r\n\r\n{"na'
-        )
-        await writer.drain()
-        status = await asyncio.wait_for(reader.readline(), 5)
+        status = await trickled_post(runner.addresses[0][1], "/api/record/start", b'{"na')
         assert status.startswith(b"HTTP/1.1 408"), status
-        writer.close()
-        await writer.wait_closed()
     finally:
         await runner.cleanup()

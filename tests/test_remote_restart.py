@@ -14,22 +14,12 @@ import types
 from typing import Any
 
 import pytest
+from test_remote_liveness import _Bytes
 
 from flowrt.remote._importer import BEFORE_LINK, ImportLink
 from flowrt.remote.wire import HEADER, Header, MessageHeaders, header_ids
 
 T0 = 1_700_000_000  # a stream's start, whole seconds of the exporter's wall clock
-
-
-class _Bytes:
-    def __init__(self, data: bytes) -> None:
-        self.data = data
-
-    def __len__(self) -> int:
-        return len(self.data)
-
-    def to_bytes(self) -> bytes:
-        return self.data
 
 
 class _Sample:

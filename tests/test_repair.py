@@ -26,6 +26,7 @@ from typing import Any
 
 import pytest
 import yaml
+from conftest import recorded_counter
 
 from flowrt.recording.reader import repair, scan, scan_session
 from flowrt.recording.writer.threads import RecordingWriter
@@ -316,14 +317,7 @@ async def test_a_file_being_recorded_is_not_damaged_nor_repaired(
     from flowrt import cli
     from flowrt.recording.inuse import being_recorded
 
-    g = flowrt.GraphBuilder("live")
-    g.add("src", "counter", trigger={"timer": "10ms"})
-    g.add(
-        "rec",
-        "recorder",
-        params={"path": str(tmp_path), "log_report": False, "writer": writer},
-        inputs={"src.value": "src.value"},
-    )
+    g = recorded_counter(tmp_path, "10ms", writer=writer)
     async with flowrt.Runtime(g.build()) as rt:
         await rt.run(1.5)  # the writer has written its first chunk
         (session,) = [tmp_path / n for n in os.listdir(tmp_path)]

@@ -165,10 +165,13 @@ class _NoSleep:
         return getattr(asyncio, name)
 
 
-def replayed(path: Path, node: str, monkeypatch: pytest.MonkeyPatch) -> list[Any]:
-    """What a replay node standing in for ``node`` (a Signals source) publishes."""
+def replayed(
+    path: Path, node: str, monkeypatch: pytest.MonkeyPatch, cls: type[Node] | None = None
+) -> list[Any]:
+    """What a replay node standing in for ``node`` (of ``cls``: a Signals source by default)
+    publishes (tests/test_ros2_replay_values.py too)."""
     monkeypatch.setattr(replay_mod, "asyncio", _NoSleep())
-    kind = Replay.standing_in_for(Signals, node)
+    kind = Replay.standing_in_for(Signals if cls is None else cls, node)
     h = NodeHarness(kind, {"path": str(path), "node": node, "on_end": "idle"}, name=node)
 
     async def every() -> list[Any]:

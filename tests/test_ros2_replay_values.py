@@ -13,24 +13,21 @@ The ``flowrt`` profile replays the same graphs. The replay now publishes the sca
 
 from __future__ import annotations
 
-import asyncio
 import math
 import os
 import time
 from pathlib import Path
 from typing import Any
 
-import flowrt.nodes.replay as replay_mod
 import numpy as np
 import pytest
-from flowrt.nodes.replay import Replay
 from mcap.records import Schema
+from test_ros2_replay_mappings import replayed
 
 from flowrt import AudioBlock, Node, Output
 from flowrt.recording.decoding import MessageDecoder
 from flowrt.recording.reader import iter_messages
 from flowrt.recording.writer.threads import RecordingWriter
-from flowrt.testing import NodeHarness
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -107,34 +104,6 @@ def bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     return {p: write(tmp / f"{p}.mcap", p) for p in ("flowrt", "ros2")}
 
 
-class _NoSleep:
-    """``asyncio`` for the replay module, its sleeps not slept: a replay as fast as it reads."""
-
-    async def sleep(self, seconds: float) -> None:
-        return None
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(asyncio, name)
-
-
-def replayed(path: Path, node: str, cls: type[Node], monkeypatch: pytest.MonkeyPatch) -> list[Any]:
-    """What a replay node standing in for ``node`` (of class ``cls``) publishes."""
-    monkeypatch.setattr(replay_mod, "asyncio", _NoSleep())
-    kind = Replay.standing_in_for(cls, node)
-    h = NodeHarness(kind, {"path": str(path), "node": node, "on_end": "idle"}, name=node)
-
-    async def every() -> list[Any]:
-        out, n = [], h.node
-        while not n.ended:  # type: ignore[attr-defined]
-            v = await n.process()  # type: ignore[misc]
-            if v is not None:
-                out.append(v)
-        await n.teardown()  # type: ignore[misc]
-        return out
-
-    return asyncio.run(every())
-
-
 @pytest.mark.parametrize(
     ("name", "port_type", "expected"),
     [pytest.param(name, t, e, id=name) for name, t, _, e in SCALARS],
@@ -146,7 +115,7 @@ def test_a_replayed_scalar_is_the_scalar_recorded(
     bags: dict[str, Path],
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    got = replayed(bags["ros2"], f"case_{name}", source(port_type), monkeypatch)
+    got = replayed(bags["ros2"], f"case_{name}", monkeypatch, source(port_type))
     assert all(isinstance(v, port_type) for v in got), got  # what the typed output takes
     assert len(got) == len(expected)
     assert all(same(g, e) for g, e in zip(got, expected, strict=True)), got
@@ -159,12 +128,12 @@ def test_a_replayed_audio_block_is_the_block_recorded(
     name: str, samples: np.ndarray, seq: int, bags: dict[str, Path], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     cls = source(AudioBlock)
-    (got,) = replayed(bags["ros2"], f"case_{name}", cls, monkeypatch)
+    (got,) = replayed(bags["ros2"], f"case_{name}", monkeypatch, cls)
     assert isinstance(got, AudioBlock)
     assert (got.rate, got.seq, got.channels) == (RATE, seq, samples.shape[1])
     assert got.samples.dtype == np.float32
     assert np.array_equal(got.samples, as_written(samples))
-    (flowrt_profile,) = replayed(bags["flowrt"], f"case_{name}", cls, monkeypatch)
+    (flowrt_profile,) = replayed(bags["flowrt"], f"case_{name}", monkeypatch, cls)
     assert np.array_equal(got.samples, flowrt_profile.samples)  # as a flowrt recording gives
     assert (got.rate, got.channels, got.source) == (
         flowrt_profile.rate,

@@ -12,6 +12,7 @@ from typing import Any
 
 import aiohttp
 import pytest
+from conftest import recorded_counter
 from flowrt.nodes.basic import Relay
 from flowrt.nodes.recorder import Recorder
 from flowrt.nodes.station.display import Display
@@ -184,14 +185,7 @@ async def test_a_recorder_swapped_to_a_session_it_cannot_make_is_refused_at_the_
 ) -> None:
     """Refused when swapped, as when loaded (it was refused only at the next start, the
     recorder then in an error state): the running recorder is untouched."""
-    g = GraphBuilder("rec")
-    g.add("src", "counter", trigger={"timer": "50ms"})
-    g.add(
-        "rec",
-        "recorder",
-        params={"path": str(tmp_path), "start": False, "log_report": False},
-        inputs={"src.value": "src.value"},
-    )
+    g = recorded_counter(tmp_path, "50ms", start=False)
     async with Runtime(g.build(), clock=VirtualClock()) as rt:
         before = rt.runner("rec").rnode
         with pytest.raises((SwapError, ValueError), match=message):

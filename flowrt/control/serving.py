@@ -17,6 +17,7 @@ import json
 import os
 import socket
 import struct
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -134,8 +135,6 @@ class Conn:
 
     def answered(self, timeout: float) -> None:
         """A request done: the next one has ``timeout`` for its headers."""
-        import time
-
         self.headers_in, self.tail = False, b""
         self.deadline = time.monotonic() + timeout
 
@@ -180,8 +179,6 @@ class Tracked(asyncio.Protocol):
         conns.pending += 1  # holds its slot from now: see Conns
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
-        import time
-
         self.transport = transport
         self.conns.pending = max(0, self.conns.pending - 1)
         conn = Conn(transport, time.monotonic() + self.timeout, reserve=self.reserve)

@@ -117,7 +117,8 @@ class Observer:
     # --- the scheduler's calls ---------------------------------------------------------------
 
     def _handed_over(self) -> Observer | None:
-        """The observer this one replaced, while this one's sink does not record yet."""
+        """The observer this one replaced, while this one's sink does not record yet (called
+        only while there is one: every publication passes here)."""
         prev = self.previous
         if prev is not None and self.sink.recording:
             self.previous = prev = None  # this session has begun: the old one has ended
@@ -131,7 +132,7 @@ class Observer:
         held: dict[str, int | None],
         rnode: ResolvedNode,
     ) -> None:
-        if (prev := self._handed_over()) is not None:
+        if self.previous is not None and (prev := self._handed_over()) is not None:
             prev.activation(node, release, start, held, rnode)
         if self.roles.get(node) != "replayed":
             return
@@ -164,7 +165,7 @@ class Observer:
         self.sink.log(ACTIVATION, record, start)
 
     def completed(self, node: str, release: float, end: float, discarded: bool) -> None:
-        if (prev := self._handed_over()) is not None:
+        if self.previous is not None and (prev := self._handed_over()) is not None:
             prev.completed(node, release, end, discarded)
         pending = self.open.get(node)
         if not pending:
@@ -181,7 +182,7 @@ class Observer:
             self.sink.log(COMPLETION, record, end)
 
     def published(self, node: str, port: str, value: Any, t: float) -> None:
-        if (prev := self._handed_over()) is not None:
+        if self.previous is not None and (prev := self._handed_over()) is not None:
             prev.published(node, port, value, t)
         key = (node, port)
         seq = self.seqs[key] = self.seqs.get(key, 0) + 1
