@@ -113,7 +113,7 @@ def test_stale_after_never_never_goes_stale() -> None:
     assert not imp.stale
     assert ctx.error is None
     assert ctx.events == []
-    assert imp._validity_ms() is None
+    assert imp.live.validity_ms() is None
 
 
 def _arrive(imp: ImportLink) -> None:

@@ -489,11 +489,7 @@ class NodeRunner(RunnerFields):
             return
         c = self.counts
         c.completions += 1
-        if self.supervisor.consecutive:
-            self.supervisor.succeeded()
         c.last_finish = end
-        c.execution.add(end - act.start)
-        c.response.add(end - act.t_release)
         try:
             timed = act.timer is not None or self.timing.deadline is not None  # else: no call
             discard = self.deadlines.finish(act, end) if timed else False
@@ -506,6 +502,12 @@ class NodeRunner(RunnerFields):
                 self._publish_result(result, end)
         finally:
             act.close()
+            # The statistics after the publication: a reader served on the spot (an
+            # export's send) does not wait for them; nothing between reads them (no await).
+            c.execution.add(end - act.start)
+            c.response.add(end - act.t_release)
+            if self.supervisor.consecutive:
+                self.supervisor.succeeded()
         self.idle()
 
     def _publish_result(self, result: Any, t: float) -> None:

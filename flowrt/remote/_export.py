@@ -109,7 +109,10 @@ class ExportSender:
         while not isinstance(value := exp.buf.take(), Frame):  # messages: sent from here
             if value is EMPTY:
                 return
-            self._send(exp, value)
+            try:
+                self._send_message(exp, value)
+            except Exception as e:
+                self._failed(exp, e)
         exp.busy = True
         self._jobs.put((exp, value))
 
@@ -141,8 +144,13 @@ class ExportSender:
             else:
                 self._send_message(exp, value)
         except Exception as e:
-            exp.errors += 1
-            log.warning("export %s: %s", exp.key, e)
+            self._failed(exp, e)
+
+    @staticmethod
+    def _failed(exp: Export, e: Exception) -> None:
+        """A value not sent: counted and logged, never raised."""
+        exp.errors += 1
+        log.warning("export %s: %s", exp.key, e)
 
     def _send_message(self, exp: Export, value: Any) -> None:
         """A message, by the recording's description of its stream, byte for byte.
@@ -163,8 +171,14 @@ class ExportSender:
         sent = exp.encodings.get(zkey)
         if sent is None:  # one per schema: the Zenoh encoding and header made once, not per put
             json_ = msg.schema.message_encoding == "json"
+            number = sum(k != "frame" for k in exp.encodings) + 1  # the schema's, in the header
             sent = exp.encodings[zkey] = (
-                MessageHeaders(self._ids, "json" if json_ else "protobuf", self._started),
+                MessageHeaders(
+                    self._ids,
+                    "json" if json_ else "protobuf",
+                    self._started,
+                    number if number <= 255 else 0,
+                ),
                 encoding_of(msg.schema.message_encoding, zkey),
             )
         header, encoding = sent

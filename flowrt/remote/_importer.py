@@ -28,16 +28,18 @@ import numpy as np
 
 from ..audio import AudioBlock
 from ..edges import Buffer
-from ..events import HealthAlert
 from ..frames import Frame
 from ..graph.spec import GraphSpec, Placement
-from ..stats import EdgeStats, Running
+from ..stats import EdgeStats
 from ._host import BridgeHost
+from ._liveness import ImportLiveness
 from ._streams import AUDIO_SCHEMA, decode_audio, decode_json, schema_of_sample
 from .wire import (
+    HEADER,
     MAX_HEADER_BYTES,
     MAX_SEQ_JUMP,
     WARN_EVERY,
+    FixedParts,
     Header,
     PlainFormat,
     Refused,
@@ -61,6 +63,7 @@ log = logging.getLogger("flowrt.remote._bridge")
 FRAME_BACKLOG = 3  # received frames waiting for the loop, at most (each holds a pool slot)
 STREAMS_KEPT = 64  # other streams of a key whose last sequence number is remembered
 BEFORE_LINK = "before the link was up"  # a new stream's values before the first one heard
+_SCHEMA_KINDS = ("json", "protobuf")  # messages whose Zenoh encoding names their schema
 
 
 class ImportBridge(Protocol):
@@ -148,7 +151,8 @@ class StreamStarts:
 
 
 class ImportLink:
-    """One imported stream: hand-over between Zenoh's thread and the loop, liveness."""
+    """One imported stream: hand-over between Zenoh's thread and the loop (its liveness:
+    :class:`~flowrt.remote._liveness.ImportLiveness`)."""
 
     def __init__(
         self,
@@ -163,9 +167,8 @@ class ImportLink:
         self.bridge = bridge
         self.name = name
         self.key = key
-        self.period = None if period_ms is None else period_ms / 1000
-        self.stale_after = stale_after  # None: never stale
-        self.stale_is = stale_is  # "error": the node's error state; "state": a counted state
+        period = None if period_ms is None else period_ms / 1000
+        self.live = ImportLiveness(bridge.host, name, key, period, stale_after, stale_is)
         self.lock = threading.Lock()
         self.pending: deque[tuple[Header, Any]] = deque()
         self.size = size
@@ -174,14 +177,6 @@ class ImportLink:
         self.last_seq = -1
         self.starts = StreamStarts()  # where the counting of a stream not heard last starts
         self.link = RemoteLinkStats(f"zenoh:{key}->{name}")
-        self.arrivals = Running()
-        self.last_arrival: float | None = None  # loop clock
-        self.started = bridge.host.now_mono()
-        self.stale = False
-        self.stale_since: float | None = None  # loop clock, while stale
-        self.outages = 0  # times the import went stale (each one alert)
-        self.down_s = 0.0  # time spent stale, over finished outages
-        self.last_contact_wall: float | None = None  # our wall clock at the last arrival
         self.decode_errors = 0
         self.restarts = 0  # sequence jumps taken as a restart of the exporter (counted)
         self.max_bytes = 1 << 20  # set from the ImportSpec: larger messages are refused
@@ -189,11 +184,13 @@ class ImportLink:
         self.warned: dict[str, float] = {}  # reason -> last warning (rate-limited)
         self.plain: PlainFormat | None = None  # header-less payloads of a plain program
         self.plain_seq = 0
-        self.ctx: Any = None
         self._wake: Any = None  # the loop's call_soon_threadsafe
         # The last sample's Zenoh encoding and the schema it names, swapped as one tuple
         # (Zenoh's threads of two exporters may call on_sample at once).
         self._named: tuple[Any, str] = (None, "")
+        # The last accepted message header's fixed parts: the next one like it takes the
+        # fast path (:meth:`_message`). Replaced whole, never changed (two Zenoh threads).
+        self.fixed: FixedParts | None = None
         # Raw frames are copied into the pool on Zenoh's thread, not on the loop: the loop
         # keeps one pool frame of the last shape ready (``spare``); frames replaced before
         # delivery go back to the pool from the loop (``discard``).
@@ -206,11 +203,19 @@ class ImportLink:
     # Zenoh's thread ---------------------------------------------------------------------
 
     def on_sample(self, sample: Any) -> None:
+        fixed = self.fixed
+        if fixed is not None:  # the fast path: a message like the last one accepted
+            att = sample.attachment
+            if att is not None and len(att) == HEADER.size:
+                raw = att.to_bytes()
+                if fixed.same(raw):
+                    self._message(sample, fixed, raw)
+                    return
         plain = self.plain is not None
         try:
-            header, zbytes = self._header(sample)
+            header, zbytes, raw = self._header(sample)
             if plain:  # its sequence number is taken once the payload is accepted: a refused
-                value = self._value(sample, header, zbytes)  # sample is never also a gap
+                value = self._value(header, zbytes, "")  # sample is never also a gap
         except Exception as e:
             self._refused(e, counted=False)
             return
@@ -223,11 +228,39 @@ class ImportLink:
             # The payload after the header's accounting: copying a large frame evicts the
             # CPU's caches, and every line after the copy runs cold (on the way to the loop).
             try:
-                value = self._value(sample, header, zbytes)
+                schema = self._schema(sample) if header.kind in _SCHEMA_KINDS else ""
+                value = self._value(header, zbytes, schema)
             except Exception as e:
                 self._refused(e, counted=True)
                 return
+            if raw is not None and header.kind != "frame":
+                self.fixed = FixedParts(raw, header, schema)
+        self._hand_over(header, value, False)
+
+    def _message(self, sample: Any, fixed: FixedParts, raw: bytes) -> None:
+        """:meth:`on_sample` for a message whose header repeats the last accepted one's but
+        for its sequence number and times (:class:`FixedParts`): one lock, no decoding of
+        the header, the schema read again only when the exporter does not number them."""
+        header = fixed.header_of(raw)
+        try:
+            zbytes = sample.payload
+            if len(zbytes) > self.max_bytes:
+                raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
+            schema = fixed.schema
+            value = self._value(header, zbytes, self._schema(sample) if schema is None else schema)
+        except Exception as e:
+            with self.lock:
+                self._sequence(header)
+            self._refused(e, counted=True)
+            return
+        self._hand_over(header, value, True)
+
+    def _hand_over(self, header: Header, value: Any, account: bool) -> None:
+        """Park ``value`` for the loop and wake it (once per batch); ``account``: count the
+        sample's sequence number first, under the same lock."""
         with self.lock:
+            if account:
+                self._sequence(header)
             if self.closed:  # closed while this one was copied: its pool slot goes back
                 if isinstance(value, Frame):
                     self.discard.append(value)  # (released on the loop, by deliver)
@@ -279,9 +312,11 @@ class ImportLink:
             self.link.lost(reason)
         self._warn(reason, f"import {self.name}: {reason} message on {self.key}: {e}")
 
-    def _header(self, sample: Any) -> tuple[Header, Any]:
-        """The sample's header and payload (not copied); raises :class:`Refused`."""
+    def _header(self, sample: Any) -> tuple[Header, Any, bytes | None]:
+        """The sample's header, payload (not copied) and the header's bytes (None: made
+        here, for a plain program's payload); raises :class:`Refused`."""
         raw_att = sample.attachment
+        raw = None
         if self.plain is not None:  # a plain program's payload: the header is made here
             header = self.plain.header(self.key, self.plain_seq)
         elif raw_att is None:
@@ -293,27 +328,28 @@ class ImportLink:
         elif len(raw_att) > MAX_HEADER_BYTES:
             raise Refused("too large", f"a header of {len(raw_att)} bytes")
         else:
-            header = Header.decode(raw_att.to_bytes())
+            raw = raw_att.to_bytes()
+            header = Header.decode(raw)
         zbytes = sample.payload
         if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
             raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
-        return header, zbytes
+        return header, zbytes, raw
 
-    def _value(self, sample: Any, header: Header, zbytes: Any) -> Any:
+    def _value(self, header: Header, zbytes: Any, schema: str) -> Any:
         """The payload's value, checked before anything is copied; raises (a
-        :class:`Refused` with its reason, or any decoder's error: undecodable)."""
+        :class:`Refused` with its reason, or any decoder's error: undecodable). ``schema``:
+        what the sample's encoding names (JSON and protobuf messages of flowrt)."""
         if header.kind == "frame":  # checked before the copy (see frame_decoder)
             pixels = frame_decoder(header.frame, len(zbytes), self.max_pixels)
             return self._frame(header.frame, pixels(zbytes.to_bytes()))
         if header.kind == "bytes":
             return zbytes.to_bytes()
         if header.kind == "protobuf":  # the recording's protobuf message (audio)
-            schema = self._schema(sample)
             if schema != AUDIO_SCHEMA:
                 raise Refused("undecodable", f"a protobuf message of schema {schema!r}")
             return decode_audio(zbytes.to_bytes(), header.seq, 0.0)  # its time: on delivery
         # the recording's JSON message; typed by the schema its encoding names
-        return decode_json(zbytes.to_bytes(), "" if self.plain else self._schema(sample))
+        return decode_json(zbytes.to_bytes(), schema)
 
     def _schema(self, sample: Any) -> str:
         """The schema the sample's encoding names, read again only when the encoding is not
@@ -418,12 +454,8 @@ class ImportLink:
             offset = self.bridge.offset(header.zid)
             self.link.delivered += 1
             self.link.age.add(max(0.0, wall_now - (header.sent - offset)))
-            if self.last_arrival is not None:
-                self.arrivals.add(now - self.last_arrival)
-            self.last_arrival = now
-        self.last_contact_wall = time.time()
-        if self.stale:
-            self._resumed()
+            self.live.arrived(now)
+        self.live.contact()
         if records:
             self._record(records)
         if key is not None:
@@ -458,90 +490,19 @@ class ImportLink:
             frame.release()
 
     def _record(self, values: list[Any]) -> None:
-        validity = self._validity_ms()
+        validity = self.live.validity_ms()
         for value in values:
             self.bridge.host.record(self.name, value, validity)
 
-    def _period(self) -> float | None:
-        if self.period is not None:
-            return self.period
-        s = self.arrivals
-        return s.mean if s.count >= 3 else None
-
-    def _validity_ms(self) -> float | None:
-        p = self._period()
-        if p is None or self.stale_after is None:
-            return None
-        return p * self.stale_after * 1000
+    @property
+    def stale(self) -> bool:
+        return self.live.stale
 
     def check_liveness(self, ctx: Any) -> None:
-        self.ctx = ctx
-        if self.stale_after is None:  # stale_after: never
-            return
-        now = self.bridge.host.now_mono()
-        p = self._period()
-        limit = max(0.1, (p if p is not None else 0.2) * self.stale_after)
-        since = now - (self.last_arrival if self.last_arrival is not None else self.started)
-        if since <= limit or self.stale:
-            return
-        self.stale = True
-        self.stale_since = now - since  # down since the last contact (or the start)
-        self.outages += 1
-        what = "no message yet" if self.last_arrival is None else "stale"
-        reason = f"{what} on {self.key} for {since * 1000:.0f} ms (limit {limit * 1000:.0f} ms)"
-        self._publish_state(since)
-        if self.stale_is == "error":
-            ctx.set_error(reason)
-        else:  # a state: one alert per outage, the node stays running
-            ctx.emit(HealthAlert(ctx.elapsed(), self.name, "import-stale", reason))
-            log.warning("import %s: %s", self.name, reason)
-
-    def _resumed(self) -> None:
-        now = self.bridge.host.now_mono()
-        down = 0.0 if self.stale_since is None else max(0.0, now - self.stale_since)
-        self.down_s += down
-        self.stale, self.stale_since = False, None
-        self._publish_state(down)
-        if self.ctx is None:
-            return
-        if self.stale_is == "error":
-            self.ctx.clear_error()
-        else:
-            detail = f"{self.key} back after {down:.1f} s"
-            self.ctx.emit(
-                HealthAlert(self.ctx.elapsed(), self.name, "import-resumed", detail, "info")
-            )
-            log.info("import %s: %s", self.name, detail)
-
-    def _publish_state(self, silent_s: float) -> None:
-        """The link's state on the import's ``state`` output, at each change: recorded like
-        any output, it marks a gap in the recording (stale from when, back after how long)."""
-        self.bridge.host.publish(
-            self.name,
-            "state",
-            {
-                "key": self.key,
-                "stale": self.stale,
-                "silent_s": round(silent_s, 3),  # since the last contact / the outage's length
-                "last_contact": self.last_contact_wall,
-                "outages": self.outages,
-            },
-        )
+        self.live.check(ctx)
 
     def report(self) -> dict[str, Any]:
-        """The link's state for the statistics' ``reports``: stale or not, outages, the time
-        down (the current outage included) and the last contact (Unix time, our clock)."""
-        down = self.down_s
-        if self.stale and self.stale_since is not None:
-            down += max(0.0, self.bridge.host.now_mono() - self.stale_since)
-        return {
-            "key": self.key,
-            "stale": self.stale,
-            "stale_is": self.stale_is,
-            "outages": self.outages,
-            "down_s": round(down, 3),
-            "last_contact": self.last_contact_wall,
-        }
+        return self.live.report()
 
 
 def worker_downstream(spec: GraphSpec, source: str) -> bool:
