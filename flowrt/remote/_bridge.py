@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import json
 import uuid
 from typing import Any
@@ -141,7 +142,7 @@ class ZenohBridge:
             )
             exp = Export(key, node, port, ex.encoding, ex.quality, buf)
             exp.publisher = self.session.declare_publisher(key)
-            buf.on_put = lambda exp=exp: sender.take(exp)
+            buf.on_put = functools.partial(sender.take, exp)  # (C: one Python frame less)
             outs.append(buf)
             self.host.add_buffer(buf)
             self.exports.append(exp)
