@@ -55,6 +55,12 @@ class Interrupted(KeyboardInterrupt):
 #: they bypass ``sys.stderr``, which a signal handler must not write to).
 listeners: list[Callable[[str], None]] = []
 
+#: Who owns the terminal while a live table is up (:class:`flowrt.monitors.status.LiveTable`):
+#: a line :func:`say` writes is handed to it, to be printed above the table (written to the
+#: terminal directly, the table's next redraw erased it). Returns False when it could not
+#: take the line (its process gone, or busy in this very thread): then it is written here.
+screen: Callable[[str], bool] | None = None
+
 
 def interrupted_by(e: BaseException) -> int | None:
     """The signal behind ``e``, when an :class:`Interrupted` is in its chain: raised inside
@@ -73,8 +79,10 @@ def interrupted_by(e: BaseException) -> int | None:
 def say(text: str) -> None:
     """One line on stderr from a signal handler (``os.write``: the handler may run while the
     main thread is inside a write to ``sys.stderr``, which is not reentrant)."""
-    with contextlib.suppress(OSError):  # a terminal that hung up
-        os.write(2, (text + "\n").encode())
+    taker = screen
+    if taker is None or not taker(text):
+        with contextlib.suppress(OSError):  # a terminal that hung up
+            os.write(2, (text + "\n").encode())
     for listener in listeners:
         listener(text)
 

@@ -216,3 +216,51 @@ def test_a_run_on_a_terminal_keeps_what_a_node_prints(tmp_path: Path) -> None:
     assert printed == [f"printed {i}" for i in range(1, len(printed) + 1)], lines
     assert len(printed) >= 4, lines
     assert len([ln for ln in lines if ln.startswith("flowrt · g ·")]) == 1, lines
+
+
+def test_the_stopping_line_of_a_signal_stays_above_the_table(tmp_path: Path) -> None:
+    """Ctrl-C while the table is up: the line saying what the signal does is printed above
+    the table by the table's process (written to the terminal by the handler, the table's
+    next redraw erased it), once, and the run still ends as a stopped run does."""
+    import signal
+
+    graph = tmp_path / "g.yaml"
+    graph.write_text("name: g\nnodes:\n  c: {kind: counter, trigger: {timer: 20ms}}\n")
+    master, slave = os.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "NO_COLOR")}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "flowrt.cli", "run", str(graph), "--duration", "60"],
+        cwd=tmp_path,
+        env={**env, "TERM": "xterm-256color"},
+        stdin=subprocess.DEVNULL,
+        stdout=slave,
+        stderr=slave,
+    )
+    os.close(slave)
+    raw = bytearray()
+    sent = False
+    deadline = time.monotonic() + 50
+    try:
+        while time.monotonic() < deadline:
+            if not sent and raw.count(b"flowrt \xc2\xb7 g \xc2\xb7") >= 3:  # the table, redrawn
+                proc.send_signal(signal.SIGINT)
+                sent = True
+            if select.select([master], [], [], 0.2)[0]:
+                try:
+                    chunk = os.read(master, 65536)
+                except OSError:  # EIO: every end of the pty's slave is closed
+                    break
+                if not chunk:
+                    break
+                raw += chunk
+        assert sent, raw.decode(errors="replace")
+        assert proc.wait(timeout=10) == 0, raw.decode(errors="replace")  # stopped, not failed
+    finally:
+        os.close(master)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = screen(raw.decode())
+    said = [ln for ln in lines if "stopping the run" in ln]
+    assert said == ["flowrt run: SIGINT: stopping the run (drain, then teardown)"], lines

@@ -21,6 +21,7 @@ from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.text import Text
 
+from .. import _startup
 from ..events import DeadlineMissed, Event, HealthAlert, LoopBlocked, NodeFailed
 from ..runtime._qos import QosStatus
 from ..runtime._runtime import Runtime
@@ -377,6 +378,23 @@ class LiveTable:
         if self.console.is_terminal and self._stdout is None:
             self._stdout = _Forward(self.send, sys.stdout)
             sys.stdout = cast(TextIO, self._stdout)
+            _startup.screen = self._say_above  # a signal's line too (``stopping the run``)
+
+    def _say_above(self, text: str) -> bool:
+        """A signal handler's line, printed above the table. Called between two bytecodes
+        of the main thread, maybe inside :meth:`send`: never waits for its lock (False:
+        the caller writes the line itself)."""
+        if not self._lock.acquire(blocking=False):
+            return False
+        try:
+            if self._conn.closed:
+                return False
+            self._conn.send(("log", text))
+            return True
+        except (OSError, ValueError):
+            return False
+        finally:
+            self._lock.release()
 
     async def _refresh(self, rt: Runtime) -> None:
         while True:
@@ -398,6 +416,8 @@ class LiveTable:
 
     def close(self) -> None:
         """Stop the renderer (it removes its table) and wait for it, briefly."""
+        if _startup.screen == self._say_above:
+            _startup.screen = None
         forward, self._stdout = self._stdout, None
         if forward is not None:
             forward.flush()  # a line without its newline yet: printed before the table goes
