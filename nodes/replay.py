@@ -48,7 +48,7 @@ from flowrt.recording.decoding import MessageDecoder
 from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.images import is_image_schema
 from flowrt.recording.reader import Recording, channel_schemas, iter_messages, iter_session
-from flowrt.recording.ros2_profile import value_restorer
+from flowrt.recording.ros2_profile import ros2_topic, value_restorer
 from flowrt.recording.session import mcap_files
 from flowrt.recording.streams import join_set
 
@@ -213,14 +213,18 @@ class ReplayBase(Node):
             raise FileNotFoundError(f"{p.path}: no MCAP file")
         self.files = files
         self.file = files[0]
-        wanted = set(p.topics or []) | ({p.topic} if p.topic else set())
+        channels = channel_schemas(files)
+        wanted = {
+            # a ros2 recording's channels are the streams' ROS names: a flowrt name finds its own
+            ros2_topic(t) if t not in channels and ros2_topic(t) in channels else t
+            for t in [*(p.topics or []), *([p.topic] if p.topic else [])]
+        }
         self.wanted = wanted or None
         self.read: list[Recording] = []  # every part read (the last one read says any damage)
         self.origin = _first_log_time(self.file)
         self.decoder = MessageDecoder()
         self.left_out: dict[str, list[Any]] = {}  # topic -> [why, messages not replayed]
         self._said_left_out: set[str] = set()
-        channels = channel_schemas(files)
         missing = sorted((wanted or set()) - set(channels))
         if missing:  # a misspelt topic would otherwise replay nothing, silently
             raise ValueError(
@@ -287,7 +291,9 @@ class ReplayBase(Node):
                 elif d.kind == "audio":  # stamped in Unix time: moved to this run at publish
                     value = self.decoder.own.audio(m.schema, m.data, m.sequence, 0.0)
                 else:
-                    value = join_set(m.topic, _as_recorded(m, value), self.members)
+                    # (ros2: the index names flowrt streams, the channels ROS topics)
+                    channel = ros2_topic if m.encoding == "cdr" else None
+                    value = join_set(m.topic, _as_recorded(m, value), self.members, channel)
             except Exception as e:
                 self.left_out[m.topic] = [str(e) or type(e).__name__, 1]
                 continue

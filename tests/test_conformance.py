@@ -543,6 +543,34 @@ async def test_a_replayed_sync_set_holds_its_frames(
 
 @pytest.mark.slow
 @pytest.mark.subprocess
+@pytest.mark.parametrize("topic", ["pair.set", "/pair/set"])
+async def test_a_ros2_recordings_sync_set_is_joined_again(scratch: Path, topic: str) -> None:
+    """In the ``ros2`` profile the set's index names its members by their flowrt streams
+    (``pair.set/a``) and the channels are ROS topics (``/pair/set/a``): a replay gave the
+    references back instead of the frames. Joined now, the set asked for by either name."""
+    import asyncio
+
+    import flowrt
+
+    out = scratch / f"ros2_sets_{topic.strip('/').replace('/', '_')}"
+    r = _flowrt(
+        "record", "graphs/avsync.yaml", "--profile", "ros2", "-o", str(out), "--duration", "3"
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    (session,) = out.glob("rec_*")
+    g = flowrt.GraphBuilder("sets")
+    g.add("rp", "replay", params={"path": str(session), "topics": [topic]})
+    async with flowrt.Runtime(g.build()) as rt:
+        value = await asyncio.wait_for(rt.subscribe("rp.message").get(), 20)
+        now = rt.clock.now()
+    assert isinstance(value["a"], flowrt.Frame), value
+    assert isinstance(value["b"], flowrt.Frame), value
+    assert value["a"].data.shape == (120, 160, 3)
+    assert 0 <= now - value["stamp"] < 5
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
 def test_the_deterministic_log_validates_too(scratch: Path) -> None:
     """Issue 38 item 5: ``/flowrt/det/activation`` held mixed tuples its schema refused."""
     out = scratch / "deterministic"

@@ -30,6 +30,7 @@ The time base is Unix time for every stream: log times, and a value's own ``time
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -189,17 +190,29 @@ def split_set(topic: str, value: dict[str, Any]) -> tuple[dict[str, Any], list[t
     return index, members
 
 
-def join_set(topic: str, index: Any, members: dict[str, Any]) -> Any:
+def join_set(
+    topic: str,
+    index: Any,
+    members: dict[str, Any],
+    channel: Callable[[str], str] | None = None,
+) -> Any:
     """A replayed set: the index's references replaced by the member values last read
     (``members``: TOPIC/KEY -> value); ``timestamp`` also as ``stamp``. Anything else is
-    returned as it is."""
+    returned as it is. ``channel``: the name a member's channel has in the file, from the
+    flowrt name the index holds (the ``ros2`` profile's :func:`ros2_topic`; ``topic`` and
+    ``members`` are then channel names too)."""
     if not isinstance(index, dict):
         return index
     out: dict[str, Any] = {}
     joined = False
     for key, v in index.items():
         ref = v.get("topic") if isinstance(v, dict) and set(v) == {"topic", "seq"} else None
-        if isinstance(ref, str) and ref == f"{topic}/{key}" and ref in members:
+        if isinstance(ref, str) and channel is not None:
+            ref = channel(ref)
+            expected = channel(f"{topic}/{key}")
+        else:
+            expected = f"{topic}/{key}"
+        if isinstance(ref, str) and ref == expected and ref in members:
             out[key] = members[ref]
             joined = True
         else:
