@@ -404,3 +404,60 @@ def test_the_loops_timers_wait_for_a_precise_call_in_flight(
         pr._due.clear()
     assert order == ["call ends", "timers fire"]
     pr._timers_wait()  # the next instant is 10 s away: no wait
+
+
+class KeepPrecise(Node):
+    """A precise node with an input: where that input comes from decides where it runs."""
+
+    input = Input(int)
+
+    def process(self, input: int | None) -> None:
+        return None
+
+
+def _with_reader(policy: str) -> GraphBuilder:
+    g = graph()
+    g.add(
+        "reader",
+        KeepPrecise,
+        trigger={"timer": "100ms"},
+        timing="precise",
+        inputs={"input": {"from": "tick.value", "policy": policy}},
+    )
+    return g
+
+
+def _frames() -> GraphBuilder:
+    g = graph()
+    g.add("cam", Frames, trigger={"timer": "100ms"}, timing="precise")
+    g.add("look", Look, trigger={"timer": "100ms"}, timing="precise", inputs={"frame": "cam.frame"})
+    return g
+
+
+# (what, the graph, its precise nodes): flowrt check's analysis (analysis/timing.py) reads
+# from the graph the rules the kernel (kernel/precise.py) decides by once the nodes are set up
+AGREEMENT = [
+    ("sync", lambda: graph(), ["tick"]),
+    ("coroutine", lambda: graph(AsyncCount), ["tick"]),
+    ("frames-out-and-in", _frames, ["tick", "cam", "look"]),
+    ("latest-input", lambda: _with_reader("latest"), ["tick", "reader"]),
+    ("queue-input", lambda: _with_reader("queue"), ["tick", "reader"]),
+    ("lossless-input", lambda: _with_reader("lossless"), ["tick", "reader"]),
+]
+
+
+@pytest.mark.parametrize(
+    ("build", "names"), [c[1:] for c in AGREEMENT], ids=[c[0] for c in AGREEMENT]
+)
+async def test_the_analysis_and_the_kernel_agree_where_a_precise_node_runs(
+    build: Any, names: list[str]
+) -> None:
+    """Two places decide whether a precise node is called in its own thread: ``flowrt
+    check`` before anything runs, the kernel once it is set up. Kept in step by this table."""
+    from flowrt.analysis.timing import in_precise_thread
+
+    async with Runtime(build().build(), clock=VirtualClock()) as rt:
+        built = rt.scheduler.graph
+        for name in names:
+            kernel = why_not_thread(rt.scheduler.runners[name], built) is None
+            assert in_precise_thread(built, name) == kernel, name

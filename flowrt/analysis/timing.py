@@ -116,7 +116,8 @@ def in_precise_thread(graph: Graph, name: str) -> bool:
     inline node whose ``process`` is a plain function, no frame output or input, no lossless
     input), read here from the graph so that ``flowrt check`` and ``flowrt run`` see it
     before anything runs. A running node that left its thread (long calls, a swap to a
-    coroutine) is known to the runtime only: admission control takes it from there."""
+    coroutine) is known to the runtime only: admission control takes it from there. The two
+    are kept in step by a table of graphs run both ways (tests/test_precise.py)."""
     n = graph.nodes[name]
     if n.spec.timing != "precise" or not isinstance(n.trigger, TimerTrigger):
         return False
