@@ -571,7 +571,7 @@ async def test_a_log_cut_between_a_completion_and_its_outputs_does_not_diverge(
 async def test_a_repaired_log_is_never_identical(tmp_path: Path) -> None:
     """``flowrt info --repair`` makes a cut file whole, not what the cut lost: its log still
     says so (it replayed "identical", log_cut null, exit 0)."""
-    from flowrt.recording.reader import repair
+    from flowrt.recording.repair import repair
 
     graph, session = await record(tmp_path, case_timers)
     seen = [0]

@@ -28,7 +28,8 @@ import pytest
 import yaml
 from conftest import recorded_counter
 
-from flowrt.recording.reader import repair, scan, scan_session
+from flowrt.recording.reader import scan, scan_session
+from flowrt.recording.repair import repair
 from flowrt.recording.writer.threads import RecordingWriter
 
 pytestmark = pytest.mark.timeout(120)

@@ -189,7 +189,7 @@ def test_repair_failing_to_write_keeps_the_original(
     evil_session: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A full disk, simulated in-process: the original is untouched and no part is left."""
-    from flowrt.recording import reader
+    from flowrt.recording import repair as reader
 
     _, session = evil_session
     bad = _damaged_copy(tmp_path, session)
@@ -208,7 +208,7 @@ def test_repair_failing_to_write_keeps_the_original(
 def test_a_second_repair_never_overwrites_the_kept_original(
     evil_session: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    from flowrt.recording import reader
+    from flowrt.recording import repair as reader
 
     _, session = evil_session
     bad = _damaged_copy(tmp_path, session)

@@ -434,7 +434,8 @@ def _print_session_report(console: Console, path: Path) -> None:
 
 def cmd_info(args: argparse.Namespace) -> int:
     from ..recording.inuse import being_recorded
-    from ..recording.reader import repair, scan, scan_session
+    from ..recording.reader import scan, scan_session
+    from ..recording.repair import repair
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     console = stdout_console()

@@ -272,6 +272,7 @@ def _facts(files: list[Path]) -> dict[str, Any] | None:
 def read_log(path: str | Path) -> DeterminismLog:
     """The deterministic log of a session folder or file; LogError when it has none."""
     from ..recording.reader import iter_session, scan_session
+    from ..recording.repair import REPAIR_METADATA
     from ..recording.session import mcap_files
 
     p = Path(path)
@@ -294,7 +295,7 @@ def read_log(path: str | Path) -> DeterminismLog:
         metadata, log.graph = facts["metadata"], facts["graph"]
         if facts["start"] is not None:
             log.duration = (facts["end"] - facts["start"]) / 1e9
-    repair = metadata.get("flowrt.repair")
+    repair = metadata.get(REPAIR_METADATA)
     if repair is not None:  # `flowrt info --repair` made it whole, but what the cut lost
         log.closed_cleanly = False  # is lost: never "identical"
         log.damage = f"repaired after {repair.get('damage') or 'damage'}"

@@ -6,7 +6,8 @@
 - :mod:`.split`: when a recording starts a new file (``--split-size``, ``--split-duration``)
 - :mod:`.session`: session folders and the metadata a recording carries
 - :mod:`.report`: the per-stream table after a recording
-- :mod:`.reader`: ``info``, damage-tolerant reading, repair, and the replay message stream
+- :mod:`.reader`: ``info``, damage-tolerant reading and the replay message stream; :mod:`.repair`:
+  a damaged file rewritten whole (``flowrt info --repair``)
 - :mod:`.decoding`: every MCAP encoding back into values (:mod:`.images` for image messages of
   ROS and Foxglove, :mod:`.plain` for the rest), whoever wrote the file
 - :mod:`.rosbag2`: rosbag2 folders (MCAP or SQLite3 storage) read like sessions, and their
