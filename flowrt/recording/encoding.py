@@ -630,7 +630,8 @@ class Decoder:
         if cls is not None and isinstance(obj, dict):
             try:
                 fields = dataclasses.fields(cls)
-                kw = {f.name: None for f in fields if _required(f)}  # absent: was None
+                kw: dict[str, Any] = {f.name: None for f in fields if _required(f)}  # was None
+                kw.update({f.name: math.nan for f in fields if f.type in (float, "float")})
                 names = {f.name for f in fields}
                 kw.update({k: _tuples(v) for k, v in obj.items() if k in names})
                 return cls(**kw)
@@ -638,6 +639,8 @@ class Decoder:
                 return obj
         if isinstance(obj, dict) and set(obj) == {"value"}:
             return obj["value"]
+        if obj == {} and schema_name in FLOAT_TYPES:  # a non-finite float (see FLOAT_TYPES)
+            return math.nan
         return obj
 
     def _type(self, name: str) -> Any:
@@ -653,6 +656,14 @@ class Decoder:
             cls = None
         self._types[name] = cls
         return cls
+
+
+FLOAT_TYPES = frozenset(["builtins.float", "numpy.float64", "numpy.float32", "numpy.float16"])
+"""Schema names of plain float streams. JSON has no infinity nor NaN: a non-finite float is
+written as an absent field (objects) or ``null`` (arrays), as Foxglove's SDKs write it; read
+back, a float stream's value or a ``float`` field of a dataclass so left out is ``NaN``
+(its sign and infinity lost: ``--profile ros2`` keeps floats exactly), not a mapping a typed
+port refuses nor the field's default."""
 
 
 def _required(f: dataclasses.Field[Any]) -> bool:

@@ -28,6 +28,7 @@ import dataclasses
 import functools
 import importlib
 import json
+import math
 import sys
 import types
 import typing
@@ -36,6 +37,7 @@ from typing import Any
 import msgspec
 
 from ..audio import AudioBlock
+from ..recording.encoding import FLOAT_TYPES
 
 __all__ = ["AUDIO_SCHEMA", "decode_audio", "decode_json", "encoding_of", "schema_of_sample"]
 
@@ -93,6 +95,8 @@ def decode_json(payload: bytes, schema_name: str) -> Any:
         return ns
     if set(obj) == {"value"} and schema_name != "builtins.dict":
         return _restore(obj["value"], None)
+    if not obj and schema_name in FLOAT_TYPES:  # a non-finite float, left out (JSON has none)
+        return math.nan
     return _restore(obj, None)
 
 
@@ -100,7 +104,7 @@ def _typed(obj: dict[str, Any], cls: type) -> types.SimpleNamespace:
     """A typed value as an attribute object: every field of ``cls`` (absent: ``None``),
     each restored by its type hint (nested typed values, tuples, bytes)."""
     hints = _hints(cls)
-    fields: dict[str, Any] = {k: None for k in hints}
+    fields: dict[str, Any] = {k: math.nan if h is float else None for k, h in hints.items()}
     fields.update({k: _restore(v, hints.get(k)) for k, v in obj.items()})
     ns = types.SimpleNamespace(**fields)
     ns.__dict__["_type"] = f"{cls.__module__}.{cls.__qualname__}"
