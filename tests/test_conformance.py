@@ -567,6 +567,8 @@ async def test_a_ros2_recordings_sync_set_is_joined_again(scratch: Path, topic: 
     assert isinstance(value["b"], flowrt.Frame), value
     assert value["a"].data.shape == (120, 160, 3)
     assert 0 <= now - value["stamp"] < 5
+    r = _flowrt("replay", str(session), "--topics", topic)  # the command line takes both too
+    assert r.returncode == 0, r.stderr[-2000:]
 
 
 @pytest.mark.slow

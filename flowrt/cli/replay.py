@@ -323,6 +323,10 @@ def _chosen_streams(info: Any, topics: Any, err: Console) -> list[Any] | None:
         return streams
     names = [s.topic for s in streams]
     chosen, unmatched = select_outputs(names, patterns)
+    # a ros2 recording's topics are ROS names (/pair/set), its sources flowrt's (pair.set)
+    sources = [s.source for s in streams if s.source and s.source != s.topic]
+    by_source, unmatched_too = select_outputs(sources, patterns) if sources else ([], unmatched)
+    unmatched = [p for p in unmatched if p in unmatched_too]
     if unmatched:
         err.print(
             f"flowrt replay: --topics {', '.join(map(repr, unmatched))} matches no "
@@ -330,7 +334,7 @@ def _chosen_streams(info: Any, topics: Any, err: Console) -> list[Any] | None:
             markup=False,
         )
         return None
-    return [s for s in streams if s.topic in chosen]
+    return [s for s in streams if s.topic in chosen or (s.source and s.source in by_source)]
 
 
 def _replay_target(args: argparse.Namespace, info: Any, path: Path, err: Console) -> Any:
