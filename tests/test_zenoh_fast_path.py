@@ -209,3 +209,24 @@ def test_an_export_numbers_each_schema_it_sends() -> None:
     assert [v for _, v in imp.pending] == sent
     assert imp.link.dropped == 0
     assert imp.link.published == len(sent)
+
+
+async def test_what_an_export_takes_after_its_sender_stopped_is_counted() -> None:
+    """The runtime closes the bridge before its sources stop: a value published in between
+    was left in the export's buffer and cleared with it (the drain takes a buffer without a
+    reader node for a host's own), published and neither delivered nor dropped."""
+    from flowrt.edges import QueueBuffer
+
+    sender = ExportSender(types.SimpleNamespace(), "stream1", "zid1")  # type: ignore[arg-type]
+    buf = QueueBuffer("src.out->zenoh:k", 4)
+    exp = Export("k", "src", "out", "json", 90, buf)
+    exp.publisher = _Publisher()
+    buf.on_put = lambda: sender.take(exp)
+    sender.start()
+    buf.put({"a": 1}, 0.0)
+    await sender.stop()
+    buf.put({"a": 2}, 0.0)  # published once the sender is gone
+    assert len(exp.publisher.puts) == 1
+    assert (buf.published, buf.delivered, buf.dropped) == (2, 1, 1)
+    assert buf.drop_reasons == {"stop": 1}
+    assert buf.pending() == 0

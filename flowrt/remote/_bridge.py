@@ -39,7 +39,7 @@ from typing import Any
 from ..edges import make_buffer
 from ..graph.spec import EdgePolicy, GraphSpec, ZenohSpec
 from ._clock import CLOCK_PREFIX, ClockOffsets, answer_clock
-from ._export import Export, ExportSender
+from ._export import STOPPED, Export, ExportSender
 from ._host import BridgeHost
 from ._importer import FRAME_BACKLOG, ImportLink, RemoteLinkStats, worker_downstream
 from ._node import RemoteFrameSource, RemoteSource, RemoteSourceParams
@@ -178,6 +178,8 @@ class ZenohBridge:
             imp.close()
         if self._sender is not None:
             await self._sender.stop()
+            for exp in self.exports:  # what waited for the sender is never sent: counted
+                exp.buf.discard(STOPPED)
             self._sender = None
         if self.session is not None:
             session, self.session = self.session, None

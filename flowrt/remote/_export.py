@@ -42,7 +42,9 @@ from .wire import (
     payload_encoding,
 )
 
-__all__ = ["Export", "ExportSender"]
+__all__ = ["STOPPED", "Export", "ExportSender"]
+
+STOPPED = "stop"  # the drop reason of a value published once the sender stopped (as the drain's)
 
 log = logging.getLogger("flowrt.remote._bridge")
 
@@ -103,8 +105,14 @@ class ExportSender:
             self._thread = None
 
     def take(self, exp: Export) -> None:
-        """On the loop: hand the next value to the sender when the previous one is sent."""
-        if exp.busy or self._thread is None:
+        """On the loop: hand the next value to the sender when the previous one is sent.
+        Once the sender has stopped (the runtime closes the bridge before its sources stop),
+        what is published is never sent: counted as dropped (``stop``), not left to be
+        cleared with the buffer (which the drain takes for a host's own: no loss)."""
+        if self._thread is None:
+            exp.buf.discard(STOPPED)
+            return
+        if exp.busy:
             return
         while not isinstance(value := exp.buf.take(), Frame):  # messages: sent from here
             if value is EMPTY:
