@@ -638,7 +638,7 @@ class Decoder:
             except Exception:
                 return obj
         if isinstance(obj, dict) and set(obj) == {"value"}:
-            return obj["value"]
+            return _plain(schema_name, obj["value"])
         if obj == {} and schema_name in FLOAT_TYPES:  # a non-finite float (see FLOAT_TYPES)
             return math.nan
         return obj
@@ -664,6 +664,21 @@ written as an absent field (objects) or ``null`` (arrays), as Foxglove's SDKs wr
 back, a float stream's value or a ``float`` field of a dataclass so left out is ``NaN``
 (its sign and infinity lost: ``--profile ros2`` keeps floats exactly), not a mapping a typed
 port refuses nor the field's default."""
+
+
+def _plain(schema_name: str, v: Any) -> Any:
+    """A plain stream's value back in its type where JSON changed it: bytes (written as
+    base64 text) and a tuple (an array)."""
+    if schema_name in ("builtins.bytes", "builtins.bytearray") and isinstance(v, str):
+        import base64
+
+        try:
+            return base64.b64decode(v, validate=True)
+        except ValueError:
+            return v
+    if schema_name == "builtins.tuple" and isinstance(v, list):
+        return _tuples(v)
+    return v
 
 
 def _required(f: dataclasses.Field[Any]) -> bool:
