@@ -43,6 +43,9 @@ SCALARS: list[tuple[str, type, list[Any], list[Any]]] = [
     ("str", str, ["n1", "", "ß → ü", JSON, "true"], ["n1", "", "ß → ü", JSON, "true"]),
     # a stream keeps its first type: an int on a Float64 stream is written (and read) a float
     ("ints_on_a_float_stream", float, [0.5, 2, 3], [0.5, 2.0, 3.0]),
+    # flowrt_msgs Bytes and Tuple (their JSON as text): read back as mappings before
+    ("bytes", bytes, [b"\x00\x01bytes", b""], [b"\x00\x01bytes", b""]),
+    ("tuple", tuple, [(1.0, 2.5), ("x", 3)], [(1.0, 2.5), ("x", 3)]),
 ]  # fmt: skip
 
 RATE = 48_000

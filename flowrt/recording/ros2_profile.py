@@ -39,6 +39,7 @@ messages as written.
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import functools
 import json
@@ -552,6 +553,8 @@ def value_restorer(name: str, encoding: str, data: bytes) -> Callable[[Any], Any
       scalar. Also from a bag flowrt did not write: the message is the same;
     - flowrt's ``AudioBlock``: an :class:`~flowrt.AudioBlock` (:func:`audio_block_of`);
     - ``KeyValue[]`` fields and ``KeyValues`` messages: mappings (:func:`mapping_restorer`);
+    - flowrt's ``Bytes`` and ``Tuple`` wrappers (``string data``, the value's JSON): the
+      bytes, the tuple;
     - the ``builtin_interfaces/Time timestamp`` of a ``flowrt_msgs`` message (a float
       ``timestamp`` when written): nanoseconds since the epoch, as a ``flowrt`` recording
       has it in JSON, which replay moves onto its own clock.
@@ -575,6 +578,8 @@ def _value_restorer(name: str, data: bytes) -> Callable[[Any], Any] | None:
     time_ok = defs.get(_TIME_KEY) == _TIME_FIELDS
     if root in _STD_SCALARS and fields == [(_STD_SCALARS[root], False, "data")]:
         return _scalar
+    if root in _TEXT_WRAPPED and fields == [("string", False, "data")]:
+        return _TEXT_WRAPPED[root]
     if root == AUDIO_BLOCK and fields == _AUDIO_FIELDS and time_ok:
         return audio_block_of
     mappings = mapping_restorer(name, "ros2msg", data)
@@ -588,6 +593,47 @@ def _value_restorer(name: str, data: bytes) -> Callable[[Any], Any] | None:
 
 def _scalar(v: Any) -> Any:
     return v["data"] if isinstance(v, dict) and "data" in v else v
+
+
+def _wrapped_json(v: Any) -> Any:
+    """The JSON text of a ``flowrt_msgs`` one-field wrapper (``string data``) parsed; None
+    when it is not that."""
+    text = v.get("data") if isinstance(v, dict) else None
+    if not isinstance(text, str):
+        return None
+    try:
+        return json.loads(text)
+    except ValueError:
+        return None
+
+
+def _bytes_of(v: Any) -> Any:
+    """A plain bytes value, written as the JSON of its base64 text: the bytes again."""
+    text = _wrapped_json(v)
+    if not isinstance(text, str):
+        return v
+    try:
+        return base64.b64decode(text, validate=True)
+    except ValueError:
+        return v
+
+
+def _tuple_of(v: Any) -> Any:
+    """A plain tuple, written as the JSON of its array: the tuple again (nested ones too)."""
+    items = _wrapped_json(v)
+    return _as_tuple(items) if isinstance(items, list) else v
+
+
+def _as_tuple(x: Any) -> Any:
+    return tuple(_as_tuple(i) for i in x) if isinstance(x, list) else x
+
+
+# flowrt_msgs wrappers (``string data``, the value's JSON) whose JSON shape is not their type's
+_TEXT_WRAPPED: dict[str, Callable[[Any], Any]] = {
+    "flowrt_msgs/Bytes": _bytes_of,
+    "flowrt_msgs/Bytearray": _bytes_of,
+    "flowrt_msgs/Tuple": _tuple_of,
+}
 
 
 def _epoch_timestamp(v: Any) -> Any:
