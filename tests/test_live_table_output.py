@@ -20,6 +20,7 @@ import subprocess
 import sys
 import termios
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -173,20 +174,19 @@ class Printer(Node):
 '''
 
 
-def test_a_run_on_a_terminal_keeps_what_a_node_prints(tmp_path: Path) -> None:
-    """``flowrt run`` on an 80x24 pty: every line a node printed, once, above the final
-    table, and no title of an earlier table left on screen."""
-    (tmp_path / "printer.py").write_text(PRINTER)
-    graph = tmp_path / "g.yaml"
-    graph.write_text("name: g\nnodes:\n  p: {kind: 'printer:Printer', trigger: {timer: 50ms}}\n")
+def on_a_pty(
+    args: list[str],
+    cwd: Path,
+    react: Callable[[bytes, subprocess.Popen[bytes]], None] | None = None,
+) -> tuple[int, str]:
+    """``python -m flowrt.cli ARGS`` on an 80x24 pty until it ends (50 s at most): its exit
+    code and everything it wrote; ``react(output so far, process)`` after each read."""
     master, slave = os.openpty()
     fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
     env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "NO_COLOR")}
     proc = subprocess.Popen(
-        # the node ends the run after 5 lines: not a window a loaded machine's late or skipped
-        # ticks would leave fewer in (the duration is a bound)
-        [sys.executable, "-m", "flowrt.cli", "run", str(graph), "--duration", "30"],
-        cwd=tmp_path,
+        [sys.executable, "-m", "flowrt.cli", *args],
+        cwd=cwd,
         env={**env, "TERM": "xterm-256color"},
         stdin=subprocess.DEVNULL,
         stdout=slave,
@@ -197,7 +197,9 @@ def test_a_run_on_a_terminal_keeps_what_a_node_prints(tmp_path: Path) -> None:
     deadline = time.monotonic() + 50
     try:
         while time.monotonic() < deadline:
-            if select.select([master], [], [], 0.5)[0]:
+            if react is not None:
+                react(bytes(raw), proc)
+            if select.select([master], [], [], 0.2)[0]:
                 try:
                     chunk = os.read(master, 65536)
                 except OSError:  # EIO: every end of the pty's slave is closed
@@ -205,13 +207,25 @@ def test_a_run_on_a_terminal_keeps_what_a_node_prints(tmp_path: Path) -> None:
                 if not chunk:
                     break
                 raw += chunk
-        assert proc.wait(timeout=10) == 0, raw.decode(errors="replace")
+        return proc.wait(timeout=10), raw.decode(errors="replace")
     finally:
         os.close(master)
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    lines = screen(raw.decode())
+
+
+def test_a_run_on_a_terminal_keeps_what_a_node_prints(tmp_path: Path) -> None:
+    """``flowrt run`` on an 80x24 pty: every line a node printed, once, above the final
+    table, and no title of an earlier table left on screen."""
+    (tmp_path / "printer.py").write_text(PRINTER)
+    graph = tmp_path / "g.yaml"
+    graph.write_text("name: g\nnodes:\n  p: {kind: 'printer:Printer', trigger: {timer: 50ms}}\n")
+    # the node ends the run after 5 lines: not a window a loaded machine's late or skipped
+    # ticks would leave fewer in (the duration is a bound)
+    code, out = on_a_pty(["run", str(graph), "--duration", "30"], tmp_path)
+    assert code == 0, out
+    lines = screen(out)
     printed = [ln for ln in lines if ln.startswith("printed")]
     assert printed == [f"printed {i}" for i in range(1, len(printed) + 1)], lines
     assert len(printed) >= 4, lines
@@ -226,41 +240,15 @@ def test_the_stopping_line_of_a_signal_stays_above_the_table(tmp_path: Path) -> 
 
     graph = tmp_path / "g.yaml"
     graph.write_text("name: g\nnodes:\n  c: {kind: counter, trigger: {timer: 20ms}}\n")
-    master, slave = os.openpty()
-    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
-    env = {k: v for k, v in os.environ.items() if k not in ("COLUMNS", "LINES", "NO_COLOR")}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "flowrt.cli", "run", str(graph), "--duration", "60"],
-        cwd=tmp_path,
-        env={**env, "TERM": "xterm-256color"},
-        stdin=subprocess.DEVNULL,
-        stdout=slave,
-        stderr=slave,
-    )
-    os.close(slave)
-    raw = bytearray()
-    sent = False
-    deadline = time.monotonic() + 50
-    try:
-        while time.monotonic() < deadline:
-            if not sent and raw.count(b"flowrt \xc2\xb7 g \xc2\xb7") >= 3:  # the table, redrawn
-                proc.send_signal(signal.SIGINT)
-                sent = True
-            if select.select([master], [], [], 0.2)[0]:
-                try:
-                    chunk = os.read(master, 65536)
-                except OSError:  # EIO: every end of the pty's slave is closed
-                    break
-                if not chunk:
-                    break
-                raw += chunk
-        assert sent, raw.decode(errors="replace")
-        assert proc.wait(timeout=10) == 0, raw.decode(errors="replace")  # stopped, not failed
-    finally:
-        os.close(master)
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    lines = screen(raw.decode())
-    said = [ln for ln in lines if "stopping the run" in ln]
-    assert said == ["flowrt run: SIGINT: stopping the run (drain, then teardown)"], lines
+    sent: list[bool] = []
+
+    def interrupt(out: bytes, proc: subprocess.Popen[bytes]) -> None:
+        if not sent and out.count("flowrt · g ·".encode()) >= 3:  # the table, redrawn
+            proc.send_signal(signal.SIGINT)
+            sent.append(True)
+
+    code, out = on_a_pty(["run", str(graph), "--duration", "60"], tmp_path, interrupt)
+    assert sent, out
+    assert code == 0, out  # stopped, not failed
+    said = [ln for ln in screen(out) if "stopping the run" in ln]
+    assert said == ["flowrt run: SIGINT: stopping the run (drain, then teardown)"], screen(out)

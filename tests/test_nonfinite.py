@@ -10,8 +10,6 @@ number here"; ``--profile ros2`` (CDR) keeps such floats exactly.
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,8 +18,6 @@ import pytest
 
 from flowrt.recording.encoding import Decoder, encode_json, schema_for
 from flowrt.remote._streams import decode_json
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @dataclass
@@ -113,27 +109,23 @@ class Sink(Node):
 
 @pytest.mark.slow
 @pytest.mark.subprocess
-def test_a_float_stream_with_infinities_replays_into_its_typed_port(tmp_path: Path) -> None:
+def test_a_float_stream_with_infinities_replays_into_its_typed_port(
+    tmp_path: Path, flowrt_cli: Any
+) -> None:
     """The user's case: recorded in the flowrt profile and replayed into its own graph, the
     source replaced by the recording: the sink gets every value (NaN for the non-finite
     ones), no node fails (before: "output 'out' expects float, got dict", in a loop)."""
     (tmp_path / "values.py").write_text(NODES)
     (tmp_path / "g.yaml").write_text(GRAPH)
-
-    def flowrt(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(
-            [sys.executable, "-m", "flowrt.cli", *args, "--no-ui", "--no-display"],
-            cwd=tmp_path,
-            capture_output=True,
-            text=True,
-            timeout=120,
-            env={"PYTHONPATH": str(tmp_path), "PATH": "/usr/bin:/bin"},
-        )
-
-    r = flowrt("record", "g.yaml", "-o", "out", "--topics", "src.*", "--duration", "1")
+    env = {"PYTHONPATH": str(tmp_path)}
+    quiet = ("--no-ui", "--no-display")
+    r = flowrt_cli(
+        "record", "g.yaml", "-o", "out", "--topics", "src.*", "--duration", "1", *quiet,
+        cwd=tmp_path, env=env,
+    )  # fmt: skip
     assert r.returncode == 0, r.stderr[-2000:]
     (rec,) = (tmp_path / "out").glob("rec_*/*.mcap")
-    r = flowrt("replay", str(rec), "--graph", "g.yaml")
+    r = flowrt_cli("replay", str(rec), "--graph", "g.yaml", *quiet, cwd=tmp_path, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
     got = [line.split()[1] for line in r.stdout.splitlines() if line.startswith("got ")]
     assert len(got) >= 20, r.stdout[-2000:]

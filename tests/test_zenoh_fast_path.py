@@ -12,6 +12,7 @@ from typing import Any
 
 import pytest
 from test_remote_liveness import _Bytes
+from test_remote_restart import _link as restart_link
 
 from flowrt.remote import wire
 from flowrt.remote._export import Export, ExportSender
@@ -42,11 +43,7 @@ class _Sample:
 
 
 def _link(max_bytes: int = 1 << 20) -> ImportLink:
-    host = types.SimpleNamespace(
-        loop=types.SimpleNamespace(call_soon_threadsafe=lambda f: None), now_mono=lambda: 0.0
-    )
-    bridge = types.SimpleNamespace(host=host, clock_probe=lambda zid: None)
-    imp = ImportLink(bridge, "rx", "k", None, 5.0, 1 << 16)  # type: ignore[arg-type]
+    imp = restart_link(100.0)  # listening long before: a first stream's values are counted
     imp.max_bytes = max_bytes
     return imp
 

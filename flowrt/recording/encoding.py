@@ -638,7 +638,7 @@ class Decoder:
             except Exception:
                 return obj
         if isinstance(obj, dict) and set(obj) == {"value"}:
-            return _plain(schema_name, obj["value"])
+            return plain_value(schema_name, obj["value"])
         if obj == {} and schema_name in FLOAT_TYPES:  # a non-finite float (see FLOAT_TYPES)
             return math.nan
         return obj
@@ -666,9 +666,10 @@ back, a float stream's value or a ``float`` field of a dataclass so left out is 
 port refuses nor the field's default."""
 
 
-def _plain(schema_name: str, v: Any) -> Any:
-    """A plain stream's value back in its type where JSON changed it: bytes (written as
-    base64 text) and a tuple (an array)."""
+def plain_value(schema_name: str, v: Any) -> Any:
+    """A plain stream's value (``{"value": v}``, schema ``schema_name``) back in its type
+    where JSON changed it: bytes (written as base64 text) and a tuple (an array). The
+    replay's decoder, a Zenoh import's and the ros2 profile's restorer all read it so."""
     if schema_name in ("builtins.bytes", "builtins.bytearray") and isinstance(v, str):
         import base64
 

@@ -39,7 +39,6 @@ messages as written.
 
 from __future__ import annotations
 
-import base64
 import dataclasses
 import functools
 import json
@@ -55,7 +54,14 @@ import numpy as np
 
 from ..audio import AudioBlock
 from ..frames import Frame
-from .encoding import FRAME_ENCODINGS, Encoded, Overlay, StreamSchema, to_jsonable
+from .encoding import (
+    FRAME_ENCODINGS,
+    Encoded,
+    Overlay,
+    StreamSchema,
+    plain_value,
+    to_jsonable,
+)
 
 __all__ = [
     "Ros2Encoder",
@@ -579,7 +585,7 @@ def _value_restorer(name: str, data: bytes) -> Callable[[Any], Any] | None:
     if root in _STD_SCALARS and fields == [(_STD_SCALARS[root], False, "data")]:
         return _scalar
     if root in _TEXT_WRAPPED and fields == [("string", False, "data")]:
-        return _TEXT_WRAPPED[root]
+        return functools.partial(_unwrapped, _TEXT_WRAPPED[root])
     if root == AUDIO_BLOCK and fields == _AUDIO_FIELDS and time_ok:
         return audio_block_of
     mappings = mapping_restorer(name, "ros2msg", data)
@@ -595,44 +601,24 @@ def _scalar(v: Any) -> Any:
     return v["data"] if isinstance(v, dict) and "data" in v else v
 
 
-def _wrapped_json(v: Any) -> Any:
-    """The JSON text of a ``flowrt_msgs`` one-field wrapper (``string data``) parsed; None
-    when it is not that."""
+def _unwrapped(schema_name: str, v: Any) -> Any:
+    """A ``flowrt_msgs`` one-field wrapper (``string data``, the value's JSON) as the plain
+    value it was written from (:func:`~flowrt.recording.encoding.plain_value`); ``v`` when
+    it is not that."""
     text = v.get("data") if isinstance(v, dict) else None
-    if not isinstance(text, str):
-        return None
     try:
-        return json.loads(text)
-    except ValueError:
-        return None
-
-
-def _bytes_of(v: Any) -> Any:
-    """A plain bytes value, written as the JSON of its base64 text: the bytes again."""
-    text = _wrapped_json(v)
-    if not isinstance(text, str):
-        return v
-    try:
-        return base64.b64decode(text, validate=True)
+        parsed = json.loads(text) if isinstance(text, str) else v
     except ValueError:
         return v
+    out = plain_value(schema_name, parsed)
+    return v if out is parsed else out
 
 
-def _tuple_of(v: Any) -> Any:
-    """A plain tuple, written as the JSON of its array: the tuple again (nested ones too)."""
-    items = _wrapped_json(v)
-    return _as_tuple(items) if isinstance(items, list) else v
-
-
-def _as_tuple(x: Any) -> Any:
-    return tuple(_as_tuple(i) for i in x) if isinstance(x, list) else x
-
-
-# flowrt_msgs wrappers (``string data``, the value's JSON) whose JSON shape is not their type's
-_TEXT_WRAPPED: dict[str, Callable[[Any], Any]] = {
-    "flowrt_msgs/Bytes": _bytes_of,
-    "flowrt_msgs/Bytearray": _bytes_of,
-    "flowrt_msgs/Tuple": _tuple_of,
+# flowrt_msgs wrappers whose JSON shape is not their type's -> the flowrt schema they stand for
+_TEXT_WRAPPED = {
+    "flowrt_msgs/Bytes": "builtins.bytes",
+    "flowrt_msgs/Bytearray": "builtins.bytearray",
+    "flowrt_msgs/Tuple": "builtins.tuple",
 }
 
 

@@ -243,9 +243,7 @@ class ImportLink:
         the header, the schema read again only when the exporter does not number them."""
         header = fixed.header_of(raw)
         try:
-            zbytes = sample.payload
-            if len(zbytes) > self.max_bytes:
-                raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
+            zbytes = self._payload(sample)
             schema = fixed.schema
             value = self._value(header, zbytes, self._schema(sample) if schema is None else schema)
         except Exception as e:
@@ -330,10 +328,15 @@ class ImportLink:
         else:
             raw = raw_att.to_bytes()
             header = Header.decode(raw)
+        return header, self._payload(sample), raw
+
+    def _payload(self, sample: Any) -> Any:
+        """The sample's payload, not copied; refused (too large) before it is copied or
+        parsed."""
         zbytes = sample.payload
-        if len(zbytes) > self.max_bytes:  # refused before it is copied or parsed
+        if len(zbytes) > self.max_bytes:
             raise Refused("too large", f"{len(zbytes)} bytes, the limit is {self.max_bytes}")
-        return header, zbytes, raw
+        return zbytes
 
     def _value(self, header: Header, zbytes: Any, schema: str) -> Any:
         """The payload's value, checked before anything is copied; raises (a

@@ -37,7 +37,7 @@ from typing import Any
 import msgspec
 
 from ..audio import AudioBlock
-from ..recording.encoding import FLOAT_TYPES
+from ..recording.encoding import FLOAT_TYPES, plain_value
 
 __all__ = ["AUDIO_SCHEMA", "decode_audio", "decode_json", "encoding_of", "schema_of_sample"]
 
@@ -94,18 +94,10 @@ def decode_json(payload: bytes, schema_name: str) -> Any:
         ns.__dict__["_type"] = schema_name
         return ns
     if set(obj) == {"value"} and schema_name != "builtins.dict":
-        return _restore(obj["value"], _PLAIN_HINTS.get(schema_name))
+        return _restore(plain_value(schema_name, obj["value"]), None)
     if not obj and schema_name in FLOAT_TYPES:  # a non-finite float, left out (JSON has none)
         return math.nan
     return _restore(obj, None)
-
-
-_PLAIN_HINTS: dict[str, Any] = {
-    "builtins.bytes": bytes,  # base64 text in JSON
-    "builtins.bytearray": bytes,
-    "builtins.tuple": tuple[Any, ...],  # an array in JSON
-}
-"""A plain stream's value, ``{"value": ...}``, whose JSON shape is not its type's."""
 
 
 def _typed(obj: dict[str, Any], cls: type) -> types.SimpleNamespace:
