@@ -165,17 +165,42 @@ def run_graph(
 
     stop_signals = StopSignals(rt.interruption, rt.interrupt, prog)
     stop_signals.install()
+    cut = _run_on_loop(rt, server, graph, args, stop_signals, started, console, err, prog)
+    if cut is None:
+        cut = _cut_short(stop_signals, measuring, err, prog)
+    if cut is not None:
+        return cut
+    if settle is not None:
+        settle()
+    return _ended(rt, args, console, err, prog, after=after, result=result, measuring=measuring)
+
+
+def _run_on_loop(
+    rt: Any,
+    server: Any,
+    graph: Graph,
+    args: argparse.Namespace,
+    stop_signals: StopSignals,
+    started: Callable[[Console], None] | None,
+    console: Console,
+    err: Console,
+    prog: str,
+) -> int | None:
+    """Start, run and stop ``rt`` on a new loop; an exit code when the run could not be
+    had (a Zenoh endpoint taken, the control endpoint that never served), else None."""
+    endpoint_failed: str | None = None
 
     async def main() -> None:
+        nonlocal endpoint_failed
         stop_signals.loop = asyncio.get_running_loop()
         stop_signals.ran = True
         if stop_signals.before_start is not None:
             return  # a signal while loading: nothing starts
         try:
-            async with rt, server or contextlib.nullcontext():
+            async with rt:
                 if started is not None and not rt.failures():
                     started(console)
-                await _serve_run(rt, server, graph, args.duration)
+                endpoint_failed = await _serve_run(rt, server, graph, args.duration)
         except asyncio.CancelledError:
             if stop_signals.in_setup is None:
                 raise  # not ours
@@ -188,12 +213,10 @@ def run_graph(
         except RemoteError as e:  # a Zenoh endpoint in use or unreachable: nothing ran
             err.print(f"{prog}: {e}", markup=False, soft_wrap=True)
             return 1
-    cut = _cut_short(stop_signals, measuring, err, prog)
-    if cut is not None:
-        return cut
-    if settle is not None:
-        settle()
-    return _ended(rt, args, console, err, prog, after=after, result=result, measuring=measuring)
+    if endpoint_failed is not None:  # the run was stopped for it
+        err.print(f"{prog}: {endpoint_failed}", markup=False, soft_wrap=True)
+        return EXIT_FAILED
+    return None
 
 
 def _bind_control(rt: Any, control: Any, err: Console, prog: str) -> tuple[bool, Any]:
@@ -345,23 +368,46 @@ def _timing_holds(graph: Graph, args: argparse.Namespace, err: Console, prog: st
     return timing_ok or not args.check
 
 
-async def _serve_run(rt: Any, server: Any, graph: Graph, duration: float | None) -> None:
-    """Run, with the control endpoint said and, when the graph asks, forwarded over Zenoh."""
-    if server is not None:
-        logging.getLogger("flowrt").info("control endpoint %s", server.url)
-    zenoh = graph.spec.zenoh
-    if server is None or zenoh is None or zenoh.control is None:
-        await rt.run(duration)
-        return
-    from ..remote.control import ZenohControl
+async def _serve_run(rt: Any, server: Any, graph: Graph, duration: float | None) -> str | None:
+    """Run, with the control endpoint said and, when the graph asks, forwarded over Zenoh.
 
-    forwarder = ZenohControl(rt.remote_session, zenoh.control, server.url)
-    forwarder.start()
-    logging.getLogger("flowrt").info("control through zenoh: %s", zenoh.control)
+    The endpoint's process starts beside the run, not before it: at its low priority on a
+    machine the graph keeps busy its start took 15 s, which ``--duration`` did not count and
+    a signal waited for (its clients wait in the bound port's backlog meanwhile). If it does
+    not start, the run stops: returns why (None: it served, or was not asked for)."""
+    if server is None:
+        await rt.run(duration)
+        return None
+    await server.spawn()
+    up = asyncio.create_task(_endpoint_up(rt, server))
+    forwarder = None
+    zenoh = graph.spec.zenoh
     try:
+        if zenoh is not None and zenoh.control is not None:
+            from ..remote.control import ZenohControl
+
+            forwarder = ZenohControl(rt.remote_session, zenoh.control, server.url)
+            forwarder.start()
+            logging.getLogger("flowrt").info("control through zenoh: %s", zenoh.control)
         await rt.run(duration)
     finally:
-        await asyncio.to_thread(forwarder.stop)
+        up.cancel()  # (none when it is done)
+        await asyncio.wait([up])
+        if forwarder is not None:
+            await asyncio.to_thread(forwarder.stop)
+        await server.stop()
+    failed = None if up.cancelled() else up.exception()
+    return None if failed is None else str(failed)
+
+
+async def _endpoint_up(rt: Any, server: Any) -> None:
+    """Say the endpoint's address once it serves; if it never does, stop the run."""
+    try:
+        await server.wait_ready()
+    except RuntimeError:
+        rt.request_stop()
+        raise
+    logging.getLogger("flowrt").info("control endpoint %s", server.url)
 
 
 def _verdict(failures: list[Any], err: Console, prog: str = "flowrt run") -> int:

@@ -172,7 +172,11 @@ class ControlServer:
 
     ``bind()`` takes the port (and fails, with the address in the message, when it is taken)
     without starting anything, so a program can check it before it starts the runtime;
-    ``start()`` binds if needed and starts the server process. Use as ``async with``.
+    ``start()`` binds if needed, starts the server process and waits until it serves. Use as
+    ``async with``. ``spawn()`` and ``wait_ready()`` are ``start()``'s two halves, for a
+    caller that runs meanwhile: the server process starts at the lowest priority, and on a
+    machine the graph keeps busy its imports take seconds (clients wait in the bound port's
+    backlog), which ``flowrt run --duration`` must not count nor a signal wait for.
     """
 
     def __init__(
@@ -191,6 +195,7 @@ class ControlServer:
         self._proc: Any = None
         self._task: asyncio.Task[None] | None = None
         self._writer: asyncio.StreamWriter | None = None
+        self._ready: asyncio.Future[None] | None = None  # set by the process's "ready"
         self.answered = 0  # requests the runtime answered (the rest came from the cache)
 
     @property
@@ -213,6 +218,11 @@ class ControlServer:
         await self.stop()
 
     async def start(self) -> None:
+        await self.spawn()
+        await self.wait_ready()
+
+    async def spawn(self) -> None:
+        """Start the server process; it serves once :meth:`wait_ready` returns."""
         if self._proc is not None:
             return
         if not self.rt.started:
@@ -233,13 +243,27 @@ class ControlServer:
         self._sock = None
         self._proc = proc
         reader, self._writer = await asyncio.open_unix_connection(sock=ours)
-        ready: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        ready = self._ready = asyncio.get_running_loop().create_future()
         self._task = asyncio.get_running_loop().create_task(self._answer_all(reader, ready))
+
+    async def wait_ready(self) -> None:
+        """Until the server process serves; RuntimeError (the server stopped) if it does
+        not within :data:`START_TIMEOUT`."""
+        if self._ready is None:
+            raise RuntimeError("the control endpoint was not started")
         try:
-            await asyncio.wait_for(asyncio.shield(ready), START_TIMEOUT)
+            await asyncio.wait_for(asyncio.shield(self._ready), START_TIMEOUT)
         except (TimeoutError, ConnectionError, asyncio.IncompleteReadError) as e:
             await self.stop()
             raise RuntimeError(f"the control endpoint's process did not start: {e!r}") from None
+
+    @property
+    def serving(self) -> bool:
+        """The server process said it serves."""
+        ready = self._ready
+        if ready is None or not ready.done() or ready.cancelled():
+            return False
+        return ready.exception() is None
 
     async def stop(self) -> None:
         """Close the server (its process ends when the channel closes)."""
@@ -247,8 +271,9 @@ class ControlServer:
             self._sock.close()
             self._sock = None
         writer, task, proc = self._writer, self._task, self._proc
+        grace = 2.0 if self.serving else 0.0  # still importing: nothing to close in order
         self._writer = self._task = self._proc = None
-        await stop_server(writer, task, proc, grace=2.0)
+        await stop_server(writer, task, proc, grace=grace)
 
     async def _answer_all(self, reader: asyncio.StreamReader, ready: asyncio.Future[None]) -> None:
         """Answer the server's requests one at a time, each between ticks."""
