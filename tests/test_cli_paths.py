@@ -452,7 +452,9 @@ def test_a_stats_json_that_cannot_be_written_is_refused_before_the_run(
     graph = tmp_path / "g.yaml"
     graph.write_text(GRAPH)
     for path, said in ((tmp_path / "no" / "s.json", f"no folder {tmp_path}/no"),
-                       (tmp_path, f"{tmp_path} is a folder")):  # fmt: skip
+                       (tmp_path, f"{tmp_path} is a folder"),
+                       # it wrote a file named '-', and the script's parser read nothing
+                       ("-", "--json prints the statistics on stdout")):  # fmt: skip
         with pytest.raises(SystemExit) as exited:
             main([command, str(graph), "--duration", "1", "--stats-json", str(path)])
         assert exited.value.code == 2
@@ -561,3 +563,21 @@ def test_a_view_token_is_said_only_for_an_address_taken(
     problem = _display_options(graph, args)
     assert (problem is not None) == refused
     assert ("live view token" in capsys.readouterr().out) == token_said
+
+
+@pytest.mark.parametrize("command", ["run", "record", "replay"])
+@pytest.mark.parametrize(("port", "said"), [("99999", "port out of range: 99999 (0-65535)"),
+                                            ("-1", "port out of range: -1"),
+                                            ("x", "not a port number: 'x'")])  # fmt: skip
+def test_a_foxglove_port_out_of_range_is_refused_as_an_option(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str, port: str, said: str
+) -> None:
+    """It was a traceback from the socket's bind (OverflowError), exit 1."""
+    graph = tmp_path / "g.yaml"
+    graph.write_text(GRAPH)
+    with pytest.raises(SystemExit) as exited:
+        main([command, str(graph), "--duration", "1", "--foxglove", port])
+    assert exited.value.code == 2
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith(f"flowrt {command}: error: argument --foxglove")
+    assert said in last

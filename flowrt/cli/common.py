@@ -147,14 +147,28 @@ def output_file_arg(text: str) -> str:
     it cannot be written, not after it with a traceback and the statistics lost."""
     from pathlib import Path
 
+    if text == "-":  # the final statistics on stdout are --json's document
+        raise argparse.ArgumentTypeError("- is not a file: --json prints the statistics on stdout")
     p = Path(text).expanduser()
     if p.is_dir():
         raise argparse.ArgumentTypeError(f"{text or '.'} is a folder")
     if not p.parent.is_dir():
         raise argparse.ArgumentTypeError(f"{text}: no folder {p.parent}")
-    if not os.access(p.parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+    if not os.access(p if p.exists() else p.parent, os.W_OK):  # (/dev/stdout: /dev is not)
         raise argparse.ArgumentTypeError(f"{text}: not writable")
     return str(p)
+
+
+def port_arg(text: str) -> int:
+    """A TCP port (0: any free one), refused as the option is parsed: ``--foxglove 99999``
+    was a traceback from the socket's bind."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"port out of range: {port} (0-65535)")
+    return port
 
 
 def safe_node_names(names: Iterable[str]) -> dict[str, str]:

@@ -24,6 +24,7 @@ from .common import (
     load,
     output_file_arg,
     plain_handler,
+    port_arg,
     positive_float_arg,
     positive_seconds_arg,
     setup_logging,
@@ -313,12 +314,15 @@ def _add_monitors(
 def _write_stats(path: str, stats: Any, console: Console, err: Console, prog: str) -> int:
     """``--stats-json``: checked as the option is parsed, but a disk may still fill up or the
     folder go during the run; then one line and exit 1, not a traceback."""
+    target = Path(path)
+    regular = not target.exists() or target.is_file()
     try:
-        Path(path).write_text(stats.model_dump_json(indent=2))
+        target.write_text(stats.model_dump_json(indent=2) + ("" if regular else "\n"))
     except OSError as e:
         err.print(f"{prog}: --stats-json {path}: {e.strerror or e}", markup=False)
         return EXIT_FAILED
-    console.print(f"statistics written to {path}")
+    if regular:  # not /dev/stdout or a pipe, where the line would follow the document
+        console.print(f"statistics written to {path}")
     return EXIT_OK
 
 
@@ -682,7 +686,7 @@ def _add_serving_options(run: argparse._ArgumentGroup) -> None:
     run.add_argument(
         "--foxglove",
         nargs="?",
-        type=int,
+        type=port_arg,
         const=8765,
         metavar="PORT",
         help="serve the graph live to Foxglove on ws://127.0.0.1:PORT (default 8765)",
