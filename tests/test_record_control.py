@@ -161,3 +161,39 @@ def test_a_burst_ends_after_a_quiet_second_and_the_next_one_is_said_again() -> N
     alerts.watch(ctx, writer)
     assert len(ctx.reasons) == 2
     assert ctx.reasons[1].startswith("recorder behind: 16 lost (cam.frame: 16)")
+
+
+@pytest.mark.subprocess  # a recorder in the graph (its writer)
+async def test_the_end_reports_every_session_of_a_stop_and_start(tmp_path: Path) -> None:
+    """``flowrt ctl record stop`` then ``start``: the end's table and ``--json`` said only
+    the first session (the second's figures were in ``--stats-json`` alone)."""
+    from rich.console import Console
+
+    from flowrt.cli.record import _report_all, _sessions
+
+    g = flowrt.GraphBuilder("twice")
+    g.add("cnt", "counter", trigger={"timer": "20ms"})
+    g.add(
+        "rec",
+        "recorder",
+        params={"path": str(tmp_path), "start": False, "writer": "thread", "log_report": False},
+        inputs={"cnt.value": {"from": "cnt.value", "policy": "lossless"}},
+    )
+    said = []
+    async with flowrt.Runtime(g.build()) as rt:
+        for _ in range(2):
+            said.append(await command(rt, "start", True))
+            await asyncio.sleep(0.2)
+            await command(rt, "stop", False)
+    await asyncio.to_thread(wait_for_writers)
+    first = Path(said[0])
+    sessions = _sessions(rt, "rec", first)
+    assert sessions == [Path(s) for s in said]
+    console = Console(record=True, width=100)
+    result: dict[str, Any] = {}
+    assert _report_all(console, console, sessions, result) == 0
+    shown = console.export_text()
+    assert "recording rec_001" in shown and "recording rec_002" in shown
+    assert result["recording"]["session"] == "rec_001"
+    assert [r["session"] for r in result["recordings"]] == ["rec_001", "rec_002"]
+    assert all(r["streams"][0]["written"] > 0 for r in result["recordings"])

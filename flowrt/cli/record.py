@@ -148,6 +148,7 @@ def _record(args: argparse.Namespace, graph: Any, err: Console) -> int:
         err.print(f"flowrt record: {e}", markup=False)
         return EXIT_BAD_GRAPH
     rgraph.file = graph.file
+    recorder = next(n for n in rgraph.spec.nodes if n not in graph.spec.nodes)
     console = stdout_console()
 
     def started(run_console: Console) -> None:  # said once true: the recorder's file is open
@@ -158,7 +159,7 @@ def _record(args: argparse.Namespace, graph: Any, err: Console) -> int:
     result: dict[str, Any] = {"session": str(session)}
 
     def report(rt: Any) -> int:
-        return _report(console, err, session, result)
+        return _report_all(console, err, _sessions(rt, recorder, session) or [session], result)
 
     try:
         return run_graph(
@@ -198,6 +199,40 @@ def _no_space(e: Exception) -> str:
     if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
         return f"{e.filename or 'the output folder'}: no space left on device (the disk is full)"
     return str(e)
+
+
+def _sessions(rt: Any, recorder: str, first: Path) -> list[Path]:
+    """Every session the recorder made, in order: a ``flowrt ctl record stop`` then
+    ``start`` makes a second one, which the end's table and ``--json`` left out."""
+    reports = rt.stats().reports.get(recorder)
+    if not isinstance(reports, list):
+        return []
+    out: list[Path] = []
+    for r in reports:
+        files = r.get("files") if isinstance(r, dict) else None
+        if isinstance(files, list) and files and isinstance(files[0], str):
+            out.append(Path(files[0]).parent)  # (absolute: the recorder's path is)
+        elif isinstance(r, dict) and isinstance(r.get("session"), str):
+            out.append(first.parent / r["session"])
+    return out
+
+
+def _report_all(
+    console: Console, err: Console, sessions: list[Path], result: dict[str, Any]
+) -> int:
+    """:func:`_report` for each session; ``--json``'s ``recording`` is the first's (as it
+    was), ``recordings`` every one's."""
+    code = EXIT_OK
+    reports: list[Any] = []
+    for session in sessions:  # (each table names its session)
+        one: dict[str, Any] = {}
+        code = max(code, _report(console, err, session, one))
+        if "recording" in one:
+            reports.append(one["recording"])
+    if reports:
+        result["recording"] = reports[0]
+        result["recordings"] = reports
+    return code
 
 
 def _report(
