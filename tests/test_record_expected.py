@@ -158,6 +158,24 @@ def test_expected_releases(
     assert expected_releases(period, start, end, first, last) == n
 
 
+# A stream whose output declares its rate (a CAN message received at its cycle time) expects
+# nothing before its first value: graphs/can.yaml's chassis.WheelSpeeds (stamps from its
+# MCAP) begins a cycle after the session, whose sender had no value at its first cycle, and
+# showed "missing 1" on a complete stream.
+OWN_RATE = [
+    (0.01, 0.0, 2.99029, 0.010291, 2.990260, 299, 300),
+    (1.0, 0.0, 3.0, 1.0, 2.0, 2, 3),  # within its span and at its end as any stream
+]
+
+
+@pytest.mark.parametrize(("period", "start", "end", "first", "last", "own", "grid"), OWN_RATE)
+def test_a_stream_of_a_declared_rate_expects_nothing_before_its_first_value(
+    period: float, start: float, end: float, first: float, last: float, own: int, grid: int
+) -> None:
+    assert expected_releases(period, start, end, first, last, before_first=False) == own
+    assert expected_releases(period, start, end, first, last) == grid
+
+
 def _without(stamps: dict[str, list[float]], topic: str, *index: int) -> dict[str, list[float]]:
     out = dict(stamps)
     out[topic] = [t for i, t in enumerate(stamps[topic]) if i not in index]

@@ -140,7 +140,13 @@ def releases_in(period: float, anchor: float, start: float, end: float) -> int:
 
 
 def expected_releases(
-    period: float, start: float, end: float, first: float | None, last: float | None
+    period: float,
+    start: float,
+    end: float,
+    first: float | None,
+    last: float | None,
+    *,
+    before_first: bool = True,
 ) -> int:
     """The releases of a stream of nominal ``period`` whose values a session could hold.
 
@@ -162,22 +168,34 @@ def expected_releases(
     its readers' values with it), and a value released just before a live stop may still
     have been on its way (a tracker's result comes up to its deadline after its frame).
     Only a loss in that last half period goes unseen; one anywhere else is ``missing``.
+
+    ``before_first=False``: a stream whose rate its output declares (a CAN message at its
+    cycle time, received from the bus) is not released on a grid of the session: its sender
+    may begin later than the session (graphs/can.yaml's ``chassis.WheelSpeeds`` begins a
+    cycle after ``wheels``, whose first value the transmitting node had not yet at its
+    first cycle: "missing 1" on a complete stream), so nothing before its first value is
+    expected, and a loss there goes unseen.
     """
     half = period / 2
     if first is None or last is None:  # no value places the grid: the fewest any phase puts
         return max(0, math.floor((end - half - start) / period + _EPS)) if period > 0 else 0
     own = round((last - first) / period) + 1
-    before = releases_in(period, first, start, first - half)
+    before = releases_in(period, first, start, first - half) if before_first else 0
     after = releases_in(period, last, last + half, end - half)
     return own + before + after
 
 
 def _stream(
-    c: StreamCounters, hz: float | None, window: tuple[float, float] | None
+    c: StreamCounters,
+    hz: float | None,
+    window: tuple[float, float] | None,
+    own_rate: bool = False,
 ) -> StreamReport:
     expected = None
     if hz is not None and hz > 0 and window is not None:
-        expected = expected_releases(1.0 / hz, *window, c.first_seen, c.last_seen)
+        expected = expected_releases(
+            1.0 / hz, *window, c.first_seen, c.last_seen, before_first=not own_rate
+        )
     iv = c.intervals
     mean = None
     if c.written > 1 and c.first_time is not None and c.last_time is not None:
@@ -251,7 +269,12 @@ def build_report(
         error=writer.error,
         notes=list(writer.notes),
         streams=[
-            _stream(c, stream_rate(rates, c.source), _on_stamps(counted, leads.get(topic)))
+            _stream(
+                c,
+                stream_rate(rates, c.source),
+                _on_stamps(counted, leads.get(topic)),
+                own_rate=c.source in rates,  # its output's declared rate (stream_rate)
+            )
             for topic, c in writer.streams.items()
         ],
     )
