@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import re
 from typing import Any
 
 import numpy as np
@@ -367,6 +368,29 @@ async def test_host_publish_and_subscribe_through_input_triggered_chain() -> Non
         with pytest.raises(KeyError, match="did you mean"):
             rt.publish("a.outptu", 1)
     assert got == [0, 1, 2, 3, 4]
+
+
+@pytest.mark.parametrize(
+    ("policy", "size", "said"),
+    [
+        ("queue", 0, "size must be a whole number >= 1, not 0"),  # the source stalled, silently
+        ("queue", -1, "not -1"),
+        ("latest", 2.5, "not 2.5"),  # stats() failed (EdgeStats size), and so did the exit
+        ("queue", True, "not True"),
+        ("lossless", 2, "would let this program stall the source"),  # 3 of 50 releases ran
+        ("bogus", 2, "'bogus' is not a valid EdgePolicy"),
+    ],
+)
+async def test_a_subscription_that_could_stall_or_break_the_graph_is_refused(
+    policy: str, size: Any, said: str
+) -> None:
+    g = GraphBuilder()
+    g.add("src", Count, trigger={"timer": "10ms"})
+    async with Runtime(g.build(), clock=VirtualClock()) as rt:
+        with pytest.raises(ValueError, match=re.escape(said)):
+            rt.subscribe("src.tick", policy=policy, size=size)
+        await rt.clock.advance(0.05)  # type: ignore[attr-defined]
+        assert rt.stats().node("src").completions >= 5
 
 
 async def test_monitors_are_scheduled_in_the_widest_gap_between_timer_releases() -> None:

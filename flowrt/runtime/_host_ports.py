@@ -47,7 +47,13 @@ def subscribe(
     runner, port = runner_port(sched, target)
     if port not in runner.outputs:
         raise KeyError(f"{target} is not an output")
-    EdgePolicy(policy)
+    if EdgePolicy(policy) is EdgePolicy.lossless:  # a host that stops reading would hold
+        raise ValueError(  # the source back (a 10 ms counter ran 3 times in 0.5 s)
+            f"subscribe({target!r}): policy 'lossless' would let this program stall the "
+            "source; use 'queue' (dropped values counted) or 'latest'"
+        )
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"subscribe({target!r}): size must be a whole number >= 1, not {size!r}")
     buf = make_buffer(policy, f"{target}->host", size, now)
     buf.sampled = sampled
     runner.outputs[port].append(buf)
