@@ -6,6 +6,7 @@ here, every problem collected with its location, so a bad graph never reaches th
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections import deque
 from collections.abc import Collection, Iterable, Mapping
@@ -449,6 +450,18 @@ def _check_placement(
             f"timing: precise on a node at placement {ns.placement.value}: its release "
             "thread hands each release to the loop, which sends it to the worker "
             "(inline nodes are called in the thread itself)",
+            Severity.warning,
+        )
+    if (
+        ns.watchdog is not None
+        and ns.placement.value == "inline"
+        and cls is not None
+        and not inspect.iscoroutinefunction(cls.process)
+    ):
+        at(
+            ("nodes", name, "watchdog"),
+            "a watchdog cannot stop a synchronous inline node (its call holds the loop "
+            "until it returns): give it placement: process, or make process async",
             Severity.warning,
         )
     if ns.placement.value == "inline":
