@@ -418,3 +418,34 @@ def test_bus_load_peak_is_never_under_the_mean(
     busiest = max(sum(u for y, u in d if x <= y < x + 1_000_000) for x in starts)
     assert load.peak == busiest / scale
     assert load.mean == sum(u for x, u in d if x < whole * 1_000_000) / (whole * scale)
+
+
+@pytest.mark.parametrize(
+    ("name", "make", "said"),
+    [
+        ("garbage.blf", lambda p: p.write_bytes(b"garbage\n"), "cannot read the trace"),
+        ("empty.asc", lambda p: p.write_bytes(b""), "an empty file (no CAN frame in it)"),
+        (
+            "header.asc",
+            lambda p: p.write_text("date Fri Nov 27 12:00:00.000 am 2026\nbase hex\n"),
+            "no CAN frame in it",
+        ),
+    ],
+)
+def test_a_replay_that_cannot_be_read_is_fatal_and_names_the_file(
+    tmp_path: Path, name: str, make: Callable[[Path], Any], said: str
+) -> None:
+    """A BLF of garbage failed every activation with 'unpack requires a buffer of 72
+    bytes', naming neither file nor replay, and restarted the node over and over; an empty
+    one replayed nothing, exit 0."""
+    from flowrt.nodes.can.bus import TraceReplay
+
+    from flowrt import FatalError
+
+    path = tmp_path / name
+    make(path)
+    with pytest.raises(FatalError) as e:
+        TraceReplay(str(path), False, None, 0.0)
+    assert str(e.value).startswith(f"replay {path}")
+    assert said in str(e.value)
+

@@ -18,6 +18,8 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+from flowrt import FatalError
+
 __all__ = ["SERIAL_INTERFACES", "CanLink", "TraceLog", "TraceReplay", "copy_frame", "one_line"]
 
 log = logging.getLogger("flowrt.nodes.can.node")
@@ -116,12 +118,12 @@ class TraceReplay:
         self._open(t0)
 
     def _open(self, t0: float) -> None:
-        import can
-
-        self.frames: Iterator[Any] = iter(can.LogReader(self.path))
+        self.frames: Iterator[Any] = iter(_frames(self.path))
         self.t0 = t0
         self.first: float | None = None
         self.next: Any = next(self.frames, None)
+        if self.next is None:  # (replayed "once" it sent nothing, and the run said nothing)
+            raise FatalError(f"replay {self.path}: no CAN frame in it")
 
     def due(self, t: float, slack: float) -> list[Any]:
         """The frames due by ``t`` (seconds on the runtime clock; ``slack``: half a tick)."""
@@ -133,12 +135,25 @@ class TraceReplay:
             if float(msg.timestamp) - self.first > t - self.t0 + slack:
                 return out
             out.append(copy_frame(msg, channel=self.channel))
-            self.next = next(self.frames, None)
+            self.next = next(self.frames, None)  # (damaged further on: FatalError)
         if self.loop:
             self._open(t)
         else:
             self.done = True
         return out
+
+
+def _frames(path: str) -> Iterator[Any]:
+    """A trace's frames; a file python-can cannot read (at its start or further on) is a
+    :class:`FatalError` naming it, as ``flowrt can stats`` says it: a restart cannot mend it
+    (a BLF of garbage failed every activation with "unpack requires a buffer of 72 bytes",
+    naming neither the file nor the replay, and restarted the node over and over)."""
+    from flowrt.analysis.can_trace import TraceError, read_trace
+
+    try:
+        yield from read_trace(path)
+    except TraceError as e:
+        raise FatalError(f"replay {e}") from None
 
 
 class CanLink:
