@@ -368,3 +368,64 @@ async def test_a_timed_node_with_inputs_is_stopped_by_the_drain_and_its_last_val
         check_lossless(stats)
         assert stats.node("loop").completions == len(Collect.seen) > 50
         assert Collect.seen == list(range(1, len(Collect.seen) + 1))
+
+
+class Holds(Node):
+    """A synchronous inline node whose call holds the loop (a user's blocking call)."""
+
+    class Params(BaseModel):
+        seconds: float = 0.3
+
+    value = Input(int)
+
+    def process(self, value: int) -> None:
+        time.sleep(self.params.seconds)
+
+
+def held_graph(seconds: float) -> GraphBuilder:
+    g = GraphBuilder("held")
+    g.add("src", "counter", trigger={"timer": "20ms"})
+    g.add("n", Holds, params={"seconds": seconds}, inputs={"value": "src.value"})
+    return g
+
+
+async def test_no_source_is_released_after_the_runs_stop_though_the_loop_was_held() -> None:
+    """--duration 2 with a node sleeping 0.8 s a call: the source published twice after the
+    stop (a timer due before it, served after it) and the node ran twice more in the drain:
+    4.5 s in all; with 5 s calls, 16 s."""
+    rt = Runtime(held_graph(0.3).build(), drain_timeout=5.0)
+    async with rt:
+        t0 = rt.clock.now()
+        await rt.run(0.45, then_stop=True)  # due while the second call holds the loop
+    src = rt.stats().node("src")
+    assert src.last_start is not None and src.last_start < 0.45
+    edge = rt.stats().edge("n.value")
+    assert edge.published == edge.delivered + edge.dropped
+    assert rt.stats().node("n").completions == src.completions  # each value, none after
+    assert rt.clock.now() - t0 < 0.45 + 2 * 0.3 + 0.2
+
+
+async def test_no_activation_begins_once_the_drain_is_past_its_deadline() -> None:
+    """A slow node's call that ends past the drain's deadline is its last (it was called
+    again on a queued value, and the drain ran a whole call late)."""
+    g = GraphBuilder("held")
+    g.add("src", "counter", trigger={"timer": 3_600_000}, enabled=False)
+    g.add(
+        "n",
+        Holds,
+        params={"seconds": 0.25},
+        inputs={"value": {"from": "src.value", "policy": "queue", "size": 8}},
+    )
+    rt = Runtime(g.build(), drain_timeout=0.3)
+    async with rt:
+        for v in range(6):  # queued: the drain begins with them (no call has run yet)
+            rt.publish("src.value", v)
+        t0 = time.monotonic()
+    took = time.monotonic() - t0
+    # calls at 0 and 0.25 s; the second ends past the 0.3 s deadline: no third (before, all
+    # six ran: 1.5 s)
+    assert rt.stats().node("n").completions == 2
+    assert took < 2 * 0.25 + 0.2
+    edge = rt.stats().edge("n.value")
+    assert edge.published == edge.delivered + edge.dropped == 6
+    assert edge.dropped == 4  # what the drain could not deliver in time is counted

@@ -164,7 +164,7 @@ def run_graph(
     if _add_monitors(rt, args, console, err, prog) is not None:
         return EXIT_FAILED
 
-    stop_signals = StopSignals(rt.interruption, rt.interrupt, prog)
+    stop_signals = StopSignals(rt.interruption, rt.interrupt, prog, rt.mark_stop)
     stop_signals.install()
     cut = _run_on_loop(rt, server, graph, args, stop_signals, started, console, err, prog)
     if cut is None:
@@ -380,7 +380,7 @@ async def _serve_run(rt: Any, server: Any, graph: Graph, duration: float | None)
     a signal waited for (its clients wait in the bound port's backlog meanwhile). If it does
     not start, the run stops: returns why (None: it served, or was not asked for)."""
     if server is None:
-        await rt.run(duration)
+        await rt.run(duration, then_stop=True)
         return None
     await server.spawn()
     up = asyncio.create_task(_endpoint_up(rt, server))
@@ -393,7 +393,7 @@ async def _serve_run(rt: Any, server: Any, graph: Graph, duration: float | None)
             forwarder = ZenohControl(rt.remote_session, zenoh.control, server.url)
             forwarder.start()
             logging.getLogger("flowrt").info("control through zenoh: %s", zenoh.control)
-        await rt.run(duration)
+        await rt.run(duration, then_stop=True)
     finally:
         up.cancel()  # (none when it is done)
         await asyncio.wait([up])

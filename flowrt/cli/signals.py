@@ -35,10 +35,17 @@ class StopSignals:
     SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
     def __init__(
-        self, phase: Callable[[], str], interrupt: Callable[[], str], prog: str = "flowrt run"
+        self,
+        phase: Callable[[], str],
+        interrupt: Callable[[], str],
+        prog: str = "flowrt run",
+        stop_now: Callable[[], None] | None = None,
     ) -> None:
         self.phase = phase  # Runtime.interruption: what a signal cuts now (reads only)
         self.interrupt = interrupt  # Runtime.interrupt: acts by phase, on the loop
+        # Runtime.mark_stop: from the handler, no source released from now on (the loop,
+        # held by a slow call, runs its expired timers before the interrupt it is handed)
+        self.stop_now = stop_now
         self.prog = prog
         self.received: list[int] = []
         self.loop: asyncio.AbstractEventLoop | None = None  # the run's loop, while it runs
@@ -83,6 +90,8 @@ class StopSignals:
         elif loop is not None and not loop.is_closed():
             what = self.phase()
             self._say_phase(name, sig, what)
+            if what == "the run" and self.stop_now is not None:
+                self.stop_now()
             if what != "teardown":
                 loop.call_soon_threadsafe(self.interrupt)
         elif not self.ran and self.before_start is None:

@@ -45,14 +45,32 @@ class Drain:
         self.done = False
         self.left: list[str] = []  # what a timed-out drain left undone
         self.cut = False  # cut short (a signal while draining): leftovers say "interrupted"
+        self.deadline: float | None = None  # loop time the drain ends by (set as it begins)
+
+    def over(self) -> bool:
+        """Cut, or past its deadline: no activation may begin (a node whose call holds the
+        loop for seconds was called again on a queued value after the deadline, and the
+        drain ran a whole call late)."""
+        return self.cut or (self.deadline is not None and self._s.loop.time() >= self.deadline)
+
+    def stop_sources(self) -> None:
+        """Sources (nodes without inputs, and free-running ones) are released no more and
+        their in-flight activation is cancelled (a capture waiting for a frame, a paced
+        source waiting for its readers). Done as the stop is asked for (so a timer already
+        due behind a blocked loop does not publish after it), and again as the drain begins."""
+        for r in self._s.runners.values():
+            if (not r.inputs or isinstance(r.rnode.trigger, LoopTrigger)) and not r.stopping:
+                r.stop_releasing()
+                if r.task is not None and not r.task.done():
+                    r.task.add_done_callback(r.cancelled)
+                    r.task.cancel()  # e.g. a capture waiting for its next frame
 
     async def run(self, limit: float | None = None) -> list[str]:
         """Stop the sources, then let the graph finish what it holds (at most ``limit`` s).
 
-        Sources (nodes without inputs, and free-running ones) are released no more and their
-        in-flight activation is cancelled (a capture waiting for a frame, a paced source
-        waiting for its readers): nothing new is published after the stop request, but what
-        a source did publish, even a value waiting on a full lossless edge, is delivered.
+        Sources are released no more (:meth:`stop_sources`): nothing new is published after
+        the stop request, but what a source did publish, even a value waiting on a full
+        lossless edge, is delivered.
         Every other node keeps running: in-flight activations finish, every lossless edge
         delivers what it holds, producers waiting on a full lossless edge get their values in.
         Returns what was left undone when the limit hit (then reported as a ``drain-timeout``
@@ -66,12 +84,8 @@ class Drain:
         timeout = self.timeout if limit is None else limit
         loop = s.loop
         t0 = loop.time()
-        for r in s.runners.values():
-            if not r.inputs or isinstance(r.rnode.trigger, LoopTrigger):
-                r.stop_releasing()
-                if r.task is not None and not r.task.done():
-                    r.task.add_done_callback(r.cancelled)
-                    r.task.cancel()  # e.g. a capture waiting for its next frame
+        self.deadline = t0 + timeout
+        self.stop_sources()
         left = await self._settle(t0, timeout)
         if not left and not self.cut:
             # Timed nodes with inputs (a 1 kHz loop reading the latest wall) ran on while the

@@ -31,8 +31,11 @@ class SchedulerPort(Protocol):
     # A run's observer (flowrt.determinism), set by ``ctx.observe``: told of every activation,
     # completion and publication, in order, to record what makes the run reproducible.
     observer: Any
+    stop_at: float | None  # no source is released from then on (None: no stop due)
 
     def rel(self, t: float) -> float: ...
+
+    def drain_over(self) -> bool: ...
 
     def tick(self, key: str, t: float) -> None: ...
 

@@ -346,6 +346,8 @@ class NodeRunner(RunnerFields):
         """A trigger fired: run now unless disabled, down, or still running (overrun)."""
         if not self.timing.enabled or self.stopping:
             return
+        if self.sched.stop_at is not None and self._past_stop():
+            return
         busy = self.busy  # (read once: a property; the two moves below cost as much)
         if (busy or self.state in _WAITING) and self.backlog():
             return  # not skipped: the lossless value waits, and idle() runs the node for it
@@ -362,6 +364,16 @@ class NodeRunner(RunnerFields):
             loop.call_soon(self.run_sync, t_release)
         else:
             self.task = loop.create_task(self.run_async(t_release))
+
+    def _past_stop(self) -> bool:
+        """A source released at or after the run's stop: never again (see Scheduler.stop_at)."""
+        stop_at = self.sched.stop_at
+        if stop_at is None or self.sched.clock.now() < stop_at:
+            return False
+        if self.inputs and not isinstance(self.rnode.trigger, LoopTrigger):
+            return False  # not a source: it drains what the sources published
+        self.stop_releasing()
+        return True
 
     def release_frame(self, t: float, paced: bool) -> None:
         """Tick of this node's frame source, on its period and phase (see Scheduler.tick)."""
@@ -550,6 +562,9 @@ class NodeRunner(RunnerFields):
         if self.swapper.pending is not None and not self.busy:  # (precise: calls in flight)
             self.swapper.take_pending()  # a swap waits for this moment
         if self.stopping:
+            return
+        if self.sched.drain_over():  # a call that ended past the drain's deadline: no next
+            self.stop_releasing()
             return
         if self.deferred is not None:  # a paced source's frame waits: run on it now
             t, self.deferred = self.deferred, None

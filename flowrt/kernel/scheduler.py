@@ -67,6 +67,9 @@ class Scheduler:
             self.buffers.append(buf)
             self.reader_of[id(buf)] = self.runners[edge.dst]
         self.paced: set[str] = set()  # frame clocks whose source waits for its readers
+        # When the run's stop is due (Runtime.run's then_stop): no source is released from
+        # then on, though its timer's handle, due earlier, runs after it (a loop held).
+        self.stop_at: float | None = None
         self._drain = Drain(self, services.drain_timeout)
         # frame clocks: source key -> (tick count, readers in dispatch order)
         self.ticks: dict[str, int] = {}
@@ -204,6 +207,15 @@ class Scheduler:
     @property
     def drain_cut(self) -> bool:
         return self._drain.cut
+
+    def drain_over(self) -> bool:
+        """The drain is past its deadline or cut: no activation begins any more."""
+        return self.stage == "draining" and self._drain.over()
+
+    def stop_sources(self) -> None:
+        """The stop is asked for: sources publish nothing more (see Drain.stop_sources)."""
+        if self.stage in ("running", "draining"):
+            self._drain.stop_sources()
 
     def cut_drain(self) -> bool:
         """Cut the drain short (a signal once the stop is asked for): in progress, or before

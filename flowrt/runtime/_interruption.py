@@ -13,6 +13,10 @@ phase has one answer, so that a run always ends within about 2 s of it:
   (reason ``interrupted``);
 - teardown: nothing more (each node's stop is bounded by its grace time).
 
+A stop request is an instant (``mark_stop``, ``request_stop``, ``run``'s ``then_stop``): no
+source is released after it, even a timer due before it that a loop held by a slow call
+serves after it (uvloop runs expired timers before the callbacks it was handed).
+
 :class:`Interruptible` is the part of :class:`flowrt.Runtime` that does this.
 """
 
@@ -26,6 +30,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from ..clock import Clock
     from ..kernel import Scheduler
     from ..system._loop_share import LoopShare
     from ._event_hub import Monitor
@@ -36,6 +41,7 @@ class Interruptible:
     """The runtime's start, undone when cancelled, and its answer to a signal by phase."""
 
     _starting: asyncio.Task[Any] | None = None  # the task in start(), while it runs
+    clock: Clock
     _sched: Scheduler | None
     _stop: asyncio.Event
     _bridge: Any
@@ -46,6 +52,47 @@ class Interruptible:
 
     async def _start(self) -> None:
         raise NotImplementedError
+
+    async def run(self, duration: float | None = None, *, then_stop: bool = False) -> None:
+        """Run until ``duration`` seconds have passed or ``request_stop`` is called.
+
+        ``then_stop``: the duration's end is a stop request (``flowrt run --duration``):
+        no source is released after it, even a release due before it that a loop held by a
+        slow call serves after it, and a later ``run`` returns at once."""
+        if not self.started:
+            await self.start()
+        if duration is None:
+            await self._stop.wait()
+            return
+        if not then_stop:
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._stop.wait(), timeout=duration)
+            return
+        assert self._sched is not None
+        self._sched.stop_at = self.clock.now() + duration
+        handle = asyncio.get_running_loop().call_later(duration, self.request_stop)
+        try:
+            await self._stop.wait()
+        finally:
+            handle.cancel()
+
+    def mark_stop(self) -> None:
+        """A stop is asked for now (a signal's handler, which may run while a slow call holds
+        the loop): no source is released from this instant, before the loop acts on it.
+        Safe in a signal handler: it only writes a time."""
+        sched = self._sched
+        if sched is not None and sched.stage == "running":
+            now = self.clock.now()
+            if sched.stop_at is None or now < sched.stop_at:
+                sched.stop_at = now
+
+    def request_stop(self) -> None:
+        """Ask ``run`` to return, and the sources to publish nothing more from now on (on
+        the loop's thread). The rest stops as the runtime does (the drain): a timer already
+        due behind a loop held by a slow call published after the stop otherwise."""
+        self._stop.set()
+        if self._sched is not None:
+            self._sched.stop_sources()
 
     async def start(self) -> None:
         """Start workers and frames, set every node up, arm the triggers.
@@ -109,7 +156,7 @@ class Interruptible:
         if what.startswith("set-up") and self._starting is not None:
             self._starting.cancel()
         elif what == "the run":
-            self._stop.set()
+            self.request_stop()
         elif what == "the drain" and self._sched is not None:
             self._sched.cut_drain()
         return what

@@ -237,20 +237,6 @@ class Runtime(Interruptible):
             self._loop_cpus.restore()
             gc.unfreeze()
 
-    async def run(self, duration: float | None = None) -> None:
-        """Run until ``duration`` seconds have passed or ``request_stop`` is called."""
-        if not self.started:
-            await self.start()
-        if duration is None:
-            await self._stop.wait()
-            return
-        with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._stop.wait(), timeout=duration)
-
-    def request_stop(self) -> None:
-        """Ask ``run`` to return (signal-handler safe on the loop thread)."""
-        self._stop.set()
-
     @property
     def loop_scheduling(self) -> str:
         """What the loop process was granted: SCHED_FIFO, or its nice level and slice."""
