@@ -90,3 +90,20 @@ def interrupt_self() -> None:
     os.kill(os.getpid(), signal.SIGINT)
     time.sleep(0.2)
     print("child went on", flush=True)
+
+
+class Holding(Node):
+    """A synchronous node whose call holds the loop ``hold_s``; each call's start (wall
+    clock) is appended to ``<dir>/<name>.calls``."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        dir: str
+        hold_s: float = 0.5
+
+    value = Input(int)
+
+    def process(self, value: int) -> None:
+        with Path(self.params.dir, f"{self.ctx.name}.calls").open("a") as f:
+            f.write(f"{time.time()}\n")
+        time.sleep(self.params.hold_s)

@@ -10,6 +10,7 @@ import asyncio
 import json
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -398,7 +399,8 @@ async def test_no_source_is_released_after_the_runs_stop_though_the_loop_was_hel
         t0 = rt.clock.now()
         await rt.run(0.45, then_stop=True)  # due while the second call holds the loop
     src = rt.stats().node("src")
-    assert src.last_start is not None and src.last_start < 0.45
+    assert src.last_start is not None
+    assert src.last_start < 0.45
     edge = rt.stats().edge("n.value")
     assert edge.published == edge.delivered + edge.dropped
     assert rt.stats().node("n").completions == src.completions  # each value, none after
@@ -429,3 +431,23 @@ async def test_no_activation_begins_once_the_drain_is_past_its_deadline() -> Non
     edge = rt.stats().edge("n.value")
     assert edge.published == edge.delivered + edge.dropped == 6
     assert edge.dropped == 4  # what the drain could not deliver in time is counted
+
+
+async def test_a_signal_while_a_slow_call_holds_the_loop_ends_the_sources_then() -> None:
+    """SIGINT during a 30 s call: the source's timer, due behind the held loop, ran before
+    the interrupt it was handed, and the drain ran a second 30 s call on its value."""
+    rt = Runtime(held_graph(0.3).build())
+    async with rt:
+        loop = asyncio.get_running_loop()
+
+        def handler() -> None:  # what StopSignals does from its handler, mid-call
+            time.sleep(0.4)
+            rt.mark_stop()
+            loop.call_soon_threadsafe(rt.interrupt)
+
+        threading.Thread(target=handler).start()
+        await rt.run()
+    src = rt.stats().node("src")
+    assert src.last_start is not None
+    assert src.last_start < 0.4
+    assert rt.stats().node("n").completions == src.completions

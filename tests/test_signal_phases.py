@@ -268,3 +268,29 @@ def test_nohup_keeps_sighup_ignored(tmp_path: Path) -> None:
     assert code == 0, err
     assert "SIGHUP" not in err
     _nothing_left(proc.pid)
+
+
+def test_a_signal_while_a_call_holds_the_loop_starts_no_call_after_it(
+    tmp_path: Path, start: object
+) -> None:
+    """SIGINT during a 30 s call took 56 s: the source's timer, due behind the held loop,
+    ran before the interrupt it was handed, and the drain called the node again on it."""
+    graph = tmp_path / "held.yaml"
+    graph.write_text(
+        "nodes:\n"
+        "  src: {kind: counter, trigger: {timer: 50ms}}\n"
+        "  n:\n"
+        "    kind: signalkinds:Holding\n"
+        f'    params: {{dir: "{tmp_path}", hold_s: 0.6}}\n'
+        "    inputs: {value: src.value}\n"
+    )
+    proc = start(graph)  # type: ignore[operator]
+    calls = tmp_path / "n.calls"
+    _wait_for(calls, proc)
+    time.sleep(0.9)  # into the second call
+    sent = time.time()
+    code, err, took = _ended(proc, signal.SIGINT)
+    assert code == 0, err
+    starts = [float(x) for x in calls.read_text().split()]
+    assert all(t < sent for t in starts), (sent, starts)
+    assert took < 0.6 + LIMIT_S, err
