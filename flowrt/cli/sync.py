@@ -20,32 +20,43 @@ from .replay import _files, _not_mcap
 NO_MATPLOTLIB = "--plot needs matplotlib (pip install matplotlib)"
 
 
-def _stamp(msg: Any) -> float:
-    ts = msg.timestamp
-    return float(ts.seconds) + float(ts.nanos) / 1e9
-
-
 def _read(path: Path, topics: set[str]) -> dict[str, list[tuple[float, Any]]]:
     """(Unix time, value) per topic, in order: images as their mean brightness, audio as
-    (first channel's samples, rate); decoded by the recording's own Decoder."""
-    from ..recording.encoding import AUDIO_SCHEMA, Decoder
+    (first channel's samples, rate). Any recording a replay reads: flowrt's own (protobuf
+    images and audio) or a ROS 2 bag (CDR ``sensor_msgs/Image``, ``flowrt_msgs/AudioBlock``,
+    which only the protobuf ones were read as: "no image or audio messages")."""
+    from ..recording.decoding import MessageDecoder
     from ..recording.reader import iter_session
     from ..recording.session import mcap_files
 
-    decoder = Decoder()
+    decoder = MessageDecoder()
     out: dict[str, list[tuple[float, Any]]] = {t: [] for t in topics}
     for m in iter_session(mcap_files(path), topics, []):
-        schema = m.schema
-        if schema is None:
+        if m.schema is None or decoder.why_not(m.encoding, m.schema) is not None:
             continue
-        if decoder.is_image(schema.name):
-            msg = decoder.protobuf(schema, m.data)
-            px, _ = decoder.pixels(schema.name, msg)
-            out[m.topic].append((_stamp(msg), float(px.mean()) if px.size else 0.0))
-        elif schema.name == AUDIO_SCHEMA:
-            block = decoder.audio(schema, m.data, m.sequence, 0.0)  # Unix time kept
+        d = decoder.decode(m.encoding, m.schema, m.data)
+        if d.kind == "image":
+            px = d.value[0]
+            t = d.stamp / 1e9 if d.stamp else m.log_time / 1e9
+            out[m.topic].append((t, float(px.mean()) if px.size else 0.0))
+            continue
+        block = _audio_block(decoder, m, d)
+        if block is not None:
             out[m.topic].append((block.timestamp, (block.samples[:, 0], block.rate)))
     return out
+
+
+def _audio_block(decoder: Any, m: Any, d: Any) -> Any:
+    """The audio block of a message, protobuf ``foxglove.RawAudio`` or a ROS 2 bag's
+    ``flowrt_msgs/AudioBlock``, in Unix time; None for anything else."""
+    from ..recording.encoding import AUDIO_SCHEMA
+    from ..recording.ros2_profile import audio_block_of
+
+    if d.kind == "audio" and m.schema.name == AUDIO_SCHEMA:
+        return decoder.own.audio(m.schema, m.data, m.sequence, 0.0)  # Unix time kept
+    if d.kind == "value" and m.schema.name.replace("/msg/", "/") == "flowrt_msgs/AudioBlock":
+        return audio_block_of(d.value)
+    return None
 
 
 def _video(rows: list[tuple[float, float]]) -> list[float]:
@@ -83,6 +94,21 @@ def _missing(path: Path, topic: str) -> str:
     return f"{printable(topic)}: no image or audio messages in {printable(str(path))}"
 
 
+def _named(path: Path, topic: str) -> str:
+    """``topic`` as the recording names it: a ROS 2 bag names ``led.frame`` ``/led/frame``
+    (its channel's ``source`` keeps the flowrt name), and the replay takes either."""
+    from ..recording.reader import scan_session
+    from ..recording.ros2_profile import ros2_topic
+
+    streams = scan_session(path).streams
+    if any(st.topic == topic for st in streams):
+        return topic
+    for st in streams:
+        if st.source == topic or st.topic == ros2_topic(topic):
+            return st.topic
+    return topic
+
+
 def cmd_measure(args: argparse.Namespace) -> int:
     from ..analysis.avsync import measure_lag
 
@@ -105,7 +131,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
     if args.plot and importlib.util.find_spec("matplotlib") is None:  # said before the work
         err.print(f"flowrt sync measure: {NO_MATPLOTLIB}", markup=False)
         return EXIT_BAD_GRAPH
-    other = args.audio or videos[1]
+    videos[0], other = (_named(path, t) for t in (videos[0], args.audio or videos[1]))
     data = _read(path, {videos[0], other})
     wanted = {videos[0]: "video", other: "audio" if args.audio else "video"}
     for topic, kind in wanted.items():
