@@ -448,4 +448,3 @@ def test_a_replay_that_cannot_be_read_is_fatal_and_names_the_file(
         TraceReplay(str(path), False, None, 0.0)
     assert str(e.value).startswith(f"replay {path}")
     assert said in str(e.value)
-

@@ -63,13 +63,15 @@ async def test_the_duration_counts_from_the_runs_start_not_the_endpoints(
         t0 = loop.time()
         why = await _serve_run(rt, server, g, 0.3 if failed is None else 30.0)
         elapsed = loop.time() - t0
-    assert server.spawned and server.stopped
+    assert server.spawned
+    assert server.stopped
     assert elapsed < ends_within
     if failed is None:
         assert why is None
         assert elapsed >= 0.3
     else:
-        assert why is not None and failed in why
+        assert why is not None
+        assert failed in why
 
 
 async def test_a_stop_asked_while_the_endpoint_starts_is_not_held_by_it() -> None:

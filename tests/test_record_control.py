@@ -193,7 +193,8 @@ async def test_the_end_reports_every_session_of_a_stop_and_start(tmp_path: Path)
     result: dict[str, Any] = {}
     assert _report_all(console, console, sessions, result) == 0
     shown = console.export_text()
-    assert "recording rec_001" in shown and "recording rec_002" in shown
+    assert "recording rec_001" in shown
+    assert "recording rec_002" in shown
     assert result["recording"]["session"] == "rec_001"
     assert [r["session"] for r in result["recordings"]] == ["rec_001", "rec_002"]
     assert all(r["streams"][0]["written"] > 0 for r in result["recordings"])
