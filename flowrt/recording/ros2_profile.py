@@ -152,7 +152,7 @@ class Ros2Encoder:
             return v
         if isinstance(v, Overlay):
             raise ValueError("annotations are not recorded in the ros2 profile")
-        if isinstance(v, Frame) and self._formats.get(topic, "raw") == "raw":
+        if isinstance(v, Frame) and self._format(topic, "raw") == "raw":
             return self._raw_image(v)
         got = self._streams.get(topic)  # a channel has one schema: its first value's
         if got is None:
@@ -200,6 +200,13 @@ class Ros2Encoder:
         sec = math.floor(t)
         return {"sec": int(sec), "nanosec": min(999_999_999, round((t - sec) * 1e9))}
 
+    def _format(self, topic: str, default: str) -> str:
+        """``topic``'s image format; a sync set's member (``TOPIC/KEY``) takes its set's."""
+        fmt = self._formats.get(topic)
+        if fmt is None and "/" in topic:
+            fmt = self._formats.get(topic.rpartition("/")[0])
+        return fmt or default
+
     def _raw_image(self, frame: Frame) -> Encoded:
         """sensor_msgs/msg/Image, its CDR written by hand: the pixels copied once."""
         data = np.ascontiguousarray(frame.data)
@@ -225,7 +232,7 @@ class Ros2Encoder:
         return Encoded(self._schema("sensor_msgs/msg/Image"), body)
 
     def _compressed(self, topic: str) -> Any:
-        fmt = self._formats.get(topic, "jpeg")
+        fmt = self._format(topic, "jpeg")
 
         def convert(frame: Frame) -> dict[str, Any]:
             import cv2
