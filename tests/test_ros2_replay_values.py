@@ -295,3 +295,18 @@ def test_record_ros2_then_replay_into_the_graph(
     assert again.returncode == 0, again.stderr
     assert "OutputError" not in again.stderr
     assert "expects" not in again.stderr
+
+
+def test_every_reason_a_stream_refuses_values_is_said(tmp_path: Path) -> None:
+    """An int stream given text and NaN floats in the ros2 profile: 12 refused, counted,
+    but the note said only the text ("cannot encode str"), the floats' reason unsaid."""
+    w = RecordingWriter(tmp_path / "r.mcap", profile="ros2", epoch_offset=EPOCH)
+    w.open({})
+    w.declare("src.value", source="src.value")
+    values: list[object] = [1, 2, "a", float("nan"), "b", float("nan"), 3]
+    for i, v in enumerate(values):
+        w.submit("src.value", v, 0.01 * i, i)
+    w.close()
+    kinds = sorted(n.split("cannot encode ")[1].split(":")[0] for n in w.notes)
+    assert kinds == ["float", "str"], w.notes
+    assert w.streams["src.value"].unwritten == 4

@@ -41,7 +41,14 @@ from typing import Any, NamedTuple
 from ...frames import Frame
 from ...ipc import PICKLE, BlockingConn, Framer, pack
 from ..split import SplitPolicy, part_path
-from .threads import THREAD_PREFIX, StreamCounters, _ValueEncoder, count_written, value_encoder
+from .threads import (
+    THREAD_PREFIX,
+    StreamCounters,
+    Unencodable,
+    _ValueEncoder,
+    count_written,
+    value_encoder,
+)
 from .wire import ACKS, ATTACH, CLOSE, DECLARE, DETACH, DRAINED, FINISHED, MESSAGE, OPEN
 
 __all__ = ["ProcessRecordingWriter"]
@@ -100,7 +107,7 @@ class ProcessRecordingWriter:
         self._values = value_encoder(
             formats, options.get("epoch_offset", 0.0), False, options.get("profile", "flowrt")
         )
-        self._unencodable: set[str] = set()
+        self._unencodable = Unencodable(self.notes)
         self._travels: dict[tuple[str, type], bool] = {}  # pickled as is, or encoded here
         # Invariant: ``_sent`` holds every message sent and not yet reported, ``_held`` every
         # frame of those whose slot the process may still read (the link this writer holds)
@@ -217,9 +224,7 @@ class ProcessRecordingWriter:
             try:
                 payload = _payload(topic, value, self._travels, self._values)
             except Exception as e:  # a value that cannot be encoded: counted, said once
-                if topic not in self._unencodable:
-                    self._unencodable.add(topic)
-                    self.notes.append(f"{topic}: cannot encode {type(value).__name__}: {e}")
+                self._unencodable.say(topic, value, e)
                 s.unwritten += 1
                 return True
             self._messages_waiting += 1

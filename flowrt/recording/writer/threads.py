@@ -186,8 +186,8 @@ class RecordingWriter:
         self._inflight: Frame | None = None
         self._crc_now = False  # the encoder computes large messages' CRCs (.chunking)
         self._values = value_encoder(self.image_formats, epoch_offset, gil_free, profile)
-        self._unencodable: set[str] = set()
         self.notes: list[str] = []  # problems other than write errors (said once per stream)
+        self._unencodable = Unencodable(self.notes)
 
     # --- on the event loop ------------------------------------------------------------------
 
@@ -356,9 +356,7 @@ class RecordingWriter:
         try:
             return None if self.error is not None else _encode(self._values, item, self._crc_now)
         except Exception as e:  # a value that cannot be encoded: counted, said once
-            if item.topic not in self._unencodable:
-                self._unencodable.add(item.topic)
-                self.notes.append(f"{item.topic}: cannot encode {type(item.value).__name__}: {e}")
+            self._unencodable.say(item.topic, item.value, e)
             return None
         finally:
             # The pixels are in the encoded bytes now: the slot goes back to its pool.
@@ -524,6 +522,22 @@ def _to_heap(queue: deque[_Item]) -> list[Frame]:
             )
             originals.append(v)
     return originals
+
+
+class Unencodable:
+    """Says, in ``notes``, why a stream's values could not be encoded (the caller counts
+    them): once per topic and value type, so an int stream's text values and its floats are
+    two reasons (a refusal of 4 NaN floats went unsaid behind 8 strings)."""
+
+    def __init__(self, notes: list[str]) -> None:
+        self._notes = notes
+        self._said: set[tuple[str, str]] = set()
+
+    def say(self, topic: str, value: Any, e: Exception) -> None:
+        key = (topic, type(value).__name__)
+        if key not in self._said:
+            self._said.add(key)
+            self._notes.append(f"{topic}: cannot encode {key[1]}: {e}")
 
 
 def value_encoder(
