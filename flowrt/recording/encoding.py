@@ -77,11 +77,29 @@ class Encoded:
     data: bytes
 
 
+def epoch_ns(t: float) -> int:
+    """Unix time ``t`` (float seconds) in integer nanoseconds, the one conversion of the
+    recording: log times, stamps and ``timestamp`` fields agree to the nanosecond (a stamp
+    was truncated from ``t - floor(t)`` while the log time was ``round(t * 1e9)``, tens of
+    ns apart, where the README says the capture time is the log time). The fraction is
+    rounded on its own: ``t * 1e9`` near 1.7e18 is a multiple of 256 (.25 s as 249999872)."""
+    if t <= 0:
+        return 0
+    sec = math.floor(t)
+    return sec * 1_000_000_000 + round((t - sec) * 1e9)
+
+
+def sec_nsec(t: float) -> tuple[int, int]:
+    """Unix time ``t`` as (seconds, nanoseconds), :func:`epoch_ns`'s."""
+    sec, nsec = divmod(epoch_ns(t), 1_000_000_000)
+    return sec, nsec
+
+
 def _timestamp(t: float) -> Any:
     from foxglove.messages import Timestamp
 
-    sec = math.floor(t)
-    return Timestamp(sec=int(sec), nsec=int((t - sec) * 1e9))
+    sec, nsec = sec_nsec(t)
+    return Timestamp(sec=sec, nsec=nsec)
 
 
 def image_schema(compressed: bool) -> StreamSchema:
@@ -156,8 +174,7 @@ def encode_frame(
             f"cannot record a {frame.pixel_format} {data.dtype} frame as a RawImage "
             f"(BGR, RGB, GRAY uint8 or GRAY uint16)"
         )
-    sec = max(0, math.floor(epoch_time))
-    nsec = int((epoch_time - sec) * 1e9) if epoch_time > 0 else 0
+    sec, nsec = sec_nsec(epoch_time)
     head = raw_image_head(
         sec, nsec, frame.source, w, h, encoding, int(data.strides[0]), data.nbytes
     )
@@ -505,7 +522,7 @@ def encode_json(value: Any, schema: StreamSchema, epoch_offset: float | None = N
     elif epoch_offset is not None:
         ts = obj.get("timestamp")
         if isinstance(ts, float) and math.isfinite(ts):
-            obj["timestamp"] = round((ts + epoch_offset) * 1e9)
+            obj["timestamp"] = epoch_ns(ts + epoch_offset)
     # the value in the shape of its schema (jsonschema.py); a guessed schema only drops None
     obj = conform(obj, _parsed(schema.data), coerce=not schema.guessed)
     return Encoded(schema, _dumps(obj).encode())
@@ -522,7 +539,7 @@ def flat_json(value: Any, epoch_offset: float | None) -> bytes | None:
         return None
     ts = value.get("timestamp")
     if epoch_offset is not None and type(ts) is float:
-        value = {**value, "timestamp": round((ts + epoch_offset) * 1e9)}
+        value = {**value, "timestamp": epoch_ns(ts + epoch_offset)}
     return _flat_dumps(value)
 
 

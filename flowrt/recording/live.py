@@ -41,6 +41,7 @@ from .encoding import (
     audio_schema,
     encode_annotations,
     encode_json,
+    epoch_ns,
     image_schema,
     is_detection,
     to_jsonable,
@@ -311,7 +312,7 @@ class FoxgloveLive:
                     self._done.append(value)
 
     def _send(self, topic: str, value: Any, epoch_time: float) -> None:
-        ns = round(epoch_time * 1e9)
+        ns = epoch_ns(epoch_time)
         if topic == "/flowrt/stats":
             data = encode_json(value, self._stats_schema).data
             self._stats_channel.log(data, log_time=ns)
@@ -348,7 +349,7 @@ class FoxgloveLive:
                 annotations_topic(camera, topic), annotations_schema()
             )
         epoch = det.timestamp + self._epoch
-        ch.log(encode_annotations(det, epoch).data, log_time=round(epoch * 1e9))
+        ch.log(encode_annotations(det, epoch).data, log_time=epoch_ns(epoch))
 
     def _channel(self, topic: str, schema: StreamSchema) -> Any:
         import foxglove

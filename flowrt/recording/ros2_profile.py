@@ -60,6 +60,7 @@ from .encoding import (
     Overlay,
     StreamSchema,
     plain_value,
+    sec_nsec,
     to_jsonable,
 )
 
@@ -196,9 +197,8 @@ class Ros2Encoder:
     # --- images and audio -------------------------------------------------------------
 
     def _stamp(self, t: float) -> dict[str, int]:
-        t = max(0.0, t + self._offset)
-        sec = math.floor(t)
-        return {"sec": int(sec), "nanosec": min(999_999_999, round((t - sec) * 1e9))}
+        sec, nsec = sec_nsec(t + self._offset)  # (its log time's ns)
+        return {"sec": sec, "nanosec": nsec}
 
     def _format(self, topic: str, default: str) -> str:
         """``topic``'s image format; a sync set's member (``TOPIC/KEY``) takes its set's."""

@@ -40,7 +40,7 @@ from ...frames import Frame
 from ...stats import Running
 from ..chunking import checked_if_large, install_chunks
 from ..directio import open_direct
-from ..encoding import Encoded, StreamSchema
+from ..encoding import Encoded, StreamSchema, epoch_ns
 from ..gilfree import install
 from ..inuse import hold
 from ..ros2_profile import ros2_topic
@@ -418,7 +418,7 @@ class RecordingWriter:
             enc.schema,
             self._channel_meta.get(item.topic, {}),
         )
-        ns = round((item.t + self.epoch_offset) * 1e9)
+        ns = epoch_ns(item.t + self.epoch_offset)
         if not self._guard(
             lambda: self._writer.add_message(cid, ns, enc.data, ns, item.seq & 0xFFFFFFFF)
         ):
