@@ -461,3 +461,17 @@ async def test_the_analysis_and_the_kernel_agree_where_a_precise_node_runs(
         for name in names:
             kernel = why_not_thread(rt.scheduler.runners[name], built) is None
             assert in_precise_thread(built, name) == kernel, name
+
+
+@pytest.mark.parametrize(("budget_ms", "thread"), [(300.0, True), (500.0, True), (866.0, False)])
+def test_a_budget_over_half_the_period_is_analysed_on_the_loop(
+    budget_ms: float, thread: bool
+) -> None:
+    """The runtime moves a precise node whose calls take over half its period to the loop
+    (LONG_CALLS); ``flowrt check --wcet-from`` analysed a 0.866 ms p99 on a 1 ms timer in
+    its thread, and found it fine."""
+    from flowrt.analysis.timing import Budget, graph_timing
+
+    built = graph().build()
+    timing = graph_timing(built, {"tick": Budget(budget_ms, "stats p99")})
+    assert timing["tick"].thread is thread

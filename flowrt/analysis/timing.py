@@ -13,7 +13,7 @@ import inspect
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Any, Literal
 
 from ..graph._resolve import Graph
 from ..graph.spec import EdgePolicy, FrameTrigger, InputTrigger, Placement, TimerTrigger
@@ -77,7 +77,7 @@ def graph_timing(
             deadline_ms=s.deadline,
             cpus=tuple(s.cpus) if s.cpus else None,
             budget=budget,
-            thread=in_precise_thread(graph, name),
+            thread=in_precise_thread(graph, name) and not _leaves_thread(trig, budget),
         )
         if isinstance(trig, FrameTrigger):
             t = replace(
@@ -107,6 +107,18 @@ def graph_timing(
             t = replace(t, own_interval_ms=graph.frame_interval_ms(name))
         out[name] = t
     return out
+
+
+def _leaves_thread(trig: Any, budget: Budget | None) -> bool:
+    """A precise node whose budget is over half its period: the runtime moves it to the loop
+    after a few such calls (kernel/precise.py ``LONG_CALLS``), so it is analysed there (a
+    0.866 ms p99 on a 1 ms timer was checked as in its thread and found fine)."""
+    return (
+        budget is not None
+        and isinstance(trig, TimerTrigger)
+        and trig.timer is not None
+        and budget.ms > trig.timer / 2
+    )
 
 
 def in_precise_thread(graph: Graph, name: str) -> bool:
