@@ -333,7 +333,9 @@ def test_dbc_that_does_not_parse_is_one_error_at_validate(tmp_path: Path) -> Non
     [
         ({"dbc": "nope.dbc"}, {}, "no such file"),
         ({"dbc": DBC, "interface": "nosuch"}, {}, "unknown python-can interface"),
+        ({"dbc": DBC, "interface": "virtal"}, {}, "'virtal' (did you mean 'virtual'?)"),
         ({"dbc": DBC, "messages": {"Nope": {}}}, {}, "'Nope' is not a message"),
+        ({"dbc": DBC, "messages": {"WheelSpeed": {}}}, {}, "(did you mean 'WheelSpeeds'?)"),
         ({"dbc": DBC, "messages": {"Infrared": {"counter": "X"}}}, {}, "counter signal 'X'"),
         ({"dbc": DBC, "messages": {"Battery": {"checksum": "Voltage"}}}, {}, "one whole byte"),
         ({"dbc": DBC}, {"MotorSetpoint": "src.values"}, "has no input 'MotorSetpoint'"),

@@ -19,6 +19,7 @@ from pydantic import (
 
 from flowrt import resolve_path
 from flowrt.analysis.can_frames import bit_rate
+from flowrt.graph.diagnostics import did_you_mean
 
 from .dbc import dbc_warnings, load_dbc
 
@@ -109,9 +110,9 @@ class CanParams(BaseModel):
         from can.interfaces import BACKENDS
 
         if v not in BACKENDS:
-            raise ValueError(
-                f"unknown python-can interface {v!r} (known: {', '.join(sorted(BACKENDS))})"
-            )
+            hint = did_you_mean(v, BACKENDS)
+            known = "" if hint else f" (known: {', '.join(sorted(BACKENDS))})"
+            raise ValueError(f"unknown python-can interface {v!r}{hint or known}")
         return v
 
     @field_validator("dbc")
@@ -146,7 +147,9 @@ class CanParams(BaseModel):
         names = {m.name for m in db.messages}
         for name in [*self.messages, *(self.receive or [])]:
             if name not in names:
-                raise ValueError(f"{name!r} is not a message of {self.dbc}")
+                raise ValueError(
+                    f"{name!r} is not a message of {self.dbc}{did_you_mean(name, names)}"
+                )
         clash = names & NODE_OUTPUTS
         if clash:
             raise ValueError(f"message names clash with the node's outputs: {sorted(clash)}")
