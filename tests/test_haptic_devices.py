@@ -4,6 +4,7 @@ and the node's reactions to a device that fails, comes back, or has buttons."""
 from __future__ import annotations
 
 import math
+import re
 from collections import deque
 from typing import Any
 
@@ -14,7 +15,7 @@ from flowrt.nodes.haptic import DeviceError, Haptic, SimDevice, make_device
 from flowrt.nodes.haptic.evdev_device import EvdevDevice, EvdevParams
 from flowrt.nodes.haptic.sim import SimParams
 
-from flowrt import FatalError
+from flowrt import FatalError, GraphBuilder, GraphError
 from flowrt.testing import HarnessContext, NodeHarness
 
 
@@ -69,10 +70,26 @@ def test_a_device_that_does_not_import_fails_setup_and_tears_down_quietly() -> N
     """The runtime tears a node down after a failed setup: no AttributeError on top."""
     from flowrt.node import make_node
 
-    node = make_node(Haptic, {"device": "no_such_module:Arm"}, HarnessContext("haptic"))
-    with pytest.raises(FatalError, match="no_such_module"):
+    node = make_node(Haptic, {"device": "json:NoSuchArm"}, HarnessContext("haptic"))
+    with pytest.raises(FatalError, match="NoSuchArm"):
         node.setup()
     node.teardown()
+
+
+@pytest.mark.parametrize(
+    ("device", "said"),
+    [
+        ("no_such_module:Arm", "no module named 'no_such_module'"),
+        ("no_such_pkg.arms:Arm", "no module named 'no_such_pkg'"),
+        ("nope", "unknown device 'nope'"),
+    ],
+)
+def test_a_device_module_that_is_not_there_is_a_graph_error(device: str, said: str) -> None:
+    """``device: nosuchmod:Dev`` passed flowrt validate and failed the run."""
+    g = GraphBuilder("h")
+    g.add("h", "haptic", params={"device": device})
+    with pytest.raises(GraphError, match=re.escape(said)):
+        g.build()
 
 
 def test_an_enable_button_the_device_lacks_is_refused_at_setup() -> None:

@@ -109,8 +109,18 @@ class HapticParams(BaseModel):
     @field_validator("device")
     @classmethod
     def _device(cls, v: str) -> str:
-        if v != "sim" and not v.partition(":")[2]:
+        kind, _, rest = v.partition(":")
+        if v != "sim" and not rest:
             raise ValueError(f"unknown device {v!r}: sim, evdev:PATH, evdev:NAME or module:Class")
+        if v != "sim" and kind != "evdev":
+            # a misspelt module was a failed run, not a graph error; its top-level package
+            # is looked up without running any of its code (the module runs when the node
+            # starts)
+            import importlib.util
+
+            top = kind.split(".")[0]
+            if not top.isidentifier() or importlib.util.find_spec(top) is None:
+                raise ValueError(f"device {v!r}: no module named {top!r}")
         return v
 
     @field_validator("actuator", "lock")
