@@ -192,6 +192,27 @@ async def test_the_page_records_reviews_and_plots(tmp_path: Path, repo: Path) ->
             assert "ALERT - FRAME DROPS: omni_cam" in text
             await asyncio.sleep(20.0 if SHOTS else 0.0)  # the README's picture: some history
             await shot(page, "#healthpanel", "operator-health.png")
+            # a recording this page started, stopped from elsewhere (flowrt ctl, another
+            # page): its "recording match_002" stayed beside the state "stopped"
+            await click(page, "#recstart")
+            await until(
+                page,
+                "document.querySelector('#recmsg').textContent.includes('recording match_002')",
+                10,
+                "this page's start said",
+            )
+            async with (
+                aiohttp.ClientSession() as http,
+                http.post(f"{control}/record", json={"action": "stop"}) as r,
+            ):
+                assert r.status == 200, await r.text()
+            await until(
+                page,
+                "document.querySelector('#recmsg').textContent"
+                " === 'match_002: stopped from elsewhere'",
+                10,
+                "the stop from elsewhere said",
+            )
         # the recorder may fall behind a machine loaded by the whole suite (CI: 2 frames):
         # counted above, and the run's exit says so (1); anything else must exit 0
         await run.stop(tolerated="recorder behind")

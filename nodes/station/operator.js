@@ -53,7 +53,7 @@ async function recordStart() {
     op.starts += 1;
     op.session = a.session;
     if (a.session == null) say(a.error, "warn");  // 202: the recorders start when they can
-    else say(`recording ${a.session}`, "ok");
+    else { say(`recording ${a.session}`, "ok"); op.saidRecording = a.session; }
     q("#recresult").replaceChildren();
   } catch (e) {
     op.error = e.message;
@@ -65,6 +65,7 @@ async function recordStart() {
 
 async function recordStop() {
   q("#recstop").disabled = true;
+  op.saidRecording = null;  // this page's stop says its own result
   say("stopping: finishing the files…", "warn");
   try {
     const a = await api("POST", "api/record/stop", {});
@@ -114,6 +115,11 @@ async function pollRecord(again = true) {
       ? "no recorder in this graph (flowrt run GRAPH --recordings DIR adds one)"
       : s.recording ? `● REC ${s.session} · ${secs(s.elapsed_s)} · ${bytes(s.size_bytes)}` : "stopped";
     q("#recstate").className = s.recording ? "bad" : "muted";
+    if (op.saidRecording && !(s.recording && s.session === op.saidRecording)) {
+      // another page (or flowrt ctl) stopped it: "recording X" beside "stopped" misled
+      say(`${op.saidRecording}: stopped from elsewhere`, "muted");
+      op.saidRecording = null;
+    }
     q("#reclive").replaceChildren(...s.streams.filter((x) => !x.topic.includes("/annotations/"))
       .map((x) => {
         const e = document.createElement("span");
