@@ -62,6 +62,21 @@ async def test_on_screen_joystick_drives_teleop() -> None:
                 20,
                 "the joystick panel",
             )
+            # the joystick's long "waiting for an operator: ..." wraps in its cell: the
+            # statistics table widened to 1505 px in a 1280 px window, its last columns away
+            await until(
+                lambda: page.eval(
+                    "document.querySelector('#stats tr[data-node=\"joy\"]')"
+                    "?.textContent.includes('waiting for an operator')"
+                ),
+                20,
+                "the joystick waiting, with its reason",
+            )
+            table, window = await page.eval(
+                "[document.querySelector('#stats').scrollWidth,"
+                " document.documentElement.clientWidth]"
+            )
+            assert table <= window, (table, window)
 
             async def mouse(kind: str, x: float, y: float) -> None:
                 await page.call(
