@@ -386,6 +386,32 @@ def test_a_signal_after_the_set_up_was_cut_is_still_stopping() -> None:
     assert "still stopping" in said[1]
 
 
+def test_a_second_signal_while_the_loop_is_held_says_it_cuts_the_drain() -> None:
+    """A slow call holds the loop: the first signal's stop has not begun when the second
+    comes, which said "stopping the run" again; it cuts the drain that follows. The first
+    also marks the instant (no source released after it)."""
+    import asyncio
+
+    from flowrt import _startup
+    from flowrt.cli.signals import StopSignals
+
+    said: list[str] = []
+    marked: list[bool] = []
+    stop = StopSignals(lambda: "the run", lambda: "", stop_now=lambda: marked.append(True))
+    loop = asyncio.new_event_loop()
+    stop.loop = loop
+    _startup.listeners.append(said.append)
+    try:
+        stop(signal.SIGINT)
+        stop(signal.SIGINT)
+    finally:
+        _startup.listeners.remove(said.append)
+        loop.close()
+    assert "SIGINT: stopping the run" in said[0]
+    assert "SIGINT during the drain: cut short" in said[1]
+    assert marked == [True]
+
+
 @pytest.mark.slow
 @pytest.mark.subprocess
 def test_ctrl_c_in_a_measuring_run_gives_no_verdict(tmp_path: Path) -> None:

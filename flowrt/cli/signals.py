@@ -52,6 +52,7 @@ class StopSignals:
         self.before_start: int | None = None  # a signal before the loop ran: do not start
         self.in_setup: int | None = None  # a signal that cancelled the set-up
         self.ran = False  # the loop has run (a signal after it is a stop in progress)
+        self.stop_asked = False  # a signal asked the run to stop (the loop may not know yet)
 
     def install(self) -> None:
         """Plain ``signal.signal`` handlers, not the loop's: they also run while the loop is
@@ -89,9 +90,15 @@ class StopSignals:
             _say(f"{self.prog}: {name}: still stopping; a third signal forces the exit")
         elif loop is not None and not loop.is_closed():
             what = self.phase()
+            if what == "the run" and self.stop_asked:
+                # a second signal while a slow call holds the loop: the stop the first asked
+                # for has not begun yet, but it is the drain this one cuts
+                what = "the drain"
             self._say_phase(name, sig, what)
-            if what == "the run" and self.stop_now is not None:
-                self.stop_now()
+            if what == "the run":
+                self.stop_asked = True
+                if self.stop_now is not None:
+                    self.stop_now()
             if what != "teardown":
                 loop.call_soon_threadsafe(self.interrupt)
         elif not self.ran and self.before_start is None:
