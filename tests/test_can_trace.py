@@ -448,3 +448,26 @@ def test_a_replay_that_cannot_be_read_is_fatal_and_names_the_file(
         TraceReplay(str(path), False, None, 0.0)
     assert str(e.value).startswith(f"replay {path}")
     assert said in str(e.value)
+
+
+def test_a_blf_cut_short_is_said_not_read_as_the_whole_trace(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """python-can reads a BLF cut short (a logger that lost power) up to the cut without a
+    word: 78 of 200 frames, read as if it were the whole trace."""
+    from flowrt.analysis.can_trace import truncated
+
+    whole = tmp_path / "whole.blf"
+    with can.BLFWriter(str(whole)) as w:
+        for k in range(200):
+            w.on_message_received(can.Message(timestamp=k * 0.01, arbitration_id=0x10, data=[k]))
+    cut = tmp_path / "cut.blf"
+    data = whole.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    assert truncated(str(whole)) is None
+    said = truncated(str(cut))
+    assert (
+        said == f"{cut}: truncated ({len(data) // 2} of the {len(data)} bytes its header declares)"
+    )
+    assert cli.main(["can", "stats", str(cut)]) == 0
+    assert f"{said}: the figures are those before the cut" in capsys.readouterr().out

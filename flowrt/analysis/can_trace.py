@@ -185,6 +185,25 @@ def _one_line(e: BaseException) -> str:
     return text if len(text) <= 200 else text[:197] + "..."
 
 
+def truncated(path: str) -> str | None:
+    """Why the trace is shorter than it says it is, or None: a BLF's header holds its file's
+    size, and python-can reads a BLF cut short (a logger that lost power) up to the cut
+    without a word (78 of 200 frames, as if the whole trace)."""
+    if not path.lower().endswith(".blf"):
+        return None
+    import can
+
+    try:
+        with can.BLFReader(path) as r:
+            declared = int(r.file_size)
+        actual = os.path.getsize(path)
+    except Exception:
+        return None  # read_trace says what is wrong with it
+    if 0 < actual < declared:
+        return f"{path}: truncated ({actual} of the {declared} bytes its header declares)"
+    return None
+
+
 def trace_stats(
     path: str, bitrate: int, db: Any = None, data_bitrate: int | None = None
 ) -> dict[str, Any]:
@@ -229,6 +248,7 @@ def trace_stats(
     last = max(c.last for c in chans.values() if c.last is not None)
     return {
         "file": path,
+        "truncated": truncated(path),
         "bitrate": bitrate,
         "data_bitrate": data_bitrate,
         "duration_s": last - first,

@@ -290,6 +290,8 @@ def cmd_stats(args: argparse.Namespace) -> int:
         highlight=False,
         markup=False,
     )
+    if doc["truncated"]:  # its figures are those of the part before the cut
+        console.print(f"{doc['truncated']}: the figures are those before the cut", style="yellow")
     for ch in doc["channels"]:
         _print_channel(console, ch, bitrate, len(doc["channels"]) > 1)
     if doc["brs_at_nominal_rate"]:

@@ -148,8 +148,11 @@ def _frames(path: str) -> Iterator[Any]:
     :class:`FatalError` naming it, as ``flowrt can stats`` says it: a restart cannot mend it
     (a BLF of garbage failed every activation with "unpack requires a buffer of 72 bytes",
     naming neither the file nor the replay, and restarted the node over and over)."""
-    from flowrt.analysis.can_trace import TraceError, read_trace
+    from flowrt.analysis.can_trace import TraceError, read_trace, truncated
 
+    cut = truncated(path)
+    if cut is not None:  # replayed up to the cut, said once
+        log.warning("replay %s: replaying the frames before the cut", cut)
     try:
         yield from read_trace(path)
     except TraceError as e:
