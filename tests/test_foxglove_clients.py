@@ -13,6 +13,7 @@ import aiohttp
 import pytest
 
 import flowrt
+from flowrt import Node, Output
 from flowrt.recording.live import FoxgloveLive
 
 REPO = Path(__file__).resolve().parents[1]
@@ -82,4 +83,45 @@ async def test_ws_protocol_client_gets_can_messages_that_ajv_validates(tmp_path:
     assert proc.returncode == 0, err.decode()
     got = json.loads(out)
     assert {"chassis.WheelSpeeds", "chassis.status", "/flowrt/stats"} <= set(got["json"])
+    assert got["invalid"] == {}
+
+
+class Mixed(Node):
+    """An ``Output(object)`` whose values change type: ints, and every third one text."""
+
+    out = Output(object)
+
+    def setup(self) -> None:
+        self.n = 0
+
+    def process(self) -> object:
+        self.n += 1
+        return self.n if self.n % 3 else f"text {self.n}"
+
+
+@pytest.mark.slow
+@pytest.mark.node
+async def test_a_stream_changing_type_is_served_on_a_channel_per_type(tmp_path: Path) -> None:
+    """Its text values were sent on the channel of its first value's schema (integer),
+    which ajv refused; served as recorded now: one channel per type on the topic."""
+    modules = os.environ.get("FLOWRT_NODE_MODULES")
+    node = shutil.which("node")
+    if not modules or node is None:
+        pytest.skip("needs Node.js and FLOWRT_NODE_MODULES with @foxglove/ws-protocol and ajv")
+    script = Path(modules).parent / "ws_client.mjs"
+    shutil.copyfile(REPO / "tests" / "js" / "ws_client.mjs", script)
+    g = flowrt.GraphBuilder("mixed")
+    g.add("src", Mixed, trigger={"timer": "20ms"})
+    live = FoxgloveLive(port=0)
+    async with flowrt.Runtime(g.build(), monitors=[live]):
+        await asyncio.sleep(0.3)  # both types sent once: both channels advertised
+        proc = await asyncio.create_subprocess_exec(
+            node, str(script), f"ws://127.0.0.1:{live.port}", "json", "2",
+            stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        out, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode == 0, err.decode()
+    got = json.loads(out)
+    assert got["channels"].count("src.out") == 2
+    assert got["json"]["src.out"] > 0
     assert got["invalid"] == {}

@@ -39,3 +39,31 @@ async def test_a_frame_leaves_the_bound_when_its_slot_is_let_go_of(tmp_path: Pat
     s = w.streams["cam"]
     assert (s.received, s.written, s.lost_behind, s.bytes) == (6, 3, 2, 144)
     assert list(w.done) == [*frames[:2], frames[3]]
+
+
+def test_a_stream_whose_values_change_type_has_a_channel_per_type(tmp_path: Path) -> None:
+    """An ``Output(object)`` giving ints and text: the text was written on the channel of
+    the first value's schema (``"value": {"type": "integer"}``), refused by a validator."""
+    import json
+
+    import jsonschema
+    from mcap.reader import make_reader
+
+    from flowrt.recording.writer.threads import RecordingWriter
+
+    path = tmp_path / "m.mcap"
+    w = RecordingWriter(path, epoch_offset=1.7e9)
+    w.open({})
+    w.declare("src.out", source="src.out")
+    values: list[object] = [1, 2, "three", 4, "five", {"six": 6}]
+    for i, v in enumerate(values):
+        assert w.submit("src.out", v, 0.01 * i, i)
+    w.close()
+    assert w.error is None
+    assert not w.notes
+    schemas: dict[str, int] = {}
+    with path.open("rb") as f:
+        for schema, _channel, msg in make_reader(f).iter_messages(topics=["src.out"]):
+            jsonschema.validate(json.loads(msg.data), json.loads(schema.data))
+            schemas[schema.name] = schemas.get(schema.name, 0) + 1
+    assert schemas == {"builtins.int": 3, "builtins.str": 2, "builtins.dict": 1}

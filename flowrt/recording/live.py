@@ -87,6 +87,11 @@ class FoxgloveLive:
         self._ctx: Any = None
         self._subs: dict[str, Subscription] = {}
         self._channels: dict[str, Any] = {}
+        # An Output(object) whose values change type: its first value's schema (the channel
+        # above) and a channel per other schema on the same topic, as the recorder has, so
+        # every message matches its own channel's schema (the sender thread adds them)
+        self._first_schema: dict[str, StreamSchema] = {}
+        self._typed: dict[tuple[str, StreamSchema], Any] = {}
         self._frame_topics: set[str] = set()
         self._cameras: dict[str, str] = {}  # node -> its first frame output's topic
         self._annotations: dict[str, Any] = {}  # detection topic -> its annotations channel
@@ -247,6 +252,10 @@ class FoxgloveLive:
                 watched = any(  # a copy: the sender thread adds a channel at a first value
                     c.has_sinks() for t, c in tuple(self._channels.items()) if t.startswith(prefix)
                 )
+            if ch is not None and not ch.has_sinks() and not watched and self._typed:
+                watched = any(
+                    c.has_sinks() for (t, _), c in tuple(self._typed.items()) if t == topic
+                )
             if ch is not None and not ch.has_sinks() and not watched:
                 continue  # nobody watches: the latest buffer just keeps the newest value
             value = sub.take_held()
@@ -333,6 +342,11 @@ class FoxgloveLive:
             ch = self._channels.get(topic)
             if ch is None:  # a message channel is advertised with its first value's schema
                 ch = self._channels[topic] = self._channel(topic, d.schema)
+                self._first_schema[topic] = d.schema
+            elif d.schema != self._first_schema.get(topic, d.schema):  # another type
+                ch = self._typed.get((topic, d.schema))
+                if ch is None:
+                    ch = self._typed[(topic, d.schema)] = self._channel(topic, d.schema)
             ch.log(self._book.encode(topic, value).data, log_time=ns)
             if is_detection(value):
                 self._draw(topic, value)

@@ -559,14 +559,18 @@ class _ValueEncoder(StreamBook):
 
 
 class _Channels:
-    """The schemas and channels one part (one MCAP file) has declared."""
+    """The schemas and channels one part (one MCAP file) has declared: a channel per topic
+    and schema, so every message matches its own channel's schema. A stream of one type
+    (every built-in stream, any typed output) has one channel; an ``Output(object)`` whose
+    values change type has one per type on its topic (its text values were written under
+    the schema of its first value, an integer, which a validator refused)."""
 
     def __init__(self) -> None:
         self._schemas: dict[StreamSchema, int] = {}
-        self._channels: dict[str, int] = {}
+        self._channels: dict[tuple[str, StreamSchema], int] = {}
 
     def id_for(self, writer: Any, topic: str, schema: StreamSchema, meta: dict[str, str]) -> int:
-        cid = self._channels.get(topic)
+        cid = self._channels.get((topic, schema))
         if cid is not None:
             return cid
         sid = self._schemas.get(schema)
@@ -575,7 +579,7 @@ class _Channels:
                 schema.name, schema.encoding, schema.data
             )
         new: int = writer.register_channel(topic, schema.message_encoding, sid, meta)
-        self._channels[topic] = new
+        self._channels[(topic, schema)] = new
         return new
 
 
