@@ -84,7 +84,8 @@ class JoystickParams(BaseModel):
     @classmethod
     def _known(cls, v: str, info: ValidationInfo) -> str:
         """``script:FILE`` resolves against the graph file's folder and must be a regular
-        file of at most MAX_SCRIPT_BYTES (``script:/dev/zero`` is refused here, located)."""
+        file of at most MAX_SCRIPT_BYTES (``script:/dev/zero`` is refused here, located)
+        whose rows read (a missing ``time`` column failed the run, not the validation)."""
         kind, _, rest = v.partition(":")
         if kind == "web" and not rest:
             return v
@@ -98,6 +99,7 @@ class JoystickParams(BaseModel):
                 raise ValueError(f"joystick script not found: {path}") from None
             except OSError as e:
                 raise ValueError(f"joystick script: {e.strerror or e}") from None
+            load_script(path)  # its columns and numbers: a graph error, not a failed run
             return f"script:{path}"
         raise ValueError("source must be evdev:PATH, evdev:NAME, web or script:FILE")
 

@@ -13,6 +13,7 @@ from flowrt.nodes.joystick import JoyState, Joystick, load_script
 from flowrt.nodes.teleop import AxisShaping, Teleop, shape
 from pydantic import ValidationError
 
+from flowrt import GraphBuilder, GraphError
 from flowrt.testing import NodeHarness
 
 # --- shaping ------------------------------------------------------------------------------
@@ -280,6 +281,11 @@ def test_bad_script(tmp_path: Path, text: str, message: str) -> None:
     script.write_text(text)
     with pytest.raises(ValueError, match=message):
         load_script(script)
+    # and at validate, located (it passed flowrt validate and failed the run)
+    g = GraphBuilder("j")
+    g.add("j", "joystick", params={"source": f"script:{script}"})
+    with pytest.raises(GraphError, match=message):
+        g.build()
 
 
 def test_missing_evdev_device_is_an_error_state_and_reopened() -> None:
