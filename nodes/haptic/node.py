@@ -116,10 +116,8 @@ class HapticParams(BaseModel):
             # a misspelt module was a failed run, not a graph error; its top-level package
             # is looked up without running any of its code (the module runs when the node
             # starts)
-            import importlib.util
-
             top = kind.split(".")[0]
-            if not top.isidentifier() or importlib.util.find_spec(top) is None:
+            if not top.isidentifier() or not _findable(top):
                 raise ValueError(f"device {v!r}: no module named {top!r}")
         return v
 
@@ -413,3 +411,17 @@ def _lock_axes(value: Any, axes: tuple[str, ...]) -> set[str] | None:
             return None
         return set(value)
     return None
+
+
+def _findable(top: str) -> bool:
+    """A top-level module imported already (``__main__``: a program's own device class) or
+    one Python can find, without running any of its code."""
+    import importlib.util
+    import sys
+
+    if top in sys.modules:
+        return True
+    try:
+        return importlib.util.find_spec(top) is not None
+    except (ImportError, ValueError):
+        return False
