@@ -162,6 +162,20 @@ def test_deadline_warning_does_not_fail() -> None:
     assert set(graph.nodes) == {"tick", "cam", "slow", "ok"}
 
 
+def test_a_deadline_warning_is_said_beside_the_files_errors() -> None:
+    """It appeared only once the error was fixed: every problem at once, warnings too."""
+    text = (
+        "nodes:\n"
+        "  tick: {kind: counter, trigger: {timer: 10ms}, deadline: 20ms}\n"
+        "  bad: {kind: sink, trigger: {frame: nosuch.frame}, inputs: {input: tick.value}}\n"
+    )
+    with pytest.raises(GraphError) as e:
+        Graph.from_text(text, "g.yaml")
+    said = [(d.severity, d.message) for d in e.value.diagnostics]
+    assert (Severity.warning, "deadline 20 ms is longer than the period 10 ms") in said
+    assert any(sev is Severity.error and "nosuch" in m for sev, m in said)
+
+
 def test_unreadable_files_are_graph_errors(tmp_path: Path) -> None:
     with pytest.raises(GraphError, match="cannot read graph file"):
         Graph.from_file(tmp_path / "missing.yaml")

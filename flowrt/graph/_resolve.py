@@ -254,8 +254,7 @@ def resolve(
         not_imported=r.not_imported,
     )
     diags = r.diags
-    if not [d for d in diags if d.severity is Severity.error]:
-        _check_deadlines(graph, r.at)
+    _check_deadlines(graph, r.at)  # (with errors too: every warning at once, as the rest)
     diags.sort(key=lambda d: (d.line, d.column))
     if any(d.severity is Severity.error for d in diags):
         raise GraphError(diags)
@@ -452,12 +451,8 @@ def _check_placement(
             "(inline nodes are called in the thread itself)",
             Severity.warning,
         )
-    if (
-        ns.watchdog is not None
-        and ns.placement.value == "inline"
-        and cls is not None
-        and not inspect.iscoroutinefunction(cls.process)
-    ):
+    sync = cls is not None and not inspect.iscoroutinefunction(cls.process)
+    if ns.watchdog is not None and ns.placement.value == "inline" and sync:
         at(
             ("nodes", name, "watchdog"),
             "a watchdog cannot stop a synchronous inline node (its call holds the loop "
@@ -783,7 +778,10 @@ def _check_deadlines(graph: Graph, at: Any) -> None:
         if isinstance(node.trigger, TimerTrigger):
             period = node.trigger.timer
         elif isinstance(node.trigger, FrameTrigger):
-            interval = graph.frame_interval_ms(node.trigger.frame)
+            try:
+                interval = graph.frame_interval_ms(node.trigger.frame)
+            except Exception:  # a frame chain that is itself an error (said already)
+                continue
             period = None if interval is None else interval * node.trigger.period
         if period is not None and deadline > period:
             at(
