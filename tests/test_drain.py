@@ -451,3 +451,24 @@ async def test_a_signal_while_a_slow_call_holds_the_loop_ends_the_sources_then()
     assert src.last_start is not None
     assert src.last_start < 0.4
     assert rt.stats().node("n").completions == src.completions
+
+
+async def test_what_a_drain_past_its_deadline_leaves_is_counted_as_its_timeout() -> None:
+    """A lossless backlog the drain's deadline cut is "drain timeout" (it was "stop" when
+    the reader, stopped at the deadline, no longer counted as undrained: a signal's cut
+    said "stop" instead of "interrupted" in one CI run)."""
+    g = GraphBuilder("held")
+    g.add("src", "counter", trigger={"timer": 3_600_000}, enabled=False)
+    g.add(
+        "n",
+        Holds,
+        params={"seconds": 0.25},
+        inputs={"value": {"from": "src.value", "policy": "lossless", "size": 8}},
+    )
+    rt = Runtime(g.build(), drain_timeout=0.3)
+    async with rt:
+        for v in range(6):
+            rt.publish("src.value", v)
+    edge = rt.stats().edge("n.value")
+    assert edge.published == edge.delivered + edge.dropped == 6
+    assert edge.drop_reasons == {"drain timeout": 4}

@@ -146,7 +146,9 @@ class Drain:
                 and buf.pending()
                 and reader.timing.enabled
                 and reader.state is not RunState.failed
-                and not reader.stopping  # released no more: it takes nothing now
+                # released no more (a stopped source's reader): it takes nothing now, unless
+                # the drain itself cut it short (its backlog is the drain's leftover)
+                and (not reader.stopping or reader.cut_short)
             ):
                 left.append(f"{buf.name} holds {buf.pending()}")
         return left

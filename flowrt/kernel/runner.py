@@ -112,6 +112,9 @@ class RunnerFields:
     # idle() or the pipeline
     untaken: bool  # released, inputs not taken yet (the run is scheduled); implies busy
     stopping: bool  # no release from now on; never returns to false
+    # stopped by a drain past its deadline or cut: what it still holds is the drain's leftover
+    # (reason "drain timeout" or "interrupted"), not a stopped source's ("stop")
+    cut_short: bool
     act: Activation | None  # the inline activation in progress (None between activations
     # and for pipelined nodes, whose activations belong to their tasks)
     _acts: int  # activations begun: their ids
@@ -233,6 +236,7 @@ class NodeRunner(RunnerFields):
         self.deferred = None
         self.untaken = False
         self.stopping = False
+        self.cut_short = False
         self.act = None
         self._acts = 0
         self._loose = []
@@ -565,6 +569,7 @@ class NodeRunner(RunnerFields):
             return
         if self.sched.drain_over():  # a call that ended past the drain's deadline: no next
             self.stop_releasing()
+            self.cut_short = True
             return
         if self.deferred is not None:  # a paced source's frame waits: run on it now
             t, self.deferred = self.deferred, None
