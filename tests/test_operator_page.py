@@ -159,7 +159,15 @@ async def test_the_page_records_reviews_and_plots(tmp_path: Path, repo: Path) ->
                 "document.querySelector('#playerstreams tr[data-topic=\"front_cam.frame\"]')"
                 ".lastChild.textContent"
             )
-            assert gaps == "0"
+            # the gaps the recording holds (none on an idle machine; a capture stalled on a
+            # machine loaded by the whole suite shows as one, in the file and on the page)
+            from flowrt.recording.reader import scan_session
+
+            (stream,) = [
+                st for st in scan_session(tmp_path / "match_001").streams
+                if st.topic == "front_cam.frame"
+            ]  # fmt: skip
+            assert gaps.split(":")[0] == str(len(stream.gaps)), gaps
             await shot(page, "#reviewpanel", "operator-review.png")
 
             # Health: plots with data; a camera slowed to half its rate raises the alert
@@ -194,13 +202,18 @@ async def test_the_page_records_reviews_and_plots(tmp_path: Path, repo: Path) ->
             await shot(page, "#healthpanel", "operator-health.png")
             # a recording this page started, stopped from elsewhere (flowrt ctl, another
             # page): its "recording match_002" stayed beside the state "stopped"
-            await click(page, "#recstart")
             await until(
+                page, "document.querySelector('#recstart')?.disabled === false", 20, "Start"
+            )
+            await click(page, "#recstart")
+            said = await until(
                 page,
-                "document.querySelector('#recmsg').textContent.includes('recording match_002')",
+                "(() => { const t = document.querySelector('#recmsg').textContent;"
+                " return t.startsWith('recording ') || t.startsWith('cannot') ? t : null; })()",
                 10,
                 "this page's start said",
             )
+            assert said == "recording match_002", said
             async with (
                 aiohttp.ClientSession() as http,
                 http.post(f"{control}/record", json={"action": "stop"}) as r,
