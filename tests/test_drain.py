@@ -407,18 +407,24 @@ async def test_no_source_is_released_after_the_runs_stop_though_the_loop_was_hel
     assert rt.clock.now() - t0 < 0.45 + 2 * 0.3 + 0.2
 
 
-async def test_no_activation_begins_once_the_drain_is_past_its_deadline() -> None:
-    """A slow node's call that ends past the drain's deadline is its last (it was called
-    again on a queued value, and the drain ran a whole call late)."""
+def backlogged(policy: str) -> Runtime:
+    """A node whose calls hold the loop 0.25 s, behind a ``policy`` edge of 8 that the host
+    fills; the drain's deadline is 0.3 s."""
     g = GraphBuilder("held")
     g.add("src", "counter", trigger={"timer": 3_600_000}, enabled=False)
     g.add(
         "n",
         Holds,
         params={"seconds": 0.25},
-        inputs={"value": {"from": "src.value", "policy": "queue", "size": 8}},
+        inputs={"value": {"from": "src.value", "policy": policy, "size": 8}},
     )
-    rt = Runtime(g.build(), drain_timeout=0.3)
+    return Runtime(g.build(), drain_timeout=0.3)
+
+
+async def test_no_activation_begins_once_the_drain_is_past_its_deadline() -> None:
+    """A slow node's call that ends past the drain's deadline is its last (it was called
+    again on a queued value, and the drain ran a whole call late)."""
+    rt = backlogged("queue")
     async with rt:
         for v in range(6):  # queued: the drain begins with them (no call has run yet)
             rt.publish("src.value", v)
@@ -457,15 +463,7 @@ async def test_what_a_drain_past_its_deadline_leaves_is_counted_as_its_timeout()
     """A lossless backlog the drain's deadline cut is "drain timeout" (it was "stop" when
     the reader, stopped at the deadline, no longer counted as undrained: a signal's cut
     said "stop" instead of "interrupted" in one CI run)."""
-    g = GraphBuilder("held")
-    g.add("src", "counter", trigger={"timer": 3_600_000}, enabled=False)
-    g.add(
-        "n",
-        Holds,
-        params={"seconds": 0.25},
-        inputs={"value": {"from": "src.value", "policy": "lossless", "size": 8}},
-    )
-    rt = Runtime(g.build(), drain_timeout=0.3)
+    rt = backlogged("lossless")
     async with rt:
         for v in range(6):
             rt.publish("src.value", v)

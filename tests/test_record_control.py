@@ -41,9 +41,9 @@ async def command(rt: flowrt.Runtime, value: Any, started: bool) -> str:
     return recording(rt)
 
 
-@pytest.mark.subprocess  # a recorder in the graph (its writer)
-async def test_a_start_without_a_name_uses_the_recorders_own(tmp_path: Path) -> None:
-    g = flowrt.GraphBuilder("named")
+def counted(tmp_path: Path) -> flowrt.Graph:
+    """A counter and a recorder that starts when told (``command``), into ``tmp_path``."""
+    g = flowrt.GraphBuilder("counted")
     g.add("cnt", "counter", trigger={"timer": "20ms"})
     g.add(
         "rec",
@@ -51,8 +51,13 @@ async def test_a_start_without_a_name_uses_the_recorders_own(tmp_path: Path) -> 
         params={"path": str(tmp_path), "start": False, "writer": "thread", "log_report": False},
         inputs={"cnt.value": {"from": "cnt.value", "policy": "lossless"}},
     )
+    return g.build()
+
+
+@pytest.mark.subprocess  # a recorder in the graph (its writer)
+async def test_a_start_without_a_name_uses_the_recorders_own(tmp_path: Path) -> None:
     said = []
-    async with flowrt.Runtime(g.build()) as rt:
+    async with flowrt.Runtime(counted(tmp_path)) as rt:
         said.append(await command(rt, {"action": "start", "name": "named"}, True))
         await command(rt, "stop", False)
         said.append(await command(rt, "start", True))  # flowrt ctl record start
@@ -171,16 +176,8 @@ async def test_the_end_reports_every_session_of_a_stop_and_start(tmp_path: Path)
 
     from flowrt.cli.record import _report_all, _sessions
 
-    g = flowrt.GraphBuilder("twice")
-    g.add("cnt", "counter", trigger={"timer": "20ms"})
-    g.add(
-        "rec",
-        "recorder",
-        params={"path": str(tmp_path), "start": False, "writer": "thread", "log_report": False},
-        inputs={"cnt.value": {"from": "cnt.value", "policy": "lossless"}},
-    )
     said = []
-    async with flowrt.Runtime(g.build()) as rt:
+    async with flowrt.Runtime(counted(tmp_path)) as rt:
         for _ in range(2):
             said.append(await command(rt, "start", True))
             await asyncio.sleep(0.2)

@@ -22,6 +22,7 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -362,26 +363,32 @@ def test_after_the_final_output_a_signal_is_ignored_not_fatal() -> None:
             signal.signal(s, h)
 
 
-def test_a_signal_after_the_set_up_was_cut_is_still_stopping() -> None:
-    """A second SIGTERM while a cut set-up is undone said "stopping the run (drain, then
-    teardown)": there is no run to drain."""
+def said_by(stop: Any, *signals: int) -> list[str]:
+    """What ``stop`` (a StopSignals, its loop open) says for each of ``signals`` in turn."""
     import asyncio
 
     from flowrt import _startup
-    from flowrt.cli.signals import StopSignals
 
     said: list[str] = []
-    phases = iter(["set-up (in setup() of slow)", "the run"])
-    stop = StopSignals(lambda: next(phases), lambda: "")
     loop = asyncio.new_event_loop()
     stop.loop = loop
     _startup.listeners.append(said.append)
     try:
-        stop(signal.SIGTERM)
-        stop(signal.SIGTERM)
+        for sig in signals:
+            stop(sig)
     finally:
         _startup.listeners.remove(said.append)
         loop.close()
+    return said
+
+
+def test_a_signal_after_the_set_up_was_cut_is_still_stopping() -> None:
+    """A second SIGTERM while a cut set-up is undone said "stopping the run (drain, then
+    teardown)": there is no run to drain."""
+    from flowrt.cli.signals import StopSignals
+
+    phases = iter(["set-up (in setup() of slow)", "the run"])
+    said = said_by(StopSignals(lambda: next(phases), lambda: ""), signal.SIGTERM, signal.SIGTERM)
     assert "during set-up (in setup() of slow): stopping, exit 143" in said[0]
     assert "still stopping" in said[1]
 
@@ -390,23 +397,11 @@ def test_a_second_signal_while_the_loop_is_held_says_it_cuts_the_drain() -> None
     """A slow call holds the loop: the first signal's stop has not begun when the second
     comes, which said "stopping the run" again; it cuts the drain that follows. The first
     also marks the instant (no source released after it)."""
-    import asyncio
-
-    from flowrt import _startup
     from flowrt.cli.signals import StopSignals
 
-    said: list[str] = []
     marked: list[bool] = []
     stop = StopSignals(lambda: "the run", lambda: "", stop_now=lambda: marked.append(True))
-    loop = asyncio.new_event_loop()
-    stop.loop = loop
-    _startup.listeners.append(said.append)
-    try:
-        stop(signal.SIGINT)
-        stop(signal.SIGINT)
-    finally:
-        _startup.listeners.remove(said.append)
-        loop.close()
+    said = said_by(stop, signal.SIGINT, signal.SIGINT)
     assert "SIGINT: stopping the run" in said[0]
     assert "SIGINT during the drain: cut short" in said[1]
     assert marked == [True]

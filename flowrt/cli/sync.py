@@ -48,15 +48,17 @@ def _read(path: Path, topics: set[str]) -> dict[str, list[tuple[float, Any]]]:
 
 def _audio_block(decoder: Any, m: Any, d: Any) -> Any:
     """The audio block of a message, protobuf ``foxglove.RawAudio`` or a ROS 2 bag's
-    ``flowrt_msgs/AudioBlock``, in Unix time; None for anything else."""
+    ``flowrt_msgs/AudioBlock`` (restored as the replay restores it), in Unix time; None for
+    anything else."""
+    from ..audio import AudioBlock
     from ..recording.encoding import AUDIO_SCHEMA
-    from ..recording.ros2_profile import audio_block_of
+    from ..recording.ros2_profile import value_restorer
 
     if d.kind == "audio" and m.schema.name == AUDIO_SCHEMA:
         return decoder.own.audio(m.schema, m.data, m.sequence, 0.0)  # Unix time kept
-    if d.kind == "value" and m.schema.name.replace("/msg/", "/") == "flowrt_msgs/AudioBlock":
-        return audio_block_of(d.value)
-    return None
+    restore = value_restorer(m.schema.name, m.schema.encoding, m.schema.data)
+    block = restore(d.value) if d.kind == "value" and restore is not None else None
+    return block if isinstance(block, AudioBlock) else None
 
 
 def _video(rows: list[tuple[float, float]]) -> list[float]:

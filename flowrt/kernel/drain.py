@@ -15,7 +15,7 @@ from typing import Protocol
 from ..clock import Clock
 from ..edges import Buffer, LatestBuffer, LosslessBuffer
 from ..events import Event, HealthAlert
-from ..graph.spec import LoopTrigger, TimerTrigger
+from ..graph.spec import TimerTrigger
 from .runner import NodeRunner
 from .state import RunState
 
@@ -59,7 +59,7 @@ class Drain:
         source waiting for its readers). Done as the stop is asked for (so a timer already
         due behind a blocked loop does not publish after it), and again as the drain begins."""
         for r in self._s.runners.values():
-            if (not r.inputs or isinstance(r.rnode.trigger, LoopTrigger)) and not r.stopping:
+            if r.source and not r.stopping:
                 r.stop_releasing()
                 if r.task is not None and not r.task.done():
                     r.task.add_done_callback(r.cancelled)

@@ -369,13 +369,15 @@ class NodeRunner(RunnerFields):
         else:
             self.task = loop.create_task(self.run_async(t_release))
 
+    @property
+    def source(self) -> bool:  # no inputs, or free-running: stopped at once (the rest drains)
+        return not self.inputs or isinstance(self.rnode.trigger, LoopTrigger)
+
     def _past_stop(self) -> bool:
         """A source released at or after the run's stop: never again (see Scheduler.stop_at)."""
         stop_at = self.sched.stop_at
-        if stop_at is None or self.sched.clock.now() < stop_at:
+        if stop_at is None or self.sched.clock.now() < stop_at or not self.source:
             return False
-        if self.inputs and not isinstance(self.rnode.trigger, LoopTrigger):
-            return False  # not a source: it drains what the sources published
         self.stop_releasing()
         return True
 

@@ -212,6 +212,12 @@ class Scheduler:
         """The drain is past its deadline or cut: no activation begins any more."""
         return self.stage == "draining" and self._drain.over()
 
+    def stop_due(self, t: float) -> None:
+        """The run's stop is due at ``t`` (the earliest asked is kept): no source is released
+        from then on (NodeRunner.release). Only writes a time: safe in a signal handler."""
+        if self.stop_at is None or t < self.stop_at:
+            self.stop_at = t
+
     def stop_sources(self) -> None:
         """The stop is asked for: sources publish nothing more (see Drain.stop_sources)."""
         if self.stage in ("running", "draining"):

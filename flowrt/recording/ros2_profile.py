@@ -63,6 +63,7 @@ from .encoding import (
     sec_nsec,
     to_jsonable,
 )
+from .streams import image_format_of
 
 __all__ = [
     "Ros2Encoder",
@@ -201,11 +202,7 @@ class Ros2Encoder:
         return {"sec": sec, "nanosec": nsec}
 
     def _format(self, topic: str, default: str) -> str:
-        """``topic``'s image format; a sync set's member (``TOPIC/KEY``) takes its set's."""
-        fmt = self._formats.get(topic)
-        if fmt is None and "/" in topic:
-            fmt = self._formats.get(topic.rpartition("/")[0])
-        return fmt or default
+        return image_format_of(self._formats, topic, default)
 
     def _raw_image(self, frame: Frame) -> Encoded:
         """sensor_msgs/msg/Image, its CDR written by hand: the pixels copied once."""

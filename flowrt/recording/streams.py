@@ -130,12 +130,8 @@ class StreamBook:
         return d
 
     def image_format(self, topic: str) -> str:
-        """The format of ``topic``'s images; a sync set's member (``TOPIC/KEY``) takes its
-        set's (``--images jpeg`` left a set's frames raw: 6.3 MiB against 123 KiB)."""
-        fmt = self.image_formats.get(topic)
-        if fmt is None and "/" in topic:
-            fmt = self.image_formats.get(topic.rpartition("/")[0])
-        return fmt or self.default_image_format
+        """The format of ``topic``'s images (:func:`image_format_of`)."""
+        return image_format_of(self.image_formats, topic, self.default_image_format)
 
     def streams(self) -> list[StreamDescription]:
         """Every description made so far, in order."""
@@ -166,6 +162,15 @@ class StreamBook:
         if d.shape == "annotations":  # stamped like the frame: the same float, the same offset
             return encode_annotations(value.detection, value.detection.timestamp + off)
         return encode_json(value, d.schema, off)
+
+
+def image_format_of(formats: dict[str, str], topic: str, default: str) -> str:
+    """The format of ``topic``'s images by ``formats``; a sync set's member (``TOPIC/KEY``)
+    takes its set's (``--images jpeg`` left a set's frames raw: 6.3 MiB against 123 KiB)."""
+    fmt = formats.get(topic)
+    if fmt is None and "/" in topic:
+        fmt = formats.get(topic.rpartition("/")[0])
+    return fmt or default
 
 
 def is_set(value: Any) -> bool:

@@ -69,7 +69,7 @@ class Interruptible:
                 await asyncio.wait_for(self._stop.wait(), timeout=duration)
             return
         assert self._sched is not None
-        self._sched.stop_at = self.clock.now() + duration
+        self._sched.stop_due(self.clock.now() + duration)
         handle = asyncio.get_running_loop().call_later(duration, self.request_stop)
         try:
             await self._stop.wait()
@@ -82,9 +82,7 @@ class Interruptible:
         Safe in a signal handler: it only writes a time."""
         sched = self._sched
         if sched is not None and sched.stage == "running":
-            now = self.clock.now()
-            if sched.stop_at is None or now < sched.stop_at:
-                sched.stop_at = now
+            sched.stop_due(self.clock.now())
 
     def request_stop(self) -> None:
         """Ask ``run`` to return, and the sources to publish nothing more from now on (on
