@@ -52,8 +52,10 @@ async function recordStart() {
     const a = await api("POST", "api/record/start", { name: q("#recname").value.trim() });
     op.starts += 1;
     op.session = a.session;
-    if (a.session == null) say(a.error, "warn");  // 202: the recorders start when they can
-    else { say(`recording ${a.session}`, "ok"); op.saidRecording = a.session; }
+    if (a.session == null) {  // 202: the recorders start when they can; said once they do
+      say(a.error, "warn");
+      op.startPending = true;
+    } else { say(`recording ${a.session}`, "ok"); op.saidRecording = a.session; }
     q("#recresult").replaceChildren();
   } catch (e) {
     op.error = e.message;
@@ -66,6 +68,7 @@ async function recordStart() {
 async function recordStop() {
   q("#recstop").disabled = true;
   op.saidRecording = null;  // this page's stop says its own result
+  op.startPending = false;
   say("stopping: finishing the files…", "warn");
   try {
     const a = await api("POST", "api/record/stop", {});
@@ -115,6 +118,11 @@ async function pollRecord(again = true) {
       ? "no recorder in this graph (flowrt run GRAPH --recordings DIR adds one)"
       : s.recording ? `● REC ${s.session} · ${secs(s.elapsed_s)} · ${bytes(s.size_bytes)}` : "stopped";
     q("#recstate").className = s.recording ? "bad" : "muted";
+    if (op.startPending && s.recording) {  // a late start (202) said in the same words
+      say(`recording ${s.session}`, "ok");
+      op.saidRecording = s.session;
+      op.startPending = false;
+    }
     if (op.saidRecording && !(s.recording && s.session === op.saidRecording)) {
       // another page (or flowrt ctl) stopped it: "recording X" beside "stopped" misled
       say(`${op.saidRecording}: stopped from elsewhere`, "muted");
