@@ -195,6 +195,7 @@ def test_bad_stats_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     assert "not a flowrt --stats-json file" in " ".join(err.split())
 
 
+@pytest.mark.subprocess  # matplotlib's first use runs fc-list to build its font cache
 def test_plot_writes_a_png(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("matplotlib")
     path = _write(tmp_path, "g.yaml", GRAPH.replace("DEADLINE", "8ms"))
