@@ -5,6 +5,8 @@ Referenced from graph files as ``failkinds:Class`` (tests/ is on the path of the
 
 from __future__ import annotations
 
+import time
+
 from flowrt import FatalError, Input, Node, Output
 
 
@@ -61,6 +63,19 @@ class TeardownFails(Node):
 
     def teardown(self) -> None:
         raise OSError("cannot release the device")
+
+
+class TeardownHangs(Node):
+    """Runs well, but ``teardown`` never returns (a device that does not let go)."""
+
+    tick = Output(int)
+
+    def process(self) -> int:
+        return 1
+
+    def teardown(self) -> None:
+        while True:
+            time.sleep(1)
 
 
 class WrongOutputName(Node):

@@ -393,6 +393,56 @@ async def test_a_subscription_that_could_stall_or_break_the_graph_is_refused(
         assert rt.stats().node("src").completions >= 5
 
 
+async def test_a_subscription_ends_with_the_run() -> None:
+    """A reader waiting on ``async for`` or ``get()`` waited for ever once the runtime had
+    stopped: the iteration ends, ``get`` raises."""
+    clock = VirtualClock()
+    g = GraphBuilder()
+    g.add("src", Count, trigger={"timer": "10ms"})
+    seen: list[int] = []
+
+    async def read_all(sub: flowrt.Subscription) -> None:
+        async for v in sub:
+            seen.append(v)
+
+    async with Runtime(g.build(), clock=clock) as rt:
+        reader = asyncio.create_task(read_all(rt.subscribe("src.tick")))
+        late = rt.subscribe("src.tick")
+        await clock.advance(0.045)
+    await asyncio.wait_for(reader, 1)
+    assert seen == list(range(1, len(seen) + 1))
+    assert len(seen) >= 4
+    with pytest.raises(LookupError, match="the run has ended"):
+        await asyncio.wait_for(late.get(), 1)
+
+
+async def _maybe_awaited(call: Any, rt: Runtime) -> None:
+    result = call(rt)
+    if asyncio.iscoroutine(result):
+        await result
+
+
+@pytest.mark.parametrize(
+    ("call", "said"),
+    [
+        (lambda rt: rt.run(0.1), "a Runtime runs once"),  # ran nothing, stats wiped
+        (lambda rt: rt.start(), "a Runtime runs once"),  # `async with rt` again: the same
+        (lambda rt: rt.publish("src.tick", 3), "publish: the runtime has stopped"),
+        (lambda rt: rt.subscribe("src.tick"), "subscribe: the runtime has stopped"),
+    ],
+)
+async def test_a_stopped_runtime_refuses_to_run_again(call: Any, said: str) -> None:
+    g = GraphBuilder()
+    g.add("src", Count, trigger={"timer": "10ms"})
+    clock = VirtualClock()
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(0.05)
+    before = rt.stats().node("src").completions
+    with pytest.raises(RuntimeError, match=re.escape(said)):
+        await _maybe_awaited(call, rt)
+    assert rt.stats().node("src").completions == before >= 5
+
+
 async def test_monitors_are_scheduled_in_the_widest_gap_between_timer_releases() -> None:
     clock = VirtualClock()
     g = GraphBuilder()

@@ -130,5 +130,5 @@ class InlineExecutor:
         self.last_node = node
         if node is not None:
             result = node.teardown()
-            if inspect.isawaitable(result):
-                await result
+            if inspect.isawaitable(result):  # bounded: a teardown that hangs is its failure
+                await asyncio.wait_for(result, grace)

@@ -39,6 +39,9 @@ from .timing import Timing, TimingChange
 from .views import NodeView, reports_of, view_of
 
 log = logging.getLogger("flowrt.scheduler")
+TEARDOWN_GRACE = 2.0
+"""Seconds a node's ``teardown`` may take at the run's end (a worker's, then its exit, as
+long again): one that does not return is the node's failure, the run exits 1."""
 
 
 class Scheduler:
@@ -277,9 +280,10 @@ class Scheduler:
         if drains:
             await asyncio.wait(drains, timeout=grace)
         self._drain.discard_leftovers()
+        teardown = max(grace, TEARDOWN_GRACE)
         for r in reversed(self.order):
-            try:
-                await asyncio.wait_for(r.executor.stop(), timeout=max(grace, 2.0))
+            try:  # each executor bounds its teardown by ``teardown``; this, its worker's exit
+                await asyncio.wait_for(r.executor.stop(teardown), timeout=4 * teardown + 1.0)
             except Exception as e:
                 r.teardown_failed(e)
         for r in self.runners.values():

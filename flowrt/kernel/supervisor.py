@@ -123,16 +123,17 @@ class Supervisor:
         r = self._r
         sched = r.sched
         r.counts.errors += 1
+        tb = getattr(exc, "traceback", None)
         if isinstance(exc, TimeoutError) and not str(exc):
             error = "teardown did not return in time"
+            tb = ""  # the wait's own frames (flowrt's), nothing of the node's
         else:
             error = getattr(exc, "summary", None) or f"{type(exc).__name__}: {exc}"
-        tb = getattr(exc, "traceback", None)
         if not isinstance(tb, str):
             tb = "".join(traceback.format_exception(exc))
         now = sched.clock.now()
         sched.emit(NodeFailed(sched.rel(now), r.name, f"teardown: {error}", tb))
-        log.error("node %s: teardown failed: %s\n%s", r.name, error, tb.rstrip())
+        log.error("node %s: teardown failed: %s%s", r.name, error, f"\n{tb.rstrip()}" * bool(tb))
         if final and r.state is not RunState.failed:
             self.failed_reason = f"teardown failed: {failure_kind(error)}"
             return GiveUp(self.failed_reason)

@@ -47,6 +47,7 @@ class Interruptible:
     _bridge: Any
     _loop_share: LoopShare
     started: bool
+    ended: bool
     resources: RunResources | None
     monitors: list[Monitor]
 
@@ -98,6 +99,10 @@ class Interruptible:
         Cancelled (:meth:`interrupt` during set-up) or failing, it undoes what it did before
         the exception goes on: nodes torn down, workers ended, shared memory freed.
         """
+        if self.ended:  # its stop tore everything down: run() after it did nothing, silently
+            raise RuntimeError(
+                "the runtime has stopped: a Runtime runs once (make a new one to run again)"
+            )
         if self.started or self._starting is not None:
             return
         self._starting = asyncio.current_task()

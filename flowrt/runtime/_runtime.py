@@ -108,6 +108,8 @@ class Runtime(Interruptible):
         self.qos: OverloadController | None = None
         self._bridge: Any = None  # flowrt.remote._bridge.ZenohBridge when the graph spans machines
         self.started = False
+        self.ended = False  # set at stop: a Runtime runs once (start again: RuntimeError)
+        self._subscriptions: list[Subscription] = []  # closed at stop
 
     @property
     def remote_session(self) -> Any:
@@ -212,6 +214,7 @@ class Runtime(Interruptible):
         if not self.started:
             return
         self.started = False
+        self.ended = True
         self._stop.set()
         if self._lag_handle is not None:
             self._lag_handle.cancel()
@@ -233,6 +236,8 @@ class Runtime(Interruptible):
                     log.exception("monitor failed at stop")
             if self._rtdb is not None:
                 self._rtdb.close()
+            for sub in self._subscriptions:  # a reader waiting for a value: none will come
+                sub.close()
             self._loop_share.restore()
             self._loop_cpus.restore()
             gc.unfreeze()
@@ -435,6 +440,7 @@ class Runtime(Interruptible):
 
     def publish(self, target: str, value: Any) -> None:
         """Inject a value: into ``node.output`` (fans out, ticks frames) or ``node.input``."""
+        self._running("publish")
         inject_value(self.scheduler, self.clock.now(), target, value)
 
     def subscribe(
@@ -445,7 +451,17 @@ class Runtime(Interruptible):
         ``sampled``: the reader takes the newest value only when it wants one (a viewer with
         nobody watching): values replaced before it took them are ``unread``, not dropped.
         """
-        return subscribe_port(self.scheduler, self.clock.now, target, policy, size, sampled)
+        self._running("subscribe")
+        sub = subscribe_port(self.scheduler, self.clock.now, target, policy, size, sampled)
+        self._subscriptions.append(sub)
+        return sub
+
+    def _running(self, what: str) -> None:
+        """RuntimeError unless the graph is running: after the stop, a call did nothing."""
+        if self.ended:
+            raise RuntimeError(f"{what}: the runtime has stopped (a Runtime runs once)")
+        if not self.started:
+            raise RuntimeError(f"{what}: the runtime is not started")
 
 
 def _freeze_heap() -> None:

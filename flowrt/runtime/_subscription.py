@@ -11,12 +11,23 @@ from ..frames import Frame
 
 
 class Subscription:
-    """Values published on a port, delivered to the host program through its own buffer."""
+    """Values published on a port, delivered to the host program through its own buffer.
+
+    Closed when the run ends (:meth:`close`): ``async for`` ends and ``get()`` raises
+    LookupError, where both waited for ever before (a program's reader task hung after its
+    runtime had stopped). The stop empties the buffer first (a frame's shared memory goes
+    with the run)."""
 
     def __init__(self, buf: Buffer) -> None:
         self._buf = buf
         self._ready = asyncio.Event()
+        self.closed = False  # set once: no value will be put after it
         buf.on_put = self._ready.set
+
+    def close(self) -> None:
+        """No value will come any more (the runtime stopped): wake every waiting reader."""
+        self.closed = True
+        self._ready.set()
 
     def get_nowait(self) -> Any:
         """The next value, or raise LookupError when none is waiting."""
@@ -43,7 +54,11 @@ class Subscription:
         return out
 
     async def get(self) -> Any:
+        """The next value, waiting for it; LookupError once the run has ended and none is
+        waiting."""
         while not self._buf.pending():
+            if self.closed:
+                raise LookupError("no value waiting, and none will come: the run has ended")
             self._ready.clear()
             await self._ready.wait()
         return self.get_nowait()
@@ -53,7 +68,11 @@ class Subscription:
 
     async def _iter(self) -> AsyncIterator[Any]:
         while True:
-            yield await self.get()
+            try:
+                value = await self.get()
+            except LookupError:  # the run has ended: so does the iteration
+                return
+            yield value
 
     @property
     def dropped(self) -> int:

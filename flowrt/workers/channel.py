@@ -414,6 +414,11 @@ class Worker:
         return WorkerError(node, d.kind, d.detail, d.exitcode, fatal=d.fatal)
 
     @property
+    def busy(self) -> bool:
+        """A request sent and not answered yet (a call still running in the worker)."""
+        return bool(self._inflight)
+
+    @property
     def usable(self) -> bool:
         """Alive and not condemned (a killed worker stays alive until its sentinel fires), and
         its socket open: a worker killed from outside closes it before its sentinel fires, and

@@ -228,8 +228,9 @@ class ProcessExecutor(_NodeExecutor):
     async def stop(self, grace: float = 2.0) -> None:
         """Teardown in the worker, then join; kill after ``grace`` seconds. Never hangs.
 
-        A ``teardown`` that raised is raised here (a WorkerError of kind ``exception``), once
-        the worker is gone: it is the node's error, counted by its supervisor."""
+        A ``teardown`` that raised is raised here (a WorkerError of kind ``exception``), or
+        did not return within ``grace`` (a TimeoutError), once the worker is gone: it is the
+        node's error, counted by its supervisor."""
         w, self._worker = self._worker, None
         failure = None
         if w is not None:
@@ -343,19 +344,22 @@ class PoolNodeExecutor(_NodeExecutor):
             raise failure
 
 
-async def _remove(
-    w: Worker, nid: int, name: str, priority: int, grace: float
-) -> WorkerError | None:
-    """Tear one node down in its worker: the error its ``teardown`` raised, else None (a
-    worker that died or does not answer within ``grace`` is its stop's business)."""
+async def _remove(w: Worker, nid: int, name: str, priority: int, grace: float) -> Exception | None:
+    """Tear one node down in its worker: the error its ``teardown`` raised, a TimeoutError
+    when it did not return within ``grace`` (the worker is then killed: a device left
+    unreleased is the node's failure, as inline), else None (a worker that died, or one
+    still busy with a call the stop gave up on, is its stop's business)."""
     if not w.usable:
         return None
+    busy = w.busy  # a call of the node's still running in the worker: the teardown waits
     try:
         await asyncio.wait_for(w.request((OP_REMOVE, nid), name, priority, grace), grace)
     except WorkerError as e:
-        return e if e.kind == "exception" else None
+        if e.kind == "exception":
+            return e
+        return TimeoutError() if e.kind == "hung" and not busy else None
     except TimeoutError:
-        return None
+        return None if busy else TimeoutError()
     return None
 
 
