@@ -37,7 +37,7 @@ from random import Random
 from typing import TYPE_CHECKING, Any, ClassVar, Final, Generic, Literal, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from .frames import worker_frame
 
@@ -141,6 +141,36 @@ class NoParams(BaseModel):
     """The params model of a node that takes none: any key given is an error."""
 
     model_config = ConfigDict(extra="forbid")
+
+
+def validate_params(
+    model: type[BaseModel], data: Mapping[str, Any], context: dict[str, Any] | None = None
+) -> BaseModel:
+    """``data`` as an instance of a node's params ``model``, a key it has no field for
+    refused as pydantic's ``extra="forbid"`` would, unless the model says otherwise
+    (``model_config`` with ``extra``): a user's ``class Params(BaseModel)`` ignored a
+    misspelt key (``factr: 3`` ran with the default) where the built-in kinds refuse it."""
+    unknown = _unknown_params(model, data)
+    extra = [{"type": "extra_forbidden", "loc": (k,), "input": data[k]} for k in unknown]
+    try:
+        params = model.model_validate(dict(data), context=context)
+    except ValidationError as e:
+        if not extra:
+            raise
+        raise ValidationError.from_exception_data(e.title, [*e.errors(), *extra]) from None  # type: ignore[list-item]
+    if extra:
+        raise ValidationError.from_exception_data(model.__name__, extra)  # type: ignore[arg-type]
+    return params
+
+
+def _unknown_params(model: type[BaseModel], data: Mapping[str, Any]) -> list[str]:
+    if model.model_config.get("extra") is not None:  # the author chose: forbid, allow, ignore
+        return []
+    known: set[str] = set()
+    for name, f in model.model_fields.items():
+        known.add(name)
+        known.update(a for a in (f.alias, f.validation_alias) if isinstance(a, str))
+    return [k for k in data if k not in known]
 
 
 class NodeContext:
@@ -420,7 +450,7 @@ def make_node(
     """Instantiate a node with validated params and its context, ready for ``setup``."""
     node = cls()
     node.params = (
-        params if isinstance(params, BaseModel) else cls.Params.model_validate(params or {})
+        params if isinstance(params, BaseModel) else validate_params(cls.Params, params or {})
     )
     node.ctx = ctx
     return node

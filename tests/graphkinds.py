@@ -47,3 +47,16 @@ class FrameReader(Node):
 
     def process(self, frame: Frame) -> float:
         return float(frame.data.mean())
+
+
+class Scale(Node):
+    """A user's node as the README writes one: ``Params`` without a ``model_config``."""
+
+    class Params(BaseModel):
+        factor: float = 2.0
+
+    value = Input(int)
+    scaled = Output(float)
+
+    def process(self, value: int) -> float:
+        return value * self.params.factor

@@ -107,3 +107,23 @@ class Holding(Node):
         with Path(self.params.dir, f"{self.ctx.name}.calls").open("a") as f:
             f.write(f"{time.time()}\n")
         time.sleep(self.params.hold_s)
+
+
+class SlowDouble(Node):
+    """Doubles each value in ``delay_s``; writes ``<dir>/<name>.running`` at its first call
+    (a deterministic replay re-executes it in its worker: the signal test's cue)."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        dir: str
+        delay_s: float = 0.03
+
+    value = Input(int)
+    doubled = Output(int)
+
+    def process(self, value: int) -> int:
+        marker = Path(self.params.dir, f"{self.ctx.name}.running")
+        if not marker.exists():
+            marker.write_text(str(time.monotonic()))
+        time.sleep(self.params.delay_s)
+        return 2 * value

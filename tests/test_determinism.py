@@ -24,6 +24,7 @@ from flowrt import Frame, FrameTrigger, GraphBuilder, Input, Node, Output, Runti
 from flowrt.cli.record import wait_for_writers
 from flowrt.determinism import canonical, digest
 from flowrt.determinism.log import LogError, read_log
+from flowrt.determinism.report import report_lines
 
 TRACE: list[tuple[Any, ...]] = []
 
@@ -349,6 +350,25 @@ async def test_removed_nodes_are_not_run_and_a_new_node_runs(tmp_path: Path) -> 
     assert status["second"][0] == "not run"  # removed
     assert status["pair"][0] == "not run"
     assert report.identical
+
+
+async def test_a_graph_with_none_of_the_recordings_nodes_is_never_identical(
+    tmp_path: Path,
+) -> None:
+    """Another graph (graphs/agent.yaml against a cambada recording): nothing re-executed,
+    nothing compared, and the report said "identical" (exit 0)."""
+    TRACE.clear()
+    _, session = await record(tmp_path, case_input_triggers)
+    g = GraphBuilder("other")
+    g.add("other_tick", Ticker, trigger={"timer": "10ms"})
+    g.add("other_acc", Acc, inputs={"value": "other_tick.tick"})
+    async with flowrt.replay(session, g.build(), inline=True) as rp:
+        report = await rp.run()
+    assert (report.compared, report.identical) == (0, False)
+    reasons = {n.node: n.reason for n in report.nodes}
+    assert "does not hold" in reasons["other_tick"]  # not "its values are the recording's"
+    text = "\n".join(report_lines(report))
+    assert "no node of this graph re-executes what the recording holds" in text
 
 
 async def test_a_new_frame_reader_runs_on_its_period_and_phase(tmp_path: Path) -> None:

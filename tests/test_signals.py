@@ -433,3 +433,61 @@ def test_ctrl_c_in_a_measuring_run_gives_no_verdict(tmp_path: Path) -> None:
     assert "the measuring run was interrupted: no verdict from a cut run" in err
     assert "schedulable" not in out + err
     assert "Traceback" not in err
+
+
+def _replay_graph(tmp_path: Path, marks: Path) -> Path:
+    marks.mkdir(exist_ok=True)
+    text = textwrap.dedent(f"""\
+        nodes:
+          src: {{kind: counter, trigger: {{timer: 50ms}}}}
+          double:
+            kind: signalkinds:SlowDouble
+            placement: process
+            params: {{dir: "{marks}"}}
+            inputs: {{value: src.value}}
+        """)
+    path = marks / "g.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_ctrl_c_during_a_deterministic_replay_gives_no_verdict(tmp_path: Path) -> None:
+    """``flowrt replay --deterministic --check`` had no handlers of its own: the start-up's
+    KeyboardInterrupt came out of a worker's socket callback (a traceback), the worker was
+    taken for crashed and the replay said it diverged (exit 1); once it hung."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), *sys.path])}
+    graph = _replay_graph(tmp_path, tmp_path / "rec")
+    out_dir = str(tmp_path / "out")
+    options = ["--deterministic", "-o", out_dir, "--duration", "2", "--no-display", "--no-ui"]
+    recorded = subprocess.run(
+        [*FLOWRT, "record", str(graph), *options],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
+    assert recorded.returncode == 0, recorded.stderr
+    (session,) = (tmp_path / "out").iterdir()
+    replay = tmp_path / "replay"
+    again = _replay_graph(tmp_path, replay)
+    proc = subprocess.Popen(
+        [*FLOWRT, "replay", str(session), "--graph", str(again), "--deterministic", "--check"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    try:
+        _wait_for(replay / "double.running", proc)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
+    assert proc.returncode == 130, out + err
+    assert "SIGINT during the re-execution: stopping, exit 130" in err
+    assert "Traceback" not in err
+    assert "diverged" not in out
+    assert "identical" not in out

@@ -11,6 +11,7 @@ a deterministic recording, a bad graph: one line, exit 2.
 from __future__ import annotations
 
 import argparse
+import asyncio
 import time
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,7 @@ from rich.console import Console
 
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, load, printable, stdout_console
 from .json_output import emit
+from .signals import StopSignals
 
 __all__ = ["cmd_replay_deterministic"]
 
@@ -63,10 +65,8 @@ def _graph(args: argparse.Namespace, log: Any, err: Console) -> Any:
 
 
 def cmd_replay_deterministic(args: argparse.Namespace) -> int:
-    from ..determinism.api import Replay
     from ..determinism.log import LogError, read_log
     from ..determinism.report import report_lines
-    from ..system._eventloop import run
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     bad = _refused_options(args)
@@ -87,11 +87,55 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
     if graph is None:
         return EXIT_BAD_GRAPH
 
+    report = _re_execute(args, graph, log, began, err)
+    if isinstance(report, int):
+        return report
+    if args.json:
+        emit(report.summary())
+    else:
+        console = stdout_console()
+        for line in report_lines(report):
+            console.print(printable(line), markup=False, highlight=False, soft_wrap=True)
+    if not report.identical and args.check:
+        return EXIT_FAILED  # a divergence; a cut log, or nothing compared, proves nothing
+    return EXIT_OK
+
+
+def _re_execute(args: argparse.Namespace, graph: Any, log: Any, began: float, err: Console) -> Any:
+    """The replay's report, or an exit code when it gave none (a signal, a failed start).
+
+    A signal: the start or the re-execution cancelled and undone (workers stopped), one line,
+    128 + N, no verdict. Without these handlers the start-up's raised its KeyboardInterrupt
+    inside a worker's socket callback: a traceback, the worker taken for crashed, a
+    divergence that was not one (exit 1), once a hang."""
+    from ..determinism.api import Replay
+    from ..determinism.log import LogError
+    from ..system._eventloop import run
+
+    phase = ["the start"]
+    main_task: list[asyncio.Task[Any]] = []
+
+    def interrupt() -> str:
+        for t in main_task:
+            t.cancel()
+        return phase[0]
+
+    signals = StopSignals(lambda: phase[0], interrupt, "flowrt replay")
+    signals.install()
+
     async def main() -> Any:
+        signals.loop = asyncio.get_running_loop()
+        signals.ran = True
+        if signals.before_start is not None:
+            raise asyncio.CancelledError  # a signal while loading: nothing starts
+        task = asyncio.current_task()
+        assert task is not None
+        main_task.append(task)
         rp = Replay(Path(args.path), graph, inline=args.inline, stop_at_divergence=args.check)
         rp.preloaded, rp.began = log, began
         try:
             await rp.start()
+            phase[0] = "the re-execution"
             if rp.engine is not None and not rp.engine.log.closed_cleanly:
                 err.print(
                     f"flowrt replay: {args.path} was not closed cleanly "
@@ -100,10 +144,16 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
                 )
             return await rp.run()
         finally:
+            phase[0] = "teardown"
             await rp.stop()
+            signals.loop = None
 
     try:
-        report = run(main())
+        return run(main())
+    except asyncio.CancelledError:
+        if signals.exit_code is None:
+            raise
+        return signals.exit_code
     except LogError as e:
         err.print(f"flowrt replay: {printable(str(e))}", markup=False)
         return EXIT_BAD_GRAPH
@@ -111,12 +161,3 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
         summary = getattr(e, "summary", None) or f"{type(e).__name__}: {e}"
         err.print(f"flowrt replay: {printable(str(summary))}", markup=False)
         return EXIT_FAILED
-    if args.json:
-        emit(report.summary())
-    else:
-        console = stdout_console()
-        for line in report_lines(report):
-            console.print(printable(line), markup=False, highlight=False, soft_wrap=True)
-    if (report.first_divergence is not None or report.log_cut is not None) and args.check:
-        return EXIT_FAILED  # a cut log proves nothing about what it lost
-    return EXIT_OK

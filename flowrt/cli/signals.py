@@ -28,6 +28,10 @@ from typing import Any
 
 from .. import _startup
 
+NO_VERDICT = ("set-up", "the start", "the re-execution")
+"""Phases a signal ends with 128 + N and nothing else: what ran so far proves nothing (a
+deterministic replay's re-execution cut short is no verdict on the recording)."""
+
 
 class StopSignals:
     """The handlers of a command that runs a graph, from before its loop until it exits."""
@@ -108,7 +112,7 @@ class StopSignals:
             _say(f"{self.prog}: {name}: still stopping; a third signal forces the exit")
 
     def _say_phase(self, name: str, sig: int, what: str) -> None:
-        if what.startswith(("set-up", "the start")):
+        if what.startswith(NO_VERDICT):
             self.in_setup = sig
             _say(f"{self.prog}: {name} during {what}: stopping, exit {128 + sig}")
         elif what == "the run":

@@ -482,10 +482,13 @@ def _results(n: _Node, result: Any) -> list[tuple[str, Any]]:
     return [(p, v) for p, v in result.items() if v is not None]
 
 
-def _why_not(roles: Mapping[str, str], name: str) -> str:
-    """Why a node of the graph was not compared, in words for the report."""
+def _why_not(roles: Mapping[str, str], name: str, recorded: bool = True) -> str:
+    """Why a node of the graph was not compared, in words for the report (``recorded``:
+    the recording holds activations or values of it)."""
     role = roles.get(name)
     if role == "source":
+        if not recorded:  # it said "its values are the recording's" of a source not in it
+            return "a source the recording does not hold (recorded with another graph?)"
         return "a source: its values are the recording's"
     if role == "sink":
         return "it has no outputs"
@@ -511,7 +514,7 @@ def _report(self: ReplayEngine, wall_s: float) -> ReplayReport:
         elif self.roles[name] == "source" and name in recorded_nodes:
             nodes.append(NodeReplay(node=name, status="source"))
         else:
-            why = self.not_run.get(name) or _why_not(self.roles, name)
+            why = self.not_run.get(name) or _why_not(self.roles, name, name in recorded_nodes)
             nodes.append(NodeReplay(node=name, status="not run", reason=why))
     for name in sorted(recorded_nodes - set(self.graph.nodes)):
         nodes.append(
@@ -526,9 +529,10 @@ def _report(self: ReplayEngine, wall_s: float) -> ReplayReport:
         + (f" ({c.origin})" if c.origin else "")
         for c in self.log.changes
     ]
-    # nothing compared, every node given up (a session begun mid-run: its inputs from before
-    # it were never recorded): no divergence, and no claim of "identical" either
-    nothing = self.compared == 0 and any(n.reason for n in self.nodes.values())
+    # nothing compared (every node given up: a session begun mid-run, its inputs from before
+    # it never recorded; or no node of this graph in the recording): no divergence, and no
+    # claim of "identical" either
+    nothing = self.compared == 0
     return ReplayReport(
         identical=self.divergence is None and self.log.closed_cleanly and not nothing,
         activations=self.activations,

@@ -101,8 +101,17 @@ def report_lines(report: ReplayReport) -> list[str]:
             f"compared over the {report.recorded_s:.1f} s recorded before the cut, what came "
             "after it was never checked"
         )
-    elif d is None and not report.identical:
+    elif (
+        d is None
+        and not report.identical
+        and any(n.status == "not comparable" for n in report.nodes)
+    ):
         lines.append("not identical: nothing could be compared (each node's reason above)")
+    elif d is None and not report.identical:
+        lines.append(
+            "not identical: nothing was compared: no node of this graph re-executes what the "
+            "recording holds (was it recorded with this graph?)"
+        )
     elif d is None:
         lines.append("identical: every compared output has its recorded digest")
     else:

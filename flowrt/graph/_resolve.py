@@ -19,6 +19,7 @@ from pydantic import BaseModel, ValidationError, ValidationInfo
 
 from ..frames import Frame
 from ..node import Node
+from ..node import validate_params as params_of
 from ._loading import Locations, check_text, pydantic_diagnostics, read_graph_file
 from ._ports import checked_type as checked_type  # where the kernel imports it from
 from ._ports import is_compatible, node_ports, ports_unknown, type_name
@@ -105,7 +106,7 @@ class Graph:
     def validate_params(self, cls: type[Node], data: Mapping[str, Any]) -> BaseModel:
         """Validate params for ``cls`` as the graph file's own were (relative paths resolve
         against its directory): for params changed at run time by a mode, a swap or the API."""
-        return cls.Params.model_validate(dict(data), context={PARAMS_BASE_DIR: self.base_dir})
+        return params_of(cls.Params, data, {PARAMS_BASE_DIR: self.base_dir})
 
     @classmethod
     def from_file(
@@ -284,9 +285,7 @@ def _resolve_classes(r: _Resolution) -> None:
             at(("nodes", name, "kind"), f"node kind {ns.kind!r}: import failed: {e!r}")
             continue
         try:
-            params[name] = classes[name].Params.model_validate(
-                ns.params, context={PARAMS_BASE_DIR: base_dir}
-            )
+            params[name] = params_of(classes[name].Params, ns.params, {PARAMS_BASE_DIR: base_dir})
         except ValidationError as e:
             where = ("nodes", name, "params")
             diags.extend(pydantic_diagnostics(e, locs, where, classes[name].Params))
@@ -506,7 +505,7 @@ def _check_modes_and_qos(r: _Resolution) -> None:
             if o.params and node in classes:
                 merged = merge_params(spec.nodes[node].params, o.params)
                 try:
-                    classes[node].Params.model_validate(merged, context={PARAMS_BASE_DIR: base_dir})
+                    params_of(classes[node].Params, merged, {PARAMS_BASE_DIR: base_dir})
                 except ValidationError as e:
                     at_params = (*path, "params")
                     # A node whose own params are wrong is told so at the node: here only
