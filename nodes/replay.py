@@ -224,6 +224,10 @@ class ReplayBase(Node):
         self.origin = _first_log_time(self.file)
         self.decoder = MessageDecoder()
         self.left_out: dict[str, list[Any]] = {}  # topic -> [why, messages not replayed]
+        # a channel no decoder reads is left out whole; a message that fails to decode (a
+        # damaged payload) is skipped alone, its channel's others replayed (it took the rest
+        # of the channel with it, uncounted)
+        self.skipped: dict[str, list[Any]] = {}  # topic -> [why, messages skipped]
         self._said_left_out: set[str] = set()
         missing = sorted((wanted or set()) - set(channels))
         if missing:  # a misspelt topic would otherwise replay nothing, silently
@@ -260,8 +264,8 @@ class ReplayBase(Node):
     def _items(self) -> Iterator[_Item]:
         """Decoded messages in file order (on the reader thread).
 
-        A channel none of the decoders reads, or whose message fails to decode, is left out
-        from then on, said once and counted (:meth:`_left_out`): never a crash loop.
+        A channel none of the decoders reads is left out, a message that fails to decode is
+        skipped; both said once per channel and counted (:meth:`_left_out`, :meth:`report`).
         """
         skip_before = self.origin + round(self.params.start * 1e9)
         self.read = []
@@ -295,7 +299,7 @@ class ReplayBase(Node):
                     channel = ros2_topic if m.encoding == "cdr" else None
                     value = join_set(m.topic, _as_recorded(m, value), self.members, channel)
             except Exception as e:
-                self.left_out[m.topic] = [str(e) or type(e).__name__, 1]
+                self.skipped.setdefault(m.topic, [str(e) or type(e).__name__, 0])[1] += 1
                 continue
             if port is None:  # a member of a sync set: joined into the set's index later
                 if isinstance(value, _Pixels):  # a heap frame, stamped with the set's time
@@ -313,7 +317,7 @@ class ReplayBase(Node):
         return asyncio.ensure_future(asyncio.to_thread(next, self._it, None))
 
     async def process(self) -> dict[str, Any] | None:
-        if len(self.left_out) > len(self._said_left_out):
+        if len(self.left_out) + len(self.skipped) > len(self._said_left_out):
             self._left_out()
         run = self.run
         if run.start is None:  # the whole graph is set up: its workers are ready
@@ -372,15 +376,36 @@ class ReplayBase(Node):
         return frame
 
     def _left_out(self) -> None:
-        """Say each channel left out once (one line naming it and why), as the node's error."""
-        for topic, (why, _count) in self.left_out.items():
+        """Say each channel left out, or with a message skipped, once (one line naming it
+        and why), as the node's error; how many, in :meth:`report`."""
+        said = [
+            *(
+                (t, f"{t}: left out, cannot decode ({why})")
+                for t, (why, _) in self.left_out.items()
+            ),
+            *(
+                (t, f"{t}: a message skipped, cannot decode ({why}); the others are replayed")
+                for t, (why, _) in self.skipped.items()
+            ),
+        ]
+        for topic, msg in said:
             if topic in self._said_left_out:
                 continue
             self._said_left_out.add(topic)
-            msg = f"{topic}: left out, cannot decode ({why})"
             self.ctx.log.warning("%s: %s", self.ctx.name, msg)
             with contextlib.suppress(RuntimeError):
                 self.ctx.set_error(msg)
+
+    def report(self) -> dict[str, Any] | None:
+        """The messages not replayed, per channel, with why (``--stats-json`` ``reports``)."""
+        rows = {
+            **{t: {"messages": n, "why": f"left out: {w}"} for t, (w, n) in self.left_out.items()},
+            **{
+                t: {"messages": n, "why": f"cannot decode: {w}"}
+                for t, (w, n) in self.skipped.items()
+            },
+        }
+        return {"not_replayed": rows} if rows else None
 
     def _restamped(self, item: _Item) -> Any:
         """A recorded ``timestamp`` is epoch nanoseconds (the recording's time base): mapped

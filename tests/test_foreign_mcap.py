@@ -151,8 +151,9 @@ def test_replay_leaves_out_what_it_cannot_decode_and_says_so(
 
 
 @pytest.mark.realtime
-def test_a_message_that_fails_to_decode_leaves_its_channel_out_once(tmp_path: Path) -> None:
-    """No crash loop: the node goes on with the other channels, in error, said once."""
+def test_a_message_that_fails_to_decode_is_skipped_alone_and_counted(tmp_path: Path) -> None:
+    """No crash loop: the node goes on, in error, said once; the bad message alone is not
+    replayed (it took the rest of its channel with it, uncounted) and the report counts it."""
     path = _mixed(tmp_path / "bad.mcap", flatbuffer=False, bad_cdr_at=5)
 
     async def main() -> tuple[list[Any], Any]:
@@ -168,6 +169,10 @@ def test_a_message_that_fails_to_decode_leaves_its_channel_out_once(tmp_path: Pa
     assert node.errors == 0
     assert node.restarts == 0
     assert node.state == "error"
-    assert "/cmd_vel: left out" in node.reason
+    assert "/cmd_vel: a message skipped, cannot decode" in node.reason
     assert sum(isinstance(v, dict) and "i" in v for v in got) == COUNT  # /ok whole
-    assert sum(isinstance(v, dict) and "linear" in v for v in got) == 5  # up to the bad one
+    assert sum(isinstance(v, dict) and "linear" in v for v in got) == COUNT - 1  # but one
+    (row,) = stats.reports["rep"]["not_replayed"].items()
+    assert row[0] == "/cmd_vel"
+    assert row[1]["messages"] == 1
+    assert row[1]["why"].startswith("cannot decode: ")

@@ -102,6 +102,27 @@ def test_valid_graph_loads(path: Path) -> None:
     assert_exactly(graph.warnings, expectations(path), path)
 
 
+SHIPPED = sorted((TESTS.parent / "graphs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", [*SHIPPED, *VALID], ids=lambda p: p.name)
+def test_every_valid_graph_file_validates_against_the_published_schema(path: Path) -> None:
+    """``flowrt schema graph`` (for editors and CI linters) refused the shipped graphs: a
+    duration written ``50ms``, an input written ``cam.frame``, ``trigger: loop``."""
+    import jsonschema
+
+    from flowrt.graph.spec import GraphSpec
+
+    schema = GraphSpec.model_json_schema(by_alias=True)
+    jsonschema.Draft202012Validator.check_schema(schema)
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    errors = [
+        f"{'/'.join(map(str, e.absolute_path))}: {e.message}"
+        for e in jsonschema.Draft202012Validator(schema).iter_errors(data)
+    ]
+    assert not errors, errors[:5]
+
+
 def test_fixtures_cover_every_check() -> None:
     """The table has a case for each check the graph-file format promises."""
     stated = "\n".join(str(e) for p in INVALID for e in expectations(p))

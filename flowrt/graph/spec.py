@@ -10,6 +10,7 @@ from __future__ import annotations
 import ipaddress
 import math
 import re
+from collections.abc import Callable
 from enum import StrEnum
 from typing import Annotated, Any, Literal
 
@@ -18,6 +19,7 @@ from pydantic import (
     ConfigDict,
     Discriminator,
     Field,
+    GetJsonSchemaHandler,
     Tag,
     field_validator,
     model_validator,
@@ -84,7 +86,9 @@ def parse_duration_ms(value: Any) -> float:
     return ms
 
 
-DurationMs = Annotated[float, BeforeValidator(parse_duration_ms)]
+_PARSED_DURATION = BeforeValidator(parse_duration_ms, json_schema_input_type=float | str)
+"""A duration with its unit parsed; its JSON Schema takes the number or the text."""
+DurationMs = Annotated[float, _PARSED_DURATION]
 """A finite duration in milliseconds; YAML may write it with a unit (us, ms, s)."""
 
 
@@ -196,16 +200,33 @@ def _bounded_ms(lo: float, hi: float) -> AfterValidator:
     return AfterValidator(check)
 
 
-TimerMs = Annotated[float, BeforeValidator(parse_duration_ms), AfterValidator(check_timer_ms)]
-PhaseMs = Annotated[float, BeforeValidator(parse_duration_ms), AfterValidator(check_phase_ms)]
-DeadlineMs = Annotated[float, BeforeValidator(parse_duration_ms), AfterValidator(check_deadline_ms)]
-WatchdogMs = Annotated[float, BeforeValidator(parse_duration_ms), AfterValidator(check_watchdog_ms)]
-BackoffMs = Annotated[float, BeforeValidator(parse_duration_ms), _bounded_ms(0, MAX_DURATION_MS)]
-SpinMs = Annotated[float, BeforeValidator(parse_duration_ms)]
+TimerMs = Annotated[float, _PARSED_DURATION, AfterValidator(check_timer_ms)]
+PhaseMs = Annotated[float, _PARSED_DURATION, AfterValidator(check_phase_ms)]
+DeadlineMs = Annotated[float, _PARSED_DURATION, AfterValidator(check_deadline_ms)]
+WatchdogMs = Annotated[float, _PARSED_DURATION, AfterValidator(check_watchdog_ms)]
+BackoffMs = Annotated[float, _PARSED_DURATION, _bounded_ms(0, MAX_DURATION_MS)]
+SpinMs = Annotated[float, _PARSED_DURATION]
 FramePeriod = Annotated[int, AfterValidator(check_frame_period)]
 FramePhase = Annotated[int, AfterValidator(check_frame_phase)]
 Priority = Annotated[int, Field(ge=MIN_PRIORITY, le=MAX_PRIORITY)]
 CpuId = Annotated[int, Field(ge=0, le=MAX_CPU_ID)]
+
+
+def _short_form_schema(what: str) -> Callable[..., Any]:
+    """A model's JSON Schema (``flowrt schema graph``) that also takes its one-string short
+    form, as its ``_short_form`` validator does (``inputs: {frame: cam.frame}``): the
+    schema refused the shipped graph files that ``flowrt validate`` accepts."""
+
+    def schema(cls: type[BaseModel], core: Any, handler: GetJsonSchemaHandler) -> Any:
+        full = handler.resolve_ref_schema(handler(core))
+        return {"anyOf": [{"type": "string", "description": what}, full]}
+
+    return schema
+
+
+def _trigger_words(schema: dict[str, Any]) -> None:
+    """The trigger's one-word forms (``trigger: loop``, ``trigger: input``) in its schema."""
+    schema["anyOf"] = [*schema.get("anyOf", []), {"enum": ["loop", "input"]}]
 
 
 class _Strict(BaseModel):
@@ -303,6 +324,10 @@ def node_dot_port(v: str) -> str:
 class InputSpec(_Strict):
     """Where an input reads from and how its buffer behaves."""
 
+    __get_pydantic_json_schema__ = classmethod(
+        _short_form_schema("short form: the node.port that feeds it")
+    )
+
     source: str = Field(alias="from", description="node.port that feeds this input")
     policy: EdgePolicy | None = None  # None: latest for frames, queue for messages
     size: int = Field(
@@ -365,7 +390,7 @@ class NodeSpec(_Strict):
 
     kind: str
     params: dict[str, Any] = Field(default_factory=dict)
-    trigger: Trigger | None = None
+    trigger: Trigger | None = Field(default=None, json_schema_extra=_trigger_words)
     deadline: DeadlineMs | None = None
     miss_policy: MissPolicy = MissPolicy.continue_
     priority: Priority = 10
@@ -648,6 +673,10 @@ class ZenohSpec(_Strict):
 class ExportSpec(_Strict):
     """An output published under a Zenoh key (``export: {key: node.port}``)."""
 
+    __get_pydantic_json_schema__ = classmethod(
+        _short_form_schema("short form: the node.port to publish")
+    )
+
     source: str = Field(alias="from", description="node.port to publish")
     encoding: Literal["raw", "jpeg", "png"] = Field(
         default="raw", description="frames: raw pixels with a header, or JPEG/PNG"
@@ -680,6 +709,10 @@ class ExportSpec(_Strict):
 class ImportSpec(_Strict):
     """A remote stream used as a local output (``import: {name: key}``): a node named ``name``
     with the stream as output ``output`` (and the link's state changes as ``state``)."""
+
+    __get_pydantic_json_schema__ = classmethod(
+        _short_form_schema("short form: the Zenoh key expression")
+    )
 
     key: str
     period: DurationMs | None = Field(
