@@ -47,7 +47,13 @@ from flowrt import AudioBlock, FatalError, Frame, LoopTrigger, Node, Output, res
 from flowrt.recording.decoding import MessageDecoder
 from flowrt.recording.encoding import ANNOTATIONS_SCHEMA
 from flowrt.recording.images import is_image_schema
-from flowrt.recording.reader import Recording, channel_schemas, iter_messages, iter_session
+from flowrt.recording.reader import (
+    Recording,
+    channel_schemas,
+    iter_messages,
+    iter_session,
+    last_log_time,
+)
 from flowrt.recording.ros2_profile import ros2_topic, value_restorer
 from flowrt.recording.session import mcap_files
 from flowrt.recording.streams import join_set
@@ -222,6 +228,10 @@ class ReplayBase(Node):
         self.wanted = wanted or None
         self.read: list[Recording] = []  # every part read (the last one read says any damage)
         self.origin = _first_log_time(self.file)
+        end = last_log_time(files[-1])  # the progress line's length (None: not closed)
+        self.span_s = None if end is None else max(0.0, (end - self.origin) / 1e9)
+        self.position_s = 0.0  # the last published message's, from the recording's start
+        self.loops = 0
         self.decoder = MessageDecoder()
         self.left_out: dict[str, list[Any]] = {}  # topic -> [why, messages not replayed]
         # a channel no decoder reads is left out whole; a message that fails to decode (a
@@ -334,6 +344,7 @@ class ReplayBase(Node):
             self._report_damage()
             self._left_out()
             if self.params.loop and self.published:
+                self.loops += 1
                 self.cycle = self.last_due + LEAD
                 self._it = self._items()
                 return None
@@ -352,6 +363,7 @@ class ReplayBase(Node):
         if wait > 0:
             await asyncio.sleep(wait)
         self.published += 1
+        self.position_s = (item.log_time - self.origin) / 1e9
         value = self._value(item)
         return value if len(self.outputs) == 1 else {item.port: value}  # one port: bare
 
@@ -396,8 +408,14 @@ class ReplayBase(Node):
             with contextlib.suppress(RuntimeError):
                 self.ctx.set_error(msg)
 
-    def report(self) -> dict[str, Any] | None:
-        """The messages not replayed, per channel, with why (``--stats-json`` ``reports``)."""
+    def report(self) -> dict[str, Any]:
+        """Where the replay is (the status table's progress line) and the messages not
+        replayed, per channel, with why (``--stats-json`` ``reports``)."""
+        progress = {
+            "position_s": round(self.position_s, 3),
+            "duration_s": None if self.span_s is None else round(self.span_s, 3),
+            "loops": self.loops,
+        }
         rows = {
             **{t: {"messages": n, "why": f"left out: {w}"} for t, (w, n) in self.left_out.items()},
             **{
@@ -405,7 +423,7 @@ class ReplayBase(Node):
                 for t, (w, n) in self.skipped.items()
             },
         }
-        return {"not_replayed": rows} if rows else None
+        return {"progress": progress, **({"not_replayed": rows} if rows else {})}
 
     def _restamped(self, item: _Item) -> Any:
         """A recorded ``timestamp`` is epoch nanoseconds (the recording's time base): mapped

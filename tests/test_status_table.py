@@ -240,6 +240,22 @@ def test_frames_a_pool_could_not_hold_are_a_red_line() -> None:
     assert "frames front_cam: 37 dropped" in text
 
 
+@pytest.mark.parametrize(
+    ("progress", "said"),
+    [
+        ({"position_s": 12.3, "duration_s": 41.0, "loops": 0},
+         "replay cam " + "█" * 6 + "░" * 14 + " 12.3 / 41.0 s (30%)"),
+        ({"position_s": 2.0, "duration_s": 10.0, "loops": 2}, "2.0 / 10.0 s (20%) · loop 3"),
+        ({"position_s": 5.5, "duration_s": None, "loops": 0}, "replay cam 5.5 s"),  # not closed
+    ],
+)  # fmt: skip
+def test_a_replay_shows_its_position(progress: dict[str, object], said: str) -> None:
+    """The README's "a progress bar shows the position": there was none."""
+    stats = cambada_stats().model_copy(update={"reports": {"cam": {"progress": progress}}})
+    text, _ = show(stats, 80, height=24)
+    assert said in text
+
+
 def test_edge_with_drops_stays_when_edges_are_summarised() -> None:
     stats = cambada_stats()
     edges = list(stats.edges)

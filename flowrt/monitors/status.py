@@ -168,6 +168,7 @@ def render(
         for p in stats.frames
         if p.dropped
     ]
+    extra.extend(_progress(name, r) for name, r in stats.reports.items() if _has_progress(r))
     if qos is not None and (qos.overload_control or qos.mode is not None):
         extra.append(_line(qos.describe(), "bold red" if qos.overloaded else "magenta"))
     for a in alerts or []:
@@ -213,6 +214,23 @@ def render(
             style = _alert_style(ev)
         parts.append(_line(f"  {ev.t:8.3f}s {ev.kind} {ev.node or ''} {_describe(ev)}", style))
     return Group(*parts)
+
+
+def _has_progress(report: Any) -> bool:
+    return isinstance(report, dict) and isinstance(report.get("progress"), dict)
+
+
+def _progress(name: str, report: dict[str, Any], bar: int = 20) -> Text:
+    """A replay node's position in its recording (its ``report()``'s ``progress``)."""
+    p = report["progress"]
+    pos, span = float(p.get("position_s") or 0.0), p.get("duration_s")
+    loops = f" · loop {p['loops'] + 1}" if p.get("loops") else ""
+    if not span:  # a file not closed cleanly: its length is not known
+        return _line(f"  replay {name} {pos:.1f} s{loops}", "cyan")
+    done = min(1.0, pos / float(span))
+    filled = round(done * bar)
+    line = f"  replay {name} {'█' * filled}{'░' * (bar - filled)} {pos:.1f} / {span:.1f} s"
+    return _line(f"{line} ({done:.0%}){loops}", "cyan")
 
 
 def _has_reason(n: NodeStats) -> bool:

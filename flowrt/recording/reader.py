@@ -692,6 +692,20 @@ def channel_schemas(files: list[Path]) -> dict[str, tuple[str, Any]]:
     return out
 
 
+def last_log_time(path: Path) -> int | None:
+    """The last message's log time (ns) by the file's summary; None without one (a file
+    not closed cleanly)."""
+    from mcap.reader import SeekingReader
+
+    try:
+        with open(path, "rb") as f:
+            summary = SeekingReader(f).get_summary()
+    except Exception:
+        return None
+    stats = summary.statistics if summary is not None else None
+    return stats.message_end_time if stats is not None and stats.message_count > 0 else None
+
+
 def _ends_before(path: Path, t: int) -> bool:
     """True when the file's summary says its last message is logged before ``t`` (ns)."""
     from mcap.reader import SeekingReader
