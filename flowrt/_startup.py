@@ -32,7 +32,7 @@ import os
 import signal
 import sys
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NoReturn
 
 EXIT_INTERRUPTED = 130
 
@@ -98,15 +98,21 @@ def _line(signum: int, prog: str = "flowrt") -> str:
 
 
 def _exit_quietly(signum: int, frame: Any) -> None:
-    code = say_interrupted(signum)
+    exit_now(say_interrupted(signum), _line(signum))
+
+
+def exit_now(code: int, line: str) -> NoReturn:
+    """``os._exit(code)`` from a signal handler, with, under ``--json``, the error document
+    (``line`` its message) on stdout first: exactly one document, whatever happens (a
+    forced exit printed none)."""
     given = sys.argv[1:]
     given = given[: given.index("--")] if "--" in given else given  # as flowrt.cli.main reads
     if "--json" in given:  # exactly one document on stdout (cli/json_output.py's form)
         command = next((w for w in given if not w.startswith("-")), "")
-        line = _quoted(_line(signum))
+        text = _quoted(line)
         doc = (
-            f'{{"error": {{"message": {line}, "exit_code": {code}, '
-            f'"command": {_quoted(command)}, "lines": [{line}]}}}}\n'
+            f'{{"error": {{"message": {text}, "exit_code": {code}, '
+            f'"command": {_quoted(command)}, "lines": [{text}]}}}}\n'
         )
         with contextlib.suppress(OSError):
             os.write(1, doc.encode())

@@ -30,6 +30,8 @@ def test_copy_writes_the_clone_layout_and_refuses_to_overwrite(
     written = sorted(p.name for p in (tmp_path / "graphs").iterdir())
     assert {"cambada.yaml", "video.yaml", "sample.avi"} <= set(written)
     assert (tmp_path / "graphs/sample.avi").read_bytes() == (GRAPHS / "sample.avi").read_bytes()
+    # again, unchanged: the README's one-liner run twice (it failed: "exists, add --force")
+    assert main(["examples", "--copy", str(tmp_path)]) == 0
     capsys.readouterr()
 
     (tmp_path / "graphs/cambada.yaml").write_text("# mine\n")

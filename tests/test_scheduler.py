@@ -416,6 +416,20 @@ async def test_a_subscription_ends_with_the_run() -> None:
         await asyncio.wait_for(late.get(), 1)
 
 
+@pytest.mark.parametrize(
+    ("given", "said"),
+    [
+        ("graph.yaml", "Runtime.from_file(path) loads a graph file"),
+        (GraphBuilder(), "call .build() on a GraphBuilder"),
+        (42, "not int: build one with GraphBuilder"),
+    ],
+)
+def test_runtime_of_something_else_than_a_graph_says_what_to_do(given: Any, said: str) -> None:
+    """(an AttributeError: 'str' object has no attribute 'imports')"""
+    with pytest.raises(TypeError, match=re.escape(said)):
+        Runtime(given)
+
+
 async def _maybe_awaited(call: Any, rt: Runtime) -> None:
     result = call(rt)
     if asyncio.iscoroutine(result):

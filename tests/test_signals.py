@@ -224,6 +224,23 @@ def test_a_signal_while_importing_with_json_prints_the_error_document() -> None:
     assert error == {"message": line, "exit_code": 143, "command": "run", "lines": [line]}
 
 
+def test_a_forced_exit_with_json_prints_the_error_document() -> None:
+    """The third signal's forced exit printed nothing on stdout under ``--json``."""
+    done = _flowrt_script(
+        "from flowrt.cli.signals import StopSignals\n"
+        "s = StopSignals(lambda: 'the drain', lambda: '', 'flowrt run')\n"
+        "for _ in range(3): s(signal.SIGINT)\n"
+        "print('not reached')\n",
+        "run",
+        "g.yaml",
+        "--json",
+    )
+    line = "flowrt run: SIGINT: forced exit"
+    assert done.returncode == 130, done.stderr
+    assert done.stderr.splitlines()[-1] == line
+    assert json.loads(done.stdout)["error"]["message"] == line
+
+
 def test_a_child_the_command_spawns_ignores_ctrl_c_quietly() -> None:
     """A spawned child gets the command's ``sys.argv``: no start-up line of its own, and a
     Ctrl-C (the whole process group gets one) leaves it to the main process."""

@@ -552,7 +552,7 @@ def _duration_s(text: str) -> float:
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
     if not 0 < ms <= 3_600_000:
-        raise argparse.ArgumentTypeError("must be between 0 and 1 h")
+        raise argparse.ArgumentTypeError("must be more than 0 and at most 1 h")
     return ms / 1000
 
 

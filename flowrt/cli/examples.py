@@ -36,22 +36,31 @@ def _summary(graph: Traversable, width: int) -> str:
 
 
 def copy(dest: Path, force: bool) -> list[Path]:
-    """Write every example file into ``dest/graphs``; refuses to overwrite (``force``: does)."""
+    """Write every example file into ``dest/graphs``; refuses to overwrite one the user
+    changed (``force``: does). A file already there as shipped is no conflict: the README's
+    one-liner (``flowrt examples --copy . && flowrt run ...``) failed when run again."""
     files = shipped()
     if not files:
         raise FileNotFoundError("no example graphs in this installation of flowrt")
     folder = dest / "graphs"
     targets = [folder / f.name for f in files]
-    existing = [t for t in targets if t.exists()]
+    existing = [t for f, t in zip(files, targets, strict=True) if t.exists() and not _same(f, t)]
     if existing and not force:
         raise FileExistsError(
-            f"{existing[0]} exists ({len(existing)} of the {len(targets)} files do): "
-            "add --force to overwrite them"
+            f"{existing[0]} exists and differs from the example ({len(existing)} of the "
+            f"{len(targets)} files do): add --force to overwrite them"
         )
     folder.mkdir(parents=True, exist_ok=True)
     for f, target in zip(files, targets, strict=True):
         target.write_bytes(f.read_bytes())
     return targets
+
+
+def _same(shipped_file: Any, target: Path) -> bool:
+    try:
+        return bool(target.is_file() and target.read_bytes() == shipped_file.read_bytes())
+    except OSError:
+        return False
 
 
 def cmd_examples(args: argparse.Namespace) -> int:

@@ -51,10 +51,19 @@ class Parser(argparse.ArgumentParser):
     def _hint(self, message: str) -> str:
         """A suggestion for argparse's own errors: a misspelt subcommand (``invalid choice:
         'rnu'``), or an unknown option that left a required argument missing."""
-        choice = re.match(r"argument \S+: invalid choice: '([^']*)'", message)
+        choice = re.match(r"argument (\S+): invalid choice: '([^']*)'", message)
         if choice is not None:
-            names = [n for a in self._actions if a.choices for n in a.choices]
-            match = closest(choice.group(1), names)
+            # the named argument's choices only (all of them offered 'flowrt' for a
+            # --writer-priority of 'low')
+            named = choice.group(1).split("/")
+            names = [
+                str(n)
+                for a in self._actions
+                if a.choices
+                and (set(a.option_strings) & set(named) or a.metavar in named or a.dest in named)
+                for n in a.choices
+            ]
+            match = closest(choice.group(2), names)
             return f" (did you mean {match}?)" if match is not None else ""
         if message.startswith("the following arguments are required"):
             for word in getattr(self, "_given", []):

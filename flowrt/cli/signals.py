@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import atexit
-import os
 import signal
 from collections.abc import Callable
 from typing import Any
@@ -87,8 +86,9 @@ class StopSignals:
         self.received.append(sig)
         name = signal.Signals(sig).name
         if len(self.received) >= 3:
-            _say(f"{self.prog}: {name}: forced exit")
-            os._exit(128 + sig)
+            line = f"{self.prog}: {name}: forced exit"
+            _say(line)
+            _startup.exit_now(128 + sig, line)
         loop = self.loop
         if self.in_setup is not None:  # the set-up is being undone: not a run to drain
             _say(f"{self.prog}: {name}: still stopping; a third signal forces the exit")

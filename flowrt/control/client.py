@@ -15,7 +15,12 @@ __all__ = ["DEFAULT_PORT", "DEFAULT_URL", "ControlClient", "ControlError"]
 
 
 class ControlError(Exception):
-    """The runtime could not be reached or refused the request; the message says which."""
+    """The runtime could not be reached or refused the request; the message says which,
+    ``status`` the HTTP status of a refusal (None: not reached)."""
+
+    def __init__(self, message: str, status: int | None = None) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 class ControlClient:
@@ -42,7 +47,7 @@ class ControlClient:
             with urllib.request.urlopen(req, timeout=self.timeout) as resp:
                 reply = resp.read()
         except urllib.error.HTTPError as e:
-            raise ControlError(self._refused(e)) from None
+            raise ControlError(self._refused(e), e.code) from None
         except (urllib.error.URLError, OSError) as e:
             reason = getattr(e, "reason", e)
             if isinstance(reason, TimeoutError) and data is not None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import ipaddress
 import math
 import re
-from collections.abc import Callable
 from enum import StrEnum
 from typing import Annotated, Any, Literal
 
@@ -19,12 +18,13 @@ from pydantic import (
     ConfigDict,
     Discriminator,
     Field,
-    GetJsonSchemaHandler,
     Tag,
     field_validator,
     model_validator,
 )
 from pydantic.functional_validators import AfterValidator, BeforeValidator
+
+from ._schema_forms import short_form_schema, trigger_words
 
 _DURATION = re.compile(r"^\s*(?P<num>[0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(?P<unit>us|ms|s)?\s*$")
 _UNIT_MS = {"us": 0.001, "ms": 1.0, "s": 1000.0, None: 1.0}
@@ -212,23 +212,6 @@ Priority = Annotated[int, Field(ge=MIN_PRIORITY, le=MAX_PRIORITY)]
 CpuId = Annotated[int, Field(ge=0, le=MAX_CPU_ID)]
 
 
-def _short_form_schema(what: str) -> Callable[..., Any]:
-    """A model's JSON Schema (``flowrt schema graph``) that also takes its one-string short
-    form, as its ``_short_form`` validator does (``inputs: {frame: cam.frame}``): the
-    schema refused the shipped graph files that ``flowrt validate`` accepts."""
-
-    def schema(cls: type[BaseModel], core: Any, handler: GetJsonSchemaHandler) -> Any:
-        full = handler.resolve_ref_schema(handler(core))
-        return {"anyOf": [{"type": "string", "description": what}, full]}
-
-    return schema
-
-
-def _trigger_words(schema: dict[str, Any]) -> None:
-    """The trigger's one-word forms (``trigger: loop``, ``trigger: input``) in its schema."""
-    schema["anyOf"] = [*schema.get("anyOf", []), {"enum": ["loop", "input"]}]
-
-
 class _Strict(BaseModel):
     # allow_inf_nan=False: every float of a graph file is finite.
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -325,7 +308,7 @@ class InputSpec(_Strict):
     """Where an input reads from and how its buffer behaves."""
 
     __get_pydantic_json_schema__ = classmethod(
-        _short_form_schema("short form: the node.port that feeds it")
+        short_form_schema("short form: the node.port that feeds it")
     )
 
     source: str = Field(alias="from", description="node.port that feeds this input")
@@ -390,7 +373,7 @@ class NodeSpec(_Strict):
 
     kind: str
     params: dict[str, Any] = Field(default_factory=dict)
-    trigger: Trigger | None = Field(default=None, json_schema_extra=_trigger_words)
+    trigger: Trigger | None = Field(default=None, json_schema_extra=trigger_words)
     deadline: DeadlineMs | None = None
     miss_policy: MissPolicy = MissPolicy.continue_
     priority: Priority = 10
@@ -674,7 +657,7 @@ class ExportSpec(_Strict):
     """An output published under a Zenoh key (``export: {key: node.port}``)."""
 
     __get_pydantic_json_schema__ = classmethod(
-        _short_form_schema("short form: the node.port to publish")
+        short_form_schema("short form: the node.port to publish")
     )
 
     source: str = Field(alias="from", description="node.port to publish")
@@ -711,7 +694,7 @@ class ImportSpec(_Strict):
     with the stream as output ``output`` (and the link's state changes as ``state``)."""
 
     __get_pydantic_json_schema__ = classmethod(
-        _short_form_schema("short form: the Zenoh key expression")
+        short_form_schema("short form: the Zenoh key expression")
     )
 
     key: str

@@ -19,6 +19,8 @@ def runner_port(sched: Scheduler, target: str) -> tuple[NodeRunner, str]:
     if runner is None:
         raise KeyError(f"unknown node {node!r}" + did_you_mean(node, sched.runners))
     ports = [*runner.outputs, *runner.inputs, *runner.rnode.cls.inputs]
+    if not port:  # a node's name alone ("src has no port ''")
+        raise KeyError(f"{target!r}: name a port, node.port ({node}'s: {', '.join(ports)})")
     if port not in ports:
         raise KeyError(f"{node} has no port {port!r}" + did_you_mean(port, ports))
     return runner, port

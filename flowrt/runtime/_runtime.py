@@ -84,7 +84,7 @@ class Runtime(Interruptible):
             raise ValueError(f"drain_timeout must be finite and >= 0, got {drain_timeout}")
         self.drain_timeout = drain_timeout
         self.stop_on_failure = stop_on_failure
-        self.graph = graph if isinstance(graph, Graph) else resolve(graph, kinds=kinds)
+        self.graph = _graph_of(graph, kinds)
         if clock is not None and spin:
             raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
         self.clock: Clock = clock or SystemClock(spin=spin)
@@ -440,7 +440,7 @@ class Runtime(Interruptible):
 
     def publish(self, target: str, value: Any) -> None:
         """Inject a value: into ``node.output`` (fans out, ticks frames) or ``node.input``."""
-        self._running("publish")
+        _require_running(self, "publish")
         inject_value(self.scheduler, self.clock.now(), target, value)
 
     def subscribe(
@@ -451,17 +451,35 @@ class Runtime(Interruptible):
         ``sampled``: the reader takes the newest value only when it wants one (a viewer with
         nobody watching): values replaced before it took them are ``unread``, not dropped.
         """
-        self._running("subscribe")
+        _require_running(self, "subscribe")
         sub = subscribe_port(self.scheduler, self.clock.now, target, policy, size, sampled)
         self._subscriptions.append(sub)
         return sub
 
-    def _running(self, what: str) -> None:
-        """RuntimeError unless the graph is running: after the stop, a call did nothing."""
-        if self.ended:
-            raise RuntimeError(f"{what}: the runtime has stopped (a Runtime runs once)")
-        if not self.started:
-            raise RuntimeError(f"{what}: the runtime is not started")
+
+def _graph_of(graph: Any, kinds: Mapping[str, type[Node]] | None) -> Graph:
+    """``graph`` resolved; TypeError saying what to do with anything else (a path, a
+    builder not built: it was an AttributeError on ``.imports``)."""
+    if isinstance(graph, Graph):
+        return graph
+    if isinstance(graph, GraphSpec):
+        return resolve(graph, kinds=kinds)
+    hint = (
+        "Runtime.from_file(path) loads a graph file"
+        if isinstance(graph, str | Path)
+        else "call .build() on a GraphBuilder"
+        if hasattr(graph, "build")
+        else "build one with GraphBuilder(...).build() or Graph.from_file(path)"
+    )
+    raise TypeError(f"Runtime needs a Graph, not {type(graph).__name__}: {hint}")
+
+
+def _require_running(rt: Runtime, what: str) -> None:
+    """RuntimeError unless the graph is running: after the stop, a call did nothing."""
+    if rt.ended:
+        raise RuntimeError(f"{what}: the runtime has stopped (a Runtime runs once)")
+    if not rt.started:
+        raise RuntimeError(f"{what}: the runtime is not started")
 
 
 def _freeze_heap() -> None:

@@ -245,7 +245,7 @@ class Display(Node):
         except OSError as e:
             # An error state, not a failure: restarting cannot free the port (flowrt run checks
             # it before anything starts; an embedding program sees the state and the reason).
-            reason = f"display: cannot listen on {host}:{port}: {e.strerror or e}"
+            reason = f"cannot listen on {host}:{port}: {e.strerror or e}"  # (its name: once)
             try:
                 self.ctx.set_error(reason)
             except RuntimeError:  # no runtime around the node (a bare test harness)
