@@ -244,6 +244,50 @@ def test_replay_across_parts_gives_the_same_detections_frame_by_frame(
             assert comparable(got[seq]) == comparable(det), (name, seq)
 
 
+def test_a_session_that_lacks_a_part_says_so(
+    split_session: tuple[Path, Any], tmp_path: Path
+) -> None:
+    """A part deleted (or never copied) was read as one recording with a long gap: `flowrt
+    info` exit 0, a deterministic replay "identical". Now: said, exit 1."""
+    import shutil
+
+    session, _ = split_session
+    files = mcap_files(session)
+    assert len(files) >= 3
+    copy = tmp_path / session.name
+    shutil.copytree(session, copy)
+    (copy / files[1].name).unlink()
+    info = scan_session(copy)
+    assert info.missing == [files[1].name]
+    assert not info.closed_cleanly
+    assert f"{files[1].name}: missing" in (info.damage or "")
+    r = flowrt_cli("info", str(copy))
+    assert r.returncode == 1, r.stderr
+    assert f"{files[1].name}: missing (a part of this split session)" in r.stderr
+    assert scan_session(session).missing == []
+
+
+@pytest.mark.parametrize(
+    ("names", "missing"),
+    [
+        (["rec_001_000", "rec_001_002"], ["rec_001_001.mcap"]),
+        (["rec_001_001", "rec_001_002"], ["rec_001_000.mcap"]),
+        (["rec_001_000", "rec_001_001"], []),
+        (["rec_001"], []),  # a session not split: rec_001/rec_001.mcap
+        (["drive_007_000", "drive_007_002"], []),  # not the folder's own parts
+    ],
+)
+def test_missing_parts(tmp_path: Path, names: list[str], missing: list[str]) -> None:
+    from flowrt.recording.session import missing_parts
+
+    folder = tmp_path / "rec_001"
+    folder.mkdir()
+    files = [folder / f"{n}.mcap" for n in names]
+    for f in files:
+        f.write_bytes(b"")
+    assert missing_parts(folder, files) == missing
+
+
 def test_replay_from_an_offset_skips_the_parts_before(split_session: tuple[Path, Any]) -> None:
     session, _ = split_session
     origin = scan_session(session).start

@@ -518,6 +518,13 @@ def cmd_info(args: argparse.Namespace) -> int:
             "(what is read so far; its summary comes when the recorder stops)",
             markup=False,
         )
+    if session.missing:  # read as one recording with a long gap, exit 0, before
+        err.print(
+            f"flowrt info: {args.path}: {printable(session.damage or '')}: what it held is "
+            "not in the recording",
+            markup=False,
+        )
+        return EXIT_FAILED
     held = {f.resolve() for f in live}
     damaged = [i.path for i in session.files if not i.closed_cleanly]
     damaged = [d for d in damaged if Path(d).resolve() not in held]

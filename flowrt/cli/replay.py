@@ -287,7 +287,15 @@ _REFUSED: Any = object()
 
 
 def _say_damage(info: Any, path: Path, err: Console) -> None:
-    """A session not closed cleanly replays up to its first damage, whichever file."""
+    """A session not closed cleanly replays up to its first damage, whichever file; one
+    that lacks a part replays the parts it has (exit 1: not everything was replayed)."""
+    if info.missing:
+        err.print(
+            f"flowrt replay: {path}: {info.damage}: replaying the {info.messages} messages "
+            "of the parts it has",
+            markup=False,
+        )
+        return
     before = 0
     for part in info.files:
         before += part.messages

@@ -273,7 +273,7 @@ def read_log(path: str | Path) -> DeterminismLog:
     """The deterministic log of a session folder or file; LogError when it has none."""
     from ..recording.reader import iter_session, scan_session
     from ..recording.repair import REPAIR_METADATA
-    from ..recording.session import mcap_files
+    from ..recording.session import mcap_files, missing_parts
 
     p = Path(path)
     if not p.exists():
@@ -295,6 +295,10 @@ def read_log(path: str | Path) -> DeterminismLog:
         metadata, log.graph = facts["metadata"], facts["graph"]
         if facts["start"] is not None:
             log.duration = (facts["end"] - facts["start"]) / 1e9
+    missing = missing_parts(p, files)
+    if missing:  # what the part held was never compared: never "identical"
+        log.closed_cleanly = False
+        log.damage = f"{', '.join(missing)}: missing (a part of this split session)"
     repair = metadata.get(REPAIR_METADATA)
     if repair is not None:  # `flowrt info --repair` made it whole, but what the cut lost
         log.closed_cleanly = False  # is lost: never "identical"

@@ -98,7 +98,12 @@ class SessionInfo(BaseModel):
 
     path: str
     files: list[FileInfo]
-    closed_cleanly: bool = Field(description="every file was closed cleanly")
+    closed_cleanly: bool = Field(
+        description="every file was closed cleanly, and no part of a split session is missing"
+    )
+    missing: list[str] = Field(
+        default_factory=list, description="the parts a split session lacks, by file name"
+    )
     size: int
     start: float | None
     end: float | None
@@ -113,6 +118,8 @@ class SessionInfo(BaseModel):
     @property
     def damage(self) -> str | None:
         """The first damage found, with its file."""
+        if self.missing:
+            return f"{', '.join(self.missing)}: missing (a part of this split session)"
         for f in self.files:
             if not f.closed_cleanly:
                 return f"{Path(f.path).name}: {f.damage or 'no summary'}"
@@ -479,11 +486,12 @@ def scan_session(path: str | Path) -> SessionInfo:
     whole recording: the boundary between two parts is not a gap (no message is lost
     there), and a gap that spans one is found.
     """
-    from .session import mcap_files
+    from .session import mcap_files, missing_parts
 
     files: list[FileInfo] = []
     merged: dict[str, tuple[_Chan, str]] = {}
-    for f in mcap_files(path):
+    paths = mcap_files(path)
+    for f in paths:
         info, named = _scan(f)
         files.append(info)
         for c, schema in named:
@@ -508,7 +516,8 @@ def scan_session(path: str | Path) -> SessionInfo:
     return SessionInfo(
         path=str(path),
         files=files,
-        closed_cleanly=all(f.closed_cleanly for f in files),
+        closed_cleanly=all(f.closed_cleanly for f in files) and not missing_parts(path, paths),
+        missing=missing_parts(path, paths),
         size=sum(f.size for f in files),
         start=start,
         end=end,

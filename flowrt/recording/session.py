@@ -99,6 +99,27 @@ def mcap_files(path: str | Path) -> list[Path]:
     return sorted(files, key=_part_key)
 
 
+def missing_parts(path: str | Path, files: list[Path]) -> list[str]:
+    """The parts a split session folder lacks (``rec_001_001.mcap`` between ``_000`` and
+    ``_002``, or ``_000`` itself): a deleted or never-copied part was read as a whole
+    recording with a long gap (``flowrt info`` exit 0, a replay "identical"). Only the
+    folder's own parts count (``NAME/NAME_NNN.mcap``); a missing last part cannot be told."""
+    folder = Path(path)
+    if not folder.is_dir():
+        return []
+    numbers: list[int] = []
+    width = 3
+    for f in files:
+        m = _PART.match(f.name)
+        if m is not None and m.group(1) == folder.name:
+            numbers.append(int(m.group(2)))
+            width = len(m.group(2))
+    if not numbers:
+        return []
+    have = set(numbers)
+    return [f"{folder.name}_{n:0{width}d}.mcap" for n in range(max(have)) if n not in have]
+
+
 def _part_key(path: Path) -> tuple[str, int]:
     m = _PART.match(path.name)
     return (m.group(1), int(m.group(2))) if m else (path.stem, -1)
