@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Mapping
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ from pydantic import BaseModel
 
 from .events import Event
 from .frames import Frame
+from .kernel.outputs import OutputCheck
 from .node import Node, NodeContext, make_node
 
 _NOTHING = object()
@@ -82,6 +84,10 @@ class NodeHarness:
         self.ctx = HarnessContext(name)
         self._held: dict[str, Any] = {}  # the value each input was last given (see process)
         self.node = make_node(cls, params, self.ctx)
+        # what process returns is checked as the runtime checks it (a port it does not have,
+        # a value of another type): {'scor': 1.0} passed here and failed the run
+        ports = [*cls.outputs, *cls.params_outputs(self.node.params)]
+        self._outputs = OutputCheck(SimpleNamespace(cls=cls), ports)  # type: ignore[arg-type]
         self._run(self.node.setup())
 
     def process(self, **inputs: Any) -> Any:
@@ -100,7 +106,10 @@ class NodeHarness:
             elif self._held.get(port, _NOTHING) is not value or port not in self.ctx.input_times:
                 self.ctx.input_times[port] = self.ctx.time
                 self._held[port] = value
-        return self._run(self.node.process(**inputs))
+        result = self._run(self.node.process(**inputs))
+        if result is not None and self._outputs.ports:
+            self._outputs.result(result)  # OutputError, as in a run
+        return result
 
     def publish(self, port: str, value: Any, t: float | None = None) -> None:
         """Mark ``value`` as newly published on input ``port`` at ``t`` (default now)."""

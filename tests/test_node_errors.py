@@ -11,6 +11,7 @@ have was an exception in a loop callback: the node stayed ``running`` with 0 err
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import textwrap
@@ -158,3 +159,16 @@ async def test_the_drain_does_not_wait_for_a_reader_that_failed() -> None:
     assert not [a for a in alerts if a.alert == "drain-timeout"], alerts
     edge = next(e for e in rt.stats().edges if e.name.endswith("sink.value"))
     assert edge.published == edge.delivered + edge.dropped
+
+
+@pytest.mark.parametrize(
+    ("kind", "reason"),
+    [(k, r) for k, r, _ in MISTAKES if k in ("WrongOutputName", "WrongOutputType", "NotAMapping")],
+)
+def test_the_harness_refuses_what_the_runtime_refuses(kind: str, reason: str) -> None:
+    """``NodeHarness`` returned ``{'scor': 1.0}`` without a word; the run failed on it."""
+    from flowrt.kernel.outputs import OutputError
+    from flowrt.testing import NodeHarness
+
+    with pytest.raises(OutputError, match=re.escape(reason)):
+        NodeHarness(getattr(failkinds, kind)).process()

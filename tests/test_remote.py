@@ -129,6 +129,13 @@ nodes:
         (("input: rball", "input: nothing"), "expected node.port"),
         (("nodes:", "export: {r1/x: sink.out}\nnodes:"), "has no output 'out'"),
         (("nodes:", "export: {r1/x: ghost.out}\nnodes:"), "unknown node 'ghost'"),
+        (
+            (
+                "nodes:",
+                "export: {r1/x: {from: c.value, encoding: jpeg}}\nnodes:\n  c: {kind: counter}",
+            ),
+            "encoding jpeg is for frames: c.value is not a Frame output",
+        ),  # (accepted: the counter's int went out as JSON)
         (("nodes:", "export: {r1/**: sink.out}\nnodes:"), "name one key, no * or **"),
         (("nodes:", "export: {r1/$x: sink.out}\nnodes:"), "are reserved"),
         (("connect:", "control: a//b, connect:"), "empty chunk"),
@@ -393,7 +400,7 @@ def test_link_counts_each_loss_with_its_reason() -> None:
     meta, pixels = encode_frame(Frame(np.zeros((4, 4, 3), np.uint8)), "raw", 90)
     for seq in (0, 1, 3, 4, 5, 6):  # 2 never arrives; the loop takes none of them
         imp.on_sample(_Sample(Header("s", "z", seq, 0.0, 0.0, "frame", meta), pixels))
-    imp.on_sample(_Sample(Header("s", "z", 7, 0.0, 0.0, "frame", meta), b"short"))
+    imp.on_sample(_Sample(Header("s", "z", 7, 0.0, 0.0, "json"), b"{not json"))
     assert len(woken) == 1  # one wake-up for the whole burst
     assert len(imp.pending) == FRAME_BACKLOG
     overruns = 6 - FRAME_BACKLOG
@@ -502,7 +509,7 @@ def _png_header(w: int, h: int) -> bytes:
             "bad frame",
         ),
         ({"shape": [4, 4, 3], "dtype": "uint8", "enc": "raw"}, bytes(2 << 20), "too large"),
-        ({"shape": [2, 2, 3], "dtype": "uint8", "enc": "raw"}, bytes(11), "undecodable"),
+        ({"shape": [2, 2, 3], "dtype": "uint8", "enc": "raw"}, bytes(11), "bad frame"),  # (docs)
     ],
     ids=[
         "empty",

@@ -20,6 +20,7 @@ from pydantic import BaseModel, ValidationError, ValidationInfo
 from ..frames import Frame
 from ..node import Node
 from ..node import validate_params as params_of
+from ._exports import check_exports
 from ._loading import Locations, check_text, pydantic_diagnostics, read_graph_file
 from ._ports import checked_type as checked_type  # where the kernel imports it from
 from ._ports import is_compatible, node_ports, ports_unknown, type_name
@@ -237,7 +238,7 @@ def resolve(
     _resolve_classes(r)
     _resolve_edges(r)
     _resolve_triggers(r)
-    _check_exports(r)
+    check_exports(r.spec, r.at, r.classes, r.params, r.names, r.invalid_nodes)
     _check_cycles(r.spec, r.edges, r.at)
     _check_frame_chains(r.triggers, r.at)
     _check_modes_and_qos(r)
@@ -467,26 +468,6 @@ def _check_placement(
                     ("nodes", name, key),
                     f"{key} applies to a node in a worker process (placement: process or "
                     "pool); an inline node runs in the loop process",
-                )
-
-
-def _check_exports(r: _Resolution) -> None:
-    """Exports name outputs that exist."""
-    spec, at, classes, params, names = r.spec, r.at, r.classes, r.params, r.names
-    invalid_nodes = r.invalid_nodes
-    for key, ex in spec.exports.items():
-        src_cls = classes.get(ex.node)
-        if ex.node not in spec.nodes and ex.node not in invalid_nodes:
-            at(
-                ("export", key),
-                f"export from unknown node {ex.node!r}" + did_you_mean(ex.node, names),
-            )
-        elif src_cls is not None and not ports_unknown(src_cls, params, ex.node, False):
-            src_outs = node_ports(src_cls, params, ex.node, False)
-            if ex.port not in src_outs:
-                at(
-                    ("export", key),
-                    f"node {ex.node!r} has no output {ex.port!r}" + did_you_mean(ex.port, src_outs),
                 )
 
 

@@ -91,7 +91,10 @@ class ImportLiveness:
         self.stale_since = now - since  # down since the last contact (or the start)
         self.outages += 1
         what = "no message yet" if self.last_arrival is None else "stale"
-        reason = f"{what} on {self.key} for {since * 1000:.0f} ms (limit {limit * 1000:.0f} ms)"
+        # since when, not for how long: the reason stays true while the outage lasts (it
+        # said "for 102 ms" at the run's end after 4 s of silence)
+        began = time.strftime("%H:%M:%S", time.localtime(time.time() - since))
+        reason = f"{what} on {self.key} since {began} (limit {limit * 1000:.0f} ms)"
         self._publish_state(since)
         if self.stale_is == "error":
             ctx.set_error(reason)

@@ -457,16 +457,16 @@ def frame_decoder(
     pixels the size) is done first: the copy of a large payload (6 MB at 1080p) evicts the
     CPU's caches, and every line of Python after it runs cold (measured on Zenoh's thread:
     0.16 ms after the copy before, 0.05 ms with the work moved ahead of it, at 1080p).
-    Raises :class:`Refused` (or ``ValueError``: a raw payload of the wrong size) as
-    :func:`check_frame` and :func:`decode_frame` do.
+    Raises :class:`Refused` as :func:`check_frame` and :func:`decode_frame` do (a raw
+    payload of the wrong size: ``bad frame``).
     """
     if meta.get("enc", "raw") != "raw":  # JPEG/PNG: the size is in the image's own header
         return lambda payload: _checked_decode(meta, payload, max_pixels)
     check_frame(meta, b"", max_pixels)
     shape = tuple(int(x) for x in meta["shape"])
     dtype = np.dtype(meta["dtype"])
-    if nbytes != math.prod(shape) * dtype.itemsize:
-        raise ValueError(f"frame payload of {nbytes} bytes for shape {shape} {dtype}")
+    if nbytes != math.prod(shape) * dtype.itemsize:  # not the image's shape: as documented
+        raise Refused("bad frame", f"frame payload of {nbytes} bytes for shape {shape} {dtype}")
     return lambda payload: np.frombuffer(payload, dtype=dtype).reshape(shape)
 
 
@@ -480,7 +480,7 @@ def decode_frame(meta: dict[str, Any], payload: bytes) -> np.ndarray:
     if meta.get("enc", "raw") == "raw":
         arr = np.frombuffer(payload, dtype=np.dtype(meta["dtype"]))
         if arr.size != math.prod(shape):
-            raise ValueError(f"frame payload of {arr.size} values for shape {shape}")
+            raise Refused("bad frame", f"frame payload of {arr.size} values for shape {shape}")
         return arr.reshape(shape)
     import cv2
 
