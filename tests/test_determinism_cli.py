@@ -106,6 +106,9 @@ def test_another_object_diverges_at_ball_fr_the_same_way_every_time(
         assert r.returncode == 1, r.stderr
     first = [json.loads(r.stdout)["first_divergence"] for r in runs]
     assert first[0] == first[1]
+    # exit 1 with "error", as every --json failure (it had the verdict alone)
+    error = json.loads(runs[0].stdout)["error"]
+    assert error["message"].startswith("flowrt replay: diverged at ball_fr.detection seq 1")
     assert first[0]["node"] == "ball_fr"
     assert first[0]["port"] == "detection"
     assert first[0]["seq"] == 1

@@ -90,11 +90,16 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
     report = _re_execute(args, graph, log, began, err)
     if isinstance(report, int):
         return report
+    lines = report_lines(report)
     if args.json:
         emit(report.summary())
+        if not report.identical and args.check:  # the verdict's line: the document's "error"
+            said = (ln for ln in reversed(lines) if ln.startswith(("not ", "diverged")))
+            verdict = next(said, "not identical")
+            err.print(f"flowrt replay: {printable(verdict)}", markup=False)
     else:
         console = stdout_console()
-        for line in report_lines(report):
+        for line in lines:
             console.print(printable(line), markup=False, highlight=False, soft_wrap=True)
     if not report.identical and args.check:
         return EXIT_FAILED  # a divergence; a cut log, or nothing compared, proves nothing
