@@ -453,6 +453,8 @@ def test_a_stats_json_that_cannot_be_written_is_refused_before_the_run(
     graph.write_text(GRAPH)
     for path, said in ((tmp_path / "no" / "s.json", f"no folder {tmp_path}/no"),
                        (tmp_path, f"{tmp_path} is a folder"),
+                       # a folder that takes no file: said after the whole run, stats lost
+                       ("/proc/flowrt-stats.json", "cannot be written (No such file or directory)"),
                        # it wrote a file named '-', and the script's parser read nothing
                        ("-", "--json prints the statistics on stdout")):  # fmt: skip
         with pytest.raises(SystemExit) as exited:

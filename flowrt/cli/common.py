@@ -156,6 +156,14 @@ def output_file_arg(text: str) -> str:
         raise argparse.ArgumentTypeError(f"{text}: no folder {p.parent}")
     if not os.access(p if p.exists() else p.parent, os.W_OK):  # (/dev/stdout: /dev is not)
         raise argparse.ArgumentTypeError(f"{text}: not writable")
+    if not p.exists():  # made and removed now: a folder that takes no file (/proc) said so
+        try:  # after the whole run, its statistics lost
+            with open(p, "x"):
+                pass
+            p.unlink()
+        except OSError as e:
+            why = e.strerror or e
+            raise argparse.ArgumentTypeError(f"{text}: cannot be written ({why})") from None
     return str(p)
 
 
