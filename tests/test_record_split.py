@@ -288,6 +288,19 @@ def test_missing_parts(tmp_path: Path, names: list[str], missing: list[str]) -> 
     assert missing_parts(folder, files) == missing
 
 
+def test_a_folder_of_two_recordings_is_not_one_session(tmp_path: Path) -> None:
+    """Two unrelated files in one folder were merged: "duration 95791334 s", exit 0."""
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    for name in ("drive_001.mcap", "other_bag.mcap"):
+        (folder / name).write_bytes(b"")
+    with pytest.raises(ValueError, match="2 recordings, not one session"):
+        mcap_files(folder)
+    r = flowrt_cli("info", str(folder))
+    assert r.returncode == 2, r.stderr
+    assert "2 recordings, not one session (drive_001.mcap, other_bag.mcap)" in r.stderr
+
+
 def test_replay_from_an_offset_skips_the_parts_before(split_session: tuple[Path, Any]) -> None:
     session, _ = split_session
     origin = scan_session(session).start

@@ -96,6 +96,12 @@ def mcap_files(path: str | Path) -> list[Path]:
         for f in p.glob("*.mcap")
         if not f.name.endswith(".repairing.mcap") and ".damaged" not in f.name
     ]
+    recordings = sorted({_part_key(f)[0] for f in files})
+    if len(recordings) > 1:  # read as one: "duration 95791334 s" from files years apart
+        names = ", ".join(sorted(f.name for f in files)[:4]) + (", ..." if len(files) > 4 else "")
+        raise ValueError(
+            f"{p}: {len(recordings)} recordings, not one session ({names}): give one file"
+        )
     return sorted(files, key=_part_key)
 
 
