@@ -120,6 +120,12 @@ def test_flash_and_beep_40ms_measured_from_a_recording(tmp_path: Path) -> None:
         (session, ["--video", "cam.frame", "--audio", "mic.audio"], "no stream 'cam.frame' in"),
         # a file that is no recording: said so (it was "a: no image or audio messages")
         (REPO / "graphs/sample.avi", ["--video", "a", "--audio", "b"], "not an MCAP file"),
+        # a third stream: ignored, silently
+        (
+            session,
+            ["--video", "led.frame", "--audio", "mic.audio", "--video", "led.frame"],
+            "give --video TOPIC --audio TOPIC, or --video A --video B",
+        ),
     ):
         w = subprocess.run(
             [sys.executable, "-m", "flowrt.cli", "sync", "measure", str(where), *args],

@@ -111,6 +111,11 @@ def _named(path: Path, topic: str) -> str:
     return topic
 
 
+MIN_EVENTS = 3
+"""Paired events below which a lag is not reported as measured (exit 1): with one onset in
+each stream, any pair was accepted (a lag of -3874 ms between two cameras, exit 0)."""
+
+
 def cmd_measure(args: argparse.Namespace) -> int:
     from ..analysis.avsync import measure_lag
 
@@ -124,7 +129,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
             err.print(f"flowrt sync measure: {printable(str(f))}: {why}", markup=False)
             return EXIT_BAD_GRAPH
     videos = list(args.video or [])
-    if not videos or (not args.audio and len(videos) != 2):
+    if len(videos) != (1 if args.audio else 2):  # (a third stream was ignored, silently)
         err.print(
             "flowrt sync measure: give --video TOPIC --audio TOPIC, or --video A --video B",
             markup=False,
@@ -161,6 +166,13 @@ def cmd_measure(args: argparse.Namespace) -> int:
         if problem:
             err.print(f"flowrt sync measure: {problem}", markup=False)
             return EXIT_BAD_GRAPH
+    if 0 < report.events < MIN_EVENTS:  # any single pair is "paired": no measure of a lag
+        err.print(
+            f"flowrt sync measure: only {report.events} event(s) paired: too few to measure a "
+            f"lag (at least {MIN_EVENTS}; record longer, or check that both streams see them)",
+            markup=False,
+        )
+        return EXIT_FAILED
     return EXIT_OK if report.events else EXIT_FAILED
 
 
