@@ -116,7 +116,8 @@ def report_lines(report: ReplayReport) -> list[str]:
         lines.append("identical: every compared output has its recorded digest")
     else:
         lines.append(
-            f"diverged at {d.node}.{d.port} seq {d.seq}, t={d.time:.3f} s: {d.why}"
+            # seq: the port's publication number, not a value's own "seq" (a frame's)
+            f"diverged at {d.node}.{d.port} seq {d.seq} (publication), t={d.time:.3f} s: {d.why}"
             + (" (stopped there)" if report.stopped_early else "")
         )
         if d.recorded is not None:
