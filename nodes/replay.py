@@ -55,7 +55,7 @@ from flowrt.recording.reader import (
     last_log_time,
 )
 from flowrt.recording.ros2_profile import ros2_topic, value_restorer
-from flowrt.recording.session import mcap_files
+from flowrt.recording.session import mcap_files, not_a_recording, sessions_hint
 from flowrt.recording.streams import join_set
 
 LEAD = 0.05
@@ -216,7 +216,11 @@ class ReplayBase(Node):
         p = self.params
         files = mcap_files(p.path)
         if not files or not files[0].exists():
-            raise FileNotFoundError(f"{p.path}: no MCAP file")
+            hint = sessions_hint(Path(p.path)) if Path(p.path).is_dir() else ""
+            raise FileNotFoundError(f"{p.path}: no MCAP file{hint}")
+        for f in files:  # said as `flowrt replay` says it
+            if (why := not_a_recording(f)) is not None:
+                raise ValueError(f"{f}: {why}")
         self.files = files
         self.file = files[0]
         channels = channel_schemas(files)
@@ -408,9 +412,11 @@ class ReplayBase(Node):
             with contextlib.suppress(RuntimeError):
                 self.ctx.set_error(msg)
 
-    def report(self) -> dict[str, Any]:
+    def report(self) -> dict[str, Any] | None:
         """Where the replay is (the status table's progress line) and the messages not
         replayed, per channel, with why (``--stats-json`` ``reports``)."""
+        if "skipped" not in vars(self):  # its file could not be opened: nothing to report
+            return None
         progress = {
             "position_s": round(self.position_s, 3),
             "duration_s": None if self.span_s is None else round(self.span_s, 3),

@@ -11,6 +11,7 @@ are written by rosbags itself, then damaged.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +122,31 @@ def test_a_replay_node_that_cannot_start_is_given_up_in_one_line(
         (db3_bag / "metadata.yaml").write_text("rosbag2_bagfile_information: [oops\n")
     with pytest.raises(FatalError, match=said.replace("(", r"\(")):
         NodeHarness(Replay, params, name="cam")
+
+
+@pytest.mark.parametrize(
+    ("content", "said"),
+    [
+        # "replayed up to the damage at byte 0: truncated ..." (the command line: this)
+        (b"hello\n", "x.mcap: not an MCAP file"),
+        # "InvalidMagic: not a valid MCAP file, invalid magic: (35, 82, 79, ..."
+        (b"#ROSBAG V2.0\n" + bytes(64), "a ROS 1 bag, not read: convert it with rosbags-convert"),
+        # a folder of sessions: "no MCAP file", without naming them
+        (None, "no MCAP file (it holds sessions: rec_001; give one, e.g. "),
+    ],
+)
+def test_the_replay_node_says_what_the_command_line_says(
+    tmp_path: Path, content: bytes | None, said: str
+) -> None:
+    if content is None:
+        (tmp_path / "rec_001").mkdir()
+        (tmp_path / "rec_001" / "rec_001.mcap").write_bytes(b"")
+        path = tmp_path
+    else:
+        path = tmp_path / "x.mcap"
+        path.write_bytes(content)
+    with pytest.raises(FatalError, match=re.escape(said)):
+        NodeHarness(Replay, {"path": str(path)}, name="cam")
 
 
 @pytest.mark.parametrize("command", ["info", pytest.param("replay", marks=pytest.mark.realtime)])

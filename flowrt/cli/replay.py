@@ -15,6 +15,7 @@ from typing import Any
 
 from rich.console import Console
 
+from ..recording.session import not_a_recording, sessions_hint
 from .common import (
     EXIT_BAD_GRAPH,
     EXIT_FAILED,
@@ -48,34 +49,10 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
 
 
 def _sessions_hint(folder: Path) -> str:
-    """A folder of recording sessions (``-o recordings/``) named to the user: which to give."""
-    try:
-        sessions = sorted(d.name for d in folder.iterdir() if d.is_dir() and any(d.glob("*.mcap")))
-    except OSError:
-        return ""
-    if not sessions:
-        return ""
-    shown = ", ".join(printable(n) for n in sessions[-3:])
-    more = f" and {len(sessions) - 3} more" if len(sessions) > 3 else ""
-    last = printable(str(folder / sessions[-1]))
-    return f" (it holds sessions: {shown}{more}; give one, e.g. {last})"
+    return sessions_hint(folder, printable)
 
 
-def _not_mcap(path: Path) -> str | None:
-    """Why ``path`` is no recording flowrt reads (None: it is MCAP, a rosbag2 SQLite3
-    file, or an MCAP cut inside its magic, killed at creation: repairable)."""
-    from ..recording.rosbag2 import is_db3
-
-    if is_db3(path):  # a rosbag2 SQLite3 file: read through the same reader
-        return None
-    magic = b"\x89MCAP0\r\n"
-    with open(path, "rb") as f:
-        head = f.read(13)
-    if head.startswith(b"#ROSBAG V"):
-        return "a ROS 1 bag, not read: convert it with rosbags-convert (pip install rosbags)"
-    if not magic.startswith(head[:8]) or (not head and path.suffix != ".mcap"):
-        return "not an MCAP file"
-    return None
+_not_mcap = not_a_recording
 
 
 def cmd_replay(args: argparse.Namespace) -> int:

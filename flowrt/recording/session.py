@@ -18,6 +18,7 @@ import re
 import socket
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -103,6 +104,40 @@ def mcap_files(path: str | Path) -> list[Path]:
             f"{p}: {len(recordings)} recordings, not one session ({names}): give one file"
         )
     return sorted(files, key=_part_key)
+
+
+def not_a_recording(path: Path) -> str | None:
+    """Why ``path`` is no recording flowrt reads (None: it is MCAP, a rosbag2 SQLite3
+    file, or an MCAP cut inside its magic, killed at creation: repairable). The command
+    line and the ``replay`` node say the same (the node said "InvalidMagic" of a ROS 1 bag,
+    "replayed up to the damage at byte 0" of a text file)."""
+    from .rosbag2 import is_db3
+
+    if is_db3(path):  # a rosbag2 SQLite3 file: read through the same reader
+        return None
+    magic = b"\x89MCAP0\r\n"
+    with open(path, "rb") as f:
+        head = f.read(13)
+    if head.startswith(b"#ROSBAG V"):
+        return "a ROS 1 bag, not read: convert it with rosbags-convert (pip install rosbags)"
+    if not magic.startswith(head[:8]) or (not head and path.suffix != ".mcap"):
+        return "not an MCAP file"
+    return None
+
+
+def sessions_hint(folder: Path, shown: Callable[[str], str] = str) -> str:
+    """A folder of recording sessions (``-o recordings/``) named to the user: which to give
+    (``shown``: how a name is printed)."""
+    try:
+        sessions = sorted(d.name for d in folder.iterdir() if d.is_dir() and any(d.glob("*.mcap")))
+    except OSError:
+        return ""
+    if not sessions:
+        return ""
+    names = ", ".join(shown(n) for n in sessions[-3:])
+    more = f" and {len(sessions) - 3} more" if len(sessions) > 3 else ""
+    last = shown(str(folder / sessions[-1]))
+    return f" (it holds sessions: {names}{more}; give one, e.g. {last})"
 
 
 def missing_parts(path: str | Path, files: list[Path]) -> list[str]:
