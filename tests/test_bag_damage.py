@@ -200,3 +200,21 @@ def test_streams_whose_names_clean_to_one_get_a_node_each() -> None:
         "/ü": "__",
         "": "stream",
     }
+
+
+def test_a_bag_whose_storage_file_is_missing_says_so(
+    db3_bag: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """It said "no .mcap file in this folder" of a bag whose .db3 was not copied."""
+    (db3,) = db3_bag.glob("*.db3")
+    db3.unlink()
+    code, _, err = _run(capsys, "info", str(db3_bag))
+    assert code == 2
+    assert f"{db3.name}: missing (named by metadata.yaml)" in err
+
+
+def test_a_folder_of_bags_names_them(db3_bag: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The hint listed the MCAP sessions only, not the SQLite3 bags beside them."""
+    code, _, err = _run(capsys, "info", str(db3_bag.parent))
+    assert code == 2
+    assert f"(it holds sessions: {db3_bag.name}; give one" in err

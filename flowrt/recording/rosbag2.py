@@ -96,6 +96,8 @@ def bag_files(folder: Path) -> list[Path] | None:
     files = [folder / n for n in names if (folder / n).is_file()]
     if not files:  # paths that do not match the folder's (renamed): what is there
         files = sorted(folder.glob("*.mcap" if storage == "mcap" else "*.db3"))
+    if not files and names:  # it said "no .mcap file in this folder" of a bag's missing .db3
+        raise BagError(f"{folder}: {', '.join(names)}: missing (named by {METADATA_FILE})")
     return files
 
 

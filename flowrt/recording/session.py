@@ -129,7 +129,7 @@ def sessions_hint(folder: Path, shown: Callable[[str], str] = str) -> str:
     """A folder of recording sessions (``-o recordings/``) named to the user: which to give
     (``shown``: how a name is printed)."""
     try:
-        sessions = sorted(d.name for d in folder.iterdir() if d.is_dir() and any(d.glob("*.mcap")))
+        sessions = sorted(d.name for d in folder.iterdir() if d.is_dir() and _a_recording(d))
     except OSError:
         return ""
     if not sessions:
@@ -138,6 +138,15 @@ def sessions_hint(folder: Path, shown: Callable[[str], str] = str) -> str:
     more = f" and {len(sessions) - 3} more" if len(sessions) > 3 else ""
     last = shown(str(folder / sessions[-1]))
     return f" (it holds sessions: {names}{more}; give one, e.g. {last})"
+
+
+def _a_recording(folder: Path) -> bool:
+    """A session folder, or a rosbag2 one (MCAP or SQLite3 storage)."""
+    return (
+        any(folder.glob("*.mcap"))
+        or any(folder.glob("*.db3"))
+        or (folder / METADATA_FILE).is_file()
+    )
 
 
 def missing_parts(path: str | Path, files: list[Path]) -> list[str]:
