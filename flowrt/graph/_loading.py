@@ -456,6 +456,9 @@ class Loaded:
     locs: Locations
     errors: list[Diagnostic]
     invalid_nodes: set[str] = field(default_factory=set)
+    # an invalid node's kind and params, when those are well-formed: still checked, so that
+    # a bad trigger does not hide a bad param of the same node (every problem at once)
+    set_aside: dict[str, tuple[str, dict[str, Any]]] = field(default_factory=dict)
 
 
 def check_text(text: str, file: str = "<graph>") -> Loaded:
@@ -482,11 +485,27 @@ def check_data(data: Any, locs: Locations, errors: Iterable[Diagnostic] = ()) ->
         salvaged = _without_invalid(data, e)
     if salvaged is None:
         return Loaded(None, locs, errors)
-    data, invalid = salvaged
+    kept, invalid = salvaged
     try:
-        return Loaded(GraphSpec.model_validate(data), locs, errors, invalid)
+        return Loaded(
+            GraphSpec.model_validate(kept), locs, errors, invalid, _set_aside(data, invalid)
+        )
     except ValidationError:
         return Loaded(None, locs, errors)
+
+
+def _set_aside(data: dict[Any, Any], invalid: set[str]) -> dict[str, tuple[str, dict[str, Any]]]:
+    """The kind and params of each node left out, where they are well-formed."""
+    nodes = data.get("nodes")
+    out: dict[str, tuple[str, dict[str, Any]]] = {}
+    for name in invalid:
+        node = nodes.get(name) if isinstance(nodes, dict) else None
+        if not isinstance(node, dict):
+            continue
+        kind, params = node.get("kind"), node.get("params", {})
+        if isinstance(kind, str) and isinstance(params, dict):
+            out[name] = (kind, params)
+    return out
 
 
 # Node fields whose value shapes the graph: a node with a bad one is left out of the

@@ -143,6 +143,7 @@ class Graph:
             kinds,
             earlier=loaded.errors,
             invalid_nodes=loaded.invalid_nodes,
+            set_aside=loaded.set_aside,
             base_dir=base_dir,
             import_kinds=import_kinds,
         )
@@ -215,6 +216,7 @@ def resolve(
     *,
     earlier: Iterable[Diagnostic] = (),
     invalid_nodes: Collection[str] = (),
+    set_aside: Mapping[str, tuple[str, Mapping[str, Any]]] | None = None,
     base_dir: Path | None = None,
     import_kinds: bool = True,
 ) -> Graph:
@@ -222,7 +224,8 @@ def resolve(
 
     ``earlier`` are problems already found while loading, reported together with these;
     ``invalid_nodes`` were dropped from ``spec`` by then, so references to them are not
-    reported again as unknown nodes. ``base_dir`` is the graph file's directory, handed to
+    reported again as unknown nodes (``set_aside``: their kind and params, still checked).
+    ``base_dir`` is the graph file's directory, handed to
     the params models as validation context (see :func:`resolve_path`). ``import_kinds=False``
     leaves dotted-path kinds unimported (their nodes unchecked, listed in
     ``Graph.not_imported``).
@@ -236,6 +239,8 @@ def resolve(
     if base_dir is not None and import_kinds:
         importable(base_dir)
     _resolve_classes(r)
+    for name, (kind, data) in (set_aside or {}).items():  # a node left out: its params still
+        _class_and_params(r, name, kind, data)  # checked (a bad trigger hid a bad param)
     _resolve_edges(r)
     _resolve_triggers(r)
     check_exports(r.spec, r.at, r.classes, r.params, r.names, r.invalid_nodes)
@@ -266,37 +271,44 @@ def resolve(
 
 def _resolve_classes(r: _Resolution) -> None:
     """Each node's class (imported unless told not to) and its validated params."""
-    spec, locs, at, diags = r.spec, r.locs, r.at, r.diags
-    classes, params, base_dir = r.classes, r.params, r.base_dir
-    kinds, import_kinds, not_imported = r.kinds, r.import_kinds, r.not_imported
-    for name, ns in spec.nodes.items():
-        try:
-            classes[name] = resolve_kind(ns.kind, kinds, allow_import=import_kinds)
-        except NotImported:
-            not_imported[name] = ns.kind
-            continue
-        except KindError as e:
-            looked = ""
-            if ":" in ns.kind and "cannot import" in str(e):
-                beside = f"beside the graph file ({base_dir}), " if base_dir is not None else ""
-                looked = f"; looked {beside}on PYTHONPATH and in the installed packages"
-            at(("nodes", name, "kind"), f"{e}{looked}")
-            continue
-        except Exception as e:  # the kind's own module raised while imported: say so, in place
-            at(("nodes", name, "kind"), f"node kind {ns.kind!r}: import failed: {e!r}")
-            continue
-        try:
-            params[name] = params_of(classes[name].Params, ns.params, {PARAMS_BASE_DIR: base_dir})
-        except ValidationError as e:
-            where = ("nodes", name, "params")
-            diags.extend(pydantic_diagnostics(e, locs, where, classes[name].Params))
-            continue
-        try:
-            advice = classes[name].advise(params[name])
-        except Exception as e:  # a third-party hook must not turn validation into a traceback
-            advice = [("", f"{ns.kind}.advise failed: {e!r}")]
-        for key, message in advice:
-            at(("nodes", name, "params", *([key] if key else [])), message, Severity.warning)
+    for name, ns in r.spec.nodes.items():
+        found = _class_and_params(r, name, ns.kind, ns.params)
+        if found is not None:
+            r.classes[name], r.params[name] = found
+
+
+def _class_and_params(
+    r: _Resolution, name: str, kind: str, data: Mapping[str, Any]
+) -> tuple[type[Node], BaseModel] | None:
+    """A node's class and validated params, or None after saying what is wrong."""
+    at, base_dir = r.at, r.base_dir
+    try:
+        cls = resolve_kind(kind, r.kinds, allow_import=r.import_kinds)
+    except NotImported:
+        r.not_imported[name] = kind
+        return None
+    except KindError as e:
+        looked = ""
+        if ":" in kind and "cannot import" in str(e):
+            beside = f"beside the graph file ({base_dir}), " if base_dir is not None else ""
+            looked = f"; looked {beside}on PYTHONPATH and in the installed packages"
+        at(("nodes", name, "kind"), f"{e}{looked}")
+        return None
+    except Exception as e:  # the kind's own module raised while imported: say so, in place
+        at(("nodes", name, "kind"), f"node kind {kind!r}: import failed: {e!r}")
+        return None
+    try:
+        params = params_of(cls.Params, data, {PARAMS_BASE_DIR: base_dir})
+    except ValidationError as e:
+        r.diags.extend(pydantic_diagnostics(e, r.locs, ("nodes", name, "params"), cls.Params))
+        return None
+    try:
+        advice = cls.advise(params)
+    except Exception as e:  # a third-party hook must not turn validation into a traceback
+        advice = [("", f"{kind}.advise failed: {e!r}")]
+    for key, message in advice:
+        at(("nodes", name, "params", *([key] if key else [])), message, Severity.warning)
+    return cls, params
 
 
 def _resolve_edges(r: _Resolution) -> None:
