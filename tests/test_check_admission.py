@@ -92,6 +92,10 @@ async def test_flowrt_ctl_refuses_then_forces(
     assert rt.stats().node("other").priority == 40
     code = await asyncio.to_thread(ctl, "mode", "calm", "--force")
     assert code == 0
+    # a malformed value is a bad argument (exit 2); a refused change (above) is exit 1
+    capsys.readouterr()
+    code = await asyncio.to_thread(ctl, "timing", "other", "--deadline", "0")
+    assert code == 2, capsys.readouterr().err
 
 
 def test_budgets_are_declared_wcet_else_measured_p99() -> None:

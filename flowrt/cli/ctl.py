@@ -189,7 +189,7 @@ def ctl_main(args: argparse.Namespace) -> int:
         return _ctl(client, args)
     except ControlError as e:
         print(f"flowrt ctl: {e}", file=sys.stderr)
-        return 2 if e.status == 400 else 1  # a refused argument is a bad argument (exit 2)
+        return 2 if e.malformed else 1  # a malformed argument is a bad argument (exit 2)
     finally:
         _close(client)
 

@@ -22,6 +22,12 @@ class ControlError(Exception):
         super().__init__(message)
         self.status = status
 
+    @property
+    def malformed(self) -> bool:
+        """The endpoint refused the request's body as malformed (a value out of range), not
+        the change it asks for (admission control, a safety rule: also 400, exit 1)."""
+        return self.status == 400 and str(self).startswith("400: bad request body")
+
 
 class ControlClient:
     """A small synchronous client of the control endpoint (stdlib only)."""
