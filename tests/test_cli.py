@@ -172,6 +172,19 @@ def test_graph_reads_at_80_columns_and_piped() -> None:
         assert max(len(line) for line in proc.stdout.splitlines()) <= int(columns)
 
 
+def test_graph_shows_an_import_as_its_key() -> None:
+    """(the class behind it: ``flowrt.remote._bridge:RemoteSource``)"""
+    proc = flowrt("graph", str(REPO / "graphs" / "zenoh_base.yaml"), env_columns="200")
+    assert proc.returncode == 0, proc.stderr
+    (row,) = [
+        c
+        for line in proc.stdout.splitlines()
+        if (c := line.split())[:2] == ["remote_ball", "import"]
+    ]
+    assert row[2] == "robot1/front/ball"
+    assert "_bridge" not in proc.stdout
+
+
 def test_activation_table_of_timers_uses_their_common_tick() -> None:
     from flowrt import Graph
     from flowrt.analysis import activation_tables

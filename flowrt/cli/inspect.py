@@ -82,7 +82,7 @@ def cmd_graph(args: argparse.Namespace) -> int:
             dl += f" {n.spec.miss_policy.value}"
         topo.add_row(
             name,
-            n.spec.kind,
+            _kind(graph, name),
             _trigger_text(n.trigger),
             str(n.spec.priority),
             dl,
@@ -109,6 +109,13 @@ def cmd_graph(args: argparse.Namespace) -> int:
     return 0
 
 
+def _kind(graph: Any, name: str) -> str:
+    """A node's kind as the file says it: an ``import:`` entry is ``import KEY`` (it showed
+    the class that implements it, ``flowrt.remote._bridge:RemoteSource``)."""
+    imported = graph.spec.imports.get(name)
+    return f"import {imported.key}" if imported is not None else str(graph.nodes[name].spec.kind)
+
+
 def _graph_json(graph: Any) -> dict[str, Any]:
     """``flowrt graph --json``: what the tables show, as data."""
     from ..analysis import activation_tables
@@ -118,7 +125,7 @@ def _graph_json(graph: Any) -> dict[str, Any]:
         "nodes": [
             {
                 "name": name,
-                "kind": n.spec.kind,
+                "kind": _kind(graph, name),
                 "trigger": _trigger_text(n.trigger),
                 "priority": n.spec.priority,
                 "deadline_ms": n.spec.deadline,
