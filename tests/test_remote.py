@@ -550,3 +550,22 @@ def test_a_large_json_message_is_refused_without_parsing(caplog: pytest.LogCaptu
     assert imp.link.drop_reasons == {"too large": 50}
     warnings = [r for r in caplog.records if "too large" in r.getMessage()]
     assert len(warnings) == 1  # rate-limited: a flood is counted, logged once
+
+
+@pytest.mark.realtime
+async def test_a_connect_endpoint_nobody_answers_is_said(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A typo in the other side's port: peer mode retries silently, the export counted every
+    value as delivered and the run exited 0 without a word."""
+    from flowrt.remote import _bridge
+
+    monkeypatch.setattr(_bridge, "UNREACHED_AFTER", 0.3)
+    port = free_port()
+    g = GraphBuilder("lonely")
+    g.add("src", "counter", trigger={"timer": "50ms"})
+    g.zenoh(listen=[], connect=[f"tcp/127.0.0.1:{port}"])
+    g.export("t/x", "src.value")
+    async with Runtime(g.build()) as rt:
+        await rt.run(0.8)
+    assert f"zenoh: nothing answers at tcp/127.0.0.1:{port} after 0.3 s" in caplog.text

@@ -33,6 +33,7 @@ import asyncio
 import contextlib
 import functools
 import json
+import logging
 import uuid
 from typing import Any
 
@@ -59,6 +60,12 @@ __all__ = [
 ]
 
 
+log = logging.getLogger("flowrt.remote._bridge")
+UNREACHED_AFTER = 3.0
+"""Seconds after the start at which a peer whose ``connect`` endpoints never answered is
+said so (a warning: the other side may start later)."""
+
+
 class RemoteError(Exception):
     """A remote-edge problem found at start (bad endpoint, a port in use, no zenoh)."""
 
@@ -81,6 +88,7 @@ class ZenohBridge:
         self._sender: ExportSender | None = None
         self._clocks = ClockOffsets(lambda: self.session)
         self.threads = ThreadShare()  # Zenoh's threads at the loop's nice (see _threads)
+        self._unreached: asyncio.TimerHandle | None = None  # the check of `connect`, pending
 
     # --- lifecycle ----------------------------------------------------------------------
 
@@ -126,6 +134,28 @@ class ZenohBridge:
             raise RemoteError(f"zenoh: {text}") from None
         self.zid = str(self.session.info.zid())
         self._queryable = self.session.declare_queryable(f"{CLOCK_PREFIX}/{self.zid}", answer_clock)
+        if self.zspec.connect and self.zspec.mode == "peer":  # a typo in a port went unnoticed
+            loop = asyncio.get_running_loop()
+            self._unreached = loop.call_later(UNREACHED_AFTER, self._say_unreached)
+
+    def _say_unreached(self) -> None:
+        """Once, a while after the start: nothing answers at the ``connect`` endpoints (peer
+        mode keeps trying, silently: an export to a wrong port counted every value as
+        delivered, exit 0)."""
+        session = self.session
+        if session is None:
+            return
+        try:
+            linked = list(session.info.peers_zid()) + list(session.info.routers_zid())
+        except Exception:  # a session closing meanwhile: nothing to say
+            return
+        if not linked:
+            log.warning(
+                "zenoh: nothing answers at %s after %g s (peer mode keeps trying): is the "
+                "other side running, and the address right?",
+                ", ".join(self.zspec.connect),
+                UNREACHED_AFTER,
+            )
 
     def attach_exports(self) -> None:
         """Buffers on the exported outputs, before the nodes start publishing."""
@@ -170,6 +200,8 @@ class ZenohBridge:
         self.threads.share()
 
     async def close(self) -> None:
+        if self._unreached is not None:
+            self._unreached.cancel()
         for s in self._subs:
             with contextlib.suppress(Exception):
                 s.undeclare()
