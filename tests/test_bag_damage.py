@@ -50,6 +50,7 @@ def test_info_of_a_truncated_db3_is_a_damaged_file(
     assert code == 1
     assert "Traceback" not in out + err
     assert "malformed" in out
+    assert "--repair" not in out  # it offered what --repair refuses (MCAP files only)
     why = "not closed cleanly (damaged or the recorder was killed)"
     assert err.strip().splitlines() == [f"flowrt info: {db3_bag}/bag.db3 {why}"]
 

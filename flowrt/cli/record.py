@@ -327,8 +327,8 @@ def print_info(
                 Text("NOT closed cleanly", style="bold red")
                 + f": {printable(why)}"
                 + (f" at byte {info.damage_offset}" if info.damage_offset is not None else "")
-                + f"; recovered {info.messages} messages in {info.chunks} chunks "
-                "(flowrt info --repair rewrites the summary)",
+                + f"; recovered {info.messages} messages in {info.chunks} chunks"
+                + _repair_hint(Path(info.path)),
                 highlight=False,
             )
         console.print(
@@ -465,6 +465,13 @@ def _print_session_report(console: Console, path: Path) -> None:
             )
         except ValueError:
             console.print(f"{report}: unreadable", style="red", markup=False)
+
+
+def _repair_hint(path: Path) -> str:
+    """What ``--repair`` does for it: MCAP only (it refused the SQLite3 file it was offered)."""
+    from ..recording.rosbag2 import is_db3
+
+    return "" if is_db3(path) else " (flowrt info --repair rewrites the summary)"
 
 
 def cmd_info(args: argparse.Namespace) -> int:
