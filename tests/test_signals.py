@@ -424,14 +424,11 @@ def test_a_second_signal_while_the_loop_is_held_says_it_cuts_the_drain() -> None
     assert marked == [True]
 
 
-@pytest.mark.slow
-@pytest.mark.subprocess
-def test_ctrl_c_in_a_measuring_run_gives_no_verdict(tmp_path: Path) -> None:
-    """``flowrt check --measure 10s`` cut after a second printed a whole response-time
-    verdict from half a second of budgets, exit 1 ("timing does not hold")."""
+def _interrupted(args: list[str], cue: Path) -> tuple[int, str, str]:
+    """``flowrt ARGS`` in a session of its own, SIGINT once ``cue`` exists: (code, out, err)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(TESTS), *sys.path])}
     proc = subprocess.Popen(
-        [*FLOWRT, "check", str(_graph(tmp_path)), "--measure", "30s", "--no-ui"],
+        [*FLOWRT, *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -439,14 +436,24 @@ def test_ctrl_c_in_a_measuring_run_gives_no_verdict(tmp_path: Path) -> None:
         start_new_session=True,
     )
     try:
-        _wait_for(tmp_path / "marked.running", proc)
+        _wait_for(cue, proc)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.communicate()
-    assert proc.returncode == 130, err
+    return proc.returncode, out, err
+
+
+@pytest.mark.slow
+@pytest.mark.subprocess
+def test_ctrl_c_in_a_measuring_run_gives_no_verdict(tmp_path: Path) -> None:
+    """``flowrt check --measure 10s`` cut after a second printed a whole response-time
+    verdict from half a second of budgets, exit 1 ("timing does not hold")."""
+    args = ["check", str(_graph(tmp_path)), "--measure", "30s", "--no-ui"]
+    code, out, err = _interrupted(args, tmp_path / "marked.running")
+    assert code == 130, err
     assert "the measuring run was interrupted: no verdict from a cut run" in err
     assert "schedulable" not in out + err
     assert "Traceback" not in err
@@ -487,23 +494,9 @@ def test_ctrl_c_during_a_deterministic_replay_gives_no_verdict(tmp_path: Path) -
     (session,) = (tmp_path / "out").iterdir()
     replay = tmp_path / "replay"
     again = _replay_graph(tmp_path, replay)
-    proc = subprocess.Popen(
-        [*FLOWRT, "replay", str(session), "--graph", str(again), "--deterministic", "--check"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        start_new_session=True,
-    )
-    try:
-        _wait_for(replay / "double.running", proc)
-        proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=30)
-    finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.communicate()
-    assert proc.returncode == 130, out + err
+    args = ["replay", str(session), "--graph", str(again), "--deterministic", "--check"]
+    code, out, err = _interrupted(args, replay / "double.running")
+    assert code == 130, out + err
     assert "SIGINT during the re-execution: stopping, exit 130" in err
     assert "Traceback" not in err
     assert "diverged" not in out

@@ -717,12 +717,5 @@ def last_log_time(path: Path) -> int | None:
 
 def _ends_before(path: Path, t: int) -> bool:
     """True when the file's summary says its last message is logged before ``t`` (ns)."""
-    from mcap.reader import SeekingReader
-
-    try:
-        with open(path, "rb") as f:
-            summary = SeekingReader(f).get_summary()
-    except Exception:
-        return False
-    stats = summary.statistics if summary is not None else None
-    return stats is not None and stats.message_count > 0 and stats.message_end_time < t
+    end = last_log_time(path)
+    return end is not None and end < t
