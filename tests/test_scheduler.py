@@ -430,6 +430,17 @@ def test_runtime_of_something_else_than_a_graph_says_what_to_do(given: Any, said
         Runtime(given)
 
 
+async def test_a_value_published_by_the_host_is_checked_as_a_nodes() -> None:
+    """``rt.publish("src.tick", "hello")`` on an ``int`` port was taken, and failed at the
+    reader (counted on it, as its error)."""
+    g = GraphBuilder()
+    g.add("src", Count, trigger={"timer": "10ms"})
+    async with Runtime(g.build(), clock=VirtualClock()) as rt:
+        with pytest.raises(TypeError, match=re.escape("output 'tick' expects int, got str")):
+            rt.publish("src.tick", "hello")
+        rt.publish("src.tick", 3)
+
+
 async def _maybe_awaited(call: Any, rt: Runtime) -> None:
     result = call(rt)
     if asyncio.iscoroutine(result):

@@ -9,6 +9,7 @@ from ..edges import make_buffer
 from ..graph.diagnostics import did_you_mean
 from ..graph.spec import EdgePolicy
 from ..kernel import NodeRunner, Scheduler
+from ..kernel.outputs import OutputError
 from ._subscription import Subscription
 
 
@@ -30,6 +31,10 @@ def publish(sched: Scheduler, t: float, target: str, value: Any) -> None:
     """See :meth:`flowrt.Runtime.publish`."""
     runner, port = runner_port(sched, target)
     if port in runner.outputs:
+        try:  # checked where it is made, as a node's own output (it failed at the reader)
+            runner.out_check.value(port, value)
+        except OutputError as e:
+            raise TypeError(f"publish({target!r}): {e}") from None
         runner.publish(port, value, t)
     elif port in runner.inputs:
         runner.inputs[port].put(value, t)
