@@ -248,11 +248,13 @@ async def test_the_timing_of_what_keeps_a_robot_safe_is_the_graph_file_s(
         params={"sources": {"a": {}}, "zero": {"vx": 0.0}, "timeout": "300ms"},
         trigger={"timer": "50ms"},
     )
+    # a haptic device, disabled, kept its last force (the force input stale for 0.9 s)
+    g.add("hand", "haptic", params={"device": "sim"})
     async with Runtime(g.build(), clock=VirtualClock()) as rt:
-        for node in ("drive", "stop"):
+        for node, kind in (("drive", "an arbiter"), ("stop", "an estop"), ("hand", "a haptic")):
             status, reply = await ask(Server(rt), "timing", {"node": node, **change})
             assert status == 403, reply
-            assert "keeps the robot safe" in reply["error"]
+            assert f"{node}: {kind} keeps the robot safe" in reply["error"]
             assert rt.stats().node(node).enabled
         status, _ = await ask(Server(rt), "timing", {"node": "src", "priority": 7})
         assert status == 200

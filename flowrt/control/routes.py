@@ -150,8 +150,10 @@ async def _timing(server: Answering, req: TimingRequest) -> Answer:
     runner = server.rt.scheduler.runners.get(req.node)  # unknown: apply_timing says so
     rnode = None if runner is None else runner.rnode
     if rnode is not None and rnode.cls.timing_fixed:
+        kind = rnode.spec.kind
+        article = "an" if kind[:1].lower() in "aeiou" else "a"  # ("a arbiter")
         raise SwapRefused(
-            f"{req.node}: a {rnode.spec.kind} keeps the robot safe: its timing is the graph "
+            f"{req.node}: {article} {kind} keeps the robot safe: its timing is the graph "
             "file's (its modes included), not changed over the control endpoint"
         )
     change = server.rt.apply_timing(req.node, req.change(), origin="control", force=req.force)

@@ -135,6 +135,9 @@ class Haptic(Node):
     """A force-feedback device in a fast loop: position in, safe force out (module doc)."""
 
     Params = HapticParams
+    # disabled or slowed over the control endpoint, the device kept its last force (1.5 N
+    # for a whole second, the force input stale): its timing is the graph file's
+    timing_fixed = True
     force = Input(
         object,
         required=False,
