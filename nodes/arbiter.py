@@ -276,6 +276,7 @@ class Arbiter(Node):
             if spec.after_silence == "hold" and spec.initial == "engaged"
         }
         self.armed: set[str] = set()
+        self.lock_refused: dict[str, Refusals] = {}  # lock values neither true nor false
 
     def params_changed(self, old: Any) -> None:
         """A mode's weights arrive between activations; new sources need their slots."""
@@ -295,7 +296,15 @@ class Arbiter(Node):
 
     def _lock_engaged(self, name: str, spec: LockSpec, value: Any, now: float) -> bool:
         if value is not None:
-            self.latched[name] = _truthy(value)
+            flag = _flag(value)
+            refusals = self.lock_refused.setdefault(
+                name, Refusals("arbiter-invalid-lock", f"lock {name}: not a true or false value")
+            )
+            if flag is None:  # {}, [], "", 0.0, {"active": None} released it (truthiness)
+                refusals.refuse(self.ctx, self.ctx.input_time(name))
+            else:
+                refusals.accept()
+            self.latched[name] = True if flag is None else flag  # malformed: engaged
             self._heard(name, value)
         engaged = self.latched.get(name, spec.initial == "engaged")
         if spec.heartbeat is not None and not engaged:
@@ -385,6 +394,7 @@ class Arbiter(Node):
                 for name, st in self.sources.items()
             },
             "invalid": sum(st.refused.count for st in self.sources.values()),
+            "locks_invalid": {name: r.count for name, r in self.lock_refused.items() if r.count},
             "clamped": sum(st.clamped.count for st in self.sources.values()),
         }
 
@@ -464,10 +474,15 @@ class Arbiter(Node):
 _FIRST = object()  # a held lock before its first value (see Arbiter.setup)
 
 
-def _truthy(value: Any) -> bool:
+def _flag(value: Any) -> bool | None:
+    """A lock value as true or false: a bool, the integers 1 and 0, or a mapping's
+    ``active``, ``value`` or ``pressed`` (the first present) as one of those; None for
+    anything else, which keeps the lock engaged (only a false value releases it)."""
     if isinstance(value, Mapping):
-        for key in ("active", "value", "pressed"):
-            if key in value:
-                return bool(value[key])
+        key = next((k for k in ("active", "value", "pressed") if k in value), None)
+        return None if key is None else _flag(value[key])
+    if isinstance(value, bool):
+        return value
+    if type(value) is int and value in (0, 1):
         return bool(value)
-    return bool(value)
+    return None

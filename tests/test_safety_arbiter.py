@@ -308,6 +308,38 @@ async def test_an_estop_published_once_keeps_zero_until_false() -> None:
         assert sub.drain()[-1] == joy
 
 
+@pytest.mark.parametrize(
+    ("value", "moves"),
+    [
+        (False, True),
+        (0, True),
+        ({"active": False, "release": 3}, True),
+        ({"pressed": False}, True),
+        # truthiness released these: only a false value does; each is counted
+        ({}, False),
+        ([], False),
+        ("", False),
+        (0.0, False),
+        ({"active": None}, False),
+        ({"release": "x"}, False),
+        ("false", False),
+        (float("nan"), False),
+    ],
+)
+async def test_only_a_false_value_releases_a_lock(value: Any, moves: bool) -> None:
+    clock = VirtualClock()
+    async with Runtime(drive_graph(["estop"]).build(), clock=clock) as rt:
+        sub = rt.subscribe("drive.command", size=1000)
+        joy = {"vx": 1.0, "w": 0.2}
+        rt.publish("estop.out", value)
+        for _ in range(5):
+            rt.publish("joy.out", joy)
+            await clock.advance(0.02)
+        assert (sub.drain()[-1] == joy) is moves, value
+        invalid = rt.stats().reports["drive"]["locks_invalid"]
+        assert invalid == ({} if moves else {"estop": 1}), invalid
+
+
 async def test_a_silent_heartbeat_lock_stops_within_heartbeat_plus_three_ticks() -> None:
     clock = VirtualClock()
     graph = drive_graph({"estop": {"heartbeat": "300ms"}}).build()
