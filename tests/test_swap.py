@@ -326,3 +326,17 @@ async def test_bad_params_are_one_line_without_pydantic_links() -> None:
     assert "'not a number'" in text
     assert "pydantic.dev" not in text
     assert "\n" not in text
+
+
+@pytest.mark.realtime
+async def test_a_node_whose_ports_come_from_its_params_swaps_and_reloads() -> None:
+    """A ``can`` node's ports are its DBC's messages: every swap or reload of one was refused
+    ("kind 'can' has no port(s) MotorSetpoints, MotorSetpoints, ...")."""
+    graph = Path(__file__).resolve().parent.parent / "graphs" / "can.yaml"
+    async with Runtime.from_file(graph) as rt:
+        await rt.run(0.3)
+        await rt.swap("chassis", "can", {"max_bad": 3})
+        await rt.reload("chassis")
+        await rt.run(0.3)
+        chassis = rt.stats().node("chassis")
+        assert (chassis.state, chassis.errors) == ("idle", 0), chassis

@@ -117,11 +117,15 @@ class Swapper:
         A failure to set the new one up leaves the old one running and raises.
         """
         r = self._r
-        missing = [p for p in r.inputs if p not in cls.inputs and cls.any_inputs is None]
-        missing += [p for p, bufs in r.outputs.items() if bufs and p not in cls.outputs]
+        # the ports its params give it too (a can node's, from its DBC: no swap of one passed)
+        ins = {**cls.inputs, **cls.params_inputs(params)}
+        outs = {**cls.outputs, **cls.params_outputs(params)}
+        missing = [p for p in r.inputs if p not in ins and cls.any_inputs is None]
+        missing += [p for p, bufs in r.outputs.items() if bufs and p not in outs]
         if missing:
-            raise ValueError(f"{r.name}: kind {kind!r} has no port(s) {', '.join(missing)}")
-        unfed = [p for p, port in cls.inputs.items() if port.required and p not in r.inputs]
+            names = ", ".join(dict.fromkeys(missing))  # an input and an output of one name
+            raise ValueError(f"{r.name}: kind {kind!r} has no port(s) {names}")
+        unfed = [p for p, port in ins.items() if port.required and p not in r.inputs]
         if unfed:
             raise ValueError(
                 f"{r.name}: kind {kind!r} needs input(s) {', '.join(unfed)}, "
