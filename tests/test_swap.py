@@ -328,12 +328,14 @@ async def test_bad_params_are_one_line_without_pydantic_links() -> None:
     assert "\n" not in text
 
 
+CAN_GRAPH = Path(__file__).resolve().parent.parent / "graphs" / "can.yaml"
+
+
 @pytest.mark.realtime
 async def test_a_node_whose_ports_come_from_its_params_swaps_and_reloads() -> None:
     """A ``can`` node's ports are its DBC's messages: every swap or reload of one was refused
     ("kind 'can' has no port(s) MotorSetpoints, MotorSetpoints, ...")."""
-    graph = Path(__file__).resolve().parent.parent / "graphs" / "can.yaml"
-    async with Runtime.from_file(graph) as rt:
+    async with Runtime.from_file(CAN_GRAPH) as rt:
         await rt.run(0.3)
         await rt.swap("chassis", "can", {"max_bad": 3})
         await rt.reload("chassis")
