@@ -29,6 +29,10 @@ class _Empty:
 
 
 EMPTY: Any = _Empty()
+OVERWRITTEN = "overwritten"
+"""A latest edge's value replaced before a reader that wanted it took it."""
+QUEUE_FULL = "queue full"
+"""A queue edge's oldest value dropped for a new one (the writer never waits)."""
 
 
 def hold(value: Any) -> None:
@@ -60,7 +64,10 @@ class Buffer:
         self.age = Running()
         self.now = clock or time.monotonic
         self.on_put: Callable[[], None] | None = None
-        self.drop_reasons: dict[str, int] = {}  # drops counted at stop/drain, by reason
+        # every drop by its reason (their sum is ``dropped``): overwritten / queue full while
+        # running, the stop's and the drain's at the end (a burst behind a queue of 8 was
+        # counted with no reason)
+        self.drop_reasons: dict[str, int] = {}
         self._last_seq = -1
         # Runtime-clock time at which the value last returned by take() was published here:
         # what freshness is judged on (NodeContext.input_time), never the value's identity.
@@ -154,6 +161,7 @@ class LatestBuffer(Buffer):
                     self.unread += 1
                 else:
                     self.dropped += 1
+                    self.drop_reasons[OVERWRITTEN] = self.drop_reasons.get(OVERWRITTEN, 0) + 1
             _drop(old)
         self._due = False
         hold(value)
@@ -208,6 +216,7 @@ class QueueBuffer(Buffer):
         if len(self._q) >= self.size:
             _, _, old = self._q.popleft()
             self.dropped += 1
+            self.drop_reasons[QUEUE_FULL] = self.drop_reasons.get(QUEUE_FULL, 0) + 1
             _drop(old)
         hold(value)
         self._q.append((self.published, t, value))

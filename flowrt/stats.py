@@ -180,7 +180,8 @@ class EdgeStats(_Frozen):
     )
     drop_reasons: dict[str, int] = Field(
         default_factory=dict,
-        description="drops counted at stop, by reason (stop, drain timeout, reader failed)",
+        description="every drop by its reason: overwritten (latest), queue full (queue) while "
+        "running; stop, drain timeout, interrupted, reader failed at the end",
     )
     sampled: bool = Field(
         description="the reader samples the newest value; unread values are expected"
