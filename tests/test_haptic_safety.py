@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
+import pytest
 from flowrt.nodes.haptic import Fixture, Force, Haptic
 from flowrt.nodes.haptic.safety import parse_force
 from hypothesis import given, settings
@@ -220,3 +221,28 @@ def test_a_device_reading_nan_is_a_device_error_not_a_nan_force() -> None:
     assert "non-finite" in (h.ctx.error or "")
     assert h.node.device.force == [0.0, 0.0, 0.0]
     assert "target" not in out  # the actuators are not sent to NaN
+
+
+@pytest.mark.parametrize(
+    ("force", "parsed"),
+    [
+        ({"x": 1.0}, (1.0, 0.0, 0.0)),
+        ({"x": 1.0, "timestamp": 3.0}, (1.0, 0.0, 0.0)),
+        ({"q": 1.0}, None),  # an axis the device has not: it was a zero force, uncounted
+        ({"X": 1.0}, None),
+        ({"x": 1.0, "q": 5.0}, None),  # q ignored, x applied
+        ({"force": [1, 0, 0]}, None),
+    ],
+)
+def test_a_force_naming_an_axis_the_device_has_not_is_refused(
+    force: dict[str, Any], parsed: tuple[float, ...] | None
+) -> None:
+    assert parse_force(force, AXES) == parsed
+
+
+def test_a_huge_force_keeps_its_direction_at_max_force() -> None:
+    """(the norm's squares overflowed to inf: 1e200 N along x became no force at all)"""
+    from flowrt.nodes.haptic.safety import ForceLimiter
+
+    limiter = ForceLimiter(2, max_force=2.0, max_rate=1e9, max_dt=1.0)
+    assert limiter.step([1e200, 0.0], 1.0) == pytest.approx((2.0, 0.0))

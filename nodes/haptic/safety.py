@@ -34,12 +34,18 @@ def _number(v: Any) -> float | None:
     return float(v) if finite_number(v) else None
 
 
+_META = frozenset({"timestamp", "_type", "why"})
+"""Keys of a force mapping that are not axes (a recorded or remote ``Force``)."""
+
+
 def parse_force(value: Any, axes: Sequence[str]) -> tuple[float, ...] | None:
     """The force ``value`` asks for, one float per axis, or None when it is refused."""
     values = getattr(value, "values", None)
     if isinstance(value, Mapping):
         values = value.get("values")
         if values is None:
+            if set(value) - set(axes) - _META:  # {"z": 1} on x, y was a zero force, uncounted
+                return None
             out = [0.0] * len(axes)
             for i, name in enumerate(axes):
                 if name in value:
@@ -76,14 +82,14 @@ class ForceLimiter:
 
     def step(self, wanted: Sequence[float], dt: float) -> tuple[float, ...]:
         """The force to apply this tick, ``dt`` seconds after the last one."""
-        norm = math.sqrt(sum(f * f for f in wanted))
+        norm = math.hypot(*wanted)  # (sqrt of the squares overflowed: 1e200 N became 0)
         if norm > self.max_force:
             self.clamped += 1
             s = self.max_force / norm
             wanted = [f * s for f in wanted]
         step = self.max_rate * min(max(dt, 0.0), self.max_dt)
         delta = [w - a for w, a in zip(wanted, self.applied, strict=True)]
-        dn = math.sqrt(sum(d * d for d in delta))
+        dn = math.hypot(*delta)
         if dn > step:
             # Inside the max_force ball both ends are, so every point between them is too.
             self.limited += 1
