@@ -28,6 +28,7 @@ class FakeNode:
     def __init__(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         self.reader, self.writer = reader, writer
         self.joy: list[Any] = []
+        self.joy_refused = 0  # told to the node: its joystick-invalid alert
         self.calls: list[dict[str, Any]] = []
 
     async def run(self) -> None:
@@ -39,6 +40,8 @@ class FakeNode:
                     self.writer.write(pack({"op": "stats", "display": {}}, b"null"))
                 elif op == "joy":
                     self.joy.append(header["value"])
+                elif op == "joy-refused":
+                    self.joy_refused += 1
                 elif op == "record":
                     self.calls.append(header)
                     result = {"status": 409, "error": "not recording"}
@@ -123,6 +126,7 @@ async def test_deep_json_and_huge_ints_are_refused_and_counted(
                     break
                 await asyncio.sleep(0.02)
         assert node.joy == [{"axes": {"x": 0.5}, "buttons": {}}]  # only the valid one
+        assert node.joy_refused == 1  # the bad axis, told to the node (not the bad JSON)
         await asyncio.sleep(0.3)  # past the statistics' cache
         async with http.get(url + "/stats.json") as r:
             display = (await r.json())["display"]

@@ -81,6 +81,7 @@ from typing import Any
 from flowrt import Frame, Input, InputTrigger, Node
 from flowrt.control import serving
 from flowrt.control.recorders import turn
+from flowrt.refusals import Refusals
 from flowrt.system import _spawned as spawned
 
 from . import record as operator_record
@@ -224,6 +225,11 @@ class Display(Node):
         self.encodes = 0
         self.ignored: set[str] = set()
         self.wanted: dict[str, int] = {}  # source -> the server holds its frame n; wants newer
+        # the page's joystick messages the server refused (NaN, not a number): an alert per
+        # burst, as the README says (only /stats.json's refused_messages counted them)
+        self.joy_refused = Refusals(
+            "joystick-invalid", "web joystick message refused: an axis is NaN, inf or not a number"
+        )
         self._kick_due = False
         self._stats_cache: tuple[float, bytes] | None = None
         self._writer: asyncio.StreamWriter | None = None
@@ -339,7 +345,10 @@ class Display(Node):
                 elif op == "stats":
                     self._send_stats()
                 elif op == "joy":  # the page's on-screen joystick: for `joystick` source: web
+                    self.joy_refused.accept()
                     self.ctx.rtdb.write(WEB_JOYSTICK, header["value"], validity_ms=500)
+                elif op == "joy-refused":  # counted by the server; alerted once per burst
+                    self.joy_refused.refuse(self.ctx, None)
                 elif op == "estop":  # the page's e-stop panel: for an `estop` node
                     self.ctx.rtdb.write(WEB_ESTOP, header["value"])
                 elif op == "record":  # the record panel: answered when the recorders have

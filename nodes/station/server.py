@@ -404,6 +404,7 @@ class ViewServer:
                 joy = _joystick(data.get("joy"))
                 if joy is None and data.get("joy") is not None:
                     self.refused_messages += 1  # an axis not a finite number, a bad shape
+                    self._send({"op": "joy-refused"})  # the node's joystick-invalid alert
                 if joy is not None and not may_control:
                     self.refused_control += 1  # a connection, not a page of this view
                 elif joy is not None:
