@@ -324,3 +324,13 @@ def test_node_bit_rates_take_units(value: Any, expected: int | None) -> None:
         params = g.build().nodes["bus"].params
         assert params.bitrate == expected
         assert params.data_bitrate == 2_000_000
+
+
+def test_an_error_naming_a_message_is_located_at_it(tmp_path: Path) -> None:
+    """cantools gives no line for a frame id out of range (opendbc's vw_meb.dbc): the line
+    of the message it names (the README promises FILE:LINE)."""
+    path = tmp_path / "k.dbc"
+    path.write_text('VERSION ""\n\nBU_: E\n\nBO_ 4000 X: 8 E\n')
+    rc, _, err = _run("can", "analyse", str(path))
+    assert rc == 2
+    assert err.startswith(f"flowrt can analyse: {path}:5: not a valid CAN database")

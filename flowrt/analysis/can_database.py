@@ -78,12 +78,27 @@ def load_database(path: str | Path, strict: bool = False) -> tuple[Any, list[Dat
     except Exception as e:  # cantools raises parser, value and key errors of several kinds
         text = _one_line(e)
         m = re.search(r"line (\d+)", text)
-        at = f":{m.group(1)}" if m else ""
+        line = m.group(1) if m else _message_line(p, text)
+        at = f":{line}" if line else ""
         raise CanDatabaseError(f"{path}{at}: not a valid CAN database: {text}") from None
     warnings = list(strict_warnings(db))
     if strict and warnings:
         raise CanDatabaseError(f"{path}: refused by strict loading: {warnings[0]}")
     return db, warnings
+
+
+def _message_line(path: Path, text: str) -> str | None:
+    """The line of the message an error names (``... in message MEB_Camera_04``), where the
+    parser gave none: the README promises ``FILE:LINE`` for a database error."""
+    m = re.search(r"in message (\w+)", text)
+    if m is None:
+        return None
+    pattern = re.compile(rf"^\s*BO_\s+\d+\s+{re.escape(m.group(1))}\s*:")
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            return next((str(n) for n, row in enumerate(f, 1) if pattern.match(row)), None)
+    except OSError:
+        return None
 
 
 def strict_warnings(db: Any) -> Iterator[DatabaseWarning]:
