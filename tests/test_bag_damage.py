@@ -219,3 +219,23 @@ def test_a_folder_of_bags_names_them(db3_bag: Path, capsys: pytest.CaptureFixtur
     code, _, err = _run(capsys, "info", str(db3_bag.parent))
     assert code == 2
     assert f"(it holds sessions: {db3_bag.name}; give one" in err
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "said"),
+    [
+        ("bag.db3", b"", "an empty file (0 bytes): no recording in it"),  # "not an MCAP file"
+        ("x.mcap", b"", None),  # a recorder killed at creation: repairable
+        ("x.txt", b"hello", "not an MCAP file"),
+        ("x.bag", b"#ROSBAG V2.0\n", "a ROS 1 bag, not read"),
+    ],
+)
+def test_why_a_file_is_no_recording(
+    tmp_path: Path, name: str, content: bytes, said: str | None
+) -> None:
+    from flowrt.recording.session import not_a_recording
+
+    path = tmp_path / name
+    path.write_bytes(content)
+    why = not_a_recording(path)
+    assert why == said if said is None else (why or "").startswith(said)

@@ -120,7 +120,9 @@ def not_a_recording(path: Path) -> str | None:
         head = f.read(13)
     if head.startswith(b"#ROSBAG V"):
         return "a ROS 1 bag, not read: convert it with rosbags-convert (pip install rosbags)"
-    if not magic.startswith(head[:8]) or (not head and path.suffix != ".mcap"):
+    if not head and path.suffix != ".mcap":  # (a 0-byte .db3 was "not an MCAP file")
+        return "an empty file (0 bytes): no recording in it"
+    if not magic.startswith(head[:8]):
         return "not an MCAP file"
     return None
 
