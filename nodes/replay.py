@@ -119,6 +119,7 @@ class ReplayBase(Node):
     """A replay source without ports of its own: see ``Replay`` and ``standing_in_for``."""
 
     swappable = frozenset({"rate", "loop"})  # over the control endpoint: flowrt kinds
+    opened = False  # its recording opened (setup): report() has something to say
 
     class Params(BaseModel):
         model_config = ConfigDict(extra="forbid")
@@ -201,6 +202,7 @@ class ReplayBase(Node):
     def setup(self) -> None:
         try:
             self._open()
+            self.opened = True
         except (OSError, ValueError) as e:  # no bag, a damaged one, a misspelt topic
             raise FatalError(str(e)) from None  # one line, given up: a restart cannot help
         # Set up before any node's first activation (the runtime arms loop triggers after
@@ -415,7 +417,7 @@ class ReplayBase(Node):
     def report(self) -> dict[str, Any] | None:
         """Where the replay is (the status table's progress line) and the messages not
         replayed, per channel, with why (``--stats-json`` ``reports``)."""
-        if "skipped" not in vars(self):  # its file could not be opened: nothing to report
+        if not self.opened:  # its file could not be opened: nothing to report
             return None
         progress = {
             "position_s": round(self.position_s, 3),

@@ -277,8 +277,11 @@ def drive_graph(locks: Any) -> GraphBuilder:
     return g
 
 
-async def ticks(rt: Runtime, clock: VirtualClock, sub: Any, seconds: float) -> list[Any]:
-    await clock.advance(seconds)
+async def steer(rt: Runtime, clock: VirtualClock, sub: Any, joy: Any, n: int) -> list[Any]:
+    """``joy`` published on every one of ``n`` ticks of 20 ms: the commands that came out."""
+    for _ in range(n):
+        rt.publish("joy.out", joy)  # the same object every tick: stays fresh
+        await clock.advance(0.02)
     return [v for v in sub.drain()]
 
 
@@ -288,24 +291,14 @@ async def test_an_estop_published_once_keeps_zero_until_false() -> None:
         sub = rt.subscribe("drive.command", size=1000)
         joy = {"vx": 1.0, "w": 0.2}
         rt.publish("estop.out", False)
-        for _ in range(10):
-            rt.publish("joy.out", joy)  # the same object every tick: stays fresh
-            await clock.advance(0.02)
-        moving = await ticks(rt, clock, sub, 0.0)
+        moving = await steer(rt, clock, sub, joy, 10)
         assert moving[-1] == joy
         rt.publish("estop.out", True)  # once, as a button publishing on change does
-        stopped: list[Any] = []
-        for _ in range(75):  # 1.5 s, far past the 200 ms timeout
-            rt.publish("joy.out", joy)
-            await clock.advance(0.02)
-            stopped += sub.drain()
+        stopped = await steer(rt, clock, sub, joy, 75)  # 1.5 s, far past the 200 ms timeout
         assert len(stopped) >= 70
         assert all(c == ZERO for c in stopped)
         rt.publish("estop.out", False)
-        for _ in range(5):
-            rt.publish("joy.out", joy)
-            await clock.advance(0.02)
-        assert sub.drain()[-1] == joy
+        assert (await steer(rt, clock, sub, joy, 5))[-1] == joy
 
 
 @pytest.mark.parametrize(
@@ -332,10 +325,7 @@ async def test_only_a_false_value_releases_a_lock(value: Any, moves: bool) -> No
         sub = rt.subscribe("drive.command", size=1000)
         joy = {"vx": 1.0, "w": 0.2}
         rt.publish("estop.out", value)
-        for _ in range(5):
-            rt.publish("joy.out", joy)
-            await clock.advance(0.02)
-        assert (sub.drain()[-1] == joy) is moves, value
+        assert ((await steer(rt, clock, sub, joy, 5))[-1] == joy) is moves, value
         invalid = rt.stats().reports["drive"]["locks_invalid"]
         assert invalid == ({} if moves else {"estop": 1}), invalid
 

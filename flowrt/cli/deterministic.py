@@ -66,7 +66,7 @@ def _graph(args: argparse.Namespace, log: Any, err: Console) -> Any:
 
 def cmd_replay_deterministic(args: argparse.Namespace) -> int:
     from ..determinism.log import LogError, read_log
-    from ..determinism.report import report_lines
+    from ..determinism.report import report_lines, verdict_line
 
     err = Console(stderr=True, highlight=False, soft_wrap=True)
     bad = _refused_options(args)
@@ -90,16 +90,13 @@ def cmd_replay_deterministic(args: argparse.Namespace) -> int:
     report = _re_execute(args, graph, log, began, err)
     if isinstance(report, int):
         return report
-    lines = report_lines(report)
     if args.json:
         emit(report.summary())
         if not report.identical and args.check:  # the verdict's line: the document's "error"
-            said = (ln for ln in reversed(lines) if ln.startswith(("not ", "diverged")))
-            verdict = next(said, "not identical")
-            err.print(f"flowrt replay: {printable(verdict)}", markup=False)
+            err.print(f"flowrt replay: {printable(verdict_line(report))}", markup=False)
     else:
         console = stdout_console()
-        for line in lines:
+        for line in report_lines(report):
             console.print(printable(line), markup=False, highlight=False, soft_wrap=True)
     if not report.identical and args.check:
         return EXIT_FAILED  # a divergence; a cut log, or nothing compared, proves nothing

@@ -24,6 +24,7 @@ from typing import Any
 from rich.console import Console
 from rich.text import Text
 
+from ..recording.session import not_a_recording
 from .common import (
     EXIT_BAD_GRAPH,
     EXIT_FAILED,
@@ -36,7 +37,7 @@ from .common import (
 )
 from .json_output import emit
 from .recorders import graph_outputs, select_outputs, split_patterns, with_recorder
-from .replay import _files, _not_mcap, cmd_replay
+from .replay import _files, cmd_replay
 from .run import add_run_options, run_graph
 
 # --- record ------------------------------------------------------------------------------
@@ -485,7 +486,7 @@ def cmd_info(args: argparse.Namespace) -> int:
     if files is None:
         return EXIT_BAD_GRAPH
     for f in files:
-        if (why := _not_mcap(f)) is not None:
+        if (why := not_a_recording(f)) is not None:
             err.print(f"flowrt info: {f}: {why}", markup=False)
             return EXIT_BAD_GRAPH
     live = [f for f in files if being_recorded(f)]  # no summary yet: not damaged

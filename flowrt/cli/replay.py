@@ -42,17 +42,11 @@ def _files(path: str, err: Console, cmd: str) -> list[Path] | None:
         return None
     if not files:
         err.print(
-            f"flowrt {cmd}: {path}: no .mcap file in this folder{_sessions_hint(p)}", markup=False
+            f"flowrt {cmd}: {path}: no .mcap file in this folder{sessions_hint(p, printable)}",
+            markup=False,
         )
         return None
     return files
-
-
-def _sessions_hint(folder: Path) -> str:
-    return sessions_hint(folder, printable)
-
-
-_not_mcap = not_a_recording
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -130,7 +124,7 @@ def _recording(args: argparse.Namespace, err: Console) -> tuple[list[Path], Path
     if files is None:
         return None
     for f in files:
-        if (why := _not_mcap(f)) is not None:
+        if (why := not_a_recording(f)) is not None:
             err.print(f"flowrt replay: {f}: {why}", markup=False)
             return None
     path = Path(args.path)

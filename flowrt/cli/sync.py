@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
+from ..recording.session import not_a_recording
 from .common import EXIT_BAD_GRAPH, EXIT_FAILED, EXIT_OK, printable, stdout_console
 from .json_output import emit
-from .replay import _files, _not_mcap
+from .replay import _files
 
 NO_MATPLOTLIB = "--plot needs matplotlib (pip install matplotlib)"
 
@@ -126,7 +127,7 @@ def cmd_measure(args: argparse.Namespace) -> int:
     if files is None:
         return EXIT_BAD_GRAPH
     for f in files:
-        if (why := _not_mcap(f)) is not None:  # a video file given for a recording
+        if (why := not_a_recording(f)) is not None:  # a video file given for a recording
             err.print(f"flowrt sync measure: {printable(str(f))}: {why}", markup=False)
             return EXIT_BAD_GRAPH
     videos = list(args.video or [])

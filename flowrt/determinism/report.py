@@ -13,7 +13,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
-__all__ = ["Divergence", "NodeReplay", "ReplayReport", "report_lines"]
+__all__ = ["Divergence", "NodeReplay", "ReplayReport", "report_lines", "verdict_line"]
 
 
 class Divergence(BaseModel):
@@ -94,34 +94,37 @@ def report_lines(report: ReplayReport) -> list[str]:
         f"{report.activations} activations re-executed, {report.compared} outputs compared "
         f"in {report.wall_s:.2f} s ({report.recorded_s:.1f} s recorded, x{speed:.1f})"
     )
+    lines.append(verdict_line(report))
     d = report.first_divergence
-    if d is None and report.log_cut is not None:
-        lines.append(
-            f"not identical: the log was cut ({report.log_cut}); {report.compared} outputs "
-            f"compared over the {report.recorded_s:.1f} s recorded before the cut, what came "
-            "after it was never checked"
-        )
-    elif (
-        d is None
-        and not report.identical
-        and any(n.status == "not comparable" for n in report.nodes)
-    ):
-        lines.append("not identical: nothing could be compared (each node's reason above)")
-    elif d is None and not report.identical:
-        lines.append(
-            "not identical: nothing was compared: no node of this graph re-executes what the "
-            "recording holds (was it recorded with this graph?)"
-        )
-    elif d is None:
-        lines.append("identical: every compared output has its recorded digest")
-    else:
-        lines.append(
-            # seq: the port's publication number, not a value's own "seq" (a frame's)
-            f"diverged at {d.node}.{d.port} seq {d.seq} (publication), t={d.time:.3f} s: {d.why}"
-            + (" (stopped there)" if report.stopped_early else "")
-        )
+    if d is not None:
         if d.recorded is not None:
             lines.append(f"  recorded: {d.recorded}")
         if d.replayed is not None:
             lines.append(f"  replayed: {d.replayed}")
     return lines
+
+
+def verdict_line(report: ReplayReport) -> str:
+    """The report's verdict in one line (:func:`report_lines` gives it, then the values
+    beside a divergence; ``--json``'s ``error`` message when it is not identical)."""
+    d = report.first_divergence
+    if d is not None:
+        # seq: the port's publication number, not a value's own "seq" (a frame's)
+        return (
+            f"diverged at {d.node}.{d.port} seq {d.seq} (publication), t={d.time:.3f} s: {d.why}"
+            + (" (stopped there)" if report.stopped_early else "")
+        )
+    if report.log_cut is not None:
+        return (
+            f"not identical: the log was cut ({report.log_cut}); {report.compared} outputs "
+            f"compared over the {report.recorded_s:.1f} s recorded before the cut, what came "
+            "after it was never checked"
+        )
+    if report.identical:
+        return "identical: every compared output has its recorded digest"
+    if any(n.status == "not comparable" for n in report.nodes):
+        return "not identical: nothing could be compared (each node's reason above)"
+    return (
+        "not identical: nothing was compared: no node of this graph re-executes what the "
+        "recording holds (was it recorded with this graph?)"
+    )

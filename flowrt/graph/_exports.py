@@ -9,7 +9,7 @@ from pydantic import BaseModel
 
 from ..frames import Frame
 from ..node import Node
-from ._ports import node_ports, ports_unknown
+from ._ports import is_compatible, node_ports, ports_unknown
 from .diagnostics import did_you_mean
 from .spec import GraphSpec
 
@@ -40,15 +40,9 @@ def check_exports(
                     ("export", key),
                     f"node {ex.node!r} has no output {ex.port!r}" + did_you_mean(ex.port, src_outs),
                 )
-            elif ex.encoding != "raw" and not _frames(src_outs[ex.port]):
+            elif ex.encoding != "raw" and not is_compatible(src_outs[ex.port].type, Frame):
                 at(
                     ("export", key, "encoding"),
                     f"encoding {ex.encoding} is for frames: {ex.source} is not a Frame output "
                     "(leave encoding out: a message goes out as JSON)",
                 )
-
-
-def _frames(output: Any) -> bool:
-    """True when the output carries frames, or may (``object``: known at run time only)."""
-    kind = getattr(output, "type", object)
-    return not isinstance(kind, type) or kind is object or issubclass(kind, Frame)

@@ -491,6 +491,7 @@ def scan_session(path: str | Path) -> SessionInfo:
     files: list[FileInfo] = []
     merged: dict[str, tuple[_Chan, str]] = {}
     paths = mcap_files(path)
+    missing = missing_parts(path, paths)
     for f in paths:
         info, named = _scan(f)
         files.append(info)
@@ -516,8 +517,8 @@ def scan_session(path: str | Path) -> SessionInfo:
     return SessionInfo(
         path=str(path),
         files=files,
-        closed_cleanly=all(f.closed_cleanly for f in files) and not missing_parts(path, paths),
-        missing=missing_parts(path, paths),
+        closed_cleanly=all(f.closed_cleanly for f in files) and not missing,
+        missing=missing,
         size=sum(f.size for f in files),
         start=start,
         end=end,
