@@ -440,6 +440,10 @@ class Node:
     # (``Runtime.swap``, ``flowrt ctl swap``/``reload``), the new one receives the old one's
     # state, e.g. a tracker's last position. ``params_changed(old)``: params replaced between
     # activations (a mode's weights); recompute what ``setup`` derived from them.
+    # ``on_disable()``: the node was disabled while it runs (``Runtime.set_timing(node,
+    # enabled=False)``, a mode): a node that commands a device every tick leaves it safe (a
+    # haptic handle's force zeroed); called between calls, never beside one, for inline
+    # nodes (:mod:`flowrt.kernel.disabling`).
     # ``report() -> Any``: JSON-able facts about the node (a recorder's per-stream tables),
     # published in ``RuntimeStats.reports`` (``--stats-json``, ``ctl stats --json``).
 

@@ -32,6 +32,7 @@ from .backpressure import Backpressure
 from .context import RunnerContext
 from .counters import Counters, node_stats
 from .deadlines import DeadlineWatch
+from .disabling import DisableHook
 from .executor import Executor, InlineExecutor, NoExecutor
 from .inputs import Inputs
 from .outputs import OutputCheck
@@ -97,6 +98,7 @@ class RunnerFields:
     backpressure: Backpressure
     supervisor: Supervisor
     swapper: Swapper
+    disable_hook: DisableHook  # on_disable() between calls, once per disabling
     # Changed by the methods below only:
     rnode: ResolvedNode  # install(): a swap's class and params, new params
     executor: Executor  # install(): set up at start, a restart, a swap; NoExecutor before
@@ -255,6 +257,7 @@ class NodeRunner(RunnerFields):
         self.backpressure = Backpressure(sched.loop, self.idle)
         self.supervisor = Supervisor(self)
         self.swapper = Swapper(self)
+        self.disable_hook = DisableHook(self.name)
 
     # --- failures (supervision decides, the runner applies) ------------------------------
 
@@ -380,6 +383,11 @@ class NodeRunner(RunnerFields):
             return False
         self.stop_releasing()
         return True
+
+    def disabled(self) -> None:
+        """Just disabled (a timing change, a mode): the node's ``on_disable`` between calls
+        (kernel/disabling.py)."""
+        self.disable_hook.disabled(self.executor, self.busy)
 
     def release_frame(self, t: float, paced: bool) -> None:
         """Tick of this node's frame source, on its period and phase (see Scheduler.tick)."""
@@ -567,6 +575,8 @@ class NodeRunner(RunnerFields):
             self.move(_IDLE)
         if self.swapper.pending is not None and not self.busy:  # (precise: calls in flight)
             self.swapper.take_pending()  # a swap waits for this moment
+        if self.disable_hook.due and not self.busy:
+            self.disable_hook.run_if_due(self.executor, self.timing.enabled)
         if self.stopping:
             return
         if self.sched.drain_over():  # a call that ended past the drain's deadline: no next

@@ -239,6 +239,18 @@ class Haptic(Node):
         with contextlib.suppress(Exception):
             self.device.close()
 
+    def on_disable(self) -> None:
+        """Disabled (a mode, ``Runtime.set_timing``): zero force now; a handle left with its
+        last force pushed the operator's hand for as long as the node stayed disabled. The
+        limiter starts from zero when the node runs again (its rate limit ramps it back)."""
+        if getattr(self, "info", None) is None:
+            return  # not open: nothing pushes
+        self.limiter.cut()
+        try:
+            self.device.apply_force(self.limiter.applied, self.ctx.now())
+        except (DeviceError, OSError) as e:
+            self._failed(self.ctx.now(), f"device {self.params.device}: {e}")
+
     # --- one tick -------------------------------------------------------------------------
 
     def process(self, force: Any = None, lock: Any = None) -> dict[str, Any] | None:

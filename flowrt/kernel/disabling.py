@@ -1,0 +1,72 @@
+"""A node disabled while it runs leaves what it drives safe (``Node.on_disable``).
+
+Disabling a node (``Runtime.set_timing(node, enabled=False)``, a mode that disables it) stops
+its releases; nothing more happens to it. For a node that commands a device every tick (a
+haptic handle, a motor's set-point) the device then keeps the last command: a haptic handle
+went on pushing with its last force (1.5 N for as long as the node stayed disabled). The
+node's optional ``on_disable()`` is where it zeroes that command; the runtime calls it once
+per disabling, between two calls of ``process``, never beside one: now when no call runs,
+else when the running call ends (a precise node's thread included: it starts no call once
+the node is disabled, see :meth:`flowrt.kernel.precise.PreciseNodeRunner.disabled`).
+
+Enabled again before the running call ended, the hook is not called (the node never stopped
+running). Nodes in a worker process: not called (the worker protocol has no such request),
+said once in the log when such a node defines the hook.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import logging
+from typing import Any
+
+from .executor import InlineExecutor
+
+log = logging.getLogger("flowrt.scheduler")
+
+
+class DisableHook:
+    """One node's pending ``on_disable`` call."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.due = False  # disabled while a call ran: run the hook when that call ends
+        self.calls = 0  # hooks run (tests, the node's story in the log)
+
+    def disabled(self, executor: Any, busy: bool) -> None:
+        """The node was just disabled: its hook now, or when its running call ends."""
+        self.due = True
+        if not busy:
+            self.run_if_due(executor, enabled=False)
+
+    def run_if_due(self, executor: Any, enabled: bool) -> None:
+        """No call of the node runs: its hook, if a disabling waits for this moment."""
+        if not self.due:
+            return
+        self.due = False
+        if enabled:
+            return  # enabled again before its call ended: it never stopped
+        node = getattr(executor, "node", None)  # an inline node's instance (None: stopped)
+        hook = getattr(node, "on_disable", None)
+        if not callable(hook):
+            cls = getattr(getattr(executor, "factory", None), "cls", None)
+            if not isinstance(executor, InlineExecutor) and hasattr(cls, "on_disable"):
+                log.warning(
+                    "node %s: disabled in a worker process: on_disable() is not called", self.name
+                )
+            return
+        self.calls += 1
+        try:
+            result = hook()
+        except Exception as e:  # the node stays disabled; say that it may not be safe
+            log.error("node %s: on_disable() failed: %s: %s", self.name, type(e).__name__, e)
+            return
+        if inspect.isawaitable(result):
+            task = asyncio.ensure_future(result)
+            task.add_done_callback(self._async_done)
+
+    def _async_done(self, task: asyncio.Future[Any]) -> None:
+        if not task.cancelled() and task.exception() is not None:
+            e = task.exception()
+            log.error("node %s: on_disable() failed: %s: %s", self.name, type(e).__name__, e)
