@@ -7,7 +7,7 @@ went on pushing with its last force (1.5 N for as long as the node stayed disabl
 node's optional ``on_disable()`` is where it zeroes that command; the runtime calls it once
 per disabling, between two calls of ``process``, never beside one: now when no call runs,
 else when the running call ends (a precise node's thread included: it starts no call once
-the node is disabled, see :meth:`flowrt.kernel.precise.PreciseNodeRunner.disabled`).
+the node is disabled, see :meth:`DisableHook.disabled`).
 
 Enabled again before the running call ended, the hook is not called (the node never stopped
 running). Nodes in a worker process: not called (the worker protocol has no such request),
@@ -19,11 +19,21 @@ from __future__ import annotations
 import asyncio
 import inspect
 import logging
-from typing import Any
+from typing import Any, Protocol
 
 from .executor import InlineExecutor
 
 log = logging.getLogger("flowrt.scheduler")
+
+
+class _Runner(Protocol):
+    """What the hook reads of a node's runner (kernel/runner.py)."""
+
+    @property
+    def busy(self) -> bool: ...
+
+    executor: Any
+    timing: Any
 
 
 class DisableHook:
@@ -34,11 +44,22 @@ class DisableHook:
         self.due = False  # disabled while a call ran: run the hook when that call ends
         self.calls = 0  # hooks run (tests, the node's story in the log)
 
-    def disabled(self, executor: Any, busy: bool) -> None:
+    def disabled(self, runner: _Runner) -> None:
         """The node was just disabled: its hook now, or when its running call ends."""
         self.due = True
-        if not busy:
-            self.run_if_due(executor, enabled=False)
+        precise = getattr(runner, "precise", None)
+        if precise is not None:
+            # its thread tests ``enabled`` and counts its call in under this lock: past it, a
+            # call the thread began is in ``busy`` (the hook waits for it), none begins
+            with precise.lock:
+                pass
+        if not runner.busy:
+            self.run_if_due(runner.executor, enabled=False)
+
+    def idle(self, runner: _Runner) -> None:
+        """A call of the node ended (``NodeRunner.idle``): the hook, if a disabling waits."""
+        if self.due and not runner.busy:
+            self.run_if_due(runner.executor, runner.timing.enabled)
 
     def run_if_due(self, executor: Any, enabled: bool) -> None:
         """No call of the node runs: its hook, if a disabling waits for this moment."""
@@ -67,6 +88,6 @@ class DisableHook:
             task.add_done_callback(self._async_done)
 
     def _async_done(self, task: asyncio.Future[Any]) -> None:
-        if not task.cancelled() and task.exception() is not None:
-            e = task.exception()
+        e = None if task.cancelled() else task.exception()
+        if e is not None:
             log.error("node %s: on_disable() failed: %s: %s", self.name, type(e).__name__, e)

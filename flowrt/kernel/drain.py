@@ -161,7 +161,7 @@ class Drain:
     @staticmethod
     def _waits_for(r: NodeRunner) -> bool:
         """A restarting node the drain waits for: it has lossless values to deliver."""
-        return r.backlog() and r.timing.enabled
+        return r.ins.backlog() and r.timing.enabled
 
     def discard_leftovers(self) -> None:
         """Count what a stop leaves undelivered on queue and lossless edges, with a reason."""

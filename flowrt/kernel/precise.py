@@ -585,15 +585,6 @@ class PreciseNodeRunner(NodeRunner):
             p.start()
         return p
 
-    def disabled(self) -> None:
-        """As any node's, once the thread can start no call: it tests ``enabled`` and counts
-        its call in under the release's lock, so past this lock a call it began is counted
-        in ``busy`` and the hook waits for it (kernel/disabling.py)."""
-        if self.precise is not None:
-            with self.precise.lock:
-                pass
-        super().disabled()
-
     def stats(self) -> NodeStats:
         """As any node's, with how it is released where the table shows scheduling
         (``inline precise thread``; ``precise release``: handed to the loop)."""

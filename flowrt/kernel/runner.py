@@ -306,10 +306,6 @@ class NodeRunner(RunnerFields):
             if self.state is RunState.running:
                 self.move(RunState.idle)
 
-    def backlog(self) -> bool:
-        """A lossless input holds values not yet delivered."""
-        return self.ins.backlog()
-
     def catch_up(self) -> None:
         """Run once more for a lossless input's backlog (never skipped: see release)."""
         if self.pipeline.active():
@@ -320,7 +316,7 @@ class NodeRunner(RunnerFields):
             and self.state is _IDLE
             and not self.stopping
             and self.timing.enabled
-            and self.backlog()
+            and self.ins.backlog()
         ):
             self.release(self.sched.clock.now())
 
@@ -356,7 +352,7 @@ class NodeRunner(RunnerFields):
         if self.sched.stop_at is not None and self._past_stop():
             return
         busy = self.busy  # (read once: a property; the two moves below cost as much)
-        if (busy or self.state in _WAITING) and self.backlog():
+        if (busy or self.state in _WAITING) and self.ins.backlog():
             return  # not skipped: the lossless value waits, and idle() runs the node for it
         self.counts.activations += 1
         if busy or self.state in _DOWN:
@@ -383,11 +379,6 @@ class NodeRunner(RunnerFields):
             return False
         self.stop_releasing()
         return True
-
-    def disabled(self) -> None:
-        """Just disabled (a timing change, a mode): the node's ``on_disable`` between calls
-        (kernel/disabling.py)."""
-        self.disable_hook.disabled(self.executor, self.busy)
 
     def release_frame(self, t: float, paced: bool) -> None:
         """Tick of this node's frame source, on its period and phase (see Scheduler.tick)."""
@@ -575,8 +566,7 @@ class NodeRunner(RunnerFields):
             self.move(_IDLE)
         if self.swapper.pending is not None and not self.busy:  # (precise: calls in flight)
             self.swapper.take_pending()  # a swap waits for this moment
-        if self.disable_hook.due and not self.busy:
-            self.disable_hook.run_if_due(self.executor, self.timing.enabled)
+        self.disable_hook.idle(self)  # a disabling waited for this moment
         if self.stopping:
             return
         if self.sched.drain_over():  # a call that ended past the drain's deadline: no next

@@ -353,7 +353,7 @@ class Scheduler:
             if change.enabled and not was and loop_node and not r.busy:
                 self.loop.call_soon(r.release, self.clock.now())
             if was and not change.enabled:
-                r.disabled()  # what it drives made safe (Node.on_disable)
+                r.disable_hook.disabled(r)  # what it drives made safe (Node.on_disable)
         self._apply_timer(r, change)
         restart = ("period", "phase", "timer_ms", "timer_phase_ms", "enabled")
         if any(c.split()[0] in restart for c in changes):
