@@ -121,9 +121,11 @@ async def test_bad_requests_are_refused_with_reasons(rt: Runtime) -> None:
     status, reply = await call("POST", url(rt, "/timing"), {"node": "slow", "period": 2})
     assert status == 400
     assert "frame-triggered" in reply["error"]
+    assert "code" not in reply  # a refused change, not a malformed body
     status, reply = await call("POST", url(rt, "/timing"), {"node": "slow", "speed": 2})
     assert status == 400
     assert "bad request body" in reply["error"]
+    assert reply["code"] == "malformed"
     status, reply = await call("POST", url(rt, "/mode"), {"mode": "atack"})
     assert status == 404
     assert "unknown mode" in reply["error"]

@@ -18,15 +18,16 @@ class ControlError(Exception):
     """The runtime could not be reached or refused the request; the message says which,
     ``status`` the HTTP status of a refusal (None: not reached)."""
 
-    def __init__(self, message: str, status: int | None = None) -> None:
+    def __init__(self, message: str, status: int | None = None, code: str | None = None) -> None:
         super().__init__(message)
         self.status = status
+        self.code = code  # the refusal's ``code`` (``malformed``), when the endpoint gave one
 
     @property
     def malformed(self) -> bool:
         """The endpoint refused the request's body as malformed (a value out of range), not
         the change it asks for (admission control, a safety rule: also 400, exit 1)."""
-        return self.status == 400 and str(self).startswith("400: bad request body")
+        return self.status == 400 and self.code == "malformed"
 
 
 class ControlClient:
@@ -53,7 +54,7 @@ class ControlClient:
             with urllib.request.urlopen(req, timeout=self.timeout) as resp:
                 reply = resp.read()
         except urllib.error.HTTPError as e:
-            raise ControlError(self._refused(e), e.code) from None
+            raise ControlError(*self._refused(e)) from None
         except (urllib.error.URLError, OSError) as e:
             reason = getattr(e, "reason", e)
             if isinstance(reason, TimeoutError) and data is not None:
@@ -73,14 +74,18 @@ class ControlClient:
             ) from None
 
     @staticmethod
-    def _refused(e: urllib.error.HTTPError) -> str:
+    def _refused(e: urllib.error.HTTPError) -> tuple[str, int, str | None]:
+        """The refusal's line, status and code."""
+        code = None
         try:
-            message = json.loads(e.read()).get("error", e.reason)
+            reply = json.loads(e.read())
+            message = reply.get("error", e.reason)
+            code = reply.get("code")
         except (ValueError, AttributeError):
             message = e.reason
         if e.code == 401:
             message = f"{message} (give --token or set FLOWRT_TOKEN)"
-        return f"{e.code}: {message}"
+        return f"{e.code}: {message}", e.code, code if isinstance(code, str) else None
 
     def get(self, path: str) -> Any:
         return self.request("GET", path)

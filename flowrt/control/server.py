@@ -541,9 +541,9 @@ class _Gateway:
                     data = json.loads(raw, parse_constant=_no_constant)
                     body = model.model_validate(data)
                 except RecursionError:
-                    return _error(400, "bad request body: nested too deeply")
+                    return _error(400, "bad request body: nested too deeply", MALFORMED)
                 except (ValueError, ValidationError) as e:  # JSONDecodeError is a ValueError
-                    return _error(400, f"bad request body: {one_line(e)}")
+                    return _error(400, f"bad request body: {one_line(e)}", MALFORMED)
                 status, answer = await self.change(route.op, body.model_dump(mode="json"))
                 return _reply(status, answer, {"Retry-After": "1"} if status == 503 else None)
 
@@ -585,10 +585,18 @@ def _reply(status: int, body: bytes, headers: dict[str, str] | None = None) -> w
     return web.Response(status=status, body=body, content_type="application/json", headers=headers)
 
 
-def _error(status: int, message: str, headers: dict[str, str] | None = None) -> web.Response:
+MALFORMED = "malformed"  # a refusal's ``code``: the body, not the change it asks for
+
+
+def _error(
+    status: int, message: str, code: str | None = None, headers: dict[str, str] | None = None
+) -> web.Response:
+    """``{"error": message}``, and ``"code"`` where a script must tell refusals of one status
+    apart (a 400 for a malformed body, ``malformed``, from admission control's 400)."""
     from aiohttp import web
 
-    return web.json_response({"error": message}, status=status, headers=headers)
+    body = {"error": message} if code is None else {"error": message, "code": code}
+    return web.json_response(body, status=status, headers=headers)
 
 
 # --- the client: flowrt ctl ---------------------------------------------------------------
