@@ -499,7 +499,7 @@ class _Gateway:
                         return _error(
                             401,
                             "missing or wrong bearer token",
-                            {"WWW-Authenticate": 'Bearer realm="flowrt"'},
+                            headers={"WWW-Authenticate": 'Bearer realm="flowrt"'},
                         )
                 elif not is_loopback(hostname(request.host)):
                     return _error(403, f"Host {request.host!r} is not a loopback name")
