@@ -18,7 +18,17 @@ import pytest
 from conftest import wait_until
 from pydantic import BaseModel
 
-from flowrt import Frame, GraphBuilder, HealthAlert, Input, LoopTrigger, Node, Output, Runtime
+from flowrt import (
+    Frame,
+    GraphBuilder,
+    HealthAlert,
+    Input,
+    LoopTrigger,
+    Node,
+    Output,
+    Runtime,
+    VirtualClock,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 VIDEO: Path | None = REPO / "graphs" / "sample.avi"  # the repository's own clip
@@ -457,6 +467,27 @@ async def test_a_signal_while_a_slow_call_holds_the_loop_ends_the_sources_then()
     assert src.last_start is not None
     assert src.last_start < 0.4
     assert rt.stats().node("n").completions == src.completions
+
+
+async def test_a_source_released_before_the_stop_but_begun_after_it_publishes_nothing() -> None:
+    """uvloop runs due timers before queued callbacks: a source's timer released it (its
+    run queued behind a slow call), SIGINT came during that call, and the source's run then
+    published after the stop, the drain calling the slow node once more (CI, once)."""
+    clock = VirtualClock()
+    g = GraphBuilder("queued")
+    g.add("src", "counter", trigger={"timer": 3_600_000})
+    async with Runtime(g.build(), clock=clock) as rt:
+        await clock.advance(1.0)
+        r = rt.scheduler.runners["src"]
+        before = rt.stats().node("src")
+        r.release(clock.now())  # queued (call_soon), as behind a slow call
+        rt.scheduler.stop_due(clock.now())  # the handler, during that call
+        for _ in range(5):
+            await asyncio.sleep(0)
+        after = rt.stats().node("src")
+        assert after.completions == before.completions  # nothing published after the stop
+        assert after.activations == before.activations  # the stop took the release back
+        assert not r.busy
 
 
 async def test_what_a_drain_past_its_deadline_leaves_is_counted_as_its_timeout() -> None:
