@@ -442,8 +442,8 @@ class Node:
     # activations (a mode's weights); recompute what ``setup`` derived from them.
     # ``on_disable()``: the node was disabled while it runs (``Runtime.set_timing(node,
     # enabled=False)``, a mode): a node that commands a device every tick leaves it safe (a
-    # haptic handle's force zeroed); called between calls, never beside one, for inline
-    # nodes (:mod:`flowrt.kernel.disabling`).
+    # haptic handle's force zeroed); called between calls, never beside one, in the node's
+    # own process (:mod:`flowrt.kernel.disabling`).
     # ``report() -> Any``: JSON-able facts about the node (a recorder's per-stream tables),
     # published in ``RuntimeStats.reports`` (``--stats-json``, ``ctl stats --json``).
 

@@ -8,9 +8,12 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import pytest
+from conftest import wait_until
+from pydantic import BaseModel, ConfigDict
 
 from flowrt import GraphBuilder, Node, Output, Runtime, VirtualClock
 
@@ -195,3 +198,53 @@ async def test_a_precise_thread_never_runs_beside_the_hook() -> None:
         await task
     assert len(node.hooks) == 20
     assert node.overlaps == 0
+
+
+class FileDriver(Node):
+    """In a worker: each hook appends the calls made so far to ``<dir>/hooks``."""
+
+    class Params(BaseModel):
+        model_config = ConfigDict(extra="forbid")
+        dir: str
+
+    out = Output(int)
+
+    def setup(self) -> None:
+        self.calls = 0
+
+    def process(self) -> int:
+        self.calls += 1
+        return self.calls
+
+    def on_disable(self) -> None:
+        with Path(self.params.dir, "hooks").open("a") as f:
+            f.write(f"{self.calls}\n")
+
+
+def _hooks(path: Path) -> list[int]:
+    return [int(x) for x in path.read_text().split()] if path.exists() else []
+
+
+@pytest.mark.subprocess  # a worker process
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("placement", ["process", "pool"])
+async def test_a_worker_node_runs_its_hook_in_its_worker(placement: str, tmp_path: Path) -> None:
+    g = GraphBuilder()
+    params = {"dir": str(tmp_path)}
+    g.add("w", FileDriver, params=params, trigger={"timer": "20ms"}, placement=placement)
+    hooks = tmp_path / "hooks"
+    async with Runtime(g.build()) as rt:
+        task = asyncio.ensure_future(rt.run(30.0))
+        assert await wait_until(lambda: rt.stats().node("w").completions >= 3, within=20)
+        rt.set_timing("w", enabled=False)
+        assert await wait_until(lambda: len(_hooks(hooks)) == 1, within=10)
+        done = rt.stats().node("w").completions
+        assert _hooks(hooks)[0] == done  # every call sent before it ran before it
+        await asyncio.sleep(0.1)
+        assert rt.stats().node("w").completions == done  # none after
+        rt.set_timing("w", enabled=True)
+        assert await wait_until(lambda: rt.stats().node("w").completions > done, within=10)
+        rt.set_timing("w", enabled=False)
+        assert await wait_until(lambda: len(_hooks(hooks)) == 2, within=10)
+        await rt.stop()
+        await task

@@ -10,8 +10,8 @@ else when the running call ends (a precise node's thread included: it starts no 
 the node is disabled, see :meth:`DisableHook.disabled`).
 
 Enabled again before the running call ended, the hook is not called (the node never stopped
-running). Nodes in a worker process: not called (the worker protocol has no such request),
-said once in the log when such a node defines the hook.
+running). A node in a worker process runs it there (a request after its calls,
+``OP_DISABLE``, flowrt/workers/wire.py).
 """
 
 from __future__ import annotations
@@ -20,8 +20,6 @@ import asyncio
 import inspect
 import logging
 from typing import Any, Protocol
-
-from .executor import InlineExecutor
 
 log = logging.getLogger("flowrt.scheduler")
 
@@ -68,20 +66,22 @@ class DisableHook:
         self.due = False
         if enabled:
             return  # enabled again before its call ended: it never stopped
+        remote = getattr(executor, "on_disable", None)  # a worker's: a request to it
+        if remote is not None:
+            self.calls += 1
+            fut = remote()
+            if fut is not None:
+                fut.add_done_callback(self._async_done)
+            return
         node = getattr(executor, "node", None)  # an inline node's instance (None: stopped)
         hook = getattr(node, "on_disable", None)
         if not callable(hook):
-            cls = getattr(getattr(executor, "factory", None), "cls", None)
-            if not isinstance(executor, InlineExecutor) and hasattr(cls, "on_disable"):
-                log.warning(
-                    "node %s: disabled in a worker process: on_disable() is not called", self.name
-                )
             return
         self.calls += 1
         try:
             result = hook()
         except Exception as e:  # the node stays disabled; say that it may not be safe
-            log.error("node %s: on_disable() failed: %s: %s", self.name, type(e).__name__, e)
+            self._failed(e)
             return
         if inspect.isawaitable(result):
             task = asyncio.ensure_future(result)
@@ -90,4 +90,9 @@ class DisableHook:
     def _async_done(self, task: asyncio.Future[Any]) -> None:
         e = None if task.cancelled() else task.exception()
         if e is not None:
-            log.error("node %s: on_disable() failed: %s: %s", self.name, type(e).__name__, e)
+            self._failed(e)
+
+    def _failed(self, e: BaseException) -> None:
+        """Logged (the node stays disabled); a worker's error is its traceback: its last line."""
+        lines = str(e).strip().splitlines()
+        log.error("node %s: on_disable() failed: %s", self.name, lines[-1] if lines else repr(e))

@@ -22,7 +22,17 @@ from ..frames.lending import WorkerSlots, lazy_report
 from ..ipc import PICKLE, BlockingConn
 from ..system._priorities import WorkerScheduling, apply_scheduling
 from .forkserver import tied_to_runtime
-from .wire import OP_ADD, OP_CALL, OP_EXIT, OP_PRIORITY, OP_REMOVE, R_ERR, R_FATAL, R_OK
+from .wire import (
+    OP_ADD,
+    OP_CALL,
+    OP_DISABLE,
+    OP_EXIT,
+    OP_PRIORITY,
+    OP_REMOVE,
+    R_ERR,
+    R_FATAL,
+    R_OK,
+)
 
 
 def _spin(conn: BlockingConn, start: float, end: float) -> None:
@@ -220,6 +230,14 @@ class _Nodes:
         self.current = sched
         return granted
 
+    def disabled(self, nid: int) -> bool:
+        """OP_DISABLE: the node's ``on_disable`` (kernel/disabling.py); False: it has none."""
+        hook = getattr(self.nodes[nid][1], "on_disable", None)
+        if not callable(hook):
+            return False
+        self.run(hook())
+        return True
+
     def teardown(self, nid: int) -> None:
         entry = self.nodes.pop(nid, None)
         self.outputs.pop(nid, None)  # the main side takes its grants back (reclaim)
@@ -282,6 +300,8 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
                 result = w.add(*msg[1:])
             elif op == OP_PRIORITY:
                 result = w.priority(*msg[1:])
+            elif op == OP_DISABLE:
+                result = w.disabled(msg[1])
             elif op == OP_REMOVE:
                 w.teardown(msg[1])
                 result = None

@@ -17,7 +17,7 @@ from ..system._priorities import WorkerScheduling, nice_for
 from .channel import Worker
 from .errors import WorkerError
 from .forkserver import check_main_importable
-from .wire import OP_ADD, OP_CALL, OP_PRIORITY, OP_REMOVE
+from .wire import OP_ADD, OP_CALL, OP_DISABLE, OP_PRIORITY, OP_REMOVE
 
 
 def _check_priority(priority: int) -> int:
@@ -185,6 +185,18 @@ class _NodeExecutor:
                 self._granted = f.result()
 
         fut.add_done_callback(done)
+
+    def on_disable(self) -> asyncio.Future[Any] | None:
+        """The node was disabled: its ``on_disable`` in the worker (kernel/disabling.py),
+        after the calls sent before; None when no worker runs it. The future's result: True
+        when the node has the hook."""
+        w = self._worker
+        if w is None or not w.alive:
+            return None
+        try:
+            return w.request((OP_DISABLE, self.nid), self.name, self.priority, self.watchdog)
+        except WorkerError:  # it died meanwhile: its supervisor says so
+            return None
 
 
 class ProcessExecutor(_NodeExecutor):
