@@ -239,7 +239,9 @@ class Arbiter(Node):
     # over the control endpoint (flowrt kinds): weights and priorities, as modes set them;
     # never what keeps the robot safe (timeout, locks, zero, limits)
     swappable = frozenset({"mode", "sources"})
-    timing_fixed = True  # disabled or slowed, the robot keeps its last command
+    # disabled or slowed over the control endpoint, the robot kept its last command (a mode or
+    # a program disabling it: on_disable publishes the zero command)
+    timing_fixed = True
 
     Params = ArbiterParams
     any_inputs = Input(object, required=False, policy="latest", doc="command sources and locks")
@@ -381,6 +383,15 @@ class Arbiter(Node):
             return {"command": dict(zip(self.keys, self.acc, strict=True)), "selected": "blend"}
         i = self.names.index(winner)
         return {"command": dict(zip(self.keys, self.filtered[i], strict=True)), "selected": winner}
+
+    def on_disable(self) -> dict[str, Any]:
+        """Disabled (a mode, ``Runtime.set_timing``): the zero command, once; the actuator's
+        driver (a CAN transmitter resending its last value) otherwise kept the last command
+        for as long as the arbiter stayed disabled. Every source starts from zero again."""
+        for row in self.filtered:
+            row[:] = self.zero_values
+        self._switch(None)
+        return {"command": dict(self.params.zero), "selected": None}
 
     def report(self) -> dict[str, Any]:
         """What the statistics show of the arbiter (``reports``: table, --stats-json)."""

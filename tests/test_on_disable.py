@@ -90,6 +90,33 @@ async def test_the_hook_runs_once_per_disabling(steps: list[Any], hooks: int) ->
             assert node.calls == calls_at_hook  # no call after the last disabling's hook
 
 
+class Publisher(Driver):
+    """Its hook returns what to publish, as ``process`` does (a zero command)."""
+
+    def on_disable(self) -> int:  # type: ignore[override]
+        super().on_disable()
+        return -1
+
+
+class Wrong(Driver):
+    def on_disable(self) -> str:  # type: ignore[override]
+        return "not an int"
+
+
+async def test_what_the_hook_returns_is_published_and_checked(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    for cls, published in ((Publisher, [-1]), (Wrong, [])):
+        rt, clock = await _runtime_with(cls)
+        async with rt:
+            await clock.advance(0.1)
+            sub = rt.subscribe("d.out", size=100)
+            rt.set_timing("d", enabled=False)
+            await clock.advance(0.05)
+            assert sub.drain() == published
+    assert "node d: on_disable() failed" in caplog.text  # Wrong's str is refused, said
+
+
 async def test_a_running_call_ends_before_the_hook() -> None:
     rt, clock = await _runtime_with(SlowDriver)
     async with rt:

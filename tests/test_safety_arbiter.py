@@ -301,6 +301,23 @@ async def test_an_estop_published_once_keeps_zero_until_false() -> None:
         assert (await steer(rt, clock, sub, joy, 5))[-1] == joy
 
 
+async def test_a_disabled_arbiter_publishes_the_zero_command_once() -> None:
+    """A mode or a program disabling the arbiter left the actuator's driver on the last
+    command it had (a CAN transmitter resends it): the zero command is published at once;
+    enabled again, it steers from zero."""
+    clock = VirtualClock()
+    async with Runtime(drive_graph(["estop"]).build(), clock=clock) as rt:
+        sub = rt.subscribe("drive.command", size=1000)
+        joy = {"vx": 1.0, "w": 0.2}
+        rt.publish("estop.out", False)
+        assert (await steer(rt, clock, sub, joy, 10))[-1] == joy
+        rt.set_timing("drive", enabled=False)
+        assert sub.drain() == [ZERO]  # at once, before any tick
+        assert await steer(rt, clock, sub, joy, 20) == []  # disabled: nothing more
+        rt.set_timing("drive", enabled=True)
+        assert (await steer(rt, clock, sub, joy, 5))[-1] == joy
+
+
 @pytest.mark.parametrize(
     ("value", "moves"),
     [

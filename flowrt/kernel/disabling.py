@@ -4,7 +4,9 @@ Disabling a node (``Runtime.set_timing(node, enabled=False)``, a mode that disab
 its releases; nothing more happens to it. For a node that commands a device every tick (a
 haptic handle, a motor's set-point) the device then keeps the last command: a haptic handle
 went on pushing with its last force (1.5 N for as long as the node stayed disabled). The
-node's optional ``on_disable()`` is where it zeroes that command; the runtime calls it once
+node's optional ``on_disable()`` is where it zeroes that command, or returns what to publish
+as ``process`` does (the arbiter's zero command, for the actuator's driver downstream, which
+otherwise went on sending the last one it had); the runtime calls it once
 per disabling, between two calls of ``process``, never beside one: now when no call runs,
 else when the running call ends (a precise node's thread included: it starts no call once
 the node is disabled, see :meth:`DisableHook.disabled`).
@@ -32,6 +34,11 @@ class _Runner(Protocol):
 
     executor: Any
     timing: Any
+    out_check: Any  # OutputCheck: what the node's outputs can carry
+
+    sched: Any  # SchedulerPort: its clock
+
+    def publish_result(self, result: Any, t: float) -> None: ...
 
 
 class DisableHook:
@@ -52,26 +59,25 @@ class DisableHook:
             with precise.lock:
                 pass
         if not runner.busy:
-            self.run_if_due(runner.executor, enabled=False)
+            self._run(runner)
 
     def idle(self, runner: _Runner) -> None:
         """A call of the node ended (``NodeRunner.idle``): the hook, if a disabling waits."""
         if self.due and not runner.busy:
-            self.run_if_due(runner.executor, runner.timing.enabled)
+            self._run(runner)
 
-    def run_if_due(self, executor: Any, enabled: bool) -> None:
-        """No call of the node runs: its hook, if a disabling waits for this moment."""
-        if not self.due:
-            return
+    def _run(self, runner: _Runner) -> None:
+        """No call of the node runs: its hook, unless it was enabled again meanwhile."""
         self.due = False
-        if enabled:
+        if runner.timing.enabled:
             return  # enabled again before its call ended: it never stopped
+        executor = runner.executor
         remote = getattr(executor, "on_disable", None)  # a worker's: a request to it
         if remote is not None:
             self.calls += 1
             fut = remote()
             if fut is not None:
-                fut.add_done_callback(self._async_done)
+                fut.add_done_callback(lambda f: self._done(runner, f))
             return
         node = getattr(executor, "node", None)  # an inline node's instance (None: stopped)
         hook = getattr(node, "on_disable", None)
@@ -85,12 +91,29 @@ class DisableHook:
             return
         if inspect.isawaitable(result):
             task = asyncio.ensure_future(result)
-            task.add_done_callback(self._async_done)
+            task.add_done_callback(lambda f: self._done(runner, f))
+            return
+        self._publish(runner, result)
 
-    def _async_done(self, task: asyncio.Future[Any]) -> None:
-        e = None if task.cancelled() else task.exception()
-        if e is not None:
+    def _done(self, runner: _Runner, fut: asyncio.Future[Any]) -> None:
+        """A coroutine's or a worker's hook ended: what it returned, published."""
+        if fut.cancelled():
+            return
+        if (e := fut.exception()) is not None:
             self._failed(e)
+            return
+        self._publish(runner, fut.result())
+
+    def _publish(self, runner: _Runner, result: Any) -> None:
+        """What the hook returned, as ``process`` returns it (the arbiter's zero command),
+        checked against the node's outputs; None: nothing."""
+        if result is None:
+            return
+        problem = runner.out_check.problem(result)
+        if problem is not None:
+            self._failed(problem)
+            return
+        runner.publish_result(result, runner.sched.clock.now())
 
     def _failed(self, e: BaseException) -> None:
         """Logged (the node stays disabled); a worker's error is its traceback: its last line."""

@@ -518,7 +518,7 @@ class NodeRunner(RunnerFields):
                 c.discarded += 1
                 act.discard(result)
             elif result is not None:
-                self._publish_result(result, end)
+                self.publish_result(result, end)
         finally:
             act.close()
             # The statistics after the publication: a reader served on the spot (an
@@ -529,7 +529,7 @@ class NodeRunner(RunnerFields):
                 self.supervisor.succeeded()
         self.idle()
 
-    def _publish_result(self, result: Any, t: float) -> None:
+    def publish_result(self, result: Any, t: float) -> None:  # (on_disable's too)
         outs = self.outputs
         if len(outs) == 1:
             (port,) = outs

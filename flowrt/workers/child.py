@@ -230,13 +230,11 @@ class _Nodes:
         self.current = sched
         return granted
 
-    def disabled(self, nid: int) -> bool:
-        """OP_DISABLE: the node's ``on_disable`` (kernel/disabling.py); False: it has none."""
+    def disabled(self, nid: int) -> Any:
+        """OP_DISABLE: the node's ``on_disable`` (kernel/disabling.py): what it returned (to
+        publish), None when it has none."""
         hook = getattr(self.nodes[nid][1], "on_disable", None)
-        if not callable(hook):
-            return False
-        self.run(hook())
-        return True
+        return self.run(hook()) if callable(hook) else None
 
     def teardown(self, nid: int) -> None:
         entry = self.nodes.pop(nid, None)

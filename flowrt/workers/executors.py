@@ -188,8 +188,8 @@ class _NodeExecutor:
 
     def on_disable(self) -> asyncio.Future[Any] | None:
         """The node was disabled: its ``on_disable`` in the worker (kernel/disabling.py),
-        after the calls sent before; None when no worker runs it. The future's result: True
-        when the node has the hook."""
+        after the calls sent before; None when no worker runs it. The future's result: what
+        the hook returned, to publish."""
         w = self._worker
         if w is None or not w.alive:
             return None

@@ -18,7 +18,7 @@ OP_CALL = 1  # (op, node_id, inputs, grants, alone) -> result (grants: slots len
 OP_REMOVE = 2  # (op, node_id) -> None (teardown)
 OP_EXIT = 3  # (op,) -> None (teardown all, then exit)
 OP_PRIORITY = 4  # (op, node_id, WorkerScheduling) -> granted: str
-OP_DISABLE = 5  # (op, node_id) -> bool: the node was disabled: its ``on_disable`` (if any) ran
+OP_DISABLE = 5  # (op, node_id) -> what the node's ``on_disable`` returned (None: or it has none)
 
 # Replies (worker -> main), in the order of the requests; ``index`` counts the requests the
 # worker has read (0, 1, 2, ...), so that the main side matches each reply to its call;
