@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from conftest import FlowrtCli
 
+import flowrt
 from flowrt.recording.jsonschema import app_schema, schema_problems
 
 REPO = Path(__file__).resolve().parents[1]
@@ -58,6 +59,34 @@ def test_the_live_servers_own_channels_pass_too() -> None:
 
     for name in ("flowrt.RuntimeStats", "flowrt.Event"):
         assert schema_problems(json.loads(_json_schema(name).data)) == [], name
+
+
+@pytest.mark.parametrize(
+    "event",
+    [
+        flowrt.HealthAlert(1.0, "can", "can-timeout", "Gear (0x200) not received", "warning"),
+        flowrt.DeadlineMissed(1.0, "ball", 20.0, True, False),
+        flowrt.NodeFailed(1.0, "ball", "ValueError: x", "Traceback ..."),
+        flowrt.ModeChanged(1.0, None, "attack", "defend"),
+    ],
+    ids=lambda e: type(e).__name__,
+)
+def test_every_field_of_an_event_is_typed_in_the_events_schema(event: object) -> None:
+    """The live ``/flowrt/events`` schema typed only ``t``, ``node`` and ``kind``: an alert's
+    ``alert``, ``detail`` and ``severity`` could not be plotted or filtered."""
+    import dataclasses
+
+    import jsonschema
+
+    from flowrt.recording.encoding import to_jsonable
+    from flowrt.recording.live import _json_schema
+
+    schema = json.loads(_json_schema("flowrt.Event").data)
+    body = {"kind": type(event).__name__, **to_jsonable(event)}
+    body = {k: v for k, v in body.items() if v is not None}  # None is left out (README)
+    names = {f.name for f in dataclasses.fields(event)}  # type: ignore[arg-type]
+    assert names <= set(schema["properties"])
+    jsonschema.validate(body, schema)
 
 
 @pytest.mark.parametrize(

@@ -106,6 +106,7 @@ async def test_receive_decodes_and_counts_unknown_ids(channel: str, peer: can.Bu
         assert msg.timestamp <= rt.clock.now()
         unknown = [raw.get_nowait(), raw.get_nowait()]
         assert [(u.id, u.extended) for u in unknown] == [(0x7FF, False), (0x100, True)]
+        assert [u.dlc for u in unknown] == [2, 8]  # (was 0: the frames output's was right)
         assert n.snapshot().unknown == 2
 
 
@@ -162,6 +163,7 @@ async def test_timeout_marks_invalid_and_alerts(channel: str, peer: can.BusABC) 
     opts = {"WheelSpeeds": {"timeout_ms": 100}}
     async with Runtime(graph(channel, messages=opts).build(), clock=clock) as rt:
         speeds = rt.subscribe("chassis.WheelSpeeds")
+        infrared = rt.subscribe("chassis.Infrared")
         n = await opened(rt)
         await clock.advance(0.05)
         peer.send(frame("WheelSpeeds", LeftSpeed=0.3))
@@ -181,8 +183,12 @@ async def test_timeout_marks_invalid_and_alerts(channel: str, peer: can.BusABC) 
         alerts = [e for e in rt.events if isinstance(e, HealthAlert) and e.alert == "can-timeout"]
         wheel_alerts = [a for a in alerts if "WheelSpeeds" in a.detail]
         assert len(wheel_alerts) == 1
-        # Infrared (20 ms cycle, 10 x = 200 ms) never came at all: timed out too
+        # Infrared (20 ms cycle, 10 x = 200 ms) never came at all: timed out too, stamped
+        # at its timeout (it was 0.0: the machine's boot in a recording's Unix time)
         assert any("Infrared" in a.detail for a in alerts)
+        never = infrared.get_nowait()
+        assert (never.valid, never.reason, never.signals) == (False, "timeout", {})
+        assert never.timestamp == pytest.approx(0.2, abs=0.03)
         assert n.msgs["WheelSpeeds"].timeouts == 1
         peer.send(frame("WheelSpeeds", LeftSpeed=0.4))
         await until(lambda: n.msgs["WheelSpeeds"].received == 2)

@@ -53,6 +53,16 @@ def test_info_lists_the_topics_with_types_and_counts(bag: Path) -> None:
     assert info.duration == pytest.approx((N - 1) / 25)
 
 
+def test_the_last_message_time_is_known_for_the_progress_line(bag: Path) -> None:
+    """A ``.db3`` bag's replay showed no progress total (``duration_s: null``); the same bag
+    as ``.mcap`` had one."""
+    from flowrt.recording.reader import last_log_time
+
+    (last,) = {last_log_time(f) for f in mcap_files(bag)[-1:]}
+    assert last is not None
+    assert (last - T0) / 1e9 == pytest.approx((N - 1) / 25)
+
+
 def test_every_message_decodes(bag: Path, clip: Any) -> None:
     frames = clip[1]
     files = mcap_files(bag)

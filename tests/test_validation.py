@@ -123,6 +123,26 @@ def test_every_valid_graph_file_validates_against_the_published_schema(path: Pat
     assert not errors, errors[:5]
 
 
+@pytest.mark.parametrize(
+    ("deadline", "valid"),
+    [("10ms", True), (" 1.5 s", True), ("200us", True), (20, True), ("1e3us", True),
+     ("fast", False), ("10 min", False), ("ms", False)],
+)  # fmt: skip
+def test_the_published_schema_refuses_a_duration_the_loader_refuses(
+    deadline: object, valid: bool
+) -> None:
+    """The schema took any text for a duration (``deadline: fast``), which ``validate``
+    refuses."""
+    import jsonschema
+
+    from flowrt.graph.spec import GraphSpec
+
+    schema = GraphSpec.model_json_schema(by_alias=True)
+    data = {"nodes": {"a": {"kind": "counter", "deadline": deadline}}}
+    errors = list(jsonschema.Draft202012Validator(schema).iter_errors(data))
+    assert (not errors) is valid, [e.message for e in errors]
+
+
 def test_fixtures_cover_every_check() -> None:
     """The table has a case for each check the graph-file format promises."""
     stated = "\n".join(str(e) for p in INVALID for e in expectations(p))

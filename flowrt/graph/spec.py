@@ -86,8 +86,12 @@ def parse_duration_ms(value: Any) -> float:
     return ms
 
 
-_PARSED_DURATION = BeforeValidator(parse_duration_ms, json_schema_input_type=float | str)
-"""A duration with its unit parsed; its JSON Schema takes the number or the text."""
+_DURATION_TEXT = Annotated[
+    str, Field(pattern=r"^\s*[0-9]*\.?[0-9]+([eE][-+]?[0-9]+)?\s*(us|ms|s)?\s*$")
+]
+_PARSED_DURATION = BeforeValidator(parse_duration_ms, json_schema_input_type=float | _DURATION_TEXT)
+"""A duration with its unit parsed; its JSON Schema takes the number or the text (its form:
+the schema accepted ``deadline: fast``, which the loader refuses)."""
 DurationMs = Annotated[float, _PARSED_DURATION]
 """A finite duration in milliseconds; YAML may write it with a unit (us, ms, s)."""
 

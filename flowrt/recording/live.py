@@ -388,22 +388,41 @@ def _stop_server(server: Any) -> None:
 
 
 def _json_schema(name: str) -> StreamSchema:
-    """The statistics' schema from their model, events as an object of their common fields;
+    """The statistics' schema from their model, events as one object of every event's fields;
     both in the subset the apps read (flowrt.recording.jsonschema)."""
 
     from ..stats import RuntimeStats
     from .jsonschema import app_schema
 
-    if name == "flowrt.RuntimeStats":
-        schema = app_schema(RuntimeStats.model_json_schema())
-    else:
-        fields = {"t": "number", "node": "string", "kind": "string"}  # every event has them
-        schema = {
-            "type": "object",
-            "properties": {k: {"type": t} for k, t in fields.items()},
-        }
+    schema = (
+        app_schema(RuntimeStats.model_json_schema()) if name == "flowrt.RuntimeStats" else _events()
+    )
     schema["title"] = name
     return StreamSchema(name, "jsonschema", json.dumps(schema).encode(), "json")
+
+
+def _events() -> dict[str, Any]:
+    """Every event kind's fields (flowrt.events) in one object: an alert's ``alert``,
+    ``detail`` and ``severity`` were untyped (the schema had only the common ``t``, ``node``
+    and ``kind``), so the apps could not plot or filter them."""
+    import dataclasses
+
+    from pydantic import TypeAdapter
+
+    from .. import events
+    from .jsonschema import app_schema
+
+    properties: dict[str, Any] = {"kind": {"type": "string"}}
+    for cls in vars(events).values():
+        if (
+            isinstance(cls, type)
+            and issubclass(cls, events.Event)
+            and dataclasses.is_dataclass(cls)
+        ):
+            one = app_schema(TypeAdapter(cls).json_schema())
+            for key, field in one.get("properties", {}).items():
+                properties.setdefault(key, field)
+    return {"type": "object", "properties": properties}
 
 
 def _release(value: Any) -> None:

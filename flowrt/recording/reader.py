@@ -704,8 +704,14 @@ def channel_schemas(files: list[Path]) -> dict[str, tuple[str, Any]]:
 
 def last_log_time(path: Path) -> int | None:
     """The last message's log time (ns) by the file's summary; None without one (a file
-    not closed cleanly)."""
+    not closed cleanly). A rosbag2 ``.db3`` file: its last message's (the replay's progress
+    line had no length for one)."""
     from mcap.reader import SeekingReader
+
+    from .rosbag2 import db3_last_time, is_db3
+
+    if is_db3(path):
+        return db3_last_time(path)
 
     try:
         with open(path, "rb") as f:

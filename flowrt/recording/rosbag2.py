@@ -156,6 +156,19 @@ def db3_topics(path: Path, with_times: bool = True) -> dict[int, Db3Topic]:
         con.close()
 
 
+def db3_last_time(path: Path) -> int | None:
+    """The last message's time (ns) in a ``.db3`` file (None: no message, or unreadable)."""
+    try:
+        con = _connect(path)
+        try:
+            row = con.execute("SELECT MAX(timestamp) FROM messages").fetchone()
+        finally:
+            con.close()
+    except sqlite3.DatabaseError:
+        return None
+    return None if row is None or row[0] is None else int(row[0])
+
+
 def db3_messages(
     path: Path, topics: set[str] | None = None
 ) -> Iterator[tuple[Db3Topic, int, bytes]]:

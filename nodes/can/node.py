@@ -321,7 +321,7 @@ class Can(Node):
             if self.params.unknown_output:
                 out = CanFrame(
                     key[0], data, key[1], now, float(frame.timestamp), chan, fd, brs,
-                    bool(frame.is_remote_frame),
+                    bool(frame.is_remote_frame), int(frame.dlc),
                 )  # fmt: skip
                 self.ctx.publish("unknown", out)
             return
@@ -521,7 +521,9 @@ class Can(Node):
                     int(st.dbc.frame_id),
                     dict(last.signals) if last else {},
                     last.data if last else b"",
-                    last.timestamp if last else 0.0,
+                    # the signals' time; never received: the timeout's (0.0 read as the
+                    # machine's boot in a recording's Unix time)
+                    last.timestamp if last else now,
                     False,
                     "timeout",
                     last.bus_timestamp if last else 0.0,

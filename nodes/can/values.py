@@ -43,7 +43,7 @@ class CanMessage:
 
 @dataclass(frozen=True)
 class CanFrame:
-    """A raw frame (an id the DBC does not know)."""
+    """A raw CAN frame as received (`frames`: every one; `unknown`: ids the DBC does not know)."""
 
     id: int
     data: bytes
