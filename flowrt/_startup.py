@@ -116,7 +116,23 @@ def exit_now(code: int, line: str) -> NoReturn:
         )
         with contextlib.suppress(OSError):
             os.write(1, doc.encode())
+    _unlink_own_segments()
     os._exit(code)
+
+
+def _unlink_own_segments() -> None:
+    """This process's shared-memory segments (frames, the RTDB: ``flowrt_{pid}_...``, see
+    flowrt.frames.pool), unlinked before a forced exit: they waited in /dev/shm for the next
+    start to reclaim them. Processes that still map one keep their mapping."""
+    prefix = f"flowrt_{os.getpid()}_"
+    try:
+        names = os.listdir("/dev/shm")
+    except OSError:
+        return
+    for name in names:
+        if name.startswith(prefix):
+            with contextlib.suppress(OSError):
+                os.unlink(os.path.join("/dev/shm", name))
 
 
 def _quoted(text: str) -> str:

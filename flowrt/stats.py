@@ -148,6 +148,12 @@ class NodeStats(_Frozen):
     restarts: int
     last_start: float | None = Field(description="runtime clock, seconds since start")
     last_finish: float | None
+    timing_changed: float | None = Field(
+        default=None,
+        description="when its release timing (period, phase, timer, enabled) last changed at "
+        "run time, runtime clock, seconds since start (None: never); a recording's expected "
+        "count of its streams is not computed across it",
+    )
     interval: Summary = Field(description="inter-activation time (start to start), ms")
     execution: Summary = Field(description="start to finish, ms")
     response: Summary = Field(description="release (tick) to finish, ms")

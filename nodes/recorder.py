@@ -333,7 +333,9 @@ class Recorder(Node):
         duration = self.ctx.now() - started
         start = dt.datetime.fromtimestamp(self._started_wall, dt.UTC).isoformat()
         stats = self._stats()
-        rates = nominal_rates(stats) if stats is not None else {}
+        # the session's start on the statistics' clock (seconds since the runtime's start)
+        since = None if stats is None else stats.uptime - duration
+        rates = nominal_rates(stats, since) if stats is not None else {}
         leads = self._lags.leads()
 
         def report() -> RecordingReport:

@@ -153,3 +153,18 @@ async def test_against_a_running_recorder(
         assert await ctl("record", "stop") == 0
         assert await ctl("record", "stop") == 1
     assert sorted(os.listdir(tmp_path)) == ["drive_001"]  # the refused start made none
+
+
+def test_a_start_names_its_session(endpoint: _Endpoint, capsys: pytest.CaptureFixture[str]) -> None:
+    """``POST /record`` took ``name``; ``flowrt ctl record`` had no way to give it."""
+    url = ["ctl", "--url", endpoint.url, "record"]
+    assert main([*url, "start", "--name", "drive"]) == 0
+    assert endpoint.posts[-1] == {"action": "start", "name": "drive"}
+    assert main([*url, "stop", "--name", "drive"]) == 2  # a stop names nothing
+    with pytest.raises(SystemExit) as bad:
+        main([*url, "start", "--name", "../x"])
+    assert bad.value.code == 2
+    err = capsys.readouterr().err
+    assert "--name names a new session" in err
+    assert "a session name is letters, digits, _ and - (at most 64)" in err
+    assert len(endpoint.posts) == 1

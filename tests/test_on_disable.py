@@ -103,18 +103,44 @@ class Wrong(Driver):
         return "not an int"
 
 
-async def test_what_the_hook_returns_is_published_and_checked(
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    for cls, published in ((Publisher, [-1]), (Wrong, [])):
-        rt, clock = await _runtime_with(cls)
-        async with rt:
-            await clock.advance(0.1)
-            sub = rt.subscribe("d.out", size=100)
-            rt.set_timing("d", enabled=False)
-            await clock.advance(0.05)
-            assert sub.drain() == published
-    assert "node d: on_disable() failed" in caplog.text  # Wrong's str is refused, said
+class Raising(Driver):
+    def on_disable(self) -> None:
+        raise RuntimeError("motor brake failed")
+
+
+async def test_what_the_hook_returns_is_published() -> None:
+    rt, clock = await _runtime_with(Publisher)
+    async with rt:
+        await clock.advance(0.1)
+        sub = rt.subscribe("d.out", size=100)
+        rt.set_timing("d", enabled=False)
+        await clock.advance(0.05)
+        assert sub.drain() == [-1]
+    assert rt.stats().node("d").state == "disabled"
+
+
+@pytest.mark.parametrize(
+    ("cls", "why"),
+    [(Wrong, "on_disable() failed: OutputError"), (Raising, "motor brake failed")],
+)
+async def test_a_hook_that_fails_fails_the_node_for_good(cls: type[Node], why: str) -> None:
+    """A failed safe-state hook was logged only, the run exiting 0 with the device perhaps
+    left pushing: the node is given up (torn down), its reason said, the run's failure."""
+    rt, clock = await _runtime_with(cls)
+    async with rt:
+        await clock.advance(0.1)
+        sub = rt.subscribe("d.out", size=100)
+        rt.set_timing("d", enabled=False)
+        await clock.advance(0.05)
+        assert sub.drain() == []  # the wrong value is not published
+        rt.set_timing("d", enabled=True)
+        await clock.advance(0.1)
+        assert sub.drain() == []  # failed for good: enabling it runs nothing
+    node = rt.stats().node("d")
+    assert node.state == "failed"
+    assert node.errors == 1
+    assert why in node.reason
+    assert [f.name for f in rt.failures()] == ["d"]
 
 
 async def test_a_running_call_ends_before_the_hook() -> None:

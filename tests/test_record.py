@@ -319,9 +319,15 @@ class _Row:
     """A node's statistics as nominal_rates reads them: the numbers, not the shown period."""
 
     def __init__(
-        self, name: str, trigger: str, frames: int | None = None, timer_ms: float | None = None
+        self,
+        name: str,
+        trigger: str,
+        frames: int | None = None,
+        timer_ms: float | None = None,
+        changed: float | None = None,
     ) -> None:
         self.name, self.trigger, self.period_frames, self.timer_ms = name, trigger, frames, timer_ms
+        self.timing_changed = changed
 
 
 @pytest.mark.parametrize(
@@ -342,6 +348,36 @@ def test_nominal_rates(rows: list[_Row], expected: dict[str, float]) -> None:
         nodes = rows
 
     assert nominal_rates(Stats()) == pytest.approx(expected)
+
+
+CAM = _Row("cam", "timer", timer_ms=50)
+
+
+@pytest.mark.parametrize(
+    ("rows", "since", "expected"),
+    [
+        # a mode switched the tracker between periods during the session: no one rate
+        ([CAM, _Row("t", "frame cam", frames=2, changed=5.0)], 1.0, {"cam": 20, "t": None}),
+        # ... before it began: the rate it has now is the session's
+        ([CAM, _Row("t", "frame cam", frames=2, changed=0.5)], 1.0, {"cam": 20, "t": 10}),
+        # the camera's timer changed: its readers have no one rate either
+        (
+            [_Row("cam", "timer", timer_ms=50, changed=3.0), _Row("t", "frame cam", frames=2)],
+            1.0,
+            {"cam": None},  # (t: none either, stream_rate's get)
+        ),
+    ],
+)
+def test_no_nominal_rate_across_a_timing_change(
+    rows: list[_Row], since: float, expected: dict[str, float | None]
+) -> None:
+    """``expected 36, received 41`` for a tracker a mode switched between periods 1 and 2
+    while recording (a new-user pass)."""
+
+    class Stats:
+        nodes = rows
+
+    assert nominal_rates(Stats(), since) == expected
 
 
 # --- sessions ---------------------------------------------------------------------------------

@@ -441,6 +441,31 @@ async def test_a_value_published_by_the_host_is_checked_as_a_nodes() -> None:
         rt.publish("src.tick", 3)
 
 
+@pytest.mark.parametrize(
+    ("call", "error", "said"),
+    [
+        (lambda rt: rt.subscribe(3), TypeError, "a port is named 'node.port' (text), got 3"),
+        (lambda rt: rt.publish(None, 1), TypeError, "a port is named 'node.port' (text)"),
+        (
+            lambda rt: rt.set_timing("src", enabled="no"),
+            ValueError,
+            "src: enabled must be True or False, got 'no'",
+        ),
+    ],
+)
+async def test_misuse_of_the_embedding_api_says_what_is_wrong(
+    call: Any, error: type[Exception], said: str
+) -> None:
+    """(``rt.subscribe(3)``: AttributeError 'int' object has no attribute 'partition';
+    ``enabled="no"`` disabled the node)"""
+    g = GraphBuilder()
+    g.add("src", Count, trigger={"timer": "10ms"})
+    async with Runtime(g.build(), clock=VirtualClock()) as rt:
+        with pytest.raises(error, match=re.escape(said)):
+            call(rt)
+        assert rt.stats().node("src").enabled
+
+
 async def _maybe_awaited(call: Any, rt: Runtime) -> None:
     result = call(rt)
     if asyncio.iscoroutine(result):

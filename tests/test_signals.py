@@ -147,6 +147,7 @@ def test_a_second_signal_waits_for_teardown_and_a_third_forces(tmp_path: Path, r
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert "forced exit" in err
     assert "Traceback" not in err
+    assert _segments(proc.pid) == []  # they waited in /dev/shm for the next start
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -38,6 +39,15 @@ def _count(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError("must be more than 0")
     return n
+
+
+def _session_name(text: str) -> str:
+    """``record start --name``: what ``POST /record`` takes (checked here: exit 2)."""
+    if not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", text):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: a session name is letters, digits, _ and - (at most 64)"
+        )
+    return text
 
 
 def _is_number(text: str) -> bool:
@@ -145,6 +155,11 @@ def add_parsers(sub: Any) -> None:
     rc = what.add_parser("record", help="start or stop the graph's recorder node(s)")
     rc.add_argument("action", choices=("start", "stop"), help="start or stop recording")
     rc.add_argument("--node", help="one recorder (default: every recorder of the graph)")
+    rc.add_argument(
+        "--name",
+        type=_session_name,
+        help="with start: the session's name, NAME_NNN (default: the recorder's)",
+    )
     sw = what.add_parser(
         "swap", help="replace a node's algorithm while running (set up beside, then take over)"
     )
@@ -356,6 +371,9 @@ def _record(client: Any, args: argparse.Namespace) -> int:
     """Ask, then wait (up to 5 s) for each recorder to say where it records, or that it stopped."""
     import time
 
+    if args.name is not None and args.action != "start":  # a bad argument: exit 2
+        print("flowrt ctl: --name names a new session (record start --name NAME)", file=sys.stderr)
+        return 2
     before = _sessions(client, args.node)
     busy = {n: s for n, s in before.items() if s}
     if args.action == "start" and busy:
@@ -366,6 +384,8 @@ def _record(client: Any, args: argparse.Namespace) -> int:
     body: dict[str, Any] = {"action": args.action}
     if args.node:
         body["node"] = args.node
+    if args.name is not None:
+        body["name"] = args.name
     nodes = client.post("/record", body)["nodes"]
     said: dict[str, Any] = {}
     for node in nodes:

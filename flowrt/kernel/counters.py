@@ -36,14 +36,17 @@ class Counters:
     last_start: float | None = None
     last_finish: float | None = None
     interval_from: float | None = None  # None after a timing change: a new series
+    timing_changed: float | None = None  # when its release timing last changed (None: never)
     interval: Running = field(default_factory=Running)
     execution: Running = field(default_factory=Running)
     response: Running = field(default_factory=Running)
 
-    def new_interval_series(self) -> None:
-        """The interval statistics describe the new timing, not a mean of old and new."""
+    def new_interval_series(self, at: float) -> None:
+        """The interval statistics describe the new timing (from ``at``), not a mean of old
+        and new."""
         self.interval = Running()
         self.interval_from = None
+        self.timing_changed = at
 
 
 def node_stats(
@@ -105,6 +108,7 @@ def node_stats(
         restarts=c.restarts,
         last_start=None if c.last_start is None else rel(c.last_start),
         last_finish=None if c.last_finish is None else rel(c.last_finish),
+        timing_changed=None if c.timing_changed is None else rel(c.timing_changed),
         interval=c.interval.summary(),
         execution=c.execution.summary(),
         response=c.response.summary(),

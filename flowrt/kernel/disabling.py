@@ -13,17 +13,19 @@ the node is disabled, see :meth:`DisableHook.disabled`).
 
 Enabled again before the running call ended, the hook is not called (the node never stopped
 running). A node in a worker process runs it there (a request after its calls,
-``OP_DISABLE``, flowrt/workers/wire.py).
+``OP_DISABLE``, flowrt/workers/wire.py). A hook that raises, or returns what the node's
+outputs cannot carry, fails the node for good (its device may not be safe): given up, torn
+down, and the run exits 1.
 """
 
 from __future__ import annotations
 
 import asyncio
 import inspect
-import logging
+import traceback
 from typing import Any, Protocol
 
-log = logging.getLogger("flowrt.scheduler")
+from ..node import FatalError
 
 
 class _Runner(Protocol):
@@ -39,6 +41,8 @@ class _Runner(Protocol):
     sched: Any  # SchedulerPort: its clock
 
     def publish_result(self, result: Any, t: float) -> None: ...
+
+    def fail(self, exc: BaseException, starting: bool = False) -> None: ...
 
 
 class DisableHook:
@@ -86,8 +90,8 @@ class DisableHook:
         self.calls += 1
         try:
             result = hook()
-        except Exception as e:  # the node stays disabled; say that it may not be safe
-            self._failed(e)
+        except Exception as e:
+            self._failed(runner, e)
             return
         if inspect.isawaitable(result):
             task = asyncio.ensure_future(result)
@@ -100,7 +104,7 @@ class DisableHook:
         if fut.cancelled():
             return
         if (e := fut.exception()) is not None:
-            self._failed(e)
+            self._failed(runner, e)
             return
         self._publish(runner, fut.result())
 
@@ -111,11 +115,17 @@ class DisableHook:
             return
         problem = runner.out_check.problem(result)
         if problem is not None:
-            self._failed(problem)
+            self._failed(runner, problem)
             return
         runner.publish_result(result, runner.sched.clock.now())
 
-    def _failed(self, e: BaseException) -> None:
-        """Logged (the node stays disabled); a worker's error is its traceback: its last line."""
-        lines = str(e).strip().splitlines()
-        log.error("node %s: on_disable() failed: %s", self.name, lines[-1] if lines else repr(e))
+    @staticmethod
+    def _failed(runner: _Runner, e: BaseException) -> None:
+        """What leaves the node's device safe failed: the node fails for good (a fatal error:
+        given up, torn down, the run exits 1), as a teardown that fails does. Logged only,
+        the run exited 0 with a device perhaps left pushing."""
+        summary = getattr(e, "summary", None) or f"{type(e).__name__}: {e}"
+        fatal = FatalError(f"on_disable() failed: {summary}")
+        tb = getattr(e, "traceback", None)  # a worker's (its own frames)
+        fatal.traceback = tb if isinstance(tb, str) else "".join(traceback.format_exception(e))  # type: ignore[attr-defined]
+        runner.fail(fatal)

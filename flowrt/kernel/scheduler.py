@@ -357,7 +357,7 @@ class Scheduler:
         self._apply_timer(r, change)
         restart = ("period", "phase", "timer_ms", "timer_phase_ms", "enabled")
         if any(c.split()[0] in restart for c in changes):
-            r.counts.new_interval_series()
+            r.counts.new_interval_series(self.clock.now())
         text = ", ".join(changes) or "no change"
         if changes:
             self.emit(TimingChanged(self.rel(self.clock.now()), node, text, origin))

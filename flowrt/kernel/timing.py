@@ -131,6 +131,8 @@ class TimingChange:
         Raises ValueError naming the node and every bad field.
         """
         values = {k: v for k, v in given.items() if v is not None}
+        if "enabled" in values and not isinstance(values["enabled"], bool):  # ("no" was False)
+            raise ValueError(f"{node}: enabled must be True or False, got {values['enabled']!r}")
         try:
             override = TimingOverride.model_validate(values)
         except ValidationError as e:

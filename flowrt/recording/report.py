@@ -51,7 +51,7 @@ class StreamReport(BaseModel):
     nominal_hz: float | None = Field(description="the source's rate by the graph's timing")
     expected: int | None = Field(
         description="the source's releases within the session, its phase respected "
-        "(expected_releases; None: not periodic)"
+        "(expected_releases; None: not periodic, or its timing changed during the session)"
     )
     received: int
     written: int
@@ -86,9 +86,12 @@ class RecordingReport(BaseModel):
         return sum(s.lost for s in self.streams)
 
 
-def nominal_rates(stats: Any) -> dict[str, float | None]:
+def nominal_rates(stats: Any, since: float | None = None) -> dict[str, float | None]:
     """Node name -> nominal activations per second, for timer- and frame-triggered nodes;
-    ``node.port`` -> the rate an output declares of its own (None: no rate)."""
+    ``node.port`` -> the rate an output declares of its own (None: no rate). ``since``
+    (runtime clock, seconds since start: a session's start): a node whose timing changed
+    after it has no one rate over the session (a mode switched a tracker between periods 1
+    and 2: "expected 36, received 41"), nor have the readers of its frames."""
     rows = {n.name: n for n in stats.nodes}
     out: dict[str, float | None] = {}
 
@@ -97,6 +100,10 @@ def nominal_rates(stats: Any) -> dict[str, float | None]:
             return out[name]
         n = rows.get(name)
         if n is None or depth > 20:
+            return None
+        changed = getattr(n, "timing_changed", None)
+        if since is not None and changed is not None and changed >= since:
+            out[name] = None
             return None
         r: float | None = None
         if n.trigger == "timer" and n.timer_ms:  # the numbers, not the shown text (rounded)

@@ -14,7 +14,9 @@ from ._subscription import Subscription
 
 
 def runner_port(sched: Scheduler, target: str) -> tuple[NodeRunner, str]:
-    """``node.port`` resolved, or KeyError naming the nearest names."""
+    """``node.port`` resolved, or KeyError naming the nearest names (TypeError: not text)."""
+    if not isinstance(target, str):
+        raise TypeError(f"a port is named 'node.port' (text), got {target!r}")
     node, _, port = target.partition(".")
     runner = sched.runners.get(node)
     if runner is None:
