@@ -39,6 +39,10 @@ pytestmark = [
 TESTS = Path(__file__).resolve().parent
 FLOWRT = [sys.executable, str(Path(sys.executable).with_name("flowrt"))]
 LIMIT_S = 2.0  # the bound from the signal to the exit
+# From the run on, the orderly stop's teardowns come on top (README "Signals": 2 s each at
+# most): a worker that has not exited by then is killed. Its exit takes ~0.15 s, but once
+# in CI (a loaded machine) the mid-drain exit took 2.10 s; a hang is far beyond either.
+STOP_S = LIMIT_S + 2.0
 # What outlives the main process (the forkserver, multiprocessing's resource tracker) ends
 # on end of file once it is gone; on a loaded machine their own interpreter shutdown took
 # over 2 s once (CI). A leak never ends: 10 s tells one from the other.
@@ -182,7 +186,7 @@ def test_a_signal_at_start_up(tmp_path: Path, start: object, sig: int, after_s: 
     else:  # it was running already (a fast machine): an orderly stop
         assert code == 0, err
         assert f"{name}: stopping the run" in err, err
-    assert took < LIMIT_S, f"exit took {took:.2f} s:\n{err}"
+    assert took < STOP_S, f"exit took {took:.2f} s:\n{err}"
     _nothing_left(proc.pid)
 
 
@@ -195,7 +199,7 @@ def test_a_signal_mid_run_stops_in_order(tmp_path: Path, start: object, sig: int
     assert code == 0, err
     assert f"{signal.Signals(sig).name}: stopping the run" in err
     assert "Traceback" not in err, err
-    assert took < LIMIT_S, f"exit took {took:.2f} s:\n{err}"
+    assert took < STOP_S, f"exit took {took:.2f} s:\n{err}"
     _nothing_left(proc.pid)
 
 
@@ -213,7 +217,7 @@ def test_a_signal_mid_drain_cuts_it_short(tmp_path: Path, start: object, sig: in
     assert code == 0, err
     assert "during the drain: cut short" in err, err
     assert "Traceback" not in err, err
-    assert took < LIMIT_S, f"exit took {took:.2f} s:\n{err}"
+    assert took < STOP_S, f"exit took {took:.2f} s:\n{err}"
     edges = json.loads(stats.read_text())["edges"]
     edge = next(e for e in edges if e["name"].endswith("sink.value"))
     assert edge["drop_reasons"].get("interrupted", 0) > 0, edge
@@ -312,4 +316,4 @@ def test_a_signal_while_a_call_holds_the_loop_starts_no_call_after_it(
     assert code == 0, err
     starts = [float(x) for x in calls.read_text().split()]
     assert all(t < sent for t in starts), (sent, starts)
-    assert took < 0.6 + LIMIT_S, err
+    assert took < 0.6 + STOP_S, err
