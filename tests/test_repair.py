@@ -114,6 +114,20 @@ def test_a_cut_file_is_said_truncated_and_repaired_as_such(
     assert again.metadata["flowrt.repair"]["damage"] == TRUNCATED
 
 
+def test_an_empty_file_is_said_empty_and_repaired_as_an_empty_recording(tmp_path: Path) -> None:
+    """A recorder killed as it created its file leaves 0 bytes: "truncated: the file ends
+    inside a record at byte 0" said it poorly."""
+    bad = tmp_path / "rec_001.mcap"
+    bad.write_bytes(b"")
+    info = scan(bad)
+    assert (info.closed_cleanly, info.damage_offset) == (False, None)
+    assert info.damage == "empty: not one byte (killed as it was created)"
+    fixed, kept, _ = repair(bad)
+    again = scan(fixed)
+    assert again.closed_cleanly
+    assert kept == again.messages == 0
+
+
 def test_every_cut_in_the_summary_and_footer_says_truncated(whole: Path, tmp_path: Path) -> None:
     data = whole.read_bytes()
     start = summary_start(data)

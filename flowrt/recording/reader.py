@@ -416,9 +416,12 @@ def _file_info(
         attachments.append(f"{a.name} ({a.media_type}, {len(a.data)} bytes)")
         if a.name == "graph.yaml":
             graph = a.data.decode("utf-8", "replace")
+    size = p.stat().st_size
+    if size == 0:  # "truncated: the file ends inside a record at byte 0" said it poorly
+        rec.damage, rec.damage_offset = "empty: not one byte (killed as it was created)", None
     info = FileInfo(
         path=str(p),
-        size=p.stat().st_size,
+        size=size,
         closed_cleanly=rec.closed_cleanly and rec.damage is None,
         damage=rec.damage,
         damage_offset=rec.damage_offset,
