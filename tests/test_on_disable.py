@@ -191,8 +191,11 @@ async def test_a_disabled_haptic_node_pushes_no_more() -> None:
             await clock.advance(0.01)
         device = _node(rt, "haptic").device
         assert device.force[0] == pytest.approx(1.5)
+        applied = rt.subscribe("haptic.applied", size=100)
         rt.set_timing("haptic", enabled=False)
         assert device.force == [0.0, 0.0, 0.0]
+        said = applied.drain()  # what reads `applied` saw 1.5 N last, the device had 0
+        assert [(f.values, f.reason) for f in said] == [((0.0, 0.0, 0.0), "disabled")]
         for _ in range(20):
             rt.publish("f.out", [1.5, 0.0, 0.0])
             await clock.advance(0.01)

@@ -237,6 +237,55 @@ async def test_the_page_records_reviews_and_plots(tmp_path: Path, repo: Path) ->
                 10,
                 "the stop from elsewhere said",
             )
-        # the recorder may fall behind a machine loaded by the whole suite (CI: 2 frames):
-        # counted above, and the run's exit says so (1); anything else must exit 0
-        await run.stop(tolerated="recorder behind")
+            # a poll of the record state in flight while this page's Start is, answered after
+            # it, read "stopped from elsewhere" beside the REC the page had just started (a
+            # new-user pass: every first Start). The Start is sent 1.5 s late here (a poll
+            # runs meanwhile, answered "stopped"), and that answer is given 0.3 s after the
+            # Start's.
+            await until(
+                page, "document.querySelector('#recstart')?.disabled === false", 20, "Start"
+            )
+            await page.eval(
+                "(() => { const real = window.fetch; let started = null;"
+                " window.fetch = async (path, init) => {"
+                " const p = String(path);"
+                " if (p.endsWith('api/record/start')) {"
+                " await new Promise(f => setTimeout(f, 1500)); const r = await real(path, init);"
+                " started = Date.now(); window.fetch = real; return r; }"
+                " const r = await real(path, init);"
+                " if (p.endsWith('api/record') && started === null) {"
+                " while (started === null) await new Promise(f => setTimeout(f, 20));"
+                " await new Promise(f => setTimeout(f, 300)); }"
+                " return r; };"
+                " return true; })()"
+            )
+            await click(page, "#recstart")
+            await asyncio.sleep(1.5 + 1.0)  # the Start sent, answered; the held polls too
+            said = await page.eval("document.querySelector('#recmsg').textContent")
+            assert said == "recording match_003", said
+            # the recorder may fall behind a machine loaded by the whole suite (CI: 2 frames):
+            # counted above, and the run's exit says so (1); anything else must exit 0
+            await run.stop(tolerated="recorder behind")
+            # the runtime gone: the page said "recording match_003" with Stop enabled for
+            # good, and asked for its state five times a second (each a console error)
+            said = await until(
+                page,
+                "(() => { const t = document.querySelector('#recmsg').textContent;"
+                " return t.includes('state unknown') ? t : null; })()",
+                10,
+                "the recording's state said unknown",
+            )
+            assert said.startswith("match_003: state unknown"), said
+            assert await page.eval(
+                "document.querySelector('#recstart').disabled"
+                " && document.querySelector('#recstop').disabled"
+            )
+            await page.eval(
+                "(() => { const real = window.fetch; window.asked = 0;"
+                " window.fetch = (...a) => { window.asked += 1; return real(...a); };"
+                " return true; })()"
+            )
+            await asyncio.sleep(6.0)
+            # each poller waits twice as long after each failure (1 s -> 10 s): a handful
+            # in 6 s, where they asked 20 times (stats, record, health every 1 s, robots 2 s)
+            assert await page.eval("window.asked") <= 12

@@ -42,7 +42,6 @@ from .encoding import (
     encode_annotations,
     encode_json,
     epoch_ns,
-    image_schema,
     is_detection,
     to_jsonable,
 )
@@ -172,11 +171,9 @@ class FoxgloveLive:
                     continue
                 # sampled: values nobody asked for are unread, not red drops in the table
                 self._subs[topic] = rt.subscribe(topic, policy="latest", size=1, sampled=True)
-                if issubclass(kind, Frame):
-                    self._frame_topics.add(topic)
-                    self._cameras.setdefault(name, topic)
-                    schema = image_schema(self.image_format != "raw")
-                    self._channels[topic] = self._channel(topic, schema)
+                if issubclass(kind, Frame):  # advertised at its first frame, as a message's
+                    self._frame_topics.add(topic)  # channel (a replay node's `frame` output
+                    self._cameras.setdefault(name, topic)  # of a text topic never has one)
         self._stats_schema = _json_schema("flowrt.RuntimeStats")
         self._events_schema = _json_schema("flowrt.Event")
         self._stats_channel = self._channel("/flowrt/stats", self._stats_schema)

@@ -239,17 +239,22 @@ class Haptic(Node):
         with contextlib.suppress(Exception):
             self.device.close()
 
-    def on_disable(self) -> None:
+    def on_disable(self) -> dict[str, Any] | None:
         """Disabled (a mode, ``Runtime.set_timing``): zero force now; a handle left with its
         last force pushed the operator's hand for as long as the node stayed disabled. The
-        limiter starts from zero when the node runs again (its rate limit ramps it back)."""
+        limiter starts from zero when the node runs again (its rate limit ramps it back).
+        ``applied`` says so (``disabled``): its last value, the force before, read as
+        what the device still had."""
         if getattr(self, "info", None) is None:
-            return  # not open: nothing pushes
+            return None  # not open: nothing pushes
+        now = self.ctx.now()
         self.limiter.cut()
         try:
-            self.device.apply_force(self.limiter.applied, self.ctx.now())
+            self.device.apply_force(self.limiter.applied, now)
         except (DeviceError, OSError) as e:
-            self._failed(self.ctx.now(), f"device {self.params.device}: {e}")
+            self._failed(now, f"device {self.params.device}: {e}")
+            return {"applied": Force(self.axes, self.limiter.applied, now, "device-error")}
+        return {"applied": Force(self.axes, self.limiter.applied, now, "disabled")}
 
     # --- one tick -------------------------------------------------------------------------
 

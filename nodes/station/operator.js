@@ -3,7 +3,10 @@
 // Talks to /api/record/* and /api/sessions* of the view's own server (same origin).
 "use strict";
 
-const op = window.flowrt.operator = { starts: 0, stops: 0, sessions: [], lastStop: null, error: "" };
+// recordEpoch: counts this page's starts and stops answered; a state asked before the last of
+// them is older than what the page said of it, and is not shown (a poll in flight during a
+// Start, answered after it, read "stopped from elsewhere" beside the REC it had started)
+const op = window.flowrt.operator = { starts: 0, stops: 0, sessions: [], lastStop: null, error: "", recordEpoch: 0 };
 const q = (sel) => document.querySelector(sel);
 
 function td(text, cls) {
@@ -50,6 +53,7 @@ async function recordStart() {
   q("#recstart").disabled = true;
   try {
     const a = await api("POST", "api/record/start", { name: q("#recname").value.trim() });
+    op.recordEpoch += 1;
     op.starts += 1;
     op.session = a.session;
     if (a.session == null) {  // 202: the recorders start when they can; said once they do
@@ -58,6 +62,7 @@ async function recordStart() {
     } else { say(`recording ${a.session}`, "ok"); op.saidRecording = a.session; }
     q("#recresult").replaceChildren();
   } catch (e) {
+    op.recordEpoch += 1;
     op.error = e.message;
     say(`cannot start: ${e.message}`, "bad");
   } finally {
@@ -72,6 +77,7 @@ async function recordStop() {
   say("stopping: finishing the files…", "warn");
   try {
     const a = await api("POST", "api/record/stop", {});
+    op.recordEpoch += 1;
     op.stops += 1;
     op.lastStop = a;
     if (a.finished === false) {  // 202: stopped, the files still being finished on a slow disk
@@ -83,6 +89,7 @@ async function recordStop() {
     showStopTable(a);
     pollSessions();
   } catch (e) {
+    op.recordEpoch += 1;
     op.error = e.message;
     say(`cannot stop: ${e.message}`, "bad");
   } finally {
@@ -107,9 +114,15 @@ function showStopTable(a) {
   q("#recresult").replaceChildren(t);
 }
 
+class Stale extends Error {}  // a record state older than this page's last start or stop
+
 async function pollRecord(again = true) {
+  const epoch = op.recordEpoch;
+  let ok = false;
   try {
     const s = await api("GET", "api/record");
+    ok = true;
+    if (epoch !== op.recordEpoch) throw new Stale();  // asked before this page's start or stop
     op.state = s;
     const none = !s.recorders.length;
     q("#recstart").disabled = none || s.recording;
@@ -136,9 +149,16 @@ async function pollRecord(again = true) {
         return e;
       }));
   } catch (e) {
-    q("#recstate").textContent = `record state unavailable (${e.message})`;
+    if (!(e instanceof Stale)) {
+      // the runtime gone (or the token changed): nothing can be started or stopped from here,
+      // and "recording X" no longer knows
+      q("#recstate").textContent = `record state unavailable (${e.message})`;
+      q("#recstart").disabled = q("#recstop").disabled = true;
+      if (op.saidRecording) say(`${op.saidRecording}: state unknown (${e.message})`, "warn");
+      op.saidRecording = null;
+    }
   }
-  if (again) setTimeout(pollRecord, 1000);
+  if (again) setTimeout(pollRecord, window.flowrt.later("record", ok, 1000));
 }
 
 // --- Review ----------------------------------------------------------------------------------
@@ -246,6 +266,7 @@ async function robotRecord(name, action) {
 }
 
 async function pollRobots(again = true) {
+  let ok = false;
   try {
     const data = await api("GET", "api/robots");
     op.robots = data.robots;
@@ -270,8 +291,9 @@ async function pollRobots(again = true) {
         td(sessions.length ? `● REC ${sessions.map((x) => x.split("/").pop()).join(", ")}` : "stopped", sessions.length ? "l bad" : "l muted"),
         buttons], { "data-robot": r.name, "data-reachable": String(r.reachable) });
     }));
-  } catch (e) { /* the next poll tries again */ }
-  if (again) setTimeout(pollRobots, 2000);
+    ok = true;
+  } catch (e) { /* the next poll tries again, later after each failure */ }
+  if (again) setTimeout(pollRobots, window.flowrt.later("robots", ok, 2000));
 }
 
 function setupOperator() {

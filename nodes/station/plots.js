@@ -109,6 +109,7 @@ function renderPlots(data) {
 }
 
 async function pollHealth() {
+  let ok = false;
   try {
     const seconds = document.querySelector("#healthwindow").value;
     const r = await fetch(`api/health/history?seconds=${seconds}`, { cache: "no-store" });
@@ -116,7 +117,8 @@ async function pollHealth() {
       const data = await r.json();
       window.flowrt.health = data;
       renderPlots(data);
+      ok = true;
     }
-  } catch (e) { /* the next poll tries again */ }
-  setTimeout(pollHealth, 1000);
+  } catch (e) { /* the next poll tries again, later after each failure */ }
+  setTimeout(pollHealth, window.flowrt.later("health", ok, 1000));
 }

@@ -103,6 +103,11 @@ class RecordApi:
         self.call = call
         self.refresh = refresh  # new statistics into observe(), before a state is answered
         self.state: dict[str, Any] = {"recording": [], "recordings": []}
+        # Starts and stops this view made (``_now_recording``): statistics asked for before the
+        # last of them are older than what it said, and do not undo it (a page's poll in
+        # flight during a Start read "stopped" after it, until the next statistics)
+        self.changes = 0
+        self.changed_at = 0.0  # (monotonic) the last of them: statistics asked for since
         self._edges: tuple[float, dict[str, int]] | None = None  # the previous statistics
         self.rates: dict[str, float] = {}
         self.refused = 0  # requests refused for their body (not JSON, nested too deeply, ...)
@@ -116,14 +121,17 @@ class RecordApi:
             web.get("/api/record", self.status),
         ]
 
-    def observe(self, stats: dict[str, Any], now: float) -> None:
+    def observe(self, stats: dict[str, Any], now: float, asked: int | None = None) -> None:
         """New statistics: the recorders' state, and each recorded stream's rate since the
-        previous ones (from the counts of the edges into the recorders)."""
+        previous ones (from the counts of the edges into the recorders). ``asked``: the
+        ``changes`` when they were asked for; older than a start or stop since, their
+        recorders' state is not taken (the rates are)."""
         display = stats.get("display") or {}
-        self.state = {
-            "recording": display.get("recording", []),
-            "recordings": display.get("recordings", []),
-        }
+        if asked is None or asked == self.changes:
+            self.state = {
+                "recording": display.get("recording", []),
+                "recordings": display.get("recordings", []),
+            }
         nodes = {r["node"] for r in self.state["recording"]}
         counts: dict[str, int] = {}
         for e in (stats.get("runtime") or {}).get("edges", []):
@@ -144,6 +152,8 @@ class RecordApi:
         for node, folder in sessions.items():
             rows[node] = {"node": node, "session": folder, "since": 0.0}
         self.state = {**self.state, "recording": list(rows.values())}
+        self.changes += 1
+        self.changed_at = time.monotonic()
 
     async def _body(self, request: web.Request) -> dict[str, Any]:
         try:

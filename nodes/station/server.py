@@ -27,6 +27,7 @@ review of recorded sessions, the health over time and the robots of a base stati
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import hmac
 import json
@@ -110,7 +111,10 @@ class ViewServer:
         self.shown = ShownFrames(self._send, self.any_change)
         self._writer: asyncio.StreamWriter | None = None
         self._stats: tuple[float, bytes] | None = None
-        self._stats_wait: asyncio.Future[bytes] | None = None
+        # Statistics asked for, in order (each reply answers the oldest): when each was asked,
+        # and who waits for statistics asked at or after a time (fresh_stats' ``since``)
+        self._stats_asks: collections.deque[float] = collections.deque()
+        self._stats_waiters: list[tuple[float, asyncio.Future[bytes]]] = []
         self.calls = Calls(self._send, CALL_WAIT)
         self.station = Station(settings, self.calls.call, self.fresh_stats)
 
@@ -200,9 +204,17 @@ class ViewServer:
                     }
                     data = b'{"runtime":' + body + b',"display":' + json.dumps(display).encode()
                     data += b"}"
-                    self._stats = (time.monotonic(), data)
-                    if self._stats_wait is not None and not self._stats_wait.done():
-                        self._stats_wait.set_result(data)
+                    # stamped when asked for: what they say is at least that new (a reply to a
+                    # request sent before a recording's start is not news of after it)
+                    asked = self._stats_asks.popleft() if self._stats_asks else time.monotonic()
+                    self._stats = (asked, data)
+                    waiting = []
+                    for since, fut in self._stats_waiters:
+                        if asked < since:
+                            waiting.append((since, fut))
+                        elif not fut.done():
+                            fut.set_result(data)
+                    self._stats_waiters = waiting
                 elif op == "reply":
                     self.calls.reply(header)
 
@@ -274,18 +286,27 @@ class ViewServer:
             headers={"Cache-Control": "no-store"},
         )
 
-    async def fresh_stats(self) -> bytes | None:
-        """The node's statistics, at most STATS_MAX_AGE old (None: it gave none in time)."""
+    async def fresh_stats(self, since: float = 0.0) -> bytes | None:
+        """The node's statistics, at most STATS_MAX_AGE old and asked for at or after
+        ``since`` (monotonic: a recording's start or stop this view made, which statistics
+        from before it contradict); None: it gave none in time."""
         cached = self._stats
-        if cached is not None and time.monotonic() - cached[0] < STATS_MAX_AGE:
+        now = time.monotonic()
+        if cached is not None and cached[0] >= since and now - cached[0] < STATS_MAX_AGE:
             return cached[1]
-        if self._stats_wait is None or self._stats_wait.done():
-            self._stats_wait = asyncio.get_running_loop().create_future()
+        while self._stats_asks and now - self._stats_asks[0] > 10 * STATS_WAIT:
+            self._stats_asks.popleft()  # never answered (the runtime busy, or gone)
+        if not self._stats_asks or self._stats_asks[-1] < since:  # none in flight will do
+            self._stats_asks.append(now)
             self._send({"op": "stats"})
+        fut: asyncio.Future[bytes] = asyncio.get_running_loop().create_future()
+        self._stats_waiters.append((since, fut))
         try:
-            return await asyncio.wait_for(asyncio.shield(self._stats_wait), STATS_WAIT)
+            return await asyncio.wait_for(fut, STATS_WAIT)
         except TimeoutError:
             return cached[1] if cached is not None else None
+        finally:
+            self._stats_waiters = [w for w in self._stats_waiters if w[1] is not fut]
 
     async def _stats_json(self, request: web.Request) -> web.Response:
         body = await self.fresh_stats()

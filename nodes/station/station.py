@@ -66,7 +66,7 @@ class Station:
         self,
         settings: dict[str, Any],
         call: Call,
-        fresh_stats: Callable[[], Awaitable[bytes | None]],
+        fresh_stats: Callable[[float], Awaitable[bytes | None]],
     ) -> None:
         self.fresh_stats = fresh_stats
         self.recordings: list[str] = list(settings.get("recordings", ()))
@@ -92,10 +92,11 @@ class Station:
 
     async def _refresh(self) -> None:
         """The recorders' state as of now (a page asking right after the start)."""
-        body = await self.fresh_stats()
+        asked = self.records.changes
+        body = await self.fresh_stats(self.records.changed_at)
         if body is not None:
             with contextlib.suppress(ValueError):
-                self.records.observe(json.loads(body), time.monotonic())
+                self.records.observe(json.loads(body), time.monotonic(), asked)
 
     async def close(self) -> None:
         await asyncio.to_thread(self.robots.close)
@@ -119,13 +120,14 @@ class Station:
         loop = asyncio.get_running_loop()
         next_at = loop.time()
         while True:
+            asked = self.records.changes
             try:
-                body = await self.fresh_stats()
+                body = await self.fresh_stats(self.records.changed_at)
                 stats = json.loads(body) if body is not None else None
             except ValueError:
                 stats = None
             if stats is not None:
-                self.records.observe(stats, time.monotonic())
+                self.records.observe(stats, time.monotonic(), asked)
             self.history.sample(stats)  # psutil's reads: well under a millisecond
             next_at = max(next_at + period, loop.time())
             await asyncio.sleep(next_at - loop.time())
