@@ -97,6 +97,18 @@ def test_ctl_through_zenoh_same_answers_and_token_rules_as_http(tmp_path: Path) 
             http.post("/timing", {"node": "ghost", "deadline": 40.0})
         assert str(z_err.value) == str(h_err.value)
         assert str(z_err.value).startswith("404")
+        # a malformed body: exit 2 both ways (through Zenoh it was 1: no code carried)
+        with pytest.raises(ControlError) as z_err:
+            zc.post("/timing", {"node": "ball", "deadline": 0})
+        assert (z_err.value.status, z_err.value.malformed) == (400, True)
+        for via in (("--zenoh", endpoint, "--key", KEY), ("--url", f"http://127.0.0.1:{hport}")):
+            bad = ctl(*via, "--token", TOKEN, "timing", "ball", "--deadline", "0")
+            assert bad.returncode == 2, (via, bad.stderr)
+        # a key nothing answers: Zenoh ends the query at once ("within 16 s" was said)
+        none = ctl("--zenoh", endpoint, "--key", "elsewhere/control", "--token", TOKEN, "qos")
+        assert none.returncode == 1
+        assert "no runtime answered on elsewhere/control" in none.stderr
+        assert "(none there)" in none.stderr, none.stderr
 
         # from the CLI: without the token, the same one-line refusal as HTTP
         no_z = ctl("--zenoh", endpoint, "--key", KEY, "qos")

@@ -232,3 +232,12 @@ def test_before_the_exporter_clock_is_measured_the_arrival_time_is_used() -> Non
     imp.on_sample(_Sample(header, json.dumps({"timestamp": 42.0, "v": 1.0}).encode()))
     imp.deliver()
     assert published[0]["timestamp"] == 1000.0
+    # nor has it an age: 0 offset read "age max 5001 ms" (a new-user pass, 5 s off)
+    assert imp.link.delivered == 1
+    assert imp.link.age.count == 0
+    imp.bridge.clock_known = lambda zid: True  # type: ignore[attr-defined]
+    imp.bridge.offset = lambda zid: -5.0  # type: ignore[attr-defined]
+    imp.on_sample(_Sample(Header("s", "z", 1, time.time() - 5.0, time.time() - 5.0, "json"), b"{}"))
+    imp.deliver()
+    assert imp.link.age.count == 1
+    assert imp.link.age.max < 100  # ms: its clock known, the age holds

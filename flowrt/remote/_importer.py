@@ -453,10 +453,14 @@ class ImportLink:
     ) -> None:
         """On the loop, after the readers of a delivery: the link's counts and ages, the
         import's liveness, the RTDB records (a write is ~0.1 ms: a lock), the next spare."""
+        bridge = self.bridge
         for header, now, wall_now in arrived:
-            offset = self.bridge.offset(header.zid)
             self.link.delivered += 1
-            self.link.age.add(max(0.0, wall_now - (header.sent - offset)))
+            # an age needs the exporter's clock: before it is measured the offset is 0, and a
+            # robot 5 s off read "age max 5001 ms" for ever (the capture times wait too)
+            if not header.zid or bridge.clock_known(header.zid):
+                offset = bridge.offset(header.zid)
+                self.link.age.add(max(0.0, wall_now - (header.sent - offset)))
             self.live.arrived(now)
         self.live.contact()
         if records:

@@ -23,6 +23,7 @@ import json
 import logging
 import queue
 import threading
+import time
 import urllib.error
 import urllib.request
 from typing import Any
@@ -173,6 +174,7 @@ class ZenohControlClient:
         query = {"method": method, "path": path, "body": body, "token": self.token}
         query["timeout"] = self.timeout
         where = f"{self.key} via {', '.join(self.connect)}"
+        asked = time.monotonic()
         try:
             replies = list(
                 session.get(
@@ -192,12 +194,19 @@ class ZenohControlClient:
                 raise ControlError(f"{where}: not a flowrt control reply") from None
             if status >= 400:
                 message = data.get("error") if isinstance(data, dict) else data
+                code = data.get("code") if isinstance(data, dict) else None  # "malformed"
                 if status == 401:
                     message = f"{message} (give --token or set FLOWRT_TOKEN)"
-                raise ControlError(f"{status}: {message}")
+                raise ControlError(
+                    f"{status}: {message}", status, code if isinstance(code, str) else None
+                )
             return data
+        waited = time.monotonic() - asked
+        # Zenoh ends a query at once when nothing there answers this key: "within 16 s" after
+        # 0.65 s said a wait that never was
+        said = f"within {self.timeout + 1.0:g} s" if waited >= self.timeout else "(none there)"
         raise ControlError(
-            f"no runtime answered on {where} within {self.timeout + 1.0:g} s; is a graph with "
+            f"no runtime answered on {where} {said}; is a graph with "
             f"`zenoh: {{control: {self.key}}}` running there?"
         )
 
