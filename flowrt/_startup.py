@@ -40,6 +40,11 @@ EXIT_INTERRUPTED = 130
 phase = "importing"
 #: SIGHUP was ignored when the command started (``nohup``): every phase leaves it so.
 hup_ignored = False
+#: The signal :func:`_raise_interrupted` last raised (None: none). Raised where exceptions are
+#: ignored (a weakref callback of the import machinery, a ``__del__``), it never reached the
+#: command: the run went on as if no Ctrl-C had come (CI: 60 s, then killed). A command that
+#: runs a graph takes it when it installs its own handlers (flowrt.cli.signals).
+received: int | None = None
 _SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
@@ -142,6 +147,8 @@ def _quoted(text: str) -> str:
 
 
 def _raise_interrupted(signum: int, frame: Any) -> None:
+    global received
+    received = signum
     raise Interrupted(signum)
 
 
@@ -173,9 +180,23 @@ def _install() -> None:
         pass
 
 
+def _unraisable(hook: Any) -> Callable[[Any], None]:
+    """``sys.unraisablehook`` that says nothing of an :class:`Interrupted` raised where it is
+    ignored (``Exception ignored in: <function _get_module_lock.<locals>.cb>`` and a
+    traceback): :data:`received` keeps it for the command; anything else as before."""
+
+    def unraisable(info: Any) -> None:
+        if not isinstance(info.exc_value, Interrupted):
+            hook(info)
+
+    return unraisable
+
+
 def imports_done() -> None:
     """From here a signal is an :class:`Interrupted` (a ``KeyboardInterrupt``), for the
     command's own handling."""
+    if _is_the_flowrt_command() and not _is_spawned_child():
+        sys.unraisablehook = _unraisable(sys.unraisablehook)
     try:
         for sig in _SIGNALS:
             if signal.getsignal(sig) is _exit_quietly:

@@ -67,6 +67,9 @@ class StopSignals:
                 continue  # nohup: the user asked for the run to outlive the terminal
             signal.signal(sig, self._handler)
         atexit.register(self._ignore_from_now)
+        swallowed, _startup.received = _startup.received, None
+        if swallowed is not None:  # raised where it was ignored (see _startup.received)
+            self(swallowed)
 
     def _ignore_from_now(self) -> None:
         """At exit, after the final output: a signal now is ignored. The interpreter's
