@@ -108,22 +108,18 @@ class Raising(Driver):
         raise RuntimeError("motor brake failed")
 
 
-async def test_what_the_hook_returns_is_published() -> None:
-    rt, clock = await _runtime_with(Publisher)
-    async with rt:
-        await clock.advance(0.1)
-        sub = rt.subscribe("d.out", size=100)
-        rt.set_timing("d", enabled=False)
-        await clock.advance(0.05)
-        assert sub.drain() == [-1]
-    assert rt.stats().node("d").state == "disabled"
+# (the node's class, what its disabling published, its state after, its reason)
+HOOKS = [
+    (Publisher, [-1], "idle", ""),  # published as process's result is
+    (Wrong, [], "failed", "on_disable() failed: OutputError"),  # refused: the node fails
+    (Raising, [], "failed", "motor brake failed"),
+]
 
 
-@pytest.mark.parametrize(
-    ("cls", "why"),
-    [(Wrong, "on_disable() failed: OutputError"), (Raising, "motor brake failed")],
-)
-async def test_a_hook_that_fails_fails_the_node_for_good(cls: type[Node], why: str) -> None:
+@pytest.mark.parametrize(("cls", "published", "state", "why"), HOOKS, ids=lambda c: str(c))
+async def test_what_the_hook_returns_is_published_and_a_failure_fails_the_node(
+    cls: type[Node], published: list[int], state: str, why: str
+) -> None:
     """A failed safe-state hook was logged only, the run exiting 0 with the device perhaps
     left pushing: the node is given up (torn down), its reason said, the run's failure."""
     rt, clock = await _runtime_with(cls)
@@ -132,15 +128,15 @@ async def test_a_hook_that_fails_fails_the_node_for_good(cls: type[Node], why: s
         sub = rt.subscribe("d.out", size=100)
         rt.set_timing("d", enabled=False)
         await clock.advance(0.05)
-        assert sub.drain() == []  # the wrong value is not published
-        rt.set_timing("d", enabled=True)
+        assert sub.drain() == published
+        rt.set_timing("d", enabled=True)  # (while disabled, the table says "disabled")
         await clock.advance(0.1)
-        assert sub.drain() == []  # failed for good: enabling it runs nothing
-    node = rt.stats().node("d")
-    assert node.state == "failed"
-    assert node.errors == 1
-    assert why in node.reason
-    assert [f.name for f in rt.failures()] == ["d"]
+        node = rt.stats().node("d")
+        assert (node.state, why in node.reason) == (state, True)
+        if state == "failed":
+            assert sub.drain() == []  # failed for good: enabling it runs nothing
+            assert node.errors == 1
+            assert [f.name for f in rt.failures()] == ["d"]
 
 
 async def test_a_running_call_ends_before_the_hook() -> None:
