@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import asyncio
 import inspect
-import traceback
 from typing import Any, Protocol
 
 from ..node import FatalError
@@ -51,7 +50,6 @@ class DisableHook:
     def __init__(self, name: str) -> None:
         self.name = name
         self.due = False  # disabled while a call ran: run the hook when that call ends
-        self.calls = 0  # hooks run (tests, the node's story in the log)
 
     def disabled(self, runner: _Runner) -> None:
         """The node was just disabled: its hook now, or when its running call ends."""
@@ -78,7 +76,6 @@ class DisableHook:
         executor = runner.executor
         remote = getattr(executor, "on_disable", None)  # a worker's: a request to it
         if remote is not None:
-            self.calls += 1
             fut = remote()
             if fut is not None:
                 fut.add_done_callback(lambda f: self._done(runner, f))
@@ -87,7 +84,6 @@ class DisableHook:
         hook = getattr(node, "on_disable", None)
         if not callable(hook):
             return
-        self.calls += 1
         try:
             result = hook()
         except Exception as e:
@@ -126,6 +122,8 @@ class DisableHook:
         the run exited 0 with a device perhaps left pushing."""
         summary = getattr(e, "summary", None) or f"{type(e).__name__}: {e}"
         fatal = FatalError(f"on_disable() failed: {summary}")
-        tb = getattr(e, "traceback", None)  # a worker's (its own frames)
-        fatal.traceback = tb if isinstance(tb, str) else "".join(traceback.format_exception(e))  # type: ignore[attr-defined]
+        fatal.__cause__ = e  # its traceback, as the supervisor formats one
+        tb = getattr(e, "traceback", None)
+        if isinstance(tb, str):  # a worker's: its own frames (as a worker call's failure)
+            fatal.traceback = tb  # type: ignore[attr-defined]
         runner.fail(fatal)

@@ -415,7 +415,7 @@ class NodeRunner(RunnerFields):
     def begin(self, t_release: float, taken: tuple[float, Any] | None = None) -> Activation | None:
         """Take the inputs of a released activation (``taken``: the start and inputs of a
         precise thread's call, see kernel/precise.py); None: skipped (counted)."""
-        if taken is None and _taken_back(self):
+        if taken is None and self.sched.stop_at is not None and _taken_back(self):
             return None
         now, inputs = taken or (self.sched.clock.now(), self.ins.take())
         self.untaken = False
@@ -612,7 +612,7 @@ def _taken_back(r: NodeRunner) -> bool:
     """A source released before the run's stop and begun after it (a slow call held the loop
     between; uvloop runs due timers before queued callbacks): it publishes nothing after the
     stop, as one released after it does not; the stop takes the release back."""
-    if r.sched.stop_at is None or not r._past_stop():
+    if not r._past_stop():
         return False
     r.untaken = False
     r.counts.activations -= 1  # (counted by release())

@@ -438,11 +438,18 @@ class ImportLink:
                 records.append(value)
         host.loop.call_soon(self._account, arrived, records, key)
 
+    def _offset(self, header: Header) -> float | None:
+        """The exporter's clock offset; None until it is measured (0 would be a guess: a
+        robot 5 s off read "age max 5001 ms" for good)."""
+        if header.zid and not self.bridge.clock_known(header.zid):
+            return None
+        return self.bridge.offset(header.zid)
+
     def _captured(self, header: Header, now: float, wall_now: float) -> float:
         """A value's capture time on our loop clock, from the exporter's corrected clock."""
-        if header.zid and not self.bridge.clock_known(header.zid):
+        offset = self._offset(header)
+        if offset is None:
             return now  # its clock not measured yet: arrival beats a guess
-        offset = self.bridge.offset(header.zid)
         return now - max(0.0, wall_now - (header.captured - offset))
 
     def _account(
@@ -453,13 +460,10 @@ class ImportLink:
     ) -> None:
         """On the loop, after the readers of a delivery: the link's counts and ages, the
         import's liveness, the RTDB records (a write is ~0.1 ms: a lock), the next spare."""
-        bridge = self.bridge
         for header, now, wall_now in arrived:
             self.link.delivered += 1
-            # an age needs the exporter's clock: before it is measured the offset is 0, and a
-            # robot 5 s off read "age max 5001 ms" for ever (the capture times wait too)
-            if not header.zid or bridge.clock_known(header.zid):
-                offset = bridge.offset(header.zid)
+            offset = self._offset(header)  # an age needs the exporter's clock measured
+            if offset is not None:
                 self.link.age.add(max(0.0, wall_now - (header.sent - offset)))
             self.live.arrived(now)
         self.live.contact()

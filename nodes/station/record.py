@@ -103,11 +103,10 @@ class RecordApi:
         self.call = call
         self.refresh = refresh  # new statistics into observe(), before a state is answered
         self.state: dict[str, Any] = {"recording": [], "recordings": []}
-        # Starts and stops this view made (``_now_recording``): statistics asked for before the
-        # last of them are older than what it said, and do not undo it (a page's poll in
-        # flight during a Start read "stopped" after it, until the next statistics)
-        self.changes = 0
-        self.changed_at = 0.0  # (monotonic) the last of them: statistics asked for since
+        # When this view last started or stopped a recording (``_now_recording``, monotonic):
+        # statistics asked for before it are older than what it said, and do not undo it (a
+        # page's poll in flight during a Start read "stopped" after it)
+        self.changed_at = 0.0
         self._edges: tuple[float, dict[str, int]] | None = None  # the previous statistics
         self.rates: dict[str, float] = {}
         self.refused = 0  # requests refused for their body (not JSON, nested too deeply, ...)
@@ -121,13 +120,13 @@ class RecordApi:
             web.get("/api/record", self.status),
         ]
 
-    def observe(self, stats: dict[str, Any], now: float, asked: int | None = None) -> None:
+    def observe(self, stats: dict[str, Any], now: float, asked: float | None = None) -> None:
         """New statistics: the recorders' state, and each recorded stream's rate since the
-        previous ones (from the counts of the edges into the recorders). ``asked``: the
-        ``changes`` when they were asked for; older than a start or stop since, their
-        recorders' state is not taken (the rates are)."""
+        previous ones (from the counts of the edges into the recorders). ``asked``: when they
+        were asked for (monotonic); before a start or stop since, their recorders' state is
+        not taken (the rates are)."""
         display = stats.get("display") or {}
-        if asked is None or asked == self.changes:
+        if asked is None or asked >= self.changed_at:
             self.state = {
                 "recording": display.get("recording", []),
                 "recordings": display.get("recordings", []),
@@ -152,7 +151,6 @@ class RecordApi:
         for node, folder in sessions.items():
             rows[node] = {"node": node, "session": folder, "since": 0.0}
         self.state = {**self.state, "recording": list(rows.values())}
-        self.changes += 1
         self.changed_at = time.monotonic()
 
     async def _body(self, request: web.Request) -> dict[str, Any]:

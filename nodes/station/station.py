@@ -10,7 +10,6 @@ scripts (``operator.js``, ``plots.js``) are served from this package: nothing fr
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import json
 import time
@@ -92,11 +91,20 @@ class Station:
 
     async def _refresh(self) -> None:
         """The recorders' state as of now (a page asking right after the start)."""
-        asked = self.records.changes
-        body = await self.fresh_stats(self.records.changed_at)
-        if body is not None:
-            with contextlib.suppress(ValueError):
-                self.records.observe(json.loads(body), time.monotonic(), asked)
+        await self._observed()
+
+    async def _observed(self) -> dict[str, Any] | None:
+        """Statistics no older than the view's last start or stop, given to the record API
+        (which leaves out their recorders' state if another came meanwhile)."""
+        asked = time.monotonic()
+        try:
+            body = await self.fresh_stats(self.records.changed_at)
+            stats = json.loads(body) if body is not None else None
+        except ValueError:
+            return None
+        if stats is not None:
+            self.records.observe(stats, time.monotonic(), asked)
+        return stats
 
     async def close(self) -> None:
         await asyncio.to_thread(self.robots.close)
@@ -120,14 +128,7 @@ class Station:
         loop = asyncio.get_running_loop()
         next_at = loop.time()
         while True:
-            asked = self.records.changes
-            try:
-                body = await self.fresh_stats(self.records.changed_at)
-                stats = json.loads(body) if body is not None else None
-            except ValueError:
-                stats = None
-            if stats is not None:
-                self.records.observe(stats, time.monotonic(), asked)
+            stats = await self._observed()
             self.history.sample(stats)  # psutil's reads: well under a millisecond
             next_at = max(next_at + period, loop.time())
             await asyncio.sleep(next_at - loop.time())
