@@ -244,6 +244,11 @@ class RuntimeStats(_Frozen):
     loop_scheduling: str = Field(
         default="", description="OS scheduling of the loop process, e.g. SCHED_FIFO 90 or nice -20"
     )
+    cpu_latency: str = Field(
+        default="",
+        description="the PM QoS CPU latency request of --cpu-latency: 'held at 0 us', or why "
+        "not ('not held: ...'); empty when not asked for",
+    )
     nodes: list[NodeStats]
     edges: list[EdgeStats]
     loop: LoopStats

@@ -154,6 +154,7 @@ def run_graph(
         graph,
         realtime=args.realtime,
         spin=args.spin / 1000,
+        cpu_latency=None if args.cpu_latency is None else args.cpu_latency / 1000,
         drain_timeout=args.drain_timeout,
         stop_on_failure=not args.keep_going,
         kinds=kinds,
@@ -554,7 +555,8 @@ def _control_config(
     return config
 
 
-def _spin_ms(text: str) -> float:
+def _up_to_10ms(text: str) -> float:
+    """A duration of 0 to 10 ms (``--spin``, ``--cpu-latency``), in milliseconds."""
     from ..graph.spec import parse_duration_ms
 
     try:
@@ -627,10 +629,18 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
     )
     run.add_argument(
         "--spin",
-        type=_spin_ms,
+        type=_up_to_10ms,
         default=0.0,
         metavar="DURATION",
         help="the loop busy-waits this long before each timer release (e.g. 300us; default 0)",
+    )
+    run.add_argument(
+        "--cpu-latency",
+        type=_up_to_10ms,
+        default=None,
+        metavar="DURATION",
+        help="while running, no CPU may take longer to wake (a PM QoS request, e.g. 0us: idle "
+        "CPUs poll; needs root)",
     )
     run.add_argument(
         "--drain-timeout",

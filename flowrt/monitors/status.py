@@ -157,6 +157,8 @@ def render(
         title += f" · loop {stats.loop_scheduling}"
     elif stats.realtime:
         title += f" · {stats.realtime}"
+    if stats.cpu_latency.startswith("held at "):
+        title += f" · cpu wake-up ≤ {stats.cpu_latency.removeprefix('held at ')}"
 
     lag = stats.loop.lag
     footer = _line(

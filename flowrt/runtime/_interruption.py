@@ -32,6 +32,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from ..clock import Clock
     from ..kernel import Scheduler
+    from ..system._cpu_latency import CpuLatencyRequest
+    from ..system._loop_cpus import LoopCpus
     from ..system._loop_share import LoopShare
     from ._event_hub import Monitor
     from ._resources import RunResources
@@ -46,6 +48,8 @@ class Interruptible:
     _stop: asyncio.Event
     _bridge: Any
     _loop_share: LoopShare
+    _loop_cpus: LoopCpus
+    _cpu_latency: CpuLatencyRequest
     started: bool
     ended: bool
     resources: RunResources | None
@@ -131,8 +135,16 @@ class Interruptible:
                 with contextlib.suppress(Exception):
                     await self._bridge.close()
                 self._bridge = None
-            self._loop_share.restore()
-            gc.unfreeze()
+            self._give_back_the_system()
+
+    def _give_back_the_system(self) -> None:
+        """What the start took of the process and the machine, given back (at stop, or when
+        the start is undone): the loop's nice level and CPUs, the CPU latency request, the
+        frozen heap."""
+        self._loop_share.restore()
+        self._loop_cpus.restore()
+        self._cpu_latency.release()
+        gc.unfreeze()
 
     def interruption(self) -> str:
         """What a signal would interrupt now, in words: ``set-up (in setup() of cam)``,

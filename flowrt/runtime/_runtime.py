@@ -32,6 +32,7 @@ from ..kernel.timing import TimingChange
 from ..monitors._quiet import delay_to_gap
 from ..node import Node
 from ..stats import NodeStats, Running, RuntimeStats
+from ..system._cpu_latency import CpuLatencyRequest
 from ..system._eventloop import run as run
 from ..system._loop_cpus import LoopCpus
 from ..system._loop_share import LoopShare
@@ -74,16 +75,20 @@ class Runtime(Interruptible):
         spin: float = 0.0,
         drain_timeout: float = 5.0,
         stop_on_failure: bool = False,
+        cpu_latency: float | None = None,
     ) -> None:
         """``drain_timeout``: seconds ``stop`` lets the graph finish what it holds (lossless
         edges, in-flight activations) after stopping the sources; reported when hit.
         ``stop_on_failure``: a node given up by supervision (state ``failed``) ends ``run``
         at once (``flowrt run`` does this unless ``--keep-going``); by default the rest of
-        the graph keeps running and the host program reads :meth:`failures`."""
+        the graph keeps running and the host program reads :meth:`failures`.
+        ``cpu_latency``: seconds no CPU may take to wake while it runs (a PM QoS request,
+        flowrt/system/_cpu_latency.py); refused without root: said, never fatal."""
         if not drain_timeout >= 0 or math.isinf(drain_timeout):
             raise ValueError(f"drain_timeout must be finite and >= 0, got {drain_timeout}")
         self.drain_timeout = drain_timeout
         self.stop_on_failure = stop_on_failure
+        self._cpu_latency = CpuLatencyRequest(cpu_latency)  # held while running
         self.graph = _graph_of(graph, kinds)
         if clock is not None and spin:
             raise ValueError("spin is the system clock's: pass SystemClock(spin=...) as clock")
@@ -147,6 +152,8 @@ class Runtime(Interruptible):
             self._fifo, self.realtime = enable_realtime()
             if not self._fifo:
                 log.warning("--realtime: %s", self.realtime)
+        if not self._cpu_latency.hold():
+            log.warning("--cpu-latency: %s", self._cpu_latency.granted)
         if not self._fifo:
             self._fair, self.latency_hint = self._loop_share.apply(self.graph)
         self.resources = resources = RunResources(
@@ -238,9 +245,7 @@ class Runtime(Interruptible):
                 self._rtdb.close()
             for sub in self._subscriptions:  # a reader waiting for a value: none will come
                 sub.close()
-            self._loop_share.restore()
-            self._loop_cpus.restore()
-            gc.unfreeze()
+            self._give_back_the_system()
 
     @property
     def loop_scheduling(self) -> str:
@@ -334,6 +339,7 @@ class Runtime(Interruptible):
                 "mode": self.mode,
                 "realtime": self.realtime,
                 "loop_scheduling": self.loop_scheduling,
+                "cpu_latency": self._cpu_latency.granted,
             },
             self.scheduler,
             self.resources,
