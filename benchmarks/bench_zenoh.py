@@ -497,16 +497,6 @@ def _ratio_cell(ratios: list[float] | None) -> str:
     return f"{float(np.median(ratios)):.2f} (rounds: {per})"
 
 
-def _hold_cpu_latency() -> int:
-    """A PM QoS request of 0 us (what cyclictest does): while its file stays open, idle CPUs
-    poll instead of halting (on a KVM guest: no exit to the host, no wake-up IPI cost)."""
-    import struct
-
-    fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
-    os.write(fd, struct.pack("i", 0))
-    return fd
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=10.0)
@@ -539,8 +529,12 @@ def main() -> None:
         role_main(args)
         return
     if args.pm_qos:  # held until this process exits: every variant of the run alike
-        qos = _hold_cpu_latency()
-        print(f"/dev/cpu_dma_latency held at 0 (fd {qos}): idle CPUs poll, never halt")
+        from flowrt.system._cpu_latency import CpuLatencyRequest
+
+        qos = CpuLatencyRequest(0.0)
+        if not qos.hold():
+            raise SystemExit(f"--pm-qos: {qos.granted}")
+        print(f"/dev/cpu_dma_latency {qos.granted}: idle CPUs poll, never halt")
     tmp = Path(os.environ.get("TMPDIR", "/tmp")) / f"bench_zenoh_{os.getpid()}"
     tmp.mkdir(exist_ok=True)
     start_load = os.getloadavg()

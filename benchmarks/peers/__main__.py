@@ -5,6 +5,7 @@
     python -m benchmarks.peers --rounds 1 --only lat,fps   # a subset, quicker
     python -m benchmarks.peers --no-write           # print the table, leave RESULTS.md alone
     python -m benchmarks.peers --only pipe,fps-flat --sides "flowrt workers new,flowrt pipeline 1"
+    python -m benchmarks.peers --pm-qos ...        # every side with a 0 us CPU wake-up bound (root)
 
 Each scenario runs as ``flowrt run graph.yaml --no-ui`` and as ``dora run dataflow.yml``
 (no daemon needed), one after the other, in every round; the ratio is taken within a round and
@@ -727,7 +728,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--dora-logs", action="store_true", help="leave dora's per-message diagnostics on"
     )
+    ap.add_argument(
+        "--pm-qos",
+        action="store_true",
+        help="hold a CPU wake-up bound of 0 us (/dev/cpu_dma_latency, root) for the whole "
+        "run, every side alike: what flowrt run --cpu-latency 0us gives, the software compared",
+    )
     args = ap.parse_args(argv)
+    if args.pm_qos:  # held until this process exits
+        from flowrt.system._cpu_latency import CpuLatencyRequest
+
+        qos = CpuLatencyRequest(0.0)
+        if not qos.hold():
+            print(f"--pm-qos: {qos.granted}", file=sys.stderr)
+            return 2
+        print(f"CPU wake-up bound {qos.granted} for every side (PM QoS)")
     only = set(args.only.split(",")) if args.only else None
     if shutil.which("dora", path=str(Path(sys.executable).parent)) is None and not shutil.which(
         "dora"
