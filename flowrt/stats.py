@@ -111,7 +111,7 @@ class NodeStats(_Frozen):
         default=None, description="frame triggers: every this many frames"
     )
     timer_ms: float | None = Field(default=None, description="timer triggers: the period, ms")
-    deadline_ms: float | None
+    deadline_ms: float | None = None  # (defaults: a live message leaves None out)
     watchdog_ms: float | None = None
     enabled: bool
     state: str = Field(description="idle, running, waiting, backoff, error, failed or disabled")
@@ -146,8 +146,10 @@ class NodeStats(_Frozen):
     )
     errors: int
     restarts: int
-    last_start: float | None = Field(description="runtime clock, seconds since start")
-    last_finish: float | None
+    last_start: float | None = Field(
+        default=None, description="runtime clock, seconds since start (None: never run)"
+    )
+    last_finish: float | None = None
     timing_changed: float | None = Field(
         default=None,
         description="when its release timing (period, phase, timer, enabled) last changed at "

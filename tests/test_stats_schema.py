@@ -105,3 +105,22 @@ async def test_a_runs_stats_as_the_live_server_writes_them_validate() -> None:
         "reports.rec",
         "worker_frames.0.by_socket.no-free-slot",
     ]
+
+
+async def test_the_live_message_validates_against_flowrt_schema_stats_too() -> None:
+    """One set of statistics, two readers' schemas: a script that validates what it reads
+    live (or from a recording's ``/flowrt/stats``) with ``flowrt schema stats`` (the
+    ``--stats-json`` schema). A value the live writer leaves out (None) must not be one that
+    schema requires: a node without a deadline, one never run (no start, no finish)."""
+    stats = await agent_stats()
+    never = stats.nodes[0].model_copy(
+        update={"deadline_ms": None, "last_start": None, "last_finish": None}
+    )
+    stats = stats.model_copy(update={"nodes": [never, *stats.nodes[1:]]})
+    message = json.loads(encode_json(stats, _json_schema("flowrt.RuntimeStats")).data)
+    assert "last_start" not in message["nodes"][0]  # left out, as the live server writes it
+    cli = jsonschema.Draft202012Validator(RuntimeStats.model_json_schema(by_alias=True))
+    assert [f"{list(e.absolute_path)}: {e.message}" for e in cli.iter_errors(message)] == []
+    dumped = stats.model_dump(mode="json")  # what --stats-json writes: nulls kept
+    assert dumped["nodes"][0]["last_start"] is None
+    assert list(cli.iter_errors(dumped)) == []
