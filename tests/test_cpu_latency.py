@@ -135,13 +135,32 @@ async def test_a_start_cut_short_releases_the_bound() -> None:
     assert _open_to(DEVICE) == []
 
 
-def test_the_table_title_says_the_bound_held() -> None:
+@pytest.mark.parametrize(
+    ("granted", "title"),
+    [
+        ("held at 0 us", "wake-up ≤ 0 us"),
+        ("held at 10000 us", "wake-up ≤ 10 ms"),  # short at 80 columns, never cut to "≤ 10…"
+        ("not held: /dev/cpu_dma_latency is not writable (needs root)", "wake-up bound not held"),
+        ("", None),  # not asked for
+    ],
+)
+def test_the_table_title_says_the_bound_or_that_it_is_not_held(
+    granted: str, title: str | None
+) -> None:
     from test_status_table import cambada_stats, show
 
-    held = cambada_stats().model_copy(update={"cpu_latency": "held at 0 us"})
-    assert "cpu wake-up ≤ 0 us" in show(held, 120)[0]
-    refused = cambada_stats().model_copy(update={"cpu_latency": "not held: needs root"})
-    assert "wake-up" not in show(refused, 120)[0]
+    text = show(cambada_stats().model_copy(update={"cpu_latency": granted}), 80)[0]
+    head = text.splitlines()[0]
+    if title is None:
+        assert "wake-up" not in head
+    else:
+        assert title in head
+
+
+@pytest.mark.parametrize("wrong", ["0", True, [0.0]])
+def test_a_bound_that_is_not_a_number_is_a_type_error(wrong: Any) -> None:
+    with pytest.raises(TypeError, match="cpu_latency must be a number of seconds"):
+        flowrt.Runtime(flowrt.GraphBuilder("g").build(), cpu_latency=wrong)
 
 
 @pytest.mark.subprocess
@@ -163,3 +182,6 @@ def test_the_command_line_holds_it_and_says_so(tmp_path: Path) -> None:
     bad = subprocess.run([*cmd[:-4], "--cpu-latency", "11ms"], capture_output=True, text=True)
     assert bad.returncode == 2
     assert "--cpu-latency: must be between 0 and 10 ms, got 11 ms" in bad.stderr
+    words = subprocess.run([*cmd[:-4], "--cpu-latency", "-1us"], capture_output=True, text=True)
+    assert words.returncode == 2
+    assert "expected a duration from 0 to 10 ms such as 0us or 300us, got '-1us'" in words.stderr

@@ -313,7 +313,13 @@ def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, An
         return code
     if code != EXIT_OK or not ran:  # the run said why, as "flowrt check: ..."
         return None
-    return budgets_from_stats(ran[0].stats().nodes, args.wcet_stat, "measured")
+    stats = ran[0].stats()
+    under = [f"loop {stats.loop_scheduling}" if stats.loop_scheduling else stats.realtime]
+    if stats.cpu_latency:  # the times depend on it: a bound held wakes every node faster
+        under.append(f"CPU wake-up bound {stats.cpu_latency}")
+    if any(under):
+        err.print(f"measured under: {'; '.join(u for u in under if u)}", markup=False)
+    return budgets_from_stats(stats.nodes, args.wcet_stat, "measured")
 
 
 def _graph_json(verdict: Any, tables: Any, advice: Any, paste: str) -> dict[str, Any]:

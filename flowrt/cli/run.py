@@ -561,8 +561,10 @@ def _up_to_10ms(text: str) -> float:
 
     try:
         ms = parse_duration_ms(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a duration from 0 to 10 ms such as 0us or 300us, got {text!r}"
+        ) from None
     if not 0 <= ms <= 10:
         raise argparse.ArgumentTypeError(f"must be between 0 and 10 ms, got {ms:g} ms")
     return ms
@@ -632,15 +634,16 @@ def add_run_options(parser: argparse.ArgumentParser, *, measuring: bool = False)
         type=_up_to_10ms,
         default=0.0,
         metavar="DURATION",
-        help="the loop busy-waits this long before each timer release (e.g. 300us; default 0)",
+        help="the loop busy-waits this long before each timer release (0 to 10 ms, e.g. 300us; "
+        "a bare number is ms; default 0)",
     )
     run.add_argument(
         "--cpu-latency",
         type=_up_to_10ms,
         default=None,
         metavar="DURATION",
-        help="while running, no CPU may take longer to wake (a PM QoS request, e.g. 0us: idle "
-        "CPUs poll; needs root)",
+        help="while running, no CPU may take longer to wake (a PM QoS request, 0 to 10 ms, "
+        "e.g. 0us: idle CPUs poll; a bare number is ms; needs root)",
     )
     run.add_argument(
         "--drain-timeout",

@@ -153,12 +153,12 @@ def render(
     title = f"flowrt · {stats.graph} · {stats.uptime:.1f} s"
     if stats.mode:
         title += f" · mode {stats.mode}"
+    if stats.cpu_latency:  # asked for (--cpu-latency): held, or the operator is told it is not
+        title += f" · wake-up {_bound(stats.cpu_latency)}"  # (before the loop's longer words)
     if stats.loop_scheduling:
         title += f" · loop {stats.loop_scheduling}"
     elif stats.realtime:
         title += f" · {stats.realtime}"
-    if stats.cpu_latency.startswith("held at "):
-        title += f" · cpu wake-up ≤ {stats.cpu_latency.removeprefix('held at ')}"
 
     lag = stats.loop.lag
     footer = _line(
@@ -579,3 +579,12 @@ def summary_lines(stats: RuntimeStats) -> list[str]:
         f"events={stats.events}"
     )
     return out
+
+
+def _bound(granted: str) -> str:
+    """``held at 10000 us`` -> ``≤ 10 ms``; a refusal -> ``bound not held``."""
+    us = granted.removeprefix("held at ").removesuffix(" us")
+    if not us.isdigit():
+        return "bound not held"
+    n = int(us)
+    return f"≤ {n / 1000:g} ms" if n >= 1000 else f"≤ {n} us"

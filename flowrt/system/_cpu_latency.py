@@ -34,6 +34,10 @@ class CpuLatencyRequest:
 
     def __init__(self, seconds: float | None = None, device: str = DEVICE) -> None:
         """``seconds``: the bound asked for; None asks for none (``hold`` holds nothing)."""
+        if seconds is not None and (
+            isinstance(seconds, bool) or not isinstance(seconds, (int, float))
+        ):
+            raise TypeError(f"cpu_latency must be a number of seconds, got {seconds!r}")
         if seconds is not None and not 0 <= seconds <= MAX_US / 1e6:
             raise ValueError(f"cpu_latency must be between 0 and 0.01 s, got {seconds}")
         self.seconds = seconds
