@@ -314,11 +314,11 @@ def _measure(graph: Any, args: argparse.Namespace, err: Console) -> dict[str, An
     if code != EXIT_OK or not ran:  # the run said why, as "flowrt check: ..."
         return None
     stats = ran[0].stats()
-    under = [f"loop {stats.loop_scheduling}" if stats.loop_scheduling else stats.realtime]
-    if stats.cpu_latency:  # the times depend on it: a bound held wakes every node faster
-        under.append(f"CPU wake-up bound {stats.cpu_latency}")
-    if any(under):
-        err.print(f"measured under: {'; '.join(u for u in under if u)}", markup=False)
+    loop = f"loop {stats.loop_scheduling}" if stats.loop_scheduling else stats.realtime
+    # the times depend on it: a bound held wakes every node faster
+    bound = f"CPU wake-up bound {stats.cpu_latency}" if stats.cpu_latency else ""
+    if said := "; ".join(u for u in (loop, bound) if u):
+        err.print(f"measured under: {said}", markup=False)
     return budgets_from_stats(stats.nodes, args.wcet_stat, "measured")
 
 

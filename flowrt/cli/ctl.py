@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -43,7 +42,9 @@ def _count(text: str) -> int:
 
 def _session_name(text: str) -> str:
     """``record start --name``: what ``POST /record`` takes (checked here: exit 2)."""
-    if not re.fullmatch(r"[A-Za-z0-9_\-]{1,64}", text):
+    from ..recording.session import SESSION_NAME
+
+    if not SESSION_NAME.match(text):
         raise argparse.ArgumentTypeError(
             f"{text!r}: a session name is letters, digits, _ and - (at most 64)"
         )
