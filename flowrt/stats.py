@@ -133,6 +133,11 @@ class NodeStats(_Frozen):
         description="activations in flight to a worker lost when it (or the node) failed "
         "under an earlier one (pipelined calls)",
     )
+    direct_hops: int = Field(
+        default=0,
+        description="activations whose input frame came straight from its writer's worker, "
+        "the call sent ahead (a direct hop between workers)",
+    )
     dropped: int = Field(
         default=0,
         description="data lost at this node: dropped values on its input edges + discarded "

@@ -104,11 +104,12 @@ class OutputGrants:
         self.refused = 0
         self.reclaimed = 0
 
-    def grant(self, inputs: Mapping[str, Any], window: int) -> tuple[Grant, ...]:
-        """Slots to send with a call, so that the worker holds enough for ``window`` calls."""
+    def grant(self, inputs: Mapping[str, Any], window: int, size: int = 0) -> tuple[Grant, ...]:
+        """Slots to send with a call, so that the worker holds enough for ``window`` calls
+        (``size``: of a frame input still to come, flowrt.kernel.hops)."""
         if self.per_call <= 0:
             return ()
-        cap = self.capacity
+        cap = max(self.capacity, size)
         for v in inputs.values():
             if isinstance(v, Frame) and v.nbytes > cap:
                 cap = v.nbytes
@@ -257,6 +258,9 @@ class WorkerSlots:
         self.top: set[int] = set()  # ids of the frames that are output values of the result
         self.replying = False
         self.handed: list[tuple[Grant, np.ndarray]] = []
+        # What each frame of this call's result pickled to: sent twice (straight to another
+        # worker, flowrt.workers.hops, then in the reply) it is the same slot both times.
+        self.placed: dict[int, tuple[Any, ...] | None] = {}
         self.socket: Counter[str] = Counter()
         self.wanted = 0
         self.made = 0
@@ -293,6 +297,7 @@ class WorkerSlots:
         for _, data in self.handed:
             data.flags.writeable = False
         self.handed.clear()
+        self.placed.clear()
         for grant, _ in self.taken.values():
             self.free.append(grant)
         self.taken.clear()
@@ -307,6 +312,7 @@ class WorkerSlots:
         for grant, _ in self.handed:
             self.free.append(grant)
         self.handed.clear()
+        self.placed.clear()
         self.made = 0
 
     # -- flowrt.frames.WorkerOutputs --------------------------------------------------------
@@ -330,6 +336,13 @@ class WorkerSlots:
     def place(self, frame: Frame) -> tuple[Any, ...] | None:
         if not self.replying:
             return None
+        key = id(frame)
+        if key in self.placed:
+            return self.placed[key]
+        self.placed[key] = desc = self._place(frame)
+        return desc
+
+    def _place(self, frame: Frame) -> tuple[Any, ...] | None:
         origin = frame._origin
         mine = origin is not None and origin[0][0] in self.taken
         if not mine and origin is not None and frame.data is origin[1]:

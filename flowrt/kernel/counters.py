@@ -30,6 +30,7 @@ class Counters:
     misses: int = 0  # deadline misses (flowrt.kernel.deadlines)
     discarded: int = 0  # late results dropped by miss_policy: discard
     aborted: int = 0  # activations in flight lost with their worker (or its instance)
+    direct_hops: int = 0  # activations whose input came straight from the writer's worker
     errors: int = 0  # exceptions, and values of a refused type
     restarts: int = 0
     lead_max: int = 0  # most frames of a paced source published and not yet processed
@@ -102,6 +103,7 @@ def node_stats(
         deadline_misses=c.misses,
         discarded=c.discarded,
         aborted=c.aborted,
+        direct_hops=c.direct_hops,
         paced_lead_max=c.lead_max,
         dropped=c.discarded + c.aborted + input_drops,
         errors=c.errors,

@@ -55,8 +55,44 @@ class Executor(Protocol):
         """Tear the node down; a worker that does not exit within ``grace`` s is killed."""
         ...
 
+    # Direct hops between workers (kernel/hops.py); ``hop_address`` None: none for this node.
+    @property
+    def hop_address(self) -> str | None: ...
 
-class NoExecutor:
+    def call_hop(
+        self,
+        inputs: dict[str, Any],
+        to: tuple[str, int, str | None] | None,
+        peer: tuple[str, int, int] | None = None,
+    ) -> asyncio.Future[Any]:
+        """Send a call now: its output on to another worker (``to``: its address, the hop's
+        tag, the output port), its input ``peer`` = (port, tag, frame size) from one; the
+        result is ``(True, result)``, or ``(False, None)`` when that input did not come."""
+        ...
+
+    def skip_hop(self, tag: int) -> None:
+        """The input of the call waiting for hop ``tag`` will not come."""
+        ...
+
+
+class _NoHops:
+    """No direct hop (kernel/hops.py never asks the rest when ``hop_address`` is None)."""
+
+    hop_address: str | None = None
+
+    def call_hop(
+        self,
+        inputs: dict[str, Any],
+        to: tuple[str, int, str | None] | None,
+        peer: tuple[str, int, int] | None = None,
+    ) -> asyncio.Future[Any]:
+        raise NotImplementedError("no direct hop to or from this node")
+
+    def skip_hop(self, tag: int) -> None:
+        pass
+
+
+class NoExecutor(_NoHops):
     """The executor of a runner not started yet: every call is a programming error."""
 
     sync = False
@@ -82,7 +118,7 @@ class NoExecutor:
         pass
 
 
-class InlineExecutor:
+class InlineExecutor(_NoHops):
     """The node runs on the event loop, in this process: ``process`` is a plain call."""
 
     pipelined = False

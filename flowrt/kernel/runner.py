@@ -34,6 +34,7 @@ from .counters import Counters, node_stats
 from .deadlines import DeadlineWatch
 from .disabling import DisableHook
 from .executor import Executor, InlineExecutor, NoExecutor
+from .hops import Hops
 from .inputs import Inputs
 from .outputs import OutputCheck
 from .pipeline import Pipeline
@@ -99,6 +100,7 @@ class RunnerFields:
     supervisor: Supervisor
     swapper: Swapper
     disable_hook: DisableHook  # on_disable() between calls, once per disabling
+    hops: Hops  # direct hops between workers: its reader, its call sent ahead
     # Changed by the methods below only:
     rnode: ResolvedNode  # install(): a swap's class and params, new params
     executor: Executor  # install(): set up at start, a restart, a swap; NoExecutor before
@@ -200,6 +202,21 @@ class RunnerFields:
         window = self.window
         return window == 1 or self.pipeline.inflight < window
 
+    def stats(self) -> NodeStats:
+        """The runner's statistics, times relative to the runtime's origin."""
+        return node_stats(
+            self.rnode,
+            self.timing,
+            self.counts,
+            self.state.value,
+            self.error_reason,
+            self.supervisor.failed_reason,
+            sum(b.dropped for b in self.inputs.values()),
+            self.waiting_reason,
+            self.executor.granted,
+            self.sched.rel,
+        )
+
     async def wait_ready(self) -> None:
         fut = self.sched.loop.create_future()
         self._idle_waiters.append(fut)
@@ -258,6 +275,7 @@ class NodeRunner(RunnerFields):
         self.supervisor = Supervisor(self)
         self.swapper = Swapper(self)
         self.disable_hook = DisableHook(self.name)
+        self.hops = Hops(self)
 
     # --- failures (supervision decides, the runner applies) ------------------------------
 
@@ -403,6 +421,9 @@ class NodeRunner(RunnerFields):
         self.release(t)
 
     def input_arrived(self) -> None:
+        if self.hops.armed is not None:  # its call went ahead: the activation begins now
+            self.hops.arrived()
+            return
         if self.executor.pipelined and self.pipeline.window > 1:  # (inline: one attribute)
             self.pipeline.schedule_pump()
             return
@@ -471,6 +492,7 @@ class NodeRunner(RunnerFields):
     async def run_async(self, t_release: float) -> None:
         act = self.begin(t_release)
         if act is None:
+            self.hops.drop()
             self.idle()
             return
         self.act = act
@@ -479,7 +501,7 @@ class NodeRunner(RunnerFields):
         inline = spec.placement is Placement.inline
         watchdog = _watchdog(self.sched, self.task, spec.watchdog, act.start) if inline else None
         try:
-            result = await self.executor.call(act.inputs)
+            result = await self.hops.call(act.inputs)
         except asyncio.CancelledError as e:
             act.close()
             if self.stopping:
@@ -493,6 +515,7 @@ class NodeRunner(RunnerFields):
             self.fail(e)
             return
         finally:
+            self.hops.ended()
             self.act = None
             self.deadlines.disarm(act)
             if watchdog is not None:
@@ -591,21 +614,6 @@ class NodeRunner(RunnerFields):
                     break
         if self.lossless and not self.busy:
             self.sched.loop.call_soon(self.catch_up)
-
-    def stats(self) -> NodeStats:
-        """The runner's statistics, times relative to the runtime's origin."""
-        return node_stats(
-            self.rnode,
-            self.timing,
-            self.counts,
-            self.state.value,
-            self.error_reason,
-            self.supervisor.failed_reason,
-            sum(b.dropped for b in self.inputs.values()),
-            self.waiting_reason,
-            self.executor.granted,
-            self.sched.rel,
-        )
 
 
 def _taken_back(r: NodeRunner) -> bool:

@@ -31,6 +31,7 @@ from ..node import NodeFactory
 from ..stats import NodeStats
 from .drain import Drain
 from .executor import Executor
+from .hops import wire_hops
 from .precise import PreciseNodeRunner
 from .runner import NodeRunner
 from .services import Services
@@ -69,6 +70,7 @@ class Scheduler:
             self.runners[edge.dst].connect_input(edge.dst_port, buf)
             self.buffers.append(buf)
             self.reader_of[id(buf)] = self.runners[edge.dst]
+        wire_hops(self.runners, graph.edges)
         self.paced: set[str] = set()  # frame clocks whose source waits for its readers
         # When the run's stop is due (Runtime.run's then_stop): no source is released from
         # then on, though its timer's handle, due earlier, runs after it (a loop held).

@@ -34,8 +34,9 @@ from .forkserver import (
     shut_at_exit,
     unguarded_main_message,
 )
+from .hops import SKIPPED, address
 from .watchdog import proc_forget, progress_of, state_of
-from .wire import OP_EXIT, R_ERR, R_FATAL, R_OK, SIGNALS_KILLED
+from .wire import OP_EXIT, OP_SKIP, R_ERR, R_FATAL, R_OK, R_SKIP, SIGNALS_KILLED
 
 
 @dataclass(order=True)
@@ -266,6 +267,8 @@ class Worker:
         if not fut.done():
             if status == R_OK:
                 fut.set_result(payload)
+            elif status == R_SKIP:
+                fut.set_result(SKIPPED)
             else:
                 fatal = status == R_FATAL
                 fut.set_exception(WorkerError(call.node, "exception", payload, fatal=fatal))
@@ -412,6 +415,17 @@ class Worker:
                 node, "crashed", f"worker shared with {d.node}, which hung: {d.detail}", d.exitcode
             )
         return WorkerError(node, d.kind, d.detail, d.exitcode, fatal=d.fatal)
+
+    @property
+    def hop_address(self) -> str | None:
+        """Where other workers send this one's inputs straight to (workers/hops.py)."""
+        return None if self.pid is None else address(os.getpid(), self.pid)
+
+    def skip_hop(self, tag: int) -> None:
+        """The input a call waits for from another worker will not come: it answers R_SKIP
+        (not a request: no reply of its own; ignored if the call has its input already)."""
+        if self.usable and self._transport is not None:
+            self._transport.write(frame(pickle.dumps((OP_SKIP, tag), PICKLE)))
 
     @property
     def busy(self) -> bool:

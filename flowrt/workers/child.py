@@ -22,6 +22,7 @@ from ..frames.lending import WorkerSlots, lazy_report
 from ..ipc import PICKLE, BlockingConn
 from ..system._priorities import WorkerScheduling, apply_scheduling
 from .forkserver import tied_to_runtime
+from .hops import SKIPPED, Forward, FromPeer, Hops
 from .wire import (
     OP_ADD,
     OP_CALL,
@@ -29,9 +30,11 @@ from .wire import (
     OP_EXIT,
     OP_PRIORITY,
     OP_REMOVE,
+    OP_SKIP,
     R_ERR,
     R_FATAL,
     R_OK,
+    R_SKIP,
 )
 
 
@@ -193,6 +196,20 @@ class _Nodes:
             return self.loop.run_until_complete(_await(value))
         return value
 
+    def request(self, msg: tuple[Any, ...]) -> Any:
+        """A request other than a call or the exit (workers/wire.py): its reply's payload."""
+        op = msg[0]
+        if op == OP_ADD:
+            return self.add(*msg[1:])
+        if op == OP_PRIORITY:
+            return self.priority(*msg[1:])
+        if op == OP_DISABLE:
+            return self.disabled(msg[1])
+        if op == OP_REMOVE:
+            self.teardown(msg[1])
+            return None
+        raise ValueError(f"unknown request {op!r}")
+
     def call(
         self, nid: int, inputs: dict[str, Any], grants: Any, alone: bool = True
     ) -> tuple[Any, WorkerSlots]:
@@ -277,10 +294,12 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     single_threaded_opencv()
     conn = BlockingConn(sock)
     w = _Nodes()
+    hops = Hops(main_pid)
     expected = w.expected
     linger = Linger()
     now = time.monotonic
-    for index in itertools.count():
+    index = -1  # requests read (OP_SKIP is not one)
+    while True:
         t = now()
         raw = _next_request(conn, expected.window(t) if expected.spin else linger.window(t))
         if raw is None:
@@ -288,28 +307,33 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
         linger.arrived(now())
         t0 = time.perf_counter()
         slots: WorkerSlots | None = None
+        to: Forward | None = None
         try:
             msg = pickle.loads(raw)
             op = msg[0]
+            if op == OP_SKIP:
+                continue  # stale: the call it was for had its input already
+            index += 1
             if op == OP_CALL:
-                linger.alone = msg[4] if len(msg) > 4 else True
-                result, slots = w.call(*msg[1:])
-            elif op == OP_ADD:
-                result = w.add(*msg[1:])
-            elif op == OP_PRIORITY:
-                result = w.priority(*msg[1:])
-            elif op == OP_DISABLE:
-                result = w.disabled(msg[1])
-            elif op == OP_REMOVE:
-                w.teardown(msg[1])
-                result = None
+                nid, inputs, grants, alone = msg[1:5]
+                linger.alone = alone
+                to = msg[5] if len(msg) > 5 else None
+                if not _inputs_from_peers(inputs, hops, conn):
+                    hops.skip(to)
+                    _reply(conn, R_SKIP, None, time.perf_counter() - t0, index)
+                    continue
+                result, slots = w.call(nid, inputs, grants, alone)
+                if to is not None:
+                    hops.forward(to, result, slots)
+                    to = None
             elif op == OP_EXIT:
                 w.teardown_all()
                 _reply(conn, R_OK, None, time.perf_counter() - t0, index)
                 break
             else:
-                raise ValueError(f"unknown request {op!r}")
+                result = w.request(msg)
         except Exception as e:
+            hops.skip(to)
             status = R_FATAL if getattr(e, "fatal", False) is True else R_ERR
             _reply(conn, status, traceback.format_exc(), time.perf_counter() - t0, index)
         else:
@@ -320,6 +344,18 @@ def worker_main(sock: socket.socket, name: str, main_pid: int) -> None:
     if w.loop is not None:
         w.loop.close()
     sock.close()
+
+
+def _inputs_from_peers(inputs: dict[str, Any], hops: Hops, conn: BlockingConn) -> bool:
+    """Wait for the inputs that come from other workers (workers/hops.py); False: one will not
+    come (the call is answered R_SKIP, the kernel sends it again the usual way)."""
+    for port, value in inputs.items():
+        if isinstance(value, FromPeer):
+            got = hops.wait(value.tag, conn)
+            if got is SKIPPED:
+                return False
+            inputs[port] = got
+    return True
 
 
 async def _await(value: Any) -> Any:

@@ -17,6 +17,7 @@ from ..system._priorities import WorkerScheduling, nice_for
 from .channel import Worker
 from .errors import WorkerError
 from .forkserver import check_main_importable
+from .hops import SKIPPED, Forward, FromPeer
 from .wire import OP_ADD, OP_CALL, OP_DISABLE, OP_PRIORITY, OP_REMOVE
 
 
@@ -139,23 +140,69 @@ class _NodeExecutor:
         """
         return self._request(inputs, window)
 
-    def _request(self, inputs: dict[str, Any], window: int) -> asyncio.Future[Any]:
+    @property
+    def hop_address(self) -> str | None:
+        """Where another worker may send this node's input straight to (workers/hops.py);
+        None: no direct hop (a pool's worker is shared: a call waiting there would hold up
+        its other nodes)."""
+        return None
+
+    def call_hop(
+        self,
+        inputs: dict[str, Any],
+        to: Forward | None,
+        peer: tuple[str, int, int] | None = None,
+    ) -> asyncio.Future[Any]:
+        """Send a call now whose output may go straight to another worker (``to``) and whose
+        input ``peer`` = (port, tag, frame size) may come straight from one: the future's
+        result is ``(True, result)``, or ``(False, None)`` when that input did not come."""
+        size = 0
+        if peer is not None:
+            inputs = {**inputs, peer[0]: FromPeer(peer[1])}
+            size = peer[2]
+        fut = self._request(inputs, 1, to, size)
+        loop = asyncio.get_running_loop()
+        out: asyncio.Future[Any] = loop.create_future()
+
+        def done(f: asyncio.Future[Any]) -> None:
+            if out.done():
+                return
+            if f.cancelled():
+                out.cancel()
+            elif (e := f.exception()) is not None:
+                out.set_exception(e)
+            else:
+                r = f.result()
+                out.set_result((False, None) if r is SKIPPED else (True, r))
+
+        fut.add_done_callback(done)
+        return out
+
+    def skip_hop(self, tag: int) -> None:
+        """A call's input from another worker will not come (see ``call_hop``)."""
+        if self._worker is not None:
+            self._worker.skip_hop(tag)
+
+    def _request(
+        self, inputs: dict[str, Any], window: int, to: Forward | None = None, size: int = 0
+    ) -> asyncio.Future[Any]:
         w = self._worker
         if w is None:
             raise RuntimeError(f"{self.name}: executor not started")
         out = self.outputs
+        hop = () if to is None else (to,)
         if out is None:
             return w.request(
-                (OP_CALL, self.nid, inputs, (), window == 1),
+                (OP_CALL, self.nid, inputs, (), window == 1, *hop),
                 self.name,
                 self.priority,
                 self.watchdog,
                 window,
             )
-        grants = out.grant(inputs, window) if w.usable else ()
+        grants = out.grant(inputs, window, size) if w.usable else ()
         try:
             fut = w.request(
-                (OP_CALL, self.nid, inputs, grants, window == 1),
+                (OP_CALL, self.nid, inputs, grants, window == 1, *hop),
                 self.name,
                 self.priority,
                 self.watchdog,
@@ -221,6 +268,11 @@ class ProcessExecutor(_NodeExecutor):
         **fields: Any,
     ) -> None:
         super().__init__(name, factory, 0, _options(options, fields))
+
+    @property
+    def hop_address(self) -> str | None:
+        w = self._worker
+        return w.hop_address if w is not None and w.usable else None
 
     async def start(self) -> None:
         """Spawn the worker if needed and (re)create the node in it; WorkerError if setup fails.

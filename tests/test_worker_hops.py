@@ -1,0 +1,177 @@
+"""Direct hops between workers (flowrt.kernel.hops, flowrt.workers.hops).
+
+A chain of ``placement: process`` nodes whose frames go straight from worker to worker, the
+loop deciding each reader's release ahead: the same results, counters and statistics as the
+usual way; the usual way whenever a hop cannot happen (an unstamped frame, a writer that
+raises, a worker killed, a node disabled); none where the rules say so (a deadline, a pool).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import drained, wait_until
+from pydantic import BaseModel
+
+from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
+
+pytestmark = pytest.mark.timeout(90)
+
+SHAPE = (24, 32, 3)
+
+
+class Cam(Node):
+    frame = Output(Frame)
+
+    def setup(self) -> None:
+        self.n = 0
+
+    def process(self) -> Frame:
+        f = self.ctx.new_frame(SHAPE)
+        f.data[...] = self.n % 251
+        f.seq = self.n
+        self.n += 1
+        return f
+
+
+class _Knobs(BaseModel):
+    raise_every: int = 0  # the Nth, 2Nth... call raises
+    die_at: int = 0  # the worker kills itself at this call
+    stamped: bool = True  # False: returns Frame(array), the loop stamps it
+
+
+class Add(Node):
+    """A new frame: its input + 1 (uint8), the same sequence and time stamp."""
+
+    Params = _Knobs
+    input = Input(Frame)
+    output = Output(Frame)
+
+    def setup(self) -> None:
+        self.calls = 0
+
+    def process(self, input: Frame) -> Frame:
+        self.calls += 1
+        p = self.params
+        if p.raise_every and self.calls % p.raise_every == 0:
+            raise RuntimeError(f"call {self.calls}")
+        if p.die_at and self.calls == p.die_at:
+            os.kill(os.getpid(), signal.SIGKILL)
+        if not p.stamped:
+            return Frame(input.data + np.uint8(1))
+        out = self.ctx.new_frame(input.shape)
+        np.add(input.data, 1, out=out.data)
+        out.seq, out.timestamp = input.seq, input.timestamp
+        return out
+
+
+class Check(Node):
+    frame = Input(Frame)
+    result = Output(object)
+
+    def process(self, frame: Frame) -> tuple[int, int]:
+        return frame.seq, int(frame.data[-1, -1, -1])
+
+
+def _chain(adds: list[dict[str, Any]], **spec: Any) -> Any:
+    g = GraphBuilder("hops")
+    g.add("cam", Cam, trigger={"timer": "10ms"})
+    prev = "cam.frame"
+    for i, params in enumerate(adds):
+        params = dict(params)
+        where = params.pop("placement", "process")
+        extra = {k: params.pop(k) for k in ("deadline",) if k in params}
+        g.add(f"a{i}", Add, placement=where, params=params, inputs={"input": prev}, **extra)
+        prev = f"a{i}.output"
+    g.add("sink", Check, inputs={"frame": prev}, **spec)
+    return g.build()
+
+
+async def _run(graph: Any, want: int = 25, seconds: float = 1.0) -> tuple[list[Any], Any]:
+    async with Runtime(graph) as rt:
+        sub = rt.subscribe("sink.result")
+        await rt.run(seconds)
+        got = sub.drain()
+        await wait_until(lambda: len(drained(sub, got)) >= want, within=20)
+        stats = rt.stats()
+    return got, {n.name: n for n in stats.nodes}
+
+
+def _pixels_right(got: list[tuple[int, int]], adds: int) -> None:
+    assert got
+    for seq, pixel in got:
+        assert pixel == (seq % 251 + adds) % 256, (seq, pixel)
+
+
+def _balanced(n: Any) -> None:
+    """Every activation ended one way: completed, skipped, failed (error) or aborted."""
+    assert n.activations >= n.completions + n.skipped
+    assert n.activations - n.completions - n.skipped <= n.errors + n.aborted + 1
+
+
+@pytest.mark.parametrize(
+    ("adds", "hopped"),
+    [
+        ([{}, {}, {}], ["a1", "a2"]),  # a0 is fed by the loop's camera: no hop into it
+        ([{}, {"stamped": False}, {}], ["a1"]),  # a1's frames have no time stamp: a2 the usual way
+        ([{"deadline": 500}, {}, {}], ["a2"]),  # a writer with a deadline feeds the usual way
+        ([{}, {"placement": "pool"}, {}], []),  # a pool's worker is shared: never waits
+    ],
+    ids=["chain", "unstamped", "deadline", "pool"],
+)
+async def test_hops_where_the_rules_allow_with_the_same_results(
+    adds: list[dict[str, Any]], hopped: list[str]
+) -> None:
+    got, nodes = await _run(_chain(adds))
+    _pixels_right(got, len(adds))
+    for i in range(len(adds)):
+        n = nodes[f"a{i}"]
+        assert (n.errors, n.aborted, n.skipped) == (0, 0, 0), n
+        _balanced(n)
+        if n.name in hopped:
+            assert n.direct_hops >= n.completions - 2 > 0, n  # all but a start-up's
+        else:
+            assert n.direct_hops == 0, n
+
+
+async def test_a_writer_that_raises_lets_its_reader_go() -> None:
+    """Every third call of a1 raises: a2 armed by it is let go (its worker told), runs on
+    what a1 publishes, never on what it did not."""
+    got, nodes = await _run(_chain([{}, {"raise_every": 3}, {}]), want=15)
+    _pixels_right(got, 3)
+    a1, a2 = nodes["a1"], nodes["a2"]
+    assert a1.errors >= 3
+    assert (a2.errors, a2.aborted) == (0, 0), a2
+    assert a2.completions <= a1.completions
+    _balanced(a2)
+
+
+@pytest.mark.parametrize("who", ["a1", "a2"])
+async def test_a_worker_killed_mid_chain(who: str) -> None:
+    """The writer's (or the reader's) worker dies while hops are armed: no hang, the node is
+    restarted, the chain goes on with the right pixels."""
+    adds: list[dict[str, Any]] = [{}, {}, {}]
+    adds[int(who[1])] = {"die_at": 10}
+    got, nodes = await _run(_chain(adds), want=30, seconds=2.0)
+    _pixels_right(got, 3)
+    assert nodes[who].restarts >= 1
+    for n in nodes.values():
+        _balanced(n)
+
+
+async def test_a_reader_disabled_runs_at_most_the_call_decided_ahead() -> None:
+    async with Runtime(_chain([{}, {}, {}])) as rt:
+        sub = rt.subscribe("sink.result")
+        await rt.run(0.6)
+        assert rt.stats().node("a2").direct_hops > 0
+        rt.set_timing("a2", enabled=False)
+        before = rt.stats().node("a2").completions
+        await rt.run(0.5)
+        after = rt.stats().node("a2")
+        assert after.completions <= before + 1, after  # an activation already decided
+        got = sub.drain()
+    _pixels_right(got, 3)
