@@ -9,7 +9,11 @@ raises, a worker killed, a node disabled); none where the rules say so (a deadli
 from __future__ import annotations
 
 import os
+import pickle
 import signal
+import socket
+import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -18,6 +22,9 @@ from conftest import drained, wait_until
 from pydantic import BaseModel
 
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
+from flowrt.ipc import BlockingConn, frame
+from flowrt.workers import hops as worker_hops
+from flowrt.workers.wire import OP_SKIP
 
 pytestmark = pytest.mark.timeout(90)
 
@@ -175,3 +182,52 @@ async def test_a_reader_disabled_runs_at_most_the_call_decided_ahead() -> None:
         assert after.completions <= before + 1, after  # an activation already decided
         got = sub.drain()
     _pixels_right(got, 3)
+
+
+def _send_as(uid: int | None, addr: str, msg: bytes) -> None:
+    """Connect to ``addr`` from a child process (running as ``uid``) and send ``msg``."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - the child
+        try:
+            if uid is not None:
+                os.setuid(uid)
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.connect(addr)
+            s.sendall(msg)
+            time.sleep(0.3)
+        finally:
+            os._exit(0)
+    os.waitpid(pid, 0)
+
+
+@pytest.mark.subprocess
+@pytest.mark.parametrize(
+    ("uid", "heard"),
+    [(None, True), (65534, False)],
+    ids=["same-user", "other-user"],
+)
+def test_a_hop_is_heard_from_our_own_user_only(uid: int | None, heard: bool) -> None:
+    """An abstract address has no file permissions: a process of another user that sends a
+    hop (a pickle: code) is not heard; the call waits for the loop's OP_SKIP instead."""
+    if uid is not None and os.getuid() != 0:
+        pytest.skip("needs root to run a sender as another user")
+    runtime = 4_000_000 + (uid or 0)  # a runtime pid of the test's own: an address per case
+    hops = worker_hops.Hops(runtime)
+    addr = worker_hops.address(runtime, os.getpid())
+    assert addr is not None
+    assert hops.listener is not None
+    main, child = socket.socketpair()
+    try:
+        threading.Thread(
+            target=_send_as, args=(uid, addr, frame(pickle.dumps((7, "value")))), daemon=True
+        ).start()
+        skip = threading.Timer(1.0, main.sendall, [frame(pickle.dumps((OP_SKIP, 7)))])
+        skip.start()
+        got = hops.wait(7, BlockingConn(child))
+    finally:
+        skip.cancel()
+        skip.join()
+        main.close()
+        child.close()
+        hops.listener.close()
+    assert got == ("value" if heard else worker_hops.SKIPPED)

@@ -15,7 +15,9 @@ when it publishes them); anything else goes as a skip (``(tag, None)``) and the 
 returns ``R_SKIP``: the kernel then sends it the usual way.
 
 Each worker listens on an abstract AF_UNIX address named after the runtime's pid and its
-own (Linux; nothing on the file system to clean up); a writer connects on its first hop.
+own (Linux; nothing on the file system to clean up); a writer connects on its first hop. An
+abstract address has no file permissions, so both ends check the other's user id
+(``SO_PEERCRED``): a process of another user is neither heard (a pickle is code) nor told.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import os
 import pickle
 import select
 import socket
+import struct
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -111,7 +114,9 @@ class Hops:
             except OSError:
                 s.close()  # the reader's worker is gone: the loop tells its call (OP_SKIP)
             else:
-                conn = BlockingConn(s)
+                conn = BlockingConn(s) if _same_user(s) else None
+                if conn is None:
+                    s.close()
             self.outbound[addr] = conn
         if conn is not None and not conn.send(data):
             conn.sock.close()
@@ -123,35 +128,44 @@ class Hops:
         """The value hop ``tag`` brings, or SKIPPED: the writer skipped it, or the loop said
         it will not come (OP_SKIP), or the loop is gone. Stale values (earlier tags) are
         dropped; a request of the loop's other than OP_SKIP is left for the main loop."""
+        listener = self.listener
+        if listener is None:
+            return SKIPPED  # nobody can reach us (the address was taken): the usual way
         poller = select.poll()
-        if self.listener is not None:
-            poller.register(self.listener, select.POLLIN)
+        poller.register(listener, select.POLLIN)
         poller.register(loop.sock, select.POLLIN)
         for fd in self.inbound:
             poller.register(fd, select.POLLIN)
         while True:
-            for conn in list(self.inbound.values()):
-                while conn.complete():
-                    got = self._take(conn, tag)
-                    if got is not _NOT_YET:
-                        return got
-            if loop.complete():
-                got = self._from_loop(loop, tag)
-                if got is not _NOT_YET:
-                    return got
-            for fd, _ in poller.poll():
-                if self.listener is not None and fd == self.listener.fileno():
-                    s, _addr = self.listener.accept()
-                    self.inbound[s.fileno()] = BlockingConn(s)
-                    poller.register(s.fileno(), select.POLLIN)
+            got = self._buffered(tag, loop)
+            for fd, _ in poller.poll() if got is _NOT_YET else ():
+                if fd == listener.fileno():
+                    self._accept(listener, poller)
                 elif fd == loop.sock.fileno():
                     got = self._from_loop(loop, tag)
-                    if got is not _NOT_YET:
-                        return got
                 elif fd in self.inbound:
                     got = self._take(self.inbound[fd], tag, fd, poller)
-                    if got is not _NOT_YET:
-                        return got
+                if got is not _NOT_YET:
+                    break
+            if got is not _NOT_YET:
+                return got
+
+    def _buffered(self, tag: int, loop: BlockingConn) -> Any:
+        """What whole messages already read say (several may come in one read)."""
+        for conn in list(self.inbound.values()):
+            while conn.complete():
+                got = self._take(conn, tag)
+                if got is not _NOT_YET:
+                    return got
+        return self._from_loop(loop, tag) if loop.complete() else _NOT_YET
+
+    def _accept(self, listener: socket.socket, poller: Any) -> None:
+        s, _addr = listener.accept()
+        if not _same_user(s):
+            s.close()
+            return
+        self.inbound[s.fileno()] = BlockingConn(s)
+        poller.register(s.fileno(), select.POLLIN)
 
     def _take(self, conn: BlockingConn, tag: int, fd: int = -1, poller: Any = None) -> Any:
         raw = conn.recv()
@@ -178,3 +192,15 @@ class Hops:
 
 
 _NOT_YET: Any = object()
+_CREDS = struct.Struct("3i")  # struct ucred: pid, uid, gid
+
+
+def _same_user(s: socket.socket) -> bool:
+    """The process at the other end runs as our user."""
+    try:
+        _pid, uid, _gid = _CREDS.unpack(
+            s.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _CREDS.size)
+        )
+    except OSError:
+        return False
+    return bool(uid == os.getuid())
