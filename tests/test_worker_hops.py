@@ -109,7 +109,10 @@ async def _run(graph: Any, want: int = 25, seconds: float = 1.0) -> tuple[list[A
 
 
 def _pixels_right(got: list[tuple[int, int]], adds: int) -> None:
+    """Each frame the camera's own after ``adds`` additions, none twice, in order."""
     assert got
+    seqs = [seq for seq, _ in got]
+    assert seqs == sorted(set(seqs)), seqs
     for seq, pixel in got:
         assert pixel == (seq % 251 + adds) % 256, (seq, pixel)
 
@@ -231,3 +234,26 @@ def test_a_hop_is_heard_from_our_own_user_only(uid: int | None, heard: bool) -> 
         child.close()
         hops.listener.close()
     assert got == ("value" if heard else worker_hops.SKIPPED)
+
+
+async def test_a_host_publish_into_a_writer_output_is_not_taken_for_its_hop() -> None:
+    """``Runtime.publish`` on a hop writer's output while its reader is armed: the reader's
+    activation waits for the writer's own publication; the host's value is a value like any
+    other (taken by a later activation, or overwritten and counted)."""
+    host = Frame(np.full(SHAPE, 200, np.uint8), seq=10**6, timestamp=1.0)
+    async with Runtime(_chain([{}, {}, {}])) as rt:
+        sub = rt.subscribe("sink.result")
+        await rt.run(0.4)
+        for _ in range(20):
+            rt.publish("a0.output", host)
+            await rt.run(0.013)
+        await rt.run(0.3)
+        got = sub.drain()
+        a1 = rt.stats().node("a1")
+    from_host = [g for g in got if g[0] == 10**6]
+    from_cam = [seq for seq, _ in got if seq != 10**6]
+    assert from_cam == sorted(set(from_cam)), "a camera frame processed twice"
+    _pixels_right([g for g in got if g[0] != 10**6], 3)
+    assert all(pixel == 202 for _, pixel in from_host)
+    assert a1.errors == 0
+    _balanced(a1)

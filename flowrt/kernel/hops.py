@@ -104,11 +104,15 @@ class Hops:
     def __init__(self, runner: HopRunner) -> None:
         self.r = runner
         self.reader: Hops | None = None  # wired (wire_hops): the one reader it may feed directly
+        self.writer: Hops | None = None  # wired: the one writer that may feed it directly
         self.port: str | None = None  # the output port feeding it (None: the node's only one)
         self.in_port = ""  # as a reader: the input the writer feeds
         self.armed: tuple[int, asyncio.Future[Any]] | None = None  # tag, call sent ahead
         self.begun = False  # its activation has begun on the value (task created)
         self.fed: tuple[Hops, int] | None = None
+        # True from its hop call's result until the end of that loop turn: its publication
+        # (what an armed reader's activation waits for, not a host's Runtime.publish)
+        self.publishing = False
 
     # -- the writer's side ---------------------------------------------------------------
 
@@ -124,7 +128,7 @@ class Hops:
         if not plan:
             return r.executor.call(inputs)
         reader, tag = plan[0]
-        fut = r.executor.call_hop(inputs, (_address(reader), tag, self.port))
+        fut = self._result(r.executor.call_hop(inputs, (_address(reader), tag, self.port)))
         self.fed = (reader, tag)
         # The readers' output slots are lent with their calls, before their input exists:
         # sized as the writer's input frames (a filter's output is usually its input's size).
@@ -134,7 +138,7 @@ class Hops:
             to = None if nxt is None else (_address(nxt[0]), nxt[1], h.port)
             h.arm(tag, to, size)
             h.fed = None if nxt is None else nxt
-        return _result(fut)
+        return fut
 
     def _plan(self) -> list[tuple[Hops, int]]:
         if not self._may_feed():
@@ -196,8 +200,9 @@ class Hops:
 
     def arrived(self) -> None:
         """The writer published: the activation begins (and takes the value), as a release
-        would have begun it; a newer value waits in the buffer for the next one."""
-        if self.begun:
+        would have begun it. A newer value, or one published by someone else (a host's
+        ``Runtime.publish``), waits in the buffer for the next activation."""
+        if self.begun or self.writer is None or not self.writer.publishing:
             return
         self.begun = True
         r = self.r
@@ -205,11 +210,22 @@ class Hops:
         r.started(r.sched.loop.create_task(r.run_async(r.sched.clock.now())))
 
     async def _armed(self, fut: asyncio.Future[Any], inputs: dict[str, Any]) -> Any:
-        ran, result = await fut
+        ran, result = await self._result(fut, keep=True)
         if ran:
             self.r.counts.direct_hops += 1
             return result
         return await self.r.executor.call(inputs)  # the value did not come: the usual way
+
+    async def _result(self, fut: asyncio.Future[Any], keep: bool = False) -> Any:
+        """The call's result; what the activation does with it in this turn (its
+        publication) is this node's publishing."""
+        got = await fut
+        self.publishing = True
+        self.r.sched.loop.call_soon(self._published)
+        return got if keep else got[1]
+
+    def _published(self) -> None:
+        self.publishing = False
 
     def unfed(self, tag: int) -> None:
         """The writer's call that armed this one ended without its value reaching it."""
@@ -241,10 +257,6 @@ class Hops:
         armed[1].add_done_callback(gone)
 
 
-async def _result(fut: asyncio.Future[Any]) -> Any:
-    return (await fut)[1]
-
-
 def _address(h: Hops) -> str:
     address = h.r.executor.hop_address
     assert address is not None  # _may_arm
@@ -271,6 +283,7 @@ def wire_hops(runners: Mapping[str, HopRunner], edges: Iterable[Edge]) -> None:
         if port is None or port.type is not Frame:
             continue
         w.hops.reader = rd.hops
+        rd.hops.writer = w.hops
         w.hops.port = None if len(w.outputs) == 1 else e.src_port
         rd.hops.in_port = e.dst_port
 
