@@ -20,6 +20,12 @@ from ..node import Node
 #: holds the loop and cannot be cut: keep it short, or make it async or ``placement: process``.
 SETUP_TIMEOUT_S = 60.0
 
+# A direct hop's ends (kernel/hops.py): where a call's output goes (the reader's worker's
+# address, the hop's tag, the output port or None for the only one), and where its input
+# comes from (the input port, the hop's tag, the frame's expected size in bytes).
+HopTo = tuple[str, int, str | None] | None
+HopFrom = tuple[str, int, int] | None
+
 
 class Executor(Protocol):
     """Runs one node instance's ``setup``/``process``/``teardown`` somewhere.
@@ -60,10 +66,7 @@ class Executor(Protocol):
     def hop_address(self) -> str | None: ...
 
     def call_hop(
-        self,
-        inputs: dict[str, Any],
-        to: tuple[str, int, str | None] | None,
-        peer: tuple[str, int, int] | None = None,
+        self, inputs: dict[str, Any], to: HopTo, peer: HopFrom = None
     ) -> asyncio.Future[Any]:
         """Send a call now: its output on to another worker (``to``: its address, the hop's
         tag, the output port), its input ``peer`` = (port, tag, frame size) from one; the
@@ -81,10 +84,7 @@ class _NoHops:
     hop_address: str | None = None
 
     def call_hop(
-        self,
-        inputs: dict[str, Any],
-        to: tuple[str, int, str | None] | None,
-        peer: tuple[str, int, int] | None = None,
+        self, inputs: dict[str, Any], to: HopTo, peer: HopFrom = None
     ) -> asyncio.Future[Any]:
         raise NotImplementedError("no direct hop to or from this node")
 

@@ -40,7 +40,7 @@ from ..graph._resolve import Edge, ResolvedNode
 from ..graph.spec import InputTrigger, Placement
 from .counters import Counters
 from .disabling import DisableHook
-from .executor import Executor
+from .executor import Executor, HopTo
 from .ports import SchedulerPort
 from .state import RunState
 from .swapping import Swapper
@@ -191,7 +191,7 @@ class Hops:
             and not r.inputs[self.in_port].pending()
         )
 
-    def arm(self, tag: int, to: tuple[str, int, str | None] | None, size: int) -> None:
+    def arm(self, tag: int, to: HopTo, size: int) -> None:
         """Send this node's call now, its input to come from its writer's worker (hop
         ``tag``, a frame of about ``size`` bytes), its output to go on ``to``: its release,
         decided ahead."""
