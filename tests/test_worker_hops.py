@@ -98,10 +98,12 @@ def _chain(adds: list[dict[str, Any]], **spec: Any) -> Any:
     return g.build()
 
 
-async def _run(graph: Any, want: int = 25, seconds: float = 1.0) -> tuple[list[Any], Any]:
+async def _run(
+    graph: Any, want: int = 25, seconds: float = 1.0, then_stop: bool = False
+) -> tuple[list[Any], Any]:
     async with Runtime(graph) as rt:
         sub = rt.subscribe("sink.result")
-        await rt.run(seconds)
+        await rt.run(seconds, then_stop=then_stop)
         got = sub.drain()
         await wait_until(lambda: len(drained(sub, got)) >= want, within=20)
         stats = rt.stats()
@@ -133,10 +135,12 @@ def _balanced(n: Any) -> None:
     ],
     ids=["chain", "unstamped", "deadline", "pool"],
 )
+@pytest.mark.parametrize("then_stop", [False, True], ids=["", "duration"])
 async def test_hops_where_the_rules_allow_with_the_same_results(
-    adds: list[dict[str, Any]], hopped: list[str]
+    adds: list[dict[str, Any]], hopped: list[str], then_stop: bool
 ) -> None:
-    got, nodes = await _run(_chain(adds))
+    """``then_stop``: a run whose stop is due from the start (``flowrt run --duration``)."""
+    got, nodes = await _run(_chain(adds), then_stop=then_stop)
     _pixels_right(got, len(adds))
     for i in range(len(adds)):
         n = nodes[f"a{i}"]

@@ -159,9 +159,8 @@ class Hops:
         sched = r.sched
         return (
             self.reader is not None
-            and sched.observer is None
-            and sched.stop_at is None
-            and r.timing.deadline is None
+            and sched.observer is None  # (a stop due, --duration's, is no reason: it stops
+            and r.timing.deadline is None  # sources, and a reader armed before it runs)
             and r.window == 1
         )
 
