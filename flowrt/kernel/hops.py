@@ -159,6 +159,7 @@ class Hops:
         sched = r.sched
         return (
             self.reader is not None
+            and r.executor.hop_address is not None  # (a worker of its own, running)
             and sched.observer is None  # (a stop due, --duration's, is no reason: it stops
             and r.timing.deadline is None  # sources, and a reader armed before it runs)
             and r.window == 1
