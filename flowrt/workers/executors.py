@@ -176,6 +176,9 @@ class _NodeExecutor:
                 out.set_result((False, None) if r is SKIPPED else (True, r))
 
         fut.add_done_callback(done)
+        # A caller that gives up gives up the call, as awaiting it directly does: its result's
+        # frames are then let go when it comes (Worker._on_reply), not held for nobody.
+        out.add_done_callback(lambda o: fut.cancel() if o.cancelled() else None)
         return out
 
     def skip_hop(self, tag: int) -> None:
