@@ -240,7 +240,8 @@ class Hops:
     def drop(self) -> None:
         """Let the call sent ahead go (its activation will not take it): its worker stops
         waiting; if it ran, its result is dropped and counted aborted. Its own reader too."""
-        armed, self.armed, self.begun = self.armed, None, False
+        armed, begun = self.armed, self.begun
+        self.armed, self.begun = None, False
         if armed is None:
             return
         r = self.r
@@ -252,7 +253,8 @@ class Hops:
                 return
             ran, result = f.result()
             if ran:
-                r.counts.activations += 1
+                if not begun:  # (an activation that began is counted already)
+                    r.counts.activations += 1
                 r.counts.aborted += 1
                 release_handoffs(result)
 
