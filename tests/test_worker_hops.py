@@ -9,7 +9,6 @@ raises, a worker killed, a node disabled); none where the rules say so (a deadli
 from __future__ import annotations
 
 import os
-import pickle
 import signal
 import socket
 import threading
@@ -22,7 +21,7 @@ from conftest import drained, wait_until
 from pydantic import BaseModel
 
 from flowrt import Frame, GraphBuilder, Input, Node, Output, Runtime
-from flowrt.ipc import BlockingConn, frame
+from flowrt.ipc import BlockingConn, pack
 from flowrt.workers import hops as worker_hops
 from flowrt.workers.wire import OP_SKIP
 
@@ -225,10 +224,8 @@ def test_a_hop_is_heard_from_our_own_user_only(uid: int | None, heard: bool) -> 
     assert hops.listener is not None
     main, child = socket.socketpair()
     try:
-        threading.Thread(
-            target=_send_as, args=(uid, addr, frame(pickle.dumps((7, "value")))), daemon=True
-        ).start()
-        skip = threading.Timer(1.0, main.sendall, [frame(pickle.dumps((OP_SKIP, 7)))])
+        threading.Thread(target=_send_as, args=(uid, addr, pack((7, "value"))), daemon=True).start()
+        skip = threading.Timer(1.0, main.sendall, [pack((OP_SKIP, 7))])
         skip.start()
         got = hops.wait(7, BlockingConn(child))
     finally:

@@ -129,26 +129,30 @@ class Hops:
         plan = self._plan()
         if not plan:
             return r.executor.call(inputs)
-        reader, tag = plan[0]
-        fut = self._result(r.executor.call_hop(inputs, (_address(reader), tag, self.port)))
+        reader, tag, address = plan[0]
+        fut = self._result(r.executor.call_hop(inputs, (address, tag, self.port)))
         self.fed = (reader, tag)
         # The readers' output slots are lent with their calls, before their input exists:
         # sized as the writer's input frames (a filter's output is usually its input's size).
         size = max((v.nbytes for v in inputs.values() if isinstance(v, Frame)), default=0)
-        for i, (h, tag) in enumerate(plan):
+        for i, (h, tag, _) in enumerate(plan):
             nxt = plan[i + 1] if i + 1 < len(plan) else None
-            to = None if nxt is None else (_address(nxt[0]), nxt[1], h.port)
-            h.arm(tag, to, size)
-            h.fed = None if nxt is None else nxt
+            h.arm(tag, None if nxt is None else (nxt[2], nxt[1], h.port), size)
+            h.fed = None if nxt is None else (nxt[0], nxt[1])
         return fut
 
-    def _plan(self) -> list[tuple[Hops, int]]:
+    def _plan(self) -> list[tuple[Hops, int, str]]:
+        """The readers to arm down the chain: each with its hop's tag and its worker's
+        address."""
         if not self._may_feed():
             return []
-        plan: list[tuple[Hops, int]] = []
+        plan: list[tuple[Hops, int, str]] = []
         h: Hops = self
-        while (reader := h.reader) is not None and reader._may_arm() and len(plan) < AHEAD:
-            plan.append((reader, next(_tags)))
+        while (reader := h.reader) is not None and len(plan) < AHEAD:
+            address = reader._arm_address()
+            if address is None:
+                break
+            plan.append((reader, next(_tags), address))
             if not reader._may_feed():
                 break
             h = reader
@@ -174,9 +178,10 @@ class Hops:
 
     # -- the reader's side ---------------------------------------------------------------
 
-    def _may_arm(self) -> bool:
+    def _arm_address(self) -> str | None:
+        """Its worker's address if it may be armed now (None: it may not)."""
         r = self.r
-        return (
+        may = (
             self.armed is None
             and not r.busy
             and r.state is RunState.idle
@@ -187,9 +192,9 @@ class Hops:
             and not r.disable_hook.due
             and r.timing.deadline is None
             and r.window == 1
-            and r.executor.hop_address is not None
             and not r.inputs[self.in_port].pending()
         )
+        return r.executor.hop_address if may else None
 
     def arm(self, tag: int, to: HopTo, size: int) -> None:
         """Send this node's call now, its input to come from its writer's worker (hop
@@ -259,12 +264,6 @@ class Hops:
                 release_handoffs(result)
 
         armed[1].add_done_callback(gone)
-
-
-def _address(h: Hops) -> str:
-    address = h.r.executor.hop_address
-    assert address is not None  # _may_arm
-    return address
 
 
 def wire_hops(runners: Mapping[str, HopRunner], edges: Iterable[Edge]) -> None:

@@ -22,7 +22,7 @@ from typing import Any
 
 from ..frames import release_handoffs
 from ..frames.lending import Grant, OutputGrants
-from ..ipc import PICKLE, Framer, frame
+from ..ipc import PICKLE, Framer, frame, pack
 from .child import worker_main
 from .errors import WorkerError, WorkerKind
 from .forkserver import (
@@ -102,6 +102,9 @@ class Worker:
         self.death: WorkerError | None = None
         self._deaths: set[asyncio.Task[None]] = set()  # calls waiting to fail with the death
         self.alive = False  # the process exists (until its sentinel fires)
+        # Where other workers send this one's inputs straight to (workers/hops.py): named
+        # after the runtime's pid and the worker's, so set once it is spawned.
+        self.hop_address: str | None = None
         self._killing = False
         self.last_run_time = 0.0
         # Watchdog progress check (see _on_hung): the worker's CPU and run-queue wait at the
@@ -138,6 +141,7 @@ class Worker:
         shut_at_exit(parent)
         self.proc = proc
         self.pid = proc.pid
+        self.hop_address = None if proc.pid is None else address(os.getpid(), proc.pid)
         self.alive = True
         parent.setblocking(False)
         transport, _ = await loop.create_unix_connection(lambda: _Protocol(self), sock=parent)
@@ -416,16 +420,11 @@ class Worker:
             )
         return WorkerError(node, d.kind, d.detail, d.exitcode, fatal=d.fatal)
 
-    @property
-    def hop_address(self) -> str | None:
-        """Where other workers send this one's inputs straight to (workers/hops.py)."""
-        return None if self.pid is None else address(os.getpid(), self.pid)
-
     def skip_hop(self, tag: int) -> None:
         """The input a call waits for from another worker will not come: it answers R_SKIP
         (not a request: no reply of its own; ignored if the call has its input already)."""
         if self.usable and self._transport is not None:
-            self._transport.write(frame(pickle.dumps((OP_SKIP, tag), PICKLE)))
+            self._transport.write(pack((OP_SKIP, tag)))
 
     @property
     def busy(self) -> bool:

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..frames import Frame
+from ..frames.lending import WorkerSlots
 from ..ipc import PICKLE, BlockingConn, frame
 from .wire import OP_SKIP
 
@@ -86,13 +87,13 @@ class Hops:
 
     # -- the writer's side ---------------------------------------------------------------
 
-    def forward(self, to: Forward, result: Any, slots: Any) -> None:
+    def forward(self, to: Forward, result: Any, slots: WorkerSlots) -> None:
         """Send the output ``to`` names to the reader's worker (a skip when it is not a
         stamped frame, or cannot go)."""
         addr, tag, port = to
         value = result.get(port) if port is not None and isinstance(result, Mapping) else result
         data = None
-        if isinstance(value, Frame) and value.timestamp != 0.0 and slots is not None:
+        if isinstance(value, Frame) and value.timestamp != 0.0:
             slots.reply(result)  # the output values take their slots now (the reply's too)
             try:
                 data = pickle.dumps((tag, value), PICKLE)
