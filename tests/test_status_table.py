@@ -144,6 +144,7 @@ def test_every_node_name_state_and_counter_in_full(width: int) -> None:
         assert re.search(rf"^{re.escape(e.name)}\s", text, re.M), e.name
 
 
+@pytest.mark.slow  # a sweep of 53 widths: ~0.9 s of CPU alone, at the fast tier's 1 s limit
 def test_no_width_cuts_a_cell_or_overflows() -> None:
     stats = cambada_stats(**FAILING)
     for width in range(72, 230, 3):
