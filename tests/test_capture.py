@@ -415,6 +415,7 @@ def _lamp_tracker(g: flowrt.GraphBuilder) -> None:
     )
 
 
+@pytest.mark.slow  # a real video decoded and tracked: ~0.9 s of CPU alone (1 s fast-tier limit)
 @pytest.mark.skipif(not VIDEO.exists(), reason=f"{VIDEO} not available")
 async def test_real_video_frames_and_tracker() -> None:
     """The sample video through a file source, tracked (its glowing table lamp) inline."""
